@@ -1,0 +1,199 @@
+//! The closed-loop abstraction of thesis ch. 3.1 and the generic transfer operators built on it.
+//!
+//! A model supplies, at one frequency, the operators of the equation of motion in the sensed
+//! coordinates (thesis eq. "equation of motion in the sensed coordinates"):
+//! dynamics `D`, sensing `S`, actuated control `A C`, the bare control law `C` and the guidance
+//! delay `T`, plus each operator's derivative with respect to each parameter. Everything else is
+//! generic in the dimension `N` and lives here:
+//!
+//! - `Delta = D S^-1 + A C` (readouts -> total equivalent acceleration),
+//! - `T_{oi->o} = Delta^-1 A C T` (guidance injections -> readouts),
+//! - `T_{oi->fc} = -C (T_{oi->o} - 1)` (injections -> commanded forces per unit mass),
+//! - `dT_{oi->o}/dp_k` analytically, with `d(Delta^-1) = -Delta^-1 dDelta Delta^-1` and
+//!   `d(S^-1) = -S^-1 dS S^-1`. No finite differences are used on the fitting path.
+
+use nalgebra::SMatrix;
+use num_complex::Complex64;
+
+use super::poly::Poly;
+use super::ModelError;
+
+pub type CMat<const N: usize> = SMatrix<Complex64, N, N>;
+pub type CVec<const N: usize> = nalgebra::SVector<Complex64, N>;
+
+/// The operators at one frequency for one parameter vector.
+#[derive(Debug, Clone, Copy)]
+pub struct Operators<const N: usize> {
+    pub d: CMat<N>,
+    pub s: CMat<N>,
+    /// Actuated control `A C` as it acts on the dynamics (includes actuation gains).
+    pub ac: CMat<N>,
+    /// Bare control law `C` (commanded force per unit mass per metre of error signal).
+    pub c: CMat<N>,
+    /// Guidance-injection delay operator `T`.
+    pub t: CMat<N>,
+}
+
+/// Derivative of the operators with respect to one parameter; `None` means identically zero,
+/// which the generic code uses to skip work.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct OperatorDerivative<const N: usize> {
+    pub d: Option<CMat<N>>,
+    pub s: Option<CMat<N>>,
+    pub ac: Option<CMat<N>>,
+    pub t: Option<CMat<N>>,
+}
+
+/// Where a physical noise source acts (thesis eq. "equation of motion in the sensed
+/// coordinates": force noise `f_n` adds to `Delta o`, readout noise enters as `D S^-1 o_n`).
+#[derive(Debug, Clone, Copy)]
+pub enum NoiseEntry<const N: usize> {
+    /// Column of `G`: the source's contribution to the force rows (per unit mass).
+    Force([f64; N]),
+    /// The source adds to the readouts with this weight per readout channel.
+    Readout([f64; N]),
+}
+
+/// A linear closed-loop model of dimension `N` (readouts = guidance inputs = coordinates).
+///
+/// `Point` holds what does not depend on the parameters at one frequency (s, controller
+/// responses), so that a frequency grid is prepared once and reused for every evaluation.
+pub trait ClosedLoopModel<const N: usize>: Send + Sync {
+    type Point: Clone + Send + Sync;
+
+    fn parameter_names(&self) -> &[String];
+    fn readout_names(&self) -> [&'static str; N];
+    fn input_names(&self) -> [&'static str; N];
+    fn prepare(&self, f_hz: f64) -> Self::Point;
+    fn operators(&self, pt: &Self::Point, p: &[f64]) -> Operators<N>;
+    fn derivative(&self, pt: &Self::Point, p: &[f64], k: usize) -> OperatorDerivative<N>;
+    /// A polynomial in s whose roots are the closed-loop poles: `det(Delta)` times the
+    /// controllers' denominators.
+    fn characteristic_polynomial(&self, p: &[f64]) -> Poly;
+    /// How a source with `enters = name` acts, or `None` for an unknown entry point.
+    fn noise_entry(&self, name: &str) -> Option<NoiseEntry<N>>;
+
+    fn n_params(&self) -> usize {
+        self.parameter_names().len()
+    }
+}
+
+/// Closed-loop transfer operators at one frequency.
+#[derive(Debug, Clone, Copy)]
+pub struct Transfer<const N: usize> {
+    pub delta: CMat<N>,
+    pub delta_inv: CMat<N>,
+    /// `T_{oi->o}[out, in]`.
+    pub oi_o: CMat<N>,
+    /// `T_{oi->fc}[force, in]`.
+    pub oi_fc: CMat<N>,
+    pub ops: Operators<N>,
+}
+
+fn inverse<const N: usize>(m: &CMat<N>) -> Option<CMat<N>> {
+    m.try_inverse()
+}
+
+/// `Delta`, `T_{oi->o}` and `T_{oi->fc}` at one frequency.
+pub fn transfer<M: ClosedLoopModel<N>, const N: usize>(model: &M, pt: &M::Point, p: &[f64]) -> Transfer<N> {
+    let ops = model.operators(pt, p);
+    let s_inv = inverse(&ops.s).unwrap_or_else(|| CMat::<N>::from_element(Complex64::new(f64::NAN, 0.0)));
+    let delta = ops.d * s_inv + ops.ac;
+    let delta_inv = inverse(&delta).unwrap_or_else(|| CMat::<N>::from_element(Complex64::new(f64::NAN, 0.0)));
+    let oi_o = delta_inv * ops.ac * ops.t;
+    let oi_fc = -(ops.c * (oi_o - CMat::<N>::identity()));
+    Transfer { delta, delta_inv, oi_o, oi_fc, ops }
+}
+
+/// `T_{oi->o}` and its derivatives `dT/dp_k` for every parameter, written into `d_out`
+/// (length `n_params`). Analytic: `dT = -Delta^-1 dDelta T + Delta^-1 (dAC T_d + AC dT_d)`.
+pub fn transfer_with_derivatives<M: ClosedLoopModel<N>, const N: usize>(
+    model: &M,
+    pt: &M::Point,
+    p: &[f64],
+    d_out: &mut [CMat<N>],
+) -> Transfer<N> {
+    let tr = transfer(model, pt, p);
+    let ops = &tr.ops;
+    let s_inv = inverse(&ops.s).unwrap_or_else(|| CMat::<N>::from_element(Complex64::new(f64::NAN, 0.0)));
+    let d_s_inv = ops.d * s_inv;
+    for (k, out) in d_out.iter_mut().enumerate() {
+        let der = model.derivative(pt, p, k);
+        let mut d_delta: Option<CMat<N>> = None;
+        let mut add = |m: CMat<N>| {
+            d_delta = Some(match d_delta {
+                Some(acc) => acc + m,
+                None => m,
+            })
+        };
+        if let Some(dd) = der.d {
+            add(dd * s_inv);
+        }
+        if let Some(ds) = der.s {
+            add(-(d_s_inv * ds * s_inv));
+        }
+        if let Some(dac) = der.ac {
+            add(dac);
+        }
+        let mut acc = CMat::<N>::zeros();
+        if let Some(dd) = d_delta {
+            acc -= tr.delta_inv * dd * tr.oi_o;
+        }
+        let mut forward: Option<CMat<N>> = None;
+        if let Some(dac) = der.ac {
+            forward = Some(dac * ops.t);
+        }
+        if let Some(dt) = der.t {
+            let m = ops.ac * dt;
+            forward = Some(forward.map_or(m, |f| f + m));
+        }
+        if let Some(f) = forward {
+            acc += tr.delta_inv * f;
+        }
+        *out = acc;
+    }
+    tr
+}
+
+/// Closed-loop poles of the model at `p`.
+pub fn closed_loop_poles<M: ClosedLoopModel<N>, const N: usize>(model: &M, p: &[f64]) -> Vec<Complex64> {
+    model.characteristic_polynomial(p).roots()
+}
+
+/// Err if any closed-loop pole has a non-negative real part. The error names every parameter,
+/// the unstable pole and the e-folding time, and which single parameters, set back to
+/// `reference` (for example the nominal values), would restore stability.
+pub fn check_stability<M: ClosedLoopModel<N>, const N: usize>(
+    model: &M,
+    p: &[f64],
+    reference: Option<&[f64]>,
+) -> Result<(), ModelError> {
+    let names = model.parameter_names();
+    if let Some((i, v)) = p.iter().enumerate().find(|(_, v)| !v.is_finite()) {
+        return Err(ModelError::NonFiniteParameter { name: names[i].clone(), value: *v });
+    }
+    let unstable = |q: &[f64]| -> Option<Complex64> {
+        let poles = closed_loop_poles(model, q);
+        let scale = poles.iter().fold(1e-12_f64, |m, z| m.max(z.norm()));
+        poles.into_iter().filter(|z| z.re >= -1e-14 * scale).max_by(|a, b| a.re.total_cmp(&b.re))
+    };
+    let Some(pole) = unstable(p) else { return Ok(()) };
+    let culprits: Vec<String> = match reference {
+        Some(r) => (0..p.len())
+            .filter(|&k| p[k] != r[k])
+            .filter(|&k| {
+                let mut q = p.to_vec();
+                q[k] = r[k];
+                unstable(&q).is_none()
+            })
+            .map(|k| names[k].clone())
+            .collect(),
+        None => Vec::new(),
+    };
+    Err(ModelError::Unstable {
+        parameters: names.iter().cloned().zip(p.iter().copied()).collect(),
+        pole_re: pole.re,
+        pole_im: pole.im,
+        culprits,
+    })
+}

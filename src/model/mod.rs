@@ -1,0 +1,37 @@
+//! Closed-loop models (thesis ch. 3): rational control laws, the generic operator algebra
+//! (`closed_loop`), the LPF-x reference model (`lpf_x`) and its TOML description (`spec`).
+
+pub mod closed_loop;
+pub mod lpf_x;
+pub mod poly;
+pub mod spec;
+pub mod zpk;
+
+pub use closed_loop::{
+    check_stability, closed_loop_poles, transfer, transfer_with_derivatives, CMat, ClosedLoopModel, NoiseEntry,
+    OperatorDerivative, Operators, Transfer,
+};
+pub use lpf_x::LpfX;
+pub use spec::{ModelSpec, Scenario};
+
+/// Errors of model construction and evaluation.
+#[derive(Debug, thiserror::Error)]
+pub enum ModelError {
+    #[error("{origin}: {message}{}", span.map(|l| format!(" (line {l})")).unwrap_or_default())]
+    Parse { origin: String, message: String, span: Option<usize> },
+    #[error("{origin}: key '{key}': {reason}")]
+    Invalid { origin: String, key: String, reason: String },
+    #[error("unknown scenario '{name}' in {origin}; known scenarios: {}", known.join(", "))]
+    UnknownScenario { name: String, origin: String, known: Vec<String> },
+    #[error("unknown injection design '{name}'; known designs: {}", known.join(", "))]
+    UnknownDesign { name: String, known: Vec<String> },
+    #[error("parameter {name} is not finite ({value})")]
+    NonFiniteParameter { name: String, value: f64 },
+    #[error(
+        "closed loop is unstable at {}: pole at s = {pole_re:.3e} {pole_im:+.3e}i rad/s (e-folding time {:.3e} s){}",
+        parameters.iter().map(|(n, v)| format!("{n}={v:e}")).collect::<Vec<_>>().join(", "),
+        if *pole_re > 0.0 { 1.0 / pole_re } else { f64::INFINITY },
+        if culprits.is_empty() { String::new() } else { format!("; setting {} back to nominal restores stability", culprits.join(" or ")) }
+    )]
+    Unstable { parameters: Vec<(String, f64)>, pole_re: f64, pole_im: f64, culprits: Vec<String> },
+}

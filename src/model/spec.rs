@@ -1,0 +1,340 @@
+//! The TOML model file (schema of `lpf_x.toml`): constants, controllers, parameters, noise
+//! sources, injection designs, constraints, sampling, scenarios and expected features.
+//! Parsed once at the edge into checked types; every error names the file and key.
+
+use std::collections::BTreeMap;
+
+use serde::Deserialize;
+
+use super::zpk::Zpk;
+use super::ModelError;
+
+/// The reference model shipped with freefall (a copy of `reference/lpf_x.toml`).
+pub const EMBEDDED_LPF_X: &str = include_str!("lpf_x.toml");
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Constants {
+    pub m_sc: f64,
+    pub m_tm: f64,
+    pub gamma_x: f64,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ControllerSpec {
+    pub gain: f64,
+    pub zeros: Vec<f64>,
+    pub poles: Vec<f64>,
+}
+
+impl ControllerSpec {
+    pub fn zpk(&self) -> Zpk {
+        Zpk { gain: self.gain, zeros: self.zeros.clone(), poles: self.poles.clone() }
+    }
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Controllers {
+    pub drag_free: ControllerSpec,
+    pub suspension: ControllerSpec,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ParameterSpec {
+    pub name: String,
+    pub unit: String,
+    pub nominal: f64,
+    #[serde(default)]
+    pub description: String,
+}
+
+/// Spectral shape of a noise source (one-sided ASD), see `noise::shapes`.
+#[derive(Debug, Clone, Copy, Deserialize, PartialEq)]
+#[serde(rename_all = "snake_case")]
+pub enum Shape {
+    Flat,
+    Red,
+    InverseF,
+    Relaxed,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NoiseSourceSpec {
+    pub enters: String,
+    pub shape: Shape,
+    pub level: f64,
+    #[serde(default)]
+    pub f_knee: Option<f64>,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct InjectionSpec {
+    pub stretch_s: f64,
+    pub gap_s: f64,
+    pub cycles: Vec<u32>,
+    pub oi1_amplitude: Vec<f64>,
+    pub oi12_amplitude: Vec<f64>,
+    /// Time of the first stretch's start; defaults to one gap.
+    #[serde(default)]
+    pub start_s: Option<f64>,
+    /// Length of each experiment; defaults to 3 hours (thesis sec. 4.3: "almost 3 hours each").
+    #[serde(default)]
+    pub duration_s: Option<f64>,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Constraints {
+    pub o_max_m: f64,
+    pub thruster_force_max_n: f64,
+    pub suspension_force_max_n: f64,
+    pub f_max_hz: f64,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Sampling {
+    pub simulate_hz: f64,
+    pub analyse_hz: f64,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GlitchSpec {
+    /// Number of glitches as a fraction of the analysed samples (thesis: f_gl = N_gl / N_data).
+    pub fraction: f64,
+    pub f0_hz: [f64; 2],
+    pub tau_s: [f64; 2],
+    /// Amplitude range in units of the standard deviation of the white driving sequence.
+    pub amplitude_sigma: [f64; 2],
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ScenarioSpec {
+    #[serde(rename = "true")]
+    pub truth: BTreeMap<String, f64>,
+    pub guess: BTreeMap<String, f64>,
+    #[serde(default)]
+    pub glitch: Option<GlitchSpec>,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+pub struct Feature {
+    pub peak: f64,
+    pub peak_hz: f64,
+    #[serde(default)]
+    pub thesis: String,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FeatureTolerance {
+    pub peak_rel: f64,
+    pub peak_hz_rel: f64,
+}
+
+#[derive(Debug, Clone, Deserialize)]
+pub struct ExpectedFeatures {
+    #[serde(rename = "T11")]
+    pub t11: Option<Feature>,
+    #[serde(rename = "T22")]
+    pub t22: Option<Feature>,
+    #[serde(rename = "T21")]
+    pub t21: Option<Feature>,
+    #[serde(rename = "T12")]
+    pub t12: Option<Feature>,
+    pub tolerance: FeatureTolerance,
+}
+
+/// A parsed and validated model file.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ModelSpec {
+    pub constants: Constants,
+    pub controllers: Controllers,
+    #[serde(rename = "parameter")]
+    pub parameters: Vec<ParameterSpec>,
+    pub noise: BTreeMap<String, NoiseSourceSpec>,
+    pub injections: BTreeMap<String, InjectionSpec>,
+    pub constraints: Constraints,
+    pub sampling: Sampling,
+    pub scenarios: BTreeMap<String, ScenarioSpec>,
+    #[serde(default)]
+    pub expected_features: Option<ExpectedFeatures>,
+    /// Where the spec came from, for error messages ("embedded lpf_x.toml" or a path).
+    #[serde(skip)]
+    pub origin: String,
+}
+
+/// Names the LPF-x model knows, in the thesis's order (Table "modeled system parameters").
+pub const LPF_X_PARAMETERS: [&str; 7] = ["w1_sq", "w12_sq", "s21", "a_df", "a_sus", "dt1", "dt12"];
+
+impl ModelSpec {
+    pub fn embedded() -> Self {
+        Self::from_toml_str(EMBEDDED_LPF_X, "embedded lpf_x.toml")
+            .expect("the embedded model file is valid (checked by tests)")
+    }
+
+    pub fn from_toml_str(text: &str, origin: &str) -> Result<Self, ModelError> {
+        let mut spec: ModelSpec = toml::from_str(text).map_err(|e| ModelError::Parse {
+            origin: origin.to_string(),
+            message: e.message().to_string(),
+            span: e.span().map(|s| line_of(text, s.start)),
+        })?;
+        spec.origin = origin.to_string();
+        spec.validate()?;
+        Ok(spec)
+    }
+
+    fn bad(&self, key: &str, reason: impl Into<String>) -> ModelError {
+        ModelError::Invalid { origin: self.origin.clone(), key: key.to_string(), reason: reason.into() }
+    }
+
+    fn validate(&self) -> Result<(), ModelError> {
+        let c = &self.constants;
+        for (k, v) in [("constants.m_sc", c.m_sc), ("constants.m_tm", c.m_tm)] {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(self.bad(k, format!("must be a positive mass, got {v}")));
+            }
+        }
+        if !c.gamma_x.is_finite() {
+            return Err(self.bad("constants.gamma_x", "must be finite"));
+        }
+        for (name, ctrl) in [("drag_free", &self.controllers.drag_free), ("suspension", &self.controllers.suspension)] {
+            let all = std::iter::once(ctrl.gain).chain(ctrl.zeros.iter().copied()).chain(ctrl.poles.iter().copied());
+            if all.clone().any(|v| !v.is_finite()) {
+                return Err(self.bad(&format!("controllers.{name}"), "gain, zeros and poles must be finite"));
+            }
+            if ctrl.zeros.len() > ctrl.poles.len() {
+                return Err(self.bad(&format!("controllers.{name}"), "improper control law: more zeros than poles"));
+            }
+            if ctrl.poles.iter().any(|&p| p > 0.0) {
+                return Err(self.bad(&format!("controllers.{name}.poles"), "unstable controller pole (> 0)"));
+            }
+        }
+        let names: Vec<&str> = self.parameters.iter().map(|p| p.name.as_str()).collect();
+        if names != LPF_X_PARAMETERS {
+            return Err(self.bad(
+                "parameter",
+                format!("the LPF-x model needs parameters {LPF_X_PARAMETERS:?} in this order, got {names:?}"),
+            ));
+        }
+        for p in &self.parameters {
+            if !p.nominal.is_finite() {
+                return Err(self.bad(&format!("parameter.{}.nominal", p.name), "must be finite"));
+            }
+        }
+        for (name, src) in &self.noise {
+            let key = format!("noise.{name}");
+            if !["f_sc", "f_1", "f_2", "o_1", "o_12"].contains(&src.enters.as_str()) {
+                return Err(self.bad(
+                    &format!("{key}.enters"),
+                    format!("unknown entry point '{}' (expected f_sc, f_1, f_2, o_1 or o_12)", src.enters),
+                ));
+            }
+            if !(src.level.is_finite() && src.level >= 0.0) {
+                return Err(self.bad(&format!("{key}.level"), format!("must be >= 0, got {}", src.level)));
+            }
+            let needs_knee = src.shape != Shape::Flat;
+            match (needs_knee, src.f_knee) {
+                (true, None) => return Err(self.bad(&format!("{key}.f_knee"), "required for this shape")),
+                (_, Some(k)) if !(k.is_finite() && k > 0.0) => {
+                    return Err(self.bad(&format!("{key}.f_knee"), format!("must be > 0, got {k}")))
+                }
+                _ => {}
+            }
+        }
+        for (name, inj) in &self.injections {
+            let key = format!("injections.{name}");
+            let n = inj.cycles.len();
+            if n == 0 || inj.oi1_amplitude.len() != n || inj.oi12_amplitude.len() != n {
+                return Err(self.bad(&key, "cycles, oi1_amplitude and oi12_amplitude must have the same non-zero length"));
+            }
+            if !(inj.stretch_s > 0.0 && inj.gap_s >= 0.0) {
+                return Err(self.bad(&key, "stretch_s must be > 0 and gap_s >= 0"));
+            }
+        }
+        let s = &self.sampling;
+        if !(s.simulate_hz > 0.0 && s.analyse_hz > 0.0) {
+            return Err(self.bad("sampling", "rates must be positive"));
+        }
+        let ratio = s.simulate_hz / s.analyse_hz;
+        if (ratio - ratio.round()).abs() > 1e-9 || ratio < 1.0 {
+            return Err(self.bad("sampling", format!("simulate_hz / analyse_hz must be a positive integer, got {ratio}")));
+        }
+        for (name, sc) in &self.scenarios {
+            for (which, set) in [("true", &sc.truth), ("guess", &sc.guess)] {
+                for k in set.keys() {
+                    if !names.contains(&k.as_str()) {
+                        return Err(self.bad(&format!("scenarios.{name}.{which}.{k}"), "unknown parameter"));
+                    }
+                }
+                for n in &names {
+                    match set.get(*n) {
+                        None => return Err(self.bad(&format!("scenarios.{name}.{which}"), format!("missing parameter '{n}'"))),
+                        Some(v) if !v.is_finite() => {
+                            return Err(self.bad(&format!("scenarios.{name}.{which}.{n}"), "must be finite"))
+                        }
+                        _ => {}
+                    }
+                }
+            }
+            if let Some(g) = &sc.glitch {
+                if !(0.0..=1.0).contains(&g.fraction) || g.f0_hz[0] > g.f0_hz[1] || g.tau_s[0] > g.tau_s[1] || g.tau_s[0] <= 0.0 || g.amplitude_sigma[0] > g.amplitude_sigma[1] {
+                    return Err(self.bad(&format!("scenarios.{name}.glitch"), "ranges must be [lo, hi] with lo <= hi, tau > 0, fraction in [0, 1]"));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    pub fn parameter_names(&self) -> Vec<String> {
+        self.parameters.iter().map(|p| p.name.clone()).collect()
+    }
+
+    pub fn nominal(&self) -> Vec<f64> {
+        self.parameters.iter().map(|p| p.nominal).collect()
+    }
+
+    /// The scenario of that name, or an error that lists the known ones.
+    pub fn scenario(&self, name: &str) -> Result<Scenario, ModelError> {
+        let sc = self.scenarios.get(name).ok_or_else(|| ModelError::UnknownScenario {
+            name: name.to_string(),
+            origin: self.origin.clone(),
+            known: self.scenarios.keys().cloned().collect(),
+        })?;
+        let order = |m: &BTreeMap<String, f64>| self.parameters.iter().map(|p| m[&p.name]).collect();
+        Ok(Scenario { name: name.to_string(), truth: order(&sc.truth), guess: order(&sc.guess), glitch: sc.glitch.clone() })
+    }
+
+    pub fn injection(&self, name: &str) -> Result<&InjectionSpec, ModelError> {
+        self.injections.get(name).ok_or_else(|| ModelError::UnknownDesign {
+            name: name.to_string(),
+            known: self.injections.keys().cloned().collect(),
+        })
+    }
+
+    /// Decimation factor from the simulation to the analysis rate.
+    pub fn decimation(&self) -> usize {
+        (self.sampling.simulate_hz / self.sampling.analyse_hz).round() as usize
+    }
+}
+
+/// True and guess parameter sets of a named scenario, in model parameter order.
+#[derive(Debug, Clone)]
+pub struct Scenario {
+    pub name: String,
+    pub truth: Vec<f64>,
+    pub guess: Vec<f64>,
+    pub glitch: Option<GlitchSpec>,
+}
+
+fn line_of(text: &str, byte: usize) -> usize {
+    text[..byte.min(text.len())].lines().count().max(1)
+}

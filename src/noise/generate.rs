@@ -1,0 +1,198 @@
+//! Cross-correlated colored Gaussian noise of any length with a given one-sided cross-PSD
+//! (thesis sec. 4.2: white Gaussian sequences colored by the noise-shaping filters).
+//!
+//! Method: the white driving sequence's spectrum `W_k` (unit-variance samples, so
+//! `E|W_k|^2 = M`) is colored bin by bin with a Cholesky factor `L_k` of the cross-PSD,
+//! `X_k = L_k W_k / sqrt(2 dt)`, and transformed back. To keep the red low-frequency content and
+//! avoid periodic wrap-around between the first and last sample, the series is generated
+//! `oversample` times longer than requested and a window from its middle is returned: its start
+//! and end are unrelated samples of the process, as in measured data. The DC and Nyquist bins
+//! are set to zero (the mean of a red process is not defined by its PSD).
+
+use std::sync::Arc;
+
+use num_complex::Complex64;
+use rand::Rng;
+use rand_distr::StandardNormal;
+use realfft::{ComplexToReal, RealFftPlanner, RealToComplex};
+
+use super::NoiseError;
+use crate::model::closed_loop::CMat;
+
+/// Lower-triangular `L` with `L L^H = S` for a Hermitian positive semi-definite `S`; negative
+/// pivots from round-off are clamped to zero so a channel without noise yields zeros.
+pub fn hermitian_cholesky<const N: usize>(s: &CMat<N>) -> CMat<N> {
+    let mut l = CMat::<N>::zeros();
+    for j in 0..N {
+        let mut diag = s[(j, j)].re;
+        for k in 0..j {
+            diag -= l[(j, k)].norm_sqr();
+        }
+        let ljj = if diag > 0.0 { diag.sqrt() } else { 0.0 };
+        l[(j, j)] = Complex64::new(ljj, 0.0);
+        for i in (j + 1)..N {
+            let mut v = s[(i, j)];
+            for k in 0..j {
+                v -= l[(i, k)] * l[(j, k)].conj();
+            }
+            l[(i, j)] = if ljj > 0.0 { v / ljj } else { Complex64::new(0.0, 0.0) };
+        }
+    }
+    l
+}
+
+/// A prepared generator for series of `n` samples spaced `dt` with `N` channels.
+pub struct ColoredNoise<const N: usize> {
+    n: usize,
+    m: usize,
+    dt: f64,
+    offset: usize,
+    /// `L_k / sqrt(2 dt)` for each real-FFT bin of the long series.
+    factors: Vec<CMat<N>>,
+    fwd: Arc<dyn RealToComplex<f64>>,
+    inv: Arc<dyn ComplexToReal<f64>>,
+}
+
+impl<const N: usize> std::fmt::Debug for ColoredNoise<N> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "ColoredNoise {{ n: {}, m: {}, dt: {} }}", self.n, self.m, self.dt)
+    }
+}
+
+/// A length >= `min` whose only prime factors are 2, 3 and 5 (fast FFT sizes).
+pub fn fast_len(min: usize) -> usize {
+    let mut m = min.max(2);
+    loop {
+        let mut r = m;
+        for p in [2, 3, 5] {
+            while r % p == 0 {
+                r /= p;
+            }
+        }
+        if r == 1 {
+            return m;
+        }
+        m += 1;
+    }
+}
+
+impl<const N: usize> ColoredNoise<N> {
+    /// `csd(f)` gives the one-sided cross-PSD matrix at `f > 0`.
+    pub fn new(csd: impl Fn(f64) -> CMat<N>, n: usize, dt: f64, oversample: usize) -> Result<Self, NoiseError> {
+        if n < 2 {
+            return Err(NoiseError::TooShort(n));
+        }
+        if !(dt.is_finite() && dt > 0.0) {
+            return Err(NoiseError::BadDt(dt));
+        }
+        if oversample < 1 {
+            return Err(NoiseError::BadOversample(oversample));
+        }
+        let m = fast_len(n * oversample);
+        let df = 1.0 / (m as f64 * dt);
+        let scale = Complex64::new((1.0 / (2.0 * dt)).sqrt(), 0.0);
+        let nbins = m / 2 + 1;
+        let mut factors = vec![CMat::<N>::zeros(); nbins];
+        for (k, fac) in factors.iter_mut().enumerate().take(nbins - 1).skip(1) {
+            let f = k as f64 * df;
+            let s = csd(f);
+            if s.iter().any(|z| !z.re.is_finite() || !z.im.is_finite()) {
+                return Err(NoiseError::NonFinitePsd { f_hz: f });
+            }
+            *fac = hermitian_cholesky(&s) * scale;
+        }
+        let mut planner = RealFftPlanner::<f64>::new();
+        Ok(ColoredNoise {
+            n,
+            m,
+            dt,
+            offset: (m - n) / 2,
+            factors,
+            fwd: planner.plan_fft_forward(m),
+            inv: planner.plan_fft_inverse(m),
+        })
+    }
+
+    pub fn len(&self) -> usize {
+        self.n
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.n == 0
+    }
+
+    pub fn dt(&self) -> f64 {
+        self.dt
+    }
+
+    /// Length of the white driving sequence (the long series).
+    pub fn driving_len(&self) -> usize {
+        self.m
+    }
+
+    /// Index in the driving sequence of the first returned sample.
+    pub fn offset(&self) -> usize {
+        self.offset
+    }
+
+    /// One realization, generated directly in the frequency domain.
+    pub fn generate<R: Rng + ?Sized>(&self, rng: &mut R) -> Vec<Vec<f64>> {
+        let nbins = self.m / 2 + 1;
+        let sd = (self.m as f64 / 2.0).sqrt();
+        let mut white: Vec<Vec<Complex64>> = (0..N)
+            .map(|_| {
+                let mut w = vec![Complex64::new(0.0, 0.0); nbins];
+                for z in w.iter_mut().take(nbins - 1).skip(1) {
+                    let a: f64 = rng.sample(StandardNormal);
+                    let b: f64 = rng.sample(StandardNormal);
+                    *z = Complex64::new(a * sd, b * sd);
+                }
+                w
+            })
+            .collect();
+        self.color(&mut white)
+    }
+
+    /// One realization from a white driving sequence that `corrupt` may modify in the time
+    /// domain first (glitches are added there, then colored with the noise, thesis sec. 4.5.7).
+    pub fn generate_with<R: Rng + ?Sized>(
+        &self,
+        rng: &mut R,
+        corrupt: impl FnOnce(&mut [Vec<f64>], &mut R),
+    ) -> Vec<Vec<f64>> {
+        let mut time: Vec<Vec<f64>> =
+            (0..N).map(|_| (0..self.m).map(|_| rng.sample::<f64, _>(StandardNormal)).collect()).collect();
+        corrupt(&mut time, rng);
+        let mut white: Vec<Vec<Complex64>> = Vec::with_capacity(N);
+        for x in time.iter_mut() {
+            let mut spec = self.fwd.make_output_vec();
+            self.fwd.process(x, &mut spec).expect("FFT sizes match by construction");
+            white.push(spec);
+        }
+        self.color(&mut white)
+    }
+
+    fn color(&self, white: &mut [Vec<Complex64>]) -> Vec<Vec<f64>> {
+        let nbins = self.m / 2 + 1;
+        let mut colored: Vec<Vec<Complex64>> = (0..N).map(|_| vec![Complex64::new(0.0, 0.0); nbins]).collect();
+        for k in 1..nbins - 1 {
+            let l = &self.factors[k];
+            for i in 0..N {
+                let mut acc = Complex64::new(0.0, 0.0);
+                for j in 0..=i {
+                    acc += l[(i, j)] * white[j][k];
+                }
+                colored[i][k] = acc;
+            }
+        }
+        let norm = 1.0 / self.m as f64;
+        colored
+            .into_iter()
+            .map(|mut spec| {
+                let mut out = self.inv.make_output_vec();
+                self.inv.process(&mut spec, &mut out).expect("FFT sizes match by construction");
+                out[self.offset..self.offset + self.n].iter().map(|v| v * norm).collect()
+            })
+            .collect()
+    }
+}

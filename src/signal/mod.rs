@@ -1,0 +1,136 @@
+//! Guidance-injection designs (thesis eq. "windowed series of sines", ch. 5):
+//! `o_i(t) = sum_n a_n sin(2 pi f_n (t - t'_n)) theta(t - t'_n) theta(t''_n - t)`, with
+//! `t'_n = t0 + (n-1)(dt + gap)` and `t''_n = t'_n + dt`. Each sine starts and ends at zero
+//! (integer cycles, null Dirichlet boundaries); gaps let the system relax.
+
+use serde::{Deserialize, Serialize};
+
+use crate::model::spec::InjectionSpec;
+
+/// Default experiment duration when a design does not set one: 3 hours (thesis sec. 4.3).
+pub const DEFAULT_DURATION_S: f64 = 10_800.0;
+
+/// One injection stretch on one guidance input.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Stretch {
+    pub f_hz: f64,
+    pub amplitude: f64,
+}
+
+/// One experiment: a stretch sequence per guidance input (`None` = that input stays at zero).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Experiment {
+    pub name: String,
+    /// Indexed by input channel (0 = oi1, 1 = oi12 for LPF-x); stretch `n` occupies slot `n`.
+    pub inputs: Vec<Option<Vec<Stretch>>>,
+}
+
+/// Timing shared by all experiments of a design, plus the experiments.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Design {
+    pub name: String,
+    pub stretch_s: f64,
+    pub gap_s: f64,
+    pub start_s: f64,
+    pub duration_s: f64,
+    pub experiments: Vec<Experiment>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum SignalError {
+    #[error("design '{design}': {reason}")]
+    Invalid { design: String, reason: String },
+}
+
+impl Design {
+    /// The two single-input experiments of a model-file injection table (Exp. 1 on oi1,
+    /// Exp. 2 on oi12; thesis Table "standard input signals").
+    pub fn from_spec(name: &str, spec: &InjectionSpec) -> Result<Self, SignalError> {
+        let freqs: Vec<f64> = spec.cycles.iter().map(|&c| c as f64 / spec.stretch_s).collect();
+        let make = |amps: &[f64]| -> Vec<Stretch> {
+            freqs.iter().zip(amps).map(|(&f_hz, &amplitude)| Stretch { f_hz, amplitude }).collect()
+        };
+        let d = Design {
+            name: name.to_string(),
+            stretch_s: spec.stretch_s,
+            gap_s: spec.gap_s,
+            start_s: spec.start_s.unwrap_or(spec.gap_s),
+            duration_s: spec.duration_s.unwrap_or(DEFAULT_DURATION_S),
+            experiments: vec![
+                Experiment { name: "exp1".into(), inputs: vec![Some(make(&spec.oi1_amplitude)), None] },
+                Experiment { name: "exp2".into(), inputs: vec![None, Some(make(&spec.oi12_amplitude))] },
+            ],
+        };
+        d.validate()?;
+        Ok(d)
+    }
+
+    pub fn validate(&self) -> Result<(), SignalError> {
+        let bad = |reason: String| SignalError::Invalid { design: self.name.clone(), reason };
+        if !(self.stretch_s > 0.0 && self.gap_s >= 0.0 && self.start_s >= 0.0 && self.duration_s > 0.0) {
+            return Err(bad("stretch_s and duration_s must be > 0, gap_s and start_s >= 0".into()));
+        }
+        if self.experiments.is_empty() {
+            return Err(bad("no experiments".into()));
+        }
+        for e in &self.experiments {
+            for (c, input) in e.inputs.iter().enumerate() {
+                let Some(stretches) = input else { continue };
+                let end = self.start_s + stretches.len() as f64 * (self.stretch_s + self.gap_s) - self.gap_s;
+                if end > self.duration_s + 1e-9 {
+                    return Err(bad(format!(
+                        "experiment '{}' input {c}: {} stretches end at {end} s, after the experiment's {} s",
+                        e.name,
+                        stretches.len(),
+                        self.duration_s
+                    )));
+                }
+                for (n, s) in stretches.iter().enumerate() {
+                    if !(s.f_hz.is_finite() && s.f_hz >= 0.0 && s.amplitude.is_finite()) {
+                        return Err(bad(format!("experiment '{}' input {c} stretch {n}: bad frequency or amplitude", e.name)));
+                    }
+                    let cycles = s.f_hz * self.stretch_s;
+                    if (cycles - cycles.round()).abs() > 1e-6 {
+                        return Err(bad(format!(
+                            "experiment '{}' input {c} stretch {n}: f = {} Hz is not an integer number of cycles in {} s",
+                            e.name, s.f_hz, self.stretch_s
+                        )));
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Start time of stretch `n` (0-based).
+    pub fn stretch_start(&self, n: usize) -> f64 {
+        self.start_s + n as f64 * (self.stretch_s + self.gap_s)
+    }
+
+    /// The guidance signal of `experiment` on input `channel` at time `t`.
+    pub fn value(&self, experiment: usize, channel: usize, t: f64) -> f64 {
+        let Some(Some(stretches)) = self.experiments[experiment].inputs.get(channel) else { return 0.0 };
+        let rel = t - self.start_s;
+        if rel < 0.0 {
+            return 0.0;
+        }
+        let period = self.stretch_s + self.gap_s;
+        let n = (rel / period).floor() as usize;
+        let Some(s) = stretches.get(n) else { return 0.0 };
+        let local = rel - n as f64 * period;
+        if local >= self.stretch_s {
+            return 0.0;
+        }
+        s.amplitude * (2.0 * std::f64::consts::PI * s.f_hz * local).sin()
+    }
+
+    /// Sample every input of `experiment` at `t_k = t0 + k dt`, k = 0..n.
+    pub fn sample(&self, experiment: usize, n_inputs: usize, t0: f64, dt: f64, n: usize) -> Vec<Vec<f64>> {
+        (0..n_inputs).map(|c| (0..n).map(|k| self.value(experiment, c, t0 + k as f64 * dt)).collect()).collect()
+    }
+
+    /// Number of samples of one experiment at sampling interval `dt`.
+    pub fn samples(&self, dt: f64) -> usize {
+        (self.duration_s / dt).round() as usize
+    }
+}

@@ -1,0 +1,184 @@
+//! Deterministic responses ("templates", thesis eq. "templates"):
+//! `o_s(t, p) = IFFT[T_{oi->o}(f, p) o_i(f)]`, with the inputs zero-padded by (at least) one data
+//! length before the FFT and the result cut back to the data length (thesis footnote on
+//! circular FFTs). The engine is prepared once per set of input series: FFT plans, the frequency
+//! grid's parameter-independent model quantities and the injection spectra. Every evaluation
+//! then costs one model evaluation per bin and one inverse FFT per output series.
+//!
+//! An optional per-bin left filter `W(f)` (an `N x N` matrix, e.g. a whitening filter's
+//! frequency response) is applied before the inverse FFT, so filtered templates and filtered
+//! derivatives come at no extra FFT cost.
+
+use std::sync::Arc;
+
+use num_complex::Complex64;
+use realfft::{ComplexToReal, RealFftPlanner};
+
+use crate::model::closed_loop::{transfer, transfer_with_derivatives, CMat, ClosedLoopModel};
+use crate::noise::generate::fast_len;
+
+/// Series per experiment, per channel: `out[e][c][t]`.
+pub type Series = Vec<Vec<Vec<f64>>>;
+
+pub struct TemplateEngine<'m, M: ClosedLoopModel<N>, const N: usize> {
+    model: &'m M,
+    n: usize,
+    m: usize,
+    dt: f64,
+    points: Vec<M::Point>,
+    /// `inputs_f[e][c][k]`: spectrum of experiment e's input c (zero-padded), `None` if zero.
+    inputs_f: Vec<Vec<Option<Vec<Complex64>>>>,
+    inv: Arc<dyn ComplexToReal<f64>>,
+}
+
+impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
+    /// `inputs[e][c]` is experiment e's guidance series on input c, all of length `n`.
+    pub fn new(model: &'m M, inputs: &[Vec<Vec<f64>>], dt: f64) -> Self {
+        let n = inputs.first().and_then(|e| e.first()).map_or(0, |c| c.len());
+        let m = fast_len(2 * n.max(1));
+        let mut planner = RealFftPlanner::<f64>::new();
+        let fwd = planner.plan_fft_forward(m);
+        let inv = planner.plan_fft_inverse(m);
+        let nbins = m / 2 + 1;
+        let df = 1.0 / (m as f64 * dt);
+        // The DC bin is evaluated just above zero: controllers with an integrator are singular
+        // at s = 0, while the closed loop has a finite limit there.
+        let points = (0..nbins).map(|k| model.prepare(if k == 0 { 1e-6 * df } else { k as f64 * df })).collect();
+        let inputs_f = inputs
+            .iter()
+            .map(|exp| {
+                (0..N)
+                    .map(|c| {
+                        let x = exp.get(c)?;
+                        if x.iter().all(|v| *v == 0.0) {
+                            return None;
+                        }
+                        let mut buf = vec![0.0; m];
+                        buf[..n].copy_from_slice(x);
+                        let mut spec = fwd.make_output_vec();
+                        fwd.process(&mut buf, &mut spec).expect("FFT sizes match");
+                        Some(spec)
+                    })
+                    .collect()
+            })
+            .collect();
+        TemplateEngine { model, n, m, dt, points, inputs_f, inv }
+    }
+
+    pub fn len(&self) -> usize {
+        self.n
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.n == 0
+    }
+
+    pub fn dt(&self) -> f64 {
+        self.dt
+    }
+
+    pub fn padded_len(&self) -> usize {
+        self.m
+    }
+
+    pub fn n_experiments(&self) -> usize {
+        self.inputs_f.len()
+    }
+
+    /// Frequencies of the padded grid's bins.
+    pub fn frequencies(&self) -> Vec<f64> {
+        let df = 1.0 / (self.m as f64 * self.dt);
+        (0..self.points.len()).map(|k| k as f64 * df).collect()
+    }
+
+    /// Response spectrum `W T o_i` of experiment `e` at bin k into `acc` (per output channel).
+    fn response(&self, e: usize, k: usize, t: &CMat<N>, filter: Option<&CMat<N>>) -> [Complex64; N] {
+        let mut out = [Complex64::new(0.0, 0.0); N];
+        for (c, inp) in self.inputs_f[e].iter().enumerate() {
+            if let Some(x) = inp {
+                for (i, o) in out.iter_mut().enumerate() {
+                    *o += t[(i, c)] * x[k];
+                }
+            }
+        }
+        if let Some(w) = filter {
+            let mut f = [Complex64::new(0.0, 0.0); N];
+            for i in 0..N {
+                for j in 0..N {
+                    f[i] += w[(i, j)] * out[j];
+                }
+            }
+            return f;
+        }
+        out
+    }
+
+    fn inverse(&self, mut spec: Vec<Complex64>, scratch: &mut Vec<f64>) -> Vec<f64> {
+        // realfft requires real DC and Nyquist bins for a real output.
+        spec[0].im = 0.0;
+        if self.m % 2 == 0 {
+            let last = spec.len() - 1;
+            spec[last].im = 0.0;
+        }
+        self.inv.process(&mut spec, scratch).expect("FFT sizes match");
+        let norm = 1.0 / self.m as f64;
+        scratch[..self.n].iter().map(|v| v * norm).collect()
+    }
+
+    /// Templates `out[e][i]` at parameters `p`, optionally filtered by `filter[k]` per bin.
+    pub fn templates(&self, p: &[f64], filter: Option<&[CMat<N>]>) -> Series {
+        let nb = self.points.len();
+        let ne = self.n_experiments();
+        let mut specs = vec![vec![vec![Complex64::new(0.0, 0.0); nb]; N]; ne];
+        for (k, pt) in self.points.iter().enumerate() {
+            let tr = transfer(self.model, pt, p);
+            for (e, spec_e) in specs.iter_mut().enumerate() {
+                let r = self.response(e, k, &tr.oi_o, filter.map(|f| &f[k]));
+                for i in 0..N {
+                    spec_e[i][k] = r[i];
+                }
+            }
+        }
+        let mut scratch = self.inv.make_output_vec();
+        specs
+            .into_iter()
+            .map(|exp| exp.into_iter().map(|s| self.inverse(s, &mut scratch)).collect())
+            .collect()
+    }
+
+    /// Templates and their parameter derivatives: `(o_s[e][i], d[k][e][i])`.
+    pub fn templates_and_derivatives(&self, p: &[f64], filter: Option<&[CMat<N>]>) -> (Series, Vec<Series>) {
+        let np = self.model.n_params();
+        let nb = self.points.len();
+        let ne = self.n_experiments();
+        let zero = Complex64::new(0.0, 0.0);
+        let mut specs = vec![vec![vec![zero; nb]; N]; ne];
+        let mut dspecs = vec![vec![vec![vec![zero; nb]; N]; ne]; np];
+        let mut d = vec![CMat::<N>::zeros(); np];
+        for (k, pt) in self.points.iter().enumerate() {
+            let tr = transfer_with_derivatives(self.model, pt, p, &mut d);
+            let w = filter.map(|f| &f[k]);
+            for e in 0..ne {
+                let r = self.response(e, k, &tr.oi_o, w);
+                for i in 0..N {
+                    specs[e][i][k] = r[i];
+                }
+                for (q, dq) in d.iter().enumerate() {
+                    let r = self.response(e, k, dq, w);
+                    for i in 0..N {
+                        dspecs[q][e][i][k] = r[i];
+                    }
+                }
+            }
+        }
+        let mut scratch = self.inv.make_output_vec();
+        let mut inv_all = |s: Series3| -> Series {
+            s.into_iter().map(|exp| exp.into_iter().map(|x| self.inverse(x, &mut scratch)).collect()).collect()
+        };
+        let t = inv_all(specs);
+        let dt = dspecs.into_iter().map(&mut inv_all).collect();
+        (t, dt)
+    }
+}
+
+type Series3 = Vec<Vec<Vec<Complex64>>>;

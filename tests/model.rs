@@ -1,0 +1,134 @@
+//! Model tests. Oracles: the model file's [expected_features] (thesis fig. "transfer matrix used
+//! for system identification"), central finite differences for the analytic derivatives, and
+//! closed-loop stability from the characteristic polynomial.
+
+use freefall::model::{check_stability, transfer, transfer_with_derivatives, CMat, ClosedLoopModel, LpfX, ModelSpec};
+use proptest::prelude::*;
+
+fn lpf() -> (ModelSpec, LpfX) {
+    let spec = ModelSpec::embedded();
+    let m = LpfX::from_spec(&spec);
+    (spec, m)
+}
+
+fn log_grid(lo: f64, hi: f64, n: usize) -> Vec<f64> {
+    (0..n).map(|i| lo * (hi / lo).powf(i as f64 / (n - 1) as f64)).collect()
+}
+
+#[test]
+fn expected_features_are_reproduced() {
+    // Oracle: [expected_features] of lpf_x.toml, within its stated tolerance.
+    let (spec, m) = lpf();
+    let p = spec.scenario("monte_carlo").unwrap().truth;
+    let feats = spec.expected_features.clone().unwrap();
+    let grid = log_grid(1e-5, 0.5, 40_000);
+    let mags: Vec<CMat<2>> = grid.iter().map(|&f| transfer(&m, &m.prepare(f), &p).oi_o).collect();
+    for (name, feat, out, inp) in [
+        ("T11", feats.t11.unwrap(), 0, 0),
+        ("T22", feats.t22.unwrap(), 1, 1),
+        ("T21", feats.t21.unwrap(), 1, 0),
+        ("T12", feats.t12.unwrap(), 0, 1),
+    ] {
+        let (k, peak) = mags
+            .iter()
+            .map(|t| t[(out, inp)].norm())
+            .enumerate()
+            .max_by(|a, b| a.1.total_cmp(&b.1))
+            .unwrap();
+        let rel = (peak - feat.peak).abs() / feat.peak;
+        let rel_f = (grid[k] - feat.peak_hz).abs() / feat.peak_hz;
+        assert!(rel < feats.tolerance.peak_rel, "{name}: peak {peak} vs {}", feat.peak);
+        assert!(rel_f < feats.tolerance.peak_hz_rel, "{name}: peak at {} Hz vs {}", grid[k], feat.peak_hz);
+    }
+}
+
+#[test]
+fn every_scenario_is_stable_and_an_unstable_set_is_named() {
+    // Oracle: the model file states its controllers are stable for every scenario.
+    let (spec, m) = lpf();
+    for name in spec.scenarios.keys() {
+        let sc = spec.scenario(name).unwrap();
+        check_stability(&m, &sc.truth, None).unwrap();
+        check_stability(&m, &sc.guess, None).unwrap();
+    }
+    // A strongly negative stiffness the suspension loop cannot hold.
+    let mut p = spec.nominal();
+    p[1] = -1e-2;
+    let err = check_stability(&m, &p, Some(&spec.nominal())).unwrap_err().to_string();
+    assert!(err.contains("unstable") && err.contains("w12_sq"), "{err}");
+    // Zero actuation gain on the suspension loop leaves an unstable oscillator.
+    let mut p = spec.nominal();
+    p[4] = 0.0;
+    let err = check_stability(&m, &p, Some(&spec.nominal())).unwrap_err().to_string();
+    assert!(err.contains("a_sus"), "{err}");
+}
+
+#[test]
+fn closed_loop_poles_match_det_delta_zeros() {
+    // Oracle: at a closed-loop pole, Delta is singular, so |det Delta| drops to ~0 relative to
+    // its size nearby. We check det(Delta(s)) * denominators equals the characteristic
+    // polynomial at random points s.
+    let (spec, m) = lpf();
+    let p = spec.scenario("monte_carlo").unwrap().truth;
+    let poly = m.characteristic_polynomial(&p);
+    for f in [1e-4, 3e-3, 0.05] {
+        let pt = m.prepare(f);
+        let tr = transfer(&m, &pt, &p);
+        let det = tr.delta.determinant();
+        let dens = m.c_df.denominator().eval(pt.s) * m.c_sus.denominator().eval(pt.s);
+        let lhs = det * dens;
+        let rhs = poly.eval(pt.s);
+        assert!((lhs - rhs).norm() <= 1e-9 * rhs.norm(), "f={f}: {lhs} vs {rhs}");
+    }
+}
+
+fn box_point() -> impl Strategy<Value = (Vec<f64>, f64)> {
+    (
+        -3.0e-6..-0.5e-6f64,
+        -2.0e-6..-0.2e-6f64,
+        -2e-3..2e-3f64,
+        0.6..1.4f64,
+        0.6..1.4f64,
+        0.0..0.8f64,
+        0.0..0.8f64,
+        -4.5..-1.0f64,
+    )
+        .prop_map(|(a, b, c, d, e, f, g, lf)| (vec![a, b, c, d, e, f, g], 10f64.powf(lf)))
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(64))]
+    #[test]
+    fn analytic_derivatives_match_central_differences((p, f) in box_point()) {
+        // Oracle: central finite differences with a step relative to each parameter's scale.
+        let (_, m) = lpf();
+        let pt = m.prepare(f);
+        let mut d = vec![CMat::<2>::zeros(); 7];
+        transfer_with_derivatives(&m, &pt, &p, &mut d);
+        let scales = [1e-6, 1e-6, 1e-3, 1.0, 1.0, 0.1, 0.1];
+        for k in 0..7 {
+            let h = 1e-5 * scales[k];
+            let mut pp = p.clone();
+            pp[k] += h;
+            let mut pm = p.clone();
+            pm[k] -= h;
+            let fd = (transfer(&m, &pt, &pp).oi_o - transfer(&m, &pt, &pm).oi_o) / num_complex::Complex64::new(2.0 * h, 0.0);
+            let tnorm = transfer(&m, &pt, &p).oi_o.norm();
+            let err = (fd - d[k]).norm();
+            // Truncation O(h^2) plus round-off O(eps |T| / h): bound relative to |T|/scale.
+            prop_assert!(err <= 1e-6 * tnorm / scales[k] + 1e-7 * d[k].norm(), "param {k} at f={f}: analytic {} vs fd {}", d[k], fd);
+        }
+    }
+}
+
+#[test]
+fn model_file_errors_name_the_key() {
+    let text = freefall::model::spec::EMBEDDED_LPF_X.replace("gamma_x = 4.0e-9", "gamma_x = 4.0e-9\nbogus = 1");
+    let err = ModelSpec::from_toml_str(&text, "my.toml").unwrap_err().to_string();
+    assert!(err.contains("my.toml") && err.contains("bogus"), "{err}");
+    let text = freefall::model::spec::EMBEDDED_LPF_X.replace("dt12 = 0.05 }", "dt12 = 0.05, zeta = 1 }");
+    let err = ModelSpec::from_toml_str(&text, "my.toml").unwrap_err().to_string();
+    assert!(err.contains("zeta"), "{err}");
+    let err = ModelSpec::embedded().scenario("nope").unwrap_err().to_string();
+    assert!(err.contains("nope") && err.contains("monte_carlo"), "{err}");
+}
