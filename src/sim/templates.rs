@@ -125,6 +125,32 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
         scratch[..self.n].iter().map(|v| v * norm).collect()
     }
 
+    /// Filter `N` series of length n by a per-bin matrix response on the padded grid
+    /// (linear, not circular, convolution thanks to the padding), cut back to length n.
+    pub fn filter_series(&self, x: &[Vec<f64>], filter: &[CMat<N>]) -> Vec<Vec<f64>> {
+        let mut planner = RealFftPlanner::<f64>::new();
+        let fwd = planner.plan_fft_forward(self.m);
+        let specs: Vec<Vec<Complex64>> = x
+            .iter()
+            .map(|c| {
+                let mut buf = vec![0.0; self.m];
+                buf[..c.len()].copy_from_slice(c);
+                let mut spec = fwd.make_output_vec();
+                fwd.process(&mut buf, &mut spec).expect("FFT sizes match");
+                spec
+            })
+            .collect();
+        let mut scratch = self.inv.make_output_vec();
+        (0..N)
+            .map(|o| {
+                let spec: Vec<Complex64> = (0..specs[0].len())
+                    .map(|k| (0..N).map(|i| filter[k][(o, i)] * specs[i][k]).sum())
+                    .collect();
+                self.inverse(spec, &mut scratch)
+            })
+            .collect()
+    }
+
     /// Templates `out[e][i]` at parameters `p`, optionally filtered by `filter[k]` per bin.
     pub fn templates(&self, p: &[f64], filter: Option<&[CMat<N>]>) -> Series {
         let nb = self.points.len();

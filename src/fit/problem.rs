@@ -1,0 +1,152 @@
+//! The MIMO multi-experiment likelihood on whitened time series (thesis eq. "joint
+//! log-likelihood", implemented "in time domain by means of FFT/IFFT the whitened time-series",
+//! thesis sec. 4.4.4). One code path for simulated and measured data: series in, residuals out.
+//!
+//! For experiment e and whitened channel i, over the valid samples t = p..n of the whitening
+//! filter of order p, the whitened residual is
+//! `r_w = P (W o_exp - W o_s(p))`, where `W o_s(p) = IFFT[W(f) T(f, p) o_i(f)]` (zero-padded) and
+//! `P` projects out a polynomial of degree `poly_degree` per (experiment, channel), the nuisance
+//! terms that absorb the residual red component of the whitening. Then
+//! `chi^2 = sum rho(r_w)` and `nu = N_exp N_o (n - p - poly_degree - 1) - N_p`.
+
+use super::whiten::{poly_basis, project_out, Whitener};
+use super::FitError;
+use crate::model::closed_loop::{CMat, ClosedLoopModel};
+use crate::sim::templates::{Series, TemplateEngine};
+
+/// Inputs and outputs of each experiment: `inputs[e][c]`, `outputs[e][c]`, all of length n.
+#[derive(Debug, Clone)]
+pub struct ExperimentData {
+    pub names: Vec<String>,
+    pub inputs: Vec<Vec<Vec<f64>>>,
+    pub outputs: Vec<Vec<Vec<f64>>>,
+    pub dt: f64,
+}
+
+impl ExperimentData {
+    pub fn len(&self) -> usize {
+        self.outputs.first().and_then(|e| e.first()).map_or(0, |c| c.len())
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+/// The parts of the likelihood that depend only on the inputs and the whitening filter: the
+/// template engine (FFT plans, injection spectra), the whitening response on its grid and the
+/// nuisance basis. Prepared once per design and reused for every realization.
+pub struct Likelihood<'m, M: ClosedLoopModel<N>, const N: usize> {
+    pub engine: TemplateEngine<'m, M, N>,
+    pub whitener: Whitener<N>,
+    response: Vec<CMat<N>>,
+    basis: Vec<Vec<f64>>,
+    pub poly_degree: usize,
+}
+
+impl<'m, M: ClosedLoopModel<N>, const N: usize> Likelihood<'m, M, N> {
+    /// `inputs[e][c]`: every experiment's guidance series (length n, spacing dt).
+    pub fn new(
+        model: &'m M,
+        inputs: &[Vec<Vec<f64>>],
+        dt: f64,
+        whitener: Whitener<N>,
+        poly_degree: usize,
+    ) -> Result<Self, FitError> {
+        let n = inputs.first().and_then(|e| e.first()).map_or(0, |c| c.len());
+        let p = whitener.order();
+        let need = p + poly_degree + 2 + model.n_params();
+        if n < need {
+            return Err(FitError::TooShort {
+                what: format!("experiment series for a whitening filter of order {p}"),
+                len: n,
+                need,
+            });
+        }
+        let engine = TemplateEngine::new(model, inputs, dt);
+        let response = whitener.response_on_grid(engine.padded_len());
+        let basis = poly_basis(n - p, poly_degree);
+        Ok(Likelihood { engine, whitener, response, basis, poly_degree })
+    }
+
+    pub fn order(&self) -> usize {
+        self.whitener.order()
+    }
+
+    /// Whiten, cut and project series `s[e][c]` of full length n.
+    fn whiten_cut(&self, s: Series) -> Series {
+        s.into_iter().map(|exp| exp.into_iter().map(|c| self.cut(c)).collect()).collect()
+    }
+
+    fn cut(&self, mut c: Vec<f64>) -> Vec<f64> {
+        c.drain(..self.order());
+        project_out(&mut c, &self.basis);
+        c
+    }
+
+    /// Whitened, cut and projected outputs of one data set.
+    pub fn problem<'a>(&'a self, data: &ExperimentData) -> Result<Problem<'a, 'm, M, N>, FitError> {
+        if data.outputs.len() != self.engine.n_experiments() || data.len() != self.engine.len() {
+            return Err(FitError::Input(format!(
+                "data has {} experiments of {} samples, the likelihood was prepared for {} of {}",
+                data.outputs.len(),
+                data.len(),
+                self.engine.n_experiments(),
+                self.engine.len()
+            )));
+        }
+        let data_w = data
+            .outputs
+            .iter()
+            .map(|exp| self.engine.filter_series(exp, &self.response).into_iter().map(|c| self.cut(c)).collect())
+            .collect();
+        Ok(Problem { lik: self, data_w })
+    }
+}
+
+/// A likelihood bound to one data set.
+pub struct Problem<'a, 'm, M: ClosedLoopModel<N>, const N: usize> {
+    pub lik: &'a Likelihood<'m, M, N>,
+    /// Whitened, projected data `d[e][i]` over the valid samples.
+    pub data_w: Series,
+}
+
+impl<M: ClosedLoopModel<N>, const N: usize> Problem<'_, '_, M, N> {
+    /// Number of residual samples entering chi^2.
+    pub fn n_samples(&self) -> usize {
+        self.data_w.len() * N * (self.lik.engine.len() - self.lik.order())
+    }
+
+    /// Degrees of freedom `nu` for `n_params` fitted parameters.
+    pub fn nu(&self, n_params: usize) -> usize {
+        let per = self.lik.engine.len() - self.lik.order() - self.lik.basis.len();
+        (self.data_w.len() * N * per).saturating_sub(n_params)
+    }
+
+    /// Whitened residuals `r[e][i]` at `p`.
+    pub fn residuals(&self, p: &[f64]) -> Series {
+        let t = self.lik.whiten_cut(self.lik.engine.templates(p, Some(&self.lik.response)));
+        subtract(&self.data_w, &t)
+    }
+
+    /// Whitened residuals and the whitened template derivatives `j[k][e][i]` (`dr/dp = -j`).
+    pub fn residuals_and_jacobian(&self, p: &[f64]) -> (Series, Vec<Series>) {
+        let (t, d) = self.lik.engine.templates_and_derivatives(p, Some(&self.lik.response));
+        let t = self.lik.whiten_cut(t);
+        let d = d.into_iter().map(|s| self.lik.whiten_cut(s)).collect();
+        (subtract(&self.data_w, &t), d)
+    }
+
+    /// Raw (unwhitened) residuals `o_exp - o_s(p)` of the full series.
+    pub fn raw_residuals(&self, data: &ExperimentData, p: &[f64]) -> Series {
+        let t = self.lik.engine.templates(p, None);
+        subtract(&data.outputs, &t)
+    }
+}
+
+fn subtract(a: &Series, b: &Series) -> Series {
+    a.iter()
+        .zip(b)
+        .map(|(ea, eb)| ea.iter().zip(eb).map(|(x, y)| x.iter().zip(y).map(|(u, v)| u - v).collect()).collect())
+        .collect()
+}

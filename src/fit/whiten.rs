@@ -1,0 +1,280 @@
+//! Whitening of finite multichannel series with strongly red, cross-correlated noise
+//! (thesis sec. 4.4.3). The thesis fits z-domain filters to the inverse PSD; we use the
+//! prediction-error filter of a vector autoregressive model VAR(p), normalised by the Cholesky
+//! factor of its innovation covariance:
+//!
+//! `w_t = L^-1 (x_t - sum_{j=1..p} A_j x_{t-j}) = sum_{j=0..p} B_j x_{t-j}`.
+//!
+//! The VAR is obtained from an autocovariance sequence by the multichannel Levinson recursion
+//! (Whittle 1963): either the exact autocovariance of the model's cross-PSD, or the sample
+//! autocovariance of a noise-only run tapered with the 92-dB Blackman-Harris window, whose low
+//! leakage keeps Yule-Walker accurate over the 60 dB dynamic range of o12. Spectral structure
+//! near 1 mHz (T22 and T21 peak there) needs long memory, so the default order is a few hundred
+//! lags; the filter is applied by FFT, so the order costs nothing per evaluation.
+//!
+//! The filter is causal and of finite length, so its start-up transient is exactly the first
+//! `p` samples, which are dropped (thesis footnote: "an initial segment of data is usually cut
+//! away"). Power below what `p` lags can model survives as a residual red component and a
+//! non-zero mean (thesis Table "whitening"); the likelihood removes it with per-channel
+//! polynomial nuisance terms in the whitened domain (the thesis's "first or second order
+//! polynomial fit").
+
+use nalgebra::{DMatrix, SMatrix};
+use realfft::RealFftPlanner;
+use num_complex::Complex64;
+
+use super::FitError;
+use crate::model::closed_loop::CMat;
+
+/// Frequency grid of `from_psd`, in multiples of the data length.
+pub const PSD_RESOLUTION: usize = 4;
+
+/// A causal whitening FIR `w_t = sum_j B_j x_{t-j}` for `N` channels.
+#[derive(Debug, Clone)]
+pub struct Whitener<const N: usize> {
+    pub taps: Vec<SMatrix<f64, N, N>>,
+    /// Innovation covariance of the fitted VAR (units of the data squared).
+    pub innovation: SMatrix<f64, N, N>,
+}
+
+impl<const N: usize> Whitener<N> {
+    pub fn order(&self) -> usize {
+        self.taps.len() - 1
+    }
+
+    /// VAR(`order`) from the autocovariance `r[k] = E[x_{t+k} x_t^T]`, k = 0..=order: the
+    /// Yule-Walker normal equations solved directly by Cholesky of the equilibrated block-Toeplitz
+    /// matrix. (The Levinson-Whittle recursion is faster but loses positive definiteness in
+    /// floating point for o12's dynamic range; a direct solve of a few hundred unknowns is cheap.)
+    pub fn from_autocovariance(r: &[SMatrix<f64, N, N>], order: usize) -> Result<Self, FitError> {
+        if r.len() <= order {
+            return Err(FitError::Input(format!("need {} autocovariance lags for order {order}, got {}", order + 1, r.len())));
+        }
+        let dim = N * order;
+        // G[(j,c),(k,d)] = E[x_{t-1-j,c} x_{t-1-k,d}] = R(k-j)[c,d]; H[(j,c), o] = R(j+1)[o,c].
+        let lag = |l: isize| -> SMatrix<f64, N, N> { if l >= 0 { r[l as usize] } else { r[(-l) as usize].transpose() } };
+        let mut g = DMatrix::<f64>::zeros(dim, dim);
+        for j in 0..order {
+            for k in 0..order {
+                let m = lag(k as isize - j as isize);
+                for c in 0..N {
+                    for d in 0..N {
+                        g[(j * N + c, k * N + d)] = m[(c, d)];
+                    }
+                }
+            }
+        }
+        let mut h = DMatrix::<f64>::zeros(dim, N);
+        for j in 0..order {
+            for c in 0..N {
+                for o in 0..N {
+                    h[(j * N + c, o)] = r[j + 1][(o, c)];
+                }
+            }
+        }
+        let scale: Vec<f64> = (0..dim).map(|a| g[(a, a)].sqrt().max(f64::MIN_POSITIVE)).collect();
+        for a in 0..dim {
+            for b in 0..dim {
+                g[(a, b)] /= scale[a] * scale[b];
+            }
+            for o in 0..N {
+                h[(a, o)] /= scale[a];
+            }
+        }
+        let chol = g.cholesky().ok_or_else(|| {
+            FitError::Singular("noise autocovariance for the whitening filter (is a channel constant or zero?)".into())
+        })?;
+        let coef = chol.solve(&h);
+        let a: Vec<SMatrix<f64, N, N>> =
+            (0..order).map(|j| SMatrix::<f64, N, N>::from_fn(|o, c| coef[(j * N + c, o)] / scale[j * N + c])).collect();
+        let mut sigma = r[0];
+        for (j, aj) in a.iter().enumerate() {
+            sigma -= aj * r[j + 1].transpose();
+        }
+        let sigma = (sigma + sigma.transpose()) * 0.5;
+        let l = sigma
+            .cholesky()
+            .ok_or_else(|| FitError::Singular("innovation covariance of the whitening filter is not positive definite".into()))?
+            .l();
+        let l_inv = l.try_inverse().ok_or_else(|| FitError::Singular("innovation covariance".into()))?;
+        let mut taps = vec![l_inv];
+        taps.extend(a.iter().map(|aj| -(l_inv * aj)));
+        Ok(Whitener { taps, innovation: sigma })
+    }
+
+    /// VAR(`order`) from a noise-only series (N channels of equal length): tapered sample
+    /// autocovariance after removing each channel's mean and linear trend.
+    pub fn from_series(series: &[Vec<f64>], order: usize) -> Result<Self, FitError> {
+        if series.len() != N {
+            return Err(FitError::Input(format!("whitening needs {N} channels, got {}", series.len())));
+        }
+        let n = series[0].len();
+        let need = 8 * order.max(1);
+        if n < need {
+            return Err(FitError::TooShort { what: "noise run for the whitening filter".into(), len: n, need });
+        }
+        let taper = crate::spectral::window::blackman_harris_92(n);
+        let norm = (taper.iter().map(|w| w * w).sum::<f64>() / n as f64).sqrt();
+        let x: Vec<Vec<f64>> = series
+            .iter()
+            .map(|s| detrend_linear(s).iter().zip(&taper).map(|(v, w)| v * w / norm).collect())
+            .collect();
+        Ok(Self::from_autocovariance(&sample_autocovariance::<N>(&x, order), order)?)
+    }
+
+    /// VAR(`order`) from a one-sided cross-PSD `psd(f)` (for `f > 0`) at sampling interval `dt`,
+    /// for data of `n_data` samples: the autocovariance by inverse FFT on a grid of
+    /// `RESOLUTION x n_data` bins. Power below that grid's first bin (far below `1/T`) cannot be
+    /// told from an offset or a drift in `n_data` samples and is left to the nuisance terms;
+    /// including it would make the autocovariance nearly constant and the recursion singular.
+    pub fn from_psd(psd: impl Fn(f64) -> CMat<N>, dt: f64, order: usize, n_data: usize) -> Result<Self, FitError> {
+        let len = (PSD_RESOLUTION * n_data.max(order + 1)).next_power_of_two();
+        Self::from_autocovariance(&psd_autocovariance::<N>(psd, dt, len, order), order)
+    }
+
+    /// Apply to `x` (N channels, length n): returns the `n - order` valid whitened samples
+    /// (whitened sample `i` belongs to input time `i + order`).
+    pub fn apply(&self, x: &[Vec<f64>]) -> Vec<Vec<f64>> {
+        let p = self.order();
+        let n = x[0].len();
+        let mut out = vec![vec![0.0; n.saturating_sub(p)]; N];
+        for t in p..n {
+            for (j, b) in self.taps.iter().enumerate() {
+                for o in 0..N {
+                    let mut acc = 0.0;
+                    for i in 0..N {
+                        acc += b[(o, i)] * x[i][t - j];
+                    }
+                    out[o][t - p] += acc;
+                }
+            }
+        }
+        out
+    }
+
+    /// Frequency response `W(f_k) = sum_j B_j exp(-2 pi i k j / m)` on the `m/2 + 1` bins of a
+    /// uniform grid of `m` points (the template engine's padded grid), by FFT of the taps.
+    pub fn response_on_grid(&self, m: usize) -> Vec<CMat<N>> {
+        assert!(m > self.order(), "grid shorter than the whitening filter");
+        let mut planner = RealFftPlanner::<f64>::new();
+        let fft = planner.plan_fft_forward(m);
+        let mut out = vec![CMat::<N>::zeros(); m / 2 + 1];
+        for o in 0..N {
+            for i in 0..N {
+                let mut buf = vec![0.0; m];
+                for (j, b) in self.taps.iter().enumerate() {
+                    buf[j] = b[(o, i)];
+                }
+                let mut spec = fft.make_output_vec();
+                fft.process(&mut buf, &mut spec).expect("FFT sizes match");
+                for (k, z) in spec.into_iter().enumerate() {
+                    out[k][(o, i)] = z;
+                }
+            }
+        }
+        out
+    }
+}
+
+/// Remove the least-squares line from a series.
+pub fn detrend_linear(x: &[f64]) -> Vec<f64> {
+    let n = x.len() as f64;
+    let tm = (n - 1.0) / 2.0;
+    let mean = x.iter().sum::<f64>() / n;
+    let (mut sxy, mut sxx) = (0.0, 0.0);
+    for (i, v) in x.iter().enumerate() {
+        let d = i as f64 - tm;
+        sxy += d * (v - mean);
+        sxx += d * d;
+    }
+    let slope = if sxx > 0.0 { sxy / sxx } else { 0.0 };
+    x.iter().enumerate().map(|(i, v)| v - mean - slope * (i as f64 - tm)).collect()
+}
+
+/// Orthonormal polynomial basis of degree `deg` on `n` points (Gram-Schmidt on 1, t, t^2).
+pub fn poly_basis(n: usize, deg: usize) -> Vec<Vec<f64>> {
+    let tm = (n as f64 - 1.0) / 2.0;
+    let mut basis: Vec<Vec<f64>> = Vec::new();
+    for d in 0..=deg {
+        let mut v: Vec<f64> = (0..n).map(|i| ((i as f64 - tm) / n as f64).powi(d as i32)).collect();
+        for b in &basis {
+            let dot: f64 = v.iter().zip(b).map(|(a, c)| a * c).sum();
+            v.iter_mut().zip(b).for_each(|(a, c)| *a -= dot * c);
+        }
+        let norm = v.iter().map(|a| a * a).sum::<f64>().sqrt();
+        if norm > 0.0 {
+            v.iter_mut().for_each(|a| *a /= norm);
+            basis.push(v);
+        }
+    }
+    basis
+}
+
+/// Project `x` onto the orthogonal complement of the orthonormal `basis`, in place.
+pub fn project_out(x: &mut [f64], basis: &[Vec<f64>]) {
+    for b in basis {
+        let dot: f64 = x.iter().zip(b).map(|(a, c)| a * c).sum();
+        x.iter_mut().zip(b).for_each(|(a, c)| *a -= dot * c);
+    }
+}
+
+/// Biased sample autocovariance `r[k] = (1/n) sum_t x_{t+k} x_t^T`, k = 0..=max_lag, by FFT.
+pub fn sample_autocovariance<const N: usize>(x: &[Vec<f64>], max_lag: usize) -> Vec<SMatrix<f64, N, N>> {
+    let n = x[0].len();
+    let m = crate::noise::generate::fast_len(2 * n);
+    let mut planner = rustfft::FftPlanner::<f64>::new();
+    let fwd = planner.plan_fft_forward(m);
+    let inv = planner.plan_fft_inverse(m);
+    let specs: Vec<Vec<Complex64>> = x
+        .iter()
+        .map(|c| {
+            let mut buf: Vec<Complex64> = c.iter().map(|&v| Complex64::new(v, 0.0)).collect();
+            buf.resize(m, Complex64::new(0.0, 0.0));
+            fwd.process(&mut buf);
+            buf
+        })
+        .collect();
+    let mut out = vec![SMatrix::<f64, N, N>::zeros(); max_lag + 1];
+    for i in 0..N {
+        for j in 0..N {
+            // r_ij[k] = sum_t x_i[t+k] x_j[t]  <->  X_i X_j^*
+            let mut buf: Vec<Complex64> = specs[i].iter().zip(&specs[j]).map(|(a, b)| a * b.conj()).collect();
+            inv.process(&mut buf);
+            for (k, o) in out.iter_mut().enumerate() {
+                o[(i, j)] = buf[k].re / (m as f64 * n as f64);
+            }
+        }
+    }
+    out
+}
+
+/// Autocovariance `r[k] = E[x_{t+k} x_t^T]` of a process with one-sided cross-PSD `psd`
+/// (`S_ij ~ <X_i X_j^*>`), sampled every `dt`, from `len` frequency bins.
+pub fn psd_autocovariance<const N: usize>(psd: impl Fn(f64) -> CMat<N>, dt: f64, len: usize, max_lag: usize) -> Vec<SMatrix<f64, N, N>> {
+    let df = 1.0 / (len as f64 * dt);
+    let half = len / 2;
+    // The DC bin is left out: a red process's mean is not defined by its PSD, and the
+    // likelihood's polynomial nuisance absorbs it.
+    let s: Vec<CMat<N>> = (0..=half).map(|k| if k == 0 { CMat::<N>::zeros() } else { psd(k as f64 * df) }).collect();
+    let mut planner = rustfft::FftPlanner::<f64>::new();
+    let inv = planner.plan_fft_inverse(len);
+    let mut out = vec![SMatrix::<f64, N, N>::zeros(); max_lag + 1];
+    for i in 0..N {
+        for j in 0..N {
+            // Two-sided density S/2 at +f and its conjugate at -f; DC and Nyquist counted once.
+            let mut buf = vec![Complex64::new(0.0, 0.0); len];
+            for k in 0..=half {
+                let v = s[k][(i, j)] * 0.5;
+                buf[k] = v;
+                if k != 0 && k != half {
+                    buf[len - k] = v.conj();
+                }
+            }
+            inv.process(&mut buf);
+            for (k, o) in out.iter_mut().enumerate() {
+                o[(i, j)] = buf[k].re * df;
+            }
+        }
+    }
+    out
+}
