@@ -12,3 +12,5 @@ pub mod noise;
 pub mod signal;
 pub mod sim;
 pub mod fit;
+pub mod setup;
+pub mod cli;

@@ -132,3 +132,26 @@ fn model_file_errors_name_the_key() {
     let err = ModelSpec::embedded().scenario("nope").unwrap_err().to_string();
     assert!(err.contains("nope") && err.contains("monte_carlo"), "{err}");
 }
+
+#[test]
+fn specialised_lpf_grid_matches_generic_algebra() {
+    // Oracle: the generic operator algebra of closed_loop.rs, on a uniform grid (phase
+    // recurrence) and on a non-uniform one (direct exponentials).
+    use freefall::model::closed_loop::transfer_grid_generic;
+    let (spec, m) = lpf();
+    let p = spec.scenario("under_performing").unwrap().truth;
+    for grid in [(1..5000).map(|k| k as f64 * 1e-4).collect::<Vec<_>>(), log_grid(1e-5, 0.5, 3000)] {
+        let pts: Vec<_> = grid.iter().map(|&f| m.prepare(f)).collect();
+        let (mut t1, mut t2) = (vec![CMat::<2>::zeros(); pts.len()], vec![CMat::<2>::zeros(); pts.len()]);
+        let (mut d1, mut d2) = (vec![CMat::<2>::zeros(); 7 * pts.len()], vec![CMat::<2>::zeros(); 7 * pts.len()]);
+        m.transfer_grid(&pts, &p, &mut t1, Some(&mut d1));
+        transfer_grid_generic(&m, &pts, &p, &mut t2, Some(&mut d2));
+        for k in 0..pts.len() {
+            assert!((t1[k] - t2[k]).norm() <= 1e-10 * t2[k].norm(), "T at bin {k}");
+            for q in 0..7 {
+                let (a, b) = (d1[k * 7 + q], d2[k * 7 + q]);
+                assert!((a - b).norm() <= 1e-9 * b.norm() + 1e-30, "dT/dp{q} at bin {k}: {a} vs {b}");
+            }
+        }
+    }
+}

@@ -76,6 +76,40 @@ pub trait ClosedLoopModel<const N: usize>: Send + Sync {
     fn n_params(&self) -> usize {
         self.parameter_names().len()
     }
+
+    /// `T_{oi->o}` at every point of a grid into `t_out`, and, if `d_out` is given, its
+    /// derivatives into `d_out[bin * n_params + k]`. The default runs the generic operator
+    /// algebra per point; a model may override it with a faster specialised form, which must
+    /// agree with the generic one (tested for LPF-x).
+    fn transfer_grid(&self, points: &[Self::Point], p: &[f64], t_out: &mut [CMat<N>], d_out: Option<&mut [CMat<N>]>)
+    where
+        Self: Sized,
+    {
+        transfer_grid_generic(self, points, p, t_out, d_out)
+    }
+}
+
+/// The generic implementation of [`ClosedLoopModel::transfer_grid`].
+pub fn transfer_grid_generic<M: ClosedLoopModel<N>, const N: usize>(
+    model: &M,
+    points: &[M::Point],
+    p: &[f64],
+    t_out: &mut [CMat<N>],
+    d_out: Option<&mut [CMat<N>]>,
+) {
+    let np = model.n_params();
+    match d_out {
+        None => {
+            for (pt, t) in points.iter().zip(t_out.iter_mut()) {
+                *t = transfer(model, pt, p).oi_o;
+            }
+        }
+        Some(d) => {
+            for (k, (pt, t)) in points.iter().zip(t_out.iter_mut()).enumerate() {
+                *t = transfer_with_derivatives(model, pt, p, &mut d[k * np..(k + 1) * np]).oi_o;
+            }
+        }
+    }
 }
 
 /// Closed-loop transfer operators at one frequency.

@@ -69,6 +69,102 @@ impl LpfX {
     }
 }
 
+/// Delay factors `exp(-s_k dt)` along a grid, by recurrence where the grid is uniform (one
+/// complex multiply per bin instead of a sine and a cosine), renormalised against drift.
+struct Phasor {
+    value: Complex64,
+    step: Complex64,
+    dt: f64,
+}
+
+impl Phasor {
+    fn new(dt: f64) -> Self {
+        Phasor { value: Complex64::new(1.0, 0.0), step: Complex64::new(1.0, 0.0), dt }
+    }
+
+    /// Factor at point `k`, given the previous two points' `s`.
+    fn at(&mut self, k: usize, s: Complex64, ds: Option<Complex64>) -> Complex64 {
+        match ds {
+            Some(ds) if k % 256 != 0 => {
+                if k == 2 || self.step == Complex64::new(1.0, 0.0) {
+                    self.step = (-ds * self.dt).exp();
+                }
+                self.value *= self.step;
+            }
+            _ => {
+                self.value = (-s * self.dt).exp();
+                self.step = Complex64::new(1.0, 0.0);
+            }
+        }
+        self.value
+    }
+}
+
+impl LpfX {
+    /// Closed-form `T_{oi->o}` and its derivatives for the 2x2 x-axis loop (same algebra as
+    /// the generic code, with the structural zeros of each operator derivative skipped).
+    pub fn fast_transfer_grid(&self, points: &[LpfPoint], p: &[f64], t_out: &mut [CMat<2>], mut d_out: Option<&mut [CMat<2>]>) {
+        let (w1, w12, s21, a_df, a_sus, mt, g) = (p[W1], p[W12], p[S21], p[A_DF], p[A_SUS], self.mt, self.gamma_x);
+        let k11 = (1.0 + 2.0 * mt) * w1 + mt * w12;
+        let d12r = g + mt * (w1 + w12);
+        let k22 = w1 + w12 - 2.0 * g;
+        let (mut ph1, mut ph2) = (Phasor::new(p[DT1]), Phasor::new(p[DT12]));
+        let uniform = points.len() > 3 && {
+            let d1 = points[2].s - points[1].s;
+            let d2 = points[points.len() - 1].s - points[points.len() - 2].s;
+            (d1 - d2).norm() <= 1e-9 * d1.norm()
+        };
+        for (k, pt) in points.iter().enumerate() {
+            let ds = (uniform && k >= 2).then(|| pt.s - points[k - 1].s);
+            let e1 = ph1.at(k, pt.s, ds);
+            let e2 = ph2.at(k, pt.s, ds);
+            let big_d11 = pt.s2 + k11;
+            let big_d22 = pt.s2 + k22;
+            let d11 = big_d11 - s21 * d12r + pt.c_df * a_df;
+            let d12 = pt.c_sus * (mt * a_sus) + d12r;
+            let d21 = c(w12) - big_d22 * s21;
+            let d22 = big_d22 + pt.c_sus * a_sus;
+            let inv_det = 1.0 / (d11 * d22 - d12 * d21);
+            let (i11, i12, i21, i22) = (d22 * inv_det, -d12 * inv_det, -d21 * inv_det, d11 * inv_det);
+            let m11 = pt.c_df * a_df * e1;
+            let m22 = pt.c_sus * a_sus * e2;
+            let m12 = m22 * mt;
+            let t11 = i11 * m11;
+            let t12 = i11 * m12 + i12 * m22;
+            let t21 = i21 * m11;
+            let t22 = i21 * m12 + i22 * m22;
+            t_out[k] = m2(t11, t12, t21, t22);
+            let Some(d) = d_out.as_deref_mut() else { continue };
+            let out = &mut d[k * 7..k * 7 + 7];
+            // dT = Delta^-1 (dM - dDelta T), dM = d(A C T_d).
+            let apply = |x11: Complex64, x12: Complex64, x21: Complex64, x22: Complex64| {
+                m2(i11 * x11 + i12 * x21, i11 * x12 + i12 * x22, i21 * x11 + i22 * x21, i21 * x12 + i22 * x22)
+            };
+            // Real constant dDelta (stiffness): rows (a, b; cc, dd).
+            let stiff = |a: f64, b: f64, cc: f64, dd: f64| {
+                apply(
+                    -(t11 * a + t21 * b),
+                    -(t12 * a + t22 * b),
+                    -(t11 * cc + t21 * dd),
+                    -(t12 * cc + t22 * dd),
+                )
+            };
+            out[W1] = stiff(1.0 + 2.0 * mt - s21 * mt, mt, -s21, 1.0);
+            out[W12] = stiff(mt - s21 * mt, mt, 1.0 - s21, 1.0);
+            // s21: dDelta = [[-D12, 0], [-D22, 0]].
+            out[S21] = apply(t11 * d12r, t12 * d12r, t11 * big_d22, t12 * big_d22);
+            // a_df: dDelta = [[cdf, 0], [0, 0]], dM = [[cdf e1, 0], [0, 0]].
+            out[A_DF] = apply(pt.c_df * e1 - pt.c_df * t11, -pt.c_df * t12, c(0.0), c(0.0));
+            // a_sus: dDelta = [[0, mt csus], [0, csus]], dM = [[0, mt csus e2], [0, csus e2]].
+            let cs = pt.c_sus;
+            out[A_SUS] = apply(-cs * mt * t21, cs * e2 * mt - cs * mt * t22, -cs * t21, cs * e2 - cs * t22);
+            // Delays: dDelta = 0, dM = -s (column of M).
+            out[DT1] = apply(-pt.s * m11, c(0.0), c(0.0), c(0.0));
+            out[DT12] = apply(c(0.0), -pt.s * m12, c(0.0), -pt.s * m22);
+        }
+    }
+}
+
 impl ClosedLoopModel<2> for LpfX {
     type Point = LpfPoint;
 
@@ -133,6 +229,10 @@ impl ClosedLoopModel<2> for LpfX {
         let cc = d12.mul(&dsus).add(&nsus.scale(mt * a_sus));
         let d = d21.sub(&d22.scale(s21)).mul(&ddf);
         a.mul(&b).sub(&cc.mul(&d))
+    }
+
+    fn transfer_grid(&self, points: &[LpfPoint], p: &[f64], t_out: &mut [CMat<2>], d_out: Option<&mut [CMat<2>]>) {
+        self.fast_transfer_grid(points, p, t_out, d_out)
     }
 
     fn noise_entry(&self, name: &str) -> Option<NoiseEntry<2>> {

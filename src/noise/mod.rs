@@ -22,6 +22,8 @@ pub enum NoiseError {
     BadDt(f64),
     #[error("oversampling factor must be >= 1, got {0}")]
     BadOversample(usize),
+    #[error("decimation: {0}")]
+    Decimation(String),
     #[error("noise cross-PSD is not finite at f = {f_hz:e} Hz")]
     NonFinitePsd { f_hz: f64 },
 }

@@ -33,8 +33,23 @@ impl<const N: usize> Simulator<N> {
         oversample: usize,
         glitches: Option<GlitchConfig>,
     ) -> Result<Self, NoiseError> {
-        let n = design.samples(dt);
-        let inputs: Vec<Vec<Vec<f64>>> = (0..design.experiments.len()).map(|e| design.sample(e, N, 0.0, dt, n)).collect();
+        Self::on_grid(model, design, truth, psd, dt, 0.0, design.samples(dt), oversample, glitches)
+    }
+
+    /// The same on the time grid `t0 + k dt`, k = 0..n (e.g. with margins for decimation).
+    #[allow(clippy::too_many_arguments)]
+    pub fn on_grid<M: ClosedLoopModel<N>>(
+        model: &M,
+        design: &Design,
+        truth: &[f64],
+        psd: impl Fn(f64) -> CMat<N>,
+        dt: f64,
+        t0: f64,
+        n: usize,
+        oversample: usize,
+        glitches: Option<GlitchConfig>,
+    ) -> Result<Self, NoiseError> {
+        let inputs: Vec<Vec<Vec<f64>>> = (0..design.experiments.len()).map(|e| design.sample(e, N, t0, dt, n)).collect();
         let engine = TemplateEngine::new(model, &inputs, dt);
         let signal = engine.templates(truth, None);
         let noise = ColoredNoise::new(psd, n, dt, oversample)?;

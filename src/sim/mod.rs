@@ -2,7 +2,9 @@
 //! realization, `o_exp = o_s + o_n`; a noise-only run is produced the same way with zero
 //! injections.
 
+pub mod decimated;
 pub mod experiment;
+pub mod rng;
 pub mod templates;
 
 pub use experiment::Simulator;

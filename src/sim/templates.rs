@@ -14,7 +14,7 @@ use std::sync::Arc;
 use num_complex::Complex64;
 use realfft::{ComplexToReal, RealFftPlanner};
 
-use crate::model::closed_loop::{transfer, transfer_with_derivatives, CMat, ClosedLoopModel};
+use crate::model::closed_loop::{CMat, ClosedLoopModel};
 use crate::noise::generate::fast_len;
 
 /// Series per experiment, per channel: `out[e][c][t]`.
@@ -156,10 +156,11 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
         let nb = self.points.len();
         let ne = self.n_experiments();
         let mut specs = vec![vec![vec![Complex64::new(0.0, 0.0); nb]; N]; ne];
-        for (k, pt) in self.points.iter().enumerate() {
-            let tr = transfer(self.model, pt, p);
+        let mut tgrid = vec![CMat::<N>::zeros(); nb];
+        self.model.transfer_grid(&self.points, p, &mut tgrid, None);
+        for (k, t) in tgrid.iter().enumerate() {
             for (e, spec_e) in specs.iter_mut().enumerate() {
-                let r = self.response(e, k, &tr.oi_o, filter.map(|f| &f[k]));
+                let r = self.response(e, k, t, filter.map(|f| &f[k]));
                 for i in 0..N {
                     spec_e[i][k] = r[i];
                 }
@@ -180,12 +181,14 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
         let zero = Complex64::new(0.0, 0.0);
         let mut specs = vec![vec![vec![zero; nb]; N]; ne];
         let mut dspecs = vec![vec![vec![vec![zero; nb]; N]; ne]; np];
-        let mut d = vec![CMat::<N>::zeros(); np];
-        for (k, pt) in self.points.iter().enumerate() {
-            let tr = transfer_with_derivatives(self.model, pt, p, &mut d);
+        let mut tgrid = vec![CMat::<N>::zeros(); nb];
+        let mut dgrid = vec![CMat::<N>::zeros(); nb * np];
+        self.model.transfer_grid(&self.points, p, &mut tgrid, Some(&mut dgrid));
+        for (k, t) in tgrid.iter().enumerate() {
+            let d = &dgrid[k * np..(k + 1) * np];
             let w = filter.map(|f| &f[k]);
             for e in 0..ne {
-                let r = self.response(e, k, &tr.oi_o, w);
+                let r = self.response(e, k, t, w);
                 for i in 0..N {
                     specs[e][i][k] = r[i];
                 }

@@ -1,0 +1,376 @@
+//! `freefall psd`, `freefall whiten` and `freefall fit`: time series in, spectra, whitened
+//! series and estimates out. Measured and simulated data take the same path.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context, Result};
+use clap::Args;
+use serde::Serialize;
+
+use super::{ensure_parent, ModelOpt};
+use crate::fit::problem::ExperimentData;
+use crate::fit::{fit as run_fit, Estimator, FitConfig, Likelihood, Whitener};
+use crate::io::{read_dataset, read_run, read_toml, write_json_atomic, write_parquet, Dataset, Run, Table};
+use crate::model::check_stability;
+use crate::setup::{Setup, DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
+use crate::spectral::{welch_csd, WelchConfig};
+
+#[derive(Debug, Args)]
+pub struct PsdArgs {
+    /// Run file (Parquet or CSV) with columns t, oi1, oi12, o1, o12.
+    pub run: PathBuf,
+    /// Output Parquet: f, s11, s22, s12_re, s12_im, coherence (one-sided, thesis Welch settings).
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+pub fn psd(a: PsdArgs) -> Result<()> {
+    let run = read_run(&a.run)?;
+    let [o1, o12] = run.outputs();
+    let cs = welch_csd(&[o1, o12], run.dt, &WelchConfig::default()).with_context(|| format!("{}", a.run.display()))?;
+    let s12 = cs.csd(0, 1);
+    let table = Table::new()
+        .with_f64("f", cs.f.clone())?
+        .with_f64("s11", cs.psd(0))?
+        .with_f64("s22", cs.psd(1))?
+        .with_f64("s12_re", s12.iter().map(|z| z.re).collect())?
+        .with_f64("s12_im", s12.iter().map(|z| z.im).collect())?
+        .with_f64("coherence", cs.coherence(0, 1))?;
+    ensure_parent(&a.out)?;
+    write_parquet(&a.out, &table)?;
+    eprintln!("wrote {} ({} bins, {} segments, {:.1} equivalent degrees of freedom)", a.out.display(), cs.f.len(), cs.segments, cs.dof());
+    Ok(())
+}
+
+#[derive(Debug, Args)]
+pub struct WhitenArgs {
+    /// Run file to whiten.
+    pub run: PathBuf,
+    /// Noise-only run from which the whitening filter is estimated.
+    #[arg(long, conflicts_with = "model_psd")]
+    pub noise: Option<PathBuf>,
+    /// Build the whitening filter from the model's noise PSD instead.
+    #[arg(long = "model-psd", alias = "from-model")]
+    pub model_psd: bool,
+    #[command(flatten)]
+    pub model: ModelOpt,
+    /// Scenario whose true parameters set the model noise PSD (default: nominal parameters).
+    #[arg(long)]
+    pub scenario: Option<String>,
+    /// Whitening filter order (lags).
+    #[arg(long, default_value_t = DEFAULT_WHITENING_ORDER)]
+    pub order: usize,
+    /// Degree of the polynomial removed from the whitened series.
+    #[arg(long, default_value_t = DEFAULT_POLY_DEGREE)]
+    pub poly_degree: usize,
+    /// Output Parquet: t, o1_w, o12_w (after the filter's start-up samples).
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+/// Moments of a series with their Gaussian standard errors (thesis Table "whitening").
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct Moments {
+    pub n: usize,
+    pub mean: f64,
+    pub mean_err: f64,
+    pub sd: f64,
+    pub sd_err: f64,
+    pub skewness: f64,
+    pub skewness_err: f64,
+    pub excess_kurtosis: f64,
+    pub kurtosis_err: f64,
+}
+
+pub fn moments(x: &[f64]) -> Moments {
+    let n = x.len() as f64;
+    let mean = x.iter().sum::<f64>() / n;
+    let m2 = x.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n;
+    let m3 = x.iter().map(|v| (v - mean).powi(3)).sum::<f64>() / n;
+    let m4 = x.iter().map(|v| (v - mean).powi(4)).sum::<f64>() / n;
+    let sd = m2.sqrt();
+    Moments {
+        n: x.len(),
+        mean,
+        mean_err: sd / n.sqrt(),
+        sd,
+        sd_err: sd / (2.0 * n).sqrt(),
+        skewness: m3 / m2.powf(1.5),
+        skewness_err: (6.0 / n).sqrt(),
+        excess_kurtosis: m4 / (m2 * m2) - 3.0,
+        kurtosis_err: (24.0 / n).sqrt(),
+    }
+}
+
+fn outputs_of(run: &Run) -> Vec<Vec<f64>> {
+    run.outputs().iter().map(|c| c.to_vec()).collect()
+}
+
+/// Parameters of a scenario's truth, or the nominal ones.
+fn psd_parameters(setup: &Setup, scenario: Option<&str>) -> Result<Vec<f64>> {
+    Ok(match scenario {
+        Some(s) => setup.spec.scenario(s)?.truth,
+        None => setup.spec.nominal(),
+    })
+}
+
+pub fn whiten(a: WhitenArgs) -> Result<()> {
+    let run = read_run(&a.run)?;
+    let (whitener, source) = match (&a.noise, a.model_psd) {
+        (Some(path), _) => {
+            let noise = read_run(path)?;
+            if (noise.dt - run.dt).abs() > 1e-9 * run.dt {
+                bail!("{}: sampling interval {} s differs from {}'s {} s", path.display(), noise.dt, a.run.display(), run.dt);
+            }
+            let w = Whitener::<2>::from_series(&outputs_of(&noise), a.order).with_context(|| path.display().to_string())?;
+            (w, format!("noise run {}", path.display()))
+        }
+        (None, true) => {
+            let setup = a.model.setup()?;
+            let p = psd_parameters(&setup, a.scenario.as_deref())?;
+            (setup.whitener_from_model(&p, run.len(), run.dt, a.order)?, "model noise PSD".to_string())
+        }
+        (None, false) => bail!("give --noise NOISE.parquet or --model-psd to choose where the whitening filter comes from"),
+    };
+    if run.len() < whitener.order() + 10 {
+        bail!("{}: {} samples, fewer than the whitening filter needs ({} + 10)", a.run.display(), run.len(), whitener.order());
+    }
+    let w = whitener.apply(&outputs_of(&run));
+    let basis = crate::fit::whiten::poly_basis(w[0].len(), a.poly_degree);
+    let p = whitener.order();
+    println!("whitening filter: order {p}, from {source}; first {p} samples dropped");
+    println!("{:<8} {:<10} {:>22} {:>20} {:>20} {:>20}", "channel", "stage", "mean", "sd", "skewness", "excess kurtosis");
+    let mut cols = Vec::new();
+    for (c, name) in ["o1", "o12"].iter().enumerate() {
+        let raw = moments(&w[c]);
+        let mut det = w[c].clone();
+        crate::fit::whiten::project_out(&mut det, &basis);
+        let d = moments(&det);
+        for (stage, m) in [("whitened", raw), (&*format!("poly{}", a.poly_degree), d)] {
+            println!(
+                "{name:<8} {stage:<10} {:>10.4} ± {:<9.4} {:>8.4} ± {:<9.4} {:>8.4} ± {:<9.4} {:>8.4} ± {:<9.4}",
+                m.mean, m.mean_err, m.sd, m.sd_err, m.skewness, m.skewness_err, m.excess_kurtosis, m.kurtosis_err
+            );
+        }
+        cols.push(det);
+    }
+    let t: Vec<f64> = (p..run.len()).map(|i| run.t0 + i as f64 * run.dt).collect();
+    let table = Table::new().with_f64("t", t)?.with_f64("o1_w", cols[0].clone())?.with_f64("o12_w", cols[1].clone())?;
+    ensure_parent(&a.out)?;
+    write_parquet(&a.out, &table)?;
+    eprintln!("wrote {}", a.out.display());
+    Ok(())
+}
+
+#[derive(Debug, Args)]
+pub struct FitArgs {
+    /// Dataset TOML (noise run + experiments in the measured-data format).
+    pub dataset: PathBuf,
+    #[command(flatten)]
+    pub model: ModelOpt,
+    /// Starting point: a scenario name (its guess) or a TOML file of `parameter = value`
+    /// (default: the model's nominal parameters).
+    #[arg(long)]
+    pub guess: Option<String>,
+    /// Estimator (thesis eq. "L-estimates").
+    #[arg(long, default_value = "squared")]
+    pub estimator: Estimator,
+    /// Whitening filter order (lags).
+    #[arg(long, default_value_t = DEFAULT_WHITENING_ORDER)]
+    pub order: usize,
+    /// Degree of the whitened-domain polynomial nuisance per experiment and channel.
+    #[arg(long, default_value_t = DEFAULT_POLY_DEGREE)]
+    pub poly_degree: usize,
+    /// Output directory (created): estimates.parquet, correlation.parquet, fit.json, residuals.parquet.
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+/// The experiments of a dataset as fit input.
+pub fn experiment_data(ds: &Dataset) -> Result<ExperimentData> {
+    let dt = ds.dt().context("dataset has no runs")?;
+    Ok(ExperimentData {
+        names: ds.experiments.iter().map(|(n, _)| n.clone()).collect(),
+        inputs: ds.experiments.iter().map(|(_, r)| r.inputs().iter().map(|c| c.to_vec()).collect()).collect(),
+        outputs: ds.experiments.iter().map(|(_, r)| outputs_of(r)).collect(),
+        dt,
+    })
+}
+
+/// Resolve `--guess`: scenario name or parameter file.
+pub fn resolve_guess(setup: &Setup, guess: Option<&str>) -> Result<Vec<f64>> {
+    let names = setup.parameter_names();
+    let Some(g) = guess else { return Ok(setup.spec.nominal()) };
+    if setup.spec.scenarios.contains_key(g) {
+        return Ok(setup.spec.scenario(g)?.guess);
+    }
+    let path = Path::new(g);
+    if !path.exists() {
+        bail!(
+            "--guess '{g}' is neither a scenario ({}) nor an existing file",
+            setup.spec.scenarios.keys().cloned().collect::<Vec<_>>().join(", ")
+        );
+    }
+    let map: BTreeMap<String, f64> = read_toml(path)?;
+    for k in map.keys() {
+        if !names.contains(k) {
+            bail!("{}: unknown parameter '{k}' (expected {})", path.display(), names.join(", "));
+        }
+    }
+    names
+        .iter()
+        .map(|n| map.get(n).copied().with_context(|| format!("{}: missing parameter '{n}'", path.display())))
+        .collect()
+}
+
+/// Whitening filter for a dataset: from its noise run, else from the model PSD at `p`.
+pub fn dataset_whitener(setup: &Setup, ds: &Dataset, p: &[f64], n: usize, dt: f64, order: usize) -> Result<(Whitener<2>, String)> {
+    match &ds.noise {
+        Some(noise) => {
+            let label = noise.path.as_ref().map(|p| p.display().to_string()).unwrap_or_else(|| "noise run".into());
+            let w = Whitener::<2>::from_series(&outputs_of(noise), order).with_context(|| label.clone())?;
+            Ok((w, format!("noise run {label}")))
+        }
+        None => Ok((setup.whitener_from_model(p, n, dt, order)?, "model noise PSD (the dataset has no noise run)".into())),
+    }
+}
+
+#[derive(Debug, Serialize)]
+struct FitJson {
+    chi2: f64,
+    nu: usize,
+    chi2_reduced: f64,
+    chi2_start_reduced: f64,
+    iterations: usize,
+    evaluations: usize,
+    jacobian_evaluations: usize,
+    termination: &'static str,
+    converged: bool,
+    seconds: f64,
+    estimator: String,
+    whitening: String,
+    whitening_order: usize,
+    poly_degree: usize,
+}
+
+pub fn fit(a: FitArgs) -> Result<()> {
+    let setup = a.model.setup()?;
+    let ds = read_dataset(&a.dataset)?;
+    let data = experiment_data(&ds)?;
+    let guess = resolve_guess(&setup, a.guess.as_deref())?;
+    check_stability(&setup.model, &guess, Some(&setup.spec.nominal())).context("the starting point")?;
+    let (whitener, source) = dataset_whitener(&setup, &ds, &guess, data.len(), data.dt, a.order)?;
+    if ds.noise.is_none() {
+        eprintln!("note: whitening from the {source}");
+    }
+    let lik = Likelihood::new(&setup.model, &data.inputs, data.dt, whitener, a.poly_degree)
+        .with_context(|| a.dataset.display().to_string())?;
+    let problem = lik.problem(&data)?;
+    let mut cfg = FitConfig::new(&setup.parameter_names());
+    cfg.estimator = a.estimator;
+    let res = run_fit(&setup.model, &problem, &guess, &cfg)?;
+    let names = setup.parameter_names();
+
+    std::fs::create_dir_all(&a.out).with_context(|| format!("cannot create output directory '{}'", a.out.display()))?;
+    let est = Table::new()
+        .with_str("parameter", names.clone())?
+        .with_f64("estimate", res.estimate.clone())?
+        .with_f64("sigma", res.sigma.clone())?
+        .with_f64("guess", guess.clone())?;
+    write_parquet(a.out.join("estimates.parquet"), &est)?;
+    let (mut pi, mut pj, mut corr) = (Vec::new(), Vec::new(), Vec::new());
+    for i in 0..names.len() {
+        for j in 0..names.len() {
+            pi.push(names[i].clone());
+            pj.push(names[j].clone());
+            corr.push(res.correlation[(i, j)]);
+        }
+    }
+    write_parquet(
+        a.out.join("correlation.parquet"),
+        &Table::new().with_str("parameter_i", pi)?.with_str("parameter_j", pj)?.with_f64("corr", corr)?,
+    )?;
+    write_parquet(a.out.join("residuals.parquet"), &residual_table(&problem, &data, &res.estimate, &res.residuals_w)?)?;
+    let json = FitJson {
+        chi2: res.chi2,
+        nu: res.nu,
+        chi2_reduced: res.chi2_reduced,
+        chi2_start_reduced: res.chi2_start / res.nu as f64,
+        iterations: res.iterations,
+        evaluations: res.evaluations,
+        jacobian_evaluations: res.jacobian_evaluations,
+        termination: res.termination.as_str(),
+        converged: res.termination.converged(),
+        seconds: res.seconds,
+        estimator: a.estimator.to_string(),
+        whitening: source,
+        whitening_order: a.order,
+        poly_degree: a.poly_degree,
+    };
+    write_json_atomic(a.out.join("fit.json"), &json)?;
+
+    let truth = truth_from_meta(&ds, &names);
+    println!(
+        "chi2/nu = {:.4} (nu = {}), from {:.4e} at the guess; {} iterations, {} ({:.2} s)",
+        res.chi2_reduced,
+        res.nu,
+        json.chi2_start_reduced,
+        res.iterations,
+        res.termination.as_str(),
+        res.seconds
+    );
+    print!("{:<8} {:>16} {:>12} {:>16}", "param", "estimate", "sigma", "guess");
+    if truth.is_some() {
+        print!(" {:>16} {:>9}", "truth", "pull");
+    }
+    println!();
+    for k in 0..names.len() {
+        print!("{:<8} {:>16.8e} {:>12.3e} {:>16.6e}", names[k], res.estimate[k], res.sigma[k], guess[k]);
+        if let Some(t) = &truth {
+            print!(" {:>16.8e} {:>9.2}", t[k], (res.estimate[k] - t[k]) / res.sigma[k]);
+        }
+        println!();
+    }
+    eprintln!("wrote {}", a.out.display());
+    if !res.termination.converged() {
+        bail!("the fit did not converge: {}", res.termination.as_str());
+    }
+    Ok(())
+}
+
+/// `[meta.truth]` of a simulated dataset, if complete.
+pub fn truth_from_meta(ds: &Dataset, names: &[String]) -> Option<Vec<f64>> {
+    let t = ds.meta.get("truth")?.as_table()?;
+    names.iter().map(|n| t.get(n).and_then(|v| v.as_float())).collect()
+}
+
+/// Long-format residual table: experiment, channel, t, raw, whitened (NaN where the whitening
+/// filter has not started).
+pub fn residual_table<M: crate::model::ClosedLoopModel<2>>(
+    problem: &crate::fit::Problem<'_, '_, M, 2>,
+    data: &ExperimentData,
+    p: &[f64],
+    whitened: &crate::sim::Series,
+) -> Result<Table> {
+    let raw = problem.raw_residuals(data, p);
+    let order = problem.lik.order();
+    let (mut exp, mut ch, mut t, mut r, mut w) = (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    for (e, name) in data.names.iter().enumerate() {
+        for (c, cname) in ["o1", "o12"].iter().enumerate() {
+            for i in 0..data.len() {
+                exp.push(name.clone());
+                ch.push(cname.to_string());
+                t.push(i as f64 * data.dt);
+                r.push(raw[e][c][i]);
+                w.push(if i >= order { whitened[e][c][i - order] } else { f64::NAN });
+            }
+        }
+    }
+    Ok(Table::new()
+        .with_str("experiment", exp)?
+        .with_str("channel", ch)?
+        .with_f64("t", t)?
+        .with_f64("raw", r)?
+        .with_f64("whitened", w)?)
+}

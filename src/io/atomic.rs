@@ -1,0 +1,268 @@
+//! Atomic file writes and whole-file reads of small text formats (text, TOML, JSON).
+//!
+//! An [`AtomicFile`] is a temporary file created next to its destination (same directory, hence
+//! same file system). [`AtomicFile::commit`] flushes it to disk (`fsync`), renames it over the
+//! destination and syncs the directory; dropping it uncommitted deletes the temporary file. Readers
+//! therefore see either the previous file or the complete new one, never a partial write. (A
+//! crash can leave a hidden `.<name>.<pid>-<n>.tmp` file behind; it is never taken for output.)
+
+use std::fs::{self, File, OpenOptions};
+use std::io::{self, Read, Write};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use serde::de::DeserializeOwned;
+use serde::Serialize;
+use sha2::{Digest, Sha256};
+
+use super::IoError;
+
+static TEMP_COUNTER: AtomicU64 = AtomicU64::new(0);
+
+/// A file being written atomically: a hidden temporary sibling of `dest` until [`commit`].
+///
+/// Implements [`Write`]; wrap it in a [`std::io::BufWriter`] for many small writes.
+///
+/// [`commit`]: AtomicFile::commit
+#[derive(Debug)]
+pub struct AtomicFile {
+    dest: PathBuf,
+    tmp: PathBuf,
+    file: Option<File>,
+}
+
+impl AtomicFile {
+    /// Creates the temporary file in the directory of `dest`. Fails (naming `dest`) if that
+    /// directory does not exist or is not writable, or if `dest` has no file name.
+    pub fn create(dest: impl AsRef<Path>) -> Result<AtomicFile, IoError> {
+        let dest = dest.as_ref();
+        let name = dest.file_name().ok_or_else(|| {
+            IoError::write(
+                dest,
+                io::Error::new(io::ErrorKind::InvalidInput, "not a file path"),
+            )
+        })?;
+        let dir = parent_dir(dest);
+        loop {
+            let n = TEMP_COUNTER.fetch_add(1, Ordering::Relaxed);
+            let tmp_name = format!(
+                ".{}.{}-{}.tmp",
+                name.to_string_lossy(),
+                std::process::id(),
+                n
+            );
+            let tmp = dir.join(tmp_name);
+            match OpenOptions::new().write(true).create_new(true).open(&tmp) {
+                Ok(file) => {
+                    return Ok(AtomicFile {
+                        dest: dest.to_path_buf(),
+                        tmp,
+                        file: Some(file),
+                    })
+                }
+                Err(e) if e.kind() == io::ErrorKind::AlreadyExists => continue,
+                Err(e) => return Err(IoError::write(dest, e)),
+            }
+        }
+    }
+
+    /// The final path.
+    pub fn dest(&self) -> &Path {
+        &self.dest
+    }
+
+    /// The temporary path being written.
+    pub fn temp_path(&self) -> &Path {
+        &self.tmp
+    }
+
+    /// Flushes the data to disk, renames the temporary file over the destination and syncs the
+    /// directory. On failure the temporary file is removed and the destination is untouched.
+    pub fn commit(mut self) -> Result<(), IoError> {
+        let file = self.file.take().expect("AtomicFile already committed");
+        file.sync_all().map_err(|e| IoError::write(&self.dest, e))?;
+        drop(file);
+        fs::rename(&self.tmp, &self.dest).map_err(|e| IoError::write(&self.dest, e))?;
+        // The rename is done: nothing to clean up any more.
+        self.tmp = PathBuf::new();
+        sync_dir(parent_dir(&self.dest));
+        Ok(())
+    }
+
+    fn file(&mut self) -> io::Result<&mut File> {
+        self.file
+            .as_mut()
+            .ok_or_else(|| io::Error::other("atomic file already committed"))
+    }
+}
+
+impl Write for AtomicFile {
+    fn write(&mut self, buf: &[u8]) -> io::Result<usize> {
+        self.file()?.write(buf)
+    }
+
+    fn write_all(&mut self, buf: &[u8]) -> io::Result<()> {
+        self.file()?.write_all(buf)
+    }
+
+    fn flush(&mut self) -> io::Result<()> {
+        self.file()?.flush()
+    }
+}
+
+impl Drop for AtomicFile {
+    fn drop(&mut self) {
+        self.file = None;
+        if !self.tmp.as_os_str().is_empty() {
+            let _ = fs::remove_file(&self.tmp);
+        }
+    }
+}
+
+/// The directory containing `path` (`""`, i.e. the working directory, for a bare file name).
+pub(crate) fn parent_dir(path: &Path) -> &Path {
+    path.parent().unwrap_or(Path::new(""))
+}
+
+/// Best effort: makes a rename durable. Some file systems refuse to sync directories; the data
+/// itself is already synced, so such a failure is not reported.
+fn sync_dir(dir: &Path) {
+    #[cfg(unix)]
+    {
+        let dir = if dir.as_os_str().is_empty() {
+            Path::new(".")
+        } else {
+            dir
+        };
+        if let Ok(d) = File::open(dir) {
+            let _ = d.sync_all();
+        }
+    }
+    #[cfg(not(unix))]
+    let _ = dir;
+}
+
+/// Writes `bytes` to `path` atomically.
+pub fn write_bytes_atomic(path: impl AsRef<Path>, bytes: &[u8]) -> Result<(), IoError> {
+    let path = path.as_ref();
+    let mut f = AtomicFile::create(path)?;
+    f.write_all(bytes).map_err(|e| IoError::write(path, e))?;
+    f.commit()
+}
+
+/// Writes `text` to `path` atomically.
+pub fn write_text_atomic(path: impl AsRef<Path>, text: &str) -> Result<(), IoError> {
+    write_bytes_atomic(path, text.as_bytes())
+}
+
+/// Writes `value` (a `serde_json::Value` or any `Serialize` type) as pretty-printed JSON with a
+/// trailing newline to `path`, atomically.
+pub fn write_json_atomic<T: Serialize + ?Sized>(
+    path: impl AsRef<Path>,
+    value: &T,
+) -> Result<(), IoError> {
+    let path = path.as_ref();
+    let mut bytes = serde_json::to_vec_pretty(value)
+        .map_err(|e| IoError::invalid(path, format!("cannot serialize to JSON: {e}")))?;
+    bytes.push(b'\n');
+    write_bytes_atomic(path, &bytes)
+}
+
+/// Serializes `value` as TOML and writes it to `path` atomically.
+pub fn write_toml_atomic<T: Serialize + ?Sized>(
+    path: impl AsRef<Path>,
+    value: &T,
+) -> Result<(), IoError> {
+    let path = path.as_ref();
+    let text = toml::to_string_pretty(value)
+        .map_err(|e| IoError::invalid(path, format!("cannot serialize to TOML: {e}")))?;
+    write_text_atomic(path, &text)
+}
+
+/// Creates `dir` and its parents if needed.
+pub fn ensure_dir(dir: impl AsRef<Path>) -> Result<(), IoError> {
+    let dir = dir.as_ref();
+    fs::create_dir_all(dir).map_err(|e| IoError::write(dir, e))
+}
+
+/// Reads a whole UTF-8 text file.
+pub fn read_text(path: impl AsRef<Path>) -> Result<String, IoError> {
+    let path = path.as_ref();
+    fs::read_to_string(path).map_err(|e| IoError::read(path, e))
+}
+
+/// Reads and deserializes a TOML file; syntax and type errors give line and column.
+pub fn read_toml<T: DeserializeOwned>(path: impl AsRef<Path>) -> Result<T, IoError> {
+    let path = path.as_ref();
+    let text = read_text(path)?;
+    toml::from_str(&text).map_err(|e| toml_error(path, &text, &e))
+}
+
+/// Reads and deserializes a JSON file; syntax and type errors give line and column.
+pub fn read_json<T: DeserializeOwned>(path: impl AsRef<Path>) -> Result<T, IoError> {
+    let path = path.as_ref();
+    let text = read_text(path)?;
+    serde_json::from_str(&text).map_err(|e| IoError::Json {
+        path: path.to_path_buf(),
+        line: e.line(),
+        column: e.column(),
+        message: strip_json_position(&e.to_string()),
+    })
+}
+
+/// Hex SHA-256 digest of a file's contents (for provenance manifests).
+pub fn file_sha256(path: impl AsRef<Path>) -> Result<String, IoError> {
+    let path = path.as_ref();
+    let mut f = File::open(path).map_err(|e| IoError::read(path, e))?;
+    let mut hasher = Sha256::new();
+    let mut buf = vec![0u8; 1 << 16];
+    loop {
+        let n = f.read(&mut buf).map_err(|e| IoError::read(path, e))?;
+        if n == 0 {
+            break;
+        }
+        hasher.update(&buf[..n]);
+    }
+    Ok(hasher
+        .finalize()
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect())
+}
+
+/// A one-line [`IoError::Toml`] with the 1-based line and column of the error's span.
+pub(crate) fn toml_error(path: &Path, text: &str, err: &toml::de::Error) -> IoError {
+    let (line, column) = match err.span() {
+        Some(span) => {
+            let (l, c) = line_col(text, span.start);
+            (Some(l), Some(c))
+        }
+        None => (None, None),
+    };
+    IoError::Toml {
+        path: path.to_path_buf(),
+        line,
+        column,
+        message: err.message().trim().replace('\n', "; "),
+    }
+}
+
+/// 1-based line and column (in characters) of byte offset `pos` in `text`.
+pub(crate) fn line_col(text: &str, pos: usize) -> (usize, usize) {
+    let mut pos = pos.min(text.len());
+    while !text.is_char_boundary(pos) {
+        pos -= 1;
+    }
+    let before = &text[..pos];
+    let line = before.matches('\n').count() + 1;
+    let line_start = before.rfind('\n').map_or(0, |i| i + 1);
+    (line, before[line_start..].chars().count() + 1)
+}
+
+/// serde_json appends " at line L column C" to its messages; the error variant carries them.
+fn strip_json_position(msg: &str) -> String {
+    match msg.rfind(" at line ") {
+        Some(i) => msg[..i].to_string(),
+        None => msg.to_string(),
+    }
+}

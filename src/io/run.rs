@@ -1,0 +1,512 @@
+//! Measured-data runs (project reference README, "Measured-data files").
+//!
+//! A run file is Parquet (`.parquet`, `.pq`) or CSV with a header line (`.csv`) holding uniformly
+//! sampled columns `t` [s], `oi1`, `oi12` [m] (commanded guidance injections; zeros in a noise
+//! run) and `o1`, `o12` [m] (interferometer readouts). Extra numeric columns (`y1`, `phi1`, ...)
+//! are kept. [`read_run`] validates the file into a [`Run`]:
+//! - the required columns are present (the error lists the columns found);
+//! - there are at least 2 rows;
+//! - every value is finite (the error gives column, 0-based data row and value);
+//! - `t` strictly increases and is uniform: |t_i - (t_0 + i dt)| <= 1e-6 dt (plus a few ulps of
+//!   |t| so that large absolute time stamps do not fail on rounding), with dt = (t_{n-1} - t_0)/(n-1).
+//!   Each step is first compared with the median step so that the error points at the row where
+//!   the sampling breaks.
+//!
+//! The CSV dialect is minimal: comma separated, one header line of column names (optionally
+//! double-quoted), numbers as Rust/C `f64` literals; blank lines and lines starting with `#` are
+//! ignored.
+
+use std::fmt::{self, Write as _};
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+
+use super::atomic::AtomicFile;
+use super::table::{read_parquet, write_parquet, Column, Table};
+use super::{in_memory, IoError, DEBUG_MAX_ROWS};
+
+/// Name of the time column [s].
+pub const TIME_COLUMN: &str = "t";
+/// Guidance injection columns (oi1, oi12) [m].
+pub const INPUT_COLUMNS: [&str; 2] = ["oi1", "oi12"];
+/// Readout columns (o1, o12) [m].
+pub const OUTPUT_COLUMNS: [&str; 2] = ["o1", "o12"];
+/// Relative tolerance on the uniformity of the time column, in units of dt.
+pub const TIME_TOLERANCE: f64 = 1e-6;
+/// Fewest rows a run may have.
+pub const MIN_ROWS: usize = 2;
+
+const REQUIRED: [&str; 4] = ["oi1", "oi12", "o1", "o12"];
+
+/// A uniformly sampled run: sample i is at time `t0 + i * dt`.
+///
+/// `columns` holds `oi1`, `oi12`, `o1`, `o12` (in that order) followed by any extra columns, all of
+/// the same length; it does not hold the time column, which is implied by `t0` and `dt`. Runs made
+/// by [`read_run`] or [`Run::new`] satisfy this; a run built by hand can be checked with
+/// [`Run::validate`].
+#[derive(Clone, PartialEq)]
+pub struct Run {
+    /// The file it was read from, if any (named in error messages).
+    pub path: Option<PathBuf>,
+    /// Time of the first sample [s].
+    pub t0: f64,
+    /// Sampling interval [s].
+    pub dt: f64,
+    pub columns: Vec<(String, Vec<f64>)>,
+}
+
+impl Run {
+    /// A validated in-memory run. `columns` must contain `oi1`, `oi12`, `o1` and `o12` (in any
+    /// order, they are reordered first) and may contain extras; not `t`.
+    pub fn new(t0: f64, dt: f64, columns: Vec<(String, Vec<f64>)>) -> Result<Run, IoError> {
+        let run = Run {
+            path: None,
+            t0,
+            dt,
+            columns: order_columns(columns),
+        };
+        run.validate()?;
+        Ok(run)
+    }
+
+    /// Number of samples.
+    pub fn len(&self) -> usize {
+        self.columns.first().map_or(0, |(_, c)| c.len())
+    }
+
+    /// True if the run has no samples.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Sampling frequency 1/dt [Hz].
+    pub fn sample_rate(&self) -> f64 {
+        1.0 / self.dt
+    }
+
+    /// Duration len * dt [s].
+    pub fn duration(&self) -> f64 {
+        self.len() as f64 * self.dt
+    }
+
+    /// The time stamps t0 + i dt.
+    pub fn time(&self) -> Vec<f64> {
+        (0..self.len())
+            .map(|i| self.t0 + i as f64 * self.dt)
+            .collect()
+    }
+
+    /// The column called `name`; the error names the file and lists the columns present.
+    pub fn column(&self, name: &str) -> Result<&[f64], IoError> {
+        self.columns
+            .iter()
+            .find(|(n, _)| n == name)
+            .map(|(_, c)| c.as_slice())
+            .ok_or_else(|| IoError::MissingColumn {
+                path: self.label(),
+                column: name.to_string(),
+                found: self.column_names().iter().map(|s| s.to_string()).collect(),
+            })
+    }
+
+    /// True if a column called `name` exists.
+    pub fn has_column(&self, name: &str) -> bool {
+        self.columns.iter().any(|(n, _)| n == name)
+    }
+
+    /// Column names (without `t`), in order.
+    pub fn column_names(&self) -> Vec<&str> {
+        self.columns.iter().map(|(n, _)| n.as_str()).collect()
+    }
+
+    /// The guidance injections (oi1, oi12) [m].
+    ///
+    /// # Panics
+    /// If the run lacks them, which only a run built by hand without [`Run::validate`] can.
+    pub fn inputs(&self) -> [&[f64]; 2] {
+        INPUT_COLUMNS.map(|n| self.required(n))
+    }
+
+    /// The readouts (o1, o12) [m].
+    ///
+    /// # Panics
+    /// If the run lacks them, which only a run built by hand without [`Run::validate`] can.
+    pub fn outputs(&self) -> [&[f64]; 2] {
+        OUTPUT_COLUMNS.map(|n| self.required(n))
+    }
+
+    /// The columns other than oi1, oi12, o1, o12.
+    pub fn extras(&self) -> impl Iterator<Item = (&str, &[f64])> {
+        self.columns
+            .iter()
+            .filter(|(n, _)| !REQUIRED.contains(&n.as_str()))
+            .map(|(n, c)| (n.as_str(), c.as_slice()))
+    }
+
+    /// Checks the invariants: required columns present, no `t` column and no duplicates, equal
+    /// lengths, at least [`MIN_ROWS`] rows, finite values, finite positive `dt` and finite `t0`.
+    pub fn validate(&self) -> Result<(), IoError> {
+        let path = self.label();
+        if !(self.dt.is_finite() && self.dt > 0.0 && self.t0.is_finite()) {
+            return Err(IoError::invalid(
+                &path,
+                format!(
+                    "invalid time base t0={} s, dt={} s (dt must be finite and positive)",
+                    self.t0, self.dt
+                ),
+            ));
+        }
+        if self.has_column(TIME_COLUMN) {
+            return Err(IoError::invalid(
+                &path,
+                "the time column 't' is implied by t0 and dt and must not be among the columns",
+            ));
+        }
+        check_columns(&path, &self.columns)?;
+        Ok(())
+    }
+
+    /// The file name for messages, or `<run>`.
+    pub(crate) fn label(&self) -> PathBuf {
+        self.path.clone().unwrap_or_else(|| in_memory("run"))
+    }
+
+    fn required(&self, name: &str) -> &[f64] {
+        match self.column(name) {
+            Ok(c) => c,
+            Err(e) => panic!("{e}"),
+        }
+    }
+}
+
+/// Summarises long runs instead of printing every sample.
+impl fmt::Debug for Run {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let mut d = f.debug_struct("Run");
+        d.field("path", &self.path)
+            .field("t0", &self.t0)
+            .field("dt", &self.dt)
+            .field("len", &self.len());
+        if self.len() <= DEBUG_MAX_ROWS {
+            d.field("columns", &self.columns);
+        } else {
+            d.field("columns", &self.column_names());
+        }
+        d.finish()
+    }
+}
+
+/// Required columns first (in [`REQUIRED`] order), then the others in their original order.
+fn order_columns(mut columns: Vec<(String, Vec<f64>)>) -> Vec<(String, Vec<f64>)> {
+    let mut ordered = Vec::with_capacity(columns.len());
+    for name in REQUIRED {
+        if let Some(i) = columns.iter().position(|(n, _)| n == name) {
+            ordered.push(columns.remove(i));
+        }
+    }
+    ordered.extend(columns);
+    ordered
+}
+
+/// Unique names, required columns present, equal lengths >= MIN_ROWS, finite values.
+fn check_columns(path: &Path, columns: &[(String, Vec<f64>)]) -> Result<(), IoError> {
+    for (i, (name, _)) in columns.iter().enumerate() {
+        if columns[..i].iter().any(|(n, _)| n == name) {
+            return Err(IoError::DuplicateColumn {
+                path: path.to_path_buf(),
+                column: name.clone(),
+            });
+        }
+    }
+    for name in REQUIRED {
+        if !columns.iter().any(|(n, _)| n == name) {
+            return Err(IoError::MissingColumn {
+                path: path.to_path_buf(),
+                column: name.to_string(),
+                found: columns.iter().map(|(n, _)| n.clone()).collect(),
+            });
+        }
+    }
+    let rows = columns[0].1.len();
+    for (name, values) in columns {
+        if values.len() != rows {
+            return Err(IoError::ColumnLength {
+                path: path.to_path_buf(),
+                column: name.clone(),
+                len: values.len(),
+                expected: rows,
+            });
+        }
+    }
+    if rows < MIN_ROWS {
+        return Err(IoError::TooShort {
+            path: path.to_path_buf(),
+            rows,
+            min: MIN_ROWS,
+        });
+    }
+    for (name, values) in columns {
+        check_finite(path, name, values)?;
+    }
+    Ok(())
+}
+
+fn check_finite(path: &Path, name: &str, values: &[f64]) -> Result<(), IoError> {
+    match values.iter().position(|v| !v.is_finite()) {
+        Some(row) => Err(IoError::NonFinite {
+            path: path.to_path_buf(),
+            column: name.to_string(),
+            row,
+            value: values[row],
+        }),
+        None => Ok(()),
+    }
+}
+
+/// Checks that `t` (finite, at least 2 samples) strictly increases and is uniform; returns
+/// (t0, dt).
+fn check_time(path: &Path, t: &[f64]) -> Result<(f64, f64), IoError> {
+    let n = t.len();
+    if let Some(i) = (1..n).find(|&i| t[i] <= t[i - 1]) {
+        return Err(IoError::TimeNotIncreasing {
+            path: path.to_path_buf(),
+            row: i,
+            previous: t[i - 1],
+            found: t[i],
+        });
+    }
+    let t0 = t[0];
+    let dt = (t[n - 1] - t0) / (n - 1) as f64;
+    // Rounding of the stored time stamps themselves: a few ulps of the largest |t|.
+    let slack = 4.0 * f64::EPSILON * t0.abs().max(t[n - 1].abs());
+    let tol = TIME_TOLERANCE * dt + slack;
+
+    // Local check against the median step: points at the row where the sampling breaks. Its
+    // tolerance is loose enough that it never rejects a column the global check accepts.
+    let mut steps: Vec<f64> = t.windows(2).map(|w| w[1] - w[0]).collect();
+    let mid = steps.len() / 2;
+    let (_, &mut median, _) = steps.select_nth_unstable_by(mid, f64::total_cmp);
+    for i in 1..n {
+        let expected = t[i - 1] + median;
+        if (t[i] - expected).abs() > 4.0 * (TIME_TOLERANCE * median + slack) {
+            return Err(IoError::NonUniformTime {
+                path: path.to_path_buf(),
+                row: i,
+                expected,
+                found: t[i],
+                dt: median,
+            });
+        }
+    }
+    // Global check: no drift away from the uniform grid.
+    for (i, &ti) in t.iter().enumerate() {
+        let expected = t0 + i as f64 * dt;
+        if (ti - expected).abs() > tol {
+            return Err(IoError::NonUniformTime {
+                path: path.to_path_buf(),
+                row: i,
+                expected,
+                found: ti,
+                dt,
+            });
+        }
+    }
+    Ok((t0, dt))
+}
+
+/// Builds a validated run from the columns of a file (including `t`).
+fn run_from_columns(path: &Path, mut columns: Vec<(String, Vec<f64>)>) -> Result<Run, IoError> {
+    let Some(ti) = columns.iter().position(|(n, _)| n == TIME_COLUMN) else {
+        return Err(IoError::MissingColumn {
+            path: path.to_path_buf(),
+            column: TIME_COLUMN.to_string(),
+            found: columns.iter().map(|(n, _)| n.clone()).collect(),
+        });
+    };
+    // Check everything (lengths, finiteness) with `t` in its file position, then take it out.
+    check_columns(path, &columns)?;
+    let (_, t) = columns.remove(ti);
+    let (t0, dt) = check_time(path, &t)?;
+    Ok(Run {
+        path: Some(path.to_path_buf()),
+        t0,
+        dt,
+        columns: order_columns(columns),
+    })
+}
+
+enum Format {
+    Parquet,
+    Csv,
+}
+
+fn format_of(path: &Path) -> Result<Format, IoError> {
+    let ext = path
+        .extension()
+        .map(|e| e.to_string_lossy().to_ascii_lowercase());
+    match ext.as_deref() {
+        Some("parquet") | Some("pq") => Ok(Format::Parquet),
+        Some("csv") => Ok(Format::Csv),
+        other => Err(IoError::invalid(
+            path,
+            format!(
+                "unsupported run file extension {} (expected .parquet, .pq or .csv)",
+                other.map_or("(none)".to_string(), |e| format!("'.{e}'"))
+            ),
+        )),
+    }
+}
+
+/// Reads and validates a run file (Parquet or CSV, chosen by extension). See the module docs for
+/// the checks.
+pub fn read_run(path: impl AsRef<Path>) -> Result<Run, IoError> {
+    let path = path.as_ref();
+    let table = match format_of(path)? {
+        Format::Parquet => read_parquet(path)?,
+        Format::Csv => read_csv(path)?,
+    };
+    let mut columns = Vec::with_capacity(table.columns.len());
+    for (name, column) in &table.columns {
+        let values = column.to_f64().ok_or_else(|| IoError::ColumnType {
+            path: path.to_path_buf(),
+            column: name.clone(),
+            expected: "a numeric type".to_string(),
+            found: column.type_name().to_string(),
+        })?;
+        columns.push((name.clone(), values));
+    }
+    run_from_columns(path, columns)
+}
+
+/// Writes `run` atomically with columns `t`, `oi1`, `oi12`, `o1`, `o12`, then the extras:
+/// as CSV if `path` ends in `.csv`, else as Parquet. The run is validated first.
+pub fn write_run(path: impl AsRef<Path>, run: &Run) -> Result<(), IoError> {
+    let path = path.as_ref();
+    run.validate()?;
+    let ordered = order_columns(run.columns.clone());
+    let is_csv = path
+        .extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("csv"));
+    if is_csv {
+        return write_csv(path, run.t0, run.dt, &ordered);
+    }
+    let mut table = Table::new().with_f64(TIME_COLUMN, run.time())?;
+    for (name, values) in ordered {
+        table.push_column(name, Column::F64(values))?;
+    }
+    write_parquet(path, &table)
+}
+
+fn write_csv(path: &Path, t0: f64, dt: f64, columns: &[(String, Vec<f64>)]) -> Result<(), IoError> {
+    let err = |e| IoError::write(path, e);
+    let mut out = BufWriter::new(AtomicFile::create(path)?);
+    let mut line = String::from(TIME_COLUMN);
+    for (name, _) in columns {
+        line.push(',');
+        line.push_str(name);
+    }
+    line.push('\n');
+    out.write_all(line.as_bytes()).map_err(err)?;
+    let rows = columns.first().map_or(0, |(_, c)| c.len());
+    for i in 0..rows {
+        line.clear();
+        // `{:?}` is the shortest representation that parses back to the same f64.
+        let _ = write!(line, "{:?}", t0 + i as f64 * dt);
+        for (_, values) in columns {
+            let _ = write!(line, ",{:?}", values[i]);
+        }
+        line.push('\n');
+        out.write_all(line.as_bytes()).map_err(err)?;
+    }
+    let file = out.into_inner().map_err(|e| err(e.into_error()))?;
+    file.commit()
+}
+
+/// Reads a CSV file with a header line into a table of `float64` columns (see the module docs
+/// for the dialect). Parse errors give the line, the column and the text that failed.
+pub fn read_csv(path: impl AsRef<Path>) -> Result<Table, IoError> {
+    let path = path.as_ref();
+    let text = super::atomic::read_text(path)?;
+    let text = text.strip_prefix('\u{feff}').unwrap_or(&text);
+    let csv_err = |line: usize, message: String| IoError::Csv {
+        path: path.to_path_buf(),
+        line,
+        message,
+    };
+    let mut lines = text
+        .lines()
+        .enumerate()
+        .map(|(i, l)| (i + 1, l.trim()))
+        .filter(|(_, l)| !l.is_empty() && !l.starts_with('#'));
+
+    let Some((header_line, header)) = lines.next() else {
+        return Err(csv_err(1, "empty file, expected a header line".to_string()));
+    };
+    let names: Vec<String> = header
+        .split(',')
+        .map(|s| {
+            let s = s.trim();
+            s.strip_prefix('"')
+                .and_then(|s| s.strip_suffix('"'))
+                .unwrap_or(s)
+                .to_string()
+        })
+        .collect();
+    for (j, name) in names.iter().enumerate() {
+        if name.is_empty() {
+            return Err(csv_err(
+                header_line,
+                format!("empty column name in header (field {})", j + 1),
+            ));
+        }
+        if names[..j].contains(name) {
+            return Err(IoError::DuplicateColumn {
+                path: path.to_path_buf(),
+                column: name.clone(),
+            });
+        }
+    }
+
+    let mut values: Vec<Vec<f64>> = vec![Vec::new(); names.len()];
+    for (row, (line_no, line)) in lines.enumerate() {
+        let mut fields = 0;
+        for (j, field) in line.split(',').enumerate() {
+            fields += 1;
+            if j >= names.len() {
+                continue;
+            }
+            let field = field.trim();
+            let value = field.parse::<f64>().map_err(|_| {
+                csv_err(
+                    line_no,
+                    format!(
+                        "row {row}, column '{}': cannot parse {} as a number",
+                        names[j],
+                        if field.is_empty() {
+                            "an empty field".to_string()
+                        } else {
+                            format!("'{field}'")
+                        }
+                    ),
+                )
+            })?;
+            values[j].push(value);
+        }
+        if fields != names.len() {
+            return Err(csv_err(
+                line_no,
+                format!(
+                    "row {row} has {fields} fields, the header has {}",
+                    names.len()
+                ),
+            ));
+        }
+    }
+    Ok(Table {
+        columns: names
+            .into_iter()
+            .zip(values)
+            .map(|(n, v)| (n, Column::F64(v)))
+            .collect(),
+        source: Some(path.to_path_buf()),
+    })
+}

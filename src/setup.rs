@@ -1,0 +1,107 @@
+//! Assembling the pieces for the reference x-axis model: model file -> closed-loop model,
+//! noise model, designs, simulators and whitening filters. Shared by the CLI, campaigns,
+//! design and diagnosis so that every job builds them the same way.
+
+use crate::fit::{FitError, Whitener};
+use crate::model::closed_loop::CMat;
+use crate::model::spec::GlitchSpec;
+use crate::model::{LpfX, ModelError, ModelSpec};
+use crate::noise::{GlitchConfig, NoiseError, NoiseModel};
+use crate::signal::{Design, SignalError};
+use crate::sim::Simulator;
+
+/// Default order of the whitening filter (see `fit::whiten`): long enough to resolve the
+/// noise structure around 1 mHz at 1 Hz sampling.
+pub const DEFAULT_WHITENING_ORDER: usize = 300;
+/// Default degree of the whitened-domain polynomial nuisance (thesis: "first or second order").
+pub const DEFAULT_POLY_DEGREE: usize = 1;
+/// Noise series are generated this many times longer than requested (see `noise::generate`).
+pub const NOISE_OVERSAMPLE: usize = 3;
+
+/// Errors of any subsystem, for library users who want one type.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    #[error(transparent)]
+    Model(#[from] ModelError),
+    #[error(transparent)]
+    Noise(#[from] NoiseError),
+    #[error(transparent)]
+    Signal(#[from] SignalError),
+    #[error(transparent)]
+    Fit(#[from] FitError),
+    #[error(transparent)]
+    Io(#[from] crate::io::IoError),
+    #[error("{0}")]
+    Other(String),
+}
+
+/// A loaded model file with its closed-loop model and noise model.
+#[derive(Debug, Clone)]
+pub struct Setup {
+    pub spec: ModelSpec,
+    pub model: LpfX,
+    pub noise: NoiseModel<2>,
+}
+
+impl Setup {
+    pub fn new(spec: ModelSpec) -> Result<Self, Error> {
+        let model = LpfX::from_spec(&spec);
+        let noise = NoiseModel::new(&model, &spec.noise)?;
+        Ok(Setup { spec, model, noise })
+    }
+
+    /// The embedded reference model (`lpf_x.toml`).
+    pub fn embedded() -> Self {
+        Self::new(ModelSpec::embedded()).expect("embedded model is valid")
+    }
+
+    /// The model file at `path`, or the embedded one.
+    pub fn load(path: Option<&std::path::Path>) -> Result<Self, Error> {
+        match path {
+            None => Ok(Self::embedded()),
+            Some(p) => {
+                let text = crate::io::read_text(p)?;
+                Self::new(ModelSpec::from_toml_str(&text, &p.display().to_string())?)
+            }
+        }
+    }
+
+    pub fn parameter_names(&self) -> Vec<String> {
+        self.spec.parameter_names()
+    }
+
+    /// Analysis sampling interval (1 / analyse_hz).
+    pub fn analysis_dt(&self) -> f64 {
+        1.0 / self.spec.sampling.analyse_hz
+    }
+
+    /// Simulation sampling interval (1 / simulate_hz).
+    pub fn simulation_dt(&self) -> f64 {
+        1.0 / self.spec.sampling.simulate_hz
+    }
+
+    /// The readouts' one-sided cross-PSD at `p`.
+    pub fn psd<'a>(&'a self, p: &'a [f64]) -> impl Fn(f64) -> CMat<2> + 'a {
+        move |f| self.noise.readout_csd(&self.model, f, p)
+    }
+
+    /// A named injection design of the model file (e.g. "standard").
+    pub fn design(&self, name: &str) -> Result<Design, Error> {
+        Ok(Design::from_spec(name, self.spec.injection(name)?)?)
+    }
+
+    /// Whitening filter from the model's noise PSD at `p`, for series of `n` samples.
+    pub fn whitener_from_model(&self, p: &[f64], n: usize, dt: f64, order: usize) -> Result<Whitener<2>, Error> {
+        Ok(Whitener::from_psd(self.psd(p), dt, order, n)?)
+    }
+
+    /// A simulator of `design` at parameters `truth`, directly at the analysis rate. The noise
+    /// has the model PSD sampled at the analysis rate, i.e. the data an ideal anti-alias
+    /// decimator would produce (the 10 Hz path with a real filter is `sim::decimated`).
+    pub fn simulator(&self, design: &Design, truth: &[f64], glitch: Option<&GlitchSpec>) -> Result<Simulator<2>, Error> {
+        let dt = self.analysis_dt();
+        let n = design.samples(dt);
+        let glitches = glitch.map(|g| GlitchConfig::new(g, n));
+        Ok(Simulator::new(&self.model, design, truth, self.psd(truth), dt, NOISE_OVERSAMPLE, glitches)?)
+    }
+}
