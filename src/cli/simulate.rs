@@ -37,6 +37,10 @@ pub struct SimulateArgs {
     /// Simulation path.
     #[arg(long, value_enum, default_value_t = Rate::Decimated)]
     pub rate: Rate,
+    /// Duration of the noise-only run [s]; default: four experiment durations (the thesis
+    /// characterises noise on runs of 12 to 28 hours, longer than the 3-hour experiments).
+    #[arg(long)]
+    pub noise_duration: Option<f64>,
     /// Output directory (created).
     #[arg(long)]
     pub out: PathBuf,
@@ -74,6 +78,15 @@ pub fn run(a: SimulateArgs) -> Result<()> {
     let sc = setup.spec.scenario(&a.scenario)?;
     check_stability(&setup.model, &sc.truth, Some(&setup.spec.nominal()))?;
     let design = setup.design(&a.design)?;
+    let noise_duration = a.noise_duration.unwrap_or(4.0 * design.duration_s);
+    if !(noise_duration.is_finite() && noise_duration > 0.0) {
+        anyhow::bail!("--noise-duration must be a positive number of seconds, got {noise_duration}");
+    }
+    let noise_design = crate::signal::Design {
+        duration_s: noise_duration,
+        experiments: vec![crate::signal::Experiment { name: "noise".into(), inputs: vec![None, None] }],
+        ..design.clone()
+    };
     let (data, noise) = match a.rate {
         Rate::Decimated => {
             let sim = DecimatedSimulator::<2>::new(
@@ -86,11 +99,22 @@ pub fn run(a: SimulateArgs) -> Result<()> {
                 NOISE_OVERSAMPLE,
                 sc.glitch.as_ref(),
             )?;
-            draw_all(|r| sim.draw(r), |r| sim.noise_run(r), a.seed)
+            let nsim = DecimatedSimulator::<2>::new(
+                &setup.model,
+                &noise_design,
+                &sc.truth,
+                setup.psd(&sc.truth),
+                setup.simulation_dt(),
+                setup.spec.decimation(),
+                NOISE_OVERSAMPLE,
+                sc.glitch.as_ref(),
+            )?;
+            draw_all(|r| sim.draw(r), |r| nsim.noise_run(r), a.seed)
         }
         Rate::Analysis => {
             let sim = setup.simulator(&design, &sc.truth, sc.glitch.as_ref())?;
-            draw_all(|r| sim.draw(r), |r| sim.noise_series(r), a.seed)
+            let nsim = setup.simulator(&noise_design, &sc.truth, sc.glitch.as_ref())?;
+            draw_all(|r| sim.draw(r), |r| nsim.noise_series(r), a.seed)
         }
     };
     let meta = simulation_meta(&setup, &a.scenario, &a.design, a.seed, &sc.truth, a.rate);

@@ -72,25 +72,16 @@ impl<const N: usize> Whitener<N> {
                 }
             }
         }
-        let scale: Vec<f64> = (0..dim).map(|a| g[(a, a)].sqrt().max(f64::MIN_POSITIVE)).collect();
-        for a in 0..dim {
-            for b in 0..dim {
-                g[(a, b)] /= scale[a] * scale[b];
-            }
-            for o in 0..N {
-                h[(a, o)] /= scale[a];
-            }
-        }
-        let chol = g.cholesky().ok_or_else(|| {
-            FitError::Singular("noise autocovariance for the whitening filter (is a channel constant or zero?)".into())
-        })?;
-        let coef = chol.solve(&h);
-        let a: Vec<SMatrix<f64, N, N>> =
-            (0..order).map(|j| SMatrix::<f64, N, N>::from_fn(|o, c| coef[(j * N + c, o)] / scale[j * N + c])).collect();
+        let a = solve_equilibrated(g, h, order)?;
         let mut sigma = r[0];
         for (j, aj) in a.iter().enumerate() {
             sigma -= aj * r[j + 1].transpose();
         }
+        Self::from_parts(&a, sigma)
+    }
+
+    /// Taps from the VAR coefficients and the innovation covariance.
+    fn from_parts(a: &[SMatrix<f64, N, N>], sigma: SMatrix<f64, N, N>) -> Result<Self, FitError> {
         let sigma = (sigma + sigma.transpose()) * 0.5;
         let l = sigma
             .cholesky()
@@ -102,24 +93,74 @@ impl<const N: usize> Whitener<N> {
         Ok(Whitener { taps, innovation: sigma })
     }
 
-    /// VAR(`order`) from a noise-only series (N channels of equal length): tapered sample
-    /// autocovariance after removing each channel's mean and linear trend.
+    /// VAR(`order`) from a noise-only series (N channels of equal length), by least squares
+    /// (the covariance method: no taper, no Toeplitz assumption, so the filter whitens the run it
+    /// was fitted on to unit variance), after removing each channel's mean and linear trend.
+    /// The normal matrix is built in O(n p) with the diagonal recursion
+    /// `G[j][k] = G[j-1][k-1] + x_{p-1-j} x_{p-1-k}^T - x_{n-1-j} x_{n-1-k}^T`.
     pub fn from_series(series: &[Vec<f64>], order: usize) -> Result<Self, FitError> {
         if series.len() != N {
             return Err(FitError::Input(format!("whitening needs {N} channels, got {}", series.len())));
         }
         let n = series[0].len();
-        let need = 8 * order.max(1);
+        let need = 10 * N * order.max(1);
         if n < need {
-            return Err(FitError::TooShort { what: "noise run for the whitening filter".into(), len: n, need });
+            return Err(FitError::TooShort { what: format!("noise run for a whitening filter of order {order}"), len: n, need });
         }
-        let taper = crate::spectral::window::blackman_harris_92(n);
-        let norm = (taper.iter().map(|w| w * w).sum::<f64>() / n as f64).sqrt();
-        let x: Vec<Vec<f64>> = series
-            .iter()
-            .map(|s| detrend_linear(s).iter().zip(&taper).map(|(v, w)| v * w / norm).collect())
-            .collect();
-        Ok(Self::from_autocovariance(&sample_autocovariance::<N>(&x, order), order)?)
+        let x: Vec<Vec<f64>> = series.iter().map(|s| detrend_linear(s)).collect();
+        type M<const N: usize> = SMatrix<f64, N, N>;
+        let outer = |a: usize, b: usize| M::<N>::from_fn(|c, d| x[c][a] * x[d][b]);
+        // First block row G[0][k] = sum_{t=p}^{n-1} x_{t-1} x_{t-1-k}^T and H[j] = sum x_{t-1-j} x_t^T.
+        let mut g0 = vec![M::<N>::zeros(); order];
+        let mut hj = vec![M::<N>::zeros(); order];
+        for t in order..n {
+            for k in 0..order {
+                for c in 0..N {
+                    let a = x[c][t - 1];
+                    let h = x[c][t - 1 - k];
+                    for d in 0..N {
+                        g0[k][(c, d)] += a * x[d][t - 1 - k];
+                        hj[k][(c, d)] += h * x[d][t];
+                    }
+                }
+            }
+        }
+        let dim = N * order;
+        let mut g = DMatrix::<f64>::zeros(dim, dim);
+        for k in 0..order {
+            let mut blk = g0[k];
+            for j in 0..order - k {
+                // Block (j, j + k).
+                if j > 0 {
+                    blk += outer(order - 1 - j, order - 1 - j - k) - outer(n - 1 - j, n - 1 - j - k);
+                }
+                for c in 0..N {
+                    for d in 0..N {
+                        g[(j * N + c, (j + k) * N + d)] = blk[(c, d)];
+                        g[((j + k) * N + d, j * N + c)] = blk[(c, d)];
+                    }
+                }
+            }
+        }
+        let mut h = DMatrix::<f64>::zeros(dim, N);
+        for j in 0..order {
+            for c in 0..N {
+                for o in 0..N {
+                    h[(j * N + c, o)] = hj[j][(c, o)];
+                }
+            }
+        }
+        let a = solve_equilibrated(g, h, order)?;
+        let mut sigma = M::<N>::zeros();
+        for t in order..n {
+            let mut e = SMatrix::<f64, N, 1>::from_fn(|c, _| x[c][t]);
+            for (j, aj) in a.iter().enumerate() {
+                e -= aj * SMatrix::<f64, N, 1>::from_fn(|c, _| x[c][t - 1 - j]);
+            }
+            sigma += e * e.transpose();
+        }
+        sigma /= (n - order - dim) as f64;
+        Self::from_parts(&a, sigma)
     }
 
     /// VAR(`order`) from a one-sided cross-PSD `psd(f)` (for `f > 0`) at sampling interval `dt`,
@@ -174,6 +215,30 @@ impl<const N: usize> Whitener<N> {
         }
         out
     }
+}
+
+/// Solve the block normal equations `G coef = H` by Cholesky after equilibration and return
+/// `A_j[o, c] = coef[(j N + c, o)]`.
+fn solve_equilibrated<const N: usize>(
+    mut g: DMatrix<f64>,
+    mut h: DMatrix<f64>,
+    order: usize,
+) -> Result<Vec<SMatrix<f64, N, N>>, FitError> {
+    let dim = g.nrows();
+    let scale: Vec<f64> = (0..dim).map(|a| g[(a, a)].sqrt().max(f64::MIN_POSITIVE)).collect();
+    for a in 0..dim {
+        for b in 0..dim {
+            g[(a, b)] /= scale[a] * scale[b];
+        }
+        for o in 0..N {
+            h[(a, o)] /= scale[a];
+        }
+    }
+    let chol = g.cholesky().ok_or_else(|| {
+        FitError::Singular("noise covariance for the whitening filter (is a channel constant or zero?)".into())
+    })?;
+    let coef = chol.solve(&h);
+    Ok((0..order).map(|j| SMatrix::<f64, N, N>::from_fn(|o, c| coef[(j * N + c, o)] / scale[j * N + c])).collect())
 }
 
 /// Remove the least-squares line from a series.
