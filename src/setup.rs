@@ -101,7 +101,15 @@ impl Setup {
     pub fn simulator(&self, design: &Design, truth: &[f64], glitch: Option<&GlitchSpec>) -> Result<Simulator<2>, Error> {
         let dt = self.analysis_dt();
         let n = design.samples(dt);
-        let glitches = glitch.map(|g| GlitchConfig::new(g, n));
+        // Glitch amplitudes are in units of the white driving sequence at the simulation rate;
+        // at the analysis rate the same physical glitch is sqrt(simulate_hz / analyse_hz)
+        // times larger in units of that (coarser) sequence.
+        let ratio = (self.spec.sampling.simulate_hz / self.spec.sampling.analyse_hz).sqrt();
+        let glitches = glitch.map(|g| {
+            let mut g = g.clone();
+            g.amplitude_sigma = [g.amplitude_sigma[0] * ratio, g.amplitude_sigma[1] * ratio];
+            GlitchConfig::new(&g, n)
+        });
         Ok(Simulator::new(&self.model, design, truth, self.psd(truth), dt, NOISE_OVERSAMPLE, glitches)?)
     }
 }

@@ -179,6 +179,10 @@ pub struct FitArgs {
     /// Whitening filter order (lags).
     #[arg(long, default_value_t = DEFAULT_WHITENING_ORDER)]
     pub order: usize,
+    /// Where the whitening filter comes from: the dataset's noise run if it has one (auto),
+    /// the noise run, or the model's noise PSD at the guess.
+    #[arg(long, value_enum, default_value_t = WhiteningSource::Auto)]
+    pub whitening: WhiteningSource,
     /// Degree of the whitened-domain polynomial nuisance per experiment and channel.
     #[arg(long, default_value_t = DEFAULT_POLY_DEGREE)]
     pub poly_degree: usize,
@@ -224,8 +228,29 @@ pub fn resolve_guess(setup: &Setup, guess: Option<&str>) -> Result<Vec<f64>> {
         .collect()
 }
 
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum WhiteningSource {
+    Auto,
+    Noise,
+    Model,
+}
+
 /// Whitening filter for a dataset: from its noise run, else from the model PSD at `p`.
-pub fn dataset_whitener(setup: &Setup, ds: &Dataset, p: &[f64], n: usize, dt: f64, order: usize) -> Result<(Whitener<2>, String)> {
+pub fn dataset_whitener(
+    setup: &Setup,
+    ds: &Dataset,
+    p: &[f64],
+    n: usize,
+    dt: f64,
+    order: usize,
+    source: WhiteningSource,
+) -> Result<(Whitener<2>, String)> {
+    if source == WhiteningSource::Noise && ds.noise.is_none() {
+        bail!("--whitening noise: the dataset has no noise run");
+    }
+    if source == WhiteningSource::Model {
+        return Ok((setup.whitener_from_model(p, n, dt, order)?, "model noise PSD".into()));
+    }
     match &ds.noise {
         Some(noise) => {
             let label = noise.path.as_ref().map(|p| p.display().to_string()).unwrap_or_else(|| "noise run".into());
@@ -260,8 +285,8 @@ pub fn fit(a: FitArgs) -> Result<()> {
     let data = experiment_data(&ds)?;
     let guess = resolve_guess(&setup, a.guess.as_deref())?;
     check_stability(&setup.model, &guess, Some(&setup.spec.nominal())).context("the starting point")?;
-    let (whitener, source) = dataset_whitener(&setup, &ds, &guess, data.len(), data.dt, a.order)?;
-    if ds.noise.is_none() {
+    let (whitener, source) = dataset_whitener(&setup, &ds, &guess, data.len(), data.dt, a.order, a.whitening)?;
+    if ds.noise.is_none() && a.whitening == WhiteningSource::Auto {
         eprintln!("note: whitening from the {source}");
     }
     let lik = Likelihood::new(&setup.model, &data.inputs, data.dt, whitener, a.poly_degree)

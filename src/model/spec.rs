@@ -110,7 +110,8 @@ pub struct GlitchSpec {
     pub fraction: f64,
     pub f0_hz: [f64; 2],
     pub tau_s: [f64; 2],
-    /// Amplitude range in units of the standard deviation of the white driving sequence.
+    /// Amplitude range in units of the standard deviation of the white driving sequence at
+    /// the simulation rate (the thesis colors glitchy white noise at 10 Hz).
     pub amplitude_sigma: [f64; 2],
 }
 
