@@ -1,0 +1,229 @@
+//! System identification on simulated time series. Oracles: the thesis's Fisher errors
+//! (Table "Monte Carlo validation", via reference/README.md), the frequency-domain Fisher
+//! information of the reference README, Monte Carlo scatter against the fit's own errors,
+//! Gaussian moments of whitened noise with the thesis's whitening-table uncertainties, and the
+//! thesis's non-standard scenarios (sec. 4.5.6-4.5.7).
+
+use freefall::cli::model::{design_fisher, THESIS_SIGMA};
+use freefall::fit::{fit, Estimator, ExperimentData, FitConfig, Likelihood, Termination, Whitener};
+use freefall::setup::{Setup, DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
+use freefall::sim::rng::stream;
+use freefall::spectral::{welch_psd, WelchConfig};
+use rayon::prelude::*;
+
+fn mean(v: &[f64]) -> f64 {
+    v.iter().sum::<f64>() / v.len() as f64
+}
+
+fn sd(v: &[f64]) -> f64 {
+    let m = mean(v);
+    (v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (v.len() - 1) as f64).sqrt()
+}
+
+#[test]
+fn standard_design_fisher_errors_are_within_2p5_of_the_thesis() {
+    // Oracle: thesis Table "Monte Carlo validation", mean expected st.dev. (reference README).
+    let setup = Setup::embedded();
+    let p = setup.spec.scenario("monte_carlo").unwrap().truth;
+    let info = design_fisher(&setup, &setup.design("standard").unwrap(), &p);
+    let cov = info.try_inverse().unwrap();
+    for (k, (name, thesis)) in THESIS_SIGMA.iter().enumerate() {
+        assert_eq!(setup.parameter_names()[k], *name);
+        let ratio = cov[(k, k)].sqrt() / thesis;
+        assert!((1.0 / 2.5..=2.5).contains(&ratio), "{name}: sigma/thesis = {ratio}");
+    }
+}
+
+struct Bench {
+    setup: Setup,
+    truth: Vec<f64>,
+    guess: Vec<f64>,
+}
+
+impl Bench {
+    fn new(scenario: &str) -> Self {
+        let setup = Setup::embedded();
+        let sc = setup.spec.scenario(scenario).unwrap();
+        Bench { truth: sc.truth, guess: sc.guess, setup }
+    }
+}
+
+#[test]
+fn time_domain_fisher_agrees_with_the_frequency_domain_formula() {
+    // Oracle: reference README Fisher formula (frequency domain, exact PSD) against J^T J of
+    // the whitened, finite, time-domain likelihood at the truth: equal up to the samples the
+    // whitening filter drops and the nuisance terms (a few percent).
+    let b = Bench::new("monte_carlo");
+    let design = b.setup.design("standard").unwrap();
+    let fd = design_fisher(&b.setup, &design, &b.truth).try_inverse().unwrap();
+    let sim = b.setup.simulator(&design, &b.truth, None).unwrap();
+    let w = b.setup.whitener_from_model(&b.truth, sim.n, sim.dt, DEFAULT_WHITENING_ORDER).unwrap();
+    let lik = Likelihood::new(&b.setup.model, &sim.inputs, sim.dt, w, DEFAULT_POLY_DEGREE).unwrap();
+    let data = sim.draw(&mut stream(1, 0));
+    let res = fit(&b.setup.model, &lik.problem(&data).unwrap(), &b.truth, &FitConfig::new(&b.setup.parameter_names())).unwrap();
+    let td = res.information.clone().try_inverse().unwrap();
+    for k in 0..7 {
+        let r = (td[(k, k)] / fd[(k, k)]).sqrt();
+        assert!((r - 1.0).abs() < 0.1, "parameter {k}: time-domain sigma / frequency-domain sigma = {r}");
+    }
+}
+
+/// Whitened-noise checks (thesis Table "whitening": moments with Gaussian uncertainties).
+fn assert_white(x: &[f64], what: &str) {
+    let n = x.len() as f64;
+    let m = mean(x);
+    let s = sd(x);
+    let skew = x.iter().map(|v| ((v - m) / s).powi(3)).sum::<f64>() / n;
+    let kurt = x.iter().map(|v| ((v - m) / s).powi(4)).sum::<f64>() / n - 3.0;
+    // Unit variance within 4 standard errors plus 2% for the filter's estimation error.
+    assert!((s - 1.0).abs() < 4.0 / (2.0 * n).sqrt() + 0.02, "{what}: sd {s}");
+    assert!(m.abs() < 4.0 * s / n.sqrt(), "{what}: mean {m}");
+    assert!(skew.abs() < 4.0 * (6.0 / n).sqrt(), "{what}: skewness {skew}");
+    assert!(kurt.abs() < 4.0 * (24.0 / n).sqrt(), "{what}: excess kurtosis {kurt}");
+    // Flat PSD: the mean level in four bands equals the white level 2 sigma^2 dt.
+    let ps = welch_psd(x, 1.0, &WelchConfig::default()).unwrap();
+    let psd = ps.psd(0);
+    for (lo, hi) in [(2e-3, 1e-2), (1e-2, 5e-2), (5e-2, 0.2), (0.2, 0.45)] {
+        let sel: Vec<f64> = ps.f.iter().zip(&psd).filter(|(f, _)| **f >= lo && **f < hi).map(|(_, p)| *p).collect();
+        let level = mean(&sel) / 2.0;
+        let err = (2.0 / ps.dof()).sqrt() * (2.0 / sel.len() as f64).sqrt();
+        assert!((level - 1.0).abs() < 4.0 * err + 0.03, "{what}: band [{lo}, {hi}] level {level} +- {err}");
+    }
+}
+
+#[test]
+fn whitened_noise_is_white() {
+    let b = Bench::new("monte_carlo");
+    let mut design = b.setup.design("standard").unwrap();
+    design.experiments.truncate(1);
+    design.experiments[0].inputs = vec![None, None];
+    let sim = b.setup.simulator(&design, &b.truth, None).unwrap();
+    // Filter from the model PSD, applied to an independent noise realization.
+    let w = b.setup.whitener_from_model(&b.truth, sim.n, sim.dt, DEFAULT_WHITENING_ORDER).unwrap();
+    let x = sim.noise_series(&mut stream(21, 0));
+    for (c, name) in ["o1", "o12"].iter().enumerate() {
+        let mut y = w.apply(&x)[c].clone();
+        let basis = freefall::fit::whiten::poly_basis(y.len(), 1);
+        freefall::fit::whiten::project_out(&mut y, &basis);
+        assert_white(&y, &format!("model-whitened {name}"));
+    }
+    // Filter estimated on a 12-hour noise run, applied to an independent 3-hour run.
+    let mut long = design.clone();
+    long.duration_s *= 4.0;
+    let lsim = b.setup.simulator(&long, &b.truth, None).unwrap();
+    let w = Whitener::<2>::from_series(&lsim.noise_series(&mut stream(22, 0)), DEFAULT_WHITENING_ORDER).unwrap();
+    for (c, name) in ["o1", "o12"].iter().enumerate() {
+        let mut y = w.apply(&x)[c].clone();
+        let basis = freefall::fit::whiten::poly_basis(y.len(), 1);
+        freefall::fit::whiten::project_out(&mut y, &basis);
+        assert_white(&y, &format!("noise-run-whitened {name}"));
+    }
+}
+
+#[test]
+fn monte_carlo_scatter_agrees_with_fisher_errors() {
+    // Oracle: over 120 realizations of the monte_carlo scenario (standard design, both
+    // experiments), mean chi^2/nu is 1 within 0.01 and every parameter's pulls
+    // (estimate - true)/sigma have mean within +-0.3 and sd within 0.8-1.2.
+    let b = Bench::new("monte_carlo");
+    let design = b.setup.design("standard").unwrap();
+    let sim = b.setup.simulator(&design, &b.truth, None).unwrap();
+    let w = b.setup.whitener_from_model(&b.truth, sim.n, sim.dt, DEFAULT_WHITENING_ORDER).unwrap();
+    let lik = Likelihood::new(&b.setup.model, &sim.inputs, sim.dt, w, DEFAULT_POLY_DEGREE).unwrap();
+    let cfg = FitConfig::new(&b.setup.parameter_names());
+    let results: Vec<_> = (0..120u64)
+        .into_par_iter()
+        .map(|r| {
+            let data = sim.draw(&mut stream(2026, r));
+            fit(&b.setup.model, &lik.problem(&data).unwrap(), &b.guess, &cfg).unwrap()
+        })
+        .collect();
+    assert!(results.iter().all(|r| r.termination.converged()));
+    let chi: Vec<f64> = results.iter().map(|r| r.chi2_reduced).collect();
+    assert!((mean(&chi) - 1.0).abs() < 0.01, "mean chi2/nu {}", mean(&chi));
+    for k in 0..7 {
+        let pulls: Vec<f64> = results.iter().map(|r| (r.estimate[k] - b.truth[k]) / r.sigma[k]).collect();
+        let (m, s) = (mean(&pulls), sd(&pulls));
+        assert!(m.abs() < 0.3 && (0.8..1.2).contains(&s), "parameter {k}: pull mean {m}, sd {s}");
+    }
+}
+
+#[test]
+fn under_performing_converges_from_a_far_guess() {
+    // Oracle: thesis sec. 4.5.6 / Table "robust2guess": from a guess 1e2-1e4 sigma away the fit
+    // reaches chi^2/nu ~ 1, the same minimum as a fit started at the truth, and the truth
+    // within 2 sigma for every parameter (seeded realization; independent of the optimiser
+    // path, since both starts must agree).
+    let b = Bench::new("under_performing");
+    let design = b.setup.design("standard").unwrap();
+    let sim = b.setup.simulator(&design, &b.truth, None).unwrap();
+    // The noise depends on the (unknown) true parameters, so the whitening filter comes from a
+    // 12-hour noise run, as in the thesis, not from the model at the guess.
+    let mut long = design.clone();
+    long.duration_s *= 4.0;
+    let noise = b.setup.simulator(&long, &b.truth, None).unwrap().noise_series(&mut stream(4, 1));
+    let w = Whitener::<2>::from_series(&noise, DEFAULT_WHITENING_ORDER).unwrap();
+    let lik = Likelihood::new(&b.setup.model, &sim.inputs, sim.dt, w, DEFAULT_POLY_DEGREE).unwrap();
+    let data: ExperimentData = sim.draw(&mut stream(4, 0));
+    let problem = lik.problem(&data).unwrap();
+    let cfg = FitConfig::new(&b.setup.parameter_names());
+    let far = fit(&b.setup.model, &problem, &b.guess, &cfg).unwrap();
+    let near = fit(&b.setup.model, &problem, &b.truth, &cfg).unwrap();
+    assert!(far.termination.converged(), "{:?}", far.termination);
+    assert!(far.chi2_start / far.nu as f64 > 1e3, "start chi2/nu {}", far.chi2_start / far.nu as f64);
+    assert!((far.chi2_reduced - 1.0).abs() < 0.05, "final chi2/nu {}", far.chi2_reduced);
+    for k in 0..7 {
+        let start_off = (b.guess[k] - b.truth[k]).abs() / far.sigma[k];
+        assert!(start_off > 100.0, "parameter {k} starts only {start_off} sigma away");
+        assert!((far.estimate[k] - near.estimate[k]).abs() < 0.05 * far.sigma[k], "parameter {k}: far and near starts disagree");
+        let pull = (far.estimate[k] - b.truth[k]) / far.sigma[k];
+        assert!(pull.abs() < 2.0, "parameter {k}: pull {pull}");
+    }
+}
+
+#[test]
+fn robust_estimators_on_glitches_behave_as_in_the_thesis() {
+    // Oracle: thesis Table "robust2glitches": squared deviation gives chi^2/nu ~ 10 and errors
+    // inflated by ~sqrt(chi^2/nu); logarithmic deviation gives chi^2/nu ~ 1 and smaller errors.
+    // The whitening filter comes from the declared (glitch-free) noise model.
+    let b = Bench::new("glitches");
+    let sc = b.setup.spec.scenario("glitches").unwrap();
+    let design = b.setup.design("standard").unwrap();
+    let sim = b.setup.simulator(&design, &b.truth, sc.glitch.as_ref()).unwrap();
+    let w = b.setup.whitener_from_model(&b.truth, sim.n, sim.dt, DEFAULT_WHITENING_ORDER).unwrap();
+    let lik = Likelihood::new(&b.setup.model, &sim.inputs, sim.dt, w, DEFAULT_POLY_DEGREE).unwrap();
+    let data = sim.draw(&mut stream(9, 0));
+    let problem = lik.problem(&data).unwrap();
+    let run = |e: Estimator| {
+        let mut cfg = FitConfig::new(&b.setup.parameter_names());
+        cfg.estimator = e;
+        fit(&b.setup.model, &problem, &b.guess, &cfg).unwrap()
+    };
+    let sq = run(Estimator::Squared);
+    let lg = run(Estimator::Log);
+    assert!(sq.termination.converged() && lg.termination.converged());
+    assert!((5.0..20.0).contains(&sq.chi2_reduced), "squared chi2/nu {}", sq.chi2_reduced);
+    assert!((0.8..1.6).contains(&lg.chi2_reduced), "log chi2/nu {}", lg.chi2_reduced);
+    let fisher = sq.information.clone().try_inverse().unwrap();
+    for k in 0..7 {
+        let inflation = sq.sigma[k] / fisher[(k, k)].sqrt();
+        assert!((inflation / sq.chi2_reduced.sqrt() - 1.0).abs() < 1e-9, "parameter {k}: inflation {inflation}");
+        assert!(lg.sigma[k] < sq.sigma[k], "parameter {k}: log sigma {} vs squared {}", lg.sigma[k], sq.sigma[k]);
+        assert!(((sq.estimate[k] - b.truth[k]) / sq.sigma[k]).abs() < 3.0, "squared bias on {k}");
+        assert!(((lg.estimate[k] - b.truth[k]) / lg.sigma[k]).abs() < 3.0, "log bias on {k}");
+    }
+    assert_ne!(sq.termination, Termination::MaxIterations);
+}
+
+#[test]
+fn log_estimator_gaussian_mean_matches_quadrature() {
+    // Oracle: E[ln(1 + Z^2)] for Z ~ N(0, 1) by trapezoidal quadrature.
+    let (mut acc, h): (f64, f64) = (0.0, 1e-4);
+    let mut z: f64 = -40.0;
+    while z < 40.0 {
+        acc += (z * z).ln_1p() * (-0.5 * z * z).exp() * h;
+        z += h;
+    }
+    let e = acc / (2.0 * std::f64::consts::PI).sqrt();
+    assert!((e - Estimator::Log.gaussian_mean()).abs() < 1e-8, "{e}");
+}
