@@ -83,7 +83,8 @@ pub fn run() -> i32 {
 
 /// The error chain on one line.
 pub fn one_line(e: &anyhow::Error) -> String {
-    e.chain().map(|c| c.to_string()).collect::<Vec<_>>().join(": ")
+    let text = e.chain().map(|c| c.to_string()).collect::<Vec<_>>().join(": ");
+    text.split_whitespace().collect::<Vec<_>>().join(" ")
 }
 
 /// Create the parent directory of an output file, with a clear error.
