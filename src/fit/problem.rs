@@ -84,6 +84,12 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> Likelihood<'m, M, N> {
         c
     }
 
+    /// Whitened, cut and projected template derivatives `j[k][e][i]` at `p` (data-independent).
+    pub fn jacobian(&self, p: &[f64]) -> Vec<Series> {
+        let (_, d) = self.engine.templates_and_derivatives(p, Some(&self.response));
+        d.into_iter().map(|s| self.whiten_cut(s)).collect()
+    }
+
     /// Whitened, cut and projected outputs of one data set.
     pub fn problem<'a>(&'a self, data: &ExperimentData) -> Result<Problem<'a, 'm, M, N>, FitError> {
         if data.outputs.len() != self.engine.n_experiments() || data.len() != self.engine.len() {
