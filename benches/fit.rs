@@ -3,7 +3,9 @@
 //! (FFT plans, injection spectra, whitening response) is prepared once, as campaigns do.
 
 use criterion::{black_box, criterion_group, criterion_main, Criterion};
-use freefall::fit::{fit, FitConfig, JacobianCache, JacobianPolicy, Likelihood, JACOBIAN_REUSE_SIGMA};
+use freefall::fit::{
+    fit, FitConfig, JacobianCache, JacobianPolicy, Likelihood, JACOBIAN_REUSE_SIGMA,
+};
 use freefall::setup::{Setup, DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 use freefall::sim::rng::stream;
 
@@ -12,7 +14,9 @@ fn bench(c: &mut Criterion) {
     let sc = setup.spec.scenario("monte_carlo").unwrap();
     let design = setup.design("standard").unwrap();
     let sim = setup.simulator(&design, &sc.truth, None).unwrap();
-    let w = setup.whitener_from_model(&sc.truth, sim.n, sim.dt, DEFAULT_WHITENING_ORDER).unwrap();
+    let w = setup
+        .whitener_from_model(&sc.truth, sim.n, sim.dt, DEFAULT_WHITENING_ORDER)
+        .unwrap();
     let lik = Likelihood::new(&setup.model, &sim.inputs, sim.dt, w, DEFAULT_POLY_DEGREE).unwrap();
     let cfg = FitConfig::new(&setup.parameter_names());
     let mut r = 0u64;
@@ -27,8 +31,19 @@ fn bench(c: &mut Criterion) {
         })
     });
     // Campaign mode: Jacobians cached at the guess and at realization 0's estimate.
-    let first = fit(&setup.model, &lik.problem(&sim.draw(&mut stream(7, 0))).unwrap(), &sc.guess, &cfg).unwrap();
-    let cache = JacobianCache::new(&lik, &[sc.guess.clone(), first.estimate], JACOBIAN_REUSE_SIGMA).unwrap();
+    let first = fit(
+        &setup.model,
+        &lik.problem(&sim.draw(&mut stream(7, 0))).unwrap(),
+        &sc.guess,
+        &cfg,
+    )
+    .unwrap();
+    let cache = JacobianCache::new(
+        &lik,
+        &[sc.guess.clone(), first.estimate],
+        JACOBIAN_REUSE_SIGMA,
+    )
+    .unwrap();
     let mut cached = cfg.clone();
     cached.jacobian = JacobianPolicy::Cached(std::sync::Arc::new(cache));
     group.bench_function("simulate_whiten_fit_standard_1hz_cached_jacobian", |b| {
@@ -46,10 +61,16 @@ fn bench(c: &mut Criterion) {
         })
     });
     let data = sim.draw(&mut stream(7, 0));
-    group.bench_function("whiten_data_only", |b| b.iter(|| black_box(lik.problem(&data).unwrap())));
+    group.bench_function("whiten_data_only", |b| {
+        b.iter(|| black_box(lik.problem(&data).unwrap()))
+    });
     let problem = lik.problem(&data).unwrap();
-    group.bench_function("templates_and_jacobian", |b| b.iter(|| black_box(problem.residuals_and_jacobian(&sc.truth))));
-    group.bench_function("templates_only", |b| b.iter(|| black_box(problem.residuals(&sc.truth))));
+    group.bench_function("templates_and_jacobian", |b| {
+        b.iter(|| black_box(problem.residuals_and_jacobian(&sc.truth)))
+    });
+    group.bench_function("templates_only", |b| {
+        b.iter(|| black_box(problem.residuals(&sc.truth)))
+    });
     group.finish();
 }
 

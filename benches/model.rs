@@ -14,14 +14,28 @@ fn bench(c: &mut Criterion) {
     let p = setup.spec.scenario("monte_carlo").unwrap().truth;
     let n = 10_800;
     let m = freefall::noise::generate::fast_len(2 * n);
-    let points: Vec<_> = (0..=m / 2).map(|k| setup.model.prepare(k.max(1) as f64 / m as f64)).collect();
+    let points: Vec<_> = (0..=m / 2)
+        .map(|k| setup.model.prepare(k.max(1) as f64 / m as f64))
+        .collect();
     let mut t = vec![CMat::<2>::zeros(); points.len()];
     let mut d = vec![CMat::<2>::zeros(); 7 * points.len()];
     c.bench_function("transfer_and_7_derivatives_1hz_grid", |b| {
-        b.iter(|| setup.model.transfer_grid(black_box(&points), black_box(&p), &mut t, Some(&mut d)))
+        b.iter(|| {
+            setup
+                .model
+                .transfer_grid(black_box(&points), black_box(&p), &mut t, Some(&mut d))
+        })
     });
     c.bench_function("transfer_and_7_derivatives_1hz_grid_generic", |b| {
-        b.iter(|| freefall::model::closed_loop::transfer_grid_generic(&setup.model, black_box(&points), black_box(&p), &mut t, Some(&mut d)))
+        b.iter(|| {
+            freefall::model::closed_loop::transfer_grid_generic(
+                &setup.model,
+                black_box(&points),
+                black_box(&p),
+                &mut t,
+                Some(&mut d),
+            )
+        })
     });
     let psd = setup.psd(&p);
     let gen1 = ColoredNoise::<2>::new(&psd, n, 1.0, NOISE_OVERSAMPLE).unwrap();

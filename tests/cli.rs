@@ -27,7 +27,11 @@ fn fails(args: &[&str], needles: &[&str]) {
     let err = String::from_utf8_lossy(&o.stderr).to_string();
     assert!(!o.status.success(), "freefall {args:?} should fail");
     assert!(!err.contains("panicked"), "panic: {err}");
-    assert_eq!(err.trim().lines().count(), 1, "one-line error expected: {err}");
+    assert_eq!(
+        err.trim().lines().count(),
+        1,
+        "one-line error expected: {err}"
+    );
     for n in needles {
         assert!(err.contains(n), "error for {args:?} lacks '{n}': {err}");
     }
@@ -45,15 +49,48 @@ fn s(p: &Path) -> &str {
 fn model_products_write_the_documented_columns() {
     let d = tmp();
     let t = d.path().join("t.parquet");
-    ok(&["model", "transfer", "--scenario", "monte_carlo", "--points", "50", "--out", s(&t)]);
+    ok(&[
+        "model",
+        "transfer",
+        "--scenario",
+        "monte_carlo",
+        "--points",
+        "50",
+        "--out",
+        s(&t),
+    ]);
     let tab = read_parquet(&t).unwrap();
-    assert_eq!(tab.names(), ["f", "t11_re", "t11_im", "t12_re", "t12_im", "t21_re", "t21_im", "t22_re", "t22_im"]);
+    assert_eq!(
+        tab.names(),
+        ["f", "t11_re", "t11_im", "t12_re", "t12_im", "t21_re", "t21_im", "t22_re", "t22_im"]
+    );
     assert_eq!(tab.num_rows(), 50);
     let n = d.path().join("n.parquet");
-    ok(&["model", "noise", "--fmin", "1e-4", "--fmax", "0.4", "--points", "20", "--out", s(&n)]);
-    assert_eq!(read_parquet(&n).unwrap().names(), ["f", "s11", "s22", "s12_re", "s12_im"]);
+    ok(&[
+        "model",
+        "noise",
+        "--fmin",
+        "1e-4",
+        "--fmax",
+        "0.4",
+        "--points",
+        "20",
+        "--out",
+        s(&n),
+    ]);
+    assert_eq!(
+        read_parquet(&n).unwrap().names(),
+        ["f", "s11", "s22", "s12_re", "s12_im"]
+    );
     let f = d.path().join("sub/fisher.parquet");
-    let out = ok(&["model", "fisher", "--scenario", "monte_carlo", "--out", s(&f)]);
+    let out = ok(&[
+        "model",
+        "fisher",
+        "--scenario",
+        "monte_carlo",
+        "--out",
+        s(&f),
+    ]);
     assert!(out.contains("w1_sq") && out.contains("thesis"));
     let tab = read_parquet(&f).unwrap();
     assert_eq!(tab.names(), ["parameter", "value", "sigma"]);
@@ -67,60 +104,171 @@ fn model_products_write_the_documented_columns() {
 fn simulate_then_fit_recovers_the_truth() {
     let d = tmp();
     let ds = d.path().join("ds");
-    ok(&["simulate", "--scenario", "monte_carlo", "--seed", "5", "--out", s(&ds)]);
+    ok(&[
+        "simulate",
+        "--scenario",
+        "monte_carlo",
+        "--seed",
+        "5",
+        "--out",
+        s(&ds),
+    ]);
     let exp1 = read_run(ds.join("exp1.parquet")).unwrap();
     assert_eq!(exp1.len(), 10_800);
     assert!((exp1.dt - 1.0).abs() < 1e-12);
     let psd = d.path().join("psd.parquet");
     ok(&["psd", s(&ds.join("noise.parquet")), "--out", s(&psd)]);
-    assert_eq!(read_parquet(&psd).unwrap().names(), ["f", "s11", "s22", "s12_re", "s12_im", "coherence"]);
+    assert_eq!(
+        read_parquet(&psd).unwrap().names(),
+        ["f", "s11", "s22", "s12_re", "s12_im", "coherence"]
+    );
     let w = d.path().join("w.parquet");
-    let out = ok(&["whiten", s(&ds.join("noise.parquet")), "--model-psd", "--scenario", "monte_carlo", "--out", s(&w)]);
+    let out = ok(&[
+        "whiten",
+        s(&ds.join("noise.parquet")),
+        "--model-psd",
+        "--scenario",
+        "monte_carlo",
+        "--out",
+        s(&w),
+    ]);
     assert!(out.contains("excess kurtosis"));
     let fit = d.path().join("fit");
-    let out = ok(&["fit", s(&ds.join("dataset.toml")), "--guess", "monte_carlo", "--out", s(&fit)]);
+    let out = ok(&[
+        "fit",
+        s(&ds.join("dataset.toml")),
+        "--guess",
+        "monte_carlo",
+        "--out",
+        s(&fit),
+    ]);
     assert!(out.contains("pull"));
     let est = read_parquet(fit.join("estimates.parquet")).unwrap();
     assert_eq!(est.names(), ["parameter", "estimate", "sigma", "guess"]);
-    let truth = freefall::setup::Setup::embedded().spec.scenario("monte_carlo").unwrap().truth;
-    let (e, sg) = (est.f64_column("estimate").unwrap(), est.f64_column("sigma").unwrap());
+    let truth = freefall::setup::Setup::embedded()
+        .spec
+        .scenario("monte_carlo")
+        .unwrap()
+        .truth;
+    let (e, sg) = (
+        est.f64_column("estimate").unwrap(),
+        est.f64_column("sigma").unwrap(),
+    );
     for k in 0..7 {
-        assert!(((e[k] - truth[k]) / sg[k]).abs() < 4.0, "parameter {k} off by {} sigma", (e[k] - truth[k]) / sg[k]);
+        assert!(
+            ((e[k] - truth[k]) / sg[k]).abs() < 4.0,
+            "parameter {k} off by {} sigma",
+            (e[k] - truth[k]) / sg[k]
+        );
     }
-    let json: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(fit.join("fit.json")).unwrap()).unwrap();
-    for key in ["chi2", "nu", "chi2_reduced", "iterations", "termination", "seconds"] {
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(fit.join("fit.json")).unwrap()).unwrap();
+    for key in [
+        "chi2",
+        "nu",
+        "chi2_reduced",
+        "iterations",
+        "termination",
+        "seconds",
+    ] {
         assert!(json.get(key).is_some(), "fit.json lacks {key}");
     }
     assert!((json["chi2_reduced"].as_f64().unwrap() - 1.0).abs() < 0.1);
     let res = read_parquet(fit.join("residuals.parquet")).unwrap();
-    assert_eq!(res.names(), ["experiment", "channel", "t", "raw", "whitened"]);
+    assert_eq!(
+        res.names(),
+        ["experiment", "channel", "t", "raw", "whitened"]
+    );
     assert_eq!(res.num_rows(), 4 * 10_800);
-    assert_eq!(read_parquet(fit.join("correlation.parquet")).unwrap().num_rows(), 49);
+    assert_eq!(
+        read_parquet(fit.join("correlation.parquet"))
+            .unwrap()
+            .num_rows(),
+        49
+    );
 }
 
 #[test]
 fn bad_model_input_is_a_one_line_error() {
     let d = tmp();
     let out = d.path().join("x.parquet");
-    fails(&["model", "transfer", "--scenario", "nope", "--out", s(&out)], &["nope", "monte_carlo"]);
-    fails(&["model", "transfer", "--fmin", "0.1", "--fmax", "0.01", "--out", s(&out)], &["fmin"]);
-    fails(&["model", "noise", "--fmin=-1", "--out", s(&out)], &["fmin"]);
-    fails(&["model", "transfer", "--model", "/no/such/model.toml", "--out", s(&out)], &["/no/such/model.toml"]);
+    fails(
+        &["model", "transfer", "--scenario", "nope", "--out", s(&out)],
+        &["nope", "monte_carlo"],
+    );
+    fails(
+        &[
+            "model",
+            "transfer",
+            "--fmin",
+            "0.1",
+            "--fmax",
+            "0.01",
+            "--out",
+            s(&out),
+        ],
+        &["fmin"],
+    );
+    fails(
+        &["model", "noise", "--fmin=-1", "--out", s(&out)],
+        &["fmin"],
+    );
+    fails(
+        &[
+            "model",
+            "transfer",
+            "--model",
+            "/no/such/model.toml",
+            "--out",
+            s(&out),
+        ],
+        &["/no/such/model.toml"],
+    );
     let bad = d.path().join("bad.toml");
-    std::fs::write(&bad, freefall::model::spec::EMBEDDED_LPF_X.replace("m_sc = 422.7", "m_sc = -1.0")).unwrap();
-    fails(&["model", "transfer", "--model", s(&bad), "--out", s(&out)], &["bad.toml", "m_sc"]);
+    std::fs::write(
+        &bad,
+        freefall::model::spec::EMBEDDED_LPF_X.replace("m_sc = 422.7", "m_sc = -1.0"),
+    )
+    .unwrap();
+    fails(
+        &["model", "transfer", "--model", s(&bad), "--out", s(&out)],
+        &["bad.toml", "m_sc"],
+    );
     std::fs::write(&bad, "[constants\n").unwrap();
-    fails(&["model", "fisher", "--model", s(&bad), "--out", s(&out)], &["bad.toml"]);
+    fails(
+        &["model", "fisher", "--model", s(&bad), "--out", s(&out)],
+        &["bad.toml"],
+    );
     // An output path that cannot be written: its parent is a regular file.
     let file = d.path().join("file");
     std::fs::write(&file, "x").unwrap();
-    fails(&["model", "transfer", "--points", "5", "--out", s(&file.join("t.parquet"))], &["file"]);
+    fails(
+        &[
+            "model",
+            "transfer",
+            "--points",
+            "5",
+            "--out",
+            s(&file.join("t.parquet")),
+        ],
+        &["file"],
+    );
 }
 
 /// A small simulated dataset in `dir` whose experiment runs we then corrupt.
 fn dataset(dir: &Path) -> PathBuf {
     let ds = dir.join("ds");
-    ok(&["simulate", "--rate", "analysis", "--seed", "1", "--noise-duration", "10800", "--out", s(&ds)]);
+    ok(&[
+        "simulate",
+        "--rate",
+        "analysis",
+        "--seed",
+        "1",
+        "--noise-duration",
+        "10800",
+        "--out",
+        s(&ds),
+    ]);
     ds
 }
 
@@ -137,8 +285,8 @@ fn rewrite(path: &Path, f: impl FnOnce(&mut Vec<(String, Vec<f64>)>, &mut Vec<f6
         text.push_str(n);
     }
     text.push('\n');
-    for i in 0..t.len() {
-        text.push_str(&format!("{}", t[i]));
+    for (i, ti) in t.iter().enumerate() {
+        text.push_str(&format!("{ti}"));
         for (_, c) in &cols {
             text.push_str(&format!(",{:e}", c.get(i).copied().unwrap_or(0.0)));
         }
@@ -147,7 +295,9 @@ fn rewrite(path: &Path, f: impl FnOnce(&mut Vec<(String, Vec<f64>)>, &mut Vec<f6
     std::fs::write(&csv, text).unwrap();
     let toml = path.parent().unwrap().join("dataset.toml");
     let name = path.file_name().unwrap().to_str().unwrap();
-    let body = std::fs::read_to_string(&toml).unwrap().replace(name, csv.file_name().unwrap().to_str().unwrap());
+    let body = std::fs::read_to_string(&toml)
+        .unwrap()
+        .replace(name, csv.file_name().unwrap().to_str().unwrap());
     std::fs::write(&toml, body).unwrap();
 }
 
@@ -158,17 +308,26 @@ fn bad_datasets_name_the_file_row_and_column() {
     // Non-uniform time column.
     let ds = dataset(&d.path().join("a"));
     rewrite(&ds.join("exp1.parquet"), |_, t| t[57] += 0.5);
-    fails(&["fit", s(&ds.join("dataset.toml")), "--out", s(&out)], &["exp1.csv", "57"]);
+    fails(
+        &["fit", s(&ds.join("dataset.toml")), "--out", s(&out)],
+        &["exp1.csv", "57"],
+    );
     // A NaN.
     let ds = dataset(&d.path().join("b"));
     rewrite(&ds.join("exp2.parquet"), |c, _| c[3].1[1234] = f64::NAN);
-    fails(&["fit", s(&ds.join("dataset.toml")), "--out", s(&out)], &["exp2.csv", "o12", "1234"]);
+    fails(
+        &["fit", s(&ds.join("dataset.toml")), "--out", s(&out)],
+        &["exp2.csv", "o12", "1234"],
+    );
     // A missing column.
     let ds = dataset(&d.path().join("c"));
     rewrite(&ds.join("exp1.parquet"), |c, _| {
         c.remove(2);
     });
-    fails(&["fit", s(&ds.join("dataset.toml")), "--out", s(&out)], &["exp1.csv", "o1"]);
+    fails(
+        &["fit", s(&ds.join("dataset.toml")), "--out", s(&out)],
+        &["exp1.csv", "o1"],
+    );
     // Runs of different lengths.
     let ds = dataset(&d.path().join("e"));
     rewrite(&ds.join("exp2.parquet"), |c, t| {
@@ -177,21 +336,46 @@ fn bad_datasets_name_the_file_row_and_column() {
             v.truncate(5000);
         }
     });
-    fails(&["fit", s(&ds.join("dataset.toml")), "--out", s(&out)], &["exp2.csv", "5000"]);
+    fails(
+        &["fit", s(&ds.join("dataset.toml")), "--out", s(&out)],
+        &["exp2.csv", "5000"],
+    );
     // Runs shorter than the whitening filter needs.
     let short = d.path().join("short");
     std::fs::create_dir_all(&short).unwrap();
     let run = |n: usize| {
         use rand::Rng;
         let mut rng = freefall::sim::rng::stream(1, n as u64);
-        let cols = ["oi1", "oi12", "o1", "o12"].iter().map(|c| (c.to_string(), (0..n).map(|_| rng.gen::<f64>() * 1e-9).collect())).collect();
+        let cols = ["oi1", "oi12", "o1", "o12"]
+            .iter()
+            .map(|c| {
+                (
+                    c.to_string(),
+                    (0..n).map(|_| rng.gen::<f64>() * 1e-9).collect(),
+                )
+            })
+            .collect();
         Run::new(0.0, 1.0, cols).unwrap()
     };
     write_run(short.join("e.parquet"), &run(200)).unwrap();
     write_run(short.join("n.parquet"), &run(20_000)).unwrap();
-    std::fs::write(short.join("dataset.toml"), "noise = \"n.parquet\"\n[[experiment]]\nname = \"e\"\nfile = \"e.parquet\"\n").unwrap();
-    fails(&["fit", s(&short.join("dataset.toml")), "--out", s(&out)], &["200", "300"]);
+    std::fs::write(
+        short.join("dataset.toml"),
+        "noise = \"n.parquet\"\n[[experiment]]\nname = \"e\"\nfile = \"e.parquet\"\n",
+    )
+    .unwrap();
+    fails(
+        &["fit", s(&short.join("dataset.toml")), "--out", s(&out)],
+        &["200", "300"],
+    );
     // Unknown key in the dataset file.
-    std::fs::write(short.join("dataset.toml"), "noise = \"n.parquet\"\nexperimnt = 1\n").unwrap();
-    fails(&["fit", s(&short.join("dataset.toml")), "--out", s(&out)], &["dataset.toml", "experimnt"]);
+    std::fs::write(
+        short.join("dataset.toml"),
+        "noise = \"n.parquet\"\nexperimnt = 1\n",
+    )
+    .unwrap();
+    fails(
+        &["fit", s(&short.join("dataset.toml")), "--out", s(&out)],
+        &["dataset.toml", "experimnt"],
+    );
 }

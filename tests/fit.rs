@@ -30,7 +30,10 @@ fn standard_design_fisher_errors_are_within_2p5_of_the_thesis() {
     for (k, (name, thesis)) in THESIS_SIGMA.iter().enumerate() {
         assert_eq!(setup.parameter_names()[k], *name);
         let ratio = cov[(k, k)].sqrt() / thesis;
-        assert!((1.0 / 2.5..=2.5).contains(&ratio), "{name}: sigma/thesis = {ratio}");
+        assert!(
+            (1.0 / 2.5..=2.5).contains(&ratio),
+            "{name}: sigma/thesis = {ratio}"
+        );
     }
 }
 
@@ -44,7 +47,11 @@ impl Bench {
     fn new(scenario: &str) -> Self {
         let setup = Setup::embedded();
         let sc = setup.spec.scenario(scenario).unwrap();
-        Bench { truth: sc.truth, guess: sc.guess, setup }
+        Bench {
+            truth: sc.truth,
+            guess: sc.guess,
+            setup,
+        }
     }
 }
 
@@ -55,16 +62,30 @@ fn time_domain_fisher_agrees_with_the_frequency_domain_formula() {
     // whitening filter drops and the nuisance terms (a few percent).
     let b = Bench::new("monte_carlo");
     let design = b.setup.design("standard").unwrap();
-    let fd = design_fisher(&b.setup, &design, &b.truth).try_inverse().unwrap();
+    let fd = design_fisher(&b.setup, &design, &b.truth)
+        .try_inverse()
+        .unwrap();
     let sim = b.setup.simulator(&design, &b.truth, None).unwrap();
-    let w = b.setup.whitener_from_model(&b.truth, sim.n, sim.dt, DEFAULT_WHITENING_ORDER).unwrap();
+    let w = b
+        .setup
+        .whitener_from_model(&b.truth, sim.n, sim.dt, DEFAULT_WHITENING_ORDER)
+        .unwrap();
     let lik = Likelihood::new(&b.setup.model, &sim.inputs, sim.dt, w, DEFAULT_POLY_DEGREE).unwrap();
     let data = sim.draw(&mut stream(1, 0));
-    let res = fit(&b.setup.model, &lik.problem(&data).unwrap(), &b.truth, &FitConfig::new(&b.setup.parameter_names())).unwrap();
+    let res = fit(
+        &b.setup.model,
+        &lik.problem(&data).unwrap(),
+        &b.truth,
+        &FitConfig::new(&b.setup.parameter_names()),
+    )
+    .unwrap();
     let td = res.information.clone().try_inverse().unwrap();
     for k in 0..7 {
         let r = (td[(k, k)] / fd[(k, k)]).sqrt();
-        assert!((r - 1.0).abs() < 0.1, "parameter {k}: time-domain sigma / frequency-domain sigma = {r}");
+        assert!(
+            (r - 1.0).abs() < 0.1,
+            "parameter {k}: time-domain sigma / frequency-domain sigma = {r}"
+        );
     }
 }
 
@@ -76,18 +97,35 @@ fn assert_white(x: &[f64], what: &str) {
     let skew = x.iter().map(|v| ((v - m) / s).powi(3)).sum::<f64>() / n;
     let kurt = x.iter().map(|v| ((v - m) / s).powi(4)).sum::<f64>() / n - 3.0;
     // Unit variance within 4 standard errors plus 2% for the filter's estimation error.
-    assert!((s - 1.0).abs() < 4.0 / (2.0 * n).sqrt() + 0.02, "{what}: sd {s}");
+    assert!(
+        (s - 1.0).abs() < 4.0 / (2.0 * n).sqrt() + 0.02,
+        "{what}: sd {s}"
+    );
     assert!(m.abs() < 4.0 * s / n.sqrt(), "{what}: mean {m}");
-    assert!(skew.abs() < 4.0 * (6.0 / n).sqrt(), "{what}: skewness {skew}");
-    assert!(kurt.abs() < 4.0 * (24.0 / n).sqrt(), "{what}: excess kurtosis {kurt}");
+    assert!(
+        skew.abs() < 4.0 * (6.0 / n).sqrt(),
+        "{what}: skewness {skew}"
+    );
+    assert!(
+        kurt.abs() < 4.0 * (24.0 / n).sqrt(),
+        "{what}: excess kurtosis {kurt}"
+    );
     // Flat PSD: the mean level in four bands equals the white level 2 sigma^2 dt.
     let ps = welch_psd(x, 1.0, &WelchConfig::default()).unwrap();
     let psd = ps.psd(0);
     for (lo, hi) in [(2e-3, 1e-2), (1e-2, 5e-2), (5e-2, 0.2), (0.2, 0.45)] {
-        let sel: Vec<f64> = ps.f.iter().zip(&psd).filter(|(f, _)| **f >= lo && **f < hi).map(|(_, p)| *p).collect();
+        let sel: Vec<f64> =
+            ps.f.iter()
+                .zip(&psd)
+                .filter(|(f, _)| **f >= lo && **f < hi)
+                .map(|(_, p)| *p)
+                .collect();
         let level = mean(&sel) / 2.0;
         let err = (2.0 / ps.dof()).sqrt() * (2.0 / sel.len() as f64).sqrt();
-        assert!((level - 1.0).abs() < 4.0 * err + 0.03, "{what}: band [{lo}, {hi}] level {level} +- {err}");
+        assert!(
+            (level - 1.0).abs() < 4.0 * err + 0.03,
+            "{what}: band [{lo}, {hi}] level {level} +- {err}"
+        );
     }
 }
 
@@ -99,7 +137,10 @@ fn whitened_noise_is_white() {
     design.experiments[0].inputs = vec![None, None];
     let sim = b.setup.simulator(&design, &b.truth, None).unwrap();
     // Filter from the model PSD, applied to an independent noise realization.
-    let w = b.setup.whitener_from_model(&b.truth, sim.n, sim.dt, DEFAULT_WHITENING_ORDER).unwrap();
+    let w = b
+        .setup
+        .whitener_from_model(&b.truth, sim.n, sim.dt, DEFAULT_WHITENING_ORDER)
+        .unwrap();
     let x = sim.noise_series(&mut stream(21, 0));
     for (c, name) in ["o1", "o12"].iter().enumerate() {
         let mut y = w.apply(&x)[c].clone();
@@ -111,7 +152,11 @@ fn whitened_noise_is_white() {
     let mut long = design.clone();
     long.duration_s *= 4.0;
     let lsim = b.setup.simulator(&long, &b.truth, None).unwrap();
-    let w = Whitener::<2>::from_series(&lsim.noise_series(&mut stream(22, 0)), DEFAULT_WHITENING_ORDER).unwrap();
+    let w = Whitener::<2>::from_series(
+        &lsim.noise_series(&mut stream(22, 0)),
+        DEFAULT_WHITENING_ORDER,
+    )
+    .unwrap();
     for (c, name) in ["o1", "o12"].iter().enumerate() {
         let mut y = w.apply(&x)[c].clone();
         let basis = freefall::fit::whiten::poly_basis(y.len(), 1);
@@ -128,7 +173,10 @@ fn monte_carlo_scatter_agrees_with_fisher_errors() {
     let b = Bench::new("monte_carlo");
     let design = b.setup.design("standard").unwrap();
     let sim = b.setup.simulator(&design, &b.truth, None).unwrap();
-    let w = b.setup.whitener_from_model(&b.truth, sim.n, sim.dt, DEFAULT_WHITENING_ORDER).unwrap();
+    let w = b
+        .setup
+        .whitener_from_model(&b.truth, sim.n, sim.dt, DEFAULT_WHITENING_ORDER)
+        .unwrap();
     let lik = Likelihood::new(&b.setup.model, &sim.inputs, sim.dt, w, DEFAULT_POLY_DEGREE).unwrap();
     let cfg = FitConfig::new(&b.setup.parameter_names());
     let results: Vec<_> = (0..120u64)
@@ -140,11 +188,21 @@ fn monte_carlo_scatter_agrees_with_fisher_errors() {
         .collect();
     assert!(results.iter().all(|r| r.termination.converged()));
     let chi: Vec<f64> = results.iter().map(|r| r.chi2_reduced).collect();
-    assert!((mean(&chi) - 1.0).abs() < 0.01, "mean chi2/nu {}", mean(&chi));
+    assert!(
+        (mean(&chi) - 1.0).abs() < 0.01,
+        "mean chi2/nu {}",
+        mean(&chi)
+    );
     for k in 0..7 {
-        let pulls: Vec<f64> = results.iter().map(|r| (r.estimate[k] - b.truth[k]) / r.sigma[k]).collect();
+        let pulls: Vec<f64> = results
+            .iter()
+            .map(|r| (r.estimate[k] - b.truth[k]) / r.sigma[k])
+            .collect();
         let (m, s) = (mean(&pulls), sd(&pulls));
-        assert!(m.abs() < 0.3 && (0.8..1.2).contains(&s), "parameter {k}: pull mean {m}, sd {s}");
+        assert!(
+            m.abs() < 0.3 && (0.8..1.2).contains(&s),
+            "parameter {k}: pull mean {m}, sd {s}"
+        );
     }
 }
 
@@ -161,7 +219,11 @@ fn under_performing_converges_from_a_far_guess() {
     // 12-hour noise run, as in the thesis, not from the model at the guess.
     let mut long = design.clone();
     long.duration_s *= 4.0;
-    let noise = b.setup.simulator(&long, &b.truth, None).unwrap().noise_series(&mut stream(4, 1));
+    let noise = b
+        .setup
+        .simulator(&long, &b.truth, None)
+        .unwrap()
+        .noise_series(&mut stream(4, 1));
     let w = Whitener::<2>::from_series(&noise, DEFAULT_WHITENING_ORDER).unwrap();
     let lik = Likelihood::new(&b.setup.model, &sim.inputs, sim.dt, w, DEFAULT_POLY_DEGREE).unwrap();
     let data: ExperimentData = sim.draw(&mut stream(4, 0));
@@ -170,12 +232,26 @@ fn under_performing_converges_from_a_far_guess() {
     let far = fit(&b.setup.model, &problem, &b.guess, &cfg).unwrap();
     let near = fit(&b.setup.model, &problem, &b.truth, &cfg).unwrap();
     assert!(far.termination.converged(), "{:?}", far.termination);
-    assert!(far.chi2_start / far.nu as f64 > 1e3, "start chi2/nu {}", far.chi2_start / far.nu as f64);
-    assert!((far.chi2_reduced - 1.0).abs() < 0.05, "final chi2/nu {}", far.chi2_reduced);
+    assert!(
+        far.chi2_start / far.nu as f64 > 1e3,
+        "start chi2/nu {}",
+        far.chi2_start / far.nu as f64
+    );
+    assert!(
+        (far.chi2_reduced - 1.0).abs() < 0.05,
+        "final chi2/nu {}",
+        far.chi2_reduced
+    );
     for k in 0..7 {
         let start_off = (b.guess[k] - b.truth[k]).abs() / far.sigma[k];
-        assert!(start_off > 100.0, "parameter {k} starts only {start_off} sigma away");
-        assert!((far.estimate[k] - near.estimate[k]).abs() < 0.05 * far.sigma[k], "parameter {k}: far and near starts disagree");
+        assert!(
+            start_off > 100.0,
+            "parameter {k} starts only {start_off} sigma away"
+        );
+        assert!(
+            (far.estimate[k] - near.estimate[k]).abs() < 0.05 * far.sigma[k],
+            "parameter {k}: far and near starts disagree"
+        );
         let pull = (far.estimate[k] - b.truth[k]) / far.sigma[k];
         assert!(pull.abs() < 2.0, "parameter {k}: pull {pull}");
     }
@@ -189,8 +265,14 @@ fn robust_estimators_on_glitches_behave_as_in_the_thesis() {
     let b = Bench::new("glitches");
     let sc = b.setup.spec.scenario("glitches").unwrap();
     let design = b.setup.design("standard").unwrap();
-    let sim = b.setup.simulator(&design, &b.truth, sc.glitch.as_ref()).unwrap();
-    let w = b.setup.whitener_from_model(&b.truth, sim.n, sim.dt, DEFAULT_WHITENING_ORDER).unwrap();
+    let sim = b
+        .setup
+        .simulator(&design, &b.truth, sc.glitch.as_ref())
+        .unwrap();
+    let w = b
+        .setup
+        .whitener_from_model(&b.truth, sim.n, sim.dt, DEFAULT_WHITENING_ORDER)
+        .unwrap();
     let lik = Likelihood::new(&b.setup.model, &sim.inputs, sim.dt, w, DEFAULT_POLY_DEGREE).unwrap();
     let data = sim.draw(&mut stream(9, 0));
     let problem = lik.problem(&data).unwrap();
@@ -202,15 +284,37 @@ fn robust_estimators_on_glitches_behave_as_in_the_thesis() {
     let sq = run(Estimator::Squared);
     let lg = run(Estimator::Log);
     assert!(sq.termination.converged() && lg.termination.converged());
-    assert!((5.0..20.0).contains(&sq.chi2_reduced), "squared chi2/nu {}", sq.chi2_reduced);
-    assert!((0.8..1.6).contains(&lg.chi2_reduced), "log chi2/nu {}", lg.chi2_reduced);
+    assert!(
+        (5.0..20.0).contains(&sq.chi2_reduced),
+        "squared chi2/nu {}",
+        sq.chi2_reduced
+    );
+    assert!(
+        (0.8..1.6).contains(&lg.chi2_reduced),
+        "log chi2/nu {}",
+        lg.chi2_reduced
+    );
     let fisher = sq.information.clone().try_inverse().unwrap();
     for k in 0..7 {
         let inflation = sq.sigma[k] / fisher[(k, k)].sqrt();
-        assert!((inflation / sq.chi2_reduced.sqrt() - 1.0).abs() < 1e-9, "parameter {k}: inflation {inflation}");
-        assert!(lg.sigma[k] < sq.sigma[k], "parameter {k}: log sigma {} vs squared {}", lg.sigma[k], sq.sigma[k]);
-        assert!(((sq.estimate[k] - b.truth[k]) / sq.sigma[k]).abs() < 3.0, "squared bias on {k}");
-        assert!(((lg.estimate[k] - b.truth[k]) / lg.sigma[k]).abs() < 3.0, "log bias on {k}");
+        assert!(
+            (inflation / sq.chi2_reduced.sqrt() - 1.0).abs() < 1e-9,
+            "parameter {k}: inflation {inflation}"
+        );
+        assert!(
+            lg.sigma[k] < sq.sigma[k],
+            "parameter {k}: log sigma {} vs squared {}",
+            lg.sigma[k],
+            sq.sigma[k]
+        );
+        assert!(
+            ((sq.estimate[k] - b.truth[k]) / sq.sigma[k]).abs() < 3.0,
+            "squared bias on {k}"
+        );
+        assert!(
+            ((lg.estimate[k] - b.truth[k]) / lg.sigma[k]).abs() < 3.0,
+            "log bias on {k}"
+        );
     }
     assert_ne!(sq.termination, Termination::MaxIterations);
 }
@@ -238,11 +342,25 @@ fn cached_jacobians_give_the_exact_fits() {
     let b = Bench::new("monte_carlo");
     let design = b.setup.design("standard").unwrap();
     let sim = b.setup.simulator(&design, &b.truth, None).unwrap();
-    let w = b.setup.whitener_from_model(&b.truth, sim.n, sim.dt, DEFAULT_WHITENING_ORDER).unwrap();
+    let w = b
+        .setup
+        .whitener_from_model(&b.truth, sim.n, sim.dt, DEFAULT_WHITENING_ORDER)
+        .unwrap();
     let lik = Likelihood::new(&b.setup.model, &sim.inputs, sim.dt, w, DEFAULT_POLY_DEGREE).unwrap();
     let exact = FitConfig::new(&b.setup.parameter_names());
-    let first = fit(&b.setup.model, &lik.problem(&sim.draw(&mut stream(77, 0))).unwrap(), &b.guess, &exact).unwrap();
-    let cache = JacobianCache::new(&lik, &[b.guess.clone(), first.estimate.clone()], JACOBIAN_REUSE_SIGMA).unwrap();
+    let first = fit(
+        &b.setup.model,
+        &lik.problem(&sim.draw(&mut stream(77, 0))).unwrap(),
+        &b.guess,
+        &exact,
+    )
+    .unwrap();
+    let cache = JacobianCache::new(
+        &lik,
+        &[b.guess.clone(), first.estimate.clone()],
+        JACOBIAN_REUSE_SIGMA,
+    )
+    .unwrap();
     let mut cached = exact.clone();
     cached.jacobian = JacobianPolicy::Cached(Arc::new(cache));
     let mut fresh = 0;
@@ -254,8 +372,14 @@ fn cached_jacobians_give_the_exact_fits() {
         assert!(c.termination.converged());
         fresh += c.jacobian_evaluations;
         for k in 0..7 {
-            assert!((a.estimate[k] - c.estimate[k]).abs() < 0.02 * a.sigma[k], "realization {r} parameter {k}");
-            assert!((a.sigma[k] / c.sigma[k] - 1.0).abs() < 0.01, "realization {r} sigma {k}");
+            assert!(
+                (a.estimate[k] - c.estimate[k]).abs() < 0.02 * a.sigma[k],
+                "realization {r} parameter {k}"
+            );
+            assert!(
+                (a.sigma[k] / c.sigma[k] - 1.0).abs() < 0.01,
+                "realization {r} sigma {k}"
+            );
         }
     }
     assert!(fresh <= 2, "{fresh} fresh Jacobians in 20 cached fits");

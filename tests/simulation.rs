@@ -17,10 +17,25 @@ use num_complex::Complex64;
 
 /// Mean ratio estimate/model over bins in [lo, hi] and its standard error (bins treated as
 /// independent with the Welch dof, inflated by 2 for the window's bin-to-bin correlation).
-fn band_ratio(f: &[f64], est: &[f64], model: impl Fn(f64) -> f64, lo: f64, hi: f64, dof: f64) -> (f64, f64) {
-    let r: Vec<f64> = f.iter().zip(est).filter(|(f, _)| **f >= lo && **f <= hi).map(|(f, e)| e / model(*f)).collect();
+fn band_ratio(
+    f: &[f64],
+    est: &[f64],
+    model: impl Fn(f64) -> f64,
+    lo: f64,
+    hi: f64,
+    dof: f64,
+) -> (f64, f64) {
+    let r: Vec<f64> = f
+        .iter()
+        .zip(est)
+        .filter(|(f, _)| **f >= lo && **f <= hi)
+        .map(|(f, e)| e / model(*f))
+        .collect();
     let n = r.len() as f64;
-    (r.iter().sum::<f64>() / n, (2.0 / dof).sqrt() * (2.0 / n).sqrt())
+    (
+        r.iter().sum::<f64>() / n,
+        (2.0 / dof).sqrt() * (2.0 / n).sqrt(),
+    )
 }
 
 #[test]
@@ -37,7 +52,10 @@ fn generated_noise_matches_the_model_cross_psd() {
     let dof = cs.dof();
     for (i, lo) in [(0usize, 3e-3), (1, 3e-3)] {
         let (m, e) = band_ratio(&cs.f, &cs.psd(i), |f| psd(f)[(i, i)].re, lo, 0.45, dof);
-        assert!((m - 1.0).abs() < 4.0 * e + 0.01, "channel {i}: mean ratio {m} +- {e}");
+        assert!(
+            (m - 1.0).abs() < 4.0 * e + 0.01,
+            "channel {i}: mean ratio {m} +- {e}"
+        );
     }
 }
 
@@ -56,16 +74,28 @@ fn generated_noise_reproduces_a_strong_cross_spectrum() {
     let dof = cs.dof();
     let (m0, e0) = band_ratio(&cs.f, &cs.psd(0), |f| s(f)[(0, 0)].re, 1e-2, 0.45, dof);
     let (m1, e1) = band_ratio(&cs.f, &cs.psd(1), |f| s(f)[(1, 1)].re, 1e-2, 0.45, dof);
-    assert!((m0 - 1.0).abs() < 4.0 * e0 + 0.01 && (m1 - 1.0).abs() < 4.0 * e1 + 0.01, "{m0} {m1}");
+    assert!(
+        (m0 - 1.0).abs() < 4.0 * e0 + 0.01 && (m1 - 1.0).abs() < 4.0 * e1 + 0.01,
+        "{m0} {m1}"
+    );
     // The Welch CSD convention is S_ij ~ <conj(X_i) X_j>, the model's <X_i conj(X_j)>: compare
     // the model's S_12 with the conjugate of the estimate.
     // Per bin the relative CSD error is ~ sqrt((1 + 1/coh^2) / dof) ~ 0.3; the band average of
     // estimate/model must be 1 within that over sqrt(bins) (x2 for window correlation).
     let s12 = cs.csd(0, 1);
-    let sel: Vec<usize> = (0..cs.f.len()).filter(|&k| cs.f[k] > 1e-2 && cs.f[k] < 0.1).collect();
-    let mean: Complex64 = sel.iter().map(|&k| s12[k].conj() / s(cs.f[k])[(0, 1)]).sum::<Complex64>() / sel.len() as f64;
+    let sel: Vec<usize> = (0..cs.f.len())
+        .filter(|&k| cs.f[k] > 1e-2 && cs.f[k] < 0.1)
+        .collect();
+    let mean: Complex64 = sel
+        .iter()
+        .map(|&k| s12[k].conj() / s(cs.f[k])[(0, 1)])
+        .sum::<Complex64>()
+        / sel.len() as f64;
     let tol = 4.0 * ((1.0 + 1.0 / 0.64) / dof).sqrt() * (2.0 / sel.len() as f64).sqrt();
-    assert!((mean - 1.0).norm() < tol, "band-averaged CSD ratio {mean}, tolerance {tol}");
+    assert!(
+        (mean - 1.0).norm() < tol,
+        "band-averaged CSD ratio {mean}, tolerance {tol}"
+    );
 }
 
 #[test]
@@ -87,9 +117,15 @@ fn noise_has_no_wrap_around_between_start_and_end() {
     let r = psd_autocovariance::<2>(&psd, 1.0, gen.driving_len(), n);
     let expected = 2.0 * (r[0][(1, 1)] - r[n - 1][(1, 1)]);
     let wrapped = 2.0 * (r[0][(1, 1)] - r[1][(1, 1)]);
-    assert!(expected > 10.0 * wrapped, "test needs red noise: {expected} vs {wrapped}");
+    assert!(
+        expected > 10.0 * wrapped,
+        "test needs red noise: {expected} vs {wrapped}"
+    );
     // 300 samples of a chi^2(1)-like variable: relative error ~ sqrt(2/300) = 8%.
-    assert!((measured / expected - 1.0).abs() < 0.3, "measured {measured}, expected {expected}");
+    assert!(
+        (measured / expected - 1.0).abs() < 0.3,
+        "measured {measured}, expected {expected}"
+    );
 }
 
 #[test]
@@ -99,8 +135,13 @@ fn decimation_keeps_the_psd_below_0p4_hz() {
     let p = setup.spec.scenario("monte_carlo").unwrap().truth;
     let mut design = setup.design("standard").unwrap();
     design.duration_s = 80_000.0;
-    design.experiments = vec![Experiment { name: "noise".into(), inputs: vec![None, None] }];
-    let sim = DecimatedSimulator::<2>::new(&setup.model, &design, &p, setup.psd(&p), 0.1, 10, 2, None).unwrap();
+    design.experiments = vec![Experiment {
+        name: "noise".into(),
+        inputs: vec![None, None],
+    }];
+    let sim =
+        DecimatedSimulator::<2>::new(&setup.model, &design, &p, setup.psd(&p), 0.1, 10, 2, None)
+            .unwrap();
     let x = sim.noise_run(&mut stream(5, 0));
     assert_eq!(x[0].len(), 80_000);
     let cs = welch_csd(&[&x[0], &x[1]], 1.0, &WelchConfig::default()).unwrap();
@@ -108,7 +149,10 @@ fn decimation_keeps_the_psd_below_0p4_hz() {
     for i in 0..2 {
         let h = |f: f64| sim.decimator.frequency_response(f).powi(2) * psd(f)[(i, i)].re;
         let (m, e) = band_ratio(&cs.f, &cs.psd(i), h, 3e-3, 0.4, cs.dof());
-        assert!((m - 1.0).abs() < 4.0 * e + 0.01, "channel {i}: ratio {m} +- {e}");
+        assert!(
+            (m - 1.0).abs() < 4.0 * e + 0.01,
+            "channel {i}: ratio {m} +- {e}"
+        );
     }
 }
 
@@ -121,7 +165,10 @@ fn single_stretch(f_hz: f64, amplitude: f64, input: usize) -> Design {
         gap_s: 0.0,
         start_s: 600.0,
         duration_s: 42_000.0,
-        experiments: vec![Experiment { name: "e".into(), inputs }],
+        experiments: vec![Experiment {
+            name: "e".into(),
+            inputs,
+        }],
     }
 }
 
@@ -131,7 +178,11 @@ fn templates_have_the_closed_loop_steady_state_response() {
     // a |T(f)| sin(2 pi f t + arg T(f)) (closed loop transients have died out).
     let setup = Setup::embedded();
     let p = setup.spec.scenario("monte_carlo").unwrap().truth;
-    for (f, input) in [(80.0 / 40_000.0, 0), (300.0 / 40_000.0, 1), (2000.0 / 40_000.0, 0)] {
+    for (f, input) in [
+        (80.0 / 40_000.0, 0),
+        (300.0 / 40_000.0, 1),
+        (2000.0 / 40_000.0, 0),
+    ] {
         let d = single_stretch(f, 1e-6, input);
         let n = d.samples(1.0);
         let inputs = vec![d.sample(0, 2, 0.0, 1.0, n)];
@@ -151,7 +202,10 @@ fn templates_have_the_closed_loop_steady_state_response() {
             }
             let k = 2.0 / idx.len() as f64;
             let got = Complex64::new(sc * k, cc * k); // a sin(x + phi) = a cos(phi) sin x + a sin(phi) cos x
-            assert!((got - expected).norm() < 2e-3 * expected.norm() + 1e-15, "f={f} out={out}: {got} vs {expected}");
+            assert!(
+                (got - expected).norm() < 2e-3 * expected.norm() + 1e-15,
+                "f={f} out={out}: {got} vs {expected}"
+            );
         }
     }
 }
@@ -170,7 +224,10 @@ fn zero_padding_keeps_templates_causal() {
     let t = engine.templates(&p, None);
     let peak = t[0][1].iter().fold(0.0_f64, |m, v| m.max(v.abs()));
     let before = t[0][1][..590].iter().fold(0.0_f64, |m, v| m.max(v.abs()));
-    assert!(before < 1e-6 * peak, "response before the injection: {before} vs peak {peak}");
+    assert!(
+        before < 1e-6 * peak,
+        "response before the injection: {before} vs peak {peak}"
+    );
 }
 
 #[test]
@@ -181,10 +238,22 @@ fn parseval_holds_for_the_transform_convention() {
     let dt = 0.5;
     let n = d.samples(dt);
     let x = d.sample(0, 2, 0.0, dt, n);
-    let spec = InputSpectra::<2>::from_series(&[x.clone()], dt);
+    let spec = InputSpectra::<2>::from_series(std::slice::from_ref(&x), dt);
     let df = 1.0 / (n as f64 * dt);
     let time: f64 = x[0].iter().map(|v| v * v * dt).sum();
     let s = &spec.spectra[0][0];
-    let freq: f64 = s.iter().enumerate().map(|(k, z)| z.norm_sqr() * if k == 0 || (n % 2 == 0 && k == n / 2) { 1.0 } else { 2.0 }).sum::<f64>() * df;
+    let freq: f64 = s
+        .iter()
+        .enumerate()
+        .map(|(k, z)| {
+            z.norm_sqr()
+                * if k == 0 || (n.is_multiple_of(2) && k == n / 2) {
+                    1.0
+                } else {
+                    2.0
+                }
+        })
+        .sum::<f64>()
+        * df;
     assert!((time - freq).abs() < 1e-10 * time, "{time} vs {freq}");
 }

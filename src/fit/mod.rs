@@ -33,7 +33,11 @@ use crate::sim::templates::Series;
 #[derive(Debug, thiserror::Error)]
 pub enum FitError {
     #[error("{what} too short: {len} samples, need at least {need}")]
-    TooShort { what: String, len: usize, need: usize },
+    TooShort {
+        what: String,
+        len: usize,
+        need: usize,
+    },
     #[error("singular matrix: {0}")]
     Singular(String),
     #[error("{0}")]
@@ -56,7 +60,12 @@ pub enum Termination {
 
 impl Termination {
     pub fn converged(self) -> bool {
-        matches!(self, Termination::ChiSquareTolerance | Termination::ParameterTolerance | Termination::NoImprovement)
+        matches!(
+            self,
+            Termination::ChiSquareTolerance
+                | Termination::ParameterTolerance
+                | Termination::NoImprovement
+        )
     }
 
     pub fn as_str(self) -> &'static str {
@@ -78,7 +87,10 @@ pub struct Bound {
 }
 
 impl Bound {
-    pub const FREE: Bound = Bound { lo: f64::NEG_INFINITY, hi: f64::INFINITY };
+    pub const FREE: Bound = Bound {
+        lo: f64::NEG_INFINITY,
+        hi: f64::INFINITY,
+    };
 }
 
 /// Physical bounds for LPF-x-like parameter names (see module docs).
@@ -87,9 +99,15 @@ pub fn physical_bounds(names: &[String]) -> Vec<Bound> {
         .iter()
         .map(|n| {
             if n.starts_with("a_") {
-                Bound { lo: 1e-3, hi: f64::INFINITY }
+                Bound {
+                    lo: 1e-3,
+                    hi: f64::INFINITY,
+                }
             } else if n.starts_with("dt") {
-                Bound { lo: 0.0, hi: f64::INFINITY }
+                Bound {
+                    lo: 0.0,
+                    hi: f64::INFINITY,
+                }
             } else {
                 Bound::FREE
             }
@@ -167,10 +185,16 @@ impl JacobianCache {
             .map(|p| {
                 let j = lik.jacobian(p);
                 let information = gram(&j);
-                let cov = invert_spd(&information)
-                    .ok_or_else(|| FitError::Singular("Fisher information at a cached Jacobian point".into()))?;
+                let cov = invert_spd(&information).ok_or_else(|| {
+                    FitError::Singular("Fisher information at a cached Jacobian point".into())
+                })?;
                 let sigma = (0..p.len()).map(|k| cov[(k, k)].sqrt()).collect();
-                Ok(CachedJacobian { p: p.clone(), j, information, sigma })
+                Ok(CachedJacobian {
+                    p: p.clone(),
+                    j,
+                    information,
+                    sigma,
+                })
             })
             .collect::<Result<Vec<_>, FitError>>()?;
         Ok(JacobianCache { entries, max_sigma })
@@ -181,7 +205,12 @@ impl JacobianCache {
         self.entries
             .iter()
             .map(|e| {
-                let d = p.iter().zip(&e.p).zip(&e.sigma).map(|((a, b), s)| (a - b).abs() / s).fold(0.0, f64::max);
+                let d = p
+                    .iter()
+                    .zip(&e.p)
+                    .zip(&e.sigma)
+                    .map(|((a, b), s)| (a - b).abs() / s)
+                    .fold(0.0, f64::max);
                 (d, e)
             })
             .filter(|(d, _)| *d <= self.max_sigma)
@@ -196,7 +225,12 @@ fn gram(j: &[Series]) -> DMatrix<f64> {
     let mut a = DMatrix::<f64>::zeros(np, np);
     for k in 0..np {
         for l in 0..=k {
-            let v: f64 = j[k].iter().flatten().zip(j[l].iter().flatten()).map(|(x, y)| x.iter().zip(y).map(|(u, v)| u * v).sum::<f64>()).sum();
+            let v: f64 = j[k]
+                .iter()
+                .flatten()
+                .zip(j[l].iter().flatten())
+                .map(|(x, y)| x.iter().zip(y).map(|(u, v)| u * v).sum::<f64>())
+                .sum();
             a[(k, l)] = v;
             a[(l, k)] = v;
         }
@@ -228,15 +262,29 @@ pub struct FitResult {
 }
 
 fn objective(est: Estimator, r: &Series) -> f64 {
-    r.iter().flatten().flatten().map(|&v| est.rho(v)).sum::<f64>() / est.gaussian_mean()
+    r.iter()
+        .flatten()
+        .flatten()
+        .map(|&v| est.rho(v))
+        .sum::<f64>()
+        / est.gaussian_mean()
 }
 
 /// Weighted normal equations `A = J^T W J`, `g = J^T W r` (with `J = d template / dp`); for the
 /// squared estimator a known `J^T J` is reused.
-fn normal_equations_with(est: Estimator, r: &Series, j: &[Series], known: Option<&DMatrix<f64>>) -> (DMatrix<f64>, DVector<f64>) {
+fn normal_equations_with(
+    est: Estimator,
+    r: &Series,
+    j: &[Series],
+    known: Option<&DMatrix<f64>>,
+) -> (DMatrix<f64>, DVector<f64>) {
     if let (Estimator::Squared, Some(a)) = (est, known) {
         let g = DVector::from_fn(j.len(), |k, _| {
-            j[k].iter().flatten().zip(r.iter().flatten()).map(|(x, y)| x.iter().zip(y).map(|(u, v)| u * v).sum::<f64>()).sum()
+            j[k].iter()
+                .flatten()
+                .zip(r.iter().flatten())
+                .map(|(x, y)| x.iter().zip(y).map(|(u, v)| u * v).sum::<f64>())
+                .sum()
         });
         return (a.clone(), g);
     }
@@ -251,7 +299,8 @@ fn normal_equations(est: Estimator, r: &Series, j: &[Series]) -> (DMatrix<f64>, 
     for e in 0..r.len() {
         for c in 0..r[e].len() {
             let rc = &r[e][c];
-            let w: Option<Vec<f64>> = (est != Estimator::Squared).then(|| rc.iter().map(|&v| est.weight(v)).collect());
+            let w: Option<Vec<f64>> =
+                (est != Estimator::Squared).then(|| rc.iter().map(|&v| est.weight(v)).collect());
             for k in 0..np {
                 let jk = &j[k][e][c];
                 let gk: f64 = match &w {
@@ -345,15 +394,16 @@ pub fn fit<M: ClosedLoopModel<N>, const N: usize>(
     };
     let (mut nfev, mut njev) = (1usize, 0usize);
     // The Jacobian at the current point: a cached one nearby, or a fresh exact one.
-    let mut jac_at = |p: &[f64], r: Option<Series>| -> (Series, Cow<'_, [Series]>, Option<&DMatrix<f64>>) {
-        if let Some(e) = cache.and_then(|c| c.nearest(p)) {
-            let r = r.unwrap_or_else(|| problem.residuals(p));
-            return (r, Cow::Borrowed(&e.j[..]), Some(&e.information));
-        }
-        njev += 1;
-        let (r, j) = problem.residuals_and_jacobian(p);
-        (r, Cow::Owned(j), None)
-    };
+    let mut jac_at =
+        |p: &[f64], r: Option<Series>| -> (Series, Cow<'_, [Series]>, Option<&DMatrix<f64>>) {
+            if let Some(e) = cache.and_then(|c| c.nearest(p)) {
+                let r = r.unwrap_or_else(|| problem.residuals(p));
+                return (r, Cow::Borrowed(&e.j[..]), Some(&e.information));
+            }
+            njev += 1;
+            let (r, j) = problem.residuals_and_jacobian(p);
+            (r, Cow::Owned(j), None)
+        };
     let (mut r, mut j, mut known) = jac_at(&p, None);
     let mut f = objective(est, &r);
     let chi2_start = f;
@@ -378,7 +428,9 @@ pub fn fit<M: ClosedLoopModel<N>, const N: usize>(
                 };
                 let mut trial: Vec<f64> = p.iter().zip(step.iter()).map(|(x, d)| x + d).collect();
                 clamp(&mut trial);
-                if trial.iter().any(|v| !v.is_finite()) || check_stability(model, &trial, None).is_err() {
+                if trial.iter().any(|v| !v.is_finite())
+                    || check_stability(model, &trial, None).is_err()
+                {
                     lambda *= 10.0;
                     continue;
                 }
@@ -420,7 +472,11 @@ pub fn fit<M: ClosedLoopModel<N>, const N: usize>(
     let nu = problem.nu(np);
     let chi2_reduced = f / nu as f64;
     let (info, _) = normal_equations_with(Estimator::Squared, &r, &j, known);
-    let base = invert_spd(&info).ok_or_else(|| FitError::Singular("Fisher information at the estimate (a parameter the data cannot constrain?)".into()))?;
+    let base = invert_spd(&info).ok_or_else(|| {
+        FitError::Singular(
+            "Fisher information at the estimate (a parameter the data cannot constrain?)".into(),
+        )
+    })?;
     let scale = match est {
         Estimator::Squared => chi2_reduced.max(1.0),
         _ => robust_scale(est, &r),
