@@ -379,3 +379,63 @@ fn bad_datasets_name_the_file_row_and_column() {
         &["dataset.toml", "experimnt"],
     );
 }
+
+#[test]
+fn guess_files_and_estimators() {
+    let d = tmp();
+    let ds = dataset(&d.path().join("g"));
+    let guess = d.path().join("guess.toml");
+    std::fs::write(&guess, "w1_sq = -1.3e-6\nw12_sq = -0.7e-6\ns21 = 0.0\na_df = 1.0\na_sus = 1.0\ndt1 = 0.0\ndt12 = 0.0\n").unwrap();
+    let out = d.path().join("fit");
+    let text = ok(&[
+        "fit",
+        s(&ds.join("dataset.toml")),
+        "--guess",
+        s(&guess),
+        "--estimator",
+        "log",
+        "--out",
+        s(&out),
+    ]);
+    assert!(text.contains("chi2/nu"));
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("fit.json")).unwrap()).unwrap();
+    assert_eq!(json["estimator"], "log");
+    std::fs::write(&guess, "w1_sq = -1.3e-6\nzeta = 1.0\n").unwrap();
+    fails(
+        &[
+            "fit",
+            s(&ds.join("dataset.toml")),
+            "--guess",
+            s(&guess),
+            "--out",
+            s(&out),
+        ],
+        &["guess.toml", "zeta"],
+    );
+    fails(
+        &[
+            "fit",
+            s(&ds.join("dataset.toml")),
+            "--guess",
+            "no_such_scenario",
+            "--out",
+            s(&out),
+        ],
+        &["no_such_scenario", "monte_carlo"],
+    );
+    // Argument errors are clap's usage messages (several lines), still naming the value.
+    let o = run(&[
+        "fit",
+        s(&ds.join("dataset.toml")),
+        "--estimator",
+        "cubic",
+        "--out",
+        s(&out),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && err.contains("cubic") && !err.contains("panicked"),
+        "{err}"
+    );
+}
