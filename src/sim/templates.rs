@@ -12,7 +12,7 @@
 use std::sync::Arc;
 
 use num_complex::Complex64;
-use realfft::{ComplexToReal, RealFftPlanner};
+use realfft::{ComplexToReal, RealFftPlanner, RealToComplex};
 
 use crate::model::closed_loop::{CMat, ClosedLoopModel};
 use crate::noise::generate::fast_len;
@@ -28,6 +28,7 @@ pub struct TemplateEngine<'m, M: ClosedLoopModel<N>, const N: usize> {
     points: Vec<M::Point>,
     /// `inputs_f[e][c][k]`: spectrum of experiment e's input c (zero-padded), `None` if zero.
     inputs_f: Vec<Vec<Option<Vec<Complex64>>>>,
+    fwd: Arc<dyn RealToComplex<f64>>,
     inv: Arc<dyn ComplexToReal<f64>>,
 }
 
@@ -74,6 +75,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
             dt,
             points,
             inputs_f,
+            fwd,
             inv,
         }
     }
@@ -149,8 +151,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
     /// Filter `N` series of length n by a per-bin matrix response on the padded grid
     /// (linear, not circular, convolution thanks to the padding), cut back to length n.
     pub fn filter_series(&self, x: &[Vec<f64>], filter: &[CMat<N>]) -> Vec<Vec<f64>> {
-        let mut planner = RealFftPlanner::<f64>::new();
-        let fwd = planner.plan_fft_forward(self.m);
+        let fwd = &self.fwd;
         let specs: Vec<Vec<Complex64>> = x
             .iter()
             .map(|c| {
