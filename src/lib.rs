@@ -13,4 +13,5 @@ pub mod signal;
 pub mod sim;
 pub mod fit;
 pub mod setup;
+pub mod campaign;
 pub mod cli;
