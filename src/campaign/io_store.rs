@@ -81,12 +81,12 @@ pub fn load(path: Option<&Path>) -> Result<Loaded, CampaignError> {
             crate::model::ModelSpec::from_toml_str(&model_text, &model_label).map_err(|e| {
                 CampaignError::Setup {
                     context: format!("{}: key 'model'", file.display()),
-                    source: e.into(),
+                    source: Box::new(e.into()),
                 }
             })?;
         Setup::new(spec).map_err(|e| CampaignError::Setup {
             context: format!("{}: key 'model'", file.display()),
-            source: e,
+            source: Box::new(e),
         })?
     };
     let mut design_texts = Vec::new();

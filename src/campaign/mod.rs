@@ -59,6 +59,6 @@ pub enum CampaignError {
     #[error("{context}: {source}")]
     Setup {
         context: String,
-        source: crate::setup::Error,
+        source: Box<crate::setup::Error>,
     },
 }

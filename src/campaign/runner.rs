@@ -133,7 +133,7 @@ impl<'s> Runner<'s> {
         let ctx = |what: String| {
             move |e: crate::setup::Error| CampaignError::Setup {
                 context: what.clone(),
-                source: e,
+                source: Box::new(e),
             }
         };
         let mut cells = Vec::new();

@@ -338,9 +338,9 @@ impl Aggregates {
             g.co[c] += old[i] * (row.estimate[j] - g.est[j].mean);
             g.fisher_corr[c].push(row.correlation[c]);
         }
-        for k in 0..truth.len() {
+        for (k, t) in truth.iter().enumerate() {
             g.sigma[k].push(row.sigma[k]);
-            g.pull[k].push((row.estimate[k] - truth[k]) / row.sigma[k]);
+            g.pull[k].push((row.estimate[k] - t) / row.sigma[k]);
         }
         g.chi2.push(row.chi2_reduced);
         if row.noise_chi2_reduced.is_finite() {
