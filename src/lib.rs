@@ -5,6 +5,7 @@
 //! does no file I/O and prints nothing; `io` and `cli` are the only edges. See README.md for the
 //! architecture and `../shared/seed/thesis.tex` (cited as "thesis") for the equations.
 
+pub mod campaign;
 pub mod cli;
 pub mod fit;
 pub mod io;

@@ -1,13 +1,194 @@
-//! `freefall campaign ...` (placeholder until the campaign engine lands).
-use anyhow::{bail, Result};
-use clap::Subcommand;
+//! `freefall campaign run|merge|slurm`: Monte Carlo campaigns from a campaign file (see
+//! `campaign::spec` for the schema), with shards, resume and SLURM job arrays.
+
+use std::io::IsTerminal;
+use std::path::PathBuf;
+
+use anyhow::Result;
+use clap::{Args, Subcommand};
+
+use crate::campaign::io_store::Progress;
+use crate::campaign::{self, slurm, RunOptions, Shard};
 
 #[derive(Debug, Subcommand)]
 pub enum CampaignCmd {
-    /// Run a campaign file.
-    Run,
+    /// Run a campaign file (default: the embedded quick campaign) into an output directory.
+    Run(RunArgs),
+    /// Merge finished shard directories into the tables of one unsharded run.
+    Merge(MergeArgs),
+    /// Write a SLURM job-array submission (one shard per task) and a dependent merge job.
+    Slurm(SlurmArgs),
 }
 
-pub fn run(_c: CampaignCmd) -> Result<()> {
-    bail!("campaign: not available in this build")
+#[derive(Debug, Args)]
+pub struct RunArgs {
+    /// Campaign file (TOML); default: the embedded campaigns/quick.toml.
+    pub file: Option<PathBuf>,
+    /// Output directory: realizations/summary/correlation/chi2 .parquet and manifest.json.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Run only shard K of N (0-based; contiguous realization ranges), e.g. 2/8.
+    #[arg(long, value_name = "K/N")]
+    pub shard: Option<Shard>,
+    /// Continue an interrupted run in --out (finished batches are kept, nothing is redone).
+    #[arg(long)]
+    pub resume: bool,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    pub threads: Option<usize>,
+    /// No progress bar.
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+#[derive(Debug, Args)]
+pub struct MergeArgs {
+    /// Part directories written by `campaign run --shard K/N`.
+    #[arg(required = true)]
+    pub parts: Vec<PathBuf>,
+    /// Output directory of the merged tables.
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+#[derive(Debug, Args)]
+pub struct SlurmArgs {
+    /// Campaign file (TOML).
+    pub file: PathBuf,
+    /// Number of shards (array tasks).
+    #[arg(long)]
+    pub shards: u64,
+    /// Directory for the scripts, the part directories (parts/K) and the merged tables (merged/).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// SLURM partition.
+    #[arg(long)]
+    pub partition: Option<String>,
+    /// Time limit per shard task (SLURM format, e.g. 01:00:00).
+    #[arg(long, default_value = "01:00:00")]
+    pub time: String,
+    /// Memory per shard task (SLURM format, e.g. 2G).
+    #[arg(long, default_value = "2G")]
+    pub mem: String,
+    /// CPUs per shard task (= worker threads).
+    #[arg(long, default_value_t = 1)]
+    pub cpus_per_task: u32,
+    /// freefall binary the jobs run (default: this one).
+    #[arg(long)]
+    pub binary: Option<PathBuf>,
+    /// Also submit with sbatch and print the job ids.
+    #[arg(long)]
+    pub submit: bool,
+}
+
+pub fn run(c: CampaignCmd) -> Result<()> {
+    match c {
+        CampaignCmd::Run(a) => run_campaign(a),
+        CampaignCmd::Merge(a) => {
+            let m = campaign::merge(&a.parts, &a.out)?;
+            eprintln!(
+                "merged {} parts: {} realizations, {} fits ({} failed) into {}",
+                m.merged_from.len(),
+                m.realizations,
+                m.fits,
+                m.failed,
+                a.out.display()
+            );
+            Ok(())
+        }
+        CampaignCmd::Slurm(a) => {
+            let opts = slurm::SlurmOptions {
+                campaign: a.file,
+                shards: a.shards,
+                out: a.out,
+                partition: a.partition,
+                time: a.time,
+                mem: a.mem,
+                cpus_per_task: a.cpus_per_task,
+                binary: match a.binary {
+                    Some(b) => b,
+                    None => std::env::current_exe()?,
+                },
+            };
+            let written = slurm::write(&opts)?;
+            println!(
+                "wrote {} and {}",
+                written.array.display(),
+                written.merge.display()
+            );
+            if a.submit {
+                let ids = slurm::submit(&written)?;
+                println!("submitted array job {} and merge job {}", ids.0, ids.1);
+            } else {
+                println!("submit with: {}", written.submit.display());
+            }
+            Ok(())
+        }
+    }
+}
+
+fn run_campaign(a: RunArgs) -> Result<()> {
+    let loaded = campaign::load(a.file.as_deref())?;
+    let opts = RunOptions {
+        out: a.out.clone(),
+        shard: a.shard.unwrap_or(Shard::WHOLE),
+        resume: a.resume,
+        threads: a.threads,
+    };
+    crate::io::ensure_dir(&a.out)?;
+    let show = !a.quiet && std::io::stderr().is_terminal();
+    let bar = if show {
+        let pb = indicatif::ProgressBar::new(0);
+        pb.set_style(
+            indicatif::ProgressStyle::with_template(
+                "{bar:40} {pos}/{len} realizations  {per_sec}  ETA {eta}  {msg}",
+            )
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        );
+        Some(pb)
+    } else {
+        None
+    };
+    let mut progress = |p: Progress| {
+        if let Some(pb) = &bar {
+            if pb.length() != Some(p.total) {
+                pb.set_length(p.total);
+                pb.set_position(p.done);
+                pb.reset_eta();
+            }
+            pb.set_position(p.done);
+            pb.set_message(format!("{} fits, {} failed", p.fits, p.failed));
+        }
+    };
+    let report = campaign::run(&loaded, &opts, &mut progress)?;
+    if let Some(pb) = bar {
+        pb.finish_and_clear();
+    }
+    let m = &report.manifest;
+    if report.already_complete {
+        eprintln!(
+            "{}: already complete ({} fits, {} failed)",
+            a.out.display(),
+            m.fits,
+            m.failed
+        );
+        return Ok(());
+    }
+    if !a.quiet {
+        eprintln!(
+            "campaign '{}' shard {}: realizations {}..{} ({} resumed), {} fits, {} failed, {:.1} s on {} threads ({:.2} realizations/s); wrote {}",
+            m.campaign,
+            m.shard,
+            m.range_start,
+            m.range_end,
+            m.resumed_realizations,
+            m.fits,
+            m.failed,
+            m.wall_seconds,
+            m.threads,
+            m.realizations_per_second,
+            a.out.display()
+        );
+    }
+    Ok(())
 }

@@ -1,0 +1,666 @@
+//! The campaign's file side (all through [`crate::io`]): loading a campaign with its model and
+//! design files, checkpoint chunks and `--resume`, shard parts and `merge`, the output tables and
+//! `manifest.json`.
+//!
+//! Layout of an output directory while running: `.partial/state.json` (config hash and shard)
+//! and `.partial/chunk-<start>-<end>.parquet`, one atomically written file per finished batch of
+//! realizations `start..end`. A killed run keeps every finished chunk; `--resume` replays them
+//! through the aggregators (same order, same numbers) and continues with the next realization.
+//! At the end the chunks are streamed into `realizations.parquet`, the aggregate tables and
+//! `manifest.json` are written, and `.partial` is removed.
+
+use std::path::{Path, PathBuf};
+use std::time::{Instant, SystemTime, UNIX_EPOCH};
+
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+
+use super::runner::{resolve_scenarios, Runner};
+use super::spec::{Campaign, DesignSource};
+use super::stats::{Aggregates, Layout};
+use super::CampaignError;
+use crate::io::{
+    self, read_json, read_parquet, write_json_atomic, write_parquet, IoError, ParquetAppender,
+    Table,
+};
+use crate::model::spec::Scenario;
+use crate::setup::Setup;
+use crate::signal::Design;
+
+/// The quick campaign, used when `campaign run` is given no file.
+pub const EMBEDDED_QUICK: &str = include_str!("../../campaigns/quick.toml");
+
+const PARTIAL: &str = ".partial";
+const STATE: &str = "state.json";
+const MANIFEST: &str = "manifest.json";
+
+/// A campaign with everything it refers to, loaded and checked.
+pub struct Loaded {
+    pub campaign: Campaign,
+    pub setup: Setup,
+    pub scenarios: Vec<Scenario>,
+    pub designs: Vec<Design>,
+    pub campaign_sha256: String,
+    /// Model file path, or `embedded`.
+    pub model_label: String,
+    pub model_sha256: String,
+    /// sha256 over the campaign file, the model file and the design files (in that order).
+    pub config_hash: String,
+}
+
+fn sha256_hex(parts: &[&[u8]]) -> String {
+    let mut h = Sha256::new();
+    for p in parts {
+        h.update((p.len() as u64).to_le_bytes());
+        h.update(p);
+    }
+    h.finalize().iter().map(|b| format!("{b:02x}")).collect()
+}
+
+/// Load the campaign file at `path` (`None`: the embedded quick campaign).
+pub fn load(path: Option<&Path>) -> Result<Loaded, CampaignError> {
+    let (text, file) = match path {
+        Some(p) => (io::read_text(p)?, p.to_path_buf()),
+        None => (
+            EMBEDDED_QUICK.to_string(),
+            PathBuf::from("embedded quick.toml"),
+        ),
+    };
+    let campaign = Campaign::from_toml_str(&text, &file)?;
+    let (model_text, model_label) = match &campaign.model {
+        None => (
+            crate::model::spec::EMBEDDED_LPF_X.to_string(),
+            "embedded".to_string(),
+        ),
+        Some(m) => (io::read_text(m)?, m.display().to_string()),
+    };
+    let setup = if campaign.model.is_none() {
+        Setup::embedded()
+    } else {
+        let spec =
+            crate::model::ModelSpec::from_toml_str(&model_text, &model_label).map_err(|e| {
+                CampaignError::Setup {
+                    context: format!("{}: key 'model'", file.display()),
+                    source: Box::new(e.into()),
+                }
+            })?;
+        Setup::new(spec).map_err(|e| CampaignError::Setup {
+            context: format!("{}: key 'model'", file.display()),
+            source: Box::new(e),
+        })?
+    };
+    let mut design_texts = Vec::new();
+    let mut designs = Vec::new();
+    for (i, d) in campaign.designs.iter().enumerate() {
+        let bad = |reason: String| CampaignError::Invalid {
+            file: file.clone(),
+            key: format!("design[{i}]"),
+            reason,
+        };
+        let mut design = match &d.source {
+            DesignSource::Injection(name) => setup.design(name).map_err(|e| bad(e.to_string()))?,
+            DesignSource::File(f) => {
+                let t = io::read_text(f)?;
+                let design: Design =
+                    toml::from_str(&t).map_err(|e| io::atomic::toml_error(f, &t, &e))?;
+                design_texts.push(t);
+                design
+            }
+        };
+        design.name = d.name.clone();
+        design.validate().map_err(|e| bad(e.to_string()))?;
+        if design.experiments.iter().any(|e| e.inputs.len() > 2) {
+            return Err(bad(
+                "the LPF-x model has 2 guidance inputs; an experiment lists more".into(),
+            ));
+        }
+        designs.push(design);
+    }
+    let scenarios = resolve_scenarios(&setup, &campaign)?;
+    let mut parts: Vec<&[u8]> = vec![text.as_bytes(), model_text.as_bytes()];
+    parts.extend(design_texts.iter().map(|t| t.as_bytes()));
+    Ok(Loaded {
+        campaign_sha256: sha256_hex(&[text.as_bytes()]),
+        model_sha256: sha256_hex(&[model_text.as_bytes()]),
+        config_hash: sha256_hex(&parts),
+        campaign,
+        setup,
+        scenarios,
+        designs,
+        model_label,
+    })
+}
+
+/// Shard `index` of `count` (`--shard K/N`, 0-based): the contiguous realizations
+/// `floor(K R / N) .. floor((K+1) R / N)`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Shard {
+    pub index: u64,
+    pub count: u64,
+}
+
+impl Shard {
+    pub const WHOLE: Shard = Shard { index: 0, count: 1 };
+
+    pub fn range(&self, total: u64) -> (u64, u64) {
+        let at = |k: u64| ((k as u128 * total as u128) / self.count as u128) as u64;
+        (at(self.index), at(self.index + 1))
+    }
+}
+
+impl std::str::FromStr for Shard {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        let err = || format!("bad shard '{s}': expected K/N with 0 <= K < N, e.g. 0/4");
+        let (k, n) = s.split_once('/').ok_or_else(err)?;
+        let (index, count): (u64, u64) = (
+            k.trim().parse().map_err(|_| err())?,
+            n.trim().parse().map_err(|_| err())?,
+        );
+        if count == 0 || index >= count {
+            return Err(err());
+        }
+        Ok(Shard { index, count })
+    }
+}
+
+impl std::fmt::Display for Shard {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}/{}", self.index, self.count)
+    }
+}
+
+/// `manifest.json`: provenance and counts of a finished run, shard or merge.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct Manifest {
+    pub freefall_version: String,
+    pub campaign: String,
+    pub campaign_file: String,
+    pub campaign_sha256: String,
+    pub model: String,
+    pub model_sha256: String,
+    /// sha256 of the campaign file, model file and design files: parts merge only if equal.
+    pub config_hash: String,
+    pub seed: u64,
+    /// Realizations of the whole campaign.
+    pub realizations: u64,
+    pub shard: Shard,
+    /// Realizations `range_start..range_end` are in this directory.
+    pub range_start: u64,
+    pub range_end: u64,
+    pub outputs: Vec<String>,
+    pub layout: Layout,
+    pub fits: u64,
+    pub converged: u64,
+    pub failed: u64,
+    pub complete: bool,
+    pub host: String,
+    pub threads: usize,
+    pub started_unix: f64,
+    pub finished_unix: f64,
+    /// Wall time of the invocation that finished the run (a resumed run counts its last part).
+    pub wall_seconds: f64,
+    /// Sum of the fits' own times.
+    pub fit_seconds: f64,
+    pub realizations_per_second: f64,
+    /// Realizations replayed from checkpoints when this run was resumed.
+    pub resumed_realizations: u64,
+    /// Part directories a merge was made from.
+    pub merged_from: Vec<String>,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+struct State {
+    config_hash: String,
+    shard: Shard,
+    range_start: u64,
+    range_end: u64,
+}
+
+/// `campaign run` options.
+#[derive(Debug, Clone)]
+pub struct RunOptions {
+    pub out: PathBuf,
+    pub shard: Shard,
+    pub resume: bool,
+    /// Worker threads (default: rayon's, i.e. the number of cores or `RAYON_NUM_THREADS`).
+    pub threads: Option<usize>,
+}
+
+/// Progress after each batch.
+#[derive(Debug, Clone, Copy)]
+pub struct Progress {
+    pub done: u64,
+    pub total: u64,
+    pub fits: u64,
+    pub failed: u64,
+}
+
+#[derive(Debug, Clone)]
+pub struct RunReport {
+    pub manifest: Manifest,
+    pub already_complete: bool,
+}
+
+fn store_err(path: &Path, reason: impl Into<String>) -> CampaignError {
+    CampaignError::Store {
+        path: path.to_path_buf(),
+        reason: reason.into(),
+    }
+}
+
+fn now_unix() -> f64 {
+    SystemTime::now()
+        .duration_since(UNIX_EPOCH)
+        .map(|d| d.as_secs_f64())
+        .unwrap_or(0.0)
+}
+
+/// The short host name (for manifests).
+pub fn host_name() -> String {
+    std::env::var("HOSTNAME")
+        .ok()
+        .filter(|h| !h.is_empty())
+        .or_else(|| {
+            io::read_text("/proc/sys/kernel/hostname")
+                .ok()
+                .map(|s| s.trim().to_string())
+        })
+        .unwrap_or_else(|| "unknown".into())
+}
+
+/// Finished chunks `(start, end, path)` in `.partial`, sorted by start.
+fn list_chunks(dir: &Path) -> Result<Vec<(u64, u64, PathBuf)>, CampaignError> {
+    let mut out = Vec::new();
+    let entries = std::fs::read_dir(dir).map_err(|e| IoError::read(dir, e))?;
+    for entry in entries {
+        let entry = entry.map_err(|e| IoError::read(dir, e))?;
+        let name = entry.file_name().to_string_lossy().into_owned();
+        let Some(core) = name
+            .strip_prefix("chunk-")
+            .and_then(|n| n.strip_suffix(".parquet"))
+        else {
+            continue;
+        };
+        let parsed = core
+            .split_once('-')
+            .and_then(|(a, b)| Some((a.parse::<u64>().ok()?, b.parse::<u64>().ok()?)));
+        let Some((a, b)) = parsed else {
+            return Err(store_err(&entry.path(), "unexpected chunk file name"));
+        };
+        out.push((a, b, entry.path()));
+    }
+    out.sort();
+    Ok(out)
+}
+
+fn chunk_path(partial: &Path, start: u64, end: u64) -> PathBuf {
+    partial.join(format!("chunk-{start:012}-{end:012}.parquet"))
+}
+
+/// Run (or resume) a campaign or one shard of it into `opts.out`. `progress` is called after each
+/// batch. Returns the manifest written.
+pub fn run(
+    loaded: &Loaded,
+    opts: &RunOptions,
+    progress: &mut dyn FnMut(Progress),
+) -> Result<RunReport, CampaignError> {
+    let started = now_unix();
+    let clock = Instant::now();
+    let c = &loaded.campaign;
+    let (start, end) = opts.shard.range(c.realizations);
+    let out = &opts.out;
+    let manifest_path = out.join(MANIFEST);
+    let partial = out.join(PARTIAL);
+    let state = State {
+        config_hash: loaded.config_hash.clone(),
+        shard: opts.shard,
+        range_start: start,
+        range_end: end,
+    };
+
+    if manifest_path.exists() {
+        let m: Manifest = read_json(&manifest_path)?;
+        if !opts.resume {
+            return Err(store_err(out, "already holds a finished campaign (manifest.json); use --resume to check it, or another --out"));
+        }
+        if m.config_hash != loaded.config_hash || m.shard != opts.shard {
+            return Err(store_err(
+                &manifest_path,
+                format!(
+                    "holds a different run (config hash {}, shard {}), not this one (config hash {}, shard {})",
+                    short(&m.config_hash),
+                    m.shard,
+                    short(&loaded.config_hash),
+                    opts.shard
+                ),
+            ));
+        }
+        return Ok(RunReport {
+            manifest: m,
+            already_complete: true,
+        });
+    }
+    let state_path = partial.join(STATE);
+    if partial.exists() {
+        if !opts.resume {
+            return Err(store_err(out, "holds an interrupted run (.partial); continue it with --resume, or use another --out"));
+        }
+        let old: State = read_json(&state_path)?;
+        if old != state {
+            return Err(store_err(
+                &state_path,
+                format!(
+                    "the interrupted run is a different campaign or shard (config hash {}, shard {}); this is config hash {}, shard {}",
+                    short(&old.config_hash),
+                    old.shard,
+                    short(&loaded.config_hash),
+                    opts.shard
+                ),
+            ));
+        }
+    } else {
+        io::ensure_dir(&partial)?;
+        write_json_atomic(&state_path, &state)?;
+    }
+
+    let pool = {
+        let mut b = rayon::ThreadPoolBuilder::new();
+        if let Some(t) = opts.threads {
+            b = b.num_threads(t.max(1));
+        }
+        b.build()
+            .map_err(|e| store_err(out, format!("cannot start worker threads: {e}")))?
+    };
+    let runner = Runner::new(&loaded.setup, c, loaded.scenarios.clone(), &loaded.designs)?;
+    let layout = runner.layout.clone();
+    let mut agg = Aggregates::new(layout.clone());
+    let mut fit_seconds = 0.0;
+
+    // Replay the finished chunks in order.
+    let mut next = start;
+    for (a, b, path) in list_chunks(&partial)? {
+        if a != next || b <= a || b > end {
+            return Err(store_err(&path, format!("chunk does not continue the run at realization {next}; remove .partial to start over")));
+        }
+        let rows = layout.rows_from_table(&read_parquet(&path)?)?;
+        if rows.len() as u64 != (b - a) * runner.rows_per_realization() as u64 {
+            return Err(store_err(&path, "chunk has the wrong number of rows"));
+        }
+        for r in &rows {
+            agg.add(r);
+            fit_seconds += r.seconds;
+        }
+        next = b;
+    }
+    let resumed = next - start;
+    let total = end - start;
+    let (f, x) = agg.counts();
+    progress(Progress {
+        done: resumed,
+        total,
+        fits: f,
+        failed: x,
+    });
+
+    let batch = c.batch as u64;
+    {
+        while next < end {
+            let stop = (next + batch).min(end);
+            let rows = pool.install(|| runner.run_range(next, stop));
+            let table = layout.rows_table(&rows, c.seed)?;
+            write_parquet(chunk_path(&partial, next, stop), &table)?;
+            for r in &rows {
+                agg.add(r);
+                fit_seconds += r.seconds;
+            }
+            next = stop;
+            let (f, x) = agg.counts();
+            progress(Progress {
+                done: next - start,
+                total,
+                fits: f,
+                failed: x,
+            });
+        }
+    }
+    let threads = pool.current_num_threads();
+
+    // Finalize: stream the chunks into realizations.parquet, write the aggregates.
+    let outputs = if opts.shard.count > 1 {
+        // Parts always keep their rows: `merge` needs them.
+        let mut o = c.outputs;
+        o.realizations = true;
+        o
+    } else {
+        c.outputs
+    };
+    if outputs.realizations {
+        let mut app = ParquetAppender::create(out.join("realizations.parquet"))?;
+        let chunks = list_chunks(&partial)?;
+        if chunks.is_empty() {
+            app.append(&layout.rows_table(&[], c.seed)?)?;
+        }
+        for (_, _, path) in chunks {
+            app.append(&read_parquet(&path)?)?;
+        }
+        app.finish()?;
+    }
+    write_aggregates(out, &agg, &outputs.names())?;
+    let (fits, failed) = agg.counts();
+    let wall = clock.elapsed().as_secs_f64();
+    let manifest = Manifest {
+        freefall_version: env!("CARGO_PKG_VERSION").to_string(),
+        campaign: c.name.clone(),
+        campaign_file: c.file.display().to_string(),
+        campaign_sha256: loaded.campaign_sha256.clone(),
+        model: loaded.model_label.clone(),
+        model_sha256: loaded.model_sha256.clone(),
+        config_hash: loaded.config_hash.clone(),
+        seed: c.seed,
+        realizations: c.realizations,
+        shard: opts.shard,
+        range_start: start,
+        range_end: end,
+        outputs: outputs.names(),
+        layout,
+        fits,
+        converged: fits - failed,
+        failed,
+        complete: true,
+        host: host_name(),
+        threads,
+        started_unix: started,
+        finished_unix: now_unix(),
+        wall_seconds: wall,
+        fit_seconds,
+        realizations_per_second: (total - resumed) as f64 / wall.max(1e-9),
+        resumed_realizations: resumed,
+        merged_from: Vec::new(),
+    };
+    write_json_atomic(&manifest_path, &manifest)?;
+    std::fs::remove_dir_all(&partial).map_err(|e| IoError::write(&partial, e))?;
+    Ok(RunReport {
+        manifest,
+        already_complete: false,
+    })
+}
+
+fn write_aggregates(out: &Path, agg: &Aggregates, outputs: &[String]) -> Result<(), CampaignError> {
+    let want = |n: &str| outputs.iter().any(|o| o == n);
+    if want("summary") {
+        write_parquet(out.join("summary.parquet"), &agg.summary_table()?)?;
+    }
+    if want("correlation") {
+        write_parquet(out.join("correlation.parquet"), &agg.correlation_table()?)?;
+    }
+    if want("chi2") {
+        write_parquet(out.join("chi2.parquet"), &agg.chi2_table()?)?;
+    }
+    Ok(())
+}
+
+fn short(h: &str) -> &str {
+    &h[..h.len().min(12)]
+}
+
+/// Merge finished shard parts into `out`: the same tables as one unsharded run. Refuses parts
+/// that are unfinished, of another campaign (config hash), of another shard layout, overlapping
+/// or leaving a gap; the error names the part.
+pub fn merge(parts: &[PathBuf], out: &Path) -> Result<Manifest, CampaignError> {
+    let started = now_unix();
+    let clock = Instant::now();
+    if parts.is_empty() {
+        return Err(store_err(out, "no part directories to merge"));
+    }
+    let mut ms: Vec<(Manifest, PathBuf)> = Vec::new();
+    for p in parts {
+        let mp = p.join(MANIFEST);
+        if !mp.exists() {
+            let why = if p.join(PARTIAL).exists() {
+                "unfinished part (interrupted; rerun it with --resume)"
+            } else {
+                "not a campaign part (no manifest.json)"
+            };
+            return Err(store_err(p, why));
+        }
+        let m: Manifest = read_json(&mp)?;
+        if !m.complete {
+            return Err(store_err(p, "unfinished part (manifest says incomplete)"));
+        }
+        if !m.outputs.iter().any(|o| o == "realizations")
+            || !p.join("realizations.parquet").exists()
+        {
+            return Err(store_err(p, "part has no realizations.parquet to merge"));
+        }
+        if let Some((first, fp)) = ms.first() {
+            if m.config_hash != first.config_hash {
+                return Err(store_err(
+                    p,
+                    format!(
+                        "config hash {} differs from {}'s {}: parts of different campaigns",
+                        short(&m.config_hash),
+                        fp.display(),
+                        short(&first.config_hash)
+                    ),
+                ));
+            }
+            if m.shard.count != first.shard.count {
+                return Err(store_err(
+                    p,
+                    format!(
+                        "shard {} does not match {}'s shard count {}",
+                        m.shard,
+                        fp.display(),
+                        first.shard.count
+                    ),
+                ));
+            }
+            if m.layout != first.layout
+                || m.seed != first.seed
+                || m.realizations != first.realizations
+            {
+                return Err(store_err(
+                    p,
+                    format!("labels, seed or size differ from {}", fp.display()),
+                ));
+            }
+        }
+        ms.push((m, p.clone()));
+    }
+    ms.sort_by_key(|(m, _)| (m.range_start, m.shard.index));
+    let first = ms[0].0.clone();
+    let mut next = 0u64;
+    for (i, (m, p)) in ms.iter().enumerate() {
+        if i > 0 && ms[i - 1].0.shard.index == m.shard.index {
+            return Err(store_err(
+                p,
+                format!(
+                    "shard {} overlaps {} (the same shard twice)",
+                    m.shard,
+                    ms[i - 1].1.display()
+                ),
+            ));
+        }
+        if m.range_start < next {
+            return Err(store_err(
+                p,
+                format!(
+                    "realizations {}..{} overlap {}",
+                    m.range_start,
+                    m.range_end,
+                    ms[i - 1].1.display()
+                ),
+            ));
+        }
+        if m.range_start > next {
+            return Err(store_err(
+                out,
+                format!(
+                    "missing part: no shard holds realizations {next}..{} (before {})",
+                    m.range_start,
+                    p.display()
+                ),
+            ));
+        }
+        next = m.range_end;
+    }
+    if next != first.realizations {
+        return Err(store_err(
+            out,
+            format!(
+                "missing part: no shard holds realizations {next}..{}",
+                first.realizations
+            ),
+        ));
+    }
+    io::ensure_dir(out)?;
+    let layout = first.layout.clone();
+    let per = layout.groups() as u64;
+    let mut agg = Aggregates::new(layout.clone());
+    let mut app = ParquetAppender::create(out.join("realizations.parquet"))?;
+    let mut fit_seconds = 0.0;
+    for (m, p) in &ms {
+        let t: Table = read_parquet(p.join("realizations.parquet"))?;
+        let rows = layout.rows_from_table(&t)?;
+        if rows.len() as u64 != (m.range_end - m.range_start) * per
+            || rows
+                .iter()
+                .any(|r| r.realization < m.range_start || r.realization >= m.range_end)
+        {
+            return Err(store_err(
+                p,
+                "realizations.parquet does not hold exactly the part's realizations",
+            ));
+        }
+        for r in &rows {
+            agg.add(r);
+            fit_seconds += r.seconds;
+        }
+        app.append(&t)?;
+    }
+    app.finish()?;
+    write_aggregates(out, &agg, &first.outputs)?;
+    let (fits, failed) = agg.counts();
+    let manifest = Manifest {
+        shard: Shard::WHOLE,
+        range_start: 0,
+        range_end: first.realizations,
+        fits,
+        converged: fits - failed,
+        failed,
+        complete: true,
+        host: host_name(),
+        threads: 1,
+        started_unix: started,
+        finished_unix: now_unix(),
+        wall_seconds: clock.elapsed().as_secs_f64(),
+        fit_seconds,
+        realizations_per_second: ms.iter().map(|(m, _)| m.realizations_per_second).sum(),
+        resumed_realizations: 0,
+        merged_from: ms.iter().map(|(_, p)| p.display().to_string()).collect(),
+        ..first
+    };
+    write_json_atomic(out.join(MANIFEST), &manifest)?;
+    Ok(manifest)
+}

@@ -1,0 +1,323 @@
+//! The numeric campaign runner: no file I/O. Per (scenario, design) cell the simulator (templates
+//! at the truth, colored-noise generator) and the likelihood (template engine with its FFT plans
+//! and injection spectra, whitening response, nuisance basis) are prepared once and shared by the
+//! rayon workers. A job is one realization of one cell: draw the data from the realization's
+//! stream, whiten it once, fit it with every estimator in turn, and (optionally) compute the
+//! chi^2 of a noise-only run drawn next from the same stream (thesis fig. "fit vs noise chi^2").
+
+use rayon::prelude::*;
+
+use super::spec::{Campaign, ScenarioSource, WhitenAt};
+use super::stats::{Layout, ScenarioLabel};
+use super::CampaignError;
+use crate::fit::problem::ExperimentData;
+use crate::fit::{fit, Estimator, FitConfig, Likelihood};
+use crate::model::spec::Scenario;
+use crate::model::{check_stability, LpfX};
+use crate::setup::Setup;
+use crate::signal::Design;
+use crate::sim::rng::stream;
+use crate::sim::Simulator;
+
+/// One fit of one realization (one row of `realizations.parquet`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Row {
+    pub scenario: usize,
+    pub design: usize,
+    pub estimator: usize,
+    pub realization: u64,
+    pub converged: bool,
+    /// `fit::Termination::as_str`, or `error: ...` when the fit could not be carried out.
+    pub termination: String,
+    pub iterations: u64,
+    pub chi2: f64,
+    pub nu: u64,
+    pub chi2_reduced: f64,
+    pub chi2_start_reduced: f64,
+    /// Noise-only statistic with the same estimator and normalisation, over `nu(0)`; NaN if off.
+    pub noise_chi2_reduced: f64,
+    pub seconds: f64,
+    pub estimate: Vec<f64>,
+    pub sigma: Vec<f64>,
+    /// Fit correlation coefficients of the pairs `i < j` ([`Layout::pairs`] order).
+    pub correlation: Vec<f64>,
+}
+
+struct Cell<'s> {
+    sim: Simulator<2>,
+    lik: Likelihood<'s, LpfX, 2>,
+}
+
+/// Everything needed to run realizations of a campaign; `Sync`, shared by the workers.
+pub struct Runner<'s> {
+    setup: &'s Setup,
+    seed: u64,
+    scenarios: Vec<Scenario>,
+    n_designs: usize,
+    estimators: Vec<Estimator>,
+    configs: Vec<FitConfig>,
+    noise_chi2: bool,
+    cells: Vec<Cell<'s>>,
+    pub layout: Layout,
+}
+
+/// The scenarios of a campaign in model parameter order; inline sets are checked here (unknown
+/// or missing parameters name the campaign file and key).
+pub fn resolve_scenarios(
+    setup: &Setup,
+    campaign: &Campaign,
+) -> Result<Vec<Scenario>, CampaignError> {
+    let names = setup.parameter_names();
+    let bad = |key: String, reason: String| CampaignError::Invalid {
+        file: campaign.file.clone(),
+        key,
+        reason,
+    };
+    campaign
+        .scenarios
+        .iter()
+        .enumerate()
+        .map(|(i, s)| match &s.source {
+            ScenarioSource::Model => setup
+                .spec
+                .scenario(&s.name)
+                .map_err(|e| bad(format!("scenario[{i}].name"), e.to_string())),
+            ScenarioSource::Inline {
+                truth,
+                guess,
+                glitch,
+            } => {
+                let mut sets = Vec::new();
+                for (which, set) in [("true", truth), ("guess", guess)] {
+                    if let Some(k) = set.keys().find(|k| !names.contains(k)) {
+                        return Err(bad(
+                            format!("scenario[{i}].{which}.{k}"),
+                            format!("unknown parameter (expected {})", names.join(", ")),
+                        ));
+                    }
+                    let v: Vec<f64> = names
+                        .iter()
+                        .map(|n| {
+                            set.get(n).copied().ok_or_else(|| {
+                                bad(
+                                    format!("scenario[{i}].{which}"),
+                                    format!("missing parameter '{n}'"),
+                                )
+                            })
+                        })
+                        .collect::<Result<_, _>>()?;
+                    sets.push(v);
+                }
+                let guess = sets.pop().expect("two sets");
+                let truth = sets.pop().expect("two sets");
+                Ok(Scenario {
+                    name: s.name.clone(),
+                    truth,
+                    guess,
+                    glitch: glitch.clone(),
+                })
+            }
+        })
+        .collect()
+}
+
+impl<'s> Runner<'s> {
+    /// Prepare every (scenario, design) cell. `designs` are in campaign order, named as there.
+    pub fn new(
+        setup: &'s Setup,
+        campaign: &Campaign,
+        scenarios: Vec<Scenario>,
+        designs: &[Design],
+    ) -> Result<Self, CampaignError> {
+        let names = setup.parameter_names();
+        let ctx = |what: String| {
+            move |e: crate::setup::Error| CampaignError::Setup {
+                context: what.clone(),
+                source: Box::new(e),
+            }
+        };
+        let mut cells = Vec::new();
+        for (i, sc) in scenarios.iter().enumerate() {
+            for (which, p) in [("true", &sc.truth), ("guess", &sc.guess)] {
+                check_stability(&setup.model, p, None).map_err(|e| CampaignError::Invalid {
+                    file: campaign.file.clone(),
+                    key: format!("scenario[{i}].{which}"),
+                    reason: format!("scenario '{}': {e}", sc.name),
+                })?;
+            }
+            for d in designs {
+                let label = format!(
+                    "{}: scenario '{}', design '{}'",
+                    campaign.file.display(),
+                    sc.name,
+                    d.name
+                );
+                let sim = setup
+                    .simulator(d, &sc.truth, sc.glitch.as_ref())
+                    .map_err(ctx(label.clone()))?;
+                let p_w = match campaign.fit.whiten_at {
+                    WhitenAt::Truth => &sc.truth,
+                    WhitenAt::Guess => &sc.guess,
+                };
+                let whitener = setup
+                    .whitener_from_model(p_w, sim.n, sim.dt, campaign.fit.whitening_order)
+                    .map_err(ctx(label.clone()))?;
+                let lik = Likelihood::new(
+                    &setup.model,
+                    &sim.inputs,
+                    sim.dt,
+                    whitener,
+                    campaign.fit.poly_degree,
+                )
+                .map_err(|e| ctx(label.clone())(e.into()))?;
+                cells.push(Cell { sim, lik });
+            }
+        }
+        let configs = campaign
+            .estimators
+            .iter()
+            .map(|&e| {
+                let mut c = FitConfig::new(&names);
+                c.estimator = e;
+                c.max_iterations = campaign.fit.max_iterations;
+                c
+            })
+            .collect();
+        let layout = Layout {
+            parameters: names,
+            scenarios: scenarios
+                .iter()
+                .map(|s| ScenarioLabel {
+                    name: s.name.clone(),
+                    truth: s.truth.clone(),
+                })
+                .collect(),
+            designs: designs.iter().map(|d| d.name.clone()).collect(),
+            estimators: campaign.estimators.iter().map(|e| e.to_string()).collect(),
+        };
+        Ok(Runner {
+            setup,
+            seed: campaign.seed,
+            scenarios,
+            n_designs: designs.len(),
+            estimators: campaign.estimators.clone(),
+            configs,
+            noise_chi2: campaign.fit.noise_chi2,
+            cells,
+            layout,
+        })
+    }
+
+    /// Rows produced per realization (scenarios x designs x estimators).
+    pub fn rows_per_realization(&self) -> usize {
+        self.cells.len() * self.estimators.len()
+    }
+
+    /// All rows of realization `r` for scenario `s` and design `d`, one per estimator.
+    pub fn run_job(&self, r: u64, s: usize, d: usize) -> Vec<Row> {
+        let cell = &self.cells[s * self.n_designs + d];
+        let sc = &self.scenarios[s];
+        let np = sc.truth.len();
+        let npairs = np * (np - 1) / 2;
+        let mut rng = stream(self.seed, r);
+        let data = cell.sim.draw(&mut rng);
+        let noise_w = self.noise_chi2.then(|| {
+            let outputs = (0..data.outputs.len())
+                .map(|_| cell.sim.noise_series(&mut rng))
+                .collect();
+            let noise = ExperimentData {
+                names: data.names.clone(),
+                inputs: Vec::new(),
+                outputs,
+                dt: data.dt,
+            };
+            cell.lik.problem(&noise).map(|p| (p.nu(0), p.data_w))
+        });
+        let problem = cell.lik.problem(&data);
+        self.estimators
+            .iter()
+            .zip(&self.configs)
+            .enumerate()
+            .map(|(e, (&est, cfg))| {
+                let noise_chi2_reduced = match &noise_w {
+                    Some(Ok((nu0, w))) => {
+                        w.iter()
+                            .flatten()
+                            .flatten()
+                            .map(|&v| est.rho(v))
+                            .sum::<f64>()
+                            / est.gaussian_mean()
+                            / *nu0 as f64
+                    }
+                    _ => f64::NAN,
+                };
+                let failed = |termination: String, nu: u64| Row {
+                    scenario: s,
+                    design: d,
+                    estimator: e,
+                    realization: r,
+                    converged: false,
+                    termination,
+                    iterations: 0,
+                    chi2: f64::NAN,
+                    nu,
+                    chi2_reduced: f64::NAN,
+                    chi2_start_reduced: f64::NAN,
+                    noise_chi2_reduced,
+                    seconds: 0.0,
+                    estimate: vec![f64::NAN; np],
+                    sigma: vec![f64::NAN; np],
+                    correlation: vec![f64::NAN; npairs],
+                };
+                let problem = match &problem {
+                    Ok(p) => p,
+                    Err(err) => return failed(format!("error: {err}"), 0),
+                };
+                let nu = problem.nu(np) as u64;
+                match fit(&self.setup.model, problem, &sc.guess, cfg) {
+                    Err(err) => failed(format!("error: {err}"), nu),
+                    Ok(res) => Row {
+                        scenario: s,
+                        design: d,
+                        estimator: e,
+                        realization: r,
+                        converged: res.termination.converged(),
+                        termination: res.termination.as_str().to_string(),
+                        iterations: res.iterations as u64,
+                        chi2: res.chi2,
+                        nu: res.nu as u64,
+                        chi2_reduced: res.chi2_reduced,
+                        chi2_start_reduced: res.chi2_start / res.nu as f64,
+                        noise_chi2_reduced,
+                        seconds: res.seconds,
+                        sigma: res.sigma.clone(),
+                        correlation: (0..np)
+                            .flat_map(|i| (i + 1..np).map(move |j| (i, j)))
+                            .map(|(i, j)| res.correlation[(i, j)])
+                            .collect(),
+                        estimate: res.estimate,
+                    },
+                }
+            })
+            .collect()
+    }
+
+    /// Rows of realizations `start..end` in row order (realization, scenario, design, estimator),
+    /// computed in parallel on the current rayon pool.
+    pub fn run_range(&self, start: u64, end: u64) -> Vec<Row> {
+        let ns = self.scenarios.len() as u64;
+        let nd = self.n_designs as u64;
+        let jobs: Vec<(u64, usize, usize)> = (start..end)
+            .flat_map(|r| {
+                (0..ns).flat_map(move |s| (0..nd).map(move |d| (r, s as usize, d as usize)))
+            })
+            .collect();
+        jobs.par_iter()
+            .with_max_len(1)
+            .map(|&(r, s, d)| self.run_job(r, s, d))
+            .collect::<Vec<_>>()
+            .into_iter()
+            .flatten()
+            .collect()
+    }
+}

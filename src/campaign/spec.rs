@@ -1,0 +1,468 @@
+//! The campaign file (TOML). Parsed once at the edge into a checked [`Campaign`]; unknown keys and
+//! bad values are errors naming the file, the key and the reason.
+//!
+//! ```toml
+//! name = "quick"                # optional, default: the file stem
+//! model = "my_model.toml"       # optional, relative to this file; default: embedded lpf_x.toml
+//! seed = 20120401               # master seed (u64)
+//! realizations = 50
+//! estimators = ["squared"]      # any of "squared", "absolute", "log"; default ["squared"]
+//! outputs = ["realizations", "summary", "correlation", "chi2"]   # default: all four
+//! batch = 32                    # realizations per checkpoint chunk (default 32)
+//!
+//! [[scenario]]                  # a scenario of the model file ...
+//! name = "monte_carlo"
+//! [[scenario]]                  # ... or an inline one (true and guess both required)
+//! name = "stiff"
+//! true  = { w1_sq = -2e-6, ... all 7 parameters }
+//! guess = { w1_sq = -1.3e-6, ... }
+//! glitch = { fraction = 0.01, f0_hz = [1e-4, 0.45], tau_s = [1.0, 2.0], amplitude_sigma = [3.0, 20.0] }
+//!
+//! [[design]]                    # a model-file injection table (default: one design "standard")
+//! name = "standard"
+//! [[design]]                    # or a design file (TOML of `signal::Design`, e.g. from `freefall design`)
+//! name = "optimal"
+//! file = "designs/optimal.toml"
+//!
+//! [fit]                         # all optional
+//! whitening_order = 300
+//! poly_degree = 1
+//! max_iterations = 100
+//! whiten_at = "truth"           # noise PSD of the whitening filter: "truth" or "guess"
+//! noise_chi2 = true             # also fit-free chi^2 of a noise-only run per realization
+//! ```
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
+
+use super::CampaignError;
+use crate::fit::Estimator;
+use crate::model::spec::GlitchSpec;
+use crate::setup::{DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
+
+/// Default realizations per checkpoint chunk.
+pub const DEFAULT_BATCH: usize = 32;
+/// The output tables a campaign can write.
+pub const OUTPUT_NAMES: [&str; 4] = ["realizations", "summary", "correlation", "chi2"];
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct FileSpec {
+    name: Option<String>,
+    #[serde(default)]
+    description: Option<String>,
+    model: Option<String>,
+    seed: u64,
+    realizations: u64,
+    estimators: Option<Vec<String>>,
+    outputs: Option<Vec<String>>,
+    batch: Option<usize>,
+    #[serde(default, rename = "scenario")]
+    scenarios: Vec<ScenarioEntry>,
+    #[serde(default, rename = "design")]
+    designs: Vec<DesignEntry>,
+    #[serde(default)]
+    fit: FitEntry,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ScenarioEntry {
+    name: String,
+    #[serde(rename = "true")]
+    truth: Option<BTreeMap<String, f64>>,
+    guess: Option<BTreeMap<String, f64>>,
+    glitch: Option<GlitchSpec>,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct DesignEntry {
+    name: String,
+    file: Option<String>,
+    injection: Option<String>,
+}
+
+#[derive(Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct FitEntry {
+    whitening_order: Option<usize>,
+    poly_degree: Option<usize>,
+    max_iterations: Option<usize>,
+    whiten_at: Option<String>,
+    noise_chi2: Option<bool>,
+}
+
+/// Where a scenario's parameter sets come from.
+#[derive(Debug, Clone)]
+pub enum ScenarioSource {
+    /// A `[scenarios.NAME]` table of the model file.
+    Model,
+    /// Given in the campaign file (validated against the model's parameters when prepared).
+    Inline {
+        truth: BTreeMap<String, f64>,
+        guess: BTreeMap<String, f64>,
+        glitch: Option<GlitchSpec>,
+    },
+}
+
+#[derive(Debug, Clone)]
+pub struct ScenarioDef {
+    pub name: String,
+    pub source: ScenarioSource,
+}
+
+/// Where a design comes from.
+#[derive(Debug, Clone)]
+pub enum DesignSource {
+    /// A model-file injection table of that name.
+    Injection(String),
+    /// A TOML file of `signal::Design` (absolute, or resolved against the campaign file).
+    File(PathBuf),
+}
+
+#[derive(Debug, Clone)]
+pub struct DesignDef {
+    pub name: String,
+    pub source: DesignSource,
+}
+
+/// Which tables to write.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Outputs {
+    pub realizations: bool,
+    pub summary: bool,
+    pub correlation: bool,
+    pub chi2: bool,
+}
+
+impl Outputs {
+    pub const ALL: Outputs = Outputs {
+        realizations: true,
+        summary: true,
+        correlation: true,
+        chi2: true,
+    };
+
+    pub fn names(&self) -> Vec<String> {
+        let flags = [self.realizations, self.summary, self.correlation, self.chi2];
+        OUTPUT_NAMES
+            .iter()
+            .zip(flags)
+            .filter(|(_, f)| *f)
+            .map(|(n, _)| n.to_string())
+            .collect()
+    }
+}
+
+/// Noise PSD the whitening filter is built from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum WhitenAt {
+    Truth,
+    Guess,
+}
+
+#[derive(Debug, Clone)]
+pub struct FitOptions {
+    pub whitening_order: usize,
+    pub poly_degree: usize,
+    pub max_iterations: usize,
+    pub whiten_at: WhitenAt,
+    pub noise_chi2: bool,
+}
+
+/// A validated campaign file.
+#[derive(Debug, Clone)]
+pub struct Campaign {
+    /// The campaign file (as given), for messages.
+    pub file: PathBuf,
+    pub name: String,
+    pub description: String,
+    /// Model file (resolved against the campaign file's directory); `None` = embedded model.
+    pub model: Option<PathBuf>,
+    pub seed: u64,
+    pub realizations: u64,
+    pub estimators: Vec<Estimator>,
+    pub outputs: Outputs,
+    pub batch: usize,
+    pub scenarios: Vec<ScenarioDef>,
+    pub designs: Vec<DesignDef>,
+    pub fit: FitOptions,
+}
+
+impl Campaign {
+    /// Parse and validate the text of the campaign file `file` (relative paths in it are resolved
+    /// against `file`'s directory).
+    pub fn from_toml_str(text: &str, file: &Path) -> Result<Campaign, CampaignError> {
+        let spec: FileSpec =
+            toml::from_str(text).map_err(|e| crate::io::atomic::toml_error(file, text, &e))?;
+        let bad = |key: &str, reason: String| CampaignError::Invalid {
+            file: file.to_path_buf(),
+            key: key.to_string(),
+            reason,
+        };
+        let base = file.parent().map(Path::to_path_buf).unwrap_or_default();
+        let resolve = |p: &str| {
+            let p = PathBuf::from(p);
+            if p.is_absolute() {
+                p
+            } else {
+                base.join(p)
+            }
+        };
+        let name = spec.name.clone().unwrap_or_else(|| {
+            file.file_stem()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_else(|| "campaign".into())
+        });
+        if name.trim().is_empty() {
+            return Err(bad("name", "must not be empty".into()));
+        }
+        if spec.realizations == 0 {
+            return Err(bad("realizations", "must be at least 1".into()));
+        }
+        let model = match spec.model.as_deref() {
+            None | Some("embedded") => None,
+            Some("") => {
+                return Err(bad(
+                    "model",
+                    "empty path (omit the key for the embedded model)".into(),
+                ))
+            }
+            Some(m) => Some(resolve(m)),
+        };
+        let est_names = spec
+            .estimators
+            .clone()
+            .unwrap_or_else(|| vec!["squared".into()]);
+        if est_names.is_empty() {
+            return Err(bad("estimators", "must name at least one estimator".into()));
+        }
+        let mut estimators = Vec::new();
+        for (i, e) in est_names.iter().enumerate() {
+            let est: Estimator = e
+                .parse()
+                .map_err(|m: String| bad(&format!("estimators[{i}]"), m))?;
+            if estimators.contains(&est) {
+                return Err(bad(
+                    &format!("estimators[{i}]"),
+                    format!("'{e}' is listed twice"),
+                ));
+            }
+            estimators.push(est);
+        }
+        let outputs = match &spec.outputs {
+            None => Outputs::ALL,
+            Some(list) => {
+                let mut o = Outputs {
+                    realizations: false,
+                    summary: false,
+                    correlation: false,
+                    chi2: false,
+                };
+                for (i, name) in list.iter().enumerate() {
+                    let flag = match name.as_str() {
+                        "realizations" => &mut o.realizations,
+                        "summary" => &mut o.summary,
+                        "correlation" => &mut o.correlation,
+                        "chi2" => &mut o.chi2,
+                        other => {
+                            return Err(bad(
+                                &format!("outputs[{i}]"),
+                                format!(
+                                    "unknown table '{other}' (expected one of {})",
+                                    OUTPUT_NAMES.join(", ")
+                                ),
+                            ))
+                        }
+                    };
+                    *flag = true;
+                }
+                if list.is_empty() {
+                    return Err(bad("outputs", "must name at least one table".into()));
+                }
+                o
+            }
+        };
+        let batch = spec.batch.unwrap_or(DEFAULT_BATCH);
+        if batch == 0 {
+            return Err(bad("batch", "must be at least 1".into()));
+        }
+        if spec.scenarios.is_empty() {
+            return Err(bad(
+                "scenario",
+                "at least one [[scenario]] is required".into(),
+            ));
+        }
+        let mut scenarios: Vec<ScenarioDef> = Vec::new();
+        for (i, s) in spec.scenarios.into_iter().enumerate() {
+            let key = format!("scenario[{i}]");
+            check_name(&s.name).map_err(|r| bad(&format!("{key}.name"), r))?;
+            if scenarios.iter().any(|o| o.name == s.name) {
+                return Err(bad(
+                    &format!("{key}.name"),
+                    format!("scenario '{}' is listed twice", s.name),
+                ));
+            }
+            let source = match (s.truth, s.guess) {
+                (None, None) => {
+                    if s.glitch.is_some() {
+                        return Err(bad(
+                            &format!("{key}.glitch"),
+                            "only inline scenarios (with true and guess) take a glitch".into(),
+                        ));
+                    }
+                    ScenarioSource::Model
+                }
+                (Some(truth), Some(guess)) => {
+                    for (which, set) in [("true", &truth), ("guess", &guess)] {
+                        for (k, v) in set {
+                            if !v.is_finite() {
+                                return Err(bad(
+                                    &format!("{key}.{which}.{k}"),
+                                    format!("must be finite, got {v}"),
+                                ));
+                            }
+                        }
+                    }
+                    if let Some(g) = &s.glitch {
+                        let ok = (0.0..=1.0).contains(&g.fraction)
+                            && g.f0_hz[0] <= g.f0_hz[1]
+                            && g.tau_s[0] > 0.0
+                            && g.tau_s[0] <= g.tau_s[1]
+                            && g.amplitude_sigma[0] <= g.amplitude_sigma[1];
+                        if !ok {
+                            return Err(bad(
+                                &format!("{key}.glitch"),
+                                "ranges must be [lo, hi] with lo <= hi, tau > 0 and fraction in [0, 1]".into(),
+                            ));
+                        }
+                    }
+                    ScenarioSource::Inline {
+                        truth,
+                        guess,
+                        glitch: s.glitch,
+                    }
+                }
+                (Some(_), None) => {
+                    return Err(bad(
+                        &format!("{key}.guess"),
+                        "an inline scenario needs both 'true' and 'guess'".into(),
+                    ))
+                }
+                (None, Some(_)) => {
+                    return Err(bad(
+                        &format!("{key}.true"),
+                        "an inline scenario needs both 'true' and 'guess'".into(),
+                    ))
+                }
+            };
+            scenarios.push(ScenarioDef {
+                name: s.name,
+                source,
+            });
+        }
+        let mut designs: Vec<DesignDef> = Vec::new();
+        for (i, d) in spec.designs.into_iter().enumerate() {
+            let key = format!("design[{i}]");
+            check_name(&d.name).map_err(|r| bad(&format!("{key}.name"), r))?;
+            if designs.iter().any(|o| o.name == d.name) {
+                return Err(bad(
+                    &format!("{key}.name"),
+                    format!("design '{}' is listed twice", d.name),
+                ));
+            }
+            let source = match (d.file, d.injection) {
+                (Some(_), Some(_)) => {
+                    return Err(bad(
+                        &key,
+                        "give either 'file' or 'injection', not both".into(),
+                    ))
+                }
+                (Some(f), None) if f.is_empty() => {
+                    return Err(bad(&format!("{key}.file"), "empty path".into()))
+                }
+                (Some(f), None) => DesignSource::File(resolve(&f)),
+                (None, Some(inj)) => DesignSource::Injection(inj),
+                (None, None) => DesignSource::Injection(d.name.clone()),
+            };
+            designs.push(DesignDef {
+                name: d.name,
+                source,
+            });
+        }
+        if designs.is_empty() {
+            designs.push(DesignDef {
+                name: "standard".into(),
+                source: DesignSource::Injection("standard".into()),
+            });
+        }
+        let whiten_at = match spec.fit.whiten_at.as_deref() {
+            None | Some("truth") => WhitenAt::Truth,
+            Some("guess") => WhitenAt::Guess,
+            Some(other) => {
+                return Err(bad(
+                    "fit.whiten_at",
+                    format!("'{other}' (expected \"truth\" or \"guess\")"),
+                ))
+            }
+        };
+        let max_iterations = spec.fit.max_iterations.unwrap_or(100);
+        if max_iterations == 0 {
+            return Err(bad("fit.max_iterations", "must be at least 1".into()));
+        }
+        let whitening_order = spec.fit.whitening_order.unwrap_or(DEFAULT_WHITENING_ORDER);
+        if whitening_order == 0 {
+            return Err(bad("fit.whitening_order", "must be at least 1".into()));
+        }
+        let poly_degree = spec.fit.poly_degree.unwrap_or(DEFAULT_POLY_DEGREE);
+        if poly_degree > 10 {
+            return Err(bad(
+                "fit.poly_degree",
+                format!("{poly_degree} is too large (at most 10)"),
+            ));
+        }
+        Ok(Campaign {
+            file: file.to_path_buf(),
+            name,
+            description: spec.description.unwrap_or_default(),
+            model,
+            seed: spec.seed,
+            realizations: spec.realizations,
+            estimators,
+            outputs,
+            batch,
+            scenarios,
+            designs,
+            fit: FitOptions {
+                whitening_order,
+                poly_degree,
+                max_iterations,
+                whiten_at,
+                noise_chi2: spec.fit.noise_chi2.unwrap_or(true),
+            },
+        })
+    }
+
+    /// Number of (scenario, design, estimator) groups.
+    pub fn groups(&self) -> usize {
+        self.scenarios.len() * self.designs.len() * self.estimators.len()
+    }
+}
+
+fn check_name(name: &str) -> Result<(), String> {
+    if name.is_empty() {
+        return Err("must not be empty".into());
+    }
+    if !name
+        .chars()
+        .all(|c| c.is_ascii_alphanumeric() || "_-.".contains(c))
+    {
+        return Err(format!(
+            "'{name}' may only contain letters, digits, '_', '-' and '.'"
+        ));
+    }
+    Ok(())
+}

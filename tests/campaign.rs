@@ -1,0 +1,384 @@
+//! Campaign engine: schema errors, determinism across thread counts and batch sizes, shards +
+//! merge, resume after a killed run, and the Monte Carlo scatter vs Fisher error invariant.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+use freefall::campaign::io_store::Progress;
+use freefall::campaign::{self, merge, RunOptions, Shard};
+use freefall::io::{read_parquet, Column, Table};
+
+const BIN: &str = env!("CARGO_BIN_EXE_freefall");
+
+/// A small campaign: one scenario, standard design, `n` realizations.
+fn small(n: u64, batch: usize, extra: &str) -> String {
+    format!(
+        "name = \"small\"\nseed = 7\nrealizations = {n}\nbatch = {batch}\n{extra}\n[[scenario]]\nname = \"monte_carlo\"\n"
+    )
+}
+
+fn write_campaign(dir: &Path, name: &str, text: &str) -> PathBuf {
+    let p = dir.join(name);
+    std::fs::write(&p, text).unwrap();
+    p
+}
+
+fn run_lib(file: &Path, out: &Path, shard: Shard, threads: usize) -> campaign::Manifest {
+    let loaded = campaign::load(Some(file)).unwrap();
+    let opts = RunOptions {
+        out: out.to_path_buf(),
+        shard,
+        resume: false,
+        threads: Some(threads),
+    };
+    std::fs::create_dir_all(out).unwrap();
+    campaign::run(&loaded, &opts, &mut |_: Progress| {})
+        .unwrap()
+        .manifest
+}
+
+/// Bitwise equality of two tables, ignoring the wall-time column `seconds` (the only column that
+/// legitimately differs between runs).
+fn assert_same(a: &Table, b: &Table, what: &str) {
+    assert_eq!(a.names(), b.names(), "{what}: columns");
+    assert_eq!(a.num_rows(), b.num_rows(), "{what}: rows");
+    for ((name, ca), (_, cb)) in a.columns.iter().zip(&b.columns) {
+        if name == "seconds" {
+            continue;
+        }
+        match (ca, cb) {
+            (Column::F64(x), Column::F64(y)) => {
+                for (i, (u, v)) in x.iter().zip(y).enumerate() {
+                    assert_eq!(
+                        u.to_bits(),
+                        v.to_bits(),
+                        "{what}: column {name} row {i}: {u} vs {v}"
+                    );
+                }
+            }
+            _ => assert_eq!(ca, cb, "{what}: column {name}"),
+        }
+    }
+}
+
+fn assert_same_dirs(a: &Path, b: &Path) {
+    for t in ["realizations", "summary", "correlation", "chi2"] {
+        let f = format!("{t}.parquet");
+        assert_same(
+            &read_parquet(a.join(&f)).unwrap(),
+            &read_parquet(b.join(&f)).unwrap(),
+            &f,
+        );
+    }
+}
+
+// Oracle: the documented stream contract (realization i draws only from stream(seed, i)) implies
+// identical tables for any thread count and batch size.
+#[test]
+fn deterministic_across_threads_and_batches() {
+    let tmp = tempfile::tempdir().unwrap();
+    let f1 = write_campaign(tmp.path(), "a.toml", &small(4, 3, ""));
+    let f2 = write_campaign(tmp.path(), "b.toml", &small(4, 1, ""));
+    run_lib(&f1, &tmp.path().join("t1"), Shard::WHOLE, 1);
+    run_lib(&f2, &tmp.path().join("t2"), Shard::WHOLE, 2);
+    assert_same_dirs(&tmp.path().join("t1"), &tmp.path().join("t2"));
+}
+
+// Oracle: an unsharded run of the same campaign file; merge must reproduce it bit for bit.
+#[test]
+fn shards_merge_to_the_unsharded_tables() {
+    let tmp = tempfile::tempdir().unwrap();
+    let f = write_campaign(tmp.path(), "c.toml", &small(5, 2, ""));
+    let whole = tmp.path().join("whole");
+    let m = run_lib(&f, &whole, Shard::WHOLE, 2);
+    assert_eq!((m.fits, m.realizations), (5, 5));
+    let parts: Vec<PathBuf> = (0..3)
+        .map(|k| tmp.path().join(format!("part{k}")))
+        .collect();
+    for (k, p) in parts.iter().enumerate() {
+        run_lib(
+            &f,
+            p,
+            Shard {
+                index: k as u64,
+                count: 3,
+            },
+            1,
+        );
+    }
+    let merged = tmp.path().join("merged");
+    // Parts in any order.
+    let mm = merge(
+        &[parts[2].clone(), parts[0].clone(), parts[1].clone()],
+        &merged,
+    )
+    .unwrap();
+    assert_eq!(mm.fits, 5);
+    assert_eq!(mm.config_hash, m.config_hash);
+    assert_same_dirs(&whole, &merged);
+
+    // Refusals name the part at fault.
+    let err = merge(&parts[..2], &tmp.path().join("m2"))
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("missing part"), "{err}");
+    let err = merge(
+        &[
+            parts[0].clone(),
+            parts[0].clone(),
+            parts[1].clone(),
+            parts[2].clone(),
+        ],
+        &tmp.path().join("m3"),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("overlaps") && err.contains("part0"), "{err}");
+    let g = write_campaign(tmp.path(), "d.toml", &small(5, 2, "# another campaign\n"));
+    let other = tmp.path().join("other1");
+    run_lib(&g, &other, Shard { index: 1, count: 3 }, 1);
+    let err = merge(
+        &[parts[0].clone(), other.clone(), parts[2].clone()],
+        &tmp.path().join("m4"),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(
+        err.contains("config hash") && err.contains("other1"),
+        "{err}"
+    );
+    let err = merge(
+        &[parts[0].clone(), tmp.path().join("nope"), parts[2].clone()],
+        &tmp.path().join("m5"),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("nope"), "{err}");
+}
+
+// Oracle: an uninterrupted run. The interrupted one is a real process of the built binary
+// killed (SIGKILL) after some checkpoints, then resumed with --resume.
+#[test]
+fn killed_run_resumes_without_loss_or_duplicates() {
+    let tmp = tempfile::tempdir().unwrap();
+    let f = write_campaign(tmp.path(), "k.toml", &small(6, 1, ""));
+    let reference = tmp.path().join("ref");
+    run_lib(&f, &reference, Shard::WHOLE, 2);
+
+    let out = tmp.path().join("killed");
+    let mut child = Command::new(BIN)
+        .args(["campaign", "run"])
+        .arg(&f)
+        .arg("--out")
+        .arg(&out)
+        .args(["--threads", "1", "--quiet"])
+        .spawn()
+        .unwrap();
+    let partial = out.join(".partial");
+    let chunks = || {
+        std::fs::read_dir(&partial)
+            .map(|d| {
+                d.filter_map(|e| e.ok())
+                    .filter(|e| e.file_name().to_string_lossy().starts_with("chunk-"))
+                    .count()
+            })
+            .unwrap_or(0)
+    };
+    let t0 = Instant::now();
+    while chunks() < 2 && t0.elapsed() < Duration::from_secs(120) {
+        assert!(
+            child.try_wait().unwrap().is_none(),
+            "the run finished before it could be killed"
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+    assert!(
+        !out.join("manifest.json").exists(),
+        "killed run must not look finished"
+    );
+    let done = chunks();
+    assert!((2..6).contains(&done), "{done} chunks at the kill");
+
+    // Without --resume the directory is refused.
+    let o = Command::new(BIN)
+        .args(["campaign", "run"])
+        .arg(&f)
+        .arg("--out")
+        .arg(&out)
+        .arg("--quiet")
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--resume"));
+
+    let o = Command::new(BIN)
+        .args(["campaign", "run"])
+        .arg(&f)
+        .arg("--out")
+        .arg(&out)
+        .args(["--resume", "--threads", "2"])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let m: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("manifest.json")).unwrap()).unwrap();
+    assert_eq!(m["resumed_realizations"].as_u64().unwrap(), done as u64);
+    assert_eq!(m["fits"].as_u64().unwrap(), 6);
+    assert!(!partial.exists());
+    assert_same_dirs(&reference, &out);
+}
+
+// Oracle: thesis sec. 4.5.5 / reference README: the Monte Carlo scatter of the estimates equals
+// the mean Fisher error (here within the 25-sample statistical tolerance), estimates are unbiased
+// and the fit chi^2/nu is ~1. Runs the shipped quick campaign through the CLI.
+#[test]
+fn quick_campaign_scatter_matches_fisher() {
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("quick");
+    let o = Command::new(BIN)
+        .args(["campaign", "run", "campaigns/quick.toml", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(
+        o.stderr.len() < 400,
+        "no progress bar when stderr is not a TTY"
+    );
+    let s = read_parquet(out.join("summary.parquet")).unwrap();
+    let (ratio, bias, p) = (
+        s.f64_column("sd_over_sigma").unwrap(),
+        s.f64_column("bias_in_sigma").unwrap(),
+        s.str_column("parameter").unwrap(),
+    );
+    assert_eq!(s.num_rows(), 14);
+    for i in 0..s.num_rows() {
+        assert!(
+            (0.5..1.5).contains(&ratio[i]),
+            "{}: sd/sigma = {}",
+            p[i],
+            ratio[i]
+        );
+        assert!(
+            bias[i].abs() < 4.0,
+            "{}: bias = {} sigma of the mean",
+            p[i],
+            bias[i]
+        );
+    }
+    let c = read_parquet(out.join("chi2.parquet")).unwrap();
+    for m in c.f64_column("mean").unwrap() {
+        assert!((m - 1.0).abs() < 0.02, "chi2/nu mean {m}");
+    }
+    let r = read_parquet(out.join("realizations.parquet")).unwrap();
+    assert_eq!(r.num_rows(), 50);
+    for col in [
+        "scenario",
+        "design",
+        "estimator",
+        "realization",
+        "seed",
+        "converged",
+        "termination",
+        "iterations",
+        "chi2",
+        "nu",
+        "chi2_reduced",
+        "seconds",
+        "w1_sq",
+        "w1_sq_sigma",
+        "w1_sq_pull",
+        "dt12_pull",
+    ] {
+        r.column(col).unwrap();
+    }
+    let m: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("manifest.json")).unwrap()).unwrap();
+    for k in [
+        "config_hash",
+        "seed",
+        "freefall_version",
+        "wall_seconds",
+        "host",
+        "converged",
+        "failed",
+    ] {
+        assert!(!m[k].is_null(), "manifest lacks {k}");
+    }
+}
+
+// Oracle: the schema (spec.rs docs): unknown keys and bad values name file, key and reason.
+#[test]
+fn bad_campaign_files_are_one_line_errors() {
+    let tmp = tempfile::tempdir().unwrap();
+    let cases: &[(&str, &[&str])] = &[
+        ("seed = 1\nrealizations = 2\nrealisations = 3\n[[scenario]]\nname = \"monte_carlo\"\n", &["bad.toml", "realisations"]),
+        ("seed = 1\nrealizations = 0\n[[scenario]]\nname = \"monte_carlo\"\n", &["bad.toml", "'realizations'", "at least 1"]),
+        ("seed = 1\nrealizations = 2\nestimators = [\"huber\"]\n[[scenario]]\nname = \"monte_carlo\"\n", &["estimators[0]", "huber"]),
+        ("seed = 1\nrealizations = 2\n[[scenario]]\nname = \"nope\"\n", &["scenario[0].name", "nope"]),
+        ("seed = 1\nrealizations = 2\noutputs = [\"plots\"]\n[[scenario]]\nname = \"monte_carlo\"\n", &["outputs[0]", "plots"]),
+        (
+            "seed = 1\nrealizations = 2\n[[scenario]]\nname = \"x\"\ntrue = { w1_sq = 1.0 }\nguess = { w1_sq = 1.0 }\n",
+            &["scenario[0].true", "missing parameter"],
+        ),
+        ("seed = 1\nrealizations = 2\n[[scenario]]\nname = \"monte_carlo\"\n[[design]]\nname = \"weird\"\n", &["design[0]", "weird"]),
+        ("seed = 1\nrealizations = 2\n[[scenario]]\nname = \"monte_carlo\"\n[[design]]\nname = \"d\"\nfile = \"missing.toml\"\n", &["missing.toml"]),
+        ("seed = -1\nrealizations = 2\n[[scenario]]\nname = \"monte_carlo\"\n", &["bad.toml", "line 1"]),
+        ("seed = 1\nrealizations = 2\n[fit]\nwhiten_at = \"noise\"\n[[scenario]]\nname = \"monte_carlo\"\n", &["fit.whiten_at", "noise"]),
+    ];
+    for (text, needles) in cases {
+        let f = write_campaign(tmp.path(), "bad.toml", text);
+        let err = match campaign::load(Some(&f)) {
+            Ok(_) => panic!("accepted:\n{text}"),
+            Err(e) => e.to_string(),
+        };
+        assert!(!err.contains('\n'), "{err}");
+        for n in *needles {
+            assert!(err.contains(n), "'{err}' lacks '{n}'");
+        }
+    }
+    // Through the CLI: one line, non-zero exit.
+    let f = write_campaign(tmp.path(), "bad.toml", cases[0].0);
+    let o = Command::new(BIN)
+        .args(["campaign", "run"])
+        .arg(&f)
+        .arg("--out")
+        .arg(tmp.path().join("o"))
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        e.starts_with("error: ") && e.trim().lines().count() == 1 && e.contains("realisations"),
+        "{e}"
+    );
+    let o = Command::new(BIN)
+        .args(["campaign", "run", "--shard", "3/3", "--out"])
+        .arg(tmp.path().join("o"))
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+}
+
+// Oracle: every shipped campaign file must load against the embedded model.
+#[test]
+fn shipped_campaign_files_load() {
+    let mut n = 0;
+    for e in std::fs::read_dir("campaigns").unwrap() {
+        let p = e.unwrap().path();
+        if p.extension().is_some_and(|x| x == "toml")
+            && p.file_name().unwrap() != "optimal_design.toml"
+        {
+            campaign::load(Some(&p)).unwrap_or_else(|e| panic!("{}: {e}", p.display()));
+            n += 1;
+        }
+    }
+    assert!(n >= 4);
+    let g = campaign::load(Some(Path::new("campaigns/glitches.toml"))).unwrap();
+    assert_eq!(g.campaign.estimators.len(), 3);
+    let mc = campaign::load(Some(Path::new("campaigns/monte_carlo.toml"))).unwrap();
+    assert_eq!(mc.campaign.realizations, 1000);
+}

@@ -1,0 +1,150 @@
+//! `freefall campaign slurm`: the generated job-array scripts, and (ignored by default, run from
+//! .ci/run with `--ignored`) an end-to-end run on a real single-node SLURM brought up by
+//! scripts/slurm/single_node.sh.
+
+use std::path::Path;
+use std::process::Command;
+
+use freefall::io::{read_parquet, Column, Table};
+
+const BIN: &str = env!("CARGO_BIN_EXE_freefall");
+
+fn small(dir: &Path) -> std::path::PathBuf {
+    let f = dir.join("slurm_small.toml");
+    std::fs::write(&f, "name = \"slurm_small\"\nseed = 11\nrealizations = 6\nbatch = 1\n[[scenario]]\nname = \"monte_carlo\"\n").unwrap();
+    f
+}
+
+/// Bitwise equality, ignoring the wall-time column `seconds`.
+fn assert_same(a: &Table, b: &Table, what: &str) {
+    assert_eq!(a.names(), b.names(), "{what}: columns");
+    assert_eq!(a.num_rows(), b.num_rows(), "{what}: rows");
+    for ((name, ca), (_, cb)) in a.columns.iter().zip(&b.columns) {
+        if name == "seconds" {
+            continue;
+        }
+        match (ca, cb) {
+            (Column::F64(x), Column::F64(y)) => {
+                for (i, (u, v)) in x.iter().zip(y).enumerate() {
+                    assert_eq!(u.to_bits(), v.to_bits(), "{what}: column {name} row {i}");
+                }
+            }
+            _ => assert_eq!(ca, cb, "{what}: column {name}"),
+        }
+    }
+}
+
+// Oracle: the contract for the submission (array 0..N-1, one resumable shard per task
+// into parts/K, a merge job that depends on the array with afterok).
+#[test]
+fn slurm_scripts_have_the_array_resume_and_dependent_merge() {
+    let tmp = tempfile::tempdir().unwrap();
+    let f = small(tmp.path());
+    let out = tmp.path().join("sl");
+    let o = Command::new(BIN)
+        .args(["campaign", "slurm"])
+        .arg(&f)
+        .args([
+            "--shards",
+            "3",
+            "--partition",
+            "short",
+            "--time",
+            "00:20:00",
+            "--mem",
+            "1G",
+            "--cpus-per-task",
+            "2",
+            "--out",
+        ])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let array = std::fs::read_to_string(out.join("array.sbatch")).unwrap();
+    for needle in [
+        "#SBATCH --array=0-2",
+        "#SBATCH --partition=short",
+        "#SBATCH --time=00:20:00",
+        "#SBATCH --mem=1G",
+        "#SBATCH --cpus-per-task=2",
+        "--shard \"$SLURM_ARRAY_TASK_ID\"/3",
+        "--resume",
+        "/parts'/\"$SLURM_ARRAY_TASK_ID\"",
+    ] {
+        assert!(
+            array.contains(needle),
+            "array.sbatch lacks {needle}:\n{array}"
+        );
+    }
+    let merge = std::fs::read_to_string(out.join("merge.sbatch")).unwrap();
+    assert!(
+        merge.contains("campaign merge") && merge.contains("seq 0 2") && merge.contains("/merged'"),
+        "{merge}"
+    );
+    let submit = std::fs::read_to_string(out.join("submit.sh")).unwrap();
+    assert!(submit.contains("--dependency=afterok:"), "{submit}");
+    // Bad options are one-line errors.
+    let o = Command::new(BIN)
+        .args(["campaign", "slurm"])
+        .arg(&f)
+        .args(["--shards", "7", "--out"])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--shards"));
+}
+
+// Oracle: a one-process run of the same campaign; the merged output of the SLURM array must be
+// bit-identical (except the wall-time column). Needs root and apt (installs munge/slurm);
+// skipped with a visible message where SLURM cannot be installed or started.
+#[test]
+#[ignore = "brings up a real SLURM (root, apt); run with --ignored from .ci/run"]
+fn real_single_node_slurm_matches_one_process_run() {
+    let tmp = tempfile::tempdir().unwrap();
+    // The daemons run as root and need to read the work directory.
+    let f = small(tmp.path());
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/slurm/single_node.sh");
+    let o = Command::new("bash")
+        .arg(&script)
+        .arg(BIN)
+        .arg(&f)
+        .arg("3")
+        .arg(tmp.path())
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    match o.status.code() {
+        Some(0) => {}
+        Some(77) => {
+            eprintln!(
+                "SKIPPED real_single_node_slurm_matches_one_process_run: {}",
+                err.trim()
+            );
+            println!("SKIPPED: single-node SLURM not available: {}", err.trim());
+            return;
+        }
+        c => panic!("single_node.sh failed ({c:?}):\n{err}"),
+    }
+    eprintln!("{}", err.trim());
+    let single = tmp.path().join("single");
+    let o = Command::new(BIN)
+        .args(["campaign", "run"])
+        .arg(&f)
+        .arg("--out")
+        .arg(&single)
+        .arg("--quiet")
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let merged = tmp.path().join("slurm/merged");
+    for t in ["realizations", "summary", "correlation", "chi2"] {
+        let n = format!("{t}.parquet");
+        assert_same(
+            &read_parquet(single.join(&n)).unwrap(),
+            &read_parquet(merged.join(&n)).unwrap(),
+            &n,
+        );
+    }
+}
