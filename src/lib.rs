@@ -12,5 +12,6 @@ pub mod noise;
 pub mod signal;
 pub mod sim;
 pub mod fit;
+pub mod design;
 pub mod setup;
 pub mod cli;
