@@ -32,6 +32,7 @@
 pub mod criteria;
 pub mod search;
 pub mod space;
+pub mod validate;
 
 pub use criteria::{Criterion, CriterionValues, Evaluation, Matrix, Scaling, Target};
 pub use search::{optimize, Certificate, MethodResult, OptimizeConfig, Optimized};

@@ -338,6 +338,22 @@ impl DesignSpace {
         (std::array::from_fn(|c| own[c] * lambda), binding)
     }
 
+    /// The most used constraint of a stretch (inputs at cycles `m`, amplitudes `a`, triangle
+    /// bound over the inputs) and its utilisation `response / bound` (1 = at the limit).
+    pub fn utilization(&self, m: [Option<usize>; INPUTS], a: [f64; INPUTS]) -> (Constraint, f64) {
+        let mut best = (Constraint::ReadoutO1, 0.0);
+        for r in Constraint::ALL {
+            let resp: f64 = (0..INPUTS)
+                .filter_map(|c| m[c].map(|mc| self.limit(c, mc).gain[r.index()] * a[c].abs()))
+                .sum();
+            let u = resp / self.bounds[r.index()];
+            if u > best.1 {
+                best = (r, u);
+            }
+        }
+        best
+    }
+
     /// Information of one stretch with inputs at cycles `m` and amplitudes `a` (row-major).
     pub fn stretch_information(
         &self,
