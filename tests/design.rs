@@ -297,3 +297,103 @@ fn design_timing_mismatch_is_a_clear_error() {
         slots: 1,
     };
 }
+
+#[test]
+fn information_equals_inverse_monte_carlo_covariance() {
+    // Oracle: Cramer-Rao / the reference README: the Monte Carlo scatter of fits made with a
+    // design equals sqrt(diag(I^-1)) of its information, within the statistics of n fits
+    // (relative standard error of a standard deviation ~ 1/sqrt(2n)).
+    let (setup, p) = setup_and_truth();
+    let study =
+        freefall::design::validate::Study::new(&setup, &p, Scaling::Standard, None, None).unwrap();
+    let (set, opt) = study
+        .optimize(
+            Layout::Separate,
+            Criterion::from_name("d-information").unwrap(),
+        )
+        .unwrap();
+    let design = set.to_design(&study.space, &opt.design, "d-optimal");
+    let n = 48;
+    let fits = freefall::design::validate::monte_carlo(&setup, &design, &p, &p, 11, 0, n).unwrap();
+    let info = study.space.information(&design).unwrap();
+    let sigma_f = sigmas(&info);
+    let np = p.len();
+    let tol = 4.0 / (2.0 * n as f64).sqrt();
+    let mut mean_ratio = 0.0;
+    for j in 0..np {
+        let mean = fits.iter().map(|f| f.estimate[j]).sum::<f64>() / n as f64;
+        let sd = (fits
+            .iter()
+            .map(|f| (f.estimate[j] - mean).powi(2))
+            .sum::<f64>()
+            / (n - 1) as f64)
+            .sqrt();
+        let fit_sigma = fits.iter().map(|f| f.sigma[j]).sum::<f64>() / n as f64;
+        let r = sd / sigma_f[j];
+        mean_ratio += r * r / np as f64;
+        eprintln!(
+            "{}: MC {sd:.4e} Fisher(fast) {:.4e} fit {fit_sigma:.4e} ratio {r:.3}",
+            setup.parameter_names()[j],
+            sigma_f[j]
+        );
+        assert!((r - 1.0).abs() < tol, "parameter {j}: MC/Fisher = {r}");
+        assert!(
+            (fit_sigma / sigma_f[j] - 1.0).abs() < 0.1,
+            "parameter {j}: fit sigma {fit_sigma} vs Fisher {}",
+            sigma_f[j]
+        );
+    }
+    assert!(
+        (mean_ratio - 1.0).abs() < 0.25,
+        "mean variance ratio {mean_ratio}"
+    );
+}
+
+#[test]
+fn cli_writes_designs_as_toml_and_evaluate_rejects_violations() {
+    // Oracle: the CLI round trip (optimize -> TOML -> evaluate) must accept its own optimum,
+    // and reject the same design with an amplitude above the limit, naming the constraint.
+    let dir = tempfile::tempdir().unwrap();
+    let exe = env!("CARGO_BIN_EXE_freefall");
+    let out = std::process::Command::new(exe)
+        .args(["design", "optimize", "--criterion", "d", "--out"])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let toml_path = dir
+        .path()
+        .join("designs")
+        .join("d-information_separate.toml");
+    let out = std::process::Command::new(exe)
+        .args(["design", "evaluate"])
+        .arg(&toml_path)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let text = std::fs::read_to_string(&toml_path).unwrap();
+    let mut d: freefall::signal::Design = toml::from_str(&text).unwrap();
+    d.experiments[0].inputs[0].as_mut().unwrap()[0].amplitude *= 3.0;
+    let bad = dir.path().join("bad.toml");
+    std::fs::write(&bad, toml::to_string(&d).unwrap()).unwrap();
+    let out = std::process::Command::new(exe)
+        .args(["design", "evaluate"])
+        .arg(&bad)
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        err.contains("violates the") && err.contains("bad.toml") && err.lines().count() == 1,
+        "{err}"
+    );
+    assert!(dir.path().join("designs.parquet").exists());
+}
