@@ -299,6 +299,7 @@ fn design_timing_mismatch_is_a_clear_error() {
 }
 
 #[test]
+#[allow(clippy::needless_range_loop)]
 fn information_equals_inverse_monte_carlo_covariance() {
     // Oracle: Cramer-Rao / the reference README: the Monte Carlo scatter of fits made with a
     // design equals sqrt(diag(I^-1)) of its information, within the statistics of n fits

@@ -387,6 +387,7 @@ struct Diagnostics {
 }
 
 impl Diagnostics {
+    #[allow(clippy::needless_range_loop)]
     fn push(&mut self, id: &str, set: &CandidateSet, study: &Study, opt: &Optimized) {
         for (g, group) in set.groups.iter().enumerate() {
             for (i, cand) in group.candidates.iter().enumerate() {
@@ -794,6 +795,7 @@ const CORR_PAIRS: [(&str, &str); 4] = [
     ("w1_sq", "w12_sq"),
 ];
 
+#[allow(clippy::needless_range_loop)]
 fn write_validation(
     setup: &Setup,
     v: &Validation,
@@ -943,6 +945,7 @@ fn write_validation(
     Ok(())
 }
 
+#[allow(clippy::needless_range_loop)]
 fn markdown(setup: &Setup, v: &Validation, s: &[Summary], cfg: &ValidationConfig) -> String {
     use std::fmt::Write;
     let names = setup.parameter_names();

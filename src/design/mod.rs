@@ -38,23 +38,28 @@ pub use criteria::{Criterion, CriterionValues, Evaluation, Matrix, Scaling, Targ
 pub use search::{optimize, Certificate, MethodResult, OptimizeConfig, Optimized};
 pub use space::{Candidate, Constraint, DesignSpace, ExactDesign, Layout, StretchLimit};
 
+/// A stretch that breaks an operating constraint.
+#[derive(Debug, Clone, thiserror::Error)]
+#[error(
+    "design '{design}' experiment '{experiment}' input {input} stretch {stretch} (f = {f_hz:.6e} Hz, a = {amplitude:.4e} m): violates the {constraint} constraint: {detail}"
+)]
+pub struct Violation {
+    pub design: String,
+    pub experiment: String,
+    pub input: String,
+    pub stretch: usize,
+    pub f_hz: f64,
+    pub amplitude: f64,
+    pub constraint: String,
+    pub detail: String,
+}
+
 /// Errors of the design module; each names the design, experiment, input, stretch and the
 /// numbers at fault.
 #[derive(Debug, thiserror::Error)]
 pub enum DesignError {
-    #[error(
-        "design '{design}' experiment '{experiment}' input {input} stretch {stretch} (f = {f_hz:.6e} Hz, a = {amplitude:.4e} m): violates the {constraint} constraint: {detail}"
-    )]
-    Constraint {
-        design: String,
-        experiment: String,
-        input: String,
-        stretch: usize,
-        f_hz: f64,
-        amplitude: f64,
-        constraint: String,
-        detail: String,
-    },
+    #[error("{0}")]
+    Constraint(Box<Violation>),
     #[error("design '{design}': {reason}")]
     Invalid { design: String, reason: String },
     #[error("{0}")]

@@ -500,7 +500,7 @@ impl DesignSpace {
                 for (c, v) in slot.iter().enumerate() {
                     let Some((m, a, f)) = *v else { continue };
                     if m > self.m_max || m == 0 {
-                        out.push(DesignError::Constraint {
+                        out.push(DesignError::Constraint(Box::new(super::Violation {
                             design: design.name.clone(),
                             experiment: e.name.clone(),
                             input: self.input_names[c].clone(),
@@ -512,7 +512,7 @@ impl DesignSpace {
                                 "f = {f:.6e} Hz is above constraints.f_max_hz = {:.6e} Hz",
                                 self.f_max_hz
                             ),
-                        });
+                        })));
                     }
                 }
                 if slot
@@ -544,7 +544,7 @@ impl DesignSpace {
                         .find_map(|(c, v)| v.map(|x| (c, x)))
                         .expect("a slot with a response has an input");
                     let joint = slot.iter().flatten().count() > 1;
-                    out.push(DesignError::Constraint {
+                    out.push(DesignError::Constraint(Box::new(super::Violation {
                         design: design.name.clone(),
                         experiment: e.name.clone(),
                         input: if joint { format!("{} + {}", self.input_names[0], self.input_names[1]) } else { self.input_names[c].clone() },
@@ -560,7 +560,7 @@ impl DesignSpace {
                             r.unit(),
                             self.limit(c, m).a_max
                         ),
-                    });
+                    })));
                 }
             }
         }
@@ -695,9 +695,9 @@ impl CandidateSet {
                 let mut inputs: Vec<Option<Vec<Stretch>>> = vec![None; INPUTS];
                 for &i in &ch {
                     let cand = &g.candidates[i];
-                    for c in 0..INPUTS {
+                    for (c, inp) in inputs.iter_mut().enumerate() {
                         if let Some(m) = cand.cycles[c] {
-                            inputs[c].get_or_insert_with(Vec::new).push(Stretch {
+                            inp.get_or_insert_with(Vec::new).push(Stretch {
                                 f_hz: m as f64 / t.stretch_s,
                                 amplitude: cand.amplitude[c],
                             });
