@@ -7,6 +7,7 @@
 
 pub mod campaign;
 pub mod cli;
+pub mod design;
 pub mod fit;
 pub mod io;
 pub mod model;

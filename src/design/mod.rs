@@ -1,0 +1,75 @@
+//! Optimal design of the identification experiments (thesis ch. 5, "Design of optimal
+//! experiments").
+//!
+//! This module owns
+//! - the design space ([`space`]): sine stretches of fixed duration and gap whose frequencies lie
+//!   on the integer-cycle grid `f = m / stretch_s`, `1 <= m <= f_max_hz * stretch_s`, each at the
+//!   largest amplitude the operating constraints allow (thesis eq. "constraints"), and the fast
+//!   information of a design as a sum of per-stretch information matrices;
+//! - the six criteria ([`criteria`]): D, E and T on the information matrix and on the covariance
+//!   matrix of a chosen parameter subset (default: the five non-delay parameters, as in ch. 5),
+//!   with a documented parameter scaling;
+//! - the searches ([`search`]): the thesis's direct search with frequencies pulled to the nearest
+//!   grid node, a Fedorov-type exchange, and the multiplicative algorithm for the approximate
+//!   design with its equivalence-theorem certificate (Pukelsheim, "Optimal Design of
+//!   Experiments", Wiley 1993, ch. 5-7 and 12).
+//!
+//! # Amplitude bound: a ratio, not a product
+//! The thesis's eq. "constraints" prints `a = min{T_{oi->o} o_max, T_{oi->fc} f_max}`. A response
+//! `|T| a` within a bound `b` needs `a <= b / |T|`: the bound is a ratio. The product form is
+//! dimensionally inconsistent (it is what lets the thesis's optimal Exp. 2 reach 52 um); this
+//! module implements the ratio:
+//! - readout: `|T_{oi_c->o_r}| a <= o_max_m` on **every** readout `o_r` (o1 and o12);
+//! - thrusters: `m_sc |T_{oi_c->fc}[row 1]| a <= thruster_force_max_n`;
+//! - suspension: `m_tm |T_{oi_c->fc}[row 2]| a <= suspension_force_max_n`;
+//!
+//! with `T_{oi->fc} = -C (T_{oi->o} - 1)` the commanded force per unit mass. The smallest ratio
+//! is the amplitude and its constraint is the *binding* one. When both inputs inject in the same
+//! stretch (Exp. 3), the response peak is bounded by the sum of the two inputs' responses
+//! (triangle inequality) and both amplitudes are scaled by the largest common factor that keeps
+//! every constraint.
+
+pub mod criteria;
+pub mod search;
+pub mod space;
+pub mod validate;
+
+pub use criteria::{Criterion, CriterionValues, Evaluation, Matrix, Scaling, Target};
+pub use search::{optimize, Certificate, MethodResult, OptimizeConfig, Optimized};
+pub use space::{Candidate, Constraint, DesignSpace, ExactDesign, Layout, StretchLimit};
+
+/// A stretch that breaks an operating constraint.
+#[derive(Debug, Clone, thiserror::Error)]
+#[error(
+    "design '{design}' experiment '{experiment}' input {input} stretch {stretch} (f = {f_hz:.6e} Hz, a = {amplitude:.4e} m): violates the {constraint} constraint: {detail}"
+)]
+pub struct Violation {
+    pub design: String,
+    pub experiment: String,
+    pub input: String,
+    pub stretch: usize,
+    pub f_hz: f64,
+    pub amplitude: f64,
+    pub constraint: String,
+    pub detail: String,
+}
+
+/// Errors of the design module; each names the design, experiment, input, stretch and the
+/// numbers at fault.
+#[derive(Debug, thiserror::Error)]
+pub enum DesignError {
+    #[error("{0}")]
+    Constraint(Box<Violation>),
+    #[error("design '{design}': {reason}")]
+    Invalid { design: String, reason: String },
+    #[error("{0}")]
+    Config(String),
+    #[error(
+        "the information matrix is singular: the design cannot constrain every parameter ({0})"
+    )]
+    Singular(String),
+    #[error(transparent)]
+    Signal(#[from] crate::signal::SignalError),
+    #[error(transparent)]
+    Model(#[from] crate::model::ModelError),
+}
