@@ -14,3 +14,4 @@ pub mod sim;
 pub mod fit;
 pub mod setup;
 pub mod cli;
+pub mod diagnose;
