@@ -38,6 +38,10 @@ pub struct DiagnoseArgs {
     /// At most this many effects are added.
     #[arg(long, default_value_t = 3)]
     pub max_effects: usize,
+    /// Whiten with the model noise PSD instead of the noise run (which then only serves as the
+    /// reference of the band and time tests).
+    #[arg(long = "model-psd")]
+    pub model_psd: bool,
     /// Print the effect library and exit.
     #[arg(long)]
     pub list_effects: bool,
@@ -83,7 +87,7 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
             bail!("the noise run's sampling interval {} s differs from the experiments' {} s", nr.dt, data.dt);
         }
     }
-    let cfg = DiagnoseConfig { order: a.order, poly_degree: a.poly_degree, alpha: a.alpha, max_effects: a.max_effects, ..Default::default() };
+    let cfg = DiagnoseConfig { order: a.order, poly_degree: a.poly_degree, alpha: a.alpha, max_effects: a.max_effects, whiten_from_model: a.model_psd, ..Default::default() };
     let d = diagnose(&setup, &data, noise.as_deref(), &guess, truth.as_deref(), &cfg).with_context(|| dataset.display().to_string())?;
     std::fs::create_dir_all(&a.out).with_context(|| format!("cannot create output directory '{}'", a.out.display()))?;
     write_outputs(&a.out, &d, &data.names, data.dt)?;

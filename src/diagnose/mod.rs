@@ -59,6 +59,9 @@ pub struct DiagnoseConfig {
     pub effects: Vec<Arc<dyn Effect>>,
     /// |correlation| above which an effect is flagged as degenerate with a fitted parameter.
     pub degeneracy: f64,
+    /// Whiten with the model noise PSD at the starting point even when a noise run is given
+    /// (the noise run then only serves as the reference of the band and time tests).
+    pub whiten_from_model: bool,
 }
 
 impl Default for DiagnoseConfig {
@@ -71,6 +74,7 @@ impl Default for DiagnoseConfig {
             confirm_top: 3,
             effects: library(),
             degeneracy: 0.95,
+            whiten_from_model: false,
         }
     }
 }
@@ -352,6 +356,8 @@ pub fn diagnose(
         check_series("noise run", nz)?;
         if nz.iter().any(|c| c.iter().all(|v| *v == 0.0)) {
             notes.push("a noise-run channel is all zeros: the noise run is ignored and the model noise is used".into());
+        } else if cfg.whiten_from_model {
+            notes.push("whitening from the model noise PSD (asked for); the noise run is the reference of the band and time tests".into());
         } else if nz.first().map_or(0, |c| c.len()) < 4 * order + 50 {
             notes.push(format!("the noise run is too short for a whitening filter of order {order}: the model noise is used"));
         } else {
@@ -373,10 +379,10 @@ pub fn diagnose(
             setup.whitener_from_model(guess, n, data.dt, order)?
         }
     };
-    let noise_ref = match (noise, whitening.as_str()) {
-        (Some(nz), "noise-only run") => residuals::NoiseReference::new(&whitened_noise(&w, nz, cfg.poly_degree), data.dt),
-        _ => None,
-    };
+    let usable_noise = noise.filter(|nz| {
+        nz.iter().all(|c| c.iter().any(|v| *v != 0.0)) && nz.first().map_or(0, |c| c.len()) > order + 50
+    });
+    let noise_ref = usable_noise.and_then(|nz| residuals::NoiseReference::new(&whitened_noise(&w, nz, cfg.poly_degree), data.dt));
 
     // Nominal fit.
     let nominal = Extended::new(base.clone(), Vec::new());
