@@ -65,13 +65,24 @@ pub struct DiagnoseArgs {
 
 pub fn run(a: DiagnoseArgs) -> Result<()> {
     if a.list_effects {
-        println!("{:<28} {:<20} {:<12} acts on", "effect", "category", "parameter");
+        println!(
+            "{:<28} {:<20} {:<12} acts on",
+            "effect", "category", "parameter"
+        );
         for e in library() {
-            println!("{:<28} {:<20} {:<12} {}", e.name(), e.category().as_str(), e.parameter_names().join(","), e.acts_on());
+            println!(
+                "{:<28} {:<20} {:<12} {}",
+                e.name(),
+                e.category().as_str(),
+                e.parameter_names().join(","),
+                e.acts_on()
+            );
         }
         return Ok(());
     }
-    let Some(dataset) = a.dataset.clone() else { bail!("give a dataset TOML (or --list-effects)") };
+    let Some(dataset) = a.dataset.clone() else {
+        bail!("give a dataset TOML (or --list-effects)")
+    };
     let setup = a.model.setup()?;
     if a.simulate_into {
         return simulate(&a, &setup, &dataset);
@@ -81,15 +92,38 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
     let names = setup.parameter_names();
     let guess = resolve_guess(&setup, a.guess.as_deref())?;
     let truth = truth_from_meta(&ds, &names);
-    let noise: Option<Vec<Vec<f64>>> = ds.noise.as_ref().map(|r| r.outputs().iter().map(|c| c.to_vec()).collect());
+    let noise: Option<Vec<Vec<f64>>> = ds
+        .noise
+        .as_ref()
+        .map(|r| r.outputs().iter().map(|c| c.to_vec()).collect());
     if let Some(nr) = &ds.noise {
         if (nr.dt - data.dt).abs() > 1e-9 * data.dt {
-            bail!("the noise run's sampling interval {} s differs from the experiments' {} s", nr.dt, data.dt);
+            bail!(
+                "the noise run's sampling interval {} s differs from the experiments' {} s",
+                nr.dt,
+                data.dt
+            );
         }
     }
-    let cfg = DiagnoseConfig { order: a.order, poly_degree: a.poly_degree, alpha: a.alpha, max_effects: a.max_effects, whiten_from_model: a.model_psd, ..Default::default() };
-    let d = diagnose(&setup, &data, noise.as_deref(), &guess, truth.as_deref(), &cfg).with_context(|| dataset.display().to_string())?;
-    std::fs::create_dir_all(&a.out).with_context(|| format!("cannot create output directory '{}'", a.out.display()))?;
+    let cfg = DiagnoseConfig {
+        order: a.order,
+        poly_degree: a.poly_degree,
+        alpha: a.alpha,
+        max_effects: a.max_effects,
+        whiten_from_model: a.model_psd,
+        ..Default::default()
+    };
+    let d = diagnose(
+        &setup,
+        &data,
+        noise.as_deref(),
+        &guess,
+        truth.as_deref(),
+        &cfg,
+    )
+    .with_context(|| dataset.display().to_string())?;
+    std::fs::create_dir_all(&a.out)
+        .with_context(|| format!("cannot create output directory '{}'", a.out.display()))?;
     write_outputs(&a.out, &d, &data.names, data.dt)?;
     let mut md = d.to_markdown(&dataset.display().to_string());
     if !a.no_plots {
@@ -108,7 +142,15 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
         d.before.chi2_reduced,
         d.after.chi2_reduced,
         d.after.reference_chi2_reduced,
-        if d.effects_added.is_empty() { "none".to_string() } else { d.effects_added.iter().map(|e| e.name.clone()).collect::<Vec<_>>().join(", ") },
+        if d.effects_added.is_empty() {
+            "none".to_string()
+        } else {
+            d.effects_added
+                .iter()
+                .map(|e| e.name.clone())
+                .collect::<Vec<_>>()
+                .join(", ")
+        },
         d.unexplained.len(),
         d.seconds
     );
@@ -121,8 +163,12 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
 
 fn write_outputs(out: &Path, d: &Diagnosis, names: &[String], dt: f64) -> Result<()> {
     write_json_atomic(out.join("report.json"), &d.to_json())?;
-    for (stage, (w, raw)) in [("before", &d.residuals_before), ("after", &d.residuals_after)] {
-        let (mut exp, mut ch, mut t, mut r, mut wv) = (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    for (stage, (w, raw)) in [
+        ("before", &d.residuals_before),
+        ("after", &d.residuals_after),
+    ] {
+        let (mut exp, mut ch, mut t, mut r, mut wv) =
+            (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
         for (e, name) in names.iter().enumerate() {
             for (c, cname) in ["o1", "o12"].iter().enumerate() {
                 let n = raw[e][c].len();
@@ -131,14 +177,31 @@ fn write_outputs(out: &Path, d: &Diagnosis, names: &[String], dt: f64) -> Result
                     ch.push(cname.to_string());
                     t.push(i as f64 * dt);
                     r.push(raw[e][c][i]);
-                    wv.push(if i >= d.order { w[e][c].get(i - d.order).copied().unwrap_or(f64::NAN) } else { f64::NAN });
+                    wv.push(if i >= d.order {
+                        w[e][c].get(i - d.order).copied().unwrap_or(f64::NAN)
+                    } else {
+                        f64::NAN
+                    });
                 }
             }
         }
-        let table = Table::new().with_str("experiment", exp)?.with_str("channel", ch)?.with_f64("t", t)?.with_f64("raw", r)?.with_f64("whitened", wv)?;
+        let table = Table::new()
+            .with_str("experiment", exp)?
+            .with_str("channel", ch)?
+            .with_f64("t", t)?
+            .with_f64("raw", r)?
+            .with_f64("whitened", wv)?;
         write_parquet(out.join(format!("residuals_{stage}.parquet")), &table)?;
     }
-    let (mut st, mut exp, mut ch, mut f, mut lv, mut lo, mut hi) = (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let (mut st, mut exp, mut ch, mut f, mut lv, mut lo, mut hi) = (
+        Vec::new(),
+        Vec::new(),
+        Vec::new(),
+        Vec::new(),
+        Vec::new(),
+        Vec::new(),
+        Vec::new(),
+    );
     for s in &d.spectra {
         for i in 0..s.f.len() {
             st.push(s.stage.clone());
@@ -152,9 +215,25 @@ fn write_outputs(out: &Path, d: &Diagnosis, names: &[String], dt: f64) -> Result
     }
     write_parquet(
         out.join("spectra.parquet"),
-        &Table::new().with_str("stage", st)?.with_str("experiment", exp)?.with_str("channel", ch)?.with_f64("f", f)?.with_f64("level", lv)?.with_f64("lo90", lo)?.with_f64("hi90", hi)?,
+        &Table::new()
+            .with_str("stage", st)?
+            .with_str("experiment", exp)?
+            .with_str("channel", ch)?
+            .with_f64("f", f)?
+            .with_f64("level", lv)?
+            .with_f64("lo90", lo)?
+            .with_f64("hi90", hi)?,
     )?;
-    let (mut st, mut exp, mut ch, mut t0, mut t1, mut c2, mut ex, mut p) = (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let (mut st, mut exp, mut ch, mut t0, mut t1, mut c2, mut ex, mut p) = (
+        Vec::new(),
+        Vec::new(),
+        Vec::new(),
+        Vec::new(),
+        Vec::new(),
+        Vec::new(),
+        Vec::new(),
+        Vec::new(),
+    );
     for (stage, s) in [("before", &d.before), ("after", &d.after)] {
         for c in &s.channels {
             for t in &c.time {
@@ -192,7 +271,11 @@ fn plot(out: &Path) -> Result<()> {
     if !script.exists() {
         bail!("plot script {} not found", script.display());
     }
-    let o = std::process::Command::new("python3").arg(&script).arg(out).output().context("python3 not available")?;
+    let o = std::process::Command::new("python3")
+        .arg(&script)
+        .arg(out)
+        .output()
+        .context("python3 not available")?;
     if !o.status.success() {
         let err = String::from_utf8_lossy(&o.stderr);
         let last = err.lines().last().unwrap_or("").to_string();
@@ -207,17 +290,36 @@ fn simulate(a: &DiagnoseArgs, setup: &crate::setup::Setup, dir: &Path) -> Result
     let mut effects = Vec::new();
     let mut meta_eff = toml::Table::new();
     for spec in &a.effects {
-        let (name, value) = spec.split_once('=').with_context(|| format!("--effect '{spec}': expected NAME=VALUE"))?;
+        let (name, value) = spec
+            .split_once('=')
+            .with_context(|| format!("--effect '{spec}': expected NAME=VALUE"))?;
         let e = by_name(name.trim()).with_context(|| {
-            format!("--effect '{spec}': unknown effect; known: {}", library().iter().map(|e| e.name()).collect::<Vec<_>>().join(", "))
+            format!(
+                "--effect '{spec}': unknown effect; known: {}",
+                library()
+                    .iter()
+                    .map(|e| e.name())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            )
         })?;
-        let v: f64 = value.trim().parse().with_context(|| format!("--effect '{spec}': value is not a number"))?;
+        let v: f64 = value
+            .trim()
+            .parse()
+            .with_context(|| format!("--effect '{spec}': value is not a number"))?;
         meta_eff.insert(e.name(), toml::Value::Float(v));
         effects.push((e, vec![v]));
     }
     let (data, noise) = simulate_with_effects(setup, &design, &sc.truth, &effects, a.seed)?;
     let mut meta = toml::Table::new();
-    meta.insert("generator".into(), format!("freefall {} diagnose --simulate-into", env!("CARGO_PKG_VERSION")).into());
+    meta.insert(
+        "generator".into(),
+        format!(
+            "freefall {} diagnose --simulate-into",
+            env!("CARGO_PKG_VERSION")
+        )
+        .into(),
+    );
     meta.insert("scenario".into(), a.scenario.clone().into());
     meta.insert("design".into(), a.design.clone().into());
     meta.insert("seed".into(), toml::Value::Integer(a.seed as i64));

@@ -178,7 +178,9 @@ fn whitened_noise(w: &Whitener<2>, noise: &[Vec<f64>], poly_degree: usize) -> Ve
 fn check_series(what: &str, s: &[Vec<f64>]) -> Result<(), DiagnoseError> {
     for (c, x) in s.iter().enumerate() {
         if let Some(i) = x.iter().position(|v| !v.is_finite()) {
-            return Err(DiagnoseError::Input(format!("{what}, channel {c}: non-finite value at sample {i}")));
+            return Err(DiagnoseError::Input(format!(
+                "{what}, channel {c}: non-finite value at sample {i}"
+            )));
         }
     }
     Ok(())
@@ -194,7 +196,12 @@ fn fit_model(
 ) -> Result<(FitResult, Series), DiagnoseError> {
     let lik = Likelihood::new(model, &data.inputs, data.dt, w.clone(), poly_degree)?;
     let prob = lik.problem(data)?;
-    let res = fit(model, &prob, guess, &FitConfig::new(model.parameter_names()))?;
+    let res = fit(
+        model,
+        &prob,
+        guess,
+        &FitConfig::new(model.parameter_names()),
+    )?;
     let raw = prob.raw_residuals(data, &res.estimate);
     Ok((res, raw))
 }
@@ -236,7 +243,9 @@ fn stage(
         parameter_names: model.parameter_names().to_vec(),
         estimate: res.estimate.clone(),
         sigma: res.sigma.clone(),
-        reference_chi2_reduced: noise_ref.map_or(1.0, |n| n.var.iter().sum::<f64>() / n.var.len().max(1) as f64),
+        reference_chi2_reduced: noise_ref.map_or(1.0, |n| {
+            n.var.iter().sum::<f64>() / n.var.len().max(1) as f64
+        }),
         channels,
     }
 }
@@ -260,19 +269,34 @@ fn score_round(
     let (r, j) = prob.residuals_and_jacobian(&p);
     let np = full.n_params();
     let dot = |a: &Series, b: &Series| -> f64 {
-        a.iter().zip(b).flat_map(|(x, y)| x.iter().zip(y)).map(|(u, v)| u.iter().zip(v).map(|(s, t)| s * t).sum::<f64>()).sum()
+        a.iter()
+            .zip(b)
+            .flat_map(|(x, y)| x.iter().zip(y))
+            .map(|(u, v)| u.iter().zip(v).map(|(s, t)| s * t).sum::<f64>())
+            .sum()
     };
     let info = DMatrix::<f64>::from_fn(np, np, |a, b| if a <= b { dot(&j[a], &j[b]) } else { 0.0 });
-    let info = DMatrix::<f64>::from_fn(np, np, |a, b| if a <= b { info[(a, b)] } else { info[(b, a)] });
+    let info = DMatrix::<f64>::from_fn(
+        np,
+        np,
+        |a, b| if a <= b { info[(a, b)] } else { info[(b, a)] },
+    );
     let u: Vec<f64> = (0..np).map(|a| dot(&j[a], &r)).collect();
     let nn = estimate.len();
     let n_idx: Vec<usize> = (0..nn).collect();
-    let sub = |rows: &[usize], cols: &[usize]| DMatrix::<f64>::from_fn(rows.len(), cols.len(), |a, b| info[(rows[a], cols[b])]);
+    let sub = |rows: &[usize], cols: &[usize]| {
+        DMatrix::<f64>::from_fn(rows.len(), cols.len(), |a, b| info[(rows[a], cols[b])])
+    };
     // Equilibrated inverse of I_nn.
     let inn = sub(&n_idx, &n_idx);
-    let d: Vec<f64> = (0..nn).map(|k| inn[(k, k)].sqrt().max(f64::MIN_POSITIVE)).collect();
+    let d: Vec<f64> = (0..nn)
+        .map(|k| inn[(k, k)].sqrt().max(f64::MIN_POSITIVE))
+        .collect();
     let eq = DMatrix::<f64>::from_fn(nn, nn, |a, b| inn[(a, b)] / (d[a] * d[b]));
-    let inv_eq = eq.clone().pseudo_inverse(1e-12).map_err(|e| DiagnoseError::Input(e.to_string()))?;
+    let inv_eq = eq
+        .clone()
+        .pseudo_inverse(1e-12)
+        .map_err(|e| DiagnoseError::Input(e.to_string()))?;
     let inn_inv = DMatrix::<f64>::from_fn(nn, nn, |a, b| inv_eq[(a, b)] / (d[a] * d[b]));
     let mut out = Vec::new();
     for i in 0..pool.len() {
@@ -286,16 +310,25 @@ fn score_round(
             Ok(si) => (ue.transpose() * si * &ue)[(0, 0)],
             Err(_) => f64::NAN,
         };
-        let frac = (0..e_idx.len()).map(|k| schur[(k, k)] / iee[(k, k)].max(f64::MIN_POSITIVE)).fold(1.0, f64::min);
+        let frac = (0..e_idx.len())
+            .map(|k| schur[(k, k)] / iee[(k, k)].max(f64::MIN_POSITIVE))
+            .fold(1.0, f64::min);
         // Below this the Schur complement is rounding noise: the effect is indistinguishable
         // from the fitted parameters and the statistic is meaningless.
-        let lm = if frac < 1e-6 || !lm.is_finite() { 0.0 } else { lm.max(0.0) };
+        let lm = if frac < 1e-6 || !lm.is_finite() {
+            0.0
+        } else {
+            lm.max(0.0)
+        };
         // Correlation of the (first) effect parameter with each fitted parameter in the joint covariance.
         let mut idx = n_idx.clone();
         idx.push(e_idx[0]);
         let joint = sub(&idx, &idx);
-        let dj: Vec<f64> = (0..idx.len()).map(|k| joint[(k, k)].sqrt().max(f64::MIN_POSITIVE)).collect();
-        let jeq = DMatrix::<f64>::from_fn(idx.len(), idx.len(), |a, b| joint[(a, b)] / (dj[a] * dj[b]));
+        let dj: Vec<f64> = (0..idx.len())
+            .map(|k| joint[(k, k)].sqrt().max(f64::MIN_POSITIVE))
+            .collect();
+        let jeq =
+            DMatrix::<f64>::from_fn(idx.len(), idx.len(), |a, b| joint[(a, b)] / (dj[a] * dj[b]));
         let corr = jeq.pseudo_inverse(1e-14).ok().and_then(|cv| {
             let last = idx.len() - 1;
             (0..nn)
@@ -321,7 +354,9 @@ pub fn diagnose(
     let start = std::time::Instant::now();
     let mut notes = Vec::new();
     if data.outputs.is_empty() {
-        return Err(DiagnoseError::Input("the dataset has no experiments".into()));
+        return Err(DiagnoseError::Input(
+            "the dataset has no experiments".into(),
+        ));
     }
     for (e, name) in data.names.iter().enumerate() {
         check_series(&format!("experiment '{name}' outputs"), &data.outputs[e])?;
@@ -335,7 +370,9 @@ pub fn diagnose(
             }
         }
         if data.inputs[e].iter().all(|x| x.iter().all(|v| *v == 0.0)) {
-            notes.push(format!("experiment '{name}' has no injection: it constrains the noise only"));
+            notes.push(format!(
+                "experiment '{name}' has no injection: it constrains the noise only"
+            ));
         }
     }
     let n = data.len();
@@ -343,9 +380,13 @@ pub fn diagnose(
     if n < 4 * order + 50 {
         let reduced = (n.saturating_sub(50) / 4).max(4);
         if reduced < 8 || n < 64 {
-            return Err(DiagnoseError::Input(format!("the experiments have {n} samples: too short for a diagnosis (need at least 64)")));
+            return Err(DiagnoseError::Input(format!(
+                "the experiments have {n} samples: too short for a diagnosis (need at least 64)"
+            )));
         }
-        notes.push(format!("the run is short ({n} samples): whitening order reduced from {order} to {reduced}"));
+        notes.push(format!(
+            "the run is short ({n} samples): whitening order reduced from {order} to {reduced}"
+        ));
         order = reduced;
     }
     let base = setup.model.clone();
@@ -366,7 +407,9 @@ pub fn diagnose(
                     whitening = "noise-only run".into();
                     w_opt = Some(w);
                 }
-                Err(e) => notes.push(format!("whitening from the noise run failed ({e}): the model noise is used")),
+                Err(e) => notes.push(format!(
+                    "whitening from the noise run failed ({e}): the model noise is used"
+                )),
             }
         }
     } else {
@@ -380,17 +423,31 @@ pub fn diagnose(
         }
     };
     let usable_noise = noise.filter(|nz| {
-        nz.iter().all(|c| c.iter().any(|v| *v != 0.0)) && nz.first().map_or(0, |c| c.len()) > order + 50
+        nz.iter().all(|c| c.iter().any(|v| *v != 0.0))
+            && nz.first().map_or(0, |c| c.len()) > order + 50
     });
-    let noise_ref = usable_noise.and_then(|nz| residuals::NoiseReference::new(&whitened_noise(&w, nz, cfg.poly_degree), data.dt));
+    let noise_ref = usable_noise.and_then(|nz| {
+        residuals::NoiseReference::new(&whitened_noise(&w, nz, cfg.poly_degree), data.dt)
+    });
 
     // Nominal fit.
     let nominal = Extended::new(base.clone(), Vec::new());
     let (fit0, raw0) = fit_model(&nominal, data, &w, cfg.poly_degree, guess)?;
     if !fit0.termination.converged() {
-        notes.push(format!("the nominal fit stopped without converging ({})", fit0.termination.as_str()));
+        notes.push(format!(
+            "the nominal fit stopped without converging ({})",
+            fit0.termination.as_str()
+        ));
     }
-    let before = stage(&nominal, &fit0, &raw0, data, noise_ref.as_ref(), order, cfg.alpha);
+    let before = stage(
+        &nominal,
+        &fit0,
+        &raw0,
+        data,
+        noise_ref.as_ref(),
+        order,
+        cfg.alpha,
+    );
 
     let mut current = nominal.clone();
     let mut cur_fit = fit0.clone();
@@ -403,7 +460,14 @@ pub fn diagnose(
         if pool.is_empty() {
             break;
         }
-        let scores = score_round(&current, &cur_fit.estimate, &pool, data, &w, cfg.poly_degree)?;
+        let scores = score_round(
+            &current,
+            &cur_fit.estimate,
+            &pool,
+            data,
+            &w,
+            cfg.poly_degree,
+        )?;
         let names = current.parameter_names().to_vec();
         let mut round_c: Vec<Candidate> = pool
             .iter()
@@ -418,7 +482,8 @@ pub fn diagnose(
                     score_statistic: *lm,
                     score_p_value: residuals::chi2_sf(*dim as f64, *lm),
                     identifiable_fraction: *frac,
-                    degenerate: *frac < 1e-6 || most.as_ref().is_some_and(|(_, v)| v.abs() > cfg.degeneracy),
+                    degenerate: *frac < 1e-6
+                        || most.as_ref().is_some_and(|(_, v)| v.abs() > cfg.degeneracy),
                     most_correlated: most,
                     delta_chi2: None,
                     p_value: None,
@@ -429,8 +494,14 @@ pub fn diagnose(
             .collect();
         // Candidates worth a refit: score-significant, best first.
         let threshold = cfg.alpha / n_cand as f64;
-        let mut order_idx: Vec<usize> = (0..pool.len()).filter(|&i| round_c[i].score_p_value < threshold).collect();
-        order_idx.sort_by(|&a, &b| round_c[b].score_statistic.total_cmp(&round_c[a].score_statistic));
+        let mut order_idx: Vec<usize> = (0..pool.len())
+            .filter(|&i| round_c[i].score_p_value < threshold)
+            .collect();
+        order_idx.sort_by(|&a, &b| {
+            round_c[b]
+                .score_statistic
+                .total_cmp(&round_c[a].score_statistic)
+        });
         order_idx.truncate(cfg.confirm_top);
         let refits: Vec<(usize, Result<(Extended, FitResult, Series), DiagnoseError>)> = order_idx
             .par_iter()
@@ -440,7 +511,10 @@ pub fn diagnose(
                 let m = Extended::new(base.clone(), effects);
                 let mut g = cur_fit.estimate.clone();
                 g.resize(m.n_params(), 0.0);
-                (i, fit_model(&m, data, &w, cfg.poly_degree, &g).map(|(f, r)| (m, f, r)))
+                (
+                    i,
+                    fit_model(&m, data, &w, cfg.poly_degree, &g).map(|(f, r)| (m, f, r)),
+                )
             })
             .collect();
         let mut best: Option<(usize, f64, f64)> = None;
@@ -468,16 +542,24 @@ pub fn diagnose(
                         c.most_correlated = Some((m.parameter_names()[q].clone(), v));
                         c.degenerate = v.abs() > cfg.degeneracy;
                     }
-                    if f.termination.converged() && p < threshold && best.is_none_or(|(_, d, _)| dchi2 > d) {
+                    if f.termination.converged()
+                        && p < threshold
+                        && best.is_none_or(|(_, d, _)| dchi2 > d)
+                    {
                         best = Some((i, dchi2, p));
                         best_fit = Some((m, f, raw));
                     }
                 }
-                Err(e) => notes.push(format!("round {round}: refit with {} failed: {e}", pool[i].name())),
+                Err(e) => notes.push(format!(
+                    "round {round}: refit with {} failed: {e}",
+                    pool[i].name()
+                )),
             }
         }
         candidates.extend(round_c.iter().cloned());
-        let (Some((i, dchi2, p)), Some((m, f, raw))) = (best, best_fit) else { break };
+        let (Some((i, dchi2, p)), Some((m, f, raw))) = (best, best_fit) else {
+            break;
+        };
         let e = pool.remove(i);
         let r = m.range(m.effects.len() - 1);
         let c = &round_c[i];
@@ -498,10 +580,21 @@ pub fn diagnose(
         cur_fit = f;
         cur_raw = raw;
     }
-    let after = stage(&current, &cur_fit, &cur_raw, data, noise_ref.as_ref(), order, cfg.alpha);
+    let after = stage(
+        &current,
+        &cur_fit,
+        &cur_raw,
+        data,
+        noise_ref.as_ref(),
+        order,
+        cfg.alpha,
+    );
     let unexplained = find_unexplained(&after, cfg.alpha);
     let mut spectra = Vec::new();
-    for (st, res) in [("before", &fit0.residuals_w), ("after", &cur_fit.residuals_w)] {
+    for (st, res) in [
+        ("before", &fit0.residuals_w),
+        ("after", &cur_fit.residuals_w),
+    ] {
         for (e, en) in data.names.iter().enumerate() {
             for (c, cn) in ["o1", "o12"].iter().enumerate() {
                 spectra.push(residuals::spectrum_curve(st, en, cn, &res[e][c], data.dt));
@@ -511,7 +604,13 @@ pub fn diagnose(
     if let Some(nz) = noise.filter(|_| noise_ref.is_some()) {
         let wn = whitened_noise(&w, nz, cfg.poly_degree);
         for (c, cn) in ["o1", "o12"].iter().enumerate() {
-            spectra.push(residuals::spectrum_curve("noise_run", "noise", cn, &wn[c], data.dt));
+            spectra.push(residuals::spectrum_curve(
+                "noise_run",
+                "noise",
+                cn,
+                &wn[c],
+                data.dt,
+            ));
         }
     }
     Ok(Diagnosis {
@@ -534,8 +633,18 @@ pub fn diagnose(
 
 /// Significant excess left after the final fit, at a Bonferroni threshold over every test made.
 fn find_unexplained(after: &Stage, alpha: f64) -> Vec<Unexplained> {
-    let n_band: usize = after.channels.iter().map(|c| c.bands.len()).sum::<usize>().max(1);
-    let n_time: usize = after.channels.iter().map(|c| c.time.len()).sum::<usize>().max(1);
+    let n_band: usize = after
+        .channels
+        .iter()
+        .map(|c| c.bands.len())
+        .sum::<usize>()
+        .max(1);
+    let n_time: usize = after
+        .channels
+        .iter()
+        .map(|c| c.time.len())
+        .sum::<usize>()
+        .max(1);
     let n_ch = after.channels.len().max(1);
     let mut out = Vec::new();
     for ch in &after.channels {
@@ -543,11 +652,21 @@ fn find_unexplained(after: &Stage, alpha: f64) -> Vec<Unexplained> {
             ch.time.first().map_or(0.0, |t| t.time_s[0]),
             ch.time.last().map_or(0.0, |t| t.time_s[1]),
         ];
-        let bad_time: Vec<&residuals::TimeReport> = ch.time.iter().filter(|t| t.p_value < alpha / n_time as f64).collect();
+        let bad_time: Vec<&residuals::TimeReport> = ch
+            .time
+            .iter()
+            .filter(|t| t.p_value < alpha / n_time as f64)
+            .collect();
         let time_s = if bad_time.is_empty() {
             span
         } else {
-            [bad_time.iter().map(|t| t.time_s[0]).fold(f64::INFINITY, f64::min), bad_time.iter().map(|t| t.time_s[1]).fold(0.0, f64::max)]
+            [
+                bad_time
+                    .iter()
+                    .map(|t| t.time_s[0])
+                    .fold(f64::INFINITY, f64::min),
+                bad_time.iter().map(|t| t.time_s[1]).fold(0.0, f64::max),
+            ]
         };
         for l in ch.lines.iter().filter(|l| l.p_value < alpha / n_ch as f64) {
             let df = ch.bands.first().map_or(0.0, |b| b.band_hz[0]);
@@ -561,7 +680,11 @@ fn find_unexplained(after: &Stage, alpha: f64) -> Vec<Unexplained> {
                 p_value: l.p_value,
             });
         }
-        for b in ch.bands.iter().filter(|b| b.p_value < alpha / n_band as f64 && b.excess > 0.0) {
+        for b in ch
+            .bands
+            .iter()
+            .filter(|b| b.p_value < alpha / n_band as f64 && b.excess > 0.0)
+        {
             // A band whose excess is one of the lines above is not reported twice.
             if out.iter().any(|u| {
                 u.kind == "line" && u.experiment == ch.experiment && u.channel == ch.channel && {
@@ -587,7 +710,10 @@ fn find_unexplained(after: &Stage, alpha: f64) -> Vec<Unexplained> {
                 experiment: ch.experiment.clone(),
                 channel: ch.channel.clone(),
                 kind: "time",
-                band_hz: [ch.bands.first().map_or(0.0, |b| b.band_hz[0]), ch.bands.last().map_or(0.0, |b| b.band_hz[1])],
+                band_hz: [
+                    ch.bands.first().map_or(0.0, |b| b.band_hz[0]),
+                    ch.bands.last().map_or(0.0, |b| b.band_hz[1]),
+                ],
                 time_s: t.time_s,
                 excess: t.excess,
                 p_value: t.p_value,
@@ -608,19 +734,36 @@ pub fn simulate_with_effects(
     effects: &[(Arc<dyn Effect>, Vec<f64>)],
     seed: u64,
 ) -> Result<(ExperimentData, Vec<Vec<f64>>), DiagnoseError> {
-    let model = Extended::new(setup.model.clone(), effects.iter().map(|(e, _)| e.clone()).collect());
+    let model = Extended::new(
+        setup.model.clone(),
+        effects.iter().map(|(e, _)| e.clone()).collect(),
+    );
     let mut p = truth.to_vec();
     for (e, v) in effects {
         if v.len() != e.parameter_names().len() {
-            return Err(DiagnoseError::Input(format!("effect {} takes {} parameters, got {}", e.name(), e.parameter_names().len(), v.len())));
+            return Err(DiagnoseError::Input(format!(
+                "effect {} takes {} parameters, got {}",
+                e.name(),
+                e.parameter_names().len(),
+                v.len()
+            )));
         }
         p.extend(v);
     }
-    crate::model::check_stability(&model, &p, None).map_err(|e| DiagnoseError::Input(e.to_string()))?;
+    crate::model::check_stability(&model, &p, None)
+        .map_err(|e| DiagnoseError::Input(e.to_string()))?;
     let dt = setup.analysis_dt();
     let psd = |f: f64| setup.noise.readout_csd(&model, f, &p);
-    let sim = crate::sim::Simulator::new(&model, design, &p, psd, dt, crate::setup::NOISE_OVERSAMPLE, None)
-        .map_err(|e| DiagnoseError::Input(e.to_string()))?;
+    let sim = crate::sim::Simulator::new(
+        &model,
+        design,
+        &p,
+        psd,
+        dt,
+        crate::setup::NOISE_OVERSAMPLE,
+        None,
+    )
+    .map_err(|e| DiagnoseError::Input(e.to_string()))?;
     let data = sim.draw(&mut crate::sim::rng::stream(seed, 0));
     let noise = sim.noise_series(&mut crate::sim::rng::stream(seed, 1));
     Ok((data, noise))

@@ -16,7 +16,13 @@ fn num(v: f64) -> Value {
 }
 
 fn named(names: &[String], v: &[f64]) -> Value {
-    Value::Object(names.iter().zip(v).map(|(n, x)| (n.clone(), num(*x))).collect::<Map<_, _>>())
+    Value::Object(
+        names
+            .iter()
+            .zip(v)
+            .map(|(n, x)| (n.clone(), num(*x)))
+            .collect::<Map<_, _>>(),
+    )
 }
 
 fn stage_json(s: &Stage, truth: Option<&[f64]>) -> Value {
@@ -57,7 +63,9 @@ fn stage_json(s: &Stage, truth: Option<&[f64]>) -> Value {
     });
     if let Some(t) = truth {
         let k = t.len().min(s.estimate.len());
-        let err: Vec<f64> = (0..k).map(|i| (s.estimate[i] - t[i]) / s.sigma[i]).collect();
+        let err: Vec<f64> = (0..k)
+            .map(|i| (s.estimate[i] - t[i]) / s.sigma[i])
+            .collect();
         v["error_vs_truth_sigma"] = named(&s.parameter_names[..k], &err);
     }
     v
@@ -68,7 +76,12 @@ impl Diagnosis {
     pub fn shifts_sigma(&self) -> Vec<(String, f64)> {
         let k = self.before.estimate.len();
         (0..k)
-            .map(|i| (self.before.parameter_names[i].clone(), (self.after.estimate[i] - self.before.estimate[i]) / self.before.sigma[i]))
+            .map(|i| {
+                (
+                    self.before.parameter_names[i].clone(),
+                    (self.after.estimate[i] - self.before.estimate[i]) / self.before.sigma[i],
+                )
+            })
             .collect()
     }
 
@@ -138,7 +151,11 @@ impl Diagnosis {
         } else {
             format!(
                 "added {}",
-                self.effects_added.iter().map(|a| format!("**{}** ({})", a.name, a.category)).collect::<Vec<_>>().join(", then ")
+                self.effects_added
+                    .iter()
+                    .map(|a| format!("**{}** ({})", a.name, a.category))
+                    .collect::<Vec<_>>()
+                    .join(", then ")
             )
         };
         let _ = writeln!(
@@ -150,7 +167,11 @@ impl Diagnosis {
             self.after.reference_chi2_reduced,
             self.unexplained.len()
         );
-        let _ = writeln!(s, "Whitening: {} (order {}); family-wise false-alarm probability per decision {}.\n", self.whitening, self.order, self.alpha);
+        let _ = writeln!(
+            s,
+            "Whitening: {} (order {}); family-wise false-alarm probability per decision {}.\n",
+            self.whitening, self.order, self.alpha
+        );
         for n in &self.notes {
             let _ = writeln!(s, "> note: {n}\n");
         }
@@ -160,9 +181,30 @@ impl Diagnosis {
         } else {
             let _ = writeln!(s, "| effect | category | acts on | parameters | score | delta chi2 | p | most correlated |\n|---|---|---|---|---|---|---|---|");
             for a in &self.effects_added {
-                let pars: Vec<String> = a.parameter_names.iter().zip(&a.parameters).zip(&a.sigmas).map(|((n, v), e)| format!("{n} = {v:.4e} ± {e:.2e}")).collect();
-                let corr = a.most_correlated.as_ref().map(|(n, c)| format!("{n} ({c:+.3})")).unwrap_or_default();
-                let _ = writeln!(s, "| {} | {} | {} | {} | {:.1} | {:.1} | {:.2e} | {} |", a.name, a.category, a.acts_on, pars.join(", "), a.score_statistic, a.delta_chi2, a.p_value, corr);
+                let pars: Vec<String> = a
+                    .parameter_names
+                    .iter()
+                    .zip(&a.parameters)
+                    .zip(&a.sigmas)
+                    .map(|((n, v), e)| format!("{n} = {v:.4e} ± {e:.2e}"))
+                    .collect();
+                let corr = a
+                    .most_correlated
+                    .as_ref()
+                    .map(|(n, c)| format!("{n} ({c:+.3})"))
+                    .unwrap_or_default();
+                let _ = writeln!(
+                    s,
+                    "| {} | {} | {} | {} | {:.1} | {:.1} | {:.2e} | {} |",
+                    a.name,
+                    a.category,
+                    a.acts_on,
+                    pars.join(", "),
+                    a.score_statistic,
+                    a.delta_chi2,
+                    a.p_value,
+                    corr
+                );
             }
             let _ = writeln!(s);
         }
@@ -172,12 +214,26 @@ impl Diagnosis {
         if truth.is_some() {
             let _ = write!(s, " truth | error before [sigma] | error after [sigma] |");
         }
-        let _ = writeln!(s, "\n|---|---|---|---|{}", if truth.is_some() { "---|---|---|" } else { "" });
+        let _ = writeln!(
+            s,
+            "\n|---|---|---|---|{}",
+            if truth.is_some() { "---|---|---|" } else { "" }
+        );
         for (i, (n, sh)) in self.shifts_sigma().iter().enumerate() {
             let (b, a) = (&self.before, &self.after);
-            let _ = write!(s, "| {n} | {:.6e} ± {:.2e} | {:.6e} ± {:.2e} | {sh:+.2} |", b.estimate[i], b.sigma[i], a.estimate[i], a.sigma[i]);
+            let _ = write!(
+                s,
+                "| {n} | {:.6e} ± {:.2e} | {:.6e} ± {:.2e} | {sh:+.2} |",
+                b.estimate[i], b.sigma[i], a.estimate[i], a.sigma[i]
+            );
             if let Some(t) = truth {
-                let _ = write!(s, " {:.6e} | {:+.2} | {:+.2} |", t[i], (b.estimate[i] - t[i]) / b.sigma[i], (a.estimate[i] - t[i]) / a.sigma[i]);
+                let _ = write!(
+                    s,
+                    " {:.6e} | {:+.2} | {:+.2} |",
+                    t[i],
+                    (b.estimate[i] - t[i]) / b.sigma[i],
+                    (a.estimate[i] - t[i]) / a.sigma[i]
+                );
             }
             let _ = writeln!(s);
         }
@@ -189,7 +245,12 @@ impl Diagnosis {
                     .bands
                     .iter()
                     .min_by(|a, b| a.p_value.total_cmp(&b.p_value))
-                    .map(|b| format!("{:.2e}-{:.2e} ({:+.2}, {:.1e})", b.band_hz[0], b.band_hz[1], b.excess, b.p_value))
+                    .map(|b| {
+                        format!(
+                            "{:.2e}-{:.2e} ({:+.2}, {:.1e})",
+                            b.band_hz[0], b.band_hz[1], b.excess, b.p_value
+                        )
+                    })
                     .unwrap_or_default();
                 let _ = writeln!(
                     s,
@@ -215,7 +276,15 @@ impl Diagnosis {
                 let _ = writeln!(
                     s,
                     "| {} | {} | {} | {:.3e} - {:.3e} | {:.0} - {:.0} | {:.3} | {:.1e} |",
-                    u.experiment, u.channel, u.kind, u.band_hz[0], u.band_hz[1], u.time_s[0], u.time_s[1], u.excess, u.p_value
+                    u.experiment,
+                    u.channel,
+                    u.kind,
+                    u.band_hz[0],
+                    u.band_hz[1],
+                    u.time_s[0],
+                    u.time_s[1],
+                    u.excess,
+                    u.p_value
                 );
             }
             let _ = writeln!(s);
@@ -223,7 +292,16 @@ impl Diagnosis {
         let _ = writeln!(s, "## Candidates (score test at zero, per round)\n");
         let _ = writeln!(s, "| round | effect | category | score | p | identifiable | most correlated | delta chi2 | p (refit) |\n|---|---|---|---|---|---|---|---|---|");
         for c in &self.candidates {
-            let corr = c.most_correlated.as_ref().map(|(n, v)| format!("{n} ({v:+.4}){}", if c.degenerate { " degenerate" } else { "" })).unwrap_or_default();
+            let corr = c
+                .most_correlated
+                .as_ref()
+                .map(|(n, v)| {
+                    format!(
+                        "{n} ({v:+.4}){}",
+                        if c.degenerate { " degenerate" } else { "" }
+                    )
+                })
+                .unwrap_or_default();
             let _ = writeln!(
                 s,
                 "| {} | {} | {} | {:.2} | {:.1e} | {:.2e} | {corr} | {} | {} |",
@@ -233,8 +311,12 @@ impl Diagnosis {
                 c.score_statistic,
                 c.score_p_value,
                 c.identifiable_fraction,
-                c.delta_chi2.map(|v| format!("{v:.1}")).unwrap_or_else(|| "-".into()),
-                c.p_value.map(|v| format!("{v:.1e}")).unwrap_or_else(|| "-".into())
+                c.delta_chi2
+                    .map(|v| format!("{v:.1}"))
+                    .unwrap_or_else(|| "-".into()),
+                c.p_value
+                    .map(|v| format!("{v:.1e}"))
+                    .unwrap_or_else(|| "-".into())
             );
         }
         let _ = writeln!(

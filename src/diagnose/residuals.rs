@@ -109,7 +109,9 @@ pub fn chi2_sf(dof: f64, x: f64) -> f64 {
 }
 
 fn f_sf(d1: f64, d2: f64, x: f64) -> f64 {
-    FisherSnedecor::new(d1, d2).map(|d| d.sf(x)).unwrap_or(f64::NAN)
+    FisherSnedecor::new(d1, d2)
+        .map(|d| d.sf(x))
+        .unwrap_or(f64::NAN)
 }
 
 /// Periodogram ordinates `z_k = |X_k|^2 / L`, k = 1..L/2 (DC and Nyquist dropped), and their
@@ -157,7 +159,9 @@ fn mean(v: &[f64]) -> f64 {
 /// Windows of the time axis from the injection stretches: cut at the middle of every gap of
 /// at least `min_gap` samples where all inputs are zero. Falls back to 8 equal windows.
 pub fn stretch_windows(inputs: &[Vec<f64>], n: usize, min_gap: usize) -> Vec<(usize, usize)> {
-    let active: Vec<bool> = (0..n).map(|i| inputs.iter().any(|c| c.get(i).is_some_and(|v| *v != 0.0))).collect();
+    let active: Vec<bool> = (0..n)
+        .map(|i| inputs.iter().any(|c| c.get(i).is_some_and(|v| *v != 0.0)))
+        .collect();
     let mut cuts = Vec::new();
     let mut i = 0;
     while i < n {
@@ -180,7 +184,11 @@ pub fn stretch_windows(inputs: &[Vec<f64>], n: usize, min_gap: usize) -> Vec<(us
         let k = 8.min(n.max(1));
         bounds = (0..=k).map(|j| j * n / k).collect();
     }
-    bounds.windows(2).filter(|w| w[1] > w[0]).map(|w| (w[0], w[1])).collect()
+    bounds
+        .windows(2)
+        .filter(|w| w[1] > w[0])
+        .map(|w| (w[0], w[1]))
+        .collect()
 }
 
 fn ljung_box(x: &[f64], h: usize) -> (f64, usize, f64) {
@@ -244,7 +252,10 @@ impl NoiseReference {
     pub fn new(whitened: &[Vec<f64>], dt: f64) -> Option<Self> {
         let mut f = Vec::new();
         let mut z = Vec::new();
-        let var = whitened.iter().map(|c| c.iter().map(|v| v * v).sum::<f64>() / c.len().max(1) as f64).collect();
+        let var = whitened
+            .iter()
+            .map(|c| c.iter().map(|v| v * v).sum::<f64>() / c.len().max(1) as f64)
+            .collect();
         for c in whitened {
             let (fc, zc) = periodogram(c, dt);
             if zc.is_empty() {
@@ -257,7 +268,13 @@ impl NoiseReference {
     }
 
     fn band(&self, c: usize, lo: f64, hi: f64) -> (f64, usize) {
-        let v: Vec<f64> = self.f.iter().zip(&self.z[c]).filter(|(f, _)| **f >= lo && **f < hi).map(|(_, z)| *z).collect();
+        let v: Vec<f64> = self
+            .f
+            .iter()
+            .zip(&self.z[c])
+            .filter(|(f, _)| **f >= lo && **f < hi)
+            .map(|(_, z)| *z)
+            .collect();
         (mean(&v), v.len())
     }
 }
@@ -302,17 +319,34 @@ pub fn analyse_channel(inp: &ChannelInput<'_>, noise: Option<&NoiseReference>) -
         let edges = band_edges(f[0], 0.5 / dt);
         for w in edges.windows(2) {
             let (lo, hi) = (w[0], w[1]);
-            let v: Vec<f64> = f.iter().zip(&z).filter(|(ff, _)| **ff >= lo && (**ff < hi || hi >= 0.5 / dt)).map(|(_, z)| *z).collect();
+            let v: Vec<f64> = f
+                .iter()
+                .zip(&z)
+                .filter(|(ff, _)| **ff >= lo && (**ff < hi || hi >= 0.5 / dt))
+                .map(|(_, z)| *z)
+                .collect();
             if v.is_empty() {
                 continue;
             }
             let level = mean(&v);
             let k = v.len() as f64;
-            let (noise_level, excess, p_value) = match noise.map(|nr| nr.band(inp.channel_index, lo, hi)) {
-                Some((nl, nk)) if nk > 0 && nl > 0.0 => (Some(nl), level / nl - 1.0, f_sf(2.0 * k, 2.0 * nk as f64, level / nl)),
-                _ => (None, level - 1.0, chi2_sf(2.0 * k, 2.0 * k * level)),
-            };
-            bands.push(BandReport { band_hz: [lo, hi], bins: v.len(), level, noise_level, excess, p_value });
+            let (noise_level, excess, p_value) =
+                match noise.map(|nr| nr.band(inp.channel_index, lo, hi)) {
+                    Some((nl, nk)) if nk > 0 && nl > 0.0 => (
+                        Some(nl),
+                        level / nl - 1.0,
+                        f_sf(2.0 * k, 2.0 * nk as f64, level / nl),
+                    ),
+                    _ => (None, level - 1.0, chi2_sf(2.0 * k, 2.0 * k * level)),
+                };
+            bands.push(BandReport {
+                band_hz: [lo, hi],
+                bins: v.len(),
+                level,
+                noise_level,
+                excess,
+                p_value,
+            });
         }
     }
     // Lines: the largest ordinates against their band's reference level.
@@ -342,10 +376,17 @@ pub fn analyse_channel(inp: &ChannelInput<'_>, noise: Option<&NoiseReference>) -
             if p_value >= inp.alpha {
                 break;
             }
-            if lines.iter().any(|l: &LineReport| (l.f_hz - f[k]).abs() < 3.5 * f[0]) {
+            if lines
+                .iter()
+                .any(|l: &LineReport| (l.f_hz - f[k]).abs() < 3.5 * f[0])
+            {
                 continue;
             }
-            lines.push(LineReport { f_hz: f[k], power, p_value });
+            lines.push(LineReport {
+                f_hz: f[k],
+                power,
+                p_value,
+            });
             if lines.len() >= 5 {
                 break;
             }
@@ -380,7 +421,9 @@ pub fn analyse_channel(inp: &ChannelInput<'_>, noise: Option<&NoiseReference>) -
         if x.iter().all(|v| *v == 0.0) || inp.raw.iter().all(|v| *v == 0.0) {
             continue;
         }
-        let Ok(cs) = welch_csd(&[inp.raw, x], dt, &WelchConfig::default()) else { continue };
+        let Ok(cs) = welch_csd(&[inp.raw, x], dt, &WelchConfig::default()) else {
+            continue;
+        };
         let pin = cs.psd(1);
         let pmax = pin.iter().cloned().fold(0.0, f64::max);
         let coh = cs.coherence(0, 1);
@@ -405,7 +448,11 @@ pub fn analyse_channel(inp: &ChannelInput<'_>, noise: Option<&NoiseReference>) -
         n,
         chi2,
         chi2_reduced: chi2 / n.max(1) as f64,
-        excess_kurtosis: if m2 > 0.0 { m4 / (m2 * m2) - 3.0 } else { f64::NAN },
+        excess_kurtosis: if m2 > 0.0 {
+            m4 / (m2 * m2) - 3.0
+        } else {
+            f64::NAN
+        },
         kurtosis_err: (24.0 / n.max(1) as f64).sqrt(),
         outliers,
         outliers_expected: n as f64 * 5.733e-7,
@@ -423,7 +470,13 @@ pub fn analyse_channel(inp: &ChannelInput<'_>, noise: Option<&NoiseReference>) -
 
 /// Log-binned periodogram of a whitened series (about 12 points per decade), with the 90%
 /// interval of white unit noise.
-pub fn spectrum_curve(stage: &str, experiment: &str, channel: &str, x: &[f64], dt: f64) -> SpectrumCurve {
+pub fn spectrum_curve(
+    stage: &str,
+    experiment: &str,
+    channel: &str,
+    x: &[f64],
+    dt: f64,
+) -> SpectrumCurve {
     let (f, z) = periodogram(x, dt);
     let mut out = SpectrumCurve {
         stage: stage.into(),
@@ -449,7 +502,10 @@ pub fn spectrum_curve(stage: &str, experiment: &str, channel: &str, x: &[f64], d
         let k = seg.len() as f64;
         let fm = (f[i] * f[j - 1]).sqrt();
         let (lo, hi) = match ChiSquared::new(2.0 * k) {
-            Ok(d) => (d.inverse_cdf(0.05) / (2.0 * k), d.inverse_cdf(0.95) / (2.0 * k)),
+            Ok(d) => (
+                d.inverse_cdf(0.05) / (2.0 * k),
+                d.inverse_cdf(0.95) / (2.0 * k),
+            ),
             Err(_) => (f64::NAN, f64::NAN),
         };
         out.f.push(fm);

@@ -40,8 +40,12 @@ impl Effect for ActuationCrosstalk {
     }
     fn acts_on(&self) -> String {
         match self {
-            ActuationCrosstalk::DragFreeOnX12 => "AC[x12, drag-free]: drag-free force leaking onto x12".into(),
-            ActuationCrosstalk::SuspensionOnX1 => "AC[x1, suspension]: suspension force leaking onto x1".into(),
+            ActuationCrosstalk::DragFreeOnX12 => {
+                "AC[x12, drag-free]: drag-free force leaking onto x12".into()
+            }
+            ActuationCrosstalk::SuspensionOnX1 => {
+                "AC[x1, suspension]: suspension force leaking onto x1".into()
+            }
         }
     }
     fn parameter_names(&self) -> Vec<String> {
@@ -56,12 +60,29 @@ impl Effect for ActuationCrosstalk {
             ActuationCrosstalk::SuspensionOnX1 => vec![1e-2],
         }
     }
-    fn perturb(&self, _base: &LpfX, pt: &LpfPoint, _p: &[f64], theta: &[f64], ops: &mut Operators<2>) {
+    fn perturb(
+        &self,
+        _base: &LpfX,
+        pt: &LpfPoint,
+        _p: &[f64],
+        theta: &[f64],
+        ops: &mut Operators<2>,
+    ) {
         ops.ac[self.element()] += self.law(pt) * theta[0];
     }
-    fn derivative(&self, _base: &LpfX, pt: &LpfPoint, _p: &[f64], _theta: &[f64], _k: usize) -> OperatorDerivative<2> {
+    fn derivative(
+        &self,
+        _base: &LpfX,
+        pt: &LpfPoint,
+        _p: &[f64],
+        _theta: &[f64],
+        _k: usize,
+    ) -> OperatorDerivative<2> {
         let mut m = zero();
         m[self.element()] = self.law(pt) * c(1.0);
-        OperatorDerivative { ac: Some(m), ..Default::default() }
+        OperatorDerivative {
+            ac: Some(m),
+            ..Default::default()
+        }
     }
 }

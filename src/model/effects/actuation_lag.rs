@@ -51,7 +51,9 @@ impl Effect for ActuationLag {
     fn acts_on(&self) -> String {
         match self {
             ActuationLag::DragFree => "AC[:, drag-free]: first-order lag of the thrusters".into(),
-            ActuationLag::Suspension => "AC[:, suspension]: first-order lag of the electrostatic actuation".into(),
+            ActuationLag::Suspension => {
+                "AC[:, suspension]: first-order lag of the electrostatic actuation".into()
+            }
         }
     }
     fn parameter_names(&self) -> Vec<String> {
@@ -63,16 +65,40 @@ impl Effect for ActuationLag {
     fn typical(&self) -> Vec<f64> {
         vec![0.1]
     }
-    fn perturb(&self, base: &LpfX, pt: &LpfPoint, p: &[f64], theta: &[f64], ops: &mut Operators<2>) {
+    fn perturb(
+        &self,
+        base: &LpfX,
+        pt: &LpfPoint,
+        p: &[f64],
+        theta: &[f64],
+        ops: &mut Operators<2>,
+    ) {
         let (col, _) = self.column(base, pt, p);
         ops.ac += col * lag_minus_one(pt.s, theta[0]);
     }
-    fn derivative(&self, base: &LpfX, pt: &LpfPoint, p: &[f64], theta: &[f64], _k: usize) -> OperatorDerivative<2> {
+    fn derivative(
+        &self,
+        base: &LpfX,
+        pt: &LpfPoint,
+        p: &[f64],
+        theta: &[f64],
+        _k: usize,
+    ) -> OperatorDerivative<2> {
         let (col, _) = self.column(base, pt, p);
         let den = 1.0 + pt.s * theta[0];
-        OperatorDerivative { ac: Some(col * (-pt.s / (den * den))), ..Default::default() }
+        OperatorDerivative {
+            ac: Some(col * (-pt.s / (den * den))),
+            ..Default::default()
+        }
     }
-    fn base_derivative(&self, base: &LpfX, pt: &LpfPoint, p: &[f64], theta: &[f64], k: usize) -> OperatorDerivative<2> {
+    fn base_derivative(
+        &self,
+        base: &LpfX,
+        pt: &LpfPoint,
+        p: &[f64],
+        theta: &[f64],
+        k: usize,
+    ) -> OperatorDerivative<2> {
         let own = match self {
             ActuationLag::DragFree => A_DF,
             ActuationLag::Suspension => A_SUS,
@@ -81,6 +107,9 @@ impl Effect for ActuationLag {
             return OperatorDerivative::default();
         }
         let (_, unit) = self.column(base, pt, p);
-        OperatorDerivative { ac: Some(unit * lag_minus_one(pt.s, theta[0])), ..Default::default() }
+        OperatorDerivative {
+            ac: Some(unit * lag_minus_one(pt.s, theta[0])),
+            ..Default::default()
+        }
     }
 }

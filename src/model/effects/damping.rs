@@ -20,7 +20,10 @@ impl Effect for Damping {
         Category::Damping
     }
     fn acts_on(&self) -> String {
-        format!("D: velocity-proportional force on {}", self.tm.label().to_uppercase())
+        format!(
+            "D: velocity-proportional force on {}",
+            self.tm.label().to_uppercase()
+        )
     }
     fn parameter_names(&self) -> Vec<String> {
         vec![format!("gamma_{}", self.tm.label())]
@@ -28,10 +31,27 @@ impl Effect for Damping {
     fn typical(&self) -> Vec<f64> {
         vec![1e-6]
     }
-    fn perturb(&self, base: &LpfX, pt: &LpfPoint, _p: &[f64], theta: &[f64], ops: &mut Operators<2>) {
+    fn perturb(
+        &self,
+        base: &LpfX,
+        pt: &LpfPoint,
+        _p: &[f64],
+        theta: &[f64],
+        ops: &mut Operators<2>,
+    ) {
         ops.d += stiffness_map(base, self.tm == Tm::Two) * (pt.s * theta[0]);
     }
-    fn derivative(&self, base: &LpfX, pt: &LpfPoint, _p: &[f64], _theta: &[f64], _k: usize) -> OperatorDerivative<2> {
-        OperatorDerivative { d: Some(stiffness_map(base, self.tm == Tm::Two) * pt.s), ..Default::default() }
+    fn derivative(
+        &self,
+        base: &LpfX,
+        pt: &LpfPoint,
+        _p: &[f64],
+        _theta: &[f64],
+        _k: usize,
+    ) -> OperatorDerivative<2> {
+        OperatorDerivative {
+            d: Some(stiffness_map(base, self.tm == Tm::Two) * pt.s),
+            ..Default::default()
+        }
     }
 }

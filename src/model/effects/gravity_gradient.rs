@@ -25,10 +25,27 @@ impl Effect for GravityGradient {
     fn typical(&self) -> Vec<f64> {
         vec![2e-8]
     }
-    fn perturb(&self, _base: &LpfX, _pt: &LpfPoint, _p: &[f64], theta: &[f64], ops: &mut Operators<2>) {
+    fn perturb(
+        &self,
+        _base: &LpfX,
+        _pt: &LpfPoint,
+        _p: &[f64],
+        theta: &[f64],
+        ops: &mut Operators<2>,
+    ) {
         ops.d += m2(c(0.0), c(theta[0]), c(0.0), c(-2.0 * theta[0]));
     }
-    fn derivative(&self, _base: &LpfX, _pt: &LpfPoint, _p: &[f64], _theta: &[f64], _k: usize) -> OperatorDerivative<2> {
-        OperatorDerivative { d: Some(m2(c(0.0), c(1.0), c(0.0), c(-2.0))), ..Default::default() }
+    fn derivative(
+        &self,
+        _base: &LpfX,
+        _pt: &LpfPoint,
+        _p: &[f64],
+        _theta: &[f64],
+        _k: usize,
+    ) -> OperatorDerivative<2> {
+        OperatorDerivative {
+            d: Some(m2(c(0.0), c(1.0), c(0.0), c(-2.0))),
+            ..Default::default()
+        }
     }
 }

@@ -48,7 +48,10 @@ impl Effect for LossAngle {
         Category::LossAngle
     }
     fn acts_on(&self) -> String {
-        format!("D: imaginary part of the {} stiffness", self.tm.label().to_uppercase())
+        format!(
+            "D: imaginary part of the {} stiffness",
+            self.tm.label().to_uppercase()
+        )
     }
     fn parameter_names(&self) -> Vec<String> {
         vec![format!("phi_{}", self.tm.label())]
@@ -56,21 +59,48 @@ impl Effect for LossAngle {
     fn typical(&self) -> Vec<f64> {
         vec![0.02]
     }
-    fn perturb(&self, base: &LpfX, _pt: &LpfPoint, p: &[f64], theta: &[f64], ops: &mut Operators<2>) {
+    fn perturb(
+        &self,
+        base: &LpfX,
+        _pt: &LpfPoint,
+        p: &[f64],
+        theta: &[f64],
+        ops: &mut Operators<2>,
+    ) {
         let m = stiffness_map(base, self.tm == Tm::Two);
         ops.d += m * (I * (theta[0] * self.stiffness(p)));
     }
-    fn derivative(&self, base: &LpfX, _pt: &LpfPoint, p: &[f64], _theta: &[f64], _k: usize) -> OperatorDerivative<2> {
+    fn derivative(
+        &self,
+        base: &LpfX,
+        _pt: &LpfPoint,
+        p: &[f64],
+        _theta: &[f64],
+        _k: usize,
+    ) -> OperatorDerivative<2> {
         let m = stiffness_map(base, self.tm == Tm::Two);
-        OperatorDerivative { d: Some(m * (I * self.stiffness(p))), ..Default::default() }
+        OperatorDerivative {
+            d: Some(m * (I * self.stiffness(p))),
+            ..Default::default()
+        }
     }
-    fn base_derivative(&self, base: &LpfX, _pt: &LpfPoint, _p: &[f64], theta: &[f64], k: usize) -> OperatorDerivative<2> {
+    fn base_derivative(
+        &self,
+        base: &LpfX,
+        _pt: &LpfPoint,
+        _p: &[f64],
+        theta: &[f64],
+        k: usize,
+    ) -> OperatorDerivative<2> {
         let dw = match (self.tm, k) {
             (_, W1) => 1.0,
             (Tm::Two, W12) => 1.0,
             _ => return OperatorDerivative::default(),
         };
         let m = stiffness_map(base, self.tm == Tm::Two);
-        OperatorDerivative { d: Some(m * (I * (theta[0] * dw))), ..Default::default() }
+        OperatorDerivative {
+            d: Some(m * (I * (theta[0] * dw))),
+            ..Default::default()
+        }
     }
 }

@@ -89,9 +89,23 @@ pub trait Effect: Send + Sync + std::fmt::Debug {
     /// Add the perturbation at parameters `theta` to `ops` (base parameters `p`).
     fn perturb(&self, base: &LpfX, pt: &LpfPoint, p: &[f64], theta: &[f64], ops: &mut Operators<2>);
     /// Derivative of the perturbation with respect to its own parameter `k`.
-    fn derivative(&self, base: &LpfX, pt: &LpfPoint, p: &[f64], theta: &[f64], k: usize) -> OperatorDerivative<2>;
+    fn derivative(
+        &self,
+        base: &LpfX,
+        pt: &LpfPoint,
+        p: &[f64],
+        theta: &[f64],
+        k: usize,
+    ) -> OperatorDerivative<2>;
     /// Derivative of the perturbation with respect to base parameter `k` (zero by default).
-    fn base_derivative(&self, _base: &LpfX, _pt: &LpfPoint, _p: &[f64], _theta: &[f64], _k: usize) -> OperatorDerivative<2> {
+    fn base_derivative(
+        &self,
+        _base: &LpfX,
+        _pt: &LpfPoint,
+        _p: &[f64],
+        _theta: &[f64],
+        _k: usize,
+    ) -> OperatorDerivative<2> {
         OperatorDerivative::default()
     }
 }
@@ -152,7 +166,12 @@ fn add_opt(a: Option<CMat<2>>, b: Option<CMat<2>>) -> Option<CMat<2>> {
 }
 
 fn merge(a: OperatorDerivative<2>, b: OperatorDerivative<2>) -> OperatorDerivative<2> {
-    OperatorDerivative { d: add_opt(a.d, b.d), s: add_opt(a.s, b.s), ac: add_opt(a.ac, b.ac), t: add_opt(a.t, b.t) }
+    OperatorDerivative {
+        d: add_opt(a.d, b.d),
+        s: add_opt(a.s, b.s),
+        ac: add_opt(a.ac, b.ac),
+        t: add_opt(a.t, b.t),
+    }
 }
 
 /// The reference model extended by a set of effects. Parameters: the base parameters, then each
@@ -176,7 +195,13 @@ impl Extended {
             names.extend(e.parameter_names());
             offsets.push(names.len());
         }
-        Extended { base, effects, names, n_base, offsets }
+        Extended {
+            base,
+            effects,
+            names,
+            n_base,
+            offsets,
+        }
     }
 
     pub fn n_base(&self) -> usize {
@@ -239,7 +264,11 @@ impl ClosedLoopModel<2> for Extended {
             }
             return der;
         }
-        let i = self.offsets.iter().rposition(|&o| o <= k).expect("offsets start at n_base");
+        let i = self
+            .offsets
+            .iter()
+            .rposition(|&o| o <= k)
+            .expect("offsets start at n_base");
         let r = self.range(i);
         self.effects[i].derivative(&self.base, pt, pb, &p[r.clone()], k - r.start)
     }

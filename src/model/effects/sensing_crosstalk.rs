@@ -24,10 +24,27 @@ impl Effect for SensingCrosstalk {
     fn typical(&self) -> Vec<f64> {
         vec![1e-4]
     }
-    fn perturb(&self, _base: &LpfX, _pt: &LpfPoint, _p: &[f64], theta: &[f64], ops: &mut Operators<2>) {
+    fn perturb(
+        &self,
+        _base: &LpfX,
+        _pt: &LpfPoint,
+        _p: &[f64],
+        theta: &[f64],
+        ops: &mut Operators<2>,
+    ) {
         ops.s[(0, 1)] += c(theta[0]);
     }
-    fn derivative(&self, _base: &LpfX, _pt: &LpfPoint, _p: &[f64], _theta: &[f64], _k: usize) -> OperatorDerivative<2> {
-        OperatorDerivative { s: Some(m2(c(0.0), c(1.0), c(0.0), c(0.0))), ..Default::default() }
+    fn derivative(
+        &self,
+        _base: &LpfX,
+        _pt: &LpfPoint,
+        _p: &[f64],
+        _theta: &[f64],
+        _k: usize,
+    ) -> OperatorDerivative<2> {
+        OperatorDerivative {
+            s: Some(m2(c(0.0), c(1.0), c(0.0), c(0.0))),
+            ..Default::default()
+        }
     }
 }

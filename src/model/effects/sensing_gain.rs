@@ -37,12 +37,29 @@ impl Effect for SensingGain {
     fn typical(&self) -> Vec<f64> {
         vec![1e-3]
     }
-    fn perturb(&self, _base: &LpfX, _pt: &LpfPoint, _p: &[f64], theta: &[f64], ops: &mut Operators<2>) {
+    fn perturb(
+        &self,
+        _base: &LpfX,
+        _pt: &LpfPoint,
+        _p: &[f64],
+        theta: &[f64],
+        ops: &mut Operators<2>,
+    ) {
         ops.s[(self.channel, self.channel)] += c(theta[0]);
     }
-    fn derivative(&self, _base: &LpfX, _pt: &LpfPoint, _p: &[f64], _theta: &[f64], _k: usize) -> OperatorDerivative<2> {
+    fn derivative(
+        &self,
+        _base: &LpfX,
+        _pt: &LpfPoint,
+        _p: &[f64],
+        _theta: &[f64],
+        _k: usize,
+    ) -> OperatorDerivative<2> {
         let mut m = zero();
         m[(self.channel, self.channel)] = c(1.0);
-        OperatorDerivative { s: Some(m), ..Default::default() }
+        OperatorDerivative {
+            s: Some(m),
+            ..Default::default()
+        }
     }
 }
