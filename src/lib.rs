@@ -5,13 +5,13 @@
 //! does no file I/O and prints nothing; `io` and `cli` are the only edges. See README.md for the
 //! architecture and `../shared/seed/thesis.tex` (cited as "thesis") for the equations.
 
-pub mod cli;
-pub mod diagnose;
-pub mod fit;
 pub mod io;
+pub mod spectral;
 pub mod model;
 pub mod noise;
-pub mod setup;
 pub mod signal;
 pub mod sim;
-pub mod spectral;
+pub mod fit;
+pub mod setup;
+pub mod cli;
+pub mod diagnose;

@@ -91,36 +91,17 @@ impl Setup {
     }
 
     /// Whitening filter from the model's noise PSD at `p`, for series of `n` samples.
-    pub fn whitener_from_model(
-        &self,
-        p: &[f64],
-        n: usize,
-        dt: f64,
-        order: usize,
-    ) -> Result<Whitener<2>, Error> {
+    pub fn whitener_from_model(&self, p: &[f64], n: usize, dt: f64, order: usize) -> Result<Whitener<2>, Error> {
         Ok(Whitener::from_psd(self.psd(p), dt, order, n)?)
     }
 
     /// A simulator of `design` at parameters `truth`, directly at the analysis rate. The noise
     /// has the model PSD sampled at the analysis rate, i.e. the data an ideal anti-alias
     /// decimator would produce (the 10 Hz path with a real filter is `sim::decimated`).
-    pub fn simulator(
-        &self,
-        design: &Design,
-        truth: &[f64],
-        glitch: Option<&GlitchSpec>,
-    ) -> Result<Simulator<2>, Error> {
+    pub fn simulator(&self, design: &Design, truth: &[f64], glitch: Option<&GlitchSpec>) -> Result<Simulator<2>, Error> {
         let dt = self.analysis_dt();
         let n = design.samples(dt);
         let glitches = glitch.map(|g| GlitchConfig::new(g, n));
-        Ok(Simulator::new(
-            &self.model,
-            design,
-            truth,
-            self.psd(truth),
-            dt,
-            NOISE_OVERSAMPLE,
-            glitches,
-        )?)
+        Ok(Simulator::new(&self.model, design, truth, self.psd(truth), dt, NOISE_OVERSAMPLE, glitches)?)
     }
 }

@@ -2,9 +2,7 @@
 //! for system identification"), central finite differences for the analytic derivatives, and
 //! closed-loop stability from the characteristic polynomial.
 
-use freefall::model::{
-    check_stability, transfer, transfer_with_derivatives, CMat, ClosedLoopModel, LpfX, ModelSpec,
-};
+use freefall::model::{check_stability, transfer, transfer_with_derivatives, CMat, ClosedLoopModel, LpfX, ModelSpec};
 use proptest::prelude::*;
 
 fn lpf() -> (ModelSpec, LpfX) {
@@ -14,9 +12,7 @@ fn lpf() -> (ModelSpec, LpfX) {
 }
 
 fn log_grid(lo: f64, hi: f64, n: usize) -> Vec<f64> {
-    (0..n)
-        .map(|i| lo * (hi / lo).powf(i as f64 / (n - 1) as f64))
-        .collect()
+    (0..n).map(|i| lo * (hi / lo).powf(i as f64 / (n - 1) as f64)).collect()
 }
 
 #[test]
@@ -26,10 +22,7 @@ fn expected_features_are_reproduced() {
     let p = spec.scenario("monte_carlo").unwrap().truth;
     let feats = spec.expected_features.clone().unwrap();
     let grid = log_grid(1e-5, 0.5, 40_000);
-    let mags: Vec<CMat<2>> = grid
-        .iter()
-        .map(|&f| transfer(&m, &m.prepare(f), &p).oi_o)
-        .collect();
+    let mags: Vec<CMat<2>> = grid.iter().map(|&f| transfer(&m, &m.prepare(f), &p).oi_o).collect();
     for (name, feat, out, inp) in [
         ("T11", feats.t11.unwrap(), 0, 0),
         ("T22", feats.t22.unwrap(), 1, 1),
@@ -44,17 +37,8 @@ fn expected_features_are_reproduced() {
             .unwrap();
         let rel = (peak - feat.peak).abs() / feat.peak;
         let rel_f = (grid[k] - feat.peak_hz).abs() / feat.peak_hz;
-        assert!(
-            rel < feats.tolerance.peak_rel,
-            "{name}: peak {peak} vs {}",
-            feat.peak
-        );
-        assert!(
-            rel_f < feats.tolerance.peak_hz_rel,
-            "{name}: peak at {} Hz vs {}",
-            grid[k],
-            feat.peak_hz
-        );
+        assert!(rel < feats.tolerance.peak_rel, "{name}: peak {peak} vs {}", feat.peak);
+        assert!(rel_f < feats.tolerance.peak_hz_rel, "{name}: peak at {} Hz vs {}", grid[k], feat.peak_hz);
     }
 }
 
@@ -70,16 +54,12 @@ fn every_scenario_is_stable_and_an_unstable_set_is_named() {
     // A strongly negative stiffness the suspension loop cannot hold.
     let mut p = spec.nominal();
     p[1] = -1e-2;
-    let err = check_stability(&m, &p, Some(&spec.nominal()))
-        .unwrap_err()
-        .to_string();
+    let err = check_stability(&m, &p, Some(&spec.nominal())).unwrap_err().to_string();
     assert!(err.contains("unstable") && err.contains("w12_sq"), "{err}");
     // Zero actuation gain on the suspension loop leaves an unstable oscillator.
     let mut p = spec.nominal();
     p[4] = 0.0;
-    let err = check_stability(&m, &p, Some(&spec.nominal()))
-        .unwrap_err()
-        .to_string();
+    let err = check_stability(&m, &p, Some(&spec.nominal())).unwrap_err().to_string();
     assert!(err.contains("a_sus"), "{err}");
 }
 
@@ -98,10 +78,7 @@ fn closed_loop_poles_match_det_delta_zeros() {
         let dens = m.c_df.denominator().eval(pt.s) * m.c_sus.denominator().eval(pt.s);
         let lhs = det * dens;
         let rhs = poly.eval(pt.s);
-        assert!(
-            (lhs - rhs).norm() <= 1e-9 * rhs.norm(),
-            "f={f}: {lhs} vs {rhs}"
-        );
+        assert!((lhs - rhs).norm() <= 1e-9 * rhs.norm(), "f={f}: {lhs} vs {rhs}");
     }
 }
 
@@ -146,22 +123,13 @@ proptest! {
 
 #[test]
 fn model_file_errors_name_the_key() {
-    let text = freefall::model::spec::EMBEDDED_LPF_X
-        .replace("gamma_x = 4.0e-9", "gamma_x = 4.0e-9\nbogus = 1");
-    let err = ModelSpec::from_toml_str(&text, "my.toml")
-        .unwrap_err()
-        .to_string();
+    let text = freefall::model::spec::EMBEDDED_LPF_X.replace("gamma_x = 4.0e-9", "gamma_x = 4.0e-9\nbogus = 1");
+    let err = ModelSpec::from_toml_str(&text, "my.toml").unwrap_err().to_string();
     assert!(err.contains("my.toml") && err.contains("bogus"), "{err}");
-    let text =
-        freefall::model::spec::EMBEDDED_LPF_X.replace("dt12 = 0.05 }", "dt12 = 0.05, zeta = 1 }");
-    let err = ModelSpec::from_toml_str(&text, "my.toml")
-        .unwrap_err()
-        .to_string();
+    let text = freefall::model::spec::EMBEDDED_LPF_X.replace("dt12 = 0.05 }", "dt12 = 0.05, zeta = 1 }");
+    let err = ModelSpec::from_toml_str(&text, "my.toml").unwrap_err().to_string();
     assert!(err.contains("zeta"), "{err}");
-    let err = ModelSpec::embedded()
-        .scenario("nope")
-        .unwrap_err()
-        .to_string();
+    let err = ModelSpec::embedded().scenario("nope").unwrap_err().to_string();
     assert!(err.contains("nope") && err.contains("monte_carlo"), "{err}");
 }
 
@@ -172,32 +140,17 @@ fn specialised_lpf_grid_matches_generic_algebra() {
     use freefall::model::closed_loop::transfer_grid_generic;
     let (spec, m) = lpf();
     let p = spec.scenario("under_performing").unwrap().truth;
-    for grid in [
-        (1..5000).map(|k| k as f64 * 1e-4).collect::<Vec<_>>(),
-        log_grid(1e-5, 0.5, 3000),
-    ] {
+    for grid in [(1..5000).map(|k| k as f64 * 1e-4).collect::<Vec<_>>(), log_grid(1e-5, 0.5, 3000)] {
         let pts: Vec<_> = grid.iter().map(|&f| m.prepare(f)).collect();
-        let (mut t1, mut t2) = (
-            vec![CMat::<2>::zeros(); pts.len()],
-            vec![CMat::<2>::zeros(); pts.len()],
-        );
-        let (mut d1, mut d2) = (
-            vec![CMat::<2>::zeros(); 7 * pts.len()],
-            vec![CMat::<2>::zeros(); 7 * pts.len()],
-        );
+        let (mut t1, mut t2) = (vec![CMat::<2>::zeros(); pts.len()], vec![CMat::<2>::zeros(); pts.len()]);
+        let (mut d1, mut d2) = (vec![CMat::<2>::zeros(); 7 * pts.len()], vec![CMat::<2>::zeros(); 7 * pts.len()]);
         m.transfer_grid(&pts, &p, &mut t1, Some(&mut d1));
         transfer_grid_generic(&m, &pts, &p, &mut t2, Some(&mut d2));
         for k in 0..pts.len() {
-            assert!(
-                (t1[k] - t2[k]).norm() <= 1e-10 * t2[k].norm(),
-                "T at bin {k}"
-            );
+            assert!((t1[k] - t2[k]).norm() <= 1e-10 * t2[k].norm(), "T at bin {k}");
             for q in 0..7 {
                 let (a, b) = (d1[k * 7 + q], d2[k * 7 + q]);
-                assert!(
-                    (a - b).norm() <= 1e-9 * b.norm() + 1e-30,
-                    "dT/dp{q} at bin {k}: {a} vs {b}"
-                );
+                assert!((a - b).norm() <= 1e-9 * b.norm() + 1e-30, "dT/dp{q} at bin {k}: {a} vs {b}");
             }
         }
     }

@@ -11,9 +11,7 @@ use serde::Serialize;
 use super::{ensure_parent, ModelOpt};
 use crate::fit::problem::ExperimentData;
 use crate::fit::{fit as run_fit, Estimator, FitConfig, Likelihood, Whitener};
-use crate::io::{
-    read_dataset, read_run, read_toml, write_json_atomic, write_parquet, Dataset, Run, Table,
-};
+use crate::io::{read_dataset, read_run, read_toml, write_json_atomic, write_parquet, Dataset, Run, Table};
 use crate::model::check_stability;
 use crate::setup::{Setup, DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 use crate::spectral::{welch_csd, WelchConfig};
@@ -30,8 +28,7 @@ pub struct PsdArgs {
 pub fn psd(a: PsdArgs) -> Result<()> {
     let run = read_run(&a.run)?;
     let [o1, o12] = run.outputs();
-    let cs = welch_csd(&[o1, o12], run.dt, &WelchConfig::default())
-        .with_context(|| format!("{}", a.run.display()))?;
+    let cs = welch_csd(&[o1, o12], run.dt, &WelchConfig::default()).with_context(|| format!("{}", a.run.display()))?;
     let s12 = cs.csd(0, 1);
     let table = Table::new()
         .with_f64("f", cs.f.clone())?
@@ -42,13 +39,7 @@ pub fn psd(a: PsdArgs) -> Result<()> {
         .with_f64("coherence", cs.coherence(0, 1))?;
     ensure_parent(&a.out)?;
     write_parquet(&a.out, &table)?;
-    eprintln!(
-        "wrote {} ({} bins, {} segments, {:.1} equivalent degrees of freedom)",
-        a.out.display(),
-        cs.f.len(),
-        cs.segments,
-        cs.dof()
-    );
+    eprintln!("wrote {} ({} bins, {} segments, {:.1} equivalent degrees of freedom)", a.out.display(), cs.f.len(), cs.segments, cs.dof());
     Ok(())
 }
 
@@ -143,21 +134,13 @@ pub fn whiten(a: WhitenArgs) -> Result<()> {
         (None, false) => bail!("give --noise NOISE.parquet or --model-psd to choose where the whitening filter comes from"),
     };
     if run.len() < whitener.order() + 10 {
-        bail!(
-            "{}: {} samples, fewer than the whitening filter needs ({} + 10)",
-            a.run.display(),
-            run.len(),
-            whitener.order()
-        );
+        bail!("{}: {} samples, fewer than the whitening filter needs ({} + 10)", a.run.display(), run.len(), whitener.order());
     }
     let w = whitener.apply(&outputs_of(&run));
     let basis = crate::fit::whiten::poly_basis(w[0].len(), a.poly_degree);
     let p = whitener.order();
     println!("whitening filter: order {p}, from {source}; first {p} samples dropped");
-    println!(
-        "{:<8} {:<10} {:>22} {:>20} {:>20} {:>20}",
-        "channel", "stage", "mean", "sd", "skewness", "excess kurtosis"
-    );
+    println!("{:<8} {:<10} {:>22} {:>20} {:>20} {:>20}", "channel", "stage", "mean", "sd", "skewness", "excess kurtosis");
     let mut cols = Vec::new();
     for (c, name) in ["o1", "o12"].iter().enumerate() {
         let raw = moments(&w[c]);
@@ -173,10 +156,7 @@ pub fn whiten(a: WhitenArgs) -> Result<()> {
         cols.push(det);
     }
     let t: Vec<f64> = (p..run.len()).map(|i| run.t0 + i as f64 * run.dt).collect();
-    let table = Table::new()
-        .with_f64("t", t)?
-        .with_f64("o1_w", cols[0].clone())?
-        .with_f64("o12_w", cols[1].clone())?;
+    let table = Table::new().with_f64("t", t)?.with_f64("o1_w", cols[0].clone())?.with_f64("o12_w", cols[1].clone())?;
     ensure_parent(&a.out)?;
     write_parquet(&a.out, &table)?;
     eprintln!("wrote {}", a.out.display());
@@ -212,11 +192,7 @@ pub fn experiment_data(ds: &Dataset) -> Result<ExperimentData> {
     let dt = ds.dt().context("dataset has no runs")?;
     Ok(ExperimentData {
         names: ds.experiments.iter().map(|(n, _)| n.clone()).collect(),
-        inputs: ds
-            .experiments
-            .iter()
-            .map(|(_, r)| r.inputs().iter().map(|c| c.to_vec()).collect())
-            .collect(),
+        inputs: ds.experiments.iter().map(|(_, r)| r.inputs().iter().map(|c| c.to_vec()).collect()).collect(),
         outputs: ds.experiments.iter().map(|(_, r)| outputs_of(r)).collect(),
         dt,
     })
@@ -225,9 +201,7 @@ pub fn experiment_data(ds: &Dataset) -> Result<ExperimentData> {
 /// Resolve `--guess`: scenario name or parameter file.
 pub fn resolve_guess(setup: &Setup, guess: Option<&str>) -> Result<Vec<f64>> {
     let names = setup.parameter_names();
-    let Some(g) = guess else {
-        return Ok(setup.spec.nominal());
-    };
+    let Some(g) = guess else { return Ok(setup.spec.nominal()) };
     if setup.spec.scenarios.contains_key(g) {
         return Ok(setup.spec.scenario(g)?.guess);
     }
@@ -235,59 +209,30 @@ pub fn resolve_guess(setup: &Setup, guess: Option<&str>) -> Result<Vec<f64>> {
     if !path.exists() {
         bail!(
             "--guess '{g}' is neither a scenario ({}) nor an existing file",
-            setup
-                .spec
-                .scenarios
-                .keys()
-                .cloned()
-                .collect::<Vec<_>>()
-                .join(", ")
+            setup.spec.scenarios.keys().cloned().collect::<Vec<_>>().join(", ")
         );
     }
     let map: BTreeMap<String, f64> = read_toml(path)?;
     for k in map.keys() {
         if !names.contains(k) {
-            bail!(
-                "{}: unknown parameter '{k}' (expected {})",
-                path.display(),
-                names.join(", ")
-            );
+            bail!("{}: unknown parameter '{k}' (expected {})", path.display(), names.join(", "));
         }
     }
     names
         .iter()
-        .map(|n| {
-            map.get(n)
-                .copied()
-                .with_context(|| format!("{}: missing parameter '{n}'", path.display()))
-        })
+        .map(|n| map.get(n).copied().with_context(|| format!("{}: missing parameter '{n}'", path.display())))
         .collect()
 }
 
 /// Whitening filter for a dataset: from its noise run, else from the model PSD at `p`.
-pub fn dataset_whitener(
-    setup: &Setup,
-    ds: &Dataset,
-    p: &[f64],
-    n: usize,
-    dt: f64,
-    order: usize,
-) -> Result<(Whitener<2>, String)> {
+pub fn dataset_whitener(setup: &Setup, ds: &Dataset, p: &[f64], n: usize, dt: f64, order: usize) -> Result<(Whitener<2>, String)> {
     match &ds.noise {
         Some(noise) => {
-            let label = noise
-                .path
-                .as_ref()
-                .map(|p| p.display().to_string())
-                .unwrap_or_else(|| "noise run".into());
-            let w = Whitener::<2>::from_series(&outputs_of(noise), order)
-                .with_context(|| label.clone())?;
+            let label = noise.path.as_ref().map(|p| p.display().to_string()).unwrap_or_else(|| "noise run".into());
+            let w = Whitener::<2>::from_series(&outputs_of(noise), order).with_context(|| label.clone())?;
             Ok((w, format!("noise run {label}")))
         }
-        None => Ok((
-            setup.whitener_from_model(p, n, dt, order)?,
-            "model noise PSD (the dataset has no noise run)".into(),
-        )),
+        None => Ok((setup.whitener_from_model(p, n, dt, order)?, "model noise PSD (the dataset has no noise run)".into())),
     }
 }
 
@@ -314,8 +259,7 @@ pub fn fit(a: FitArgs) -> Result<()> {
     let ds = read_dataset(&a.dataset)?;
     let data = experiment_data(&ds)?;
     let guess = resolve_guess(&setup, a.guess.as_deref())?;
-    check_stability(&setup.model, &guess, Some(&setup.spec.nominal()))
-        .context("the starting point")?;
+    check_stability(&setup.model, &guess, Some(&setup.spec.nominal())).context("the starting point")?;
     let (whitener, source) = dataset_whitener(&setup, &ds, &guess, data.len(), data.dt, a.order)?;
     if ds.noise.is_none() {
         eprintln!("note: whitening from the {source}");
@@ -328,8 +272,7 @@ pub fn fit(a: FitArgs) -> Result<()> {
     let res = run_fit(&setup.model, &problem, &guess, &cfg)?;
     let names = setup.parameter_names();
 
-    std::fs::create_dir_all(&a.out)
-        .with_context(|| format!("cannot create output directory '{}'", a.out.display()))?;
+    std::fs::create_dir_all(&a.out).with_context(|| format!("cannot create output directory '{}'", a.out.display()))?;
     let est = Table::new()
         .with_str("parameter", names.clone())?
         .with_f64("estimate", res.estimate.clone())?
@@ -346,15 +289,9 @@ pub fn fit(a: FitArgs) -> Result<()> {
     }
     write_parquet(
         a.out.join("correlation.parquet"),
-        &Table::new()
-            .with_str("parameter_i", pi)?
-            .with_str("parameter_j", pj)?
-            .with_f64("corr", corr)?,
+        &Table::new().with_str("parameter_i", pi)?.with_str("parameter_j", pj)?.with_f64("corr", corr)?,
     )?;
-    write_parquet(
-        a.out.join("residuals.parquet"),
-        &residual_table(&problem, &data, &res.estimate, &res.residuals_w)?,
-    )?;
+    write_parquet(a.out.join("residuals.parquet"), &residual_table(&problem, &data, &res.estimate, &res.residuals_w)?)?;
     let json = FitJson {
         chi2: res.chi2,
         nu: res.nu,
@@ -383,25 +320,15 @@ pub fn fit(a: FitArgs) -> Result<()> {
         res.termination.as_str(),
         res.seconds
     );
-    print!(
-        "{:<8} {:>16} {:>12} {:>16}",
-        "param", "estimate", "sigma", "guess"
-    );
+    print!("{:<8} {:>16} {:>12} {:>16}", "param", "estimate", "sigma", "guess");
     if truth.is_some() {
         print!(" {:>16} {:>9}", "truth", "pull");
     }
     println!();
     for k in 0..names.len() {
-        print!(
-            "{:<8} {:>16.8e} {:>12.3e} {:>16.6e}",
-            names[k], res.estimate[k], res.sigma[k], guess[k]
-        );
+        print!("{:<8} {:>16.8e} {:>12.3e} {:>16.6e}", names[k], res.estimate[k], res.sigma[k], guess[k]);
         if let Some(t) = &truth {
-            print!(
-                " {:>16.8e} {:>9.2}",
-                t[k],
-                (res.estimate[k] - t[k]) / res.sigma[k]
-            );
+            print!(" {:>16.8e} {:>9.2}", t[k], (res.estimate[k] - t[k]) / res.sigma[k]);
         }
         println!();
     }
@@ -415,10 +342,7 @@ pub fn fit(a: FitArgs) -> Result<()> {
 /// `[meta.truth]` of a simulated dataset, if complete.
 pub fn truth_from_meta(ds: &Dataset, names: &[String]) -> Option<Vec<f64>> {
     let t = ds.meta.get("truth")?.as_table()?;
-    names
-        .iter()
-        .map(|n| t.get(n).and_then(|v| v.as_float()))
-        .collect()
+    names.iter().map(|n| t.get(n).and_then(|v| v.as_float())).collect()
 }
 
 /// Long-format residual table: experiment, channel, t, raw, whitened (NaN where the whitening
@@ -431,8 +355,7 @@ pub fn residual_table<M: crate::model::ClosedLoopModel<2>>(
 ) -> Result<Table> {
     let raw = problem.raw_residuals(data, p);
     let order = problem.lik.order();
-    let (mut exp, mut ch, mut t, mut r, mut w) =
-        (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let (mut exp, mut ch, mut t, mut r, mut w) = (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
     for (e, name) in data.names.iter().enumerate() {
         for (c, cname) in ["o1", "o12"].iter().enumerate() {
             for i in 0..data.len() {
@@ -440,11 +363,7 @@ pub fn residual_table<M: crate::model::ClosedLoopModel<2>>(
                 ch.push(cname.to_string());
                 t.push(i as f64 * data.dt);
                 r.push(raw[e][c][i]);
-                w.push(if i >= order {
-                    whitened[e][c][i - order]
-                } else {
-                    f64::NAN
-                });
+                w.push(if i >= order { whitened[e][c][i - order] } else { f64::NAN });
             }
         }
     }

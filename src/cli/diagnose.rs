@@ -171,12 +171,11 @@ fn write_outputs(out: &Path, d: &Diagnosis, names: &[String], dt: f64) -> Result
             (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
         for (e, name) in names.iter().enumerate() {
             for (c, cname) in ["o1", "o12"].iter().enumerate() {
-                let n = raw[e][c].len();
-                for i in 0..n {
+                for (i, &v) in raw[e][c].iter().enumerate() {
                     exp.push(name.clone());
                     ch.push(cname.to_string());
                     t.push(i as f64 * dt);
-                    r.push(raw[e][c][i]);
+                    r.push(v);
                     wv.push(if i >= d.order {
                         w[e][c].get(i - d.order).copied().unwrap_or(f64::NAN)
                     } else {

@@ -16,11 +16,7 @@ use clap::{Args, Parser, Subcommand};
 use crate::setup::Setup;
 
 #[derive(Debug, Parser)]
-#[command(
-    name = "freefall",
-    version,
-    about = "System identification of drag-free closed-loop experiments (LISA Pathfinder kind)"
-)]
+#[command(name = "freefall", version, about = "System identification of drag-free closed-loop experiments (LISA Pathfinder kind)")]
 pub struct Cli {
     #[command(subcommand)]
     pub command: Command,
@@ -87,17 +83,13 @@ pub fn run() -> i32 {
 
 /// The error chain on one line.
 pub fn one_line(e: &anyhow::Error) -> String {
-    e.chain()
-        .map(|c| c.to_string())
-        .collect::<Vec<_>>()
-        .join(": ")
+    e.chain().map(|c| c.to_string()).collect::<Vec<_>>().join(": ")
 }
 
 /// Create the parent directory of an output file, with a clear error.
 pub fn ensure_parent(path: &std::path::Path) -> Result<()> {
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        crate::io::ensure_dir(dir)
-            .with_context(|| format!("cannot create directory for '{}'", path.display()))?;
+        crate::io::ensure_dir(dir).with_context(|| format!("cannot create directory for '{}'", path.display()))?;
     }
     Ok(())
 }

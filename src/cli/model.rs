@@ -82,9 +82,7 @@ pub fn log_grid(fmin: f64, fmax: f64, points: usize) -> Result<Vec<f64>> {
     if points < 2 {
         bail!("--points must be at least 2, got {points}");
     }
-    Ok((0..points)
-        .map(|i| fmin * (fmax / fmin).powf(i as f64 / (points - 1) as f64))
-        .collect())
+    Ok((0..points).map(|i| fmin * (fmax / fmin).powf(i as f64 / (points - 1) as f64)).collect())
 }
 
 fn grid_table(a: GridArgs, noise: bool) -> Result<()> {
@@ -93,37 +91,22 @@ fn grid_table(a: GridArgs, noise: bool) -> Result<()> {
     let f = log_grid(a.fmin, a.fmax, a.points)?;
     let nyquist = 0.5 * setup.spec.sampling.simulate_hz;
     if a.fmax > nyquist {
-        bail!(
-            "--fmax {} Hz is above the simulation Nyquist frequency {nyquist} Hz",
-            a.fmax
-        );
+        bail!("--fmax {} Hz is above the simulation Nyquist frequency {nyquist} Hz", a.fmax);
     }
     let mut table = Table::new().with_f64("f", f.clone())?;
     if noise {
-        let s: Vec<_> = f
-            .iter()
-            .map(|&x| setup.noise.readout_csd(&setup.model, x, &p))
-            .collect();
+        let s: Vec<_> = f.iter().map(|&x| setup.noise.readout_csd(&setup.model, x, &p)).collect();
         table = table
             .with_f64("s11", s.iter().map(|m| m[(0, 0)].re).collect())?
             .with_f64("s22", s.iter().map(|m| m[(1, 1)].re).collect())?
             .with_f64("s12_re", s.iter().map(|m| m[(0, 1)].re).collect())?
             .with_f64("s12_im", s.iter().map(|m| m[(0, 1)].im).collect())?;
     } else {
-        let t: Vec<_> = f
-            .iter()
-            .map(|&x| transfer(&setup.model, &setup.model.prepare(x), &p).oi_o)
-            .collect();
+        let t: Vec<_> = f.iter().map(|&x| transfer(&setup.model, &setup.model.prepare(x), &p).oi_o).collect();
         for (name, o, i) in [("t11", 0, 0), ("t12", 0, 1), ("t21", 1, 0), ("t22", 1, 1)] {
             table = table
-                .with_f64(
-                    &format!("{name}_re"),
-                    t.iter().map(|m| m[(o, i)].re).collect(),
-                )?
-                .with_f64(
-                    &format!("{name}_im"),
-                    t.iter().map(|m| m[(o, i)].im).collect(),
-                )?;
+                .with_f64(&format!("{name}_re"), t.iter().map(|m| m[(o, i)].re).collect())?
+                .with_f64(&format!("{name}_im"), t.iter().map(|m| m[(o, i)].im).collect())?;
         }
     }
     ensure_parent(&a.out)?;
@@ -144,16 +127,10 @@ pub const THESIS_SIGMA: [(&str, f64); 7] = [
 ];
 
 /// Fisher information of a design's experiments at the analysis rate (README formula).
-pub fn design_fisher(
-    setup: &Setup,
-    design: &crate::signal::Design,
-    p: &[f64],
-) -> nalgebra::DMatrix<f64> {
+pub fn design_fisher(setup: &Setup, design: &crate::signal::Design, p: &[f64]) -> nalgebra::DMatrix<f64> {
     let dt = setup.analysis_dt();
     let n = design.samples(dt);
-    let inputs: Vec<Vec<Vec<f64>>> = (0..design.experiments.len())
-        .map(|e| design.sample(e, 2, 0.0, dt, n))
-        .collect();
+    let inputs: Vec<Vec<Vec<f64>>> = (0..design.experiments.len()).map(|e| design.sample(e, 2, 0.0, dt, n)).collect();
     let spectra = InputSpectra::<2>::from_series(&inputs, dt);
     fisher_information(&setup.model, &spectra, p, setup.psd(p))
 }
@@ -163,10 +140,7 @@ fn fisher(a: FisherArgs) -> Result<()> {
     let p = parameters(&setup, Some(&a.scenario))?;
     let design = setup.design(&a.design)?;
     let info = design_fisher(&setup, &design, &p);
-    let cov = info
-        .clone()
-        .try_inverse()
-        .context("Fisher information is singular: the design cannot constrain every parameter")?;
+    let cov = info.clone().try_inverse().context("Fisher information is singular: the design cannot constrain every parameter")?;
     let names = setup.parameter_names();
     let sigma: Vec<f64> = (0..names.len()).map(|k| cov[(k, k)].sqrt()).collect();
     let table = Table::new()
@@ -181,33 +155,17 @@ fn fisher(a: FisherArgs) -> Result<()> {
             corr.push(cov[(i, j)] / (sigma[i] * sigma[j]));
         }
     }
-    let corr_table = Table::new()
-        .with_str("parameter_i", pi)?
-        .with_str("parameter_j", pj)?
-        .with_f64("corr", corr)?;
+    let corr_table = Table::new().with_str("parameter_i", pi)?.with_str("parameter_j", pj)?.with_f64("corr", corr)?;
     ensure_parent(&a.out)?;
-    let stem = a
-        .out
-        .file_stem()
-        .map(|s| s.to_string_lossy().to_string())
-        .unwrap_or_else(|| "fisher".into());
+    let stem = a.out.file_stem().map(|s| s.to_string_lossy().to_string()).unwrap_or_else(|| "fisher".into());
     let corr_path = a.out.with_file_name(format!("{stem}_corr.parquet"));
     write_parquet(&a.out, &table)?;
     write_parquet(&corr_path, &corr_table)?;
-    println!(
-        "{:<8} {:>14} {:>12} {:>12} {:>7}",
-        "param", "value", "sigma", "thesis", "ratio"
-    );
+    println!("{:<8} {:>14} {:>12} {:>12} {:>7}", "param", "value", "sigma", "thesis", "ratio");
     for (k, n) in names.iter().enumerate() {
         let thesis = THESIS_SIGMA.iter().find(|(t, _)| t == n).map(|(_, v)| *v);
         match thesis {
-            Some(t) => println!(
-                "{n:<8} {:>14.6e} {:>12.3e} {:>12.1e} {:>7.2}",
-                p[k],
-                sigma[k],
-                t,
-                sigma[k] / t
-            ),
+            Some(t) => println!("{n:<8} {:>14.6e} {:>12.3e} {:>12.1e} {:>7.2}", p[k], sigma[k], t, sigma[k] / t),
             None => println!("{n:<8} {:>14.6e} {:>12.3e}", p[k], sigma[k]),
         }
     }

@@ -62,15 +62,10 @@ pub fn write_simulated(
 ) -> Result<PathBuf> {
     let mut exps = Vec::new();
     for (e, name) in data.names.iter().enumerate() {
-        exps.push((
-            name.clone(),
-            make_run(&data.inputs[e], &data.outputs[e], data.dt)?,
-        ));
+        exps.push((name.clone(), make_run(&data.inputs[e], &data.outputs[e], data.dt)?));
     }
     let zeros = vec![vec![0.0; noise[0].len()]; 2];
-    let ds = Dataset::new(exps)?
-        .with_noise(make_run(&zeros, noise, data.dt)?)?
-        .with_meta(meta);
+    let ds = Dataset::new(exps)?.with_noise(make_run(&zeros, noise, data.dt)?)?.with_meta(meta);
     Ok(write_dataset(dir, &ds)?)
 }
 
@@ -100,13 +95,7 @@ pub fn run(a: SimulateArgs) -> Result<()> {
     };
     let meta = simulation_meta(&setup, &a.scenario, &a.design, a.seed, &sc.truth, a.rate);
     let path = write_simulated(&a.out, &data, &noise, meta)?;
-    eprintln!(
-        "wrote {} ({} experiments of {} samples at {} Hz, plus a noise run)",
-        path.display(),
-        data.names.len(),
-        data.len(),
-        1.0 / data.dt
-    );
+    eprintln!("wrote {} ({} experiments of {} samples at {} Hz, plus a noise run)", path.display(), data.names.len(), data.len(), 1.0 / data.dt);
     Ok(())
 }
 
@@ -119,32 +108,14 @@ fn draw_all(
     (draw(&mut stream(seed, 0)), noise(&mut stream(seed, 1)))
 }
 
-fn simulation_meta(
-    setup: &Setup,
-    scenario: &str,
-    design: &str,
-    seed: u64,
-    truth: &[f64],
-    rate: Rate,
-) -> toml::Table {
+fn simulation_meta(setup: &Setup, scenario: &str, design: &str, seed: u64, truth: &[f64], rate: Rate) -> toml::Table {
     let mut meta = toml::Table::new();
-    meta.insert(
-        "generator".into(),
-        format!("freefall {}", env!("CARGO_PKG_VERSION")).into(),
-    );
+    meta.insert("generator".into(), format!("freefall {}", env!("CARGO_PKG_VERSION")).into());
     meta.insert("model".into(), setup.spec.origin.clone().into());
     meta.insert("scenario".into(), scenario.into());
     meta.insert("design".into(), design.into());
     meta.insert("seed".into(), toml::Value::Integer(seed as i64));
-    meta.insert(
-        "rate".into(),
-        (if rate == Rate::Decimated {
-            "decimated"
-        } else {
-            "analysis"
-        })
-        .into(),
-    );
+    meta.insert("rate".into(), (if rate == Rate::Decimated { "decimated" } else { "analysis" }).into());
     let mut t = toml::Table::new();
     for (n, v) in setup.parameter_names().iter().zip(truth) {
         t.insert(n.clone(), toml::Value::Float(*v));

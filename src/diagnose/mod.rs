@@ -250,6 +250,11 @@ fn stage(
     }
 }
 
+/// (score statistic, dimension, identifiable fraction, most correlated fitted parameter).
+type Score = (f64, usize, f64, Option<(usize, f64)>);
+/// A refitted extended model, its fit and raw residuals.
+type Refit = (Extended, FitResult, Series);
+
 /// Score statistics of every candidate (indices into `pool`) at the current fit.
 fn score_round(
     current: &Extended,
@@ -258,7 +263,7 @@ fn score_round(
     data: &ExperimentData,
     w: &Whitener<2>,
     poly_degree: usize,
-) -> Result<Vec<(f64, usize, f64, Option<(usize, f64)>)>, DiagnoseError> {
+) -> Result<Vec<Score>, DiagnoseError> {
     let mut effects = current.effects.clone();
     effects.extend(pool.iter().cloned());
     let full = Extended::new(current.base.clone(), effects);
@@ -503,7 +508,7 @@ pub fn diagnose(
                 .total_cmp(&round_c[a].score_statistic)
         });
         order_idx.truncate(cfg.confirm_top);
-        let refits: Vec<(usize, Result<(Extended, FitResult, Series), DiagnoseError>)> = order_idx
+        let refits: Vec<(usize, Result<Refit, DiagnoseError>)> = order_idx
             .par_iter()
             .map(|&i| {
                 let mut effects = current.effects.clone();

@@ -23,9 +23,7 @@ impl std::str::FromStr for Estimator {
             "squared" => Ok(Estimator::Squared),
             "absolute" => Ok(Estimator::Absolute),
             "log" => Ok(Estimator::Log),
-            other => Err(format!(
-                "unknown estimator '{other}' (expected squared, absolute or log)"
-            )),
+            other => Err(format!("unknown estimator '{other}' (expected squared, absolute or log)")),
         }
     }
 }

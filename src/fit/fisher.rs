@@ -36,11 +36,7 @@ impl<const N: usize> InputSpectra<N> {
                 })
             })
             .collect();
-        InputSpectra {
-            f: (0..nb).map(|k| k as f64 / (n as f64 * dt)).collect(),
-            spectra,
-            duration: n as f64 * dt,
-        }
+        InputSpectra { f: (0..nb).map(|k| k as f64 / (n as f64 * dt)).collect(), spectra, duration: n as f64 * dt }
     }
 }
 
@@ -58,10 +54,7 @@ pub fn fisher_information<M: ClosedLoopModel<N>, const N: usize>(
     let scale = 4.0 / inputs.duration;
     let mut col = vec![[Complex64::new(0.0, 0.0); N]; np];
     for (k, &f) in inputs.f.iter().enumerate().skip(1) {
-        let active = inputs
-            .spectra
-            .iter()
-            .any(|s| s.iter().any(|x| x[k].norm_sqr() > 0.0));
+        let active = inputs.spectra.iter().any(|s| s.iter().any(|x| x[k].norm_sqr() > 0.0));
         if !active {
             continue;
         }

@@ -32,11 +32,7 @@ use crate::sim::templates::Series;
 #[derive(Debug, thiserror::Error)]
 pub enum FitError {
     #[error("{what} too short: {len} samples, need at least {need}")]
-    TooShort {
-        what: String,
-        len: usize,
-        need: usize,
-    },
+    TooShort { what: String, len: usize, need: usize },
     #[error("singular matrix: {0}")]
     Singular(String),
     #[error("{0}")]
@@ -59,12 +55,7 @@ pub enum Termination {
 
 impl Termination {
     pub fn converged(self) -> bool {
-        matches!(
-            self,
-            Termination::ChiSquareTolerance
-                | Termination::ParameterTolerance
-                | Termination::NoImprovement
-        )
+        matches!(self, Termination::ChiSquareTolerance | Termination::ParameterTolerance | Termination::NoImprovement)
     }
 
     pub fn as_str(self) -> &'static str {
@@ -86,10 +77,7 @@ pub struct Bound {
 }
 
 impl Bound {
-    pub const FREE: Bound = Bound {
-        lo: f64::NEG_INFINITY,
-        hi: f64::INFINITY,
-    };
+    pub const FREE: Bound = Bound { lo: f64::NEG_INFINITY, hi: f64::INFINITY };
 }
 
 /// Physical bounds for LPF-x-like parameter names (see module docs).
@@ -98,15 +86,9 @@ pub fn physical_bounds(names: &[String]) -> Vec<Bound> {
         .iter()
         .map(|n| {
             if n.starts_with("a_") {
-                Bound {
-                    lo: 1e-3,
-                    hi: f64::INFINITY,
-                }
+                Bound { lo: 1e-3, hi: f64::INFINITY }
             } else if n.starts_with("dt") {
-                Bound {
-                    lo: 0.0,
-                    hi: f64::INFINITY,
-                }
+                Bound { lo: 0.0, hi: f64::INFINITY }
             } else {
                 Bound::FREE
             }
@@ -125,13 +107,7 @@ pub struct FitConfig {
 
 impl FitConfig {
     pub fn new(names: &[String]) -> Self {
-        FitConfig {
-            estimator: Estimator::Squared,
-            max_iterations: 100,
-            ftol: 1e-4,
-            ptol: 1e-4,
-            bounds: physical_bounds(names),
-        }
+        FitConfig { estimator: Estimator::Squared, max_iterations: 100, ftol: 1e-4, ptol: 1e-4, bounds: physical_bounds(names) }
     }
 }
 
@@ -159,12 +135,7 @@ pub struct FitResult {
 }
 
 fn objective(est: Estimator, r: &Series) -> f64 {
-    r.iter()
-        .flatten()
-        .flatten()
-        .map(|&v| est.rho(v))
-        .sum::<f64>()
-        / est.gaussian_mean()
+    r.iter().flatten().flatten().map(|&v| est.rho(v)).sum::<f64>() / est.gaussian_mean()
 }
 
 /// Weighted normal equations `A = J^T W J`, `g = J^T W r` (with `J = d template / dp`).
@@ -175,8 +146,7 @@ fn normal_equations(est: Estimator, r: &Series, j: &[Series]) -> (DMatrix<f64>, 
     for e in 0..r.len() {
         for c in 0..r[e].len() {
             let rc = &r[e][c];
-            let w: Option<Vec<f64>> =
-                (est != Estimator::Squared).then(|| rc.iter().map(|&v| est.weight(v)).collect());
+            let w: Option<Vec<f64>> = (est != Estimator::Squared).then(|| rc.iter().map(|&v| est.weight(v)).collect());
             for k in 0..np {
                 let jk = &j[k][e][c];
                 let gk: f64 = match &w {
@@ -289,9 +259,7 @@ pub fn fit<M: ClosedLoopModel<N>, const N: usize>(
                 };
                 let mut trial: Vec<f64> = p.iter().zip(step.iter()).map(|(x, d)| x + d).collect();
                 clamp(&mut trial);
-                if trial.iter().any(|v| !v.is_finite())
-                    || check_stability(model, &trial, None).is_err()
-                {
+                if trial.iter().any(|v| !v.is_finite()) || check_stability(model, &trial, None).is_err() {
                     lambda *= 10.0;
                     continue;
                 }
@@ -337,11 +305,7 @@ pub fn fit<M: ClosedLoopModel<N>, const N: usize>(
     let nu = problem.nu(np);
     let chi2_reduced = f / nu as f64;
     let (info, _) = normal_equations(Estimator::Squared, &r, &j);
-    let base = invert_spd(&info).ok_or_else(|| {
-        FitError::Singular(
-            "Fisher information at the estimate (a parameter the data cannot constrain?)".into(),
-        )
-    })?;
+    let base = invert_spd(&info).ok_or_else(|| FitError::Singular("Fisher information at the estimate (a parameter the data cannot constrain?)".into()))?;
     let scale = match est {
         Estimator::Squared => chi2_reduced.max(1.0),
         _ => robust_scale(est, &r),

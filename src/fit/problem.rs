@@ -25,10 +25,7 @@ pub struct ExperimentData {
 
 impl ExperimentData {
     pub fn len(&self) -> usize {
-        self.outputs
-            .first()
-            .and_then(|e| e.first())
-            .map_or(0, |c| c.len())
+        self.outputs.first().and_then(|e| e.first()).map_or(0, |c| c.len())
     }
 
     pub fn is_empty(&self) -> bool {
@@ -56,10 +53,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> Likelihood<'m, M, N> {
         whitener: Whitener<N>,
         poly_degree: usize,
     ) -> Result<Self, FitError> {
-        let n = inputs
-            .first()
-            .and_then(|e| e.first())
-            .map_or(0, |c| c.len());
+        let n = inputs.first().and_then(|e| e.first()).map_or(0, |c| c.len());
         let p = whitener.order();
         let need = p + poly_degree + 2 + model.n_params();
         if n < need {
@@ -72,13 +66,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> Likelihood<'m, M, N> {
         let engine = TemplateEngine::new(model, inputs, dt);
         let response = whitener.response_on_grid(engine.padded_len());
         let basis = poly_basis(n - p, poly_degree);
-        Ok(Likelihood {
-            engine,
-            whitener,
-            response,
-            basis,
-            poly_degree,
-        })
+        Ok(Likelihood { engine, whitener, response, basis, poly_degree })
     }
 
     pub fn order(&self) -> usize {
@@ -87,9 +75,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> Likelihood<'m, M, N> {
 
     /// Whiten, cut and project series `s[e][c]` of full length n.
     fn whiten_cut(&self, s: Series) -> Series {
-        s.into_iter()
-            .map(|exp| exp.into_iter().map(|c| self.cut(c)).collect())
-            .collect()
+        s.into_iter().map(|exp| exp.into_iter().map(|c| self.cut(c)).collect()).collect()
     }
 
     fn cut(&self, mut c: Vec<f64>) -> Vec<f64> {
@@ -112,13 +98,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> Likelihood<'m, M, N> {
         let data_w = data
             .outputs
             .iter()
-            .map(|exp| {
-                self.engine
-                    .filter_series(exp, &self.response)
-                    .into_iter()
-                    .map(|c| self.cut(c))
-                    .collect()
-            })
+            .map(|exp| self.engine.filter_series(exp, &self.response).into_iter().map(|c| self.cut(c)).collect())
             .collect();
         Ok(Problem { lik: self, data_w })
     }
@@ -145,18 +125,13 @@ impl<M: ClosedLoopModel<N>, const N: usize> Problem<'_, '_, M, N> {
 
     /// Whitened residuals `r[e][i]` at `p`.
     pub fn residuals(&self, p: &[f64]) -> Series {
-        let t = self
-            .lik
-            .whiten_cut(self.lik.engine.templates(p, Some(&self.lik.response)));
+        let t = self.lik.whiten_cut(self.lik.engine.templates(p, Some(&self.lik.response)));
         subtract(&self.data_w, &t)
     }
 
     /// Whitened residuals and the whitened template derivatives `j[k][e][i]` (`dr/dp = -j`).
     pub fn residuals_and_jacobian(&self, p: &[f64]) -> (Series, Vec<Series>) {
-        let (t, d) = self
-            .lik
-            .engine
-            .templates_and_derivatives(p, Some(&self.lik.response));
+        let (t, d) = self.lik.engine.templates_and_derivatives(p, Some(&self.lik.response));
         let t = self.lik.whiten_cut(t);
         let d = d.into_iter().map(|s| self.lik.whiten_cut(s)).collect();
         (subtract(&self.data_w, &t), d)
@@ -172,11 +147,6 @@ impl<M: ClosedLoopModel<N>, const N: usize> Problem<'_, '_, M, N> {
 fn subtract(a: &Series, b: &Series) -> Series {
     a.iter()
         .zip(b)
-        .map(|(ea, eb)| {
-            ea.iter()
-                .zip(eb)
-                .map(|(x, y)| x.iter().zip(y).map(|(u, v)| u - v).collect())
-                .collect()
-        })
+        .map(|(ea, eb)| ea.iter().zip(eb).map(|(x, y)| x.iter().zip(y).map(|(u, v)| u - v).collect()).collect())
         .collect()
 }

@@ -20,8 +20,8 @@
 //! polynomial fit").
 
 use nalgebra::{DMatrix, SMatrix};
-use num_complex::Complex64;
 use realfft::RealFftPlanner;
+use num_complex::Complex64;
 
 use super::FitError;
 use crate::model::closed_loop::CMat;
@@ -48,21 +48,11 @@ impl<const N: usize> Whitener<N> {
     /// floating point for o12's dynamic range; a direct solve of a few hundred unknowns is cheap.)
     pub fn from_autocovariance(r: &[SMatrix<f64, N, N>], order: usize) -> Result<Self, FitError> {
         if r.len() <= order {
-            return Err(FitError::Input(format!(
-                "need {} autocovariance lags for order {order}, got {}",
-                order + 1,
-                r.len()
-            )));
+            return Err(FitError::Input(format!("need {} autocovariance lags for order {order}, got {}", order + 1, r.len())));
         }
         let dim = N * order;
         // G[(j,c),(k,d)] = E[x_{t-1-j,c} x_{t-1-k,d}] = R(k-j)[c,d]; H[(j,c), o] = R(j+1)[o,c].
-        let lag = |l: isize| -> SMatrix<f64, N, N> {
-            if l >= 0 {
-                r[l as usize]
-            } else {
-                r[(-l) as usize].transpose()
-            }
-        };
+        let lag = |l: isize| -> SMatrix<f64, N, N> { if l >= 0 { r[l as usize] } else { r[(-l) as usize].transpose() } };
         let mut g = DMatrix::<f64>::zeros(dim, dim);
         for j in 0..order {
             for k in 0..order {
@@ -82,9 +72,7 @@ impl<const N: usize> Whitener<N> {
                 }
             }
         }
-        let scale: Vec<f64> = (0..dim)
-            .map(|a| g[(a, a)].sqrt().max(f64::MIN_POSITIVE))
-            .collect();
+        let scale: Vec<f64> = (0..dim).map(|a| g[(a, a)].sqrt().max(f64::MIN_POSITIVE)).collect();
         for a in 0..dim {
             for b in 0..dim {
                 g[(a, b)] /= scale[a] * scale[b];
@@ -94,15 +82,11 @@ impl<const N: usize> Whitener<N> {
             }
         }
         let chol = g.cholesky().ok_or_else(|| {
-            FitError::Singular(
-                "noise autocovariance for the whitening filter (is a channel constant or zero?)"
-                    .into(),
-            )
+            FitError::Singular("noise autocovariance for the whitening filter (is a channel constant or zero?)".into())
         })?;
         let coef = chol.solve(&h);
-        let a: Vec<SMatrix<f64, N, N>> = (0..order)
-            .map(|j| SMatrix::<f64, N, N>::from_fn(|o, c| coef[(j * N + c, o)] / scale[j * N + c]))
-            .collect();
+        let a: Vec<SMatrix<f64, N, N>> =
+            (0..order).map(|j| SMatrix::<f64, N, N>::from_fn(|o, c| coef[(j * N + c, o)] / scale[j * N + c])).collect();
         let mut sigma = r[0];
         for (j, aj) in a.iter().enumerate() {
             sigma -= aj * r[j + 1].transpose();
@@ -110,57 +94,32 @@ impl<const N: usize> Whitener<N> {
         let sigma = (sigma + sigma.transpose()) * 0.5;
         let l = sigma
             .cholesky()
-            .ok_or_else(|| {
-                FitError::Singular(
-                    "innovation covariance of the whitening filter is not positive definite".into(),
-                )
-            })?
+            .ok_or_else(|| FitError::Singular("innovation covariance of the whitening filter is not positive definite".into()))?
             .l();
-        let l_inv = l
-            .try_inverse()
-            .ok_or_else(|| FitError::Singular("innovation covariance".into()))?;
+        let l_inv = l.try_inverse().ok_or_else(|| FitError::Singular("innovation covariance".into()))?;
         let mut taps = vec![l_inv];
         taps.extend(a.iter().map(|aj| -(l_inv * aj)));
-        Ok(Whitener {
-            taps,
-            innovation: sigma,
-        })
+        Ok(Whitener { taps, innovation: sigma })
     }
 
     /// VAR(`order`) from a noise-only series (N channels of equal length): tapered sample
     /// autocovariance after removing each channel's mean and linear trend.
     pub fn from_series(series: &[Vec<f64>], order: usize) -> Result<Self, FitError> {
         if series.len() != N {
-            return Err(FitError::Input(format!(
-                "whitening needs {N} channels, got {}",
-                series.len()
-            )));
+            return Err(FitError::Input(format!("whitening needs {N} channels, got {}", series.len())));
         }
         let n = series[0].len();
         let need = 8 * order.max(1);
         if n < need {
-            return Err(FitError::TooShort {
-                what: "noise run for the whitening filter".into(),
-                len: n,
-                need,
-            });
+            return Err(FitError::TooShort { what: "noise run for the whitening filter".into(), len: n, need });
         }
         let taper = crate::spectral::window::blackman_harris_92(n);
         let norm = (taper.iter().map(|w| w * w).sum::<f64>() / n as f64).sqrt();
         let x: Vec<Vec<f64>> = series
             .iter()
-            .map(|s| {
-                detrend_linear(s)
-                    .iter()
-                    .zip(&taper)
-                    .map(|(v, w)| v * w / norm)
-                    .collect()
-            })
+            .map(|s| detrend_linear(s).iter().zip(&taper).map(|(v, w)| v * w / norm).collect())
             .collect();
-        Ok(Self::from_autocovariance(
-            &sample_autocovariance::<N>(&x, order),
-            order,
-        )?)
+        Ok(Self::from_autocovariance(&sample_autocovariance::<N>(&x, order), order)?)
     }
 
     /// VAR(`order`) from a one-sided cross-PSD `psd(f)` (for `f > 0`) at sampling interval `dt`,
@@ -168,12 +127,7 @@ impl<const N: usize> Whitener<N> {
     /// `RESOLUTION x n_data` bins. Power below that grid's first bin (far below `1/T`) cannot be
     /// told from an offset or a drift in `n_data` samples and is left to the nuisance terms;
     /// including it would make the autocovariance nearly constant and the recursion singular.
-    pub fn from_psd(
-        psd: impl Fn(f64) -> CMat<N>,
-        dt: f64,
-        order: usize,
-        n_data: usize,
-    ) -> Result<Self, FitError> {
+    pub fn from_psd(psd: impl Fn(f64) -> CMat<N>, dt: f64, order: usize, n_data: usize) -> Result<Self, FitError> {
         let len = (PSD_RESOLUTION * n_data.max(order + 1)).next_power_of_two();
         Self::from_autocovariance(&psd_autocovariance::<N>(psd, dt, len, order), order)
     }
@@ -234,10 +188,7 @@ pub fn detrend_linear(x: &[f64]) -> Vec<f64> {
         sxx += d * d;
     }
     let slope = if sxx > 0.0 { sxy / sxx } else { 0.0 };
-    x.iter()
-        .enumerate()
-        .map(|(i, v)| v - mean - slope * (i as f64 - tm))
-        .collect()
+    x.iter().enumerate().map(|(i, v)| v - mean - slope * (i as f64 - tm)).collect()
 }
 
 /// Orthonormal polynomial basis of degree `deg` on `n` points (Gram-Schmidt on 1, t, t^2).
@@ -245,9 +196,7 @@ pub fn poly_basis(n: usize, deg: usize) -> Vec<Vec<f64>> {
     let tm = (n as f64 - 1.0) / 2.0;
     let mut basis: Vec<Vec<f64>> = Vec::new();
     for d in 0..=deg {
-        let mut v: Vec<f64> = (0..n)
-            .map(|i| ((i as f64 - tm) / n as f64).powi(d as i32))
-            .collect();
+        let mut v: Vec<f64> = (0..n).map(|i| ((i as f64 - tm) / n as f64).powi(d as i32)).collect();
         for b in &basis {
             let dot: f64 = v.iter().zip(b).map(|(a, c)| a * c).sum();
             v.iter_mut().zip(b).for_each(|(a, c)| *a -= dot * c);
@@ -270,10 +219,7 @@ pub fn project_out(x: &mut [f64], basis: &[Vec<f64>]) {
 }
 
 /// Biased sample autocovariance `r[k] = (1/n) sum_t x_{t+k} x_t^T`, k = 0..=max_lag, by FFT.
-pub fn sample_autocovariance<const N: usize>(
-    x: &[Vec<f64>],
-    max_lag: usize,
-) -> Vec<SMatrix<f64, N, N>> {
+pub fn sample_autocovariance<const N: usize>(x: &[Vec<f64>], max_lag: usize) -> Vec<SMatrix<f64, N, N>> {
     let n = x[0].len();
     let m = crate::noise::generate::fast_len(2 * n);
     let mut planner = rustfft::FftPlanner::<f64>::new();
@@ -292,11 +238,7 @@ pub fn sample_autocovariance<const N: usize>(
     for i in 0..N {
         for j in 0..N {
             // r_ij[k] = sum_t x_i[t+k] x_j[t]  <->  X_i X_j^*
-            let mut buf: Vec<Complex64> = specs[i]
-                .iter()
-                .zip(&specs[j])
-                .map(|(a, b)| a * b.conj())
-                .collect();
+            let mut buf: Vec<Complex64> = specs[i].iter().zip(&specs[j]).map(|(a, b)| a * b.conj()).collect();
             inv.process(&mut buf);
             for (k, o) in out.iter_mut().enumerate() {
                 o[(i, j)] = buf[k].re / (m as f64 * n as f64);
@@ -308,25 +250,12 @@ pub fn sample_autocovariance<const N: usize>(
 
 /// Autocovariance `r[k] = E[x_{t+k} x_t^T]` of a process with one-sided cross-PSD `psd`
 /// (`S_ij ~ <X_i X_j^*>`), sampled every `dt`, from `len` frequency bins.
-pub fn psd_autocovariance<const N: usize>(
-    psd: impl Fn(f64) -> CMat<N>,
-    dt: f64,
-    len: usize,
-    max_lag: usize,
-) -> Vec<SMatrix<f64, N, N>> {
+pub fn psd_autocovariance<const N: usize>(psd: impl Fn(f64) -> CMat<N>, dt: f64, len: usize, max_lag: usize) -> Vec<SMatrix<f64, N, N>> {
     let df = 1.0 / (len as f64 * dt);
     let half = len / 2;
     // The DC bin is left out: a red process's mean is not defined by its PSD, and the
     // likelihood's polynomial nuisance absorbs it.
-    let s: Vec<CMat<N>> = (0..=half)
-        .map(|k| {
-            if k == 0 {
-                CMat::<N>::zeros()
-            } else {
-                psd(k as f64 * df)
-            }
-        })
-        .collect();
+    let s: Vec<CMat<N>> = (0..=half).map(|k| if k == 0 { CMat::<N>::zeros() } else { psd(k as f64 * df) }).collect();
     let mut planner = rustfft::FftPlanner::<f64>::new();
     let inv = planner.plan_fft_inverse(len);
     let mut out = vec![SMatrix::<f64, N, N>::zeros(); max_lag + 1];

@@ -81,13 +81,8 @@ pub trait ClosedLoopModel<const N: usize>: Send + Sync {
     /// derivatives into `d_out[bin * n_params + k]`. The default runs the generic operator
     /// algebra per point; a model may override it with a faster specialised form, which must
     /// agree with the generic one (tested for LPF-x).
-    fn transfer_grid(
-        &self,
-        points: &[Self::Point],
-        p: &[f64],
-        t_out: &mut [CMat<N>],
-        d_out: Option<&mut [CMat<N>]>,
-    ) where
+    fn transfer_grid(&self, points: &[Self::Point], p: &[f64], t_out: &mut [CMat<N>], d_out: Option<&mut [CMat<N>]>)
+    where
         Self: Sized,
     {
         transfer_grid_generic(self, points, p, t_out, d_out)
@@ -134,26 +129,14 @@ fn inverse<const N: usize>(m: &CMat<N>) -> Option<CMat<N>> {
 }
 
 /// `Delta`, `T_{oi->o}` and `T_{oi->fc}` at one frequency.
-pub fn transfer<M: ClosedLoopModel<N>, const N: usize>(
-    model: &M,
-    pt: &M::Point,
-    p: &[f64],
-) -> Transfer<N> {
+pub fn transfer<M: ClosedLoopModel<N>, const N: usize>(model: &M, pt: &M::Point, p: &[f64]) -> Transfer<N> {
     let ops = model.operators(pt, p);
-    let s_inv =
-        inverse(&ops.s).unwrap_or_else(|| CMat::<N>::from_element(Complex64::new(f64::NAN, 0.0)));
+    let s_inv = inverse(&ops.s).unwrap_or_else(|| CMat::<N>::from_element(Complex64::new(f64::NAN, 0.0)));
     let delta = ops.d * s_inv + ops.ac;
-    let delta_inv =
-        inverse(&delta).unwrap_or_else(|| CMat::<N>::from_element(Complex64::new(f64::NAN, 0.0)));
+    let delta_inv = inverse(&delta).unwrap_or_else(|| CMat::<N>::from_element(Complex64::new(f64::NAN, 0.0)));
     let oi_o = delta_inv * ops.ac * ops.t;
     let oi_fc = -(ops.c * (oi_o - CMat::<N>::identity()));
-    Transfer {
-        delta,
-        delta_inv,
-        oi_o,
-        oi_fc,
-        ops,
-    }
+    Transfer { delta, delta_inv, oi_o, oi_fc, ops }
 }
 
 /// `T_{oi->o}` and its derivatives `dT/dp_k` for every parameter, written into `d_out`
@@ -166,8 +149,7 @@ pub fn transfer_with_derivatives<M: ClosedLoopModel<N>, const N: usize>(
 ) -> Transfer<N> {
     let tr = transfer(model, pt, p);
     let ops = &tr.ops;
-    let s_inv =
-        inverse(&ops.s).unwrap_or_else(|| CMat::<N>::from_element(Complex64::new(f64::NAN, 0.0)));
+    let s_inv = inverse(&ops.s).unwrap_or_else(|| CMat::<N>::from_element(Complex64::new(f64::NAN, 0.0)));
     let d_s_inv = ops.d * s_inv;
     for (k, out) in d_out.iter_mut().enumerate() {
         let der = model.derivative(pt, p, k);
@@ -208,10 +190,7 @@ pub fn transfer_with_derivatives<M: ClosedLoopModel<N>, const N: usize>(
 }
 
 /// Closed-loop poles of the model at `p`.
-pub fn closed_loop_poles<M: ClosedLoopModel<N>, const N: usize>(
-    model: &M,
-    p: &[f64],
-) -> Vec<Complex64> {
+pub fn closed_loop_poles<M: ClosedLoopModel<N>, const N: usize>(model: &M, p: &[f64]) -> Vec<Complex64> {
     model.characteristic_polynomial(p).roots()
 }
 
@@ -225,22 +204,14 @@ pub fn check_stability<M: ClosedLoopModel<N>, const N: usize>(
 ) -> Result<(), ModelError> {
     let names = model.parameter_names();
     if let Some((i, v)) = p.iter().enumerate().find(|(_, v)| !v.is_finite()) {
-        return Err(ModelError::NonFiniteParameter {
-            name: names[i].clone(),
-            value: *v,
-        });
+        return Err(ModelError::NonFiniteParameter { name: names[i].clone(), value: *v });
     }
     let unstable = |q: &[f64]| -> Option<Complex64> {
         let poles = closed_loop_poles(model, q);
         let scale = poles.iter().fold(1e-12_f64, |m, z| m.max(z.norm()));
-        poles
-            .into_iter()
-            .filter(|z| z.re >= -1e-14 * scale)
-            .max_by(|a, b| a.re.total_cmp(&b.re))
+        poles.into_iter().filter(|z| z.re >= -1e-14 * scale).max_by(|a, b| a.re.total_cmp(&b.re))
     };
-    let Some(pole) = unstable(p) else {
-        return Ok(());
-    };
+    let Some(pole) = unstable(p) else { return Ok(()) };
     let culprits: Vec<String> = match reference {
         Some(r) => (0..p.len())
             .filter(|&k| p[k] != r[k])

@@ -79,11 +79,7 @@ struct Phasor {
 
 impl Phasor {
     fn new(dt: f64) -> Self {
-        Phasor {
-            value: Complex64::new(1.0, 0.0),
-            step: Complex64::new(1.0, 0.0),
-            dt,
-        }
+        Phasor { value: Complex64::new(1.0, 0.0), step: Complex64::new(1.0, 0.0), dt }
     }
 
     /// Factor at point `k`, given the previous two points' `s`.
@@ -107,22 +103,8 @@ impl Phasor {
 impl LpfX {
     /// Closed-form `T_{oi->o}` and its derivatives for the 2x2 x-axis loop (same algebra as
     /// the generic code, with the structural zeros of each operator derivative skipped).
-    pub fn fast_transfer_grid(
-        &self,
-        points: &[LpfPoint],
-        p: &[f64],
-        t_out: &mut [CMat<2>],
-        mut d_out: Option<&mut [CMat<2>]>,
-    ) {
-        let (w1, w12, s21, a_df, a_sus, mt, g) = (
-            p[W1],
-            p[W12],
-            p[S21],
-            p[A_DF],
-            p[A_SUS],
-            self.mt,
-            self.gamma_x,
-        );
+    pub fn fast_transfer_grid(&self, points: &[LpfPoint], p: &[f64], t_out: &mut [CMat<2>], mut d_out: Option<&mut [CMat<2>]>) {
+        let (w1, w12, s21, a_df, a_sus, mt, g) = (p[W1], p[W12], p[S21], p[A_DF], p[A_SUS], self.mt, self.gamma_x);
         let k11 = (1.0 + 2.0 * mt) * w1 + mt * w12;
         let d12r = g + mt * (w1 + w12);
         let k22 = w1 + w12 - 2.0 * g;
@@ -143,8 +125,7 @@ impl LpfX {
             let d21 = c(w12) - big_d22 * s21;
             let d22 = big_d22 + pt.c_sus * a_sus;
             let inv_det = 1.0 / (d11 * d22 - d12 * d21);
-            let (i11, i12, i21, i22) =
-                (d22 * inv_det, -d12 * inv_det, -d21 * inv_det, d11 * inv_det);
+            let (i11, i12, i21, i22) = (d22 * inv_det, -d12 * inv_det, -d21 * inv_det, d11 * inv_det);
             let m11 = pt.c_df * a_df * e1;
             let m22 = pt.c_sus * a_sus * e2;
             let m12 = m22 * mt;
@@ -153,18 +134,11 @@ impl LpfX {
             let t21 = i21 * m11;
             let t22 = i21 * m12 + i22 * m22;
             t_out[k] = m2(t11, t12, t21, t22);
-            let Some(d) = d_out.as_deref_mut() else {
-                continue;
-            };
+            let Some(d) = d_out.as_deref_mut() else { continue };
             let out = &mut d[k * 7..k * 7 + 7];
             // dT = Delta^-1 (dM - dDelta T), dM = d(A C T_d).
             let apply = |x11: Complex64, x12: Complex64, x21: Complex64, x22: Complex64| {
-                m2(
-                    i11 * x11 + i12 * x21,
-                    i11 * x12 + i12 * x22,
-                    i21 * x11 + i22 * x21,
-                    i21 * x12 + i22 * x22,
-                )
+                m2(i11 * x11 + i12 * x21, i11 * x12 + i12 * x22, i21 * x11 + i22 * x21, i21 * x12 + i22 * x22)
             };
             // Real constant dDelta (stiffness): rows (a, b; cc, dd).
             let stiff = |a: f64, b: f64, cc: f64, dd: f64| {
@@ -183,12 +157,7 @@ impl LpfX {
             out[A_DF] = apply(pt.c_df * e1 - pt.c_df * t11, -pt.c_df * t12, c(0.0), c(0.0));
             // a_sus: dDelta = [[0, mt csus], [0, csus]], dM = [[0, mt csus e2], [0, csus e2]].
             let cs = pt.c_sus;
-            out[A_SUS] = apply(
-                -cs * mt * t21,
-                cs * e2 * mt - cs * mt * t22,
-                -cs * t21,
-                cs * e2 - cs * t22,
-            );
+            out[A_SUS] = apply(-cs * mt * t21, cs * e2 * mt - cs * mt * t22, -cs * t21, cs * e2 - cs * t22);
             // Delays: dDelta = 0, dM = -s (column of M).
             out[DT1] = apply(-pt.s * m11, c(0.0), c(0.0), c(0.0));
             out[DT12] = apply(c(0.0), -pt.s * m12, c(0.0), -pt.s * m22);
@@ -213,12 +182,7 @@ impl ClosedLoopModel<2> for LpfX {
 
     fn prepare(&self, f_hz: f64) -> LpfPoint {
         let s = I * (2.0 * PI * f_hz);
-        LpfPoint {
-            s,
-            s2: s * s,
-            c_df: self.c_df.eval(s),
-            c_sus: self.c_sus.eval(s),
-        }
+        LpfPoint { s, s2: s * s, c_df: self.c_df.eval(s), c_sus: self.c_sus.eval(s) }
     }
 
     fn operators(&self, pt: &LpfPoint, p: &[f64]) -> Operators<2> {
@@ -228,12 +192,7 @@ impl ClosedLoopModel<2> for LpfX {
         Operators {
             d: self.d(pt, p),
             s: m2(one, z, c(p[S21]), one),
-            ac: m2(
-                pt.c_df * p[A_DF],
-                pt.c_sus * (mt * p[A_SUS]),
-                z,
-                pt.c_sus * p[A_SUS],
-            ),
+            ac: m2(pt.c_df * p[A_DF], pt.c_sus * (mt * p[A_SUS]), z, pt.c_sus * p[A_SUS]),
             c: m2(pt.c_df, pt.c_sus * mt, z, pt.c_sus),
             t: m2((-pt.s * p[DT1]).exp(), z, z, (-pt.s * p[DT12]).exp()),
         }
@@ -257,15 +216,7 @@ impl ClosedLoopModel<2> for LpfX {
     }
 
     fn characteristic_polynomial(&self, p: &[f64]) -> Poly {
-        let (w1, w12, s21, a_df, a_sus, mt, g) = (
-            p[W1],
-            p[W12],
-            p[S21],
-            p[A_DF],
-            p[A_SUS],
-            self.mt,
-            self.gamma_x,
-        );
+        let (w1, w12, s21, a_df, a_sus, mt, g) = (p[W1], p[W12], p[S21], p[A_DF], p[A_SUS], self.mt, self.gamma_x);
         let d11 = Poly(vec![(1.0 + 2.0 * mt) * w1 + mt * w12, 0.0, 1.0]);
         let d12 = Poly::constant(g + mt * (w1 + w12));
         let d21 = Poly::constant(w12);
@@ -280,13 +231,7 @@ impl ClosedLoopModel<2> for LpfX {
         a.mul(&b).sub(&cc.mul(&d))
     }
 
-    fn transfer_grid(
-        &self,
-        points: &[LpfPoint],
-        p: &[f64],
-        t_out: &mut [CMat<2>],
-        d_out: Option<&mut [CMat<2>]>,
-    ) {
+    fn transfer_grid(&self, points: &[LpfPoint], p: &[f64], t_out: &mut [CMat<2>], d_out: Option<&mut [CMat<2>]>) {
         self.fast_transfer_grid(points, p, t_out, d_out)
     }
 

@@ -9,8 +9,8 @@ pub mod spec;
 pub mod zpk;
 
 pub use closed_loop::{
-    check_stability, closed_loop_poles, transfer, transfer_with_derivatives, CMat, ClosedLoopModel,
-    NoiseEntry, OperatorDerivative, Operators, Transfer,
+    check_stability, closed_loop_poles, transfer, transfer_with_derivatives, CMat, ClosedLoopModel, NoiseEntry,
+    OperatorDerivative, Operators, Transfer,
 };
 pub use lpf_x::LpfX;
 pub use spec::{ModelSpec, Scenario};
@@ -19,23 +19,11 @@ pub use spec::{ModelSpec, Scenario};
 #[derive(Debug, thiserror::Error)]
 pub enum ModelError {
     #[error("{origin}: {message}{}", span.map(|l| format!(" (line {l})")).unwrap_or_default())]
-    Parse {
-        origin: String,
-        message: String,
-        span: Option<usize>,
-    },
+    Parse { origin: String, message: String, span: Option<usize> },
     #[error("{origin}: key '{key}': {reason}")]
-    Invalid {
-        origin: String,
-        key: String,
-        reason: String,
-    },
+    Invalid { origin: String, key: String, reason: String },
     #[error("unknown scenario '{name}' in {origin}; known scenarios: {}", known.join(", "))]
-    UnknownScenario {
-        name: String,
-        origin: String,
-        known: Vec<String>,
-    },
+    UnknownScenario { name: String, origin: String, known: Vec<String> },
     #[error("unknown injection design '{name}'; known designs: {}", known.join(", "))]
     UnknownDesign { name: String, known: Vec<String> },
     #[error("parameter {name} is not finite ({value})")]
@@ -46,10 +34,5 @@ pub enum ModelError {
         if *pole_re > 0.0 { 1.0 / pole_re } else { f64::INFINITY },
         if culprits.is_empty() { String::new() } else { format!("; setting {} back to nominal restores stability", culprits.join(" or ")) }
     )]
-    Unstable {
-        parameters: Vec<(String, f64)>,
-        pole_re: f64,
-        pole_im: f64,
-        culprits: Vec<String>,
-    },
+    Unstable { parameters: Vec<(String, f64)>, pole_re: f64, pole_im: f64, culprits: Vec<String> },
 }

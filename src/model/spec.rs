@@ -30,11 +30,7 @@ pub struct ControllerSpec {
 
 impl ControllerSpec {
     pub fn zpk(&self) -> Zpk {
-        Zpk {
-            gain: self.gain,
-            zeros: self.zeros.clone(),
-            poles: self.poles.clone(),
-        }
+        Zpk { gain: self.gain, zeros: self.zeros.clone(), poles: self.poles.clone() }
     }
 }
 
@@ -197,11 +193,7 @@ impl ModelSpec {
     }
 
     fn bad(&self, key: &str, reason: impl Into<String>) -> ModelError {
-        ModelError::Invalid {
-            origin: self.origin.clone(),
-            key: key.to_string(),
-            reason: reason.into(),
-        }
+        ModelError::Invalid { origin: self.origin.clone(), key: key.to_string(), reason: reason.into() }
     }
 
     fn validate(&self) -> Result<(), ModelError> {
@@ -214,30 +206,16 @@ impl ModelSpec {
         if !c.gamma_x.is_finite() {
             return Err(self.bad("constants.gamma_x", "must be finite"));
         }
-        for (name, ctrl) in [
-            ("drag_free", &self.controllers.drag_free),
-            ("suspension", &self.controllers.suspension),
-        ] {
-            let all = std::iter::once(ctrl.gain)
-                .chain(ctrl.zeros.iter().copied())
-                .chain(ctrl.poles.iter().copied());
+        for (name, ctrl) in [("drag_free", &self.controllers.drag_free), ("suspension", &self.controllers.suspension)] {
+            let all = std::iter::once(ctrl.gain).chain(ctrl.zeros.iter().copied()).chain(ctrl.poles.iter().copied());
             if all.clone().any(|v| !v.is_finite()) {
-                return Err(self.bad(
-                    &format!("controllers.{name}"),
-                    "gain, zeros and poles must be finite",
-                ));
+                return Err(self.bad(&format!("controllers.{name}"), "gain, zeros and poles must be finite"));
             }
             if ctrl.zeros.len() > ctrl.poles.len() {
-                return Err(self.bad(
-                    &format!("controllers.{name}"),
-                    "improper control law: more zeros than poles",
-                ));
+                return Err(self.bad(&format!("controllers.{name}"), "improper control law: more zeros than poles"));
             }
             if ctrl.poles.iter().any(|&p| p > 0.0) {
-                return Err(self.bad(
-                    &format!("controllers.{name}.poles"),
-                    "unstable controller pole (> 0)",
-                ));
+                return Err(self.bad(&format!("controllers.{name}.poles"), "unstable controller pole (> 0)"));
             }
         }
         let names: Vec<&str> = self.parameters.iter().map(|p| p.name.as_str()).collect();
@@ -257,23 +235,15 @@ impl ModelSpec {
             if !["f_sc", "f_1", "f_2", "o_1", "o_12"].contains(&src.enters.as_str()) {
                 return Err(self.bad(
                     &format!("{key}.enters"),
-                    format!(
-                        "unknown entry point '{}' (expected f_sc, f_1, f_2, o_1 or o_12)",
-                        src.enters
-                    ),
+                    format!("unknown entry point '{}' (expected f_sc, f_1, f_2, o_1 or o_12)", src.enters),
                 ));
             }
             if !(src.level.is_finite() && src.level >= 0.0) {
-                return Err(self.bad(
-                    &format!("{key}.level"),
-                    format!("must be >= 0, got {}", src.level),
-                ));
+                return Err(self.bad(&format!("{key}.level"), format!("must be >= 0, got {}", src.level)));
             }
             let needs_knee = src.shape != Shape::Flat;
             match (needs_knee, src.f_knee) {
-                (true, None) => {
-                    return Err(self.bad(&format!("{key}.f_knee"), "required for this shape"))
-                }
+                (true, None) => return Err(self.bad(&format!("{key}.f_knee"), "required for this shape")),
                 (_, Some(k)) if !(k.is_finite() && k > 0.0) => {
                     return Err(self.bad(&format!("{key}.f_knee"), format!("must be > 0, got {k}")))
                 }
@@ -284,10 +254,7 @@ impl ModelSpec {
             let key = format!("injections.{name}");
             let n = inj.cycles.len();
             if n == 0 || inj.oi1_amplitude.len() != n || inj.oi12_amplitude.len() != n {
-                return Err(self.bad(
-                    &key,
-                    "cycles, oi1_amplitude and oi12_amplitude must have the same non-zero length",
-                ));
+                return Err(self.bad(&key, "cycles, oi1_amplitude and oi12_amplitude must have the same non-zero length"));
             }
             if !(inj.stretch_s > 0.0 && inj.gap_s >= 0.0) {
                 return Err(self.bad(&key, "stretch_s must be > 0 and gap_s >= 0"));
@@ -299,48 +266,28 @@ impl ModelSpec {
         }
         let ratio = s.simulate_hz / s.analyse_hz;
         if (ratio - ratio.round()).abs() > 1e-9 || ratio < 1.0 {
-            return Err(self.bad(
-                "sampling",
-                format!("simulate_hz / analyse_hz must be a positive integer, got {ratio}"),
-            ));
+            return Err(self.bad("sampling", format!("simulate_hz / analyse_hz must be a positive integer, got {ratio}")));
         }
         for (name, sc) in &self.scenarios {
             for (which, set) in [("true", &sc.truth), ("guess", &sc.guess)] {
                 for k in set.keys() {
                     if !names.contains(&k.as_str()) {
-                        return Err(self.bad(
-                            &format!("scenarios.{name}.{which}.{k}"),
-                            "unknown parameter",
-                        ));
+                        return Err(self.bad(&format!("scenarios.{name}.{which}.{k}"), "unknown parameter"));
                     }
                 }
                 for n in &names {
                     match set.get(*n) {
-                        None => {
-                            return Err(self.bad(
-                                &format!("scenarios.{name}.{which}"),
-                                format!("missing parameter '{n}'"),
-                            ))
-                        }
+                        None => return Err(self.bad(&format!("scenarios.{name}.{which}"), format!("missing parameter '{n}'"))),
                         Some(v) if !v.is_finite() => {
-                            return Err(self
-                                .bad(&format!("scenarios.{name}.{which}.{n}"), "must be finite"))
+                            return Err(self.bad(&format!("scenarios.{name}.{which}.{n}"), "must be finite"))
                         }
                         _ => {}
                     }
                 }
             }
             if let Some(g) = &sc.glitch {
-                if !(0.0..=1.0).contains(&g.fraction)
-                    || g.f0_hz[0] > g.f0_hz[1]
-                    || g.tau_s[0] > g.tau_s[1]
-                    || g.tau_s[0] <= 0.0
-                    || g.amplitude_sigma[0] > g.amplitude_sigma[1]
-                {
-                    return Err(self.bad(
-                        &format!("scenarios.{name}.glitch"),
-                        "ranges must be [lo, hi] with lo <= hi, tau > 0, fraction in [0, 1]",
-                    ));
+                if !(0.0..=1.0).contains(&g.fraction) || g.f0_hz[0] > g.f0_hz[1] || g.tau_s[0] > g.tau_s[1] || g.tau_s[0] <= 0.0 || g.amplitude_sigma[0] > g.amplitude_sigma[1] {
+                    return Err(self.bad(&format!("scenarios.{name}.glitch"), "ranges must be [lo, hi] with lo <= hi, tau > 0, fraction in [0, 1]"));
                 }
             }
         }
@@ -357,31 +304,20 @@ impl ModelSpec {
 
     /// The scenario of that name, or an error that lists the known ones.
     pub fn scenario(&self, name: &str) -> Result<Scenario, ModelError> {
-        let sc = self
-            .scenarios
-            .get(name)
-            .ok_or_else(|| ModelError::UnknownScenario {
-                name: name.to_string(),
-                origin: self.origin.clone(),
-                known: self.scenarios.keys().cloned().collect(),
-            })?;
-        let order =
-            |m: &BTreeMap<String, f64>| self.parameters.iter().map(|p| m[&p.name]).collect();
-        Ok(Scenario {
+        let sc = self.scenarios.get(name).ok_or_else(|| ModelError::UnknownScenario {
             name: name.to_string(),
-            truth: order(&sc.truth),
-            guess: order(&sc.guess),
-            glitch: sc.glitch.clone(),
-        })
+            origin: self.origin.clone(),
+            known: self.scenarios.keys().cloned().collect(),
+        })?;
+        let order = |m: &BTreeMap<String, f64>| self.parameters.iter().map(|p| m[&p.name]).collect();
+        Ok(Scenario { name: name.to_string(), truth: order(&sc.truth), guess: order(&sc.guess), glitch: sc.glitch.clone() })
     }
 
     pub fn injection(&self, name: &str) -> Result<&InjectionSpec, ModelError> {
-        self.injections
-            .get(name)
-            .ok_or_else(|| ModelError::UnknownDesign {
-                name: name.to_string(),
-                known: self.injections.keys().cloned().collect(),
-            })
+        self.injections.get(name).ok_or_else(|| ModelError::UnknownDesign {
+            name: name.to_string(),
+            known: self.injections.keys().cloned().collect(),
+        })
     }
 
     /// Decimation factor from the simulation to the analysis rate.

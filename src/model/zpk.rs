@@ -16,10 +16,7 @@ pub struct Zpk {
 impl Zpk {
     /// Evaluate at the Laplace variable `s` (use `s = 2 pi i f` for a frequency response).
     pub fn eval(&self, s: Complex64) -> Complex64 {
-        let num = self
-            .zeros
-            .iter()
-            .fold(Complex64::new(self.gain, 0.0), |acc, z| acc * (s - z));
+        let num = self.zeros.iter().fold(Complex64::new(self.gain, 0.0), |acc, z| acc * (s - z));
         self.poles.iter().fold(num, |acc, p| acc / (s - p))
     }
 

@@ -35,11 +35,7 @@ pub fn hermitian_cholesky<const N: usize>(s: &CMat<N>) -> CMat<N> {
             for k in 0..j {
                 v -= l[(i, k)] * l[(j, k)].conj();
             }
-            l[(i, j)] = if ljj > 0.0 {
-                v / ljj
-            } else {
-                Complex64::new(0.0, 0.0)
-            };
+            l[(i, j)] = if ljj > 0.0 { v / ljj } else { Complex64::new(0.0, 0.0) };
         }
     }
     l
@@ -59,11 +55,7 @@ pub struct ColoredNoise<const N: usize> {
 
 impl<const N: usize> std::fmt::Debug for ColoredNoise<N> {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(
-            f,
-            "ColoredNoise {{ n: {}, m: {}, dt: {} }}",
-            self.n, self.m, self.dt
-        )
+        write!(f, "ColoredNoise {{ n: {}, m: {}, dt: {} }}", self.n, self.m, self.dt)
     }
 }
 
@@ -86,12 +78,7 @@ pub fn fast_len(min: usize) -> usize {
 
 impl<const N: usize> ColoredNoise<N> {
     /// `csd(f)` gives the one-sided cross-PSD matrix at `f > 0`.
-    pub fn new(
-        csd: impl Fn(f64) -> CMat<N>,
-        n: usize,
-        dt: f64,
-        oversample: usize,
-    ) -> Result<Self, NoiseError> {
+    pub fn new(csd: impl Fn(f64) -> CMat<N>, n: usize, dt: f64, oversample: usize) -> Result<Self, NoiseError> {
         if n < 2 {
             return Err(NoiseError::TooShort(n));
         }
@@ -173,20 +160,13 @@ impl<const N: usize> ColoredNoise<N> {
         rng: &mut R,
         corrupt: impl FnOnce(&mut [Vec<f64>], &mut R),
     ) -> Vec<Vec<f64>> {
-        let mut time: Vec<Vec<f64>> = (0..N)
-            .map(|_| {
-                (0..self.m)
-                    .map(|_| rng.sample::<f64, _>(StandardNormal))
-                    .collect()
-            })
-            .collect();
+        let mut time: Vec<Vec<f64>> =
+            (0..N).map(|_| (0..self.m).map(|_| rng.sample::<f64, _>(StandardNormal)).collect()).collect();
         corrupt(&mut time, rng);
         let mut white: Vec<Vec<Complex64>> = Vec::with_capacity(N);
         for x in time.iter_mut() {
             let mut spec = self.fwd.make_output_vec();
-            self.fwd
-                .process(x, &mut spec)
-                .expect("FFT sizes match by construction");
+            self.fwd.process(x, &mut spec).expect("FFT sizes match by construction");
             white.push(spec);
         }
         self.color(&mut white)
@@ -194,9 +174,7 @@ impl<const N: usize> ColoredNoise<N> {
 
     fn color(&self, white: &mut [Vec<Complex64>]) -> Vec<Vec<f64>> {
         let nbins = self.m / 2 + 1;
-        let mut colored: Vec<Vec<Complex64>> = (0..N)
-            .map(|_| vec![Complex64::new(0.0, 0.0); nbins])
-            .collect();
+        let mut colored: Vec<Vec<Complex64>> = (0..N).map(|_| vec![Complex64::new(0.0, 0.0); nbins]).collect();
         for k in 1..nbins - 1 {
             let l = &self.factors[k];
             for i in 0..N {
@@ -212,13 +190,8 @@ impl<const N: usize> ColoredNoise<N> {
             .into_iter()
             .map(|mut spec| {
                 let mut out = self.inv.make_output_vec();
-                self.inv
-                    .process(&mut spec, &mut out)
-                    .expect("FFT sizes match by construction");
-                out[self.offset..self.offset + self.n]
-                    .iter()
-                    .map(|v| v * norm)
-                    .collect()
+                self.inv.process(&mut spec, &mut out).expect("FFT sizes match by construction");
+                out[self.offset..self.offset + self.n].iter().map(|v| v * norm).collect()
             })
             .collect()
     }

@@ -22,13 +22,9 @@ impl<const N: usize> NoiseModel<N> {
         let sources = sources
             .iter()
             .map(|(name, src)| {
-                let entry =
-                    model
-                        .noise_entry(&src.enters)
-                        .ok_or_else(|| NoiseError::UnknownEntry {
-                            source_name: name.clone(),
-                            enters: src.enters.clone(),
-                        })?;
+                let entry = model
+                    .noise_entry(&src.enters)
+                    .ok_or_else(|| NoiseError::UnknownEntry { source_name: name.clone(), enters: src.enters.clone() })?;
                 Ok((name.clone(), src.clone(), entry))
             })
             .collect::<Result<Vec<_>, NoiseError>>()?;
@@ -43,13 +39,7 @@ impl<const N: usize> NoiseModel<N> {
     }
 
     /// The same, from already evaluated operators, at frequency `f`.
-    pub fn readout_csd_with(
-        &self,
-        d: &CMat<N>,
-        s: &CMat<N>,
-        delta_inv: &CMat<N>,
-        f: f64,
-    ) -> CMat<N> {
+    pub fn readout_csd_with(&self, d: &CMat<N>, s: &CMat<N>, delta_inv: &CMat<N>, f: f64) -> CMat<N> {
         let mut force = CMat::<N>::zeros();
         let mut readout = CMat::<N>::zeros();
         for (_, src, entry) in &self.sources {
@@ -78,3 +68,4 @@ impl<const N: usize> NoiseModel<N> {
         (out + out.adjoint()) * Complex64::new(0.5, 0.0)
     }
 }
+

@@ -46,17 +46,9 @@ impl Design {
     /// The two single-input experiments of a model-file injection table (Exp. 1 on oi1,
     /// Exp. 2 on oi12; thesis Table "standard input signals").
     pub fn from_spec(name: &str, spec: &InjectionSpec) -> Result<Self, SignalError> {
-        let freqs: Vec<f64> = spec
-            .cycles
-            .iter()
-            .map(|&c| c as f64 / spec.stretch_s)
-            .collect();
+        let freqs: Vec<f64> = spec.cycles.iter().map(|&c| c as f64 / spec.stretch_s).collect();
         let make = |amps: &[f64]| -> Vec<Stretch> {
-            freqs
-                .iter()
-                .zip(amps)
-                .map(|(&f_hz, &amplitude)| Stretch { f_hz, amplitude })
-                .collect()
+            freqs.iter().zip(amps).map(|(&f_hz, &amplitude)| Stretch { f_hz, amplitude }).collect()
         };
         let d = Design {
             name: name.to_string(),
@@ -65,14 +57,8 @@ impl Design {
             start_s: spec.start_s.unwrap_or(spec.gap_s),
             duration_s: spec.duration_s.unwrap_or(DEFAULT_DURATION_S),
             experiments: vec![
-                Experiment {
-                    name: "exp1".into(),
-                    inputs: vec![Some(make(&spec.oi1_amplitude)), None],
-                },
-                Experiment {
-                    name: "exp2".into(),
-                    inputs: vec![None, Some(make(&spec.oi12_amplitude))],
-                },
+                Experiment { name: "exp1".into(), inputs: vec![Some(make(&spec.oi1_amplitude)), None] },
+                Experiment { name: "exp2".into(), inputs: vec![None, Some(make(&spec.oi12_amplitude))] },
             ],
         };
         d.validate()?;
@@ -80,18 +66,9 @@ impl Design {
     }
 
     pub fn validate(&self) -> Result<(), SignalError> {
-        let bad = |reason: String| SignalError::Invalid {
-            design: self.name.clone(),
-            reason,
-        };
-        if !(self.stretch_s > 0.0
-            && self.gap_s >= 0.0
-            && self.start_s >= 0.0
-            && self.duration_s > 0.0)
-        {
-            return Err(bad(
-                "stretch_s and duration_s must be > 0, gap_s and start_s >= 0".into(),
-            ));
+        let bad = |reason: String| SignalError::Invalid { design: self.name.clone(), reason };
+        if !(self.stretch_s > 0.0 && self.gap_s >= 0.0 && self.start_s >= 0.0 && self.duration_s > 0.0) {
+            return Err(bad("stretch_s and duration_s must be > 0, gap_s and start_s >= 0".into()));
         }
         if self.experiments.is_empty() {
             return Err(bad("no experiments".into()));
@@ -99,8 +76,7 @@ impl Design {
         for e in &self.experiments {
             for (c, input) in e.inputs.iter().enumerate() {
                 let Some(stretches) = input else { continue };
-                let end = self.start_s + stretches.len() as f64 * (self.stretch_s + self.gap_s)
-                    - self.gap_s;
+                let end = self.start_s + stretches.len() as f64 * (self.stretch_s + self.gap_s) - self.gap_s;
                 if end > self.duration_s + 1e-9 {
                     return Err(bad(format!(
                         "experiment '{}' input {c}: {} stretches end at {end} s, after the experiment's {} s",
@@ -111,10 +87,7 @@ impl Design {
                 }
                 for (n, s) in stretches.iter().enumerate() {
                     if !(s.f_hz.is_finite() && s.f_hz >= 0.0 && s.amplitude.is_finite()) {
-                        return Err(bad(format!(
-                            "experiment '{}' input {c} stretch {n}: bad frequency or amplitude",
-                            e.name
-                        )));
+                        return Err(bad(format!("experiment '{}' input {c} stretch {n}: bad frequency or amplitude", e.name)));
                     }
                     let cycles = s.f_hz * self.stretch_s;
                     if (cycles - cycles.round()).abs() > 1e-6 {
@@ -136,18 +109,14 @@ impl Design {
 
     /// The guidance signal of `experiment` on input `channel` at time `t`.
     pub fn value(&self, experiment: usize, channel: usize, t: f64) -> f64 {
-        let Some(Some(stretches)) = self.experiments[experiment].inputs.get(channel) else {
-            return 0.0;
-        };
+        let Some(Some(stretches)) = self.experiments[experiment].inputs.get(channel) else { return 0.0 };
         let rel = t - self.start_s;
         if rel < 0.0 {
             return 0.0;
         }
         let period = self.stretch_s + self.gap_s;
         let n = (rel / period).floor() as usize;
-        let Some(s) = stretches.get(n) else {
-            return 0.0;
-        };
+        let Some(s) = stretches.get(n) else { return 0.0 };
         let local = rel - n as f64 * period;
         if local >= self.stretch_s {
             return 0.0;
@@ -156,21 +125,8 @@ impl Design {
     }
 
     /// Sample every input of `experiment` at `t_k = t0 + k dt`, k = 0..n.
-    pub fn sample(
-        &self,
-        experiment: usize,
-        n_inputs: usize,
-        t0: f64,
-        dt: f64,
-        n: usize,
-    ) -> Vec<Vec<f64>> {
-        (0..n_inputs)
-            .map(|c| {
-                (0..n)
-                    .map(|k| self.value(experiment, c, t0 + k as f64 * dt))
-                    .collect()
-            })
-            .collect()
+    pub fn sample(&self, experiment: usize, n_inputs: usize, t0: f64, dt: f64, n: usize) -> Vec<Vec<f64>> {
+        (0..n_inputs).map(|c| (0..n).map(|k| self.value(experiment, c, t0 + k as f64 * dt)).collect()).collect()
     }
 
     /// Number of samples of one experiment at sampling interval `dt`.

@@ -36,24 +36,15 @@ impl<const N: usize> DecimatedSimulator<N> {
         oversample: usize,
         glitch: Option<&crate::model::spec::GlitchSpec>,
     ) -> Result<Self, NoiseError> {
-        let decimator = Decimator::new(factor, 1.0 / dt_sim)
-            .map_err(|e| NoiseError::Decimation(e.to_string()))?;
+        let decimator = Decimator::new(factor, 1.0 / dt_sim).map_err(|e| NoiseError::Decimation(e.to_string()))?;
         let dt_out = dt_sim * factor as f64;
         let n_out = design.samples(dt_out);
         let margin_out = decimator.edge_samples().div_ceil(factor) + 1;
         let n_sim = (n_out + 2 * margin_out) * factor;
         let t0 = -(margin_out as f64) * dt_out;
         let glitches = glitch.map(|g| GlitchConfig::new(g, n_out));
-        let sim = Simulator::on_grid(
-            model, design, truth, psd, dt_sim, t0, n_sim, oversample, glitches,
-        )?;
-        Ok(DecimatedSimulator {
-            sim,
-            decimator,
-            n_out,
-            dt_out,
-            first: margin_out,
-        })
+        let sim = Simulator::on_grid(model, design, truth, psd, dt_sim, t0, n_sim, oversample, glitches)?;
+        Ok(DecimatedSimulator { sim, decimator, n_out, dt_out, first: margin_out })
     }
 
     fn decimate(&self, x: &[f64]) -> Vec<f64> {
@@ -65,26 +56,14 @@ impl<const N: usize> DecimatedSimulator<N> {
         let d = self.sim.draw(rng);
         ExperimentData {
             names: d.names,
-            inputs: d
-                .inputs
-                .iter()
-                .map(|e| e.iter().map(|c| self.decimate(c)).collect())
-                .collect(),
-            outputs: d
-                .outputs
-                .iter()
-                .map(|e| e.iter().map(|c| self.decimate(c)).collect())
-                .collect(),
+            inputs: d.inputs.iter().map(|e| e.iter().map(|c| self.decimate(c)).collect()).collect(),
+            outputs: d.outputs.iter().map(|e| e.iter().map(|c| self.decimate(c)).collect()).collect(),
             dt: self.dt_out,
         }
     }
 
     /// A noise-only run (N channels) at the analysis rate.
     pub fn noise_run<R: Rng + ?Sized>(&self, rng: &mut R) -> Vec<Vec<f64>> {
-        self.sim
-            .noise_series(rng)
-            .iter()
-            .map(|c| self.decimate(c))
-            .collect()
+        self.sim.noise_series(rng).iter().map(|c| self.decimate(c)).collect()
     }
 }

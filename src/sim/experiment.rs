@@ -4,7 +4,7 @@
 use rand::Rng;
 
 use crate::fit::problem::ExperimentData;
-use crate::model::closed_loop::{CMat, ClosedLoopModel};
+use crate::model::closed_loop::{ClosedLoopModel, CMat};
 use crate::noise::{ColoredNoise, GlitchConfig, NoiseError};
 use crate::signal::Design;
 use crate::sim::templates::{Series, TemplateEngine};
@@ -33,17 +33,7 @@ impl<const N: usize> Simulator<N> {
         oversample: usize,
         glitches: Option<GlitchConfig>,
     ) -> Result<Self, NoiseError> {
-        Self::on_grid(
-            model,
-            design,
-            truth,
-            psd,
-            dt,
-            0.0,
-            design.samples(dt),
-            oversample,
-            glitches,
-        )
+        Self::on_grid(model, design, truth, psd, dt, 0.0, design.samples(dt), oversample, glitches)
     }
 
     /// The same on the time grid `t0 + k dt`, k = 0..n (e.g. with margins for decimation).
@@ -59,9 +49,7 @@ impl<const N: usize> Simulator<N> {
         oversample: usize,
         glitches: Option<GlitchConfig>,
     ) -> Result<Self, NoiseError> {
-        let inputs: Vec<Vec<Vec<f64>>> = (0..design.experiments.len())
-            .map(|e| design.sample(e, N, t0, dt, n))
-            .collect();
+        let inputs: Vec<Vec<Vec<f64>>> = (0..design.experiments.len()).map(|e| design.sample(e, N, t0, dt, n)).collect();
         let engine = TemplateEngine::new(model, &inputs, dt);
         let signal = engine.templates(truth, None);
         let noise = ColoredNoise::new(psd, n, dt, oversample)?;
@@ -100,17 +88,9 @@ impl<const N: usize> Simulator<N> {
             .iter()
             .map(|sig| {
                 let noise = self.noise_series(rng);
-                sig.iter()
-                    .zip(noise)
-                    .map(|(s, n)| s.iter().zip(n).map(|(a, b)| a + b).collect())
-                    .collect()
+                sig.iter().zip(noise).map(|(s, n)| s.iter().zip(n).map(|(a, b)| a + b).collect()).collect()
             })
             .collect();
-        ExperimentData {
-            names: self.names.clone(),
-            inputs: self.inputs.clone(),
-            outputs,
-            dt: self.dt,
-        }
+        ExperimentData { names: self.names.clone(), inputs: self.inputs.clone(), outputs, dt: self.dt }
     }
 }

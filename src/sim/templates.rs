@@ -34,10 +34,7 @@ pub struct TemplateEngine<'m, M: ClosedLoopModel<N>, const N: usize> {
 impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
     /// `inputs[e][c]` is experiment e's guidance series on input c, all of length `n`.
     pub fn new(model: &'m M, inputs: &[Vec<Vec<f64>>], dt: f64) -> Self {
-        let n = inputs
-            .first()
-            .and_then(|e| e.first())
-            .map_or(0, |c| c.len());
+        let n = inputs.first().and_then(|e| e.first()).map_or(0, |c| c.len());
         let m = fast_len(2 * n.max(1));
         let mut planner = RealFftPlanner::<f64>::new();
         let fwd = planner.plan_fft_forward(m);
@@ -46,9 +43,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
         let df = 1.0 / (m as f64 * dt);
         // The DC bin is evaluated just above zero: controllers with an integrator are singular
         // at s = 0, while the closed loop has a finite limit there.
-        let points = (0..nbins)
-            .map(|k| model.prepare(if k == 0 { 1e-6 * df } else { k as f64 * df }))
-            .collect();
+        let points = (0..nbins).map(|k| model.prepare(if k == 0 { 1e-6 * df } else { k as f64 * df })).collect();
         let inputs_f = inputs
             .iter()
             .map(|exp| {
@@ -67,15 +62,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
                     .collect()
             })
             .collect();
-        TemplateEngine {
-            model,
-            n,
-            m,
-            dt,
-            points,
-            inputs_f,
-            inv,
-        }
+        TemplateEngine { model, n, m, dt, points, inputs_f, inv }
     }
 
     pub fn len(&self) -> usize {
@@ -105,13 +92,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
     }
 
     /// Response spectrum `W T o_i` of experiment `e` at bin k into `acc` (per output channel).
-    fn response(
-        &self,
-        e: usize,
-        k: usize,
-        t: &CMat<N>,
-        filter: Option<&CMat<N>>,
-    ) -> [Complex64; N] {
+    fn response(&self, e: usize, k: usize, t: &CMat<N>, filter: Option<&CMat<N>>) -> [Complex64; N] {
         let mut out = [Complex64::new(0.0, 0.0); N];
         for (c, inp) in self.inputs_f[e].iter().enumerate() {
             if let Some(x) = inp {
@@ -139,9 +120,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
             let last = spec.len() - 1;
             spec[last].im = 0.0;
         }
-        self.inv
-            .process(&mut spec, scratch)
-            .expect("FFT sizes match");
+        self.inv.process(&mut spec, scratch).expect("FFT sizes match");
         let norm = 1.0 / self.m as f64;
         scratch[..self.n].iter().map(|v| v * norm).collect()
     }
@@ -190,20 +169,12 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
         let mut scratch = self.inv.make_output_vec();
         specs
             .into_iter()
-            .map(|exp| {
-                exp.into_iter()
-                    .map(|s| self.inverse(s, &mut scratch))
-                    .collect()
-            })
+            .map(|exp| exp.into_iter().map(|s| self.inverse(s, &mut scratch)).collect())
             .collect()
     }
 
     /// Templates and their parameter derivatives: `(o_s[e][i], d[k][e][i])`.
-    pub fn templates_and_derivatives(
-        &self,
-        p: &[f64],
-        filter: Option<&[CMat<N>]>,
-    ) -> (Series, Vec<Series>) {
+    pub fn templates_and_derivatives(&self, p: &[f64], filter: Option<&[CMat<N>]>) -> (Series, Vec<Series>) {
         let np = self.model.n_params();
         let nb = self.points.len();
         let ne = self.n_experiments();
@@ -212,8 +183,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
         let mut dspecs = vec![vec![vec![vec![zero; nb]; N]; ne]; np];
         let mut tgrid = vec![CMat::<N>::zeros(); nb];
         let mut dgrid = vec![CMat::<N>::zeros(); nb * np];
-        self.model
-            .transfer_grid(&self.points, p, &mut tgrid, Some(&mut dgrid));
+        self.model.transfer_grid(&self.points, p, &mut tgrid, Some(&mut dgrid));
         for (k, t) in tgrid.iter().enumerate() {
             let d = &dgrid[k * np..(k + 1) * np];
             let w = filter.map(|f| &f[k]);
@@ -232,13 +202,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
         }
         let mut scratch = self.inv.make_output_vec();
         let mut inv_all = |s: Series3| -> Series {
-            s.into_iter()
-                .map(|exp| {
-                    exp.into_iter()
-                        .map(|x| self.inverse(x, &mut scratch))
-                        .collect()
-                })
-                .collect()
+            s.into_iter().map(|exp| exp.into_iter().map(|x| self.inverse(x, &mut scratch)).collect()).collect()
         };
         let t = inv_all(specs);
         let dt = dspecs.into_iter().map(&mut inv_all).collect();
