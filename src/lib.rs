@@ -8,6 +8,7 @@
 pub mod campaign;
 pub mod cli;
 pub mod design;
+pub mod diagnose;
 pub mod fit;
 pub mod io;
 pub mod model;

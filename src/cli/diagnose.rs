@@ -1,13 +1,334 @@
-//! `freefall diagnose` (placeholder until the diagnosis module lands).
-use anyhow::{bail, Result};
+//! `freefall diagnose`: fit, find the residual, name the missing effect, refit, report
+//! (see `diagnose`). Also `--simulate-into DIR --effect NAME=VALUE`, which writes a simulated
+//! dataset carrying library effects the nominal model lacks (for tests and examples).
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, Context, Result};
 use clap::Args;
+
+use super::analysis::{experiment_data, resolve_guess, truth_from_meta};
+use super::ModelOpt;
+use crate::diagnose::{diagnose, simulate_with_effects, DiagnoseConfig, Diagnosis};
+use crate::io::{read_dataset, write_json_atomic, write_parquet, write_text_atomic, Table};
+use crate::model::effects::{by_name, library};
+use crate::setup::{DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 
 #[derive(Debug, Args)]
 pub struct DiagnoseArgs {
-    /// Dataset TOML file.
-    pub dataset: std::path::PathBuf,
+    /// Dataset TOML file (with --simulate-into: the directory to write a simulated dataset to).
+    pub dataset: Option<PathBuf>,
+    #[command(flatten)]
+    pub model: ModelOpt,
+    /// Output directory (created): report.md, report.json, residuals_*.parquet, spectra.parquet,
+    /// time_chi2.parquet and PNG plots (when python3 with matplotlib is available).
+    #[arg(long, default_value = "diagnosis")]
+    pub out: PathBuf,
+    /// Starting point: a scenario name or a parameter TOML (default: nominal).
+    #[arg(long)]
+    pub guess: Option<String>,
+    /// Whitening filter order (lags).
+    #[arg(long, default_value_t = DEFAULT_WHITENING_ORDER)]
+    pub order: usize,
+    #[arg(long, default_value_t = DEFAULT_POLY_DEGREE)]
+    pub poly_degree: usize,
+    /// Family-wise false-alarm probability of each decision (Bonferroni over candidates).
+    #[arg(long, default_value_t = 0.01)]
+    pub alpha: f64,
+    /// At most this many effects are added.
+    #[arg(long, default_value_t = 3)]
+    pub max_effects: usize,
+    /// Whiten with the model noise PSD instead of the noise run (which then only serves as the
+    /// reference of the band and time tests).
+    #[arg(long = "model-psd")]
+    pub model_psd: bool,
+    /// Print the effect library and exit.
+    #[arg(long)]
+    pub list_effects: bool,
+    /// Write a simulated dataset (scenario truth + the --effect list) to DATASET and exit.
+    #[arg(long)]
+    pub simulate_into: bool,
+    /// With --simulate-into: an effect switched on in the truth, NAME=VALUE (repeatable).
+    #[arg(long = "effect", value_name = "NAME=VALUE")]
+    pub effects: Vec<String>,
+    /// With --simulate-into: scenario, design and seed.
+    #[arg(long, default_value = "monte_carlo")]
+    pub scenario: String,
+    #[arg(long, default_value = "standard")]
+    pub design: String,
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Do not run scripts/plot_diagnose.py.
+    #[arg(long)]
+    pub no_plots: bool,
 }
 
-pub fn run(_a: DiagnoseArgs) -> Result<()> {
-    bail!("diagnose: not available in this build")
+pub fn run(a: DiagnoseArgs) -> Result<()> {
+    if a.list_effects {
+        println!(
+            "{:<28} {:<20} {:<12} acts on",
+            "effect", "category", "parameter"
+        );
+        for e in library() {
+            println!(
+                "{:<28} {:<20} {:<12} {}",
+                e.name(),
+                e.category().as_str(),
+                e.parameter_names().join(","),
+                e.acts_on()
+            );
+        }
+        return Ok(());
+    }
+    let Some(dataset) = a.dataset.clone() else {
+        bail!("give a dataset TOML (or --list-effects)")
+    };
+    let setup = a.model.setup()?;
+    if a.simulate_into {
+        return simulate(&a, &setup, &dataset);
+    }
+    let ds = read_dataset(&dataset)?;
+    let data = experiment_data(&ds)?;
+    let names = setup.parameter_names();
+    let guess = resolve_guess(&setup, a.guess.as_deref())?;
+    let truth = truth_from_meta(&ds, &names);
+    let noise: Option<Vec<Vec<f64>>> = ds
+        .noise
+        .as_ref()
+        .map(|r| r.outputs().iter().map(|c| c.to_vec()).collect());
+    if let Some(nr) = &ds.noise {
+        if (nr.dt - data.dt).abs() > 1e-9 * data.dt {
+            bail!(
+                "the noise run's sampling interval {} s differs from the experiments' {} s",
+                nr.dt,
+                data.dt
+            );
+        }
+    }
+    let cfg = DiagnoseConfig {
+        order: a.order,
+        poly_degree: a.poly_degree,
+        alpha: a.alpha,
+        max_effects: a.max_effects,
+        whiten_from_model: a.model_psd,
+        ..Default::default()
+    };
+    let d = diagnose(
+        &setup,
+        &data,
+        noise.as_deref(),
+        &guess,
+        truth.as_deref(),
+        &cfg,
+    )
+    .with_context(|| dataset.display().to_string())?;
+    std::fs::create_dir_all(&a.out)
+        .with_context(|| format!("cannot create output directory '{}'", a.out.display()))?;
+    write_outputs(&a.out, &d, &data.names, data.dt)?;
+    let mut md = d.to_markdown(&dataset.display().to_string());
+    if !a.no_plots {
+        match plot(&a.out) {
+            Ok(()) => md.push_str("\n## Plots\n\n![residual spectra](psd.png)\n\n![time-resolved chi2](time_chi2.png)\n"),
+            Err(e) => {
+                let note = format!("\n> note: no plots ({e}); the plot data are in spectra.parquet and time_chi2.parquet\n");
+                eprintln!("note: no plots ({e})");
+                md.push_str(&note);
+            }
+        }
+    }
+    write_text_atomic(a.out.join("report.md"), &md)?;
+    println!(
+        "chi2/nu {:.4} -> {:.4} (reference {:.4}); added: {}; unexplained: {}; {:.2} s",
+        d.before.chi2_reduced,
+        d.after.chi2_reduced,
+        d.after.reference_chi2_reduced,
+        if d.effects_added.is_empty() {
+            "none".to_string()
+        } else {
+            d.effects_added
+                .iter()
+                .map(|e| e.name.clone())
+                .collect::<Vec<_>>()
+                .join(", ")
+        },
+        d.unexplained.len(),
+        d.seconds
+    );
+    for n in &d.notes {
+        eprintln!("note: {n}");
+    }
+    eprintln!("wrote {}", a.out.display());
+    Ok(())
+}
+
+fn write_outputs(out: &Path, d: &Diagnosis, names: &[String], dt: f64) -> Result<()> {
+    write_json_atomic(out.join("report.json"), &d.to_json())?;
+    for (stage, (w, raw)) in [
+        ("before", &d.residuals_before),
+        ("after", &d.residuals_after),
+    ] {
+        let (mut exp, mut ch, mut t, mut r, mut wv) =
+            (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        for (e, name) in names.iter().enumerate() {
+            for (c, cname) in ["o1", "o12"].iter().enumerate() {
+                for (i, &v) in raw[e][c].iter().enumerate() {
+                    exp.push(name.clone());
+                    ch.push(cname.to_string());
+                    t.push(i as f64 * dt);
+                    r.push(v);
+                    wv.push(if i >= d.order {
+                        w[e][c].get(i - d.order).copied().unwrap_or(f64::NAN)
+                    } else {
+                        f64::NAN
+                    });
+                }
+            }
+        }
+        let table = Table::new()
+            .with_str("experiment", exp)?
+            .with_str("channel", ch)?
+            .with_f64("t", t)?
+            .with_f64("raw", r)?
+            .with_f64("whitened", wv)?;
+        write_parquet(out.join(format!("residuals_{stage}.parquet")), &table)?;
+    }
+    let (mut st, mut exp, mut ch, mut f, mut lv, mut lo, mut hi) = (
+        Vec::new(),
+        Vec::new(),
+        Vec::new(),
+        Vec::new(),
+        Vec::new(),
+        Vec::new(),
+        Vec::new(),
+    );
+    for s in &d.spectra {
+        for i in 0..s.f.len() {
+            st.push(s.stage.clone());
+            exp.push(s.experiment.clone());
+            ch.push(s.channel.clone());
+            f.push(s.f[i]);
+            lv.push(s.level[i]);
+            lo.push(s.lo[i]);
+            hi.push(s.hi[i]);
+        }
+    }
+    write_parquet(
+        out.join("spectra.parquet"),
+        &Table::new()
+            .with_str("stage", st)?
+            .with_str("experiment", exp)?
+            .with_str("channel", ch)?
+            .with_f64("f", f)?
+            .with_f64("level", lv)?
+            .with_f64("lo90", lo)?
+            .with_f64("hi90", hi)?,
+    )?;
+    let (mut st, mut exp, mut ch, mut t0, mut t1, mut c2, mut ex, mut p) = (
+        Vec::new(),
+        Vec::new(),
+        Vec::new(),
+        Vec::new(),
+        Vec::new(),
+        Vec::new(),
+        Vec::new(),
+        Vec::new(),
+    );
+    for (stage, s) in [("before", &d.before), ("after", &d.after)] {
+        for c in &s.channels {
+            for t in &c.time {
+                st.push(stage.to_string());
+                exp.push(c.experiment.clone());
+                ch.push(c.channel.clone());
+                t0.push(t.time_s[0]);
+                t1.push(t.time_s[1]);
+                c2.push(t.chi2_reduced);
+                ex.push(t.excess);
+                p.push(t.p_value);
+            }
+        }
+    }
+    write_parquet(
+        out.join("time_chi2.parquet"),
+        &Table::new()
+            .with_str("stage", st)?
+            .with_str("experiment", exp)?
+            .with_str("channel", ch)?
+            .with_f64("t_lo", t0)?
+            .with_f64("t_hi", t1)?
+            .with_f64("chi2_reduced", c2)?
+            .with_f64("excess", ex)?
+            .with_f64("p_value", p)?,
+    )?;
+    Ok(())
+}
+
+/// Run scripts/plot_diagnose.py (next to the crate, or FREEFALL_PLOT_SCRIPT) on the output.
+fn plot(out: &Path) -> Result<()> {
+    let script = std::env::var_os("FREEFALL_PLOT_SCRIPT")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/plot_diagnose.py"));
+    if !script.exists() {
+        bail!("plot script {} not found", script.display());
+    }
+    let o = std::process::Command::new("python3")
+        .arg(&script)
+        .arg(out)
+        .output()
+        .context("python3 not available")?;
+    if !o.status.success() {
+        let err = String::from_utf8_lossy(&o.stderr);
+        let last = err.lines().last().unwrap_or("").to_string();
+        bail!("{} failed: {last}", script.display());
+    }
+    Ok(())
+}
+
+fn simulate(a: &DiagnoseArgs, setup: &crate::setup::Setup, dir: &Path) -> Result<()> {
+    let sc = setup.spec.scenario(&a.scenario)?;
+    let design = setup.design(&a.design)?;
+    let mut effects = Vec::new();
+    let mut meta_eff = toml::Table::new();
+    for spec in &a.effects {
+        let (name, value) = spec
+            .split_once('=')
+            .with_context(|| format!("--effect '{spec}': expected NAME=VALUE"))?;
+        let e = by_name(name.trim()).with_context(|| {
+            format!(
+                "--effect '{spec}': unknown effect; known: {}",
+                library()
+                    .iter()
+                    .map(|e| e.name())
+                    .collect::<Vec<_>>()
+                    .join(", ")
+            )
+        })?;
+        let v: f64 = value
+            .trim()
+            .parse()
+            .with_context(|| format!("--effect '{spec}': value is not a number"))?;
+        meta_eff.insert(e.name(), toml::Value::Float(v));
+        effects.push((e, vec![v]));
+    }
+    let (data, noise) = simulate_with_effects(setup, &design, &sc.truth, &effects, a.seed)?;
+    let mut meta = toml::Table::new();
+    meta.insert(
+        "generator".into(),
+        format!(
+            "freefall {} diagnose --simulate-into",
+            env!("CARGO_PKG_VERSION")
+        )
+        .into(),
+    );
+    meta.insert("scenario".into(), a.scenario.clone().into());
+    meta.insert("design".into(), a.design.clone().into());
+    meta.insert("seed".into(), toml::Value::Integer(a.seed as i64));
+    let mut t = toml::Table::new();
+    for (n, v) in setup.parameter_names().iter().zip(&sc.truth) {
+        t.insert(n.clone(), toml::Value::Float(*v));
+    }
+    meta.insert("truth".into(), toml::Value::Table(t));
+    meta.insert("effects".into(), toml::Value::Table(meta_eff));
+    let path = super::simulate::write_simulated(dir, &data, &noise, meta)?;
+    eprintln!("wrote {}", path.display());
+    Ok(())
 }

@@ -1,0 +1,329 @@
+//! The diagnosis as `report.json` (the keys of issue 6) and as readable Markdown. Rendering to
+//! strings and JSON values only; writing is the CLI's job.
+
+use std::fmt::Write;
+
+use serde_json::{json, Map, Value};
+
+use super::{Diagnosis, Stage};
+
+fn num(v: f64) -> Value {
+    if v.is_finite() {
+        json!(v)
+    } else {
+        Value::Null
+    }
+}
+
+fn named(names: &[String], v: &[f64]) -> Value {
+    Value::Object(
+        names
+            .iter()
+            .zip(v)
+            .map(|(n, x)| (n.clone(), num(*x)))
+            .collect::<Map<_, _>>(),
+    )
+}
+
+fn stage_json(s: &Stage, truth: Option<&[f64]>) -> Value {
+    let per: Vec<Value> = s
+        .channels
+        .iter()
+        .map(|c| {
+            json!({
+                "experiment": c.experiment,
+                "channel": c.channel,
+                "n": c.n,
+                "chi2_reduced": num(c.chi2_reduced),
+                "excess_kurtosis": num(c.excess_kurtosis),
+                "kurtosis_err": num(c.kurtosis_err),
+                "outliers": c.outliers,
+                "outliers_expected": num(c.outliers_expected),
+                "ljung_box": num(c.ljung_box),
+                "ljung_box_lags": c.ljung_box_lags,
+                "ljung_box_p": num(c.ljung_box_p),
+                "ks_statistic": c.ks_statistic.map(num),
+                "ks_p": c.ks_p.map(num),
+                "coherence": c.coherence.iter().map(|k| json!({"input": k.input, "max": num(k.max), "f_hz": num(k.f_hz), "threshold": num(k.threshold)})).collect::<Vec<_>>(),
+                "bands": c.bands.iter().map(|b| json!({"band_hz": [num(b.band_hz[0]), num(b.band_hz[1])], "bins": b.bins, "level": num(b.level), "noise_level": b.noise_level.map(num), "excess": num(b.excess), "p_value": num(b.p_value)})).collect::<Vec<_>>(),
+                "time": c.time.iter().map(|t| json!({"time_s": [num(t.time_s[0]), num(t.time_s[1])], "n": t.n, "chi2_reduced": num(t.chi2_reduced), "excess": num(t.excess), "p_value": num(t.p_value)})).collect::<Vec<_>>(),
+                "lines": c.lines.iter().map(|l| json!({"f_hz": num(l.f_hz), "power": num(l.power), "p_value": num(l.p_value)})).collect::<Vec<_>>(),
+            })
+        })
+        .collect();
+    let mut v = json!({
+        "chi2_reduced": num(s.chi2_reduced),
+        "chi2": num(s.chi2),
+        "nu": s.nu,
+        "converged": s.converged,
+        "reference_chi2_reduced": num(s.reference_chi2_reduced),
+        "per_experiment_channel": per,
+        "estimates": named(&s.parameter_names, &s.estimate),
+        "sigmas": named(&s.parameter_names, &s.sigma),
+    });
+    if let Some(t) = truth {
+        let k = t.len().min(s.estimate.len());
+        let err: Vec<f64> = (0..k)
+            .map(|i| (s.estimate[i] - t[i]) / s.sigma[i])
+            .collect();
+        v["error_vs_truth_sigma"] = named(&s.parameter_names[..k], &err);
+    }
+    v
+}
+
+impl Diagnosis {
+    /// Parameter shifts of the base parameters from before to after, in units of the before sigma.
+    pub fn shifts_sigma(&self) -> Vec<(String, f64)> {
+        let k = self.before.estimate.len();
+        (0..k)
+            .map(|i| {
+                (
+                    self.before.parameter_names[i].clone(),
+                    (self.after.estimate[i] - self.before.estimate[i]) / self.before.sigma[i],
+                )
+            })
+            .collect()
+    }
+
+    /// `report.json`.
+    pub fn to_json(&self) -> Value {
+        let truth = self.truth.as_deref();
+        let added: Vec<Value> = self
+            .effects_added
+            .iter()
+            .map(|a| {
+                json!({
+                    "name": a.name, "category": a.category, "acts_on": a.acts_on,
+                    "parameters": named(&a.parameter_names, &a.parameters),
+                    "sigmas": named(&a.parameter_names, &a.sigmas),
+                    "score_statistic": num(a.score_statistic), "delta_chi2": num(a.delta_chi2), "p_value": num(a.p_value),
+                    "most_correlated": a.most_correlated.as_ref().map(|(n, c)| json!({"parameter": n, "correlation": num(*c)})),
+                    "degenerate": a.degenerate,
+                })
+            })
+            .collect();
+        let cands: Vec<Value> = self
+            .candidates
+            .iter()
+            .map(|c| {
+                json!({
+                    "round": c.round, "name": c.name, "category": c.category, "acts_on": c.acts_on,
+                    "score_statistic": num(c.score_statistic), "score_p_value": num(c.score_p_value),
+                    "identifiable_fraction": num(c.identifiable_fraction),
+                    "most_correlated": c.most_correlated.as_ref().map(|(n, v)| json!({"parameter": n, "correlation": num(*v)})),
+                    "degenerate": c.degenerate,
+                    "delta_chi2": c.delta_chi2.map(num), "p_value": c.p_value.map(num),
+                })
+            })
+            .collect();
+        let unexpl: Vec<Value> = self
+            .unexplained
+            .iter()
+            .map(|u| {
+                json!({
+                    "experiment": u.experiment, "channel": u.channel, "kind": u.kind,
+                    "band_hz": [num(u.band_hz[0]), num(u.band_hz[1])], "time_s": [num(u.time_s[0]), num(u.time_s[1])],
+                    "excess": num(u.excess), "p_value": num(u.p_value),
+                })
+            })
+            .collect();
+        json!({
+            "before": stage_json(&self.before, truth),
+            "after": stage_json(&self.after, truth),
+            "effects_added": added,
+            "candidates": cands,
+            "unexplained": unexpl,
+            "parameter_shifts_sigma": Value::Object(self.shifts_sigma().into_iter().map(|(n, v)| (n, num(v))).collect()),
+            "whitening": self.whitening,
+            "whitening_order": self.order,
+            "alpha": self.alpha,
+            "notes": self.notes,
+            "seconds": num(self.seconds),
+        })
+    }
+
+    /// `report.md`.
+    pub fn to_markdown(&self, title: &str) -> String {
+        let mut s = String::new();
+        let _ = writeln!(s, "# Diagnosis of {title}\n");
+        let verdict = if self.effects_added.is_empty() {
+            "no effect of the library is supported by the data".to_string()
+        } else {
+            format!(
+                "added {}",
+                self.effects_added
+                    .iter()
+                    .map(|a| format!("**{}** ({})", a.name, a.category))
+                    .collect::<Vec<_>>()
+                    .join(", then ")
+            )
+        };
+        let _ = writeln!(
+            s,
+            "chi2/nu {:.4} -> {:.4} (nu = {}; a correct model reaches {:.4}, the whitened noise run's level); {verdict}; {} unexplained excess(es).\n",
+            self.before.chi2_reduced,
+            self.after.chi2_reduced,
+            self.after.nu,
+            self.after.reference_chi2_reduced,
+            self.unexplained.len()
+        );
+        let _ = writeln!(
+            s,
+            "Whitening: {} (order {}); family-wise false-alarm probability per decision {}.\n",
+            self.whitening, self.order, self.alpha
+        );
+        for n in &self.notes {
+            let _ = writeln!(s, "> note: {n}\n");
+        }
+        let _ = writeln!(s, "## Effects added\n");
+        if self.effects_added.is_empty() {
+            let _ = writeln!(s, "None.\n");
+        } else {
+            let _ = writeln!(s, "| effect | category | acts on | parameters | score | delta chi2 | p | most correlated |\n|---|---|---|---|---|---|---|---|");
+            for a in &self.effects_added {
+                let pars: Vec<String> = a
+                    .parameter_names
+                    .iter()
+                    .zip(&a.parameters)
+                    .zip(&a.sigmas)
+                    .map(|((n, v), e)| format!("{n} = {v:.4e} ± {e:.2e}"))
+                    .collect();
+                let corr = a
+                    .most_correlated
+                    .as_ref()
+                    .map(|(n, c)| format!("{n} ({c:+.3})"))
+                    .unwrap_or_default();
+                let _ = writeln!(
+                    s,
+                    "| {} | {} | {} | {} | {:.1} | {:.1} | {:.2e} | {} |",
+                    a.name,
+                    a.category,
+                    a.acts_on,
+                    pars.join(", "),
+                    a.score_statistic,
+                    a.delta_chi2,
+                    a.p_value,
+                    corr
+                );
+            }
+            let _ = writeln!(s);
+        }
+        let _ = writeln!(s, "## Parameters before and after\n");
+        let truth = self.truth.as_deref();
+        let _ = write!(s, "| parameter | before | after | shift [sigma_before] |");
+        if truth.is_some() {
+            let _ = write!(s, " truth | error before [sigma] | error after [sigma] |");
+        }
+        let _ = writeln!(
+            s,
+            "\n|---|---|---|---|{}",
+            if truth.is_some() { "---|---|---|" } else { "" }
+        );
+        for (i, (n, sh)) in self.shifts_sigma().iter().enumerate() {
+            let (b, a) = (&self.before, &self.after);
+            let _ = write!(
+                s,
+                "| {n} | {:.6e} ± {:.2e} | {:.6e} ± {:.2e} | {sh:+.2} |",
+                b.estimate[i], b.sigma[i], a.estimate[i], a.sigma[i]
+            );
+            if let Some(t) = truth {
+                let _ = write!(
+                    s,
+                    " {:.6e} | {:+.2} | {:+.2} |",
+                    t[i],
+                    (b.estimate[i] - t[i]) / b.sigma[i],
+                    (a.estimate[i] - t[i]) / a.sigma[i]
+                );
+            }
+            let _ = writeln!(s);
+        }
+        let _ = writeln!(s, "\n## Residuals by experiment and channel\n");
+        let _ = writeln!(s, "| stage | experiment | channel | chi2/n | excess kurtosis | >5 sigma (expected) | Ljung-Box p | KS p vs noise | worst band [Hz] (excess, p) |\n|---|---|---|---|---|---|---|---|---|");
+        for (st, stage) in [("before", &self.before), ("after", &self.after)] {
+            for c in &stage.channels {
+                let worst = c
+                    .bands
+                    .iter()
+                    .min_by(|a, b| a.p_value.total_cmp(&b.p_value))
+                    .map(|b| {
+                        format!(
+                            "{:.2e}-{:.2e} ({:+.2}, {:.1e})",
+                            b.band_hz[0], b.band_hz[1], b.excess, b.p_value
+                        )
+                    })
+                    .unwrap_or_default();
+                let _ = writeln!(
+                    s,
+                    "| {st} | {} | {} | {:.4} | {:+.3} ± {:.3} | {} ({:.2}) | {:.2e} | {} | {worst} |",
+                    c.experiment,
+                    c.channel,
+                    c.chi2_reduced,
+                    c.excess_kurtosis,
+                    c.kurtosis_err,
+                    c.outliers,
+                    c.outliers_expected,
+                    c.ljung_box_p,
+                    c.ks_p.map(|p| format!("{p:.2e}")).unwrap_or_else(|| "-".into())
+                );
+            }
+        }
+        let _ = writeln!(s, "\n## Unexplained\n");
+        if self.unexplained.is_empty() {
+            let _ = writeln!(s, "Nothing: the residual after the final fit is consistent with the noise in every experiment, channel, band and injection stretch.\n");
+        } else {
+            let _ = writeln!(s, "| experiment | channel | kind | band [Hz] | time [s] | excess | p |\n|---|---|---|---|---|---|---|");
+            for u in &self.unexplained {
+                let _ = writeln!(
+                    s,
+                    "| {} | {} | {} | {:.3e} - {:.3e} | {:.0} - {:.0} | {:.3} | {:.1e} |",
+                    u.experiment,
+                    u.channel,
+                    u.kind,
+                    u.band_hz[0],
+                    u.band_hz[1],
+                    u.time_s[0],
+                    u.time_s[1],
+                    u.excess,
+                    u.p_value
+                );
+            }
+            let _ = writeln!(s);
+        }
+        let _ = writeln!(s, "## Candidates (score test at zero, per round)\n");
+        let _ = writeln!(s, "| round | effect | category | score | p | identifiable | most correlated | delta chi2 | p (refit) |\n|---|---|---|---|---|---|---|---|---|");
+        for c in &self.candidates {
+            let corr = c
+                .most_correlated
+                .as_ref()
+                .map(|(n, v)| {
+                    format!(
+                        "{n} ({v:+.4}){}",
+                        if c.degenerate { " degenerate" } else { "" }
+                    )
+                })
+                .unwrap_or_default();
+            let _ = writeln!(
+                s,
+                "| {} | {} | {} | {:.2} | {:.1e} | {:.2e} | {corr} | {} | {} |",
+                c.round,
+                c.name,
+                c.category,
+                c.score_statistic,
+                c.score_p_value,
+                c.identifiable_fraction,
+                c.delta_chi2
+                    .map(|v| format!("{v:.1}"))
+                    .unwrap_or_else(|| "-".into()),
+                c.p_value
+                    .map(|v| format!("{v:.1e}"))
+                    .unwrap_or_else(|| "-".into())
+            );
+        }
+        let _ = writeln!(
+            s,
+            "\nNot in the library (cut): slow parameter drift, narrow-band lines and glitches as effects. Lines and transients \
+             show up above as unexplained `line` / `time` excess and in the outlier counts."
+        );
+        s
+    }
+}

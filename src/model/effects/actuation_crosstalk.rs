@@ -1,0 +1,88 @@
+//! Actuation cross-talk (thesis sec. 3.4, the dA imperfection): a fraction of a commanded force
+//! acts on the other coordinate. Drag-free force leaking onto x12: `AC[x12, df] += k C_df`;
+//! suspension force leaking onto x1: `AC[x1, sus] += k C_sus` (on top of the modelled
+//! back-reaction `mt a_sus C_sus`). Parameter: the leak fraction k.
+
+use super::{c, zero, Category, Effect};
+use crate::model::closed_loop::{OperatorDerivative, Operators};
+use crate::model::lpf_x::{LpfPoint, LpfX};
+
+#[derive(Debug, Clone, Copy)]
+pub enum ActuationCrosstalk {
+    DragFreeOnX12,
+    SuspensionOnX1,
+}
+
+impl ActuationCrosstalk {
+    fn element(&self) -> (usize, usize) {
+        match self {
+            ActuationCrosstalk::DragFreeOnX12 => (1, 0),
+            ActuationCrosstalk::SuspensionOnX1 => (0, 1),
+        }
+    }
+    fn law(&self, pt: &LpfPoint) -> num_complex::Complex64 {
+        match self {
+            ActuationCrosstalk::DragFreeOnX12 => pt.c_df,
+            ActuationCrosstalk::SuspensionOnX1 => pt.c_sus,
+        }
+    }
+}
+
+impl Effect for ActuationCrosstalk {
+    fn name(&self) -> String {
+        match self {
+            ActuationCrosstalk::DragFreeOnX12 => "actuation_crosstalk_df_x12".into(),
+            ActuationCrosstalk::SuspensionOnX1 => "actuation_crosstalk_sus_x1".into(),
+        }
+    }
+    fn category(&self) -> Category {
+        Category::ActuationCrosstalk
+    }
+    fn acts_on(&self) -> String {
+        match self {
+            ActuationCrosstalk::DragFreeOnX12 => {
+                "AC[x12, drag-free]: drag-free force leaking onto x12".into()
+            }
+            ActuationCrosstalk::SuspensionOnX1 => {
+                "AC[x1, suspension]: suspension force leaking onto x1".into()
+            }
+        }
+    }
+    fn parameter_names(&self) -> Vec<String> {
+        match self {
+            ActuationCrosstalk::DragFreeOnX12 => vec!["k_df_x12".into()],
+            ActuationCrosstalk::SuspensionOnX1 => vec!["k_sus_x1".into()],
+        }
+    }
+    fn typical(&self) -> Vec<f64> {
+        match self {
+            ActuationCrosstalk::DragFreeOnX12 => vec![1e-6],
+            ActuationCrosstalk::SuspensionOnX1 => vec![1e-2],
+        }
+    }
+    fn perturb(
+        &self,
+        _base: &LpfX,
+        pt: &LpfPoint,
+        _p: &[f64],
+        theta: &[f64],
+        ops: &mut Operators<2>,
+    ) {
+        ops.ac[self.element()] += self.law(pt) * theta[0];
+    }
+    fn derivative(
+        &self,
+        _base: &LpfX,
+        pt: &LpfPoint,
+        _p: &[f64],
+        _theta: &[f64],
+        _k: usize,
+    ) -> OperatorDerivative<2> {
+        let mut m = zero();
+        m[self.element()] = self.law(pt) * c(1.0);
+        OperatorDerivative {
+            ac: Some(m),
+            ..Default::default()
+        }
+    }
+}

@@ -1,0 +1,57 @@
+//! Viscous / gas damping of a TM (thesis sec. 4.1.1): a velocity-proportional force
+//! `-gamma_k dx_k/dt` per unit mass, i.e. `w_k^2 -> w_k^2 + gamma_k s` in `D`:
+//! `dD = gamma_k s M_k` (see [`super::stiffness_map`]). Parameter: gamma (s^-1).
+
+use super::loss_angle::Tm;
+use super::{stiffness_map, Category, Effect};
+use crate::model::closed_loop::{OperatorDerivative, Operators};
+use crate::model::lpf_x::{LpfPoint, LpfX};
+
+#[derive(Debug, Clone, Copy)]
+pub struct Damping {
+    pub tm: Tm,
+}
+
+impl Effect for Damping {
+    fn name(&self) -> String {
+        format!("damping_{}", self.tm.label())
+    }
+    fn category(&self) -> Category {
+        Category::Damping
+    }
+    fn acts_on(&self) -> String {
+        format!(
+            "D: velocity-proportional force on {}",
+            self.tm.label().to_uppercase()
+        )
+    }
+    fn parameter_names(&self) -> Vec<String> {
+        vec![format!("gamma_{}", self.tm.label())]
+    }
+    fn typical(&self) -> Vec<f64> {
+        vec![1e-6]
+    }
+    fn perturb(
+        &self,
+        base: &LpfX,
+        pt: &LpfPoint,
+        _p: &[f64],
+        theta: &[f64],
+        ops: &mut Operators<2>,
+    ) {
+        ops.d += stiffness_map(base, self.tm == Tm::Two) * (pt.s * theta[0]);
+    }
+    fn derivative(
+        &self,
+        base: &LpfX,
+        pt: &LpfPoint,
+        _p: &[f64],
+        _theta: &[f64],
+        _k: usize,
+    ) -> OperatorDerivative<2> {
+        OperatorDerivative {
+            d: Some(stiffness_map(base, self.tm == Tm::Two) * pt.s),
+            ..Default::default()
+        }
+    }
+}
