@@ -11,7 +11,7 @@ use super::spec::{Campaign, ScenarioSource, WhitenAt};
 use super::stats::{Layout, ScenarioLabel};
 use super::CampaignError;
 use crate::fit::problem::ExperimentData;
-use crate::fit::{fit, Estimator, FitConfig, Likelihood};
+use crate::fit::{fit, Estimator, FitConfig, JacobianCache, JacobianPolicy, Likelihood, JACOBIAN_REUSE_SIGMA};
 use crate::model::spec::Scenario;
 use crate::model::{check_stability, LpfX};
 use crate::setup::Setup;
@@ -46,6 +46,33 @@ pub struct Row {
 struct Cell<'s> {
     sim: Simulator<2>,
     lik: Likelihood<'s, LpfX, 2>,
+    /// Fit configuration per estimator (they differ by estimator and by the cell's Jacobians).
+    configs: Vec<FitConfig>,
+}
+
+/// Jacobians of a cell at its guess and at the (exact, squared-estimator) estimate of its
+/// realization 0: both are pure functions of the campaign cell, so every shard, thread count
+/// and resume computes the same cache (see `fit::JacobianCache`). If realization 0 cannot be
+/// fitted, the cache holds the guess only.
+fn cell_jacobians(
+    setup: &Setup,
+    sim: &Simulator<2>,
+    lik: &Likelihood<'_, LpfX, 2>,
+    sc: &Scenario,
+    seed: u64,
+    base: &FitConfig,
+) -> Result<JacobianPolicy, crate::fit::FitError> {
+    let mut points = vec![sc.guess.clone()];
+    let data = sim.draw(&mut stream(seed, 0));
+    if let Ok(problem) = lik.problem(&data) {
+        if let Ok(res) = fit(&setup.model, &problem, &sc.guess, base) {
+            if res.termination.converged() {
+                points.push(res.estimate);
+            }
+        }
+    }
+    let cache = JacobianCache::new(lik, &points, JACOBIAN_REUSE_SIGMA)?;
+    Ok(JacobianPolicy::Cached(std::sync::Arc::new(cache)))
 }
 
 /// Everything needed to run realizations of a campaign; `Sync`, shared by the workers.
@@ -55,7 +82,6 @@ pub struct Runner<'s> {
     scenarios: Vec<Scenario>,
     n_designs: usize,
     estimators: Vec<Estimator>,
-    configs: Vec<FitConfig>,
     noise_chi2: bool,
     cells: Vec<Cell<'s>>,
     pub layout: Layout,
@@ -170,19 +196,24 @@ impl<'s> Runner<'s> {
                     campaign.fit.poly_degree,
                 )
                 .map_err(|e| ctx(label.clone())(e.into()))?;
-                cells.push(Cell { sim, lik });
+                let mut base = FitConfig::new(&names);
+                base.max_iterations = campaign.fit.max_iterations;
+                if campaign.fit.cached_jacobian {
+                    base.jacobian = cell_jacobians(setup, &sim, &lik, sc, campaign.seed, &base)
+                        .map_err(|e| ctx(label.clone())(e.into()))?;
+                }
+                let configs = campaign
+                    .estimators
+                    .iter()
+                    .map(|&e| {
+                        let mut c = base.clone();
+                        c.estimator = e;
+                        c
+                    })
+                    .collect();
+                cells.push(Cell { sim, lik, configs });
             }
         }
-        let configs = campaign
-            .estimators
-            .iter()
-            .map(|&e| {
-                let mut c = FitConfig::new(&names);
-                c.estimator = e;
-                c.max_iterations = campaign.fit.max_iterations;
-                c
-            })
-            .collect();
         let layout = Layout {
             parameters: names,
             scenarios: scenarios
@@ -201,7 +232,6 @@ impl<'s> Runner<'s> {
             scenarios,
             n_designs: designs.len(),
             estimators: campaign.estimators.clone(),
-            configs,
             noise_chi2: campaign.fit.noise_chi2,
             cells,
             layout,
@@ -236,7 +266,7 @@ impl<'s> Runner<'s> {
         let problem = cell.lik.problem(&data);
         self.estimators
             .iter()
-            .zip(&self.configs)
+            .zip(&cell.configs)
             .enumerate()
             .map(|(e, (&est, cfg))| {
                 let noise_chi2_reduced = match &noise_w {

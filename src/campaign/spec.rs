@@ -30,6 +30,9 @@
 //! max_iterations = 100
 //! whiten_at = "truth"           # noise PSD of the whitening filter: "truth" or "guess"
 //! noise_chi2 = true             # also fit-free chi^2 of a noise-only run per realization
+//! jacobian = "cached"           # "cached": Jacobians per cell at the guess and at realization
+//!                               # 0's estimate, reused within 5 sigma (fit::JacobianCache);
+//!                               # "exact": evaluated at every accepted step
 //! ```
 
 use std::collections::BTreeMap;
@@ -93,6 +96,7 @@ struct FitEntry {
     max_iterations: Option<usize>,
     whiten_at: Option<String>,
     noise_chi2: Option<bool>,
+    jacobian: Option<String>,
 }
 
 /// Where a scenario's parameter sets come from.
@@ -171,6 +175,9 @@ pub struct FitOptions {
     pub max_iterations: usize,
     pub whiten_at: WhitenAt,
     pub noise_chi2: bool,
+    /// Reuse Jacobians cached per cell (`fit::JacobianPolicy::Cached`) or evaluate them at
+    /// every step.
+    pub cached_jacobian: bool,
 }
 
 /// A validated campaign file.
@@ -409,6 +416,16 @@ impl Campaign {
                 ))
             }
         };
+        let cached_jacobian = match spec.fit.jacobian.as_deref() {
+            None | Some("cached") => true,
+            Some("exact") => false,
+            Some(other) => {
+                return Err(bad(
+                    "fit.jacobian",
+                    format!("'{other}' (expected \"cached\" or \"exact\")"),
+                ))
+            }
+        };
         let max_iterations = spec.fit.max_iterations.unwrap_or(100);
         if max_iterations == 0 {
             return Err(bad("fit.max_iterations", "must be at least 1".into()));
@@ -442,6 +459,7 @@ impl Campaign {
                 max_iterations,
                 whiten_at,
                 noise_chi2: spec.fit.noise_chi2.unwrap_or(true),
+                cached_jacobian,
             },
         })
     }

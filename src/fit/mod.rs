@@ -478,7 +478,7 @@ pub fn fit<M: ClosedLoopModel<N>, const N: usize>(
         )
     })?;
     let scale = match est {
-        Estimator::Squared => chi2_reduced.max(1.0),
+        Estimator::Squared => chi2_reduced,
         _ => robust_scale(est, &r),
     };
     let covariance = base * scale;

@@ -186,7 +186,11 @@ impl<const N: usize> Whitener<N> {
             }
             sigma += e * e.transpose();
         }
-        sigma /= (n - order - dim) as f64;
+        // Unbiased in-sample innovation covariance, inflated by Akaike's final-prediction-error
+        // factor (1 + dim / n_eff): the coefficients' estimation error raises the one-step
+        // prediction error on independent data (the experiments) by that much.
+        let n_eff = (n - order) as f64;
+        sigma *= (1.0 + dim as f64 / n_eff) / (n_eff - dim as f64);
         Self::from_parts(&a, sigma)
     }
 
