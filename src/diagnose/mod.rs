@@ -206,6 +206,7 @@ fn fit_model(
     Ok((res, raw))
 }
 
+#[allow(clippy::too_many_arguments)]
 fn stage(
     model: &Extended,
     res: &FitResult,
@@ -214,6 +215,7 @@ fn stage(
     noise_ref: Option<&residuals::NoiseReference>,
     order: usize,
     alpha: f64,
+    whitening_dof: Option<f64>,
 ) -> Stage {
     let names = model.readout_names();
     let inputs = model.input_names();
@@ -231,6 +233,7 @@ fn stage(
                 input_names: inputs,
                 dt: data.dt,
                 alpha,
+                whitening_dof,
             };
             channels.push(residuals::analyse_channel(&inp, noise_ref));
         }
@@ -431,8 +434,32 @@ pub fn diagnose(
         nz.iter().all(|c| c.iter().any(|v| *v != 0.0))
             && nz.first().map_or(0, |c| c.len()) > order + 50
     });
+    // The noise run's whitened level is an in-sample estimate when the filter was fitted on it.
+    let fpe = match usable_noise {
+        Some(nz) if whitening == "noise-only run" => {
+            let t = nz[0].len().saturating_sub(order) as f64;
+            let m = (2 * order) as f64;
+            if t > 2.0 * m {
+                (t + m) / (t - m)
+            } else {
+                1.0
+            }
+        }
+        _ => 1.0,
+    };
+    if fpe > 1.0 {
+        notes.push(format!(
+            "the whitening filter was fitted on the noise run: its whitened level is scaled by Akaike's final-prediction-error factor {fpe:.3} to serve as the reference"
+        ));
+    }
+    let whitening_dof = match usable_noise {
+        Some(nz) if whitening == "noise-only run" => {
+            Some((nz[0].len().saturating_sub(order) as f64 / order as f64).max(2.0))
+        }
+        _ => None,
+    };
     let noise_ref = usable_noise.and_then(|nz| {
-        residuals::NoiseReference::new(&whitened_noise(&w, nz, cfg.poly_degree), data.dt)
+        residuals::NoiseReference::new(&whitened_noise(&w, nz, cfg.poly_degree), data.dt, fpe)
     });
 
     // Nominal fit.
@@ -452,6 +479,7 @@ pub fn diagnose(
         noise_ref.as_ref(),
         order,
         cfg.alpha,
+        whitening_dof,
     );
 
     let mut current = nominal.clone();
@@ -593,6 +621,7 @@ pub fn diagnose(
         noise_ref.as_ref(),
         order,
         cfg.alpha,
+        whitening_dof,
     );
     let unexplained = find_unexplained(&after, cfg.alpha);
     let mut spectra = Vec::new();

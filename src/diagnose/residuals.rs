@@ -249,12 +249,16 @@ pub struct NoiseReference {
 }
 
 impl NoiseReference {
-    pub fn new(whitened: &[Vec<f64>], dt: f64) -> Option<Self> {
+    /// `factor` multiplies the noise run's levels: Akaike's final-prediction-error factor
+    /// `(T + m) / (T - m)` when the whitening filter was fitted on this very run (T samples,
+    /// m = N p coefficients per channel equation: in-sample innovations are smaller than those
+    /// of independent data by about that factor), else 1.
+    pub fn new(whitened: &[Vec<f64>], dt: f64, factor: f64) -> Option<Self> {
         let mut f = Vec::new();
         let mut z = Vec::new();
         let var = whitened
             .iter()
-            .map(|c| c.iter().map(|v| v * v).sum::<f64>() / c.len().max(1) as f64)
+            .map(|c| factor * c.iter().map(|v| v * v).sum::<f64>() / c.len().max(1) as f64)
             .collect();
         for c in whitened {
             let (fc, zc) = periodogram(c, dt);
@@ -262,7 +266,7 @@ impl NoiseReference {
                 return None;
             }
             f = fc;
-            z.push(zc);
+            z.push(zc.into_iter().map(|v| v * factor).collect());
         }
         Some(NoiseReference { f, z, var })
     }
@@ -293,6 +297,10 @@ pub struct ChannelInput<'a> {
     pub input_names: [&'a str; 2],
     pub dt: f64,
     pub alpha: f64,
+    /// Degrees of freedom of the whitening filter's spectrum when it was estimated from a noise
+    /// run (about T / p for T samples and order p): a single ordinate over it is then F(2, nu)
+    /// rather than Exp(1), heavier-tailed. `None`: exact (model) whitening.
+    pub whitening_dof: Option<f64>,
 }
 
 pub fn analyse_channel(inp: &ChannelInput<'_>, noise: Option<&NoiseReference>) -> ChannelReport {
@@ -372,7 +380,12 @@ pub fn analyse_channel(inp: &ChannelInput<'_>, noise: Option<&NoiseReference>) -
         for &k in order.iter().take(50) {
             let power = z[k] / reference(k);
             // P(max of `total` Exp(1) > power).
-            let p_value = (-(total * (-(-power).exp()).ln_1p()).exp_m1()).clamp(0.0, 1.0);
+            // Single-bin tail: Exp(1), or F(2, nu) = (1 + 2x/nu)^(-nu/2) for an estimated filter.
+            let tail = match inp.whitening_dof {
+                Some(nu) => (-(nu / 2.0) * (2.0 * power / nu).ln_1p()).exp(),
+                None => (-power).exp(),
+            };
+            let p_value = (-(total * (-tail).ln_1p()).exp_m1()).clamp(0.0, 1.0);
             if p_value >= inp.alpha {
                 break;
             }
