@@ -323,6 +323,91 @@ fn derivatives(
     Some((phi, d, upper))
 }
 
+/// E-optimality bound `min_alpha sum_g N_g max_{i in g} sum_k alpha_k (P v_k)^T M_i (P v_k)` over
+/// the simplex (`lambda_min(I~(M*)) <= tr(W I~(M*)) <= tr(P W P^T M*)` for any `W = sum_k
+/// alpha_k v_k v_k^T`, `tr W = 1`), minimised by exponentiated subgradient steps.
+fn e_bound(set: &CandidateSet, target: &Target, counts: &[Vec<f64>]) -> Option<f64> {
+    let np = set.np;
+    let mut m = vec![0.0; np * np];
+    for (g, cs) in set.groups.iter().zip(counts) {
+        for (cand, &n) in g.candidates.iter().zip(cs) {
+            if n > 0.0 {
+                for (a, b) in m.iter_mut().zip(&cand.info) {
+                    *a += n * b;
+                }
+            }
+        }
+    }
+    let ev = Evaluation::new(&dmat(np, &m), target)?;
+    let pv = ev.projected_eigenvectors(target);
+    let s = pv.len();
+    // d[g][i][k] = (P v_k)^T M_i (P v_k)
+    let d: Vec<Vec<Vec<f64>>> = set
+        .groups
+        .iter()
+        .map(|g| {
+            g.candidates
+                .iter()
+                .map(|cand| {
+                    pv.iter()
+                        .map(|u| {
+                            let mut acc = 0.0;
+                            for i in 0..np {
+                                let mut row = 0.0;
+                                for j in 0..np {
+                                    row += cand.info[i * np + j] * u[j];
+                                }
+                                acc += u[i] * row;
+                            }
+                            acc
+                        })
+                        .collect()
+                })
+                .collect()
+        })
+        .collect();
+    let bound = |alpha: &[f64]| -> (f64, Vec<f64>) {
+        let mut total = 0.0;
+        let mut grad = vec![0.0; s];
+        for (g, dg) in set.groups.iter().zip(&d) {
+            let (best, val) = dg
+                .iter()
+                .enumerate()
+                .map(|(i, di)| (i, di.iter().zip(alpha).map(|(a, b)| a * b).sum::<f64>()))
+                .max_by(|a, b| a.1.total_cmp(&b.1))
+                .unwrap_or((0, 0.0));
+            total += g.slots as f64 * val;
+            for (gk, dk) in grad.iter_mut().zip(&dg[best]) {
+                *gk += g.slots as f64 * dk;
+            }
+        }
+        (total, grad)
+    };
+    let mut alpha = vec![0.0; s];
+    alpha[0] = 1.0;
+    let (mut best, _) = bound(&alpha);
+    let mut alpha: Vec<f64> = vec![1.0 / s as f64; s];
+    for t in 0..2000 {
+        let (u, grad) = bound(&alpha);
+        best = best.min(u);
+        let scale = grad
+            .iter()
+            .copied()
+            .fold(0.0, f64::max)
+            .max(f64::MIN_POSITIVE);
+        let eta = 2.0 / ((t + 1) as f64).sqrt();
+        let mut sum = 0.0;
+        for (a, gk) in alpha.iter_mut().zip(&grad) {
+            *a *= (-eta * gk / scale).exp();
+            sum += *a;
+        }
+        for a in alpha.iter_mut() {
+            *a /= sum;
+        }
+    }
+    Some(best)
+}
+
 fn multiplicative(
     set: &CandidateSet,
     target: &Target,
@@ -459,7 +544,14 @@ pub fn optimize(
         })
         .collect();
     let upper_exact = derivatives(set, target, c, &counts_exact).map_or(f64::INFINITY, |x| x.2);
-    let upper = approx.upper.min(upper_exact);
+    let mut upper = approx.upper.min(upper_exact);
+    if c.kind == Kind::E {
+        // lambda_min is not differentiable where eigenvalues coincide: tighten the bound over
+        // the spectraplex (any W = sum_k alpha_k v_k v_k^T gives a valid bound).
+        for counts in [&approx.counts, &counts_exact] {
+            upper = upper.min(e_bound(set, target, counts).unwrap_or(f64::INFINITY));
+        }
+    }
     let derivs = set
         .groups
         .iter()
