@@ -23,7 +23,7 @@
 
 use nalgebra::DMatrix;
 
-use super::criteria::{Criterion, Evaluation, Kind, Matrix, Target};
+use super::criteria::{Criterion, Evaluation, Kind, Target};
 use super::space::{CandidateSet, ExactDesign};
 use super::DesignError;
 
@@ -408,6 +408,83 @@ fn e_bound(set: &CandidateSet, target: &Target, counts: &[Vec<f64>]) -> Option<f
     Some(best)
 }
 
+/// Exponent of the phi_p surrogate used to move the E-optimal approximate design.
+const E_SMOOTH_P: f64 = -12.0;
+
+/// Directional derivatives of `phi_p(I~) = (tr I~^p / s)^(1/p)` up to a positive factor:
+/// `d_i = sum_k lambda_k^(p-1) (P v_k)^T M_i (P v_k)`, normalised to a maximum of 1.
+fn e_smooth_derivatives(
+    set: &CandidateSet,
+    target: &Target,
+    counts: &[Vec<f64>],
+) -> Option<Vec<Vec<f64>>> {
+    let np = set.np;
+    let mut m = vec![0.0; np * np];
+    for (g, cs) in set.groups.iter().zip(counts) {
+        for (cand, &n) in g.candidates.iter().zip(cs) {
+            for (a, b) in m.iter_mut().zip(&cand.info) {
+                *a += n * b;
+            }
+        }
+    }
+    let ev = Evaluation::new(&dmat(np, &m), target)?;
+    let pv = ev.projected_eigenvectors(target);
+    let mut lam: Vec<f64> = ev
+        .info_scaled
+        .clone()
+        .symmetric_eigen()
+        .eigenvalues
+        .iter()
+        .copied()
+        .collect();
+    lam.sort_by(|a, b| a.total_cmp(b));
+    let l0 = lam[0];
+    let w: Vec<f64> = lam
+        .iter()
+        .map(|l| (l / l0).powf(E_SMOOTH_P - 1.0))
+        .collect();
+    let q = quad_forms(set, &pv);
+    let d: Vec<Vec<f64>> = q
+        .iter()
+        .map(|dg| {
+            dg.iter()
+                .map(|di| di.iter().zip(&w).map(|(a, b)| a * b).sum::<f64>().max(0.0))
+                .collect()
+        })
+        .collect();
+    let max = d.iter().flatten().copied().fold(0.0, f64::max);
+    (max > 0.0).then(|| {
+        d.into_iter()
+            .map(|dg| dg.into_iter().map(|x| x / max).collect())
+            .collect()
+    })
+}
+
+/// `q[g][i][k] = u_k^T M_i u_k`.
+fn quad_forms(set: &CandidateSet, pv: &[Vec<f64>]) -> Vec<Vec<Vec<f64>>> {
+    let np = set.np;
+    set.groups
+        .iter()
+        .map(|g| {
+            g.candidates
+                .iter()
+                .map(|cand| {
+                    pv.iter()
+                        .map(|u| {
+                            let mut acc = 0.0;
+                            for i in 0..np {
+                                let row: f64 = (0..np).map(|j| cand.info[i * np + j] * u[j]).sum();
+                                acc += u[i] * row;
+                            }
+                            acc
+                        })
+                        .collect()
+                })
+                .collect()
+        })
+        .collect()
+}
+
 fn multiplicative(
     set: &CandidateSet,
     target: &Target,
@@ -416,7 +493,7 @@ fn multiplicative(
     let c = cfg.criterion;
     let delta = match (c.kind, c.on) {
         (Kind::D, _) => 1.0,
-        (Kind::T, Matrix::Covariance) => 0.5,
+        (Kind::E, _) => 1.0 / (1.0 - E_SMOOTH_P),
         _ => 0.5,
     };
     let mut counts: Vec<Vec<f64>> = set
@@ -447,6 +524,13 @@ fn multiplicative(
         if phi / min_upper >= 1.0 - cfg.tol {
             break;
         }
+        // E: lambda_min is non-smooth; step along Kiefer's phi_p (p = E_SMOOTH_P) instead,
+        // which tends to E-optimality as p -> -inf.
+        let d = if c.kind == Kind::E {
+            e_smooth_derivatives(set, target, &counts).unwrap_or(d)
+        } else {
+            d
+        };
         for ((g, cs), dg) in set.groups.iter().zip(counts.iter_mut()).zip(&d) {
             let mut total = 0.0;
             for (n, &di) in cs.iter_mut().zip(dg) {
