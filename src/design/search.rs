@@ -342,30 +342,7 @@ fn e_bound(set: &CandidateSet, target: &Target, counts: &[Vec<f64>]) -> Option<f
     let pv = ev.projected_eigenvectors(target);
     let s = pv.len();
     // d[g][i][k] = (P v_k)^T M_i (P v_k)
-    let d: Vec<Vec<Vec<f64>>> = set
-        .groups
-        .iter()
-        .map(|g| {
-            g.candidates
-                .iter()
-                .map(|cand| {
-                    pv.iter()
-                        .map(|u| {
-                            let mut acc = 0.0;
-                            for i in 0..np {
-                                let mut row = 0.0;
-                                for j in 0..np {
-                                    row += cand.info[i * np + j] * u[j];
-                                }
-                                acc += u[i] * row;
-                            }
-                            acc
-                        })
-                        .collect()
-                })
-                .collect()
-        })
-        .collect();
+    let d = quad_forms(set, &pv);
     let bound = |alpha: &[f64]| -> (f64, Vec<f64>) {
         let mut total = 0.0;
         let mut grad = vec![0.0; s];
