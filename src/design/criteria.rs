@@ -404,6 +404,30 @@ impl Evaluation {
     }
 }
 
+impl Evaluation {
+    /// `P v_k` for every eigenvector `v_k` of `I~` (ascending eigenvalues), `P = I^-1 K S^-1 I~`:
+    /// the tangent of `I~` in a direction `H` is `P^T H P`, so `v^T I~(M*) v <= (P v)^T M* (P v)`
+    /// for every design `M*` (matrix concavity of the Schur complement).
+    pub fn projected_eigenvectors(&self, target: &Target) -> Vec<Vec<f64>> {
+        let np = self.inverse.nrows();
+        let s = target.s();
+        let b = DMatrix::from_fn(np, s, |i, a| {
+            self.inverse[(i, target.indices[a])] / target.scale[a]
+        });
+        let p = &b * &self.info_scaled;
+        let eig = self.info_scaled.clone().symmetric_eigen();
+        let mut order: Vec<usize> = (0..s).collect();
+        order.sort_by(|&a, &b| eig.eigenvalues[a].total_cmp(&eig.eigenvalues[b]));
+        order
+            .into_iter()
+            .map(|k| {
+                let v = eig.eigenvectors.column(k).into_owned();
+                (&p * v).iter().copied().collect()
+            })
+            .collect()
+    }
+}
+
 /// `phi(c)` of an information matrix, 0 when singular.
 pub fn phi_of(info: &DMatrix<f64>, target: &Target, c: Criterion) -> f64 {
     Evaluation::new(info, target).map_or(0.0, |e| e.phi(c))

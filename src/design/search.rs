@@ -23,7 +23,7 @@
 
 use nalgebra::DMatrix;
 
-use super::criteria::{Criterion, Evaluation, Kind, Matrix, Target};
+use super::criteria::{Criterion, Evaluation, Kind, Target};
 use super::space::{CandidateSet, ExactDesign};
 use super::DesignError;
 
@@ -323,6 +323,145 @@ fn derivatives(
     Some((phi, d, upper))
 }
 
+/// E-optimality bound `min_alpha sum_g N_g max_{i in g} sum_k alpha_k (P v_k)^T M_i (P v_k)` over
+/// the simplex (`lambda_min(I~(M*)) <= tr(W I~(M*)) <= tr(P W P^T M*)` for any `W = sum_k
+/// alpha_k v_k v_k^T`, `tr W = 1`), minimised by exponentiated subgradient steps.
+fn e_bound(set: &CandidateSet, target: &Target, counts: &[Vec<f64>]) -> Option<f64> {
+    let np = set.np;
+    let mut m = vec![0.0; np * np];
+    for (g, cs) in set.groups.iter().zip(counts) {
+        for (cand, &n) in g.candidates.iter().zip(cs) {
+            if n > 0.0 {
+                for (a, b) in m.iter_mut().zip(&cand.info) {
+                    *a += n * b;
+                }
+            }
+        }
+    }
+    let ev = Evaluation::new(&dmat(np, &m), target)?;
+    let pv = ev.projected_eigenvectors(target);
+    let s = pv.len();
+    // d[g][i][k] = (P v_k)^T M_i (P v_k)
+    let d = quad_forms(set, &pv);
+    let bound = |alpha: &[f64]| -> (f64, Vec<f64>) {
+        let mut total = 0.0;
+        let mut grad = vec![0.0; s];
+        for (g, dg) in set.groups.iter().zip(&d) {
+            let (best, val) = dg
+                .iter()
+                .enumerate()
+                .map(|(i, di)| (i, di.iter().zip(alpha).map(|(a, b)| a * b).sum::<f64>()))
+                .max_by(|a, b| a.1.total_cmp(&b.1))
+                .unwrap_or((0, 0.0));
+            total += g.slots as f64 * val;
+            for (gk, dk) in grad.iter_mut().zip(&dg[best]) {
+                *gk += g.slots as f64 * dk;
+            }
+        }
+        (total, grad)
+    };
+    let mut alpha = vec![0.0; s];
+    alpha[0] = 1.0;
+    let (mut best, _) = bound(&alpha);
+    let mut alpha: Vec<f64> = vec![1.0 / s as f64; s];
+    for t in 0..2000 {
+        let (u, grad) = bound(&alpha);
+        best = best.min(u);
+        let scale = grad
+            .iter()
+            .copied()
+            .fold(0.0, f64::max)
+            .max(f64::MIN_POSITIVE);
+        let eta = 2.0 / ((t + 1) as f64).sqrt();
+        let mut sum = 0.0;
+        for (a, gk) in alpha.iter_mut().zip(&grad) {
+            *a *= (-eta * gk / scale).exp();
+            sum += *a;
+        }
+        for a in alpha.iter_mut() {
+            *a /= sum;
+        }
+    }
+    Some(best)
+}
+
+/// Exponent of the phi_p surrogate used to move the E-optimal approximate design.
+const E_SMOOTH_P: f64 = -12.0;
+
+/// Directional derivatives of `phi_p(I~) = (tr I~^p / s)^(1/p)` up to a positive factor:
+/// `d_i = sum_k lambda_k^(p-1) (P v_k)^T M_i (P v_k)`, normalised to a maximum of 1.
+fn e_smooth_derivatives(
+    set: &CandidateSet,
+    target: &Target,
+    counts: &[Vec<f64>],
+) -> Option<Vec<Vec<f64>>> {
+    let np = set.np;
+    let mut m = vec![0.0; np * np];
+    for (g, cs) in set.groups.iter().zip(counts) {
+        for (cand, &n) in g.candidates.iter().zip(cs) {
+            for (a, b) in m.iter_mut().zip(&cand.info) {
+                *a += n * b;
+            }
+        }
+    }
+    let ev = Evaluation::new(&dmat(np, &m), target)?;
+    let pv = ev.projected_eigenvectors(target);
+    let mut lam: Vec<f64> = ev
+        .info_scaled
+        .clone()
+        .symmetric_eigen()
+        .eigenvalues
+        .iter()
+        .copied()
+        .collect();
+    lam.sort_by(|a, b| a.total_cmp(b));
+    let l0 = lam[0];
+    let w: Vec<f64> = lam
+        .iter()
+        .map(|l| (l / l0).powf(E_SMOOTH_P - 1.0))
+        .collect();
+    let q = quad_forms(set, &pv);
+    let d: Vec<Vec<f64>> = q
+        .iter()
+        .map(|dg| {
+            dg.iter()
+                .map(|di| di.iter().zip(&w).map(|(a, b)| a * b).sum::<f64>().max(0.0))
+                .collect()
+        })
+        .collect();
+    let max = d.iter().flatten().copied().fold(0.0, f64::max);
+    (max > 0.0).then(|| {
+        d.into_iter()
+            .map(|dg| dg.into_iter().map(|x| x / max).collect())
+            .collect()
+    })
+}
+
+/// `q[g][i][k] = u_k^T M_i u_k`.
+fn quad_forms(set: &CandidateSet, pv: &[Vec<f64>]) -> Vec<Vec<Vec<f64>>> {
+    let np = set.np;
+    set.groups
+        .iter()
+        .map(|g| {
+            g.candidates
+                .iter()
+                .map(|cand| {
+                    pv.iter()
+                        .map(|u| {
+                            let mut acc = 0.0;
+                            for i in 0..np {
+                                let row: f64 = (0..np).map(|j| cand.info[i * np + j] * u[j]).sum();
+                                acc += u[i] * row;
+                            }
+                            acc
+                        })
+                        .collect()
+                })
+                .collect()
+        })
+        .collect()
+}
+
 fn multiplicative(
     set: &CandidateSet,
     target: &Target,
@@ -331,7 +470,7 @@ fn multiplicative(
     let c = cfg.criterion;
     let delta = match (c.kind, c.on) {
         (Kind::D, _) => 1.0,
-        (Kind::T, Matrix::Covariance) => 0.5,
+        (Kind::E, _) => 1.0 / (1.0 - E_SMOOTH_P),
         _ => 0.5,
     };
     let mut counts: Vec<Vec<f64>> = set
@@ -362,6 +501,13 @@ fn multiplicative(
         if phi / min_upper >= 1.0 - cfg.tol {
             break;
         }
+        // E: lambda_min is non-smooth; step along Kiefer's phi_p (p = E_SMOOTH_P) instead,
+        // which tends to E-optimality as p -> -inf.
+        let d = if c.kind == Kind::E {
+            e_smooth_derivatives(set, target, &counts).unwrap_or(d)
+        } else {
+            d
+        };
         for ((g, cs), dg) in set.groups.iter().zip(counts.iter_mut()).zip(&d) {
             let mut total = 0.0;
             for (n, &di) in cs.iter_mut().zip(dg) {
@@ -459,7 +605,14 @@ pub fn optimize(
         })
         .collect();
     let upper_exact = derivatives(set, target, c, &counts_exact).map_or(f64::INFINITY, |x| x.2);
-    let upper = approx.upper.min(upper_exact);
+    let mut upper = approx.upper.min(upper_exact);
+    if c.kind == Kind::E {
+        // lambda_min is not differentiable where eigenvalues coincide: tighten the bound over
+        // the spectraplex (any W = sum_k alpha_k v_k v_k^T gives a valid bound).
+        for counts in [&approx.counts, &counts_exact] {
+            upper = upper.min(e_bound(set, target, counts).unwrap_or(f64::INFINITY));
+        }
+    }
     let derivs = set
         .groups
         .iter()
