@@ -109,7 +109,8 @@ fn visible(msg: &str) {
 
 #[test]
 fn real_single_node_slurm_matches_one_process_run() {
-    let enabled = std::env::var("CI").is_ok_and(|v| v == "true") || std::env::var("FREEFALL_SLURM_TEST").is_ok_and(|v| v == "1");
+    let enabled = std::env::var("CI").is_ok_and(|v| v == "true")
+        || std::env::var("FREEFALL_SLURM_TEST").is_ok_and(|v| v == "1");
     if !enabled {
         visible("SKIPPED real_single_node_slurm_matches_one_process_run: set FREEFALL_SLURM_TEST=1 (or CI=true) to bring up a real single-node SLURM (root, apt)");
         return;

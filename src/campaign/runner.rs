@@ -11,7 +11,9 @@ use super::spec::{Campaign, ScenarioSource, WhitenAt};
 use super::stats::{Layout, ScenarioLabel};
 use super::CampaignError;
 use crate::fit::problem::ExperimentData;
-use crate::fit::{fit, Estimator, FitConfig, JacobianCache, JacobianPolicy, Likelihood, JACOBIAN_REUSE_SIGMA};
+use crate::fit::{
+    fit, Estimator, FitConfig, JacobianCache, JacobianPolicy, Likelihood, JACOBIAN_REUSE_SIGMA,
+};
 use crate::model::spec::Scenario;
 use crate::model::{check_stability, LpfX};
 use crate::setup::Setup;
