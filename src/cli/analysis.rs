@@ -365,20 +365,9 @@ pub fn fit(a: FitArgs) -> Result<()> {
         .with_f64("sigma", res.sigma.clone())?
         .with_f64("guess", guess.clone())?;
     write_parquet(a.out.join("estimates.parquet"), &est)?;
-    let (mut pi, mut pj, mut corr) = (Vec::new(), Vec::new(), Vec::new());
-    for i in 0..names.len() {
-        for j in 0..names.len() {
-            pi.push(names[i].clone());
-            pj.push(names[j].clone());
-            corr.push(res.correlation[(i, j)]);
-        }
-    }
     write_parquet(
         a.out.join("correlation.parquet"),
-        &Table::new()
-            .with_str("parameter_i", pi)?
-            .with_str("parameter_j", pj)?
-            .with_f64("corr", corr)?,
+        &super::correlation_table(&names, |i, j| res.correlation[(i, j)])?,
     )?;
     write_parquet(
         a.out.join("residuals.parquet"),

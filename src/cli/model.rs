@@ -173,18 +173,7 @@ fn fisher(a: FisherArgs) -> Result<()> {
         .with_str("parameter", names.clone())?
         .with_f64("value", p.clone())?
         .with_f64("sigma", sigma.clone())?;
-    let (mut pi, mut pj, mut corr) = (Vec::new(), Vec::new(), Vec::new());
-    for i in 0..names.len() {
-        for j in 0..names.len() {
-            pi.push(names[i].clone());
-            pj.push(names[j].clone());
-            corr.push(cov[(i, j)] / (sigma[i] * sigma[j]));
-        }
-    }
-    let corr_table = Table::new()
-        .with_str("parameter_i", pi)?
-        .with_str("parameter_j", pj)?
-        .with_f64("corr", corr)?;
+    let corr_table = super::correlation_table(&names, |i, j| cov[(i, j)] / (sigma[i] * sigma[j]))?;
     ensure_parent(&a.out)?;
     let stem = a
         .out
