@@ -8,6 +8,7 @@ use crate::model::spec::GlitchSpec;
 use crate::model::{LpfX, ModelError, ModelSpec};
 use crate::noise::{GlitchConfig, NoiseError, NoiseModel};
 use crate::signal::{Design, SignalError};
+use crate::sim::decimated::DecimatedSimulator;
 use crate::sim::Simulator;
 
 /// Default order of the whitening filter (see `fit::whiten`): long enough to resolve the
@@ -129,6 +130,26 @@ impl Setup {
             dt,
             NOISE_OVERSAMPLE,
             glitches,
+        )?)
+    }
+
+    /// The thesis's path: a simulator at simulate_hz whose output is decimated with the
+    /// anti-alias FIR to analyse_hz (`sim::decimated`).
+    pub fn decimated_simulator(
+        &self,
+        design: &Design,
+        truth: &[f64],
+        glitch: Option<&GlitchSpec>,
+    ) -> Result<DecimatedSimulator<2>, Error> {
+        Ok(DecimatedSimulator::new(
+            &self.model,
+            design,
+            truth,
+            self.psd(truth),
+            self.simulation_dt(),
+            self.spec.decimation(),
+            NOISE_OVERSAMPLE,
+            glitch,
         )?)
     }
 }

@@ -9,8 +9,7 @@ use super::ModelOpt;
 use crate::fit::problem::ExperimentData;
 use crate::io::{write_dataset, Dataset, Run};
 use crate::model::check_stability;
-use crate::setup::{Setup, NOISE_OVERSAMPLE};
-use crate::sim::decimated::DecimatedSimulator;
+use crate::setup::Setup;
 use crate::sim::rng::stream;
 
 #[derive(Debug, Clone, Copy, ValueEnum, PartialEq, Eq)]
@@ -99,26 +98,8 @@ pub fn run(a: SimulateArgs) -> Result<()> {
     };
     let (data, noise) = match a.rate {
         Rate::Decimated => {
-            let sim = DecimatedSimulator::<2>::new(
-                &setup.model,
-                &design,
-                &sc.truth,
-                setup.psd(&sc.truth),
-                setup.simulation_dt(),
-                setup.spec.decimation(),
-                NOISE_OVERSAMPLE,
-                sc.glitch.as_ref(),
-            )?;
-            let nsim = DecimatedSimulator::<2>::new(
-                &setup.model,
-                &noise_design,
-                &sc.truth,
-                setup.psd(&sc.truth),
-                setup.simulation_dt(),
-                setup.spec.decimation(),
-                NOISE_OVERSAMPLE,
-                sc.glitch.as_ref(),
-            )?;
+            let sim = setup.decimated_simulator(&design, &sc.truth, sc.glitch.as_ref())?;
+            let nsim = setup.decimated_simulator(&noise_design, &sc.truth, sc.glitch.as_ref())?;
             draw_all(|r| sim.draw(r), |r| nsim.noise_run(r), a.seed)
         }
         Rate::Analysis => {
