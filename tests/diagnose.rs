@@ -460,3 +460,111 @@ fn pull_scan() {
         }
     }
 }
+
+#[test]
+fn a_line_in_scope_is_attributed_to_category_line() {
+    // Oracle: the simulated truth, a 1e-10 m sinusoid at 37.1 mHz added to o1 of the first
+    // experiment, with `lines` enabled (the line is in the library's scope): the diagnosis adds
+    // category `line` on exp1 o1 within a bin of 37.1 mHz, fits the amplitude
+    // sqrt(a^2 + b^2) = 1e-10 within 4 sigma, chi^2/nu returns to the noise level and the nominal
+    // parameters end within 3 sigma of the truth.
+    let (setup, mut data, noise, truth, guess) = simulate(&[], 51);
+    let f0 = 0.0371;
+    for (i, v) in data.outputs[0][0].iter_mut().enumerate() {
+        *v += 1e-10 * (2.0 * std::f64::consts::PI * f0 * i as f64 * data.dt + 0.3).sin();
+    }
+    let cfg = DiagnoseConfig {
+        lines: true,
+        ..config()
+    };
+    let d = diagnose(&setup, &data, Some(&noise), &guess, Some(&truth), &cfg).unwrap();
+    let c = Case { d, truth };
+    let a = c.d.effects_added.first().expect("no effect added");
+    assert_eq!(
+        (a.category, c.d.effects_added.len()),
+        ("line", 1),
+        "{:?}",
+        added(&c)
+    );
+    assert!(a.acts_on.starts_with("exp1 o1 at "), "{}", a.acts_on);
+    let bin = 1.0 / (data.len() as f64 * data.dt);
+    let f: f64 = a.acts_on["exp1 o1 at ".len()..]
+        .trim_end_matches(" mHz")
+        .parse::<f64>()
+        .unwrap()
+        * 1e-3;
+    assert!((f - f0).abs() < bin, "line at {f} Hz, true {f0} Hz");
+    let amp = a.parameters[0].hypot(a.parameters[1]);
+    assert!(
+        (amp - 1e-10).abs() < 4.0 * a.sigmas[0].max(a.sigmas[1]),
+        "amplitude {amp:e} ± {:e}",
+        a.sigmas[0]
+    );
+    assert!(c.d.unexplained.is_empty(), "{:?}", c.d.unexplained);
+    assert_chi2_back(&c);
+    assert_nominal_within(&c);
+}
+
+#[test]
+fn a_drift_of_the_tm2_stiffness_is_found() {
+    // Oracle: the simulated truth with a drift of w12_sq over each run, applied to the true
+    // templates in the first-order form p(t) = p + d (t - T/2)/T (the form the drift effect
+    // models, see `freefall::diagnose::additive`): the diagnosis adds category `drift` on
+    // w12_sq with d within 4 sigma, chi^2/nu returns to the noise level and the nominal
+    // parameters end within 3 sigma of the truth.
+    let (setup, data, noise, truth, guess) = simulate(&[], 71);
+    let k = setup
+        .parameter_names()
+        .iter()
+        .position(|n| n == "w12_sq")
+        .unwrap();
+    let d_true = 2e-2 * truth[k].abs();
+    let data = add_drift(&setup, &data, &truth, "w12_sq", d_true);
+    let d = diagnose(&setup, &data, Some(&noise), &guess, Some(&truth), &config()).unwrap();
+    let c = Case { d, truth };
+    assert_eq!(
+        added(&c),
+        vec![("drift_w12_sq".to_string(), "drift")],
+        "before {} after {}; {:?}",
+        c.d.before.chi2_reduced,
+        c.d.after.chi2_reduced,
+        c.d.candidates
+            .iter()
+            .filter(|k| k.category == "drift")
+            .map(|k| (
+                &k.name,
+                k.score_statistic,
+                k.identifiable_fraction,
+                k.delta_chi2
+            ))
+            .collect::<Vec<_>>()
+    );
+    let a = &c.d.effects_added[0];
+    assert!(
+        (a.parameters[0] - d_true).abs() < 4.0 * a.sigmas[0],
+        "fitted {} ± {} vs true {d_true}",
+        a.parameters[0],
+        a.sigmas[0]
+    );
+    assert_chi2_back(&c);
+    assert_nominal_within(&c);
+}
+
+/// Data plus a first-order drift `d (t - T/2)/T dT/dp` of parameter `name` at `truth`.
+fn add_drift(
+    setup: &Setup,
+    data: &ExperimentData,
+    truth: &[f64],
+    name: &str,
+    d: f64,
+) -> ExperimentData {
+    use freefall::diagnose::additive::{subtract, Additive};
+    use freefall::model::effects::Extended;
+    let model = Extended::new(setup.model.clone(), Vec::new());
+    let w = setup
+        .whitener_from_model(truth, data.len(), data.dt, 16)
+        .unwrap();
+    let lik = freefall::fit::Likelihood::new(&model, &data.inputs, data.dt, w, 0).unwrap();
+    let drift = Additive::drift(&model, name).unwrap();
+    subtract(data, &drift.columns(&lik, data, truth), &[-d])
+}

@@ -42,6 +42,10 @@ pub struct DiagnoseArgs {
     /// reference of the band and time tests).
     #[arg(long = "model-psd")]
     pub model_psd: bool,
+    /// Propose every narrow line of the residual as a `line` effect (by default only lines seen
+    /// in the same channel of two or more experiments are; the others are reported unexplained).
+    #[arg(long)]
+    pub lines: bool,
     /// Print the effect library and exit.
     #[arg(long)]
     pub list_effects: bool,
@@ -111,6 +115,7 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
         alpha: a.alpha,
         max_effects: a.max_effects,
         whiten_from_model: a.model_psd,
+        lines: a.lines,
         ..Default::default()
     };
     let d = diagnose(
