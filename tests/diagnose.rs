@@ -507,19 +507,36 @@ fn a_line_in_scope_is_attributed_to_category_line() {
 
 #[test]
 fn a_drift_of_the_tm2_stiffness_is_found() {
-    // Oracle: the simulated truth with a drift of w12_sq over each run, applied to the true
-    // templates in the first-order form p(t) = p + d (t - T/2)/T (the form the drift effect
-    // models, see `freefall::diagnose::additive`): the diagnosis adds category `drift` on
-    // w12_sq with d within 4 sigma, chi^2/nu returns to the noise level and the nominal
-    // parameters end within 3 sigma of the truth.
-    let (setup, data, noise, truth, guess) = simulate(&[], 71);
+    // Oracle: the simulated truth with w12_sq drifting linearly by 2 % of its value over each
+    // run, p(t) = p + d (t - T/2)/T. The data are built by the simulator alone (not the
+    // likelihood's template engine): two realizations with the same seed at p -+ d/2,
+    // interpolated linearly in time, which is the drift to first order in d. The diagnosis must
+    // add category `drift` on w12_sq with d within 4 sigma (w12_sq is ~10 sigma off before),
+    // chi^2/nu returns to the noise level and the nominal parameters end within 3 sigma.
+    let setup = Setup::embedded();
+    let design = setup.design("standard").unwrap();
+    let sc = setup.spec.scenario("monte_carlo").unwrap();
+    let (truth, guess) = (sc.truth.clone(), sc.guess.clone());
     let k = setup
         .parameter_names()
         .iter()
         .position(|n| n == "w12_sq")
         .unwrap();
     let d_true = 2e-2 * truth[k].abs();
-    let data = add_drift(&setup, &data, &truth, "w12_sq", d_true);
+    let at = |sign: f64| {
+        let mut p = truth.clone();
+        p[k] += sign * 0.5 * d_true;
+        simulate_with_effects(&setup, &design, &p, &[], 71).unwrap()
+    };
+    let ((mut data, noise), (plus, _)) = (at(-1.0), at(1.0));
+    let n = data.len() as f64;
+    for (oe, pe) in data.outputs.iter_mut().zip(&plus.outputs) {
+        for (oc, pc) in oe.iter_mut().zip(pe) {
+            for (i, (o, q)) in oc.iter_mut().zip(pc).enumerate() {
+                *o += (q - *o) * i as f64 / n;
+            }
+        }
+    }
     let d = diagnose(&setup, &data, Some(&noise), &guess, Some(&truth), &config()).unwrap();
     let c = Case { d, truth };
     assert_eq!(
@@ -548,23 +565,4 @@ fn a_drift_of_the_tm2_stiffness_is_found() {
     );
     assert_chi2_back(&c);
     assert_nominal_within(&c);
-}
-
-/// Data plus a first-order drift `d (t - T/2)/T dT/dp` of parameter `name` at `truth`.
-fn add_drift(
-    setup: &Setup,
-    data: &ExperimentData,
-    truth: &[f64],
-    name: &str,
-    d: f64,
-) -> ExperimentData {
-    use freefall::diagnose::additive::{subtract, Additive};
-    use freefall::model::effects::Extended;
-    let model = Extended::new(setup.model.clone(), Vec::new());
-    let w = setup
-        .whitener_from_model(truth, data.len(), data.dt, 16)
-        .unwrap();
-    let lik = freefall::fit::Likelihood::new(&model, &data.inputs, data.dt, w, 0).unwrap();
-    let drift = Additive::drift(&model, name).unwrap();
-    subtract(data, &drift.columns(&lik, data, truth), &[-d])
 }
