@@ -566,3 +566,39 @@ fn a_drift_of_the_tm2_stiffness_is_found() {
     assert_chi2_back(&c);
     assert_nominal_within(&c);
 }
+
+#[test]
+fn a_line_coherent_across_experiments_is_in_scope_by_default() {
+    // Oracle: the simulated truth, the same 1e-10 m, 37.1 mHz sinusoid in o1 of every experiment
+    // (default configuration: a line seen in the same channel of two or more experiments is in
+    // the library's scope). Every added effect is a `line` in o1 at 37.1 mHz, one per
+    // experiment, and nothing is left unexplained.
+    let (setup, mut data, noise, truth, guess) = simulate(&[], 52);
+    let f0 = 0.0371;
+    for exp in data.outputs.iter_mut() {
+        for (i, v) in exp[0].iter_mut().enumerate() {
+            *v += 1e-10 * (2.0 * std::f64::consts::PI * f0 * i as f64 * data.dt + 0.3).sin();
+        }
+    }
+    let d = diagnose(&setup, &data, Some(&noise), &guess, Some(&truth), &config()).unwrap();
+    let c = Case { d, truth };
+    // Where each line acts: (experiment, frequency in Hz) from `acts_on` = "EXP o1 at F mHz".
+    let bin = 1.0 / (data.len() as f64 * data.dt);
+    let mut on: Vec<String> = Vec::new();
+    for a in &c.d.effects_added {
+        let (exp, rest) = a.acts_on.split_once(" o1 at ").expect(&a.acts_on);
+        let f = rest.trim_end_matches(" mHz").parse::<f64>().unwrap() * 1e-3;
+        assert!(
+            a.category == "line" && (f - f0).abs() < bin,
+            "{} {}",
+            a.category,
+            a.acts_on
+        );
+        on.push(exp.to_string());
+    }
+    on.sort();
+    assert_eq!(on, data.names);
+    assert!(c.d.unexplained.is_empty(), "{:?}", c.d.unexplained);
+    assert_chi2_back(&c);
+    assert_nominal_within(&c);
+}
