@@ -10,7 +10,9 @@
 
 use std::sync::Arc;
 
-use freefall::diagnose::{diagnose, simulate_with_effects, DiagnoseConfig, Diagnosis};
+use freefall::diagnose::{
+    diagnose, simulate_with_drifts, simulate_with_effects, DiagnoseConfig, Diagnosis,
+};
 use freefall::fit::ExperimentData;
 use freefall::model::effects::{by_name, Effect};
 use freefall::setup::Setup;
@@ -509,8 +511,8 @@ fn a_line_in_scope_is_attributed_to_category_line() {
 fn a_drift_of_the_tm2_stiffness_is_found() {
     // Oracle: the simulated truth with w12_sq drifting linearly by 2 % of its value over each
     // run, p(t) = p + d (t - T/2)/T. The data are built by the simulator alone (not the
-    // likelihood's template engine): two realizations with the same seed at p -+ d/2,
-    // interpolated linearly in time, which is the drift to first order in d. The diagnosis must
+    // likelihood's template engine; `simulate_with_drifts`): two realizations with the same seed
+    // at p -+ d/2, interpolated linearly in time, the drift to first order in d. The diagnosis must
     // add category `drift` on w12_sq with d within 4 sigma (w12_sq is ~10 sigma off before),
     // chi^2/nu returns to the noise level and the nominal parameters end within 3 sigma.
     let setup = Setup::embedded();
@@ -523,20 +525,8 @@ fn a_drift_of_the_tm2_stiffness_is_found() {
         .position(|n| n == "w12_sq")
         .unwrap();
     let d_true = 2e-2 * truth[k].abs();
-    let at = |sign: f64| {
-        let mut p = truth.clone();
-        p[k] += sign * 0.5 * d_true;
-        simulate_with_effects(&setup, &design, &p, &[], 71).unwrap()
-    };
-    let ((mut data, noise), (plus, _)) = (at(-1.0), at(1.0));
-    let n = data.len() as f64;
-    for (oe, pe) in data.outputs.iter_mut().zip(&plus.outputs) {
-        for (oc, pc) in oe.iter_mut().zip(pe) {
-            for (i, (o, q)) in oc.iter_mut().zip(pc).enumerate() {
-                *o += (q - *o) * i as f64 / n;
-            }
-        }
-    }
+    let (data, noise) =
+        simulate_with_drifts(&setup, &design, &truth, &[], &[(k, d_true)], 71).unwrap();
     let d = diagnose(&setup, &data, Some(&noise), &guess, Some(&truth), &config()).unwrap();
     let c = Case { d, truth };
     assert_eq!(

@@ -1099,3 +1099,41 @@ pub fn simulate_with_effects(
     let noise = sim.noise_series(&mut crate::sim::rng::stream(seed, 1));
     Ok((data, noise))
 }
+
+/// As [`simulate_with_effects`], with base parameters drifting linearly over each run:
+/// `drifts` holds (base parameter index, d) for `p_k(t) = p_k + d (t - T/2)/T`. The experiments
+/// are two realizations with the same seed at `p -+ d/2`, interpolated linearly in time (the
+/// drift to first order in d; the noise-only run is that of the first).
+pub fn simulate_with_drifts(
+    setup: &Setup,
+    design: &crate::signal::Design,
+    truth: &[f64],
+    effects: &[(Arc<dyn Effect>, Vec<f64>)],
+    drifts: &[(usize, f64)],
+    seed: u64,
+) -> Result<(ExperimentData, Vec<Vec<f64>>), DiagnoseError> {
+    if drifts.is_empty() {
+        return simulate_with_effects(setup, design, truth, effects, seed);
+    }
+    let at = |sign: f64| {
+        let mut p = truth.to_vec();
+        for &(k, d) in drifts {
+            let v = p.get_mut(k).ok_or_else(|| {
+                DiagnoseError::Input(format!("drift of parameter {k}: no such parameter"))
+            })?;
+            *v += sign * 0.5 * d;
+        }
+        simulate_with_effects(setup, design, &p, effects, seed)
+    };
+    let (mut data, noise) = at(-1.0)?;
+    let (plus, _) = at(1.0)?;
+    let n = data.len().max(1) as f64;
+    for (oe, pe) in data.outputs.iter_mut().zip(&plus.outputs) {
+        for (oc, pc) in oe.iter_mut().zip(pe) {
+            for (i, (o, q)) in oc.iter_mut().zip(pc).enumerate() {
+                *o += (q - *o) * i as f64 / n;
+            }
+        }
+    }
+    Ok((data, noise))
+}
