@@ -83,6 +83,18 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
                 e.acts_on()
             );
         }
+        for p in crate::diagnose::additive::DRIFT_PARAMETERS {
+            println!(
+                "{:<28} {:<20} {:<12} {p}(t) = {p} + d (t - T/2)/T over each run",
+                format!("drift_{p}"),
+                "drift",
+                format!("d_{p}")
+            );
+        }
+        println!(
+            "{:<28} {:<20} {:<12} a detected narrow line in one channel (coherent across experiments, or --lines)",
+            "line_EXP_CHANNEL_FmHz", "line", "sin,cos"
+        );
         return Ok(());
     }
     let Some(dataset) = a.dataset.clone() else {
