@@ -9,7 +9,7 @@ use clap::Args;
 
 use super::analysis::{experiment_data, resolve_guess, truth_from_meta};
 use super::ModelOpt;
-use crate::diagnose::{diagnose, simulate_with_effects, DiagnoseConfig, Diagnosis};
+use crate::diagnose::{diagnose, simulate_with_drifts, DiagnoseConfig, Diagnosis};
 use crate::io::{read_dataset, write_json_atomic, write_parquet, write_text_atomic, Table};
 use crate::model::effects::{by_name, library};
 use crate::setup::{DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
@@ -42,13 +42,18 @@ pub struct DiagnoseArgs {
     /// reference of the band and time tests).
     #[arg(long = "model-psd")]
     pub model_psd: bool,
+    /// Propose every narrow line of the residual as a `line` effect (by default only lines seen
+    /// in the same channel of two or more experiments are; the others are reported unexplained).
+    #[arg(long)]
+    pub lines: bool,
     /// Print the effect library and exit.
     #[arg(long)]
     pub list_effects: bool,
     /// Write a simulated dataset (scenario truth + the --effect list) to DATASET and exit.
     #[arg(long)]
     pub simulate_into: bool,
-    /// With --simulate-into: an effect switched on in the truth, NAME=VALUE (repeatable).
+    /// With --simulate-into: an effect switched on in the truth, NAME=VALUE (repeatable);
+    /// `drift_PARAMETER=D` drifts a base parameter linearly by D over each run.
     #[arg(long = "effect", value_name = "NAME=VALUE")]
     pub effects: Vec<String>,
     /// With --simulate-into: scenario, design and seed.
@@ -78,6 +83,18 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
                 e.acts_on()
             );
         }
+        for p in crate::diagnose::additive::DRIFT_PARAMETERS {
+            println!(
+                "{:<28} {:<20} {:<12} {p}(t) = {p} + d (t - T/2)/T over each run",
+                format!("drift_{p}"),
+                "drift",
+                format!("d_{p}")
+            );
+        }
+        println!(
+            "{:<28} {:<20} {:<12} a detected narrow line in one channel (coherent across experiments, or --lines)",
+            "line_EXP_CHANNEL_FmHz", "line", "sin,cos"
+        );
         return Ok(());
     }
     let Some(dataset) = a.dataset.clone() else {
@@ -111,6 +128,7 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
         alpha: a.alpha,
         max_effects: a.max_effects,
         whiten_from_model: a.model_psd,
+        lines: a.lines,
         ..Default::default()
     };
     let d = diagnose(
@@ -288,13 +306,28 @@ fn simulate(a: &DiagnoseArgs, setup: &crate::setup::Setup, dir: &Path) -> Result
     let design = setup.design(&a.design)?;
     let mut effects = Vec::new();
     let mut meta_eff = toml::Table::new();
+    let mut drifts = Vec::new();
+    let names = setup.parameter_names();
     for spec in &a.effects {
         let (name, value) = spec
             .split_once('=')
             .with_context(|| format!("--effect '{spec}': expected NAME=VALUE"))?;
+        if let Some(k) = name
+            .trim()
+            .strip_prefix("drift_")
+            .and_then(|p| names.iter().position(|n| n == p))
+        {
+            let v: f64 = value
+                .trim()
+                .parse()
+                .with_context(|| format!("--effect '{spec}': value is not a number"))?;
+            meta_eff.insert(name.trim().to_string(), toml::Value::Float(v));
+            drifts.push((k, v));
+            continue;
+        }
         let e = by_name(name.trim()).with_context(|| {
             format!(
-                "--effect '{spec}': unknown effect; known: {}",
+                "--effect '{spec}': unknown effect; known: drift_PARAMETER (a linear drift d over the run), {}",
                 library()
                     .iter()
                     .map(|e| e.name())
@@ -309,7 +342,7 @@ fn simulate(a: &DiagnoseArgs, setup: &crate::setup::Setup, dir: &Path) -> Result
         meta_eff.insert(e.name(), toml::Value::Float(v));
         effects.push((e, vec![v]));
     }
-    let (data, noise) = simulate_with_effects(setup, &design, &sc.truth, &effects, a.seed)?;
+    let (data, noise) = simulate_with_drifts(setup, &design, &sc.truth, &effects, &drifts, a.seed)?;
     let mut meta = toml::Table::new();
     meta.insert(
         "generator".into(),

@@ -15,10 +15,17 @@
 //! The loop stops when nothing is significant. Whatever excess remains (by experiment, channel,
 //! band, time window, or as a narrow line) is reported as unexplained; nothing is forced onto an
 //! effect. A candidate whose template derivative is almost a combination of the fitted ones is
-//! reported as degenerate, with its largest correlation. The additive categories of the issue
-//! (line, drift, glitch) are not in the library: lines and transients are reported as
-//! unexplained residual structure (narrow-band excess, time-window excess, outliers).
+//! reported as degenerate, with its largest correlation.
+//!
+//! The additive categories `line` and `drift` ([`additive`]) are linear in their parameters and
+//! enter as extra whitened columns; they are refitted by alternating the nonlinear fit of the
+//! base parameters on the data minus the additive contributions with a joint Gauss-Newton step of
+//! the amplitudes. Scope of `line`: a narrow line of the nominal fit's residual is proposed as a
+//! `line` candidate only when it is seen in the same channel of at least two experiments (within
+//! two periodogram bins) or when [`DiagnoseConfig::lines`] is set; otherwise it stays unexplained.
+//! Glitches and other transients are reported as unexplained time-window excess.
 
+pub mod additive;
 pub mod report;
 pub mod residuals;
 
@@ -62,6 +69,10 @@ pub struct DiagnoseConfig {
     /// Whiten with the model noise PSD at the starting point even when a noise run is given
     /// (the noise run then only serves as the reference of the band and time tests).
     pub whiten_from_model: bool,
+    /// Propose every detected narrow line as a `line` candidate (not only coherent ones).
+    pub lines: bool,
+    /// Propose `drift` candidates of the parameters in [`additive::DRIFT_PARAMETERS`].
+    pub drifts: bool,
 }
 
 impl Default for DiagnoseConfig {
@@ -75,6 +86,8 @@ impl Default for DiagnoseConfig {
             effects: library(),
             degeneracy: 0.95,
             whiten_from_model: false,
+            lines: false,
+            drifts: true,
         }
     }
 }
@@ -255,8 +268,8 @@ fn stage(
 
 /// (score statistic, dimension, identifiable fraction, most correlated fitted parameter).
 type Score = (f64, usize, f64, Option<(usize, f64)>);
-/// A refitted extended model, its fit and raw residuals.
-type Refit = (Extended, FitResult, Series);
+/// A refitted extended model, its fit, raw residuals, additive effects and their sigmas.
+type Refit = (Extended, FitResult, Series, Linear, Vec<Vec<f64>>);
 
 /// Score statistics of every candidate (indices into `pool`) at the current fit.
 fn score_round(
@@ -347,6 +360,216 @@ fn score_round(
         out.push((lm, e_idx.len(), frac, corr));
     }
     Ok(out)
+}
+
+/// Additive effects in the model with their amplitudes.
+type Linear = Vec<(additive::Additive, Vec<f64>)>;
+/// A fit with additive effects: fit, raw residuals, amplitudes and their sigmas.
+type LinearFit = (FitResult, Series, Linear, Vec<Vec<f64>>);
+
+/// Raw columns of every additive effect of `lin` at `p`, flattened, with their amplitudes.
+fn linear_columns(
+    model: &Extended,
+    lin: &Linear,
+    data: &ExperimentData,
+    w: &Whitener<2>,
+    poly_degree: usize,
+    p: &[f64],
+) -> Result<(Vec<Series>, Vec<f64>), DiagnoseError> {
+    let (mut cols, mut amps) = (Vec::new(), Vec::new());
+    if lin.is_empty() {
+        return Ok((cols, amps));
+    }
+    let lik = Likelihood::new(model, &data.inputs, data.dt, w.clone(), poly_degree)?;
+    for (a, v) in lin {
+        cols.extend(a.columns(&lik, data, p));
+        amps.extend(v);
+    }
+    Ok((cols, amps))
+}
+
+/// The data minus the additive contributions of `lin` at base parameters `p`.
+fn effective_data(
+    model: &Extended,
+    lin: &Linear,
+    data: &ExperimentData,
+    w: &Whitener<2>,
+    poly_degree: usize,
+    p: &[f64],
+) -> Result<ExperimentData, DiagnoseError> {
+    if lin.is_empty() {
+        return Ok(data.clone());
+    }
+    let (cols, amps) = linear_columns(model, lin, data, w, poly_degree, p)?;
+    Ok(additive::subtract(data, &cols, &amps))
+}
+
+/// Score statistics of additive candidates at the current fit (data `eff` already has the
+/// current additive effects removed).
+fn score_additive(
+    current: &Extended,
+    estimate: &[f64],
+    cands: &[additive::Additive],
+    data: &ExperimentData,
+    eff: &ExperimentData,
+    w: &Whitener<2>,
+    poly_degree: usize,
+) -> Result<Vec<Score>, DiagnoseError> {
+    let lik = Likelihood::new(current, &data.inputs, data.dt, w.clone(), poly_degree)?;
+    let prob = lik.problem(eff)?;
+    let (r, jn) = prob.residuals_and_jacobian(estimate);
+    let nn = jn.len();
+    let (_, inn_inv) = additive::gram_inverse(&jn.iter().collect::<Vec<_>>());
+    let inn_inv = inn_inv.ok_or_else(|| DiagnoseError::Input("singular information".into()))?;
+    let mut out = Vec::new();
+    for a in cands {
+        let je: Vec<Series> = a
+            .columns(&lik, data, estimate)
+            .into_iter()
+            .map(|c| additive::whiten(&lik, data, c))
+            .collect();
+        let m = je.len();
+        let iee = DMatrix::<f64>::from_fn(m, m, |x, y| additive::dot(&je[x], &je[y]));
+        let ien = DMatrix::<f64>::from_fn(m, nn, |x, y| additive::dot(&je[x], &jn[y]));
+        let schur = &iee - &ien * &inn_inv * ien.transpose();
+        let ue = DMatrix::<f64>::from_fn(m, 1, |x, _| additive::dot(&je[x], &r));
+        let lm = match schur.clone().pseudo_inverse(1e-14 * iee.norm()) {
+            Ok(si) => (ue.transpose() * si * &ue)[(0, 0)],
+            Err(_) => f64::NAN,
+        };
+        let frac = (0..m)
+            .map(|k| schur[(k, k)] / iee[(k, k)].max(f64::MIN_POSITIVE))
+            .fold(1.0, f64::min);
+        let lm = if frac < 1e-6 || !lm.is_finite() {
+            0.0
+        } else {
+            lm.max(0.0)
+        };
+        // Correlation of the first column with each fitted parameter.
+        let mut cols: Vec<&Series> = jn.iter().collect();
+        cols.push(&je[0]);
+        let corr = additive::gram_inverse(&cols).1.and_then(|cv| {
+            (0..nn)
+                .map(|k| (k, cv[(k, nn)] / (cv[(k, k)] * cv[(nn, nn)]).sqrt()))
+                .filter(|(_, v)| v.is_finite())
+                .max_by(|x, y| x.1.abs().total_cmp(&y.1.abs()))
+        });
+        out.push((lm, m, frac, corr));
+    }
+    Ok(out)
+}
+
+/// Additive candidates: drifts of [`additive::DRIFT_PARAMETERS`], and the narrow lines of the
+/// nominal fit's residual that are in scope (coherent across experiments, or `cfg.lines`).
+fn additive_candidates(
+    model: &Extended,
+    before: &Stage,
+    fit0: &FitResult,
+    data: &ExperimentData,
+    cfg: &DiagnoseConfig,
+) -> Vec<additive::Additive> {
+    let mut out = Vec::new();
+    if cfg.drifts {
+        out.extend(
+            additive::DRIFT_PARAMETERS
+                .iter()
+                .filter_map(|n| additive::Additive::drift(model, n)),
+        );
+    }
+    let n_ch = before.channels.len().max(1);
+    let lines: Vec<(usize, usize, f64)> = before
+        .channels
+        .iter()
+        .filter_map(|ch| {
+            let e = data.names.iter().position(|n| *n == ch.experiment)?;
+            let c = ["o1", "o12"].iter().position(|n| *n == ch.channel)?;
+            Some((e, c, ch))
+        })
+        .flat_map(|(e, c, ch)| {
+            ch.lines
+                .iter()
+                .filter(|l| l.p_value < cfg.alpha / n_ch as f64)
+                .map(move |l| (e, c, l.f_hz))
+        })
+        .collect();
+    for &(e, c, f) in &lines {
+        let r = &fit0.residuals_w[e][c];
+        let bin = 1.0 / (r.len().max(1) as f64 * data.dt);
+        let coherent = lines
+            .iter()
+            .any(|&(e2, c2, f2)| e2 != e && c2 == c && (f2 - f).abs() < 2.0 * bin);
+        if cfg.lines || coherent {
+            out.push(additive::Additive::Line {
+                experiment: e,
+                experiment_name: data.names[e].clone(),
+                channel: c,
+                f_hz: additive::refine_frequency(r, data.dt, f),
+            });
+        }
+    }
+    out
+}
+
+/// Fit `model` with the additive effects `lin` (amplitudes as starting values): alternate the
+/// nonlinear fit on the data minus the additive contributions with a joint Gauss-Newton step of
+/// the amplitudes, then fit once more. The sigmas (base and amplitudes) are from the joint
+/// information; `nu` counts the amplitudes.
+fn fit_linear(
+    model: &Extended,
+    guess: &[f64],
+    lin: &Linear,
+    data: &ExperimentData,
+    w: &Whitener<2>,
+    poly_degree: usize,
+) -> Result<LinearFit, DiagnoseError> {
+    let mut lin = lin.clone();
+    let mut est = guess.to_vec();
+    let n_lin: usize = lin.iter().map(|(_, v)| v.len()).sum();
+    let lik = Likelihood::new(model, &data.inputs, data.dt, w.clone(), poly_degree)?;
+    for pass in 0..3 {
+        let eff = effective_data(model, &lin, data, w, poly_degree, &est)?;
+        let (mut f, raw) = fit_model(model, &eff, w, poly_degree, &est)?;
+        est = f.estimate.clone();
+        let prob = lik.problem(&eff)?;
+        let (r, jn) = prob.residuals_and_jacobian(&est);
+        let (cols, _) = linear_columns(model, &lin, data, w, poly_degree, &est)?;
+        let je: Vec<Series> = cols
+            .into_iter()
+            .map(|c| additive::whiten(&lik, data, c))
+            .collect();
+        let all: Vec<&Series> = jn.iter().chain(je.iter()).collect();
+        let (_, inv) = additive::gram_inverse(&all);
+        let inv = inv.ok_or_else(|| DiagnoseError::Input("singular joint information".into()))?;
+        let nn = jn.len();
+        let g = DMatrix::<f64>::from_fn(all.len(), 1, |a, _| additive::dot(all[a], &r));
+        let step = &inv * g;
+        if pass == 2 {
+            for k in 0..nn {
+                f.sigma[k] = inv[(k, k)].max(0.0).sqrt();
+            }
+            let mut j = nn;
+            let mut sigmas = Vec::new();
+            for (_, v) in &lin {
+                sigmas.push(
+                    (0..v.len())
+                        .map(|q| inv[(j + q, j + q)].max(0.0).sqrt())
+                        .collect(),
+                );
+                j += v.len();
+            }
+            f.nu = f.nu.saturating_sub(n_lin).max(1);
+            f.chi2_reduced = f.chi2 / f.nu as f64;
+            return Ok((f, raw, lin, sigmas));
+        }
+        let mut j = nn;
+        for (_, v) in &mut lin {
+            for a in v.iter_mut() {
+                *a += step[(j, 0)];
+                j += 1;
+            }
+        }
+    }
+    unreachable!("the loop returns on its last pass")
 }
 
 /// Run the diagnosis on experiments `data`, with an optional noise-only run (`noise[c]`), from
@@ -486,32 +709,65 @@ pub fn diagnose(
     let mut cur_fit = fit0.clone();
     let mut cur_raw = raw0.clone();
     let mut pool: Vec<Arc<dyn Effect>> = cfg.effects.clone();
+    let mut lin_pool = additive_candidates(&nominal, &before, &fit0, data, cfg);
+    let mut lin: Linear = Vec::new();
+    let mut lin_sigmas: Vec<Vec<f64>> = Vec::new();
     let mut candidates = Vec::new();
     let mut added = Vec::new();
-    let n_cand = pool.len().max(1);
+    let n_cand = (pool.len() + lin_pool.len()).max(1);
     for round in 1..=cfg.max_effects {
-        if pool.is_empty() {
+        if pool.is_empty() && lin_pool.is_empty() {
             break;
         }
-        let scores = score_round(
+        let eff = effective_data(&current, &lin, data, &w, cfg.poly_degree, &cur_fit.estimate)?;
+        let mut scores = score_round(
             &current,
             &cur_fit.estimate,
             &pool,
-            data,
+            &eff,
             &w,
             cfg.poly_degree,
         )?;
+        scores.extend(score_additive(
+            &current,
+            &cur_fit.estimate,
+            &lin_pool,
+            data,
+            &eff,
+            &w,
+            cfg.poly_degree,
+        )?);
+        let n_op = pool.len();
+        let describe: Vec<(String, &'static str, String, usize)> = pool
+            .iter()
+            .map(|e| {
+                (
+                    e.name(),
+                    e.category().as_str(),
+                    e.acts_on(),
+                    e.parameter_names().len(),
+                )
+            })
+            .chain(lin_pool.iter().map(|a| {
+                (
+                    a.name(),
+                    a.category().as_str(),
+                    a.acts_on(),
+                    a.parameter_names().len(),
+                )
+            }))
+            .collect();
         let names = current.parameter_names().to_vec();
-        let mut round_c: Vec<Candidate> = pool
+        let mut round_c: Vec<Candidate> = describe
             .iter()
             .zip(&scores)
-            .map(|(e, (lm, dim, frac, corr))| {
+            .map(|((name, cat, acts, _), (lm, dim, frac, corr))| {
                 let most = corr.map(|(k, v)| (names[k].clone(), v));
                 Candidate {
                     round,
-                    name: e.name(),
-                    category: e.category().as_str(),
-                    acts_on: e.acts_on(),
+                    name: name.clone(),
+                    category: cat,
+                    acts_on: acts.clone(),
                     score_statistic: *lm,
                     score_p_value: residuals::chi2_sf(*dim as f64, *lm),
                     identifiable_fraction: *frac,
@@ -527,7 +783,7 @@ pub fn diagnose(
             .collect();
         // Candidates worth a refit: score-significant, best first.
         let threshold = cfg.alpha / n_cand as f64;
-        let mut order_idx: Vec<usize> = (0..pool.len())
+        let mut order_idx: Vec<usize> = (0..round_c.len())
             .filter(|&i| round_c[i].score_p_value < threshold)
             .collect();
         order_idx.sort_by(|&a, &b| {
@@ -539,70 +795,102 @@ pub fn diagnose(
         let refits: Vec<(usize, Result<Refit, DiagnoseError>)> = order_idx
             .par_iter()
             .map(|&i| {
-                let mut effects = current.effects.clone();
-                effects.push(pool[i].clone());
-                let m = Extended::new(base.clone(), effects);
-                let mut g = cur_fit.estimate.clone();
-                g.resize(m.n_params(), 0.0);
-                (
-                    i,
-                    fit_model(&m, data, &w, cfg.poly_degree, &g).map(|(f, r)| (m, f, r)),
-                )
+                let res = if i < n_op {
+                    let mut effects = current.effects.clone();
+                    effects.push(pool[i].clone());
+                    let m = Extended::new(base.clone(), effects);
+                    let mut g = cur_fit.estimate.clone();
+                    g.resize(m.n_params(), 0.0);
+                    if lin.is_empty() {
+                        fit_model(&m, data, &w, cfg.poly_degree, &g)
+                            .map(|(f, r)| (m, f, r, Vec::new(), Vec::new()))
+                    } else {
+                        fit_linear(&m, &g, &lin, data, &w, cfg.poly_degree)
+                            .map(|(f, r, l, s)| (m, f, r, l, s))
+                    }
+                } else {
+                    let a = lin_pool[i - n_op].clone();
+                    let mut l = lin.clone();
+                    let dim = a.parameter_names().len();
+                    l.push((a, vec![0.0; dim]));
+                    fit_linear(&current, &cur_fit.estimate, &l, data, &w, cfg.poly_degree)
+                        .map(|(f, r, l, s)| (current.clone(), f, r, l, s))
+                };
+                (i, res)
             })
             .collect();
         let mut best: Option<(usize, f64, f64)> = None;
         let mut best_fit = None;
         for (i, res) in refits {
             match res {
-                Ok((m, f, raw)) => {
-                    let dim = pool[i].parameter_names().len();
+                Ok((m, f, raw, l, ls)) => {
+                    let dim = describe[i].3;
                     let scale = f.chi2_reduced.max(1.0);
                     let dchi2 = cur_fit.chi2 - f.chi2;
                     let p = residuals::chi2_sf(dim as f64, dchi2 / scale);
-                    let r = m.range(m.effects.len() - 1);
                     let c = &mut round_c[i];
                     c.delta_chi2 = Some(dchi2);
                     c.p_value = Some(p);
-                    c.estimate = Some(f.estimate[r.clone()].to_vec());
-                    c.sigma = Some(f.sigma[r.clone()].to_vec());
-                    // Degeneracy from the refit's correlation.
-                    let k = r.start;
-                    let most = (0..k)
-                        .map(|q| (q, f.correlation[(q, k)]))
-                        .filter(|(_, v)| v.is_finite())
-                        .max_by(|a, b| a.1.abs().total_cmp(&b.1.abs()));
-                    if let Some((q, v)) = most {
-                        c.most_correlated = Some((m.parameter_names()[q].clone(), v));
-                        c.degenerate = v.abs() > cfg.degeneracy;
+                    if i < n_op {
+                        let r = m.range(m.effects.len() - 1);
+                        c.estimate = Some(f.estimate[r.clone()].to_vec());
+                        c.sigma = Some(f.sigma[r.clone()].to_vec());
+                        // Degeneracy from the refit's correlation.
+                        let k = r.start;
+                        let most = (0..k)
+                            .map(|q| (q, f.correlation[(q, k)]))
+                            .filter(|(_, v)| v.is_finite())
+                            .max_by(|a, b| a.1.abs().total_cmp(&b.1.abs()));
+                        if let Some((q, v)) = most {
+                            c.most_correlated = Some((m.parameter_names()[q].clone(), v));
+                            c.degenerate = v.abs() > cfg.degeneracy;
+                        }
+                    } else {
+                        c.estimate = l.last().map(|x| x.1.clone());
+                        c.sigma = ls.last().cloned();
                     }
                     if f.termination.converged()
                         && p < threshold
                         && best.is_none_or(|(_, d, _)| dchi2 > d)
                     {
                         best = Some((i, dchi2, p));
-                        best_fit = Some((m, f, raw));
+                        best_fit = Some((m, f, raw, l, ls));
                     }
                 }
                 Err(e) => notes.push(format!(
                     "round {round}: refit with {} failed: {e}",
-                    pool[i].name()
+                    describe[i].0
                 )),
             }
         }
         candidates.extend(round_c.iter().cloned());
-        let (Some((i, dchi2, p)), Some((m, f, raw))) = (best, best_fit) else {
+        let (Some((i, dchi2, p)), Some((m, f, raw, l, ls))) = (best, best_fit) else {
             break;
         };
-        let e = pool.remove(i);
-        let r = m.range(m.effects.len() - 1);
         let c = &round_c[i];
+        let (parameter_names, parameters, sigmas) = if i < n_op {
+            let e = pool.remove(i);
+            let r = m.range(m.effects.len() - 1);
+            (
+                e.parameter_names(),
+                f.estimate[r.clone()].to_vec(),
+                f.sigma[r].to_vec(),
+            )
+        } else {
+            let a = lin_pool.remove(i - n_op);
+            (
+                a.parameter_names(),
+                l.last().map(|x| x.1.clone()).unwrap_or_default(),
+                ls.last().cloned().unwrap_or_default(),
+            )
+        };
         added.push(AddedEffect {
-            name: e.name(),
-            category: e.category().as_str(),
-            acts_on: e.acts_on(),
-            parameter_names: e.parameter_names(),
-            parameters: f.estimate[r.clone()].to_vec(),
-            sigmas: f.sigma[r].to_vec(),
+            name: c.name.clone(),
+            category: c.category,
+            acts_on: c.acts_on.clone(),
+            parameter_names,
+            parameters,
+            sigmas,
             score_statistic: c.score_statistic,
             delta_chi2: dchi2,
             p_value: p,
@@ -612,6 +900,15 @@ pub fn diagnose(
         current = m;
         cur_fit = f;
         cur_raw = raw;
+        lin = l;
+        lin_sigmas = ls;
+    }
+    // Additive amplitudes are re-estimated in every later refit: report the final ones.
+    for ((a, v), s) in lin.iter().zip(&lin_sigmas) {
+        if let Some(e) = added.iter_mut().find(|e| e.name == a.name()) {
+            e.parameters = v.clone();
+            e.sigmas = s.clone();
+        }
     }
     let after = stage(
         &current,
@@ -800,5 +1097,43 @@ pub fn simulate_with_effects(
     .map_err(|e| DiagnoseError::Input(e.to_string()))?;
     let data = sim.draw(&mut crate::sim::rng::stream(seed, 0));
     let noise = sim.noise_series(&mut crate::sim::rng::stream(seed, 1));
+    Ok((data, noise))
+}
+
+/// As [`simulate_with_effects`], with base parameters drifting linearly over each run:
+/// `drifts` holds (base parameter index, d) for `p_k(t) = p_k + d (t - T/2)/T`. The experiments
+/// are two realizations with the same seed at `p -+ d/2`, interpolated linearly in time (the
+/// drift to first order in d; the noise-only run is that of the first).
+pub fn simulate_with_drifts(
+    setup: &Setup,
+    design: &crate::signal::Design,
+    truth: &[f64],
+    effects: &[(Arc<dyn Effect>, Vec<f64>)],
+    drifts: &[(usize, f64)],
+    seed: u64,
+) -> Result<(ExperimentData, Vec<Vec<f64>>), DiagnoseError> {
+    if drifts.is_empty() {
+        return simulate_with_effects(setup, design, truth, effects, seed);
+    }
+    let at = |sign: f64| {
+        let mut p = truth.to_vec();
+        for &(k, d) in drifts {
+            let v = p.get_mut(k).ok_or_else(|| {
+                DiagnoseError::Input(format!("drift of parameter {k}: no such parameter"))
+            })?;
+            *v += sign * 0.5 * d;
+        }
+        simulate_with_effects(setup, design, &p, effects, seed)
+    };
+    let (mut data, noise) = at(-1.0)?;
+    let (plus, _) = at(1.0)?;
+    let n = data.len().max(1) as f64;
+    for (oe, pe) in data.outputs.iter_mut().zip(&plus.outputs) {
+        for (oc, pc) in oe.iter_mut().zip(pe) {
+            for (i, (o, q)) in oc.iter_mut().zip(pc).enumerate() {
+                *o += (q - *o) * i as f64 / n;
+            }
+        }
+    }
     Ok((data, noise))
 }
