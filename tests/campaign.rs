@@ -382,3 +382,29 @@ fn shipped_campaign_files_load() {
     let mc = campaign::load(Some(Path::new("campaigns/monte_carlo.toml"))).unwrap();
     assert_eq!(mc.campaign.realizations, 1000);
 }
+
+// Oracle: the documented shard layout: contiguous ranges floor(K R / N) .. floor((K+1) R / N)
+// that tile 0..R exactly, for any R and N (including N > R).
+#[test]
+fn shards_tile_the_realizations() {
+    for total in [1u64, 2, 5, 7, 1000, 1_000_003] {
+        for count in [1u64, 2, 3, 8, 13] {
+            let mut next = 0;
+            for index in 0..count {
+                let (a, b) = Shard { index, count }.range(total);
+                assert_eq!(a, next);
+                assert!(b >= a);
+                next = b;
+            }
+            assert_eq!(next, total);
+        }
+    }
+    assert_eq!(
+        "2/8".parse::<Shard>().unwrap(),
+        Shard { index: 2, count: 8 }
+    );
+    for bad in ["8/8", "1", "a/2", "1/0", "-1/3"] {
+        let e = bad.parse::<Shard>().unwrap_err();
+        assert!(e.contains(bad) && e.contains("K/N"), "{e}");
+    }
+}
