@@ -327,20 +327,7 @@ fn score_round(
         let ien = sub(&e_idx, &n_idx);
         let schur = &iee - &ien * &inn_inv * ien.transpose();
         let ue = DMatrix::<f64>::from_fn(e_idx.len(), 1, |a, _| u[e_idx[a]]);
-        let lm = match schur.clone().pseudo_inverse(1e-14 * iee.norm()) {
-            Ok(si) => (ue.transpose() * si * &ue)[(0, 0)],
-            Err(_) => f64::NAN,
-        };
-        let frac = (0..e_idx.len())
-            .map(|k| schur[(k, k)] / iee[(k, k)].max(f64::MIN_POSITIVE))
-            .fold(1.0, f64::min);
-        // Below this the Schur complement is rounding noise: the effect is indistinguishable
-        // from the fitted parameters and the statistic is meaningless.
-        let lm = if frac < 1e-6 || !lm.is_finite() {
-            0.0
-        } else {
-            lm.max(0.0)
-        };
+        let (lm, frac) = score_statistic(&schur, &iee, &ue);
         // Correlation of the (first) effect parameter with each fitted parameter in the joint covariance.
         let mut idx = n_idx.clone();
         idx.push(e_idx[0]);
@@ -433,18 +420,7 @@ fn score_additive(
         let ien = DMatrix::<f64>::from_fn(m, nn, |x, y| additive::dot(&je[x], &jn[y]));
         let schur = &iee - &ien * &inn_inv * ien.transpose();
         let ue = DMatrix::<f64>::from_fn(m, 1, |x, _| additive::dot(&je[x], &r));
-        let lm = match schur.clone().pseudo_inverse(1e-14 * iee.norm()) {
-            Ok(si) => (ue.transpose() * si * &ue)[(0, 0)],
-            Err(_) => f64::NAN,
-        };
-        let frac = (0..m)
-            .map(|k| schur[(k, k)] / iee[(k, k)].max(f64::MIN_POSITIVE))
-            .fold(1.0, f64::min);
-        let lm = if frac < 1e-6 || !lm.is_finite() {
-            0.0
-        } else {
-            lm.max(0.0)
-        };
+        let (lm, frac) = score_statistic(&schur, &iee, &ue);
         // Correlation of the first column with each fitted parameter.
         let mut cols: Vec<&Series> = jn.iter().collect();
         cols.push(&je[0]);
@@ -1136,4 +1112,25 @@ pub fn simulate_with_drifts(
         }
     }
     Ok((data, noise))
+}
+
+/// The score (Lagrange-multiplier) statistic `U^T S^+ U` of effect parameters with score `ue`,
+/// information `iee` and Schur complement `schur` (information left after the fitted
+/// parameters), and the identifiable fraction `min_k S_kk / I_kk`. Below a fraction of 1e-6 the
+/// Schur complement is rounding noise: the effect is indistinguishable from the fitted
+/// parameters and the statistic is reported as 0.
+fn score_statistic(schur: &DMatrix<f64>, iee: &DMatrix<f64>, ue: &DMatrix<f64>) -> (f64, f64) {
+    let lm = match schur.clone().pseudo_inverse(1e-14 * iee.norm()) {
+        Ok(si) => (ue.transpose() * si * ue)[(0, 0)],
+        Err(_) => f64::NAN,
+    };
+    let frac = (0..schur.nrows())
+        .map(|k| schur[(k, k)] / iee[(k, k)].max(f64::MIN_POSITIVE))
+        .fold(1.0, f64::min);
+    let lm = if frac < 1e-6 || !lm.is_finite() {
+        0.0
+    } else {
+        lm.max(0.0)
+    };
+    (lm, frac)
 }
