@@ -140,11 +140,6 @@ pub struct Problem<'a, 'm, M: ClosedLoopModel<N>, const N: usize> {
 }
 
 impl<M: ClosedLoopModel<N>, const N: usize> Problem<'_, '_, M, N> {
-    /// Number of residual samples entering chi^2.
-    pub fn n_samples(&self) -> usize {
-        self.data_w.len() * N * (self.lik.engine.len() - self.lik.order())
-    }
-
     /// Degrees of freedom `nu` for `n_params` fitted parameters.
     pub fn nu(&self, n_params: usize) -> usize {
         let per = self.lik.engine.len() - self.lik.order() - self.lik.basis.len();
