@@ -5,7 +5,7 @@ Per realization: simulate both standard experiments of the LPF-x model (template
 plus colored noise drawn from the model cross-PSD), whiten in the frequency domain with the
 Cholesky factor of the PSD, and Gauss-Newton fit the 7 parameters (w1_sq, w12_sq, s21, a_df,
 a_sus, dt1, dt12) from the scenario's guess, with a finite-difference Jacobian. Closed loop and
-noise follow /work/shared/reference/README.md ("Closed loop", "Spectra, transforms,
+noise follow the conventions in README.md and src/model/ ("Closed loop", "Spectra, transforms,
 likelihood"), implemented independently of freefall; the model numbers are read from lpf_x.toml.
 
     pip install -r scripts/requirements.txt

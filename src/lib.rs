@@ -3,7 +3,8 @@
 //!
 //! The numeric core (`model`, `signal`, `noise`, `sim`, `spectral`, `fit`, `design`, `diagnose`)
 //! does no file I/O and prints nothing; `io` and `cli` are the only edges. See README.md for the
-//! architecture and `../shared/seed/thesis.tex` (cited as "thesis") for the equations.
+//! architecture; "thesis" in the docs is the LISA Pathfinder system-identification thesis whose
+//! chapters 3-5 give the equations.
 
 pub mod campaign;
 pub mod cli;
