@@ -73,6 +73,23 @@ pub trait ClosedLoopModel<const N: usize>: Send + Sync {
     /// How a source with `enters = name` acts, or `None` for an unknown entry point.
     fn noise_entry(&self, name: &str) -> Option<NoiseEntry<N>>;
 
+    /// `None` if the closed loop at `p` is stable, else how it is unstable. The default takes
+    /// the roots of [`Self::characteristic_polynomial`]; a model whose operators are not
+    /// polynomial in `s` overrides it.
+    fn instability(&self, p: &[f64]) -> Option<Instability> {
+        let poles = self.characteristic_polynomial(p).roots();
+        let scale = poles.iter().fold(1e-12_f64, |m, z| m.max(z.norm()));
+        let rhp: Vec<Complex64> = poles
+            .into_iter()
+            .filter(|z| z.re >= -1e-14 * scale)
+            .collect();
+        let pole = rhp.iter().copied().max_by(|a, b| a.re.total_cmp(&b.re))?;
+        Some(Instability {
+            pole: Some(pole),
+            count: rhp.len(),
+        })
+    }
+
     fn n_params(&self) -> usize {
         self.parameter_names().len()
     }
@@ -207,6 +224,14 @@ pub fn transfer_with_derivatives<M: ClosedLoopModel<N>, const N: usize>(
     tr
 }
 
+/// How a closed loop is unstable: the number of closed-loop poles in the closed right half
+/// plane, and the one with the largest real part when it could be located.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Instability {
+    pub pole: Option<Complex64>,
+    pub count: usize,
+}
+
 /// Closed-loop poles of the model at `p`.
 pub fn closed_loop_poles<M: ClosedLoopModel<N>, const N: usize>(
     model: &M,
@@ -230,19 +255,12 @@ pub fn check_stability<M: ClosedLoopModel<N>, const N: usize>(
             value: *v,
         });
     }
-    let unstable = |q: &[f64]| -> Option<Complex64> {
-        let poles = closed_loop_poles(model, q);
-        let scale = poles.iter().fold(1e-12_f64, |m, z| m.max(z.norm()));
-        poles
-            .into_iter()
-            .filter(|z| z.re >= -1e-14 * scale)
-            .max_by(|a, b| a.re.total_cmp(&b.re))
-    };
-    let Some(pole) = unstable(p) else {
+    let unstable = |q: &[f64]| model.instability(q);
+    let Some(instability) = unstable(p) else {
         return Ok(());
     };
     let culprits: Vec<String> = match reference {
-        Some(r) => (0..p.len())
+        Some(r) => (0..p.len().min(r.len()))
             .filter(|&k| p[k] != r[k])
             .filter(|&k| {
                 let mut q = p.to_vec();
@@ -255,8 +273,8 @@ pub fn check_stability<M: ClosedLoopModel<N>, const N: usize>(
     };
     Err(ModelError::Unstable {
         parameters: names.iter().cloned().zip(p.iter().copied()).collect(),
-        pole_re: pole.re,
-        pole_im: pole.im,
+        pole: instability.pole,
+        count: instability.count,
         culprits,
     })
 }

@@ -196,6 +196,19 @@ impl LpfX {
     }
 }
 
+impl LpfX {
+    /// The operators' point at a complex Laplace variable `s` (off the imaginary axis, for the
+    /// stability analysis of models that are not polynomial in `s`).
+    pub fn prepare_s(&self, s: Complex64) -> LpfPoint {
+        LpfPoint {
+            s,
+            s2: s * s,
+            c_df: self.c_df.eval(s),
+            c_sus: self.c_sus.eval(s),
+        }
+    }
+}
+
 impl ClosedLoopModel<2> for LpfX {
     type Point = LpfPoint;
 
@@ -212,13 +225,7 @@ impl ClosedLoopModel<2> for LpfX {
     }
 
     fn prepare(&self, f_hz: f64) -> LpfPoint {
-        let s = I * (2.0 * PI * f_hz);
-        LpfPoint {
-            s,
-            s2: s * s,
-            c_df: self.c_df.eval(s),
-            c_sus: self.c_sus.eval(s),
-        }
+        self.prepare_s(I * (2.0 * PI * f_hz))
     }
 
     fn operators(&self, pt: &LpfPoint, p: &[f64]) -> Operators<2> {

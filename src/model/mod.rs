@@ -41,15 +41,44 @@ pub enum ModelError {
     #[error("parameter {name} is not finite ({value})")]
     NonFiniteParameter { name: String, value: f64 },
     #[error(
-        "closed loop is unstable at {}: pole at s = {pole_re:.3e} {pole_im:+.3e}i rad/s (e-folding time {:.3e} s){}",
+        "closed loop is unstable at {}: {}{}",
         parameters.iter().map(|(n, v)| format!("{n}={v:e}")).collect::<Vec<_>>().join(", "),
-        if *pole_re > 0.0 { 1.0 / pole_re } else { f64::INFINITY },
+        describe_unstable(*pole, *count),
         if culprits.is_empty() { String::new() } else { format!("; setting {} back to nominal restores stability", culprits.join(" or ")) }
     )]
     Unstable {
         parameters: Vec<(String, f64)>,
-        pole_re: f64,
-        pole_im: f64,
+        /// The right-half-plane pole with the largest real part, when it was located.
+        pole: Option<num_complex::Complex64>,
+        /// Closed-loop poles in the closed right half plane.
+        count: usize,
         culprits: Vec<String>,
     },
+}
+
+fn describe_unstable(pole: Option<num_complex::Complex64>, count: usize) -> String {
+    let more = if count > 1 {
+        format!(" ({count} poles in the right half plane)")
+    } else {
+        String::new()
+    };
+    match pole {
+        Some(z) => format!(
+            "pole at s = {:.3e} {:+.3e}i rad/s (e-folding time {:.3e} s){more}",
+            z.re,
+            z.im,
+            if z.re > 0.0 {
+                1.0 / z.re
+            } else {
+                f64::INFINITY
+            }
+        ),
+        None if count == 0 => {
+            "a closed-loop pole on the imaginary axis (det Delta is singular there)".to_string()
+        }
+        None => format!(
+            "{count} closed-loop pole(s) in the right half plane (counted by the argument \
+             principle along the imaginary axis, not located)"
+        ),
+    }
 }

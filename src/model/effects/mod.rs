@@ -10,12 +10,12 @@
 //! [`Extended`] wraps the reference model with any subset of effects and implements
 //! [`ClosedLoopModel`], so templates, whitened likelihood, fit and simulator work unchanged on it.
 //!
-//! Stability: `characteristic_polynomial` of the extended model is that of the base model, i.e.
-//! the effects are treated as small perturbations that do not move the closed-loop poles across
-//! the imaginary axis. A frequency-independent loss angle and a lag are not polynomial in `s`;
-//! the fit's guard against unstable steps therefore covers the base parameters only. Effects
-//! sized like the ones the diagnosis looks for (relative operator changes of 1e-3..1e-1) are far
-//! from the stability margin of the reference controllers.
+//! Stability: the extended model is not polynomial in `s` (a loss angle is a frequency-independent
+//! imaginary stiffness, a lag is rational), so [`Extended`] overrides
+//! [`ClosedLoopModel::instability`]: the base polynomial's roots, then the argument principle on
+//! `det Delta` along the imaginary axis for the poles the effects move or add, located by
+//! continuation from the base poles (see `stability.rs`). The fit's guard against unstable steps
+//! and `check_stability` therefore cover the effects too.
 
 mod actuation_crosstalk;
 mod actuation_lag;
@@ -24,6 +24,7 @@ mod gravity_gradient;
 mod loss_angle;
 mod sensing_crosstalk;
 mod sensing_gain;
+mod stability;
 
 use std::sync::Arc;
 
@@ -38,7 +39,9 @@ pub use loss_angle::LossAngle;
 pub use sensing_crosstalk::SensingCrosstalk;
 pub use sensing_gain::SensingGain;
 
-use super::closed_loop::{CMat, ClosedLoopModel, NoiseEntry, OperatorDerivative, Operators};
+use super::closed_loop::{
+    CMat, ClosedLoopModel, Instability, NoiseEntry, OperatorDerivative, Operators,
+};
 use super::lpf_x::{LpfPoint, LpfX};
 use super::poly::Poly;
 
@@ -273,9 +276,14 @@ impl ClosedLoopModel<2> for Extended {
         self.effects[i].derivative(&self.base, pt, pb, &p[r.clone()], k - r.start)
     }
 
-    /// The base model's polynomial (see the module docs on stability).
+    /// The base model's polynomial: the effects are not polynomial in `s`, see
+    /// [`ClosedLoopModel::instability`] below for the stability of the extended model.
     fn characteristic_polynomial(&self, p: &[f64]) -> Poly {
         self.base.characteristic_polynomial(&p[..self.n_base])
+    }
+
+    fn instability(&self, p: &[f64]) -> Option<Instability> {
+        stability::instability(self, p)
     }
 
     fn noise_entry(&self, name: &str) -> Option<NoiseEntry<2>> {
