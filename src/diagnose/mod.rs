@@ -26,6 +26,7 @@
 //! Glitches and other transients are reported as unexplained time-window excess.
 
 pub mod additive;
+pub mod redesign;
 pub mod report;
 pub mod residuals;
 
