@@ -100,10 +100,30 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> Likelihood<'m, M, N> {
 
     /// Whitened, cut and projected template derivatives `j[k][e][i]` at `p` (data-independent).
     pub fn jacobian(&self, p: &[f64]) -> Vec<Series> {
-        let (_, d) = self
+        self.templates_and_jacobian(p).1
+    }
+
+    /// Whitened, cut and projected templates `t[e][i]` and their derivatives `j[k][e][i]` at
+    /// `p` (data-independent).
+    pub fn templates_and_jacobian(&self, p: &[f64]) -> (Series, Vec<Series>) {
+        let (t, d) = self
             .engine
             .templates_and_derivatives(p, Some(&self.response));
-        d.into_iter().map(|s| self.whiten_cut(s)).collect()
+        (
+            self.whiten_cut(t),
+            d.into_iter().map(|s| self.whiten_cut(s)).collect(),
+        )
+    }
+
+    /// Whitened, cut and projected templates `t[e][i]` at `p` (data-independent).
+    pub fn templates_w(&self, p: &[f64]) -> Series {
+        let mut t = self
+            .engine
+            .templates_cut(p, Some(&self.response), self.order());
+        for c in t.iter_mut().flatten() {
+            project_out(c, &self.basis);
+        }
+        t
     }
 
     /// Whitened, cut and projected outputs of one data set.
@@ -148,10 +168,24 @@ impl<M: ClosedLoopModel<N>, const N: usize> Problem<'_, '_, M, N> {
 
     /// Whitened residuals `r[e][i]` at `p`.
     pub fn residuals(&self, p: &[f64]) -> Series {
-        let t = self
-            .lik
-            .whiten_cut(self.lik.engine.templates(p, Some(&self.lik.response)));
-        subtract(&self.data_w, &t)
+        let mut r =
+            self.lik
+                .engine
+                .templates_cut(p, Some(&self.lik.response), self.lik.order());
+        // r = P (d - t) = d - P t, as the data are projected already.
+        for (re, de) in r.iter_mut().zip(&self.data_w) {
+            for (rc, dc) in re.iter_mut().zip(de) {
+                rc.iter_mut().zip(dc).for_each(|(t, d)| *t = d - *t);
+                project_out(rc, &self.lik.basis);
+            }
+        }
+        r
+    }
+
+    /// Whitened residuals `d - t` against whitened, cut and projected templates `t[e][i]`
+    /// (e.g. cached ones, [`Likelihood::templates_w`]).
+    pub fn residuals_from(&self, t: &Series) -> Series {
+        subtract(&self.data_w, t)
     }
 
     /// Whitened residuals and the whitened template derivatives `j[k][e][i]` (`dr/dp = -j`).

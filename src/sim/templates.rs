@@ -199,6 +199,58 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
             .collect()
     }
 
+    /// Templates at `p`, optionally filtered by `filter[k]` per bin, keeping only samples
+    /// `from..n` of each series: `out[e][i]` has length `n - from`. The same numbers as
+    /// [`Self::templates`] cut, without the full-length intermediates: the model is evaluated
+    /// in blocks of bins that stay in cache, and one inverse-FFT buffer serves every series.
+    pub fn templates_cut(&self, p: &[f64], filter: Option<&[CMat<N>]>, from: usize) -> Series {
+        const BLOCK: usize = 256;
+        let nb = self.points.len();
+        let ne = self.n_experiments();
+        let zero = Complex64::new(0.0, 0.0);
+        let mut specs: Vec<Vec<Complex64>> = (0..ne * N).map(|_| vec![zero; nb]).collect();
+        let mut tblock = vec![CMat::<N>::zeros(); BLOCK.min(nb)];
+        for start in (0..nb).step_by(BLOCK) {
+            let end = (start + BLOCK).min(nb);
+            let tb = &mut tblock[..end - start];
+            self.model
+                .transfer_grid(&self.points[start..end], p, tb, None);
+            for (kk, t) in tb.iter().enumerate() {
+                let k = start + kk;
+                let w = filter.map(|f| &f[k]);
+                for e in 0..ne {
+                    let r = self.response(e, k, t, w);
+                    for (i, v) in r.into_iter().enumerate() {
+                        specs[e * N + i][k] = v;
+                    }
+                }
+            }
+        }
+        let mut buf = self.inv.make_output_vec();
+        let mut scratch = self.inv.make_scratch_vec();
+        let norm = 1.0 / self.m as f64;
+        let from = from.min(self.n);
+        let mut out: Series = Vec::with_capacity(ne);
+        let mut it = specs.into_iter();
+        for _ in 0..ne {
+            let mut exp = Vec::with_capacity(N);
+            for spec in it.by_ref().take(N) {
+                let mut spec = spec;
+                spec[0].im = 0.0;
+                if self.m.is_multiple_of(2) {
+                    let last = spec.len() - 1;
+                    spec[last].im = 0.0;
+                }
+                self.inv
+                    .process_with_scratch(&mut spec, &mut buf, &mut scratch)
+                    .expect("FFT sizes match");
+                exp.push(buf[from..self.n].iter().map(|v| v * norm).collect());
+            }
+            out.push(exp);
+        }
+        out
+    }
+
     /// Templates and their parameter derivatives: `(o_s[e][i], d[k][e][i])`.
     pub fn templates_and_derivatives(
         &self,
