@@ -290,7 +290,9 @@ pub struct FitResult {
     pub residuals_w: Series,
 }
 
-fn objective(est: Estimator, r: &Series) -> f64 {
+/// `sum rho(r) / E_gauss[rho]` over whitened residuals (the ordinary chi^2 for the squared
+/// estimator).
+pub fn objective(est: Estimator, r: &Series) -> f64 {
     let total: f64 = match est {
         Estimator::Squared => r.iter().flatten().map(|x| dot(x, x)).sum(),
         _ => r
@@ -504,7 +506,11 @@ pub fn fit<M: ClosedLoopModel<N>, const N: usize>(
     let f = objective(est, &r);
     let nu = problem.nu(np);
     let chi2_reduced = f / nu as f64;
-    let (info, _) = normal_equations_with(Estimator::Squared, &r, &j, known);
+    // Only `J^T J` is needed here: reuse a cached one, or form it without the gradient.
+    let info = match known {
+        Some(a) => a.clone(),
+        None => gram(&j),
+    };
     let base = invert_spd(&info).ok_or_else(|| {
         FitError::Singular(
             "Fisher information at the estimate (a parameter the data cannot constrain?)".into(),

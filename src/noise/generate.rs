@@ -51,8 +51,11 @@ pub struct ColoredNoise<const N: usize> {
     m: usize,
     dt: f64,
     offset: usize,
-    /// `L_k / sqrt(2 dt)` for each real-FFT bin of the long series.
+    /// `L_k / sqrt(2 dt)` for each real-FFT bin of the long series (or `F_k L_k / sqrt(2 dt)`
+    /// for a generator of filtered noise, see [`ColoredNoise::filtered`]).
     factors: Vec<CMat<N>>,
+    /// Whether `factors` are lower triangular (Cholesky factors, not filtered).
+    lower: bool,
     fwd: Arc<dyn RealToComplex<f64>>,
     inv: Arc<dyn ComplexToReal<f64>>,
 }
@@ -121,6 +124,7 @@ impl<const N: usize> ColoredNoise<N> {
             dt,
             offset: (m - n) / 2,
             factors,
+            lower: true,
             fwd: planner.plan_fft_forward(m),
             inv: planner.plan_fft_inverse(m),
         })
@@ -146,6 +150,35 @@ impl<const N: usize> ColoredNoise<N> {
     /// Index in the driving sequence of the first returned sample.
     pub fn offset(&self) -> usize {
         self.offset
+    }
+
+    /// The same generator followed by a linear filter with frequency response `response[k]`
+    /// (an `N x N` matrix per real-FFT bin of the long series, `m / 2 + 1` bins, see
+    /// [`Self::driving_len`]), applied circularly to the long series before the window is cut.
+    /// For a causal FIR of `p + 1` taps, returned samples `p..n` are exactly the linear filter
+    /// applied to the unfiltered generator's output (same random numbers) whenever
+    /// [`Self::offset`] `>= p`, with no extra FFT: the filter is folded into the coloring.
+    pub fn filtered(&self, response: &[CMat<N>]) -> Self {
+        assert_eq!(
+            response.len(),
+            self.factors.len(),
+            "filter response must be given on the generator's grid"
+        );
+        ColoredNoise {
+            n: self.n,
+            m: self.m,
+            dt: self.dt,
+            offset: self.offset,
+            factors: self
+                .factors
+                .iter()
+                .zip(response)
+                .map(|(l, w)| w * l)
+                .collect(),
+            lower: false,
+            fwd: self.fwd.clone(),
+            inv: self.inv.clone(),
+        }
     }
 
     /// One realization, generated directly in the frequency domain.
@@ -194,26 +227,32 @@ impl<const N: usize> ColoredNoise<N> {
 
     fn color(&self, white: &mut [Vec<Complex64>]) -> Vec<Vec<f64>> {
         let nbins = self.m / 2 + 1;
-        let mut colored: Vec<Vec<Complex64>> = (0..N)
-            .map(|_| vec![Complex64::new(0.0, 0.0); nbins])
-            .collect();
+        let zero = Complex64::new(0.0, 0.0);
+        // In place, bin by bin: the DC and Nyquist bins are zero, the others `F_k w_k`.
+        for spec in white.iter_mut() {
+            spec[0] = zero;
+            spec[nbins - 1] = zero;
+        }
         for k in 1..nbins - 1 {
             let l = &self.factors[k];
-            for i in 0..N {
-                let mut acc = Complex64::new(0.0, 0.0);
-                for j in 0..=i {
-                    acc += l[(i, j)] * white[j][k];
+            let w: [Complex64; N] = std::array::from_fn(|j| white[j][k]);
+            for (i, spec) in white.iter_mut().enumerate() {
+                let mut acc = zero;
+                let last = if self.lower { i } else { N - 1 };
+                for (j, wj) in w.iter().enumerate().take(last + 1) {
+                    acc += l[(i, j)] * wj;
                 }
-                colored[i][k] = acc;
+                spec[k] = acc;
             }
         }
         let norm = 1.0 / self.m as f64;
-        colored
-            .into_iter()
-            .map(|mut spec| {
-                let mut out = self.inv.make_output_vec();
+        let mut out = self.inv.make_output_vec();
+        let mut scratch = self.inv.make_scratch_vec();
+        white
+            .iter_mut()
+            .map(|spec| {
                 self.inv
-                    .process(&mut spec, &mut out)
+                    .process_with_scratch(spec, &mut out, &mut scratch)
                     .expect("FFT sizes match by construction");
                 out[self.offset..self.offset + self.n]
                     .iter()
