@@ -280,17 +280,26 @@ impl<M: ClosedLoopModel<N>, const N: usize> Problem<'_, '_, M, N> {
 
     /// Whitened residuals `r[e][i]` at `p`.
     pub fn residuals(&self, p: &[f64]) -> Series {
-        let mut r =
-            self.lik
-                .engine
-                .templates_cut(p, Some(&self.lik.response), self.lik.order());
+        let mut r: Series = self
+            .data_w
+            .iter()
+            .map(|e| Vec::with_capacity(e.len()))
+            .collect();
         // r = P (d - t) = d - P t, as the data are projected already.
-        for (re, de) in r.iter_mut().zip(&self.data_w) {
-            for (rc, dc) in re.iter_mut().zip(de) {
-                rc.iter_mut().zip(dc).for_each(|(t, d)| *t = d - *t);
-                project_out(rc, &self.lik.basis);
-            }
-        }
+        self.lik.engine.templates_cut_with(
+            p,
+            Some(&self.lik.response),
+            self.lik.order(),
+            |e, c, t, norm| {
+                let mut rc: Vec<f64> = self.data_w[e][c]
+                    .iter()
+                    .zip(t)
+                    .map(|(d, v)| d - v * norm)
+                    .collect();
+                project_out(&mut rc, &self.lik.basis);
+                r[e].push(rc);
+            },
+        );
         r
     }
 
