@@ -231,14 +231,11 @@ impl<const N: usize> WhitenedSimulator<N> {
     /// One noise series (N channels) whitened, cut and projected; the random numbers of
     /// `Simulator::noise_series`.
     pub fn noise_series<R: rand::Rng + ?Sized>(&self, rng: &mut R) -> Vec<Vec<f64>> {
-        noise_series(&self.noise, self.glitches.as_ref(), rng)
-            .into_iter()
-            .map(|mut c| {
-                c.drain(..self.order);
-                project_out(&mut c, &self.basis);
-                c
-            })
-            .collect()
+        let mut x = noise_series(&self.noise, self.glitches.as_ref(), self.order, rng);
+        for c in x.iter_mut() {
+            project_out(c, &self.basis);
+        }
+        x
     }
 
     /// One realization of every experiment, whitened, cut and projected; the random numbers
