@@ -4,6 +4,13 @@
 //! rayon workers. A job is one realization of one cell: draw the data from the realization's
 //! stream, whiten it once, fit it with every estimator in turn, and (optionally) compute the
 //! chi^2 of a noise-only run drawn next from the same stream (thesis fig. "fit vs noise chi^2").
+//!
+//! Whitening is linear, so the data are drawn already whitened
+//! ([`Likelihood::whitened_simulator`]): the noise-free signal is whitened once per cell, and each
+//! noise series is colored and whitened in one frequency-domain step on the noise generator's
+//! grid, from the very random numbers `Simulator::draw` would use. The noise-only run costs one
+//! noise draw per experiment and a sum of squares. Every fit starts from the cell's guess, where
+//! the cached Jacobian also holds the whitened templates, so the first residuals are free.
 
 use rayon::prelude::*;
 
@@ -296,9 +303,7 @@ impl<'s> Runner<'s> {
             .enumerate()
             .map(|(e, (&est, cfg))| {
                 let noise_chi2_reduced = match &noise_w {
-                    Some(Ok((nu0, w))) => {
-                        crate::fit::objective(est, w) / *nu0 as f64
-                    }
+                    Some(Ok((nu0, w))) => crate::fit::objective(est, w) / *nu0 as f64,
                     _ => f64::NAN,
                 };
                 let failed = |termination: String, nu: u64| Row {

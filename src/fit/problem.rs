@@ -157,10 +157,15 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> Likelihood<'m, M, N> {
 impl<'m, M: ClosedLoopModel<N>, const N: usize> Likelihood<'m, M, N> {
     /// A likelihood bound to data that are whitened, cut and projected already (`data_w[e][i]`
     /// over the valid samples, as [`WhitenedSimulator::draw`] produces them).
-    pub fn problem_whitened<'a>(&'a self, data_w: Series) -> Result<Problem<'a, 'm, M, N>, FitError> {
+    pub fn problem_whitened<'a>(
+        &'a self,
+        data_w: Series,
+    ) -> Result<Problem<'a, 'm, M, N>, FitError> {
         let len = self.engine.len() - self.order();
         if data_w.len() != self.engine.n_experiments()
-            || data_w.iter().any(|e| e.len() != N || e.iter().any(|c| c.len() != len))
+            || data_w
+                .iter()
+                .any(|e| e.len() != N || e.iter().any(|c| c.len() != len))
         {
             return Err(FitError::Input(format!(
                 "whitened data must have {} experiments of {N} channels of {len} samples",

@@ -113,7 +113,7 @@ impl LpfX {
         points: &[LpfPoint],
         p: &[f64],
         t_out: &mut [CMat<2>],
-        mut d_out: Option<&mut [CMat<2>]>,
+        d_out: Option<&mut [CMat<2>]>,
     ) {
         let (w1, w12, s21, a_df, a_sus, mt, g) = (
             p[W1],
@@ -133,7 +133,7 @@ impl LpfX {
             let d2 = points[points.len() - 1].s - points[points.len() - 2].s;
             (d1 - d2).norm() <= 1e-9 * d1.norm()
         };
-        let Some(d) = d_out.as_deref_mut() else {
+        let Some(d) = d_out else {
             // Templates only: T = Delta^-1 M with M = [[m11, mt m22], [0, m22]], so
             // T = [[D22 a, (mt D22 - D12) b], [-D21 a, (D11 - mt D21) b]] with
             // a = m11 / det and b = m22 / det.

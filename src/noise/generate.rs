@@ -17,8 +17,8 @@ use rand_distr::StandardNormal;
 use realfft::{ComplexToReal, RealFftPlanner, RealToComplex};
 
 use super::NoiseError;
-use crate::sim::scratch::with_buffers;
 use crate::model::closed_loop::CMat;
+use crate::sim::scratch::with_buffers;
 
 /// Lower-triangular `L` with `L L^H = S` for a Hermitian positive semi-definite `S`; negative
 /// pivots from round-off are clamped to zero so a channel without noise yields zeros.

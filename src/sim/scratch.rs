@@ -28,9 +28,6 @@ pub(crate) fn with_buffers<T>(
             }
             f(&mut c[..nc], &mut r[..nr])
         }
-        Err(_) => f(
-            &mut vec![Complex64::new(0.0, 0.0); nc],
-            &mut vec![0.0; nr],
-        ),
+        Err(_) => f(&mut vec![Complex64::new(0.0, 0.0); nc], &mut vec![0.0; nr]),
     })
 }
