@@ -250,6 +250,22 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
                 self.model
                     .transfer_grid(&self.points[start..end], p, tb, None);
                 for (e, inputs) in active.iter().enumerate() {
+                    if let (Some(f), &[(c, x)]) = (filter, inputs.as_slice()) {
+                        // One injected input (the usual design): W T[:, c] x_c.
+                        let out = &mut specs[e * N * nb..(e + 1) * N * nb];
+                        let bins = tb.iter().zip(&x[start..end]).zip(&f[start..end]);
+                        for (kk, ((t, xk), w)) in bins.enumerate() {
+                            let u: [Complex64; N] = std::array::from_fn(|i| t[(i, c)] * xk);
+                            for o in 0..N {
+                                let mut acc = zero;
+                                for (i, ui) in u.iter().enumerate() {
+                                    acc += w[(o, i)] * ui;
+                                }
+                                out[o * nb + start + kk] = acc;
+                            }
+                        }
+                        continue;
+                    }
                     for (kk, t) in tb.iter().enumerate() {
                         let k = start + kk;
                         // u = T x (the order of `response`), then W u.
