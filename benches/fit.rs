@@ -1,10 +1,13 @@
 //! One realization end to end (simulate, whiten, fit), standard design, 1 Hz, monte_carlo
 //! scenario, from the scenario's guess: the per-realization job of a campaign. The likelihood
 //! (FFT plans, injection spectra, whitening response) is prepared once, as campaigns do.
+//!
+//!     cargo bench --bench fit
 
 use criterion::{black_box, criterion_group, criterion_main, Criterion};
 use freefall::fit::{
-    fit, FitConfig, JacobianCache, JacobianPolicy, Likelihood, JACOBIAN_REUSE_SIGMA,
+    fit, objective, Estimator, FitConfig, JacobianCache, JacobianPolicy, Likelihood,
+    JACOBIAN_REUSE_SIGMA,
 };
 use freefall::setup::{Setup, DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 use freefall::sim::rng::stream;
@@ -46,12 +49,37 @@ fn bench(c: &mut Criterion) {
     .unwrap();
     let mut cached = cfg.clone();
     cached.jacobian = JacobianPolicy::Cached(std::sync::Arc::new(cache));
+    // Campaign mode also draws the data whitened: the signal is whitened once, the noise is
+    // colored and whitened in one step (same random numbers as `sim.draw`).
+    let wsim = lik.whitened_simulator(&sim).unwrap();
     group.bench_function("simulate_whiten_fit_standard_1hz_cached_jacobian", |b| {
         b.iter(|| {
             r += 1;
-            let data = sim.draw(&mut stream(7, r));
-            let problem = lik.problem(&data).unwrap();
+            let problem = lik.problem_whitened(wsim.draw(&mut stream(7, r))).unwrap();
             black_box(fit(&setup.model, &problem, &sc.guess, &cached).unwrap())
+        })
+    });
+    // The same plus the noise-only chi^2 campaigns record (a second, noise-only run).
+    group.bench_function(
+        "simulate_whiten_fit_standard_1hz_cached_jacobian_noise_chi2",
+        |b| {
+            b.iter(|| {
+                r += 1;
+                let mut rng = stream(7, r);
+                let problem = lik.problem_whitened(wsim.draw(&mut rng)).unwrap();
+                let noise = wsim.draw_noise(&mut rng);
+                let noise_chi2 = objective(Estimator::Squared, &noise);
+                black_box((
+                    fit(&setup.model, &problem, &sc.guess, &cached).unwrap(),
+                    noise_chi2,
+                ))
+            })
+        },
+    );
+    group.bench_function("simulate_whitened_only", |b| {
+        b.iter(|| {
+            r += 1;
+            black_box(wsim.draw(&mut stream(7, r)))
         })
     });
     group.bench_function("simulate_only", |b| {

@@ -384,3 +384,56 @@ fn cached_jacobians_give_the_exact_fits() {
     }
     assert!(fresh <= 2, "{fresh} fresh Jacobians in 20 cached fits");
 }
+
+#[test]
+fn whitened_draws_equal_the_whitened_raw_draws() {
+    // Campaigns draw data already whitened (the signal whitened once, the noise colored and
+    // whitened in one step): the same random numbers must give the data that whitening the
+    // raw simulation gives, to rounding, with and without glitches, and the stream must be
+    // left where `Simulator::draw` leaves it (the noise-only run comes next).
+    for scenario in ["monte_carlo", "glitches"] {
+        let b = Bench::new(scenario);
+        let sc = b.setup.spec.scenario(scenario).unwrap();
+        let design = b.setup.design("standard").unwrap();
+        let sim = b
+            .setup
+            .simulator(&design, &b.truth, sc.glitch.as_ref())
+            .unwrap();
+        let w = b
+            .setup
+            .whitener_from_model(&b.truth, sim.n, sim.dt, DEFAULT_WHITENING_ORDER)
+            .unwrap();
+        let lik =
+            Likelihood::new(&b.setup.model, &sim.inputs, sim.dt, w, DEFAULT_POLY_DEGREE).unwrap();
+        let ws = lik.whitened_simulator(&sim).unwrap();
+        let (mut r1, mut r2) = (stream(5, 1), stream(5, 1));
+        let data = sim.draw(&mut r1);
+        let noise = ExperimentData {
+            outputs: (0..data.outputs.len())
+                .map(|_| sim.noise_series(&mut r1))
+                .collect(),
+            ..data.clone()
+        };
+        let pairs = [
+            (lik.problem(&data).unwrap().data_w, ws.draw(&mut r2)),
+            (lik.problem(&noise).unwrap().data_w, ws.draw_noise(&mut r2)),
+        ];
+        for (what, (a, b)) in ["data", "noise-only run"].iter().zip(&pairs) {
+            let a: Vec<f64> = a.iter().flatten().flatten().copied().collect();
+            let b: Vec<f64> = b.iter().flatten().flatten().copied().collect();
+            assert_eq!(a.len(), b.len());
+            let rms = (a.iter().map(|v| v * v).sum::<f64>() / a.len() as f64).sqrt();
+            let worst = a
+                .iter()
+                .zip(&b)
+                .map(|(x, y)| (x - y).abs())
+                .fold(0.0, f64::max);
+            assert!(
+                worst < 1e-10 * rms,
+                "{scenario} {what}: max difference {worst:e}, rms {rms:e}"
+            );
+        }
+        let problem = lik.problem_whitened(pairs[0].1.clone()).unwrap();
+        assert_eq!(problem.nu(7), lik.problem(&data).unwrap().nu(7));
+    }
+}

@@ -4,13 +4,20 @@
 //! rayon workers. A job is one realization of one cell: draw the data from the realization's
 //! stream, whiten it once, fit it with every estimator in turn, and (optionally) compute the
 //! chi^2 of a noise-only run drawn next from the same stream (thesis fig. "fit vs noise chi^2").
+//!
+//! Whitening is linear, so the data are drawn already whitened
+//! ([`Likelihood::whitened_simulator`]): the noise-free signal is whitened once per cell, and each
+//! noise series is colored and whitened in one frequency-domain step on the noise generator's
+//! grid, from the very random numbers `Simulator::draw` would use. The noise-only run costs one
+//! noise draw per experiment and a sum of squares. Every fit starts from the cell's guess, where
+//! the cached Jacobian also holds the whitened templates, so the first residuals are free.
 
 use rayon::prelude::*;
 
 use super::spec::{Campaign, ScenarioSource, WhitenAt};
 use super::stats::{Layout, ScenarioLabel};
 use super::CampaignError;
-use crate::fit::problem::ExperimentData;
+use crate::fit::problem::{ExperimentData, WhitenedSimulator};
 use crate::fit::{
     fit, Estimator, FitConfig, JacobianCache, JacobianPolicy, Likelihood, JACOBIAN_REUSE_SIGMA,
 };
@@ -48,6 +55,9 @@ pub struct Row {
 struct Cell<'s> {
     sim: Simulator<2>,
     lik: Likelihood<'s, LpfX, 2>,
+    /// `sim` with realizations delivered whitened (`None` if the noise window is too close to
+    /// the start of its generator for the whitening filter; then `sim.draw` is whitened).
+    wsim: Option<WhitenedSimulator<2>>,
     /// Fit configuration per estimator (they differ by estimator and by the cell's Jacobians).
     configs: Vec<FitConfig>,
 }
@@ -213,7 +223,13 @@ impl<'s> Runner<'s> {
                         c
                     })
                     .collect();
-                cells.push(Cell { sim, lik, configs });
+                let wsim = lik.whitened_simulator(&sim).ok();
+                cells.push(Cell {
+                    sim,
+                    lik,
+                    wsim,
+                    configs,
+                });
             }
         }
         let layout = Layout {
@@ -252,35 +268,42 @@ impl<'s> Runner<'s> {
         let np = sc.truth.len();
         let npairs = np * (np - 1) / 2;
         let mut rng = stream(self.seed, r);
-        let data = cell.sim.draw(&mut rng);
-        let noise_w = self.noise_chi2.then(|| {
-            let outputs = (0..data.outputs.len())
-                .map(|_| cell.sim.noise_series(&mut rng))
-                .collect();
-            let noise = ExperimentData {
-                names: data.names.clone(),
-                inputs: Vec::new(),
-                outputs,
-                dt: data.dt,
-            };
-            cell.lik.problem(&noise).map(|p| (p.nu(0), p.data_w))
-        });
-        let problem = cell.lik.problem(&data);
+        // Data first (every experiment), then the noise-only run, from the same stream.
+        let (problem, noise_w) = match &cell.wsim {
+            Some(ws) => {
+                let data_w = ws.draw(&mut rng);
+                let noise_w = self.noise_chi2.then(|| {
+                    let noise_w = ws.draw_noise(&mut rng);
+                    cell.lik
+                        .problem_whitened(noise_w)
+                        .map(|p| (p.nu(0), p.data_w))
+                });
+                (cell.lik.problem_whitened(data_w), noise_w)
+            }
+            None => {
+                let data = cell.sim.draw(&mut rng);
+                let noise_w = self.noise_chi2.then(|| {
+                    let outputs = (0..data.outputs.len())
+                        .map(|_| cell.sim.noise_series(&mut rng))
+                        .collect();
+                    let noise = ExperimentData {
+                        names: data.names.clone(),
+                        inputs: Vec::new(),
+                        outputs,
+                        dt: data.dt,
+                    };
+                    cell.lik.problem(&noise).map(|p| (p.nu(0), p.data_w))
+                });
+                (cell.lik.problem(&data), noise_w)
+            }
+        };
         self.estimators
             .iter()
             .zip(&cell.configs)
             .enumerate()
             .map(|(e, (&est, cfg))| {
                 let noise_chi2_reduced = match &noise_w {
-                    Some(Ok((nu0, w))) => {
-                        w.iter()
-                            .flatten()
-                            .flatten()
-                            .map(|&v| est.rho(v))
-                            .sum::<f64>()
-                            / est.gaussian_mean()
-                            / *nu0 as f64
-                    }
+                    Some(Ok((nu0, w))) => crate::fit::objective(est, w) / *nu0 as f64,
                     _ => f64::NAN,
                 };
                 let failed = |termination: String, nu: u64| Row {

@@ -166,6 +166,9 @@ pub struct JacobianCache {
 #[derive(Debug, Clone)]
 pub struct CachedJacobian {
     pub p: Vec<f64>,
+    /// Whitened, cut and projected templates at `p`: a fit that starts at `p` (every fit of a
+    /// campaign cell starts at its guess) gets its first residuals without evaluating them.
+    pub templates: Series,
     pub j: Vec<Series>,
     pub information: DMatrix<f64>,
     pub sigma: Vec<f64>,
@@ -183,7 +186,7 @@ impl JacobianCache {
         let entries = points
             .iter()
             .map(|p| {
-                let j = lik.jacobian(p);
+                let (templates, j) = lik.templates_and_jacobian(p);
                 let information = gram(&j);
                 let cov = invert_spd(&information).ok_or_else(|| {
                     FitError::Singular("Fisher information at a cached Jacobian point".into())
@@ -191,6 +194,7 @@ impl JacobianCache {
                 let sigma = (0..p.len()).map(|k| cov[(k, k)].sqrt()).collect();
                 Ok(CachedJacobian {
                     p: p.clone(),
+                    templates,
                     j,
                     information,
                     sigma,
@@ -225,17 +229,42 @@ fn gram(j: &[Series]) -> DMatrix<f64> {
     let mut a = DMatrix::<f64>::zeros(np, np);
     for k in 0..np {
         for l in 0..=k {
-            let v: f64 = j[k]
-                .iter()
-                .flatten()
-                .zip(j[l].iter().flatten())
-                .map(|(x, y)| x.iter().zip(y).map(|(u, v)| u * v).sum::<f64>())
-                .sum();
+            let v = series_dot(&j[k], &j[l]);
             a[(k, l)] = v;
             a[(l, k)] = v;
         }
     }
     a
+}
+
+/// `sum_t a_t b_t` with four independent accumulators (vectorisable; the summation order is
+/// fixed, so results are deterministic).
+#[inline]
+pub(crate) fn dot(a: &[f64], b: &[f64]) -> f64 {
+    let n = a.len().min(b.len());
+    let (a, b) = (&a[..n], &b[..n]);
+    let mut acc = [0.0f64; 4];
+    let (ca, cb) = (a.chunks_exact(4), b.chunks_exact(4));
+    let (ra, rb) = (ca.remainder(), cb.remainder());
+    for (x, y) in ca.zip(cb) {
+        for i in 0..4 {
+            acc[i] += x[i] * y[i];
+        }
+    }
+    let mut tail = 0.0;
+    for (x, y) in ra.iter().zip(rb) {
+        tail += x * y;
+    }
+    (acc[0] + acc[1]) + (acc[2] + acc[3]) + tail
+}
+
+/// `sum` over experiments and channels of `dot(a[e][c], b[e][c])`.
+fn series_dot(a: &Series, b: &Series) -> f64 {
+    a.iter()
+        .flatten()
+        .zip(b.iter().flatten())
+        .map(|(x, y)| dot(x, y))
+        .sum()
 }
 
 /// Result of one fit.
@@ -261,13 +290,18 @@ pub struct FitResult {
     pub residuals_w: Series,
 }
 
-fn objective(est: Estimator, r: &Series) -> f64 {
-    r.iter()
-        .flatten()
-        .flatten()
-        .map(|&v| est.rho(v))
-        .sum::<f64>()
-        / est.gaussian_mean()
+/// `sum rho(r) / E_gauss[rho]` over whitened residuals (the ordinary chi^2 for the squared
+/// estimator).
+pub fn objective(est: Estimator, r: &Series) -> f64 {
+    let total: f64 = match est {
+        Estimator::Squared => r.iter().flatten().map(|x| dot(x, x)).sum(),
+        _ => r
+            .iter()
+            .flatten()
+            .map(|x| x.iter().map(|&v| est.rho(v)).sum::<f64>())
+            .sum(),
+    };
+    total / est.gaussian_mean()
 }
 
 /// Weighted normal equations `A = J^T W J`, `g = J^T W r` (with `J = d template / dp`); for the
@@ -279,13 +313,7 @@ fn normal_equations_with(
     known: Option<&DMatrix<f64>>,
 ) -> (DMatrix<f64>, DVector<f64>) {
     if let (Estimator::Squared, Some(a)) = (est, known) {
-        let g = DVector::from_fn(j.len(), |k, _| {
-            j[k].iter()
-                .flatten()
-                .zip(r.iter().flatten())
-                .map(|(x, y)| x.iter().zip(y).map(|(u, v)| u * v).sum::<f64>())
-                .sum()
-        });
+        let g = DVector::from_fn(j.len(), |k, _| series_dot(&j[k], r));
         return (a.clone(), g);
     }
     normal_equations(est, r, j)
@@ -296,6 +324,7 @@ fn normal_equations(est: Estimator, r: &Series, j: &[Series]) -> (DMatrix<f64>, 
     let np = j.len();
     let mut a = DMatrix::<f64>::zeros(np, np);
     let mut g = DVector::<f64>::zeros(np);
+    let mut wj: Vec<f64> = Vec::new();
     for e in 0..r.len() {
         for c in 0..r[e].len() {
             let rc = &r[e][c];
@@ -303,18 +332,18 @@ fn normal_equations(est: Estimator, r: &Series, j: &[Series]) -> (DMatrix<f64>, 
                 (est != Estimator::Squared).then(|| rc.iter().map(|&v| est.weight(v)).collect());
             for k in 0..np {
                 let jk = &j[k][e][c];
-                let gk: f64 = match &w {
-                    None => jk.iter().zip(rc).map(|(x, y)| x * y).sum(),
-                    Some(w) => jk.iter().zip(rc).zip(w).map(|((x, y), z)| x * y * z).sum(),
+                // With weights, `W j_k` once, then plain dot products.
+                let wjk: &[f64] = match &w {
+                    None => jk,
+                    Some(w) => {
+                        wj.clear();
+                        wj.extend(jk.iter().zip(w).map(|(x, z)| x * z));
+                        &wj
+                    }
                 };
-                g[k] += gk;
+                g[k] += dot(wjk, rc);
                 for l in 0..=k {
-                    let jl = &j[l][e][c];
-                    let v: f64 = match &w {
-                        None => jk.iter().zip(jl).map(|(x, y)| x * y).sum(),
-                        Some(w) => jk.iter().zip(jl).zip(w).map(|((x, y), z)| x * y * z).sum(),
-                    };
-                    a[(k, l)] += v;
+                    a[(k, l)] += dot(wjk, &j[l][e][c]);
                 }
             }
         }
@@ -397,7 +426,13 @@ pub fn fit<M: ClosedLoopModel<N>, const N: usize>(
     let mut jac_at =
         |p: &[f64], r: Option<Series>| -> (Series, Cow<'_, [Series]>, Option<&DMatrix<f64>>) {
             if let Some(e) = cache.and_then(|c| c.nearest(p)) {
-                let r = r.unwrap_or_else(|| problem.residuals(p));
+                let r = r.unwrap_or_else(|| {
+                    if e.p == p {
+                        problem.residuals_from(&e.templates)
+                    } else {
+                        problem.residuals(p)
+                    }
+                });
                 return (r, Cow::Borrowed(&e.j[..]), Some(&e.information));
             }
             njev += 1;
@@ -471,7 +506,11 @@ pub fn fit<M: ClosedLoopModel<N>, const N: usize>(
     let f = objective(est, &r);
     let nu = problem.nu(np);
     let chi2_reduced = f / nu as f64;
-    let (info, _) = normal_equations_with(Estimator::Squared, &r, &j, known);
+    // Only `J^T J` is needed here: reuse a cached one, or form it without the gradient.
+    let info = match known {
+        Some(a) => a.clone(),
+        None => gram(&j),
+    };
     let base = invert_spd(&info).ok_or_else(|| {
         FitError::Singular(
             "Fisher information at the estimate (a parameter the data cannot constrain?)".into(),

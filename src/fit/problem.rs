@@ -12,6 +12,8 @@
 use super::whiten::{poly_basis, project_out, Whitener};
 use super::FitError;
 use crate::model::closed_loop::{CMat, ClosedLoopModel};
+use crate::noise::{ColoredNoise, GlitchConfig};
+use crate::sim::experiment::{noise_series, Simulator};
 use crate::sim::templates::{Series, TemplateEngine};
 
 /// Inputs and outputs of each experiment: `inputs[e][c]`, `outputs[e][c]`, all of length n.
@@ -100,10 +102,30 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> Likelihood<'m, M, N> {
 
     /// Whitened, cut and projected template derivatives `j[k][e][i]` at `p` (data-independent).
     pub fn jacobian(&self, p: &[f64]) -> Vec<Series> {
-        let (_, d) = self
+        self.templates_and_jacobian(p).1
+    }
+
+    /// Whitened, cut and projected templates `t[e][i]` and their derivatives `j[k][e][i]` at
+    /// `p` (data-independent).
+    pub fn templates_and_jacobian(&self, p: &[f64]) -> (Series, Vec<Series>) {
+        let (t, d) = self
             .engine
             .templates_and_derivatives(p, Some(&self.response));
-        d.into_iter().map(|s| self.whiten_cut(s)).collect()
+        (
+            self.whiten_cut(t),
+            d.into_iter().map(|s| self.whiten_cut(s)).collect(),
+        )
+    }
+
+    /// Whitened, cut and projected templates `t[e][i]` at `p` (data-independent).
+    pub fn templates_w(&self, p: &[f64]) -> Series {
+        let mut t = self
+            .engine
+            .templates_cut(p, Some(&self.response), self.order());
+        for c in t.iter_mut().flatten() {
+            project_out(c, &self.basis);
+        }
+        t
     }
 
     /// Whitened, cut and projected outputs of one data set.
@@ -132,6 +154,118 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> Likelihood<'m, M, N> {
     }
 }
 
+impl<'m, M: ClosedLoopModel<N>, const N: usize> Likelihood<'m, M, N> {
+    /// A likelihood bound to data that are whitened, cut and projected already (`data_w[e][i]`
+    /// over the valid samples, as [`WhitenedSimulator::draw`] produces them).
+    pub fn problem_whitened<'a>(
+        &'a self,
+        data_w: Series,
+    ) -> Result<Problem<'a, 'm, M, N>, FitError> {
+        let len = self.engine.len() - self.order();
+        if data_w.len() != self.engine.n_experiments()
+            || data_w
+                .iter()
+                .any(|e| e.len() != N || e.iter().any(|c| c.len() != len))
+        {
+            return Err(FitError::Input(format!(
+                "whitened data must have {} experiments of {N} channels of {len} samples",
+                self.engine.n_experiments()
+            )));
+        }
+        Ok(Problem { lik: self, data_w })
+    }
+
+    /// A simulator of `sim`'s experiments whose realizations come out whitened, cut and
+    /// projected as [`Self::problem`] would make them, from the same random numbers as
+    /// `sim.draw` (campaigns need nothing else). Whitening is linear, so
+    /// `W (o_s + o_n) = W o_s + W o_n`: the signal is whitened once here, and the noise is
+    /// colored and whitened in one step on the noise generator's long grid
+    /// ([`ColoredNoise::filtered`]), which saves the forward and inverse FFTs of whitening per
+    /// realization. Fails if `sim` does not match this likelihood or its noise window starts
+    /// too close to the generator's start for the filter (then use `sim.draw` and `problem`).
+    pub fn whitened_simulator(&self, sim: &Simulator<N>) -> Result<WhitenedSimulator<N>, FitError> {
+        let p = self.order();
+        if sim.n != self.engine.len()
+            || sim.signal.len() != self.engine.n_experiments()
+            || (sim.dt - self.engine.dt()).abs() > 1e-12 * sim.dt
+        {
+            return Err(FitError::Input(
+                "the simulator does not match the likelihood's experiments".into(),
+            ));
+        }
+        if sim.noise.offset() < p || sim.noise.driving_len() <= p {
+            return Err(FitError::Input(format!(
+                "noise window offset {} is shorter than the whitening filter ({p} lags)",
+                sim.noise.offset()
+            )));
+        }
+        let response = self.whitener.response_on_grid(sim.noise.driving_len());
+        let signal_w = sim
+            .signal
+            .iter()
+            .map(|exp| {
+                self.engine
+                    .filter_series(exp, &self.response)
+                    .into_iter()
+                    .map(|c| self.cut(c))
+                    .collect()
+            })
+            .collect();
+        Ok(WhitenedSimulator {
+            signal_w,
+            noise: sim.noise.filtered(&response),
+            glitches: sim.glitches.clone(),
+            order: p,
+            basis: self.basis.clone(),
+        })
+    }
+}
+
+/// Realizations of a [`Simulator`] delivered whitened, cut and projected (see
+/// [`Likelihood::whitened_simulator`]). Built once per campaign cell; `Sync`.
+pub struct WhitenedSimulator<const N: usize> {
+    /// Whitened, cut and projected noise-free responses `W o_s` per experiment.
+    pub signal_w: Series,
+    noise: ColoredNoise<N>,
+    glitches: Option<GlitchConfig>,
+    order: usize,
+    basis: Vec<Vec<f64>>,
+}
+
+impl<const N: usize> WhitenedSimulator<N> {
+    /// One noise series (N channels) whitened, cut and projected; the random numbers of
+    /// `Simulator::noise_series`.
+    pub fn noise_series<R: rand::Rng + ?Sized>(&self, rng: &mut R) -> Vec<Vec<f64>> {
+        let mut x = noise_series(&self.noise, self.glitches.as_ref(), self.order, rng);
+        for c in x.iter_mut() {
+            project_out(c, &self.basis);
+        }
+        x
+    }
+
+    /// One realization of every experiment, whitened, cut and projected; the random numbers
+    /// of `Simulator::draw`.
+    pub fn draw<R: rand::Rng + ?Sized>(&self, rng: &mut R) -> Series {
+        self.signal_w
+            .iter()
+            .map(|sig| {
+                let mut noise = self.noise_series(rng);
+                for (nc, sc) in noise.iter_mut().zip(sig) {
+                    nc.iter_mut().zip(sc).for_each(|(a, b)| *a += b);
+                }
+                noise
+            })
+            .collect()
+    }
+
+    /// A noise-only run of every experiment (no injections), whitened, cut and projected.
+    pub fn draw_noise<R: rand::Rng + ?Sized>(&self, rng: &mut R) -> Series {
+        (0..self.signal_w.len())
+            .map(|_| self.noise_series(rng))
+            .collect()
+    }
+}
+
 /// A likelihood bound to one data set.
 pub struct Problem<'a, 'm, M: ClosedLoopModel<N>, const N: usize> {
     pub lik: &'a Likelihood<'m, M, N>,
@@ -148,10 +282,33 @@ impl<M: ClosedLoopModel<N>, const N: usize> Problem<'_, '_, M, N> {
 
     /// Whitened residuals `r[e][i]` at `p`.
     pub fn residuals(&self, p: &[f64]) -> Series {
-        let t = self
-            .lik
-            .whiten_cut(self.lik.engine.templates(p, Some(&self.lik.response)));
-        subtract(&self.data_w, &t)
+        let mut r: Series = self
+            .data_w
+            .iter()
+            .map(|e| Vec::with_capacity(e.len()))
+            .collect();
+        // r = P (d - t) = d - P t, as the data are projected already.
+        self.lik.engine.templates_cut_with(
+            p,
+            Some(&self.lik.response),
+            self.lik.order(),
+            |e, c, t, norm| {
+                let mut rc: Vec<f64> = self.data_w[e][c]
+                    .iter()
+                    .zip(t)
+                    .map(|(d, v)| d - v * norm)
+                    .collect();
+                project_out(&mut rc, &self.lik.basis);
+                r[e].push(rc);
+            },
+        );
+        r
+    }
+
+    /// Whitened residuals `d - t` against whitened, cut and projected templates `t[e][i]`
+    /// (e.g. cached ones, [`Likelihood::templates_w`]).
+    pub fn residuals_from(&self, t: &Series) -> Series {
+        subtract(&self.data_w, t)
     }
 
     /// Whitened residuals and the whitened template derivatives `j[k][e][i]` (`dr/dp = -j`).

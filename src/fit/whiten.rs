@@ -325,7 +325,7 @@ pub fn poly_basis(n: usize, deg: usize) -> Vec<Vec<f64>> {
 /// Project `x` onto the orthogonal complement of the orthonormal `basis`, in place.
 pub fn project_out(x: &mut [f64], basis: &[Vec<f64>]) {
     for b in basis {
-        let dot: f64 = x.iter().zip(b).map(|(a, c)| a * c).sum();
+        let dot = super::dot(x, b);
         x.iter_mut().zip(b).for_each(|(a, c)| *a -= dot * c);
     }
 }

@@ -87,6 +87,7 @@ impl Phasor {
     }
 
     /// Factor at point `k`, given the previous two points' `s`.
+    #[inline(always)]
     fn at(&mut self, k: usize, s: Complex64, ds: Option<Complex64>) -> Complex64 {
         match ds {
             Some(ds) if !k.is_multiple_of(256) => {
@@ -112,7 +113,7 @@ impl LpfX {
         points: &[LpfPoint],
         p: &[f64],
         t_out: &mut [CMat<2>],
-        mut d_out: Option<&mut [CMat<2>]>,
+        d_out: Option<&mut [CMat<2>]>,
     ) {
         let (w1, w12, s21, a_df, a_sus, mt, g) = (
             p[W1],
@@ -131,6 +132,34 @@ impl LpfX {
             let d1 = points[2].s - points[1].s;
             let d2 = points[points.len() - 1].s - points[points.len() - 2].s;
             (d1 - d2).norm() <= 1e-9 * d1.norm()
+        };
+        let Some(d) = d_out else {
+            // Templates only: T = Delta^-1 M with M = [[m11, mt m22], [0, m22]], so
+            // T = [[D22 a, (mt D22 - D12) b], [-D21 a, (D11 - mt D21) b]] with
+            // a = m11 / det and b = m22 / det.
+            let (cdf_a, csus_a) = (a_df, a_sus);
+            for (k, (pt, t)) in points.iter().zip(t_out.iter_mut()).enumerate() {
+                let ds = (uniform && k >= 2).then(|| pt.s - points[k - 1].s);
+                let e1 = ph1.at(k, pt.s, ds);
+                let e2 = ph2.at(k, pt.s, ds);
+                let big_d22 = pt.s2 + k22;
+                let d11 = pt.s2 + k11 - s21 * d12r + pt.c_df * a_df;
+                let d12 = pt.c_sus * (mt * a_sus) + d12r;
+                let d21 = c(w12) - big_d22 * s21;
+                let d22 = big_d22 + pt.c_sus * a_sus;
+                let det = d11 * d22 - d12 * d21;
+                let inv_norm = 1.0 / det.norm_sqr();
+                let inv_det = Complex64::new(det.re * inv_norm, -det.im * inv_norm);
+                let a = pt.c_df * cdf_a * e1 * inv_det;
+                let b = pt.c_sus * csus_a * e2 * inv_det;
+                *t = m2(
+                    d22 * a,
+                    (d22 * mt - d12) * b,
+                    -d21 * a,
+                    (d11 - d21 * mt) * b,
+                );
+            }
+            return;
         };
         for (k, pt) in points.iter().enumerate() {
             let ds = (uniform && k >= 2).then(|| pt.s - points[k - 1].s);
@@ -153,9 +182,6 @@ impl LpfX {
             let t21 = i21 * m11;
             let t22 = i21 * m12 + i22 * m22;
             t_out[k] = m2(t11, t12, t21, t22);
-            let Some(d) = d_out.as_deref_mut() else {
-                continue;
-            };
             let out = &mut d[k * 7..k * 7 + 7];
             // dT = Delta^-1 (dM - dDelta T), dM = d(A C T_d).
             let apply = |x11: Complex64, x12: Complex64, x21: Complex64, x22: Complex64| {

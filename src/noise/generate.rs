@@ -18,6 +18,7 @@ use realfft::{ComplexToReal, RealFftPlanner, RealToComplex};
 
 use super::NoiseError;
 use crate::model::closed_loop::CMat;
+use crate::sim::scratch::with_buffers;
 
 /// Lower-triangular `L` with `L L^H = S` for a Hermitian positive semi-definite `S`; negative
 /// pivots from round-off are clamped to zero so a channel without noise yields zeros.
@@ -51,8 +52,11 @@ pub struct ColoredNoise<const N: usize> {
     m: usize,
     dt: f64,
     offset: usize,
-    /// `L_k / sqrt(2 dt)` for each real-FFT bin of the long series.
+    /// `L_k / sqrt(2 dt)` for each real-FFT bin of the long series (or `F_k L_k / sqrt(2 dt)`
+    /// for a generator of filtered noise, see [`ColoredNoise::filtered`]).
     factors: Vec<CMat<N>>,
+    /// Whether `factors` are lower triangular (Cholesky factors, not filtered).
+    lower: bool,
     fwd: Arc<dyn RealToComplex<f64>>,
     inv: Arc<dyn ComplexToReal<f64>>,
 }
@@ -121,6 +125,7 @@ impl<const N: usize> ColoredNoise<N> {
             dt,
             offset: (m - n) / 2,
             factors,
+            lower: true,
             fwd: planner.plan_fft_forward(m),
             inv: planner.plan_fft_inverse(m),
         })
@@ -148,22 +153,59 @@ impl<const N: usize> ColoredNoise<N> {
         self.offset
     }
 
+    /// The same generator followed by a linear filter with frequency response `response[k]`
+    /// (an `N x N` matrix per real-FFT bin of the long series, `m / 2 + 1` bins, see
+    /// [`Self::driving_len`]), applied circularly to the long series before the window is cut.
+    /// For a causal FIR of `p + 1` taps, returned samples `p..n` are exactly the linear filter
+    /// applied to the unfiltered generator's output (same random numbers) whenever
+    /// [`Self::offset`] `>= p`, with no extra FFT: the filter is folded into the coloring.
+    pub fn filtered(&self, response: &[CMat<N>]) -> Self {
+        assert_eq!(
+            response.len(),
+            self.factors.len(),
+            "filter response must be given on the generator's grid"
+        );
+        ColoredNoise {
+            n: self.n,
+            m: self.m,
+            dt: self.dt,
+            offset: self.offset,
+            factors: self
+                .factors
+                .iter()
+                .zip(response)
+                .map(|(l, w)| w * l)
+                .collect(),
+            lower: false,
+            fwd: self.fwd.clone(),
+            inv: self.inv.clone(),
+        }
+    }
+
     /// One realization, generated directly in the frequency domain.
     pub fn generate<R: Rng + ?Sized>(&self, rng: &mut R) -> Vec<Vec<f64>> {
+        self.generate_from(rng, 0)
+    }
+
+    /// Samples `from..n` of the realization [`Self::generate`] would return from `rng`.
+    pub fn generate_from<R: Rng + ?Sized>(&self, rng: &mut R, from: usize) -> Vec<Vec<f64>> {
         let nbins = self.m / 2 + 1;
         let sd = (self.m as f64 / 2.0).sqrt();
-        let mut white: Vec<Vec<Complex64>> = (0..N)
-            .map(|_| {
-                let mut w = vec![Complex64::new(0.0, 0.0); nbins];
-                for z in w.iter_mut().take(nbins - 1).skip(1) {
+        let zero = Complex64::new(0.0, 0.0);
+        let n_scratch = self.inv.get_scratch_len();
+        with_buffers(N * nbins + n_scratch, self.m, |cbuf, out| {
+            let (white, scratch) = cbuf.split_at_mut(N * nbins);
+            for w in white.chunks_exact_mut(nbins) {
+                w[0] = zero;
+                w[nbins - 1] = zero;
+                for z in w[1..nbins - 1].iter_mut() {
                     let a: f64 = rng.sample(StandardNormal);
                     let b: f64 = rng.sample(StandardNormal);
                     *z = Complex64::new(a * sd, b * sd);
                 }
-                w
-            })
-            .collect();
-        self.color(&mut white)
+            }
+            self.color(white, scratch, out, from)
+        })
     }
 
     /// One realization from a white driving sequence that `corrupt` may modify in the time
@@ -173,6 +215,16 @@ impl<const N: usize> ColoredNoise<N> {
         rng: &mut R,
         corrupt: impl FnOnce(&mut [Vec<f64>], &mut R),
     ) -> Vec<Vec<f64>> {
+        self.generate_with_from(rng, corrupt, 0)
+    }
+
+    /// Samples `from..n` of the realization [`Self::generate_with`] would return.
+    pub fn generate_with_from<R: Rng + ?Sized>(
+        &self,
+        rng: &mut R,
+        corrupt: impl FnOnce(&mut [Vec<f64>], &mut R),
+        from: usize,
+    ) -> Vec<Vec<f64>> {
         let mut time: Vec<Vec<f64>> = (0..N)
             .map(|_| {
                 (0..self.m)
@@ -181,41 +233,57 @@ impl<const N: usize> ColoredNoise<N> {
             })
             .collect();
         corrupt(&mut time, rng);
-        let mut white: Vec<Vec<Complex64>> = Vec::with_capacity(N);
-        for x in time.iter_mut() {
-            let mut spec = self.fwd.make_output_vec();
-            self.fwd
-                .process(x, &mut spec)
-                .expect("FFT sizes match by construction");
-            white.push(spec);
-        }
-        self.color(&mut white)
+        let nbins = self.m / 2 + 1;
+        let n_scratch = self.inv.get_scratch_len().max(self.fwd.get_scratch_len());
+        with_buffers(N * nbins + n_scratch, self.m, |cbuf, out| {
+            let (white, scratch) = cbuf.split_at_mut(N * nbins);
+            for (x, spec) in time.iter_mut().zip(white.chunks_exact_mut(nbins)) {
+                self.fwd
+                    .process_with_scratch(x, spec, &mut scratch[..self.fwd.get_scratch_len()])
+                    .expect("FFT sizes match by construction");
+            }
+            self.color(white, scratch, out, from)
+        })
     }
 
-    fn color(&self, white: &mut [Vec<Complex64>]) -> Vec<Vec<f64>> {
+    /// Color the white spectra (`N` blocks of `m / 2 + 1` bins, in place), transform back and
+    /// return samples `from..n` of the window.
+    fn color(
+        &self,
+        white: &mut [Complex64],
+        scratch: &mut [Complex64],
+        out: &mut [f64],
+        from: usize,
+    ) -> Vec<Vec<f64>> {
         let nbins = self.m / 2 + 1;
-        let mut colored: Vec<Vec<Complex64>> = (0..N)
-            .map(|_| vec![Complex64::new(0.0, 0.0); nbins])
-            .collect();
+        let zero = Complex64::new(0.0, 0.0);
+        // In place, bin by bin: the DC and Nyquist bins are zero, the others `F_k w_k`.
+        for spec in white.chunks_exact_mut(nbins) {
+            spec[0] = zero;
+            spec[nbins - 1] = zero;
+        }
         for k in 1..nbins - 1 {
             let l = &self.factors[k];
+            let w: [Complex64; N] = std::array::from_fn(|j| white[j * nbins + k]);
             for i in 0..N {
-                let mut acc = Complex64::new(0.0, 0.0);
-                for j in 0..=i {
-                    acc += l[(i, j)] * white[j][k];
+                let mut acc = zero;
+                let last = if self.lower { i } else { N - 1 };
+                for (j, wj) in w.iter().enumerate().take(last + 1) {
+                    acc += l[(i, j)] * wj;
                 }
-                colored[i][k] = acc;
+                white[i * nbins + k] = acc;
             }
         }
         let norm = 1.0 / self.m as f64;
-        colored
-            .into_iter()
-            .map(|mut spec| {
-                let mut out = self.inv.make_output_vec();
+        let n_scratch = self.inv.get_scratch_len();
+        let from = from.min(self.n);
+        white
+            .chunks_exact_mut(nbins)
+            .map(|spec| {
                 self.inv
-                    .process(&mut spec, &mut out)
+                    .process_with_scratch(spec, out, &mut scratch[..n_scratch])
                     .expect("FFT sizes match by construction");
-                out[self.offset..self.offset + self.n]
+                out[self.offset + from..self.offset + self.n]
                     .iter()
                     .map(|v| v * norm)
                     .collect()

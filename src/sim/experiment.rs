@@ -22,6 +22,33 @@ pub struct Simulator<const N: usize> {
     pub glitches: Option<GlitchConfig>,
 }
 
+/// Samples `from..n` of one noise series (N channels) from `noise`, with `glitches` added to
+/// its white driving sequence if given (thesis sec. 4.5.7).
+pub fn noise_series<R: Rng + ?Sized, const N: usize>(
+    noise: &ColoredNoise<N>,
+    glitches: Option<&GlitchConfig>,
+    from: usize,
+    rng: &mut R,
+) -> Vec<Vec<f64>> {
+    match glitches {
+        None => noise.generate_from(rng, from),
+        Some(g) => {
+            let dt = noise.dt();
+            let offset = noise.offset() as f64 * dt;
+            let duration = noise.len() as f64 * dt;
+            noise.generate_with_from(
+                rng,
+                |white, rng| {
+                    for gl in g.draw(rng, white.len(), duration) {
+                        gl.add_to(&mut white[gl.channel], -offset, dt);
+                    }
+                },
+                from,
+            )
+        }
+    }
+}
+
 impl<const N: usize> Simulator<N> {
     /// `psd(f)` is the readout cross-PSD the noise must have at the sampling rate `1/dt`.
     pub fn new<M: ClosedLoopModel<N>>(
@@ -78,19 +105,7 @@ impl<const N: usize> Simulator<N> {
 
     /// One noise series (N channels), with glitches if configured.
     pub fn noise_series<R: Rng + ?Sized>(&self, rng: &mut R) -> Vec<Vec<f64>> {
-        match &self.glitches {
-            None => self.noise.generate(rng),
-            Some(g) => {
-                let offset = self.noise.offset() as f64 * self.dt;
-                let duration = self.n as f64 * self.dt;
-                let dt = self.dt;
-                self.noise.generate_with(rng, |white, rng| {
-                    for gl in g.draw(rng, white.len(), duration) {
-                        gl.add_to(&mut white[gl.channel], -offset, dt);
-                    }
-                })
-            }
-        }
+        noise_series(&self.noise, self.glitches.as_ref(), 0, rng)
     }
 
     /// One realization of every experiment (independent noise per experiment).

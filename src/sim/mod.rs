@@ -5,6 +5,7 @@
 pub mod decimated;
 pub mod experiment;
 pub mod rng;
+pub(crate) mod scratch;
 pub mod templates;
 
 pub use experiment::Simulator;

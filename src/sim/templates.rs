@@ -199,6 +199,119 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
             .collect()
     }
 
+    /// Templates at `p`, optionally filtered by `filter[k]` per bin, keeping only samples
+    /// `from..n` of each series: `out[e][i]` has length `n - from`. The same numbers as
+    /// [`Self::templates`] cut, without the full-length intermediates.
+    pub fn templates_cut(&self, p: &[f64], filter: Option<&[CMat<N>]>, from: usize) -> Series {
+        let mut out: Series = (0..self.n_experiments())
+            .map(|_| Vec::with_capacity(N))
+            .collect();
+        self.templates_cut_with(p, filter, from, |e, _, t, norm| {
+            out[e].push(t.iter().map(|v| v * norm).collect())
+        });
+        out
+    }
+
+    /// The templates of [`Self::templates_cut`] handed to `sink(e, i, t, norm)` one series at a
+    /// time, unnormalised: the template is `norm * t`. The model is evaluated in blocks of
+    /// bins that stay in cache, and the spectra and inverse-FFT buffers are per-thread scratch,
+    /// so an evaluation allocates nothing of the series' size.
+    pub fn templates_cut_with(
+        &self,
+        p: &[f64],
+        filter: Option<&[CMat<N>]>,
+        from: usize,
+        mut sink: impl FnMut(usize, usize, &[f64], f64),
+    ) {
+        const BLOCK: usize = 128;
+        let nb = self.points.len();
+        let ne = self.n_experiments();
+        let zero = Complex64::new(0.0, 0.0);
+        let from = from.min(self.n);
+        let norm = 1.0 / self.m as f64;
+        // Per experiment, its non-zero inputs and their spectra.
+        let active: Vec<Vec<(usize, &[Complex64])>> = self
+            .inputs_f
+            .iter()
+            .map(|exp| {
+                exp.iter()
+                    .enumerate()
+                    .filter_map(|(c, x)| x.as_deref().map(|x| (c, x)))
+                    .collect()
+            })
+            .collect();
+        let n_scratch = self.inv.get_scratch_len();
+        super::scratch::with_buffers(ne * N * nb + n_scratch, self.m, |cbuf, out| {
+            let (specs, scratch) = cbuf.split_at_mut(ne * N * nb);
+            let mut tblock = [CMat::<N>::zeros(); BLOCK];
+            for start in (0..nb).step_by(BLOCK) {
+                let end = (start + BLOCK).min(nb);
+                let tb = &mut tblock[..end - start];
+                self.model
+                    .transfer_grid(&self.points[start..end], p, tb, None);
+                for (e, inputs) in active.iter().enumerate() {
+                    if let (Some(f), &[(c, x)]) = (filter, inputs.as_slice()) {
+                        // One injected input (the usual design): W T[:, c] x_c.
+                        let out = &mut specs[e * N * nb..(e + 1) * N * nb];
+                        let bins = tb.iter().zip(&x[start..end]).zip(&f[start..end]);
+                        for (kk, ((t, xk), w)) in bins.enumerate() {
+                            let u: [Complex64; N] = std::array::from_fn(|i| t[(i, c)] * xk);
+                            for o in 0..N {
+                                let mut acc = zero;
+                                for (i, ui) in u.iter().enumerate() {
+                                    acc += w[(o, i)] * ui;
+                                }
+                                out[o * nb + start + kk] = acc;
+                            }
+                        }
+                        continue;
+                    }
+                    for (kk, t) in tb.iter().enumerate() {
+                        let k = start + kk;
+                        // u = T x (the order of `response`), then W u.
+                        let mut u = [zero; N];
+                        for &(c, x) in inputs {
+                            for (i, ui) in u.iter_mut().enumerate() {
+                                *ui += t[(i, c)] * x[k];
+                            }
+                        }
+                        match filter {
+                            Some(f) => {
+                                let w = &f[k];
+                                for o in 0..N {
+                                    let mut acc = zero;
+                                    for (i, ui) in u.iter().enumerate() {
+                                        acc += w[(o, i)] * ui;
+                                    }
+                                    specs[(e * N + o) * nb + k] = acc;
+                                }
+                            }
+                            None => {
+                                for (o, uo) in u.into_iter().enumerate() {
+                                    specs[(e * N + o) * nb + k] = uo;
+                                }
+                            }
+                        }
+                    }
+                }
+            }
+            for e in 0..ne {
+                for o in 0..N {
+                    let spec = &mut specs[(e * N + o) * nb..(e * N + o + 1) * nb];
+                    // realfft requires real DC and Nyquist bins for a real output.
+                    spec[0].im = 0.0;
+                    if self.m.is_multiple_of(2) {
+                        spec[nb - 1].im = 0.0;
+                    }
+                    self.inv
+                        .process_with_scratch(spec, out, scratch)
+                        .expect("FFT sizes match");
+                    sink(e, o, &out[from..self.n], norm);
+                }
+            }
+        })
+    }
+
     /// Templates and their parameter derivatives: `(o_s[e][i], d[k][e][i])`.
     pub fn templates_and_derivatives(
         &self,
