@@ -467,9 +467,9 @@ fn pull_scan() {
 fn a_line_in_scope_is_attributed_to_category_line() {
     // Oracle: the simulated truth, a 1e-10 m sinusoid at 37.1 mHz added to o1 of the first
     // experiment, with `lines` enabled (the line is in the library's scope): the diagnosis adds
-    // category `line` on exp1 o1 within a bin of 37.1 mHz, fits the amplitude
-    // sqrt(a^2 + b^2) = 1e-10 within 4 sigma, chi^2/nu returns to the noise level and the nominal
-    // parameters end within 3 sigma of the truth.
+    // category `line` on exp1 o1 within a bin of 37.1 mHz, fits the frequency within 3 sigma and
+    // the amplitude 1e-10 and phase 0.3 within 4 sigma, chi^2/nu returns to the noise level and
+    // the nominal parameters end within 3 sigma of the truth.
     let (setup, mut data, noise, truth, guess) = simulate(&[], 51);
     let f0 = 0.0371;
     for (i, v) in data.outputs[0][0].iter_mut().enumerate() {
@@ -496,11 +496,24 @@ fn a_line_in_scope_is_attributed_to_category_line() {
         .unwrap()
         * 1e-3;
     assert!((f - f0).abs() < bin, "line at {f} Hz, true {f0} Hz");
-    let amp = a.parameters[0].hypot(a.parameters[1]);
+    assert_eq!(a.parameter_names, ["amplitude", "phase", "f_hz"]);
+    let (amp, phase, f_fit) = (a.parameters[0], a.parameters[1], a.parameters[2]);
     assert!(
-        (amp - 1e-10).abs() < 4.0 * a.sigmas[0].max(a.sigmas[1]),
+        (amp - 1e-10).abs() < 4.0 * a.sigmas[0],
         "amplitude {amp:e} ± {:e}",
         a.sigmas[0]
+    );
+    // The frequency is fitted (not only refined on a grid): within 3 sigma of the truth, with a
+    // sigma well below a periodogram bin.
+    assert!(
+        (f_fit - f0).abs() < 3.0 * a.sigmas[2] && a.sigmas[2] < 0.1 * bin,
+        "frequency {f_fit} ± {} Hz, true {f0} Hz (bin {bin})",
+        a.sigmas[2]
+    );
+    assert!(
+        (phase - 0.3).abs() < 4.0 * a.sigmas[1],
+        "phase {phase} ± {}",
+        a.sigmas[1]
     );
     assert!(c.d.unexplained.is_empty(), "{:?}", c.d.unexplained);
     assert_chi2_back(&c);
