@@ -1,6 +1,7 @@
 //! `freefall diagnose`: fit, find the residual, name the missing effect, refit, report
 //! (see `diagnose`). Also `--simulate-into DIR --effect NAME=VALUE`, which writes a simulated
-//! dataset carrying library effects the nominal model lacks (for tests and examples).
+//! dataset carrying library effects, drifts, glitches or lines the nominal model lacks (for
+//! tests and examples).
 
 use std::path::{Path, PathBuf};
 
@@ -46,15 +47,26 @@ pub struct DiagnoseArgs {
     /// in the same channel of two or more experiments are; the others are reported unexplained).
     #[arg(long)]
     pub lines: bool,
+    /// Do not scan the residual for glitches (transients entering the loop at a force or
+    /// readout); they then show up as unexplained time-window excess.
+    #[arg(long)]
+    pub no_glitches: bool,
     /// Print the effect library and exit.
     #[arg(long)]
     pub list_effects: bool,
     /// Write a simulated dataset (scenario truth + the --effect list) to DATASET and exit.
     #[arg(long)]
     pub simulate_into: bool,
-    /// With --simulate-into: an effect switched on in the truth, NAME=VALUE (repeatable);
-    /// `drift_PARAMETER=D` drifts a base parameter linearly by D over each run.
-    #[arg(long = "effect", value_name = "NAME=VALUE")]
+    /// With --simulate-into: an effect switched on in the truth (repeatable). Forms:
+    /// `EFFECT=VALUE` for a library effect (see --list-effects), e.g. loss_angle_tm2=0.01;
+    /// `drift_PARAMETER=D` drifts a base parameter linearly by D over each run;
+    /// `glitch_ENTRY=AMP,t0=S[,tau=S][,exp=NAME]` adds a Gaussian pulse of width tau (default
+    /// 1 s) at t0 (s from the run start) entering the loop at ENTRY = tm1, tm2, sc (force: AMP is
+    /// the velocity kick in m/s) or o1, o12 (readout transient: AMP is its peak in m), in the
+    /// first experiment unless exp is given, e.g. glitch_tm2=3e-12,t0=4000;
+    /// `line_CHANNEL=AMP,f=HZ[,phase=RAD][,exp=NAME]` adds AMP sin(2 pi f t + phase) (m) to
+    /// readout o1 or o12 of every experiment unless exp is given, e.g. line_o1=1e-10,f=0.0371.
+    #[arg(long = "effect", value_name = "NAME=VALUE[,KEY=VALUE...]")]
     pub effects: Vec<String>,
     /// With --simulate-into: scenario, design and seed.
     #[arg(long, default_value = "monte_carlo")]
@@ -93,7 +105,11 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
         }
         println!(
             "{:<28} {:<20} {:<12} a detected narrow line in one channel (coherent across experiments, or --lines)",
-            "line_EXP_CHANNEL_FmHz", "line", "sin,cos"
+            "line_EXP_CHANNEL_FmHz", "line", "A,phase,f"
+        );
+        println!(
+            "{:<28} {:<20} {:<12} a transient (Gaussian pulse) entering the loop at a TM/spacecraft force or a readout, found by a matched-filter scan",
+            "glitch_EXP_ENTRY_Ts", "glitch", "A,t0,tau"
         );
         return Ok(());
     }
@@ -129,6 +145,7 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
         max_effects: a.max_effects,
         whiten_from_model: a.model_psd,
         lines: a.lines,
+        glitches: !a.no_glitches,
         ..Default::default()
     };
     let d = diagnose(
@@ -308,7 +325,18 @@ fn simulate(a: &DiagnoseArgs, setup: &crate::setup::Setup, dir: &Path) -> Result
     let mut meta_eff = toml::Table::new();
     let mut drifts = Vec::new();
     let names = setup.parameter_names();
+    let mut injected = Vec::new();
     for spec in &a.effects {
+        if let Some(it) = crate::diagnose::inject::parse(spec).map_err(anyhow::Error::msg)? {
+            let key = spec.split([',', '=']).next().unwrap_or(spec).trim();
+            let key = (1..)
+                .map(|k| if k == 1 { key.to_string() } else { format!("{key}_{k}") })
+                .find(|k| !meta_eff.contains_key(k))
+                .unwrap_or_default();
+            meta_eff.insert(key, toml::Value::String(spec.clone()));
+            injected.push(it);
+            continue;
+        }
         let (name, value) = spec
             .split_once('=')
             .with_context(|| format!("--effect '{spec}': expected NAME=VALUE"))?;
@@ -320,14 +348,15 @@ fn simulate(a: &DiagnoseArgs, setup: &crate::setup::Setup, dir: &Path) -> Result
             let v: f64 = value
                 .trim()
                 .parse()
-                .with_context(|| format!("--effect '{spec}': value is not a number"))?;
+                .with_context(|| format!("--effect '{spec}': '{}' is not a number", value.trim()))?;
             meta_eff.insert(name.trim().to_string(), toml::Value::Float(v));
             drifts.push((k, v));
             continue;
         }
         let e = by_name(name.trim()).with_context(|| {
             format!(
-                "--effect '{spec}': unknown effect; known: drift_PARAMETER (a linear drift d over the run), {}",
+                "--effect '{spec}': unknown effect '{}'; known: drift_PARAMETER (a linear drift d over the run), glitch_ENTRY=AMP,t0=S (see --help), line_CHANNEL=AMP,f=HZ (see --help), {}",
+                name.trim(),
                 library()
                     .iter()
                     .map(|e| e.name())
@@ -338,11 +367,24 @@ fn simulate(a: &DiagnoseArgs, setup: &crate::setup::Setup, dir: &Path) -> Result
         let v: f64 = value
             .trim()
             .parse()
-            .with_context(|| format!("--effect '{spec}': value is not a number"))?;
+            .with_context(|| format!("--effect '{spec}': '{}' is not a number", value.trim()))?;
         meta_eff.insert(e.name(), toml::Value::Float(v));
         effects.push((e, vec![v]));
     }
-    let (data, noise) = simulate_with_drifts(setup, &design, &sc.truth, &effects, &drifts, a.seed)?;
+    let (mut data, noise) =
+        simulate_with_drifts(setup, &design, &sc.truth, &effects, &drifts, a.seed)?;
+    if !injected.is_empty() {
+        let model = crate::model::effects::Extended::new(
+            setup.model.clone(),
+            effects.iter().map(|(e, _)| e.clone()).collect(),
+        );
+        let mut p = sc.truth.clone();
+        for (_, v) in &effects {
+            p.extend(v);
+        }
+        crate::diagnose::inject::apply(&model, &p, &mut data, &injected)
+            .map_err(|e| anyhow::anyhow!("--effect: {e}"))?;
+    }
     let mut meta = toml::Table::new();
     meta.insert(
         "generator".into(),

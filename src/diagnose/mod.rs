@@ -27,6 +27,7 @@
 
 pub mod additive;
 pub mod glitch;
+pub mod inject;
 pub mod report;
 pub mod residuals;
 
