@@ -10,7 +10,7 @@ use clap::Args;
 
 use super::analysis::{experiment_data, resolve_guess, truth_from_meta};
 use super::ModelOpt;
-use crate::diagnose::{diagnose, simulate_with_drifts, DiagnoseConfig, Diagnosis};
+use crate::diagnose::{diagnose, simulate_with_drift_paths, DiagnoseConfig, Diagnosis};
 use crate::io::{read_dataset, write_json_atomic, write_parquet, write_text_atomic, Table};
 use crate::model::effects::{by_name, library};
 use crate::setup::{DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
@@ -59,7 +59,8 @@ pub struct DiagnoseArgs {
     pub simulate_into: bool,
     /// With --simulate-into: an effect switched on in the truth (repeatable). Forms:
     /// `EFFECT=VALUE` for a library effect (see --list-effects), e.g. loss_angle_tm2=0.01;
-    /// `drift_PARAMETER=D` drifts a base parameter linearly by D over each run;
+    /// `drift_PARAMETER=D[,d2=D2]` drifts a base parameter by D over each run, linearly, plus
+    /// D2 (u^2 - 1/12) with u = (t - T/2)/T when d2 is given;
     /// `glitch_ENTRY=AMP,t0=S[,tau=S][,exp=NAME]` adds a Gaussian pulse of width tau (default
     /// 1 s) at t0 (s from the run start) entering the loop at ENTRY = tm1, tm2, sc (force: AMP is
     /// the velocity kick in m/s) or o1, o12 (readout transient: AMP is its peak in m), in the
@@ -101,6 +102,12 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
                 format!("drift_{p}"),
                 "drift",
                 format!("d_{p}")
+            );
+            println!(
+                "{:<28} {:<20} {:<12} + d2 (((t - T/2)/T)^2 - 1/12), tested once drift_{p} is added",
+                format!("drift2_{p}"),
+                "drift",
+                format!("d2_{p}")
             );
         }
         println!(
@@ -345,12 +352,30 @@ fn simulate(a: &DiagnoseArgs, setup: &crate::setup::Setup, dir: &Path) -> Result
             .strip_prefix("drift_")
             .and_then(|p| names.iter().position(|n| n == p))
         {
-            let v: f64 = value
-                .trim()
+            let mut parts = value.split(',');
+            let first = parts.next().unwrap_or("").trim();
+            let v: f64 = first
                 .parse()
-                .with_context(|| format!("--effect '{spec}': '{}' is not a number", value.trim()))?;
+                .with_context(|| format!("--effect '{spec}': '{first}' is not a number"))?;
+            let mut d2 = 0.0;
+            for t in parts {
+                let t = t.trim();
+                let x = t
+                    .strip_prefix("d2=")
+                    .with_context(|| format!("--effect '{spec}': '{t}': expected d2=VALUE"))?;
+                d2 = x
+                    .trim()
+                    .parse()
+                    .with_context(|| format!("--effect '{spec}': '{t}': not a number"))?;
+            }
             meta_eff.insert(name.trim().to_string(), toml::Value::Float(v));
-            drifts.push((k, v));
+            if d2 != 0.0 {
+                meta_eff.insert(
+                    format!("drift2_{}", &name.trim()["drift_".len()..]),
+                    toml::Value::Float(d2),
+                );
+            }
+            drifts.push((k, v, d2));
             continue;
         }
         let e = by_name(name.trim()).with_context(|| {
@@ -372,7 +397,7 @@ fn simulate(a: &DiagnoseArgs, setup: &crate::setup::Setup, dir: &Path) -> Result
         effects.push((e, vec![v]));
     }
     let (mut data, noise) =
-        simulate_with_drifts(setup, &design, &sc.truth, &effects, &drifts, a.seed)?;
+        simulate_with_drift_paths(setup, &design, &sc.truth, &effects, &drifts, a.seed)?;
     if !injected.is_empty() {
         let model = crate::model::effects::Extended::new(
             setup.model.clone(),

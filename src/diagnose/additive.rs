@@ -44,6 +44,9 @@ pub enum Additive {
     Drift {
         parameter: usize,
         parameter_name: String,
+        /// The second-order term `d2 P2(u)`, `P2(u) = u^2 - 1/12`, `u = (t - T/2)/T` (a nested
+        /// extension, proposed once the linear drift of the same parameter is in the model).
+        quadratic: bool,
     },
     Glitch {
         experiment: usize,
@@ -67,7 +70,24 @@ impl Additive {
         Some(Additive::Drift {
             parameter: k,
             parameter_name: name.to_string(),
+            quadratic: false,
         })
+    }
+
+    /// The second-order term nested in this linear drift (`None` for anything else).
+    pub fn quadratic_extension(&self) -> Option<Additive> {
+        match self {
+            Additive::Drift {
+                parameter,
+                parameter_name,
+                quadratic: false,
+            } => Some(Additive::Drift {
+                parameter: *parameter,
+                parameter_name: parameter_name.clone(),
+                quadratic: true,
+            }),
+            _ => None,
+        }
     }
 
     pub fn category(&self) -> Category {
@@ -98,7 +118,14 @@ impl Additive {
                 ["o1", "o12"][(*channel).min(1)],
                 f_hz * 1e3
             ),
-            Additive::Drift { parameter_name, .. } => format!("drift_{parameter_name}"),
+            Additive::Drift {
+                parameter_name,
+                quadratic,
+                ..
+            } => format!(
+                "drift{}_{parameter_name}",
+                if *quadratic { "2" } else { "" }
+            ),
             Additive::Glitch {
                 experiment_name,
                 entry,
@@ -120,9 +147,20 @@ impl Additive {
                 ["o1", "o12"][(*channel).min(1)],
                 f_hz * 1e3
             ),
-            Additive::Drift { parameter_name, .. } => {
+            Additive::Drift {
+                parameter_name,
+                quadratic: false,
+                ..
+            } => {
                 format!("{parameter_name}(t) = {parameter_name} + d (t - T/2)/T over each run")
             }
+            Additive::Drift {
+                parameter_name,
+                quadratic: true,
+                ..
+            } => format!(
+                "second order: {parameter_name}(t) = ... + d2 (((t - T/2)/T)^2 - 1/12) over each run"
+            ),
             Additive::Glitch {
                 experiment_name,
                 entry,
@@ -140,7 +178,14 @@ impl Additive {
     pub fn parameter_names(&self) -> Vec<String> {
         match self {
             Additive::Line { .. } => vec!["line_sin".into(), "line_cos".into()],
-            Additive::Drift { parameter_name, .. } => vec![format!("d_{parameter_name}")],
+            Additive::Drift {
+                parameter_name,
+                quadratic,
+                ..
+            } => vec![format!(
+                "d{}_{parameter_name}",
+                if *quadratic { "2" } else { "" }
+            )],
             Additive::Glitch { .. } => vec!["amplitude".into()],
         }
     }
@@ -250,14 +295,19 @@ impl Additive {
                 }
                 vec![s, c]
             }
-            Additive::Drift { parameter, .. } => {
+            Additive::Drift {
+                parameter,
+                quadratic,
+                ..
+            } => {
                 let (_, d) = lik.engine.templates_and_derivatives(p, None);
                 let mut col = d.into_iter().nth(*parameter).unwrap_or_else(zeros);
                 let t_half = 0.5 * n as f64;
                 for exp in &mut col {
                     for ch in exp.iter_mut() {
                         for (i, v) in ch.iter_mut().enumerate() {
-                            *v *= (i as f64 - t_half) / n as f64;
+                            let u = (i as f64 - t_half) / n as f64;
+                            *v *= if *quadratic { u * u - 1.0 / 12.0 } else { u };
                         }
                     }
                 }

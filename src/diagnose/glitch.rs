@@ -302,7 +302,9 @@ pub fn scan(
                 }
                 let c0 = xcorr(&kern[0], &r[0], &mut planner, len);
                 let c1 = xcorr(&kern[1], &r[1], &mut planner, len);
-                for t0 in 0..n {
+                // Centres in the analysed window only (before it, a glitch is seen through the
+                // tail of its response alone, like the start transients of the injections).
+                for t0 in order..n {
                     // Lag l = t0 - p0 - order.
                     let l = t0 as i64 - p0 as i64 - order as i64;
                     let idx = if l >= 0 { l as usize } else { (len as i64 + l) as usize };
@@ -333,7 +335,7 @@ pub fn scan(
     }
     Scan {
         peaks,
-        trials: (res.len() * n * n_kernels).max(1) as f64,
+        trials: (res.len() * nr * n_kernels).max(1) as f64,
     }
 }
 

@@ -809,7 +809,7 @@ pub fn diagnose(
     let mut added: Vec<AddedEffect> = Vec::new();
     // The glitch scan is one test of each round's family; its own look-elsewhere factor (every
     // position, entry and width it tried) multiplies each glitch candidate's p-values.
-    let n_cand = (pool.len() + lin_pool.len() + usize::from(cfg.glitches)).max(1);
+    let mut n_cand = (pool.len() + lin_pool.len() + usize::from(cfg.glitches)).max(1);
     for round in 1..=cfg.max_effects {
         let mut round_lin = lin_pool.clone();
         if cfg.glitches {
@@ -1020,7 +1020,12 @@ pub fn diagnose(
             )
         } else {
             if i - n_op < lin_pool.len() {
-                lin_pool.remove(i - n_op);
+                let a = lin_pool.remove(i - n_op);
+                // A linear drift opens its nested second-order term (one more test).
+                if let Some(q) = a.quadratic_extension() {
+                    lin_pool.push(q);
+                    n_cand += 1;
+                }
             }
             let (a, v) = l.last().expect("the refit added an additive effect");
             let (names, values, sig) = a.report(v, ls.last().expect("one covariance each"));
@@ -1288,6 +1293,49 @@ pub fn simulate_with_drifts(
         for (oc, pc) in oe.iter_mut().zip(pe) {
             for (i, (o, q)) in oc.iter_mut().zip(pc).enumerate() {
                 *o += (q - *o) * i as f64 / n;
+            }
+        }
+    }
+    Ok((data, noise))
+}
+
+/// As [`simulate_with_drifts`], with drifts of first and second order: `drifts` holds
+/// (base parameter index, d, d2) for `p_k(t) = p_k + d u + d2 (u^2 - 1/12)`, `u = (t - T/2)/T`.
+/// Without a second-order term this is [`simulate_with_drifts`]; with one, the experiments are
+/// three same-seed realizations at `u = -1/2, 0, 1/2` interpolated quadratically in time (the
+/// drift to first order in d and d2).
+pub fn simulate_with_drift_paths(
+    setup: &Setup,
+    design: &crate::signal::Design,
+    truth: &[f64],
+    effects: &[(Arc<dyn Effect>, Vec<f64>)],
+    drifts: &[(usize, f64, f64)],
+    seed: u64,
+) -> Result<(ExperimentData, Vec<Vec<f64>>), DiagnoseError> {
+    if drifts.iter().all(|d| d.2 == 0.0) {
+        let linear: Vec<(usize, f64)> = drifts.iter().map(|d| (d.0, d.1)).collect();
+        return simulate_with_drifts(setup, design, truth, effects, &linear, seed);
+    }
+    let at = |u: f64| {
+        let mut p = truth.to_vec();
+        for &(k, d, d2) in drifts {
+            let v = p.get_mut(k).ok_or_else(|| {
+                DiagnoseError::Input(format!("drift of parameter {k}: no such parameter"))
+            })?;
+            *v += d * u + d2 * (u * u - 1.0 / 12.0);
+        }
+        simulate_with_effects(setup, design, &p, effects, seed)
+    };
+    let (mut data, noise) = at(-0.5)?;
+    let (mid, _) = at(0.0)?;
+    let (end, _) = at(0.5)?;
+    let n = data.len().max(1) as f64;
+    for ((oe, me), ee) in data.outputs.iter_mut().zip(&mid.outputs).zip(&end.outputs) {
+        for ((oc, mc), ec) in oe.iter_mut().zip(me).zip(ee) {
+            for (i, ((o, m), e)) in oc.iter_mut().zip(mc).zip(ec).enumerate() {
+                // Lagrange interpolation through the nodes u = -1/2, 0, 1/2.
+                let u = i as f64 / n - 0.5;
+                *o = *o * 2.0 * u * (u - 0.5) + m * (1.0 - 4.0 * u * u) + e * 2.0 * u * (u + 0.5);
             }
         }
     }
