@@ -25,6 +25,16 @@ fn named(names: &[String], v: &[f64]) -> Value {
     )
 }
 
+/// `v` with the digits its sigma `e` supports (two significant digits beyond it; at least five).
+fn with_sigma(v: f64, e: f64) -> String {
+    let digits = if e.is_finite() && e > 0.0 && v != 0.0 && v.is_finite() {
+        ((v.abs() / e).log10().ceil() as i64 + 1).clamp(4, 12) as usize
+    } else {
+        4
+    };
+    format!("{v:.digits$e}")
+}
+
 fn stage_json(s: &Stage, truth: Option<&[f64]>) -> Value {
     let per: Vec<Value> = s
         .channels
@@ -187,7 +197,7 @@ impl Diagnosis {
                     .iter()
                     .zip(&a.parameters)
                     .zip(&a.sigmas)
-                    .map(|((n, v), e)| format!("{n} = {v:.4e} ± {e:.2e}"))
+                    .map(|((n, v), e)| format!("{n} = {} ± {e:.2e}", with_sigma(*v, *e)))
                     .collect();
                 let corr = a
                     .most_correlated
