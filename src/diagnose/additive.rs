@@ -56,6 +56,9 @@ pub enum Additive {
         tau: f64,
         /// Look-elsewhere factor of the scan that found it (its p-values are multiplied by it).
         trials: f64,
+        /// Variance of its matched-filter statistic under the noise-only run (at least 1): its
+        /// chi^2 statistics are divided by it.
+        noise_var: f64,
     },
 }
 
@@ -102,6 +105,14 @@ impl Additive {
     pub fn trials(&self) -> f64 {
         match self {
             Additive::Glitch { trials, .. } => trials.max(1.0),
+            _ => 1.0,
+        }
+    }
+
+    /// Noise calibration of its statistics (1 unless found by a calibrated scan).
+    pub fn noise_var(&self) -> f64 {
+        match self {
+            Additive::Glitch { noise_var, .. } => noise_var.max(1.0),
             _ => 1.0,
         }
     }

@@ -219,18 +219,14 @@ pub struct Peak {
     pub entry: Entry,
     pub tau: f64,
     pub t0: f64,
-    /// Local statistic `z^2` (chi^2 with one degree of freedom under the fitted model).
+    /// Local statistic `z^2 / noise_var` (chi^2 with one degree of freedom under the fitted
+    /// model).
     pub z2: f64,
+    /// Variance of `z` under the noise-only run (at least 1; 1 without a noise run).
+    pub noise_var: f64,
 }
 
-/// Result of a scan: the best peak per entry, and the number of trials made.
-#[derive(Debug, Clone)]
-pub struct Scan {
-    pub peaks: Vec<Peak>,
-    pub trials: f64,
-}
-
-/// Cross-correlation `c[l] = sum_s k[s] r[s + l]` for lags `l` in `lags`, by FFT.
+/// Cross-correlation `c[l] = sum_s k[s] r[s + l]` (negative lags wrapped to the end), by FFT.
 fn xcorr(
     k: &[f64],
     r: &[f64],
@@ -260,10 +256,63 @@ fn xcorr(
     out
 }
 
+/// The best peak of each entry point, and the number of trials made.
+#[derive(Debug, Clone)]
+pub struct Scan {
+    pub peaks: Vec<Peak>,
+    pub trials: f64,
+}
+
+/// `z^2(t0)` of kernel `kern` (pulse at sample `p0`, energy prefix sums `q`) against whitened
+/// series `r` (2 channels, whitened sample `j` at time `j + order`), for centres `t0` from
+/// `order` to the end of `r`: `(t0, z^2)`.
+fn zscan(
+    kern: &[Vec<f64>; 2],
+    q: &[f64],
+    p0: usize,
+    r: &[Vec<f64>],
+    order: usize,
+    planner: &mut RealFftPlanner<f64>,
+) -> Vec<(usize, f64)> {
+    let n = kern[0].len();
+    let nr = r[0].len();
+    let len = crate::noise::generate::fast_len(n + nr + 1);
+    let c0 = xcorr(&kern[0], &r[0], planner, len);
+    let c1 = xcorr(&kern[1], &r[1], planner, len);
+    let mut out = Vec::with_capacity(nr);
+    for t0 in order..order + nr {
+        // Lag l = t0 - p0 - order.
+        let l = t0 as i64 - p0 as i64 - order as i64;
+        let idx = if l >= 0 {
+            l as usize
+        } else {
+            (len as i64 + l) as usize
+        };
+        let c = c0[idx] + c1[idx];
+        let lo = (-l).max(0) as usize;
+        let hi = ((nr as i64 - l).max(0) as usize).min(n);
+        if hi <= lo {
+            continue;
+        }
+        let e2 = q[hi] - q[lo];
+        if e2 > 0.0 {
+            out.push((t0, c * c / e2));
+        }
+    }
+    out
+}
+
 /// Matched-filter scan of whitened residuals `res[e][c]` (valid samples, whitened sample `j`
 /// at time `(j + order) dt`) for every entry and width of [`SCAN_WIDTHS`], at full parameters
-/// `p` of `model` with whitening response `w` on the grid. `scale` divides `z^2` (the residual's
-/// variance when it is above one). Returns the best peak of each entry.
+/// `p` of `model` with whitening response `w` on the grid, over centres in the analysed window.
+/// `scale` divides `z^2` (the residual's variance when it is above one).
+///
+/// Calibration: with `noise = Some((whitened noise run, factor))`, each kernel's `z^2` is also
+/// averaged over every position of the noise-only run (times `factor`, e.g. the final-prediction
+/// error factor of an in-sample whitening filter); that mean, the variance of `z` under the
+/// noise as it is (the whitening filter is not perfect where the noise is steep, and the long,
+/// low-frequency responses to a kick on a TM feel it most), is the peak's `noise_var` when it
+/// is above one.
 pub fn scan(
     model: &Extended,
     p: &[f64],
@@ -272,10 +321,10 @@ pub fn scan(
     order: usize,
     res: &[Vec<Vec<f64>>],
     scale: f64,
+    noise: Option<(&[Vec<f64>], f64)>,
 ) -> Scan {
     let n = grid.n;
     let nr = n.saturating_sub(order);
-    let len = crate::noise::generate::fast_len(n + nr + 1);
     let mut planner = RealFftPlanner::<f64>::new();
     let mut peaks = Vec::new();
     let mut n_kernels = 0usize;
@@ -296,29 +345,21 @@ pub fn scan(
             for s in 0..n {
                 q[s + 1] = q[s] + kern[0][s] * kern[0][s] + kern[1][s] * kern[1][s];
             }
+            let noise_var = noise
+                .filter(|(r, _)| r.len() >= 2 && r[0].len() > 1 && r[1].len() == r[0].len())
+                .map(|(r, factor)| {
+                    let z = zscan(&kern, &q, p0, r, order, &mut planner);
+                    factor * z.iter().map(|x| x.1).sum::<f64>() / z.len().max(1) as f64
+                })
+                .filter(|v| v.is_finite())
+                .unwrap_or(1.0)
+                .max(1.0);
             for (e, r) in res.iter().enumerate() {
-                if r.len() < 2 || r[0].len() != nr {
+                if r.len() < 2 || r[0].len() != nr || r[1].len() != nr {
                     continue;
                 }
-                let c0 = xcorr(&kern[0], &r[0], &mut planner, len);
-                let c1 = xcorr(&kern[1], &r[1], &mut planner, len);
-                // Centres in the analysed window only (before it, a glitch is seen through the
-                // tail of its response alone, like the start transients of the injections).
-                for t0 in order..n {
-                    // Lag l = t0 - p0 - order.
-                    let l = t0 as i64 - p0 as i64 - order as i64;
-                    let idx = if l >= 0 { l as usize } else { (len as i64 + l) as usize };
-                    let c = c0[idx] + c1[idx];
-                    let lo = (-l).max(0) as usize;
-                    let hi = ((nr as i64 - l).max(0) as usize).min(n);
-                    if hi <= lo {
-                        continue;
-                    }
-                    let e2 = q[hi] - q[lo];
-                    if e2 <= 0.0 {
-                        continue;
-                    }
-                    let z2 = c * c / e2 / scale;
+                for (t0, z2) in zscan(&kern, &q, p0, r, order, &mut planner) {
+                    let z2 = z2 / scale / noise_var;
                     if best.as_ref().is_none_or(|b| z2 > b.z2) {
                         best = Some(Peak {
                             experiment: e,
@@ -326,6 +367,7 @@ pub fn scan(
                             tau,
                             t0: t0 as f64 * grid.dt,
                             z2,
+                            noise_var,
                         });
                     }
                 }

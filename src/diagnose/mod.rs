@@ -17,13 +17,19 @@
 //! effect. A candidate whose template derivative is almost a combination of the fitted ones is
 //! reported as degenerate, with its largest correlation.
 //!
-//! The additive categories `line` and `drift` ([`additive`]) are linear in their parameters and
-//! enter as extra whitened columns; they are refitted by alternating the nonlinear fit of the
-//! base parameters on the data minus the additive contributions with a joint Gauss-Newton step of
-//! the amplitudes. Scope of `line`: a narrow line of the nominal fit's residual is proposed as a
-//! `line` candidate only when it is seen in the same channel of at least two experiments (within
-//! two periodogram bins) or when [`DiagnoseConfig::lines`] is set; otherwise it stays unexplained.
-//! Glitches and other transients are reported as unexplained time-window excess.
+//! The additive categories `line`, `drift` and `glitch` ([`additive`]) are linear in their
+//! amplitudes and enter as extra whitened columns; they are refitted by alternating the nonlinear
+//! fit of the base parameters on the data minus the additive contributions with a joint
+//! Gauss-Newton step of the amplitudes and of their own non-linear parameters (line frequency,
+//! glitch time and width). Scope of `line`: a narrow line of the nominal fit's residual is
+//! proposed as a `line` candidate only when it is seen in the same channel of at least two
+//! experiments (within two periodogram bins) or when [`DiagnoseConfig::lines`] is set; otherwise
+//! it stays unexplained. A linear `drift` once added opens its nested second-order term as a new
+//! candidate (one more test in the Bonferroni count). Glitch candidates ([`glitch`]) are proposed
+//! afresh every round by a matched-filter scan of the current residual; their p-values carry the
+//! scan's look-elsewhere factor. When refits of one round cannot be told apart (chi^2 within the
+//! chi^2(1) quantile at `1 - alpha`), the added effect names the others as
+//! `indistinguishable_from`.
 
 pub mod additive;
 pub mod glitch;
@@ -520,6 +526,7 @@ fn glitch_candidates(
     data: &ExperimentData,
     w: &Whitener<2>,
     poly_degree: usize,
+    noise: Option<(&[Vec<f64>], f64)>,
 ) -> Result<Vec<additive::Additive>, DiagnoseError> {
     let lik = Likelihood::new(model, &data.inputs, data.dt, w.clone(), poly_degree)?;
     let grid = glitch::Grid {
@@ -552,6 +559,7 @@ fn glitch_candidates(
         w.order(),
         &fit.residuals_w,
         scale,
+        noise,
     );
     Ok(s.peaks
         .into_iter()
@@ -562,6 +570,7 @@ fn glitch_candidates(
             t0: pk.t0,
             tau: pk.tau,
             trials: s.trials,
+            noise_var: pk.noise_var,
         })
         .collect())
 }
@@ -798,6 +807,10 @@ pub fn diagnose(
         whitening_dof,
     );
 
+    // The whitened noise run calibrates the glitch scan.
+    let noise_w = usable_noise
+        .filter(|_| cfg.glitches)
+        .map(|nz| whitened_noise(&w, nz, cfg.poly_degree));
     let mut current = nominal.clone();
     let mut cur_fit = fit0.clone();
     let mut cur_raw = raw0.clone();
@@ -819,6 +832,7 @@ pub fn diagnose(
                 data,
                 &w,
                 cfg.poly_degree,
+                noise_w.as_deref().map(|r| (r, fpe)),
             )?);
         }
         if pool.is_empty() && round_lin.is_empty() {
@@ -843,8 +857,8 @@ pub fn diagnose(
             cfg.poly_degree,
         )?);
         let n_op = pool.len();
-        // (name, category, acts on, dimension, look-elsewhere factor)
-        let describe: Vec<(String, &'static str, String, usize, f64)> = pool
+        // (name, category, acts on, dimension, look-elsewhere factor, noise calibration)
+        let describe: Vec<(String, &'static str, String, usize, f64, f64)> = pool
             .iter()
             .map(|e| {
                 (
@@ -852,6 +866,7 @@ pub fn diagnose(
                     e.category().as_str(),
                     e.acts_on(),
                     e.parameter_names().len(),
+                    1.0,
                     1.0,
                 )
             })
@@ -862,6 +877,7 @@ pub fn diagnose(
                     a.acts_on(),
                     a.parameter_names().len(),
                     a.trials(),
+                    a.noise_var(),
                 )
             }))
             .collect();
@@ -869,7 +885,7 @@ pub fn diagnose(
         let mut round_c: Vec<Candidate> = describe
             .iter()
             .zip(&scores)
-            .map(|((name, cat, acts, _, trials), (lm, dim, frac, corr))| {
+            .map(|((name, cat, acts, _, trials, var), (lm, dim, frac, corr))| {
                 let most = corr.map(|(k, v)| (names[k].clone(), v));
                 Candidate {
                     round,
@@ -877,7 +893,8 @@ pub fn diagnose(
                     category: cat,
                     acts_on: acts.clone(),
                     score_statistic: *lm,
-                    score_p_value: (trials * residuals::chi2_sf(*dim as f64, *lm)).min(1.0),
+                    score_p_value: (trials * residuals::chi2_sf(*dim as f64, *lm / var))
+                        .min(1.0),
                     identifiable_fraction: *frac,
                     degenerate: *frac < 1e-6
                         || most.as_ref().is_some_and(|(_, v)| v.abs() > cfg.degeneracy),
@@ -934,7 +951,7 @@ pub fn diagnose(
             match res {
                 Ok((m, f, raw, l, ls)) => {
                     let (dim, trials) = (describe[i].3, describe[i].4);
-                    let scale = f.chi2_reduced.max(1.0);
+                    let scale = f.chi2_reduced.max(describe[i].5).max(1.0);
                     let dchi2 = cur_fit.chi2 - f.chi2;
                     let p = (trials * residuals::chi2_sf(dim as f64, dchi2 / scale)).min(1.0);
                     let c = &mut round_c[i];
