@@ -760,13 +760,12 @@ fn the_glitch_scan_claims_nothing_on_control_data() {
             "seed {seed}: claimed {:?}",
             added(&c)
         );
-        let best = c
-            .d
-            .candidates
-            .iter()
-            .filter(|k| k.category == "glitch")
-            .map(|k| k.score_p_value)
-            .fold(1.0, f64::min);
+        let best =
+            c.d.candidates
+                .iter()
+                .filter(|k| k.category == "glitch")
+                .map(|k| k.score_p_value)
+                .fold(1.0, f64::min);
         assert!(best > 0.01, "seed {seed}: glitch candidate at p = {best}");
     }
 }
@@ -790,15 +789,31 @@ fn cli_simulates_a_line_and_the_diagnosis_fits_its_frequency() {
     let err = String::from_utf8_lossy(&bad.stderr);
     assert!(err.contains("'freq=0.0371'"), "{err}");
     let st = std::process::Command::new(exe)
-        .args(["diagnose", ds.to_str().unwrap(), "--simulate-into", "--seed", "52"])
+        .args([
+            "diagnose",
+            ds.to_str().unwrap(),
+            "--simulate-into",
+            "--seed",
+            "52",
+        ])
         .args(["--effect", "line_o1=1e-10,f=0.0371,phase=0.3"])
         .status()
         .unwrap();
     assert!(st.success());
     let toml = ds.join("dataset.toml");
     let o = std::process::Command::new(exe)
-        .args(["diagnose", toml.to_str().unwrap(), "--model-psd", "--no-plots"])
-        .args(["--order", &ORDER.to_string(), "--out", out.to_str().unwrap()])
+        .args([
+            "diagnose",
+            toml.to_str().unwrap(),
+            "--model-psd",
+            "--no-plots",
+        ])
+        .args([
+            "--order",
+            &ORDER.to_string(),
+            "--out",
+            out.to_str().unwrap(),
+        ])
         .output()
         .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));

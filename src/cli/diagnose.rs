@@ -337,7 +337,13 @@ fn simulate(a: &DiagnoseArgs, setup: &crate::setup::Setup, dir: &Path) -> Result
         if let Some(it) = crate::diagnose::inject::parse(spec).map_err(anyhow::Error::msg)? {
             let key = spec.split([',', '=']).next().unwrap_or(spec).trim();
             let key = (1..)
-                .map(|k| if k == 1 { key.to_string() } else { format!("{key}_{k}") })
+                .map(|k| {
+                    if k == 1 {
+                        key.to_string()
+                    } else {
+                        format!("{key}_{k}")
+                    }
+                })
                 .find(|k| !meta_eff.contains_key(k))
                 .unwrap_or_default();
             meta_eff.insert(key, toml::Value::String(spec.clone()));

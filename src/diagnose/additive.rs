@@ -394,10 +394,7 @@ impl Additive {
                 .into_iter()
                 .map(|part| {
                     let mut s = self.glitch_part(model, lik, data, p, part);
-                    s.iter_mut()
-                        .flatten()
-                        .flatten()
-                        .for_each(|v| *v *= amps[0]);
+                    s.iter_mut().flatten().flatten().for_each(|v| *v *= amps[0]);
                     s
                 })
                 .collect(),

@@ -114,7 +114,12 @@ impl Grid {
 
 /// Loop response `h(f)` (2 readouts) to a unit source at `entry`, on the grid's bins, at full
 /// parameters `p` of `model`.
-pub fn entry_response(model: &Extended, p: &[f64], grid: &Grid, entry: Entry) -> Vec<[Complex64; 2]> {
+pub fn entry_response(
+    model: &Extended,
+    p: &[f64],
+    grid: &Grid,
+    entry: Entry,
+) -> Vec<[Complex64; 2]> {
     let Some(e) = model.noise_entry(entry.noise_entry()) else {
         return vec![[Complex64::new(0.0, 0.0); 2]; grid.m / 2 + 1];
     };
@@ -124,11 +129,17 @@ pub fn entry_response(model: &Extended, p: &[f64], grid: &Grid, entry: Entry) ->
             let tr = transfer(model, &model.prepare(f), p);
             let v = match e {
                 NoiseEntry::Force(g) => {
-                    let g = nalgebra::Vector2::new(Complex64::new(g[0], 0.0), Complex64::new(g[1], 0.0));
+                    let g = nalgebra::Vector2::new(
+                        Complex64::new(g[0], 0.0),
+                        Complex64::new(g[1], 0.0),
+                    );
                     tr.delta_inv * g
                 }
                 NoiseEntry::Readout(w) => {
-                    let w = nalgebra::Vector2::new(Complex64::new(w[0], 0.0), Complex64::new(w[1], 0.0));
+                    let w = nalgebra::Vector2::new(
+                        Complex64::new(w[0], 0.0),
+                        Complex64::new(w[1], 0.0),
+                    );
                     let s_inv = tr.ops.s.try_inverse().unwrap_or_else(CMat::<2>::identity);
                     tr.delta_inv * (tr.ops.d * s_inv) * w
                 }
@@ -227,12 +238,7 @@ pub struct Peak {
 }
 
 /// Cross-correlation `c[l] = sum_s k[s] r[s + l]` (negative lags wrapped to the end), by FFT.
-fn xcorr(
-    k: &[f64],
-    r: &[f64],
-    planner: &mut RealFftPlanner<f64>,
-    len: usize,
-) -> Vec<f64> {
+fn xcorr(k: &[f64], r: &[f64], planner: &mut RealFftPlanner<f64>, len: usize) -> Vec<f64> {
     let fwd = planner.plan_fft_forward(len);
     let inv = planner.plan_fft_inverse(len);
     let mut a = vec![0.0; len];
@@ -339,7 +345,15 @@ pub fn scan(
                 continue;
             }
             n_kernels += 1;
-            let kern = synthesize(grid, &h, Some(w), entry, p0 as f64 * grid.dt, tau, Part::Value);
+            let kern = synthesize(
+                grid,
+                &h,
+                Some(w),
+                entry,
+                p0 as f64 * grid.dt,
+                tau,
+                Part::Value,
+            );
             // Prefix sums of the kernel's energy.
             let mut q = vec![0.0; n + 1];
             for s in 0..n {
@@ -395,7 +409,13 @@ pub struct SimGlitch {
 
 /// Add the loop's response to glitch `g` to the readouts `outputs[e][c]` (n samples at `dt`)
 /// of `model` at full parameters `p` (the same response the diagnosis fits).
-pub fn add_glitch(model: &Extended, p: &[f64], outputs: &mut [Vec<Vec<f64>>], dt: f64, g: &SimGlitch) {
+pub fn add_glitch(
+    model: &Extended,
+    p: &[f64],
+    outputs: &mut [Vec<Vec<f64>>],
+    dt: f64,
+    g: &SimGlitch,
+) {
     let Some(exp) = outputs.get_mut(g.experiment) else {
         return;
     };

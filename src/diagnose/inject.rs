@@ -41,7 +41,9 @@ fn number(spec: &str, token: &str, v: &str) -> Result<f64, String> {
         .parse()
         .map_err(|_| format!("--effect '{spec}': '{token}': '{v}' is not a number"))?;
     if !x.is_finite() {
-        return Err(format!("--effect '{spec}': '{token}': value must be finite"));
+        return Err(format!(
+            "--effect '{spec}': '{token}': value must be finite"
+        ));
     }
     Ok(x)
 }
@@ -94,9 +96,7 @@ pub fn parse(spec: &str) -> Result<Option<Injected>, String> {
     let num_of = |k: &str| -> Result<Option<f64>, String> {
         get(k).map(|(_, v, t)| number(spec, t, v)).transpose()
     };
-    let experiment = get("exp")
-        .map(|(_, v, _)| v.clone())
-        .filter(|v| v != "all");
+    let experiment = get("exp").map(|(_, v, _)| v.clone()).filter(|v| v != "all");
     if is_glitch {
         let entry = Entry::from_key(what).ok_or_else(|| {
             format!(
@@ -108,7 +108,9 @@ pub fn parse(spec: &str) -> Result<Option<Injected>, String> {
             .ok_or_else(|| format!("--effect '{spec}': missing ',t0=SECONDS' (the glitch time)"))?;
         let tau = num_of("tau")?.unwrap_or(1.0);
         if tau <= 0.0 {
-            return Err(format!("--effect '{spec}': 'tau': the width must be positive"));
+            return Err(format!(
+                "--effect '{spec}': 'tau': the width must be positive"
+            ));
         }
         Ok(Some(Injected::Glitch {
             entry,
@@ -124,7 +126,9 @@ pub fn parse(spec: &str) -> Result<Option<Injected>, String> {
         let f_hz = num_of("f")?
             .ok_or_else(|| format!("--effect '{spec}': missing ',f=HZ' (the line frequency)"))?;
         if f_hz <= 0.0 {
-            return Err(format!("--effect '{spec}': 'f': the frequency must be positive"));
+            return Err(format!(
+                "--effect '{spec}': 'f': the frequency must be positive"
+            ));
         }
         Ok(Some(Injected::Line {
             channel,
@@ -136,7 +140,11 @@ pub fn parse(spec: &str) -> Result<Option<Injected>, String> {
     }
 }
 
-fn experiments(data: &ExperimentData, name: &Option<String>, all: bool) -> Result<Vec<usize>, String> {
+fn experiments(
+    data: &ExperimentData,
+    name: &Option<String>,
+    all: bool,
+) -> Result<Vec<usize>, String> {
     match name {
         Some(n) => data
             .names
@@ -174,9 +182,7 @@ pub fn apply(
                 experiment,
             } => {
                 if !(0.0..t_end).contains(t0) {
-                    return Err(format!(
-                        "glitch t0={t0}: outside the run [0, {t_end}) s"
-                    ));
+                    return Err(format!("glitch t0={t0}: outside the run [0, {t_end}) s"));
                 }
                 for e in experiments(data, experiment, false)? {
                     let g = SimGlitch {

@@ -591,10 +591,7 @@ fn fit_linear(
 ) -> Result<LinearFit, DiagnoseError> {
     let mut lin = lin.clone();
     let mut est = guess.to_vec();
-    let n_lin: usize = lin
-        .iter()
-        .map(|(a, v)| v.len() + a.nonlinear().len())
-        .sum();
+    let n_lin: usize = lin.iter().map(|(a, v)| v.len() + a.nonlinear().len()).sum();
     let nonlinear = lin.iter().any(|(a, _)| !a.nonlinear().is_empty());
     let passes = if nonlinear { 5 } else { 3 };
     let lik = Likelihood::new(model, &data.inputs, data.dt, w.clone(), poly_degree)?;
@@ -885,26 +882,28 @@ pub fn diagnose(
         let mut round_c: Vec<Candidate> = describe
             .iter()
             .zip(&scores)
-            .map(|((name, cat, acts, _, trials, var), (lm, dim, frac, corr))| {
-                let most = corr.map(|(k, v)| (names[k].clone(), v));
-                Candidate {
-                    round,
-                    name: name.clone(),
-                    category: cat,
-                    acts_on: acts.clone(),
-                    score_statistic: *lm,
-                    score_p_value: (trials * residuals::chi2_sf(*dim as f64, *lm / var))
-                        .min(1.0),
-                    identifiable_fraction: *frac,
-                    degenerate: *frac < 1e-6
-                        || most.as_ref().is_some_and(|(_, v)| v.abs() > cfg.degeneracy),
-                    most_correlated: most,
-                    delta_chi2: None,
-                    p_value: None,
-                    estimate: None,
-                    sigma: None,
-                }
-            })
+            .map(
+                |((name, cat, acts, _, trials, var), (lm, dim, frac, corr))| {
+                    let most = corr.map(|(k, v)| (names[k].clone(), v));
+                    Candidate {
+                        round,
+                        name: name.clone(),
+                        category: cat,
+                        acts_on: acts.clone(),
+                        score_statistic: *lm,
+                        score_p_value: (trials * residuals::chi2_sf(*dim as f64, *lm / var))
+                            .min(1.0),
+                        identifiable_fraction: *frac,
+                        degenerate: *frac < 1e-6
+                            || most.as_ref().is_some_and(|(_, v)| v.abs() > cfg.degeneracy),
+                        most_correlated: most,
+                        delta_chi2: None,
+                        p_value: None,
+                        estimate: None,
+                        sigma: None,
+                    }
+                },
+            )
             .collect();
         // Candidates worth a refit: score-significant, best first.
         let threshold = cfg.alpha / n_cand as f64;
@@ -1046,14 +1045,7 @@ pub fn diagnose(
             }
             let (a, v) = l.last().expect("the refit added an additive effect");
             let (names, values, sig) = a.report(v, ls.last().expect("one covariance each"));
-            (
-                a.name(),
-                a.acts_on(),
-                names,
-                values,
-                sig,
-                Some(l.len() - 1),
-            )
+            (a.name(), a.acts_on(), names, values, sig, Some(l.len() - 1))
         };
         added.push(AddedEffect {
             name,

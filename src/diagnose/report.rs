@@ -220,7 +220,8 @@ impl Diagnosis {
             let _ = writeln!(s);
             for a in &self.effects_added {
                 for x in &a.indistinguishable_from {
-                    let pars: Vec<String> = x.parameters.iter().map(|v| format!("{v:.4e}")).collect();
+                    let pars: Vec<String> =
+                        x.parameters.iter().map(|v| format!("{v:.4e}")).collect();
                     let _ = writeln!(
                         s,
                         "> {} cannot be told from **{}** ({}; parameters {}; delta chi2 {:.1} against {:.1}).\n",
