@@ -823,14 +823,30 @@ pub fn diagnose(
     for round in 1..=cfg.max_effects {
         let mut round_lin = lin_pool.clone();
         if cfg.glitches {
-            round_lin.extend(glitch_candidates(
+            let g = glitch_candidates(
                 &current,
                 &cur_fit,
                 data,
                 &w,
                 cfg.poly_degree,
                 noise_w.as_deref().map(|r| (r, fpe)),
-            )?);
+            )?;
+            if round == 1 {
+                if let Some(a) = g.first() {
+                    notes.push(format!(
+                        "glitch scan: {:.0} trials per round (every analysed sample of every experiment, {} entry points, {} widths); glitch p-values carry that look-elsewhere factor{}",
+                        a.trials(),
+                        glitch::ENTRIES.len(),
+                        glitch::SCAN_WIDTHS.len(),
+                        if noise_w.is_some() {
+                            ", and each matched filter's statistic is calibrated by its variance over the noise-only run"
+                        } else {
+                            ""
+                        }
+                    ));
+                }
+            }
+            round_lin.extend(g);
         }
         if pool.is_empty() && round_lin.is_empty() {
             break;
