@@ -382,10 +382,9 @@ impl Additive {
                 let mut d = vec![vec![vec![0.0; n]; 2]; n_exp];
                 let w = 2.0 * std::f64::consts::PI * f_hz * data.dt;
                 let (a, b) = (amps[0], amps[1]);
-                for i in 0..n {
+                for (i, v) in d[*experiment][*channel].iter_mut().enumerate() {
                     let (s, c) = (w * i as f64).sin_cos();
-                    d[*experiment][*channel][i] =
-                        2.0 * std::f64::consts::PI * data.dt * i as f64 * (a * c - b * s);
+                    *v = 2.0 * std::f64::consts::PI * data.dt * i as f64 * (a * c - b * s);
                 }
                 vec![d]
             }

@@ -319,6 +319,7 @@ fn zscan(
 /// noise as it is (the whitening filter is not perfect where the noise is steep, and the long,
 /// low-frequency responses to a kick on a TM feel it most), is the peak's `noise_var` when it
 /// is above one.
+#[allow(clippy::too_many_arguments)]
 pub fn scan(
     model: &Extended,
     p: &[f64],
