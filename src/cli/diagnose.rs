@@ -1,6 +1,7 @@
 //! `freefall diagnose`: fit, find the residual, name the missing effect, refit, report
 //! (see `diagnose`). Also `--simulate-into DIR --effect NAME=VALUE`, which writes a simulated
-//! dataset carrying library effects the nominal model lacks (for tests and examples).
+//! dataset carrying library effects, drifts, glitches or lines the nominal model lacks (for
+//! tests and examples).
 
 use std::path::{Path, PathBuf};
 
@@ -9,7 +10,7 @@ use clap::Args;
 
 use super::analysis::{experiment_data, resolve_guess, truth_from_meta};
 use super::ModelOpt;
-use crate::diagnose::{diagnose, simulate_with_drifts, DiagnoseConfig, Diagnosis};
+use crate::diagnose::{diagnose, simulate_with_drift_paths, DiagnoseConfig, Diagnosis};
 use crate::io::{read_dataset, write_json_atomic, write_parquet, write_text_atomic, Table};
 use crate::model::effects::{by_name, library};
 use crate::setup::{DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
@@ -46,15 +47,27 @@ pub struct DiagnoseArgs {
     /// in the same channel of two or more experiments are; the others are reported unexplained).
     #[arg(long)]
     pub lines: bool,
+    /// Do not scan the residual for glitches (transients entering the loop at a force or
+    /// readout); they then show up as unexplained time-window excess.
+    #[arg(long)]
+    pub no_glitches: bool,
     /// Print the effect library and exit.
     #[arg(long)]
     pub list_effects: bool,
     /// Write a simulated dataset (scenario truth + the --effect list) to DATASET and exit.
     #[arg(long)]
     pub simulate_into: bool,
-    /// With --simulate-into: an effect switched on in the truth, NAME=VALUE (repeatable);
-    /// `drift_PARAMETER=D` drifts a base parameter linearly by D over each run.
-    #[arg(long = "effect", value_name = "NAME=VALUE")]
+    /// With --simulate-into: an effect switched on in the truth (repeatable). Forms:
+    /// `EFFECT=VALUE` for a library effect (see --list-effects), e.g. loss_angle_tm2=0.01;
+    /// `drift_PARAMETER=D[,d2=D2]` drifts a base parameter by D over each run, linearly, plus
+    /// D2 (u^2 - 1/12) with u = (t - T/2)/T when d2 is given;
+    /// `glitch_ENTRY=AMP,t0=S[,tau=S][,exp=NAME]` adds a Gaussian pulse of width tau (default
+    /// 1 s) at t0 (s from the run start) entering the loop at ENTRY = tm1, tm2, sc (force: AMP is
+    /// the velocity kick in m/s) or o1, o12 (readout transient: AMP is its peak in m), in the
+    /// first experiment unless exp is given, e.g. glitch_tm2=3e-12,t0=4000;
+    /// `line_CHANNEL=AMP,f=HZ[,phase=RAD][,exp=NAME]` adds AMP sin(2 pi f t + phase) (m) to
+    /// readout o1 or o12 of every experiment unless exp is given, e.g. line_o1=1e-10,f=0.0371.
+    #[arg(long = "effect", value_name = "NAME=VALUE[,KEY=VALUE...]")]
     pub effects: Vec<String>,
     /// With --simulate-into: scenario, design and seed.
     #[arg(long, default_value = "monte_carlo")]
@@ -90,10 +103,20 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
                 "drift",
                 format!("d_{p}")
             );
+            println!(
+                "{:<28} {:<20} {:<12} + d2 (((t - T/2)/T)^2 - 1/12), tested once drift_{p} is added",
+                format!("drift2_{p}"),
+                "drift",
+                format!("d2_{p}")
+            );
         }
         println!(
             "{:<28} {:<20} {:<12} a detected narrow line in one channel (coherent across experiments, or --lines)",
-            "line_EXP_CHANNEL_FmHz", "line", "sin,cos"
+            "line_EXP_CHANNEL_FmHz", "line", "A,phase,f"
+        );
+        println!(
+            "{:<28} {:<20} {:<12} a transient (Gaussian pulse) entering the loop at a TM/spacecraft force or a readout, found by a matched-filter scan",
+            "glitch_EXP_ENTRY_Ts", "glitch", "A,t0,tau"
         );
         return Ok(());
     }
@@ -129,6 +152,7 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
         max_effects: a.max_effects,
         whiten_from_model: a.model_psd,
         lines: a.lines,
+        glitches: !a.no_glitches,
         ..Default::default()
     };
     let d = diagnose(
@@ -308,7 +332,24 @@ fn simulate(a: &DiagnoseArgs, setup: &crate::setup::Setup, dir: &Path) -> Result
     let mut meta_eff = toml::Table::new();
     let mut drifts = Vec::new();
     let names = setup.parameter_names();
+    let mut injected = Vec::new();
     for spec in &a.effects {
+        if let Some(it) = crate::diagnose::inject::parse(spec).map_err(anyhow::Error::msg)? {
+            let key = spec.split([',', '=']).next().unwrap_or(spec).trim();
+            let key = (1..)
+                .map(|k| {
+                    if k == 1 {
+                        key.to_string()
+                    } else {
+                        format!("{key}_{k}")
+                    }
+                })
+                .find(|k| !meta_eff.contains_key(k))
+                .unwrap_or_default();
+            meta_eff.insert(key, toml::Value::String(spec.clone()));
+            injected.push(it);
+            continue;
+        }
         let (name, value) = spec
             .split_once('=')
             .with_context(|| format!("--effect '{spec}': expected NAME=VALUE"))?;
@@ -317,17 +358,36 @@ fn simulate(a: &DiagnoseArgs, setup: &crate::setup::Setup, dir: &Path) -> Result
             .strip_prefix("drift_")
             .and_then(|p| names.iter().position(|n| n == p))
         {
-            let v: f64 = value
-                .trim()
+            let mut parts = value.split(',');
+            let first = parts.next().unwrap_or("").trim();
+            let v: f64 = first
                 .parse()
-                .with_context(|| format!("--effect '{spec}': value is not a number"))?;
+                .with_context(|| format!("--effect '{spec}': '{first}' is not a number"))?;
+            let mut d2 = 0.0;
+            for t in parts {
+                let t = t.trim();
+                let x = t
+                    .strip_prefix("d2=")
+                    .with_context(|| format!("--effect '{spec}': '{t}': expected d2=VALUE"))?;
+                d2 = x
+                    .trim()
+                    .parse()
+                    .with_context(|| format!("--effect '{spec}': '{t}': not a number"))?;
+            }
             meta_eff.insert(name.trim().to_string(), toml::Value::Float(v));
-            drifts.push((k, v));
+            if d2 != 0.0 {
+                meta_eff.insert(
+                    format!("drift2_{}", &name.trim()["drift_".len()..]),
+                    toml::Value::Float(d2),
+                );
+            }
+            drifts.push((k, v, d2));
             continue;
         }
         let e = by_name(name.trim()).with_context(|| {
             format!(
-                "--effect '{spec}': unknown effect; known: drift_PARAMETER (a linear drift d over the run), {}",
+                "--effect '{spec}': unknown effect '{}'; known: drift_PARAMETER (a linear drift d over the run), glitch_ENTRY=AMP,t0=S (see --help), line_CHANNEL=AMP,f=HZ (see --help), {}",
+                name.trim(),
                 library()
                     .iter()
                     .map(|e| e.name())
@@ -338,11 +398,24 @@ fn simulate(a: &DiagnoseArgs, setup: &crate::setup::Setup, dir: &Path) -> Result
         let v: f64 = value
             .trim()
             .parse()
-            .with_context(|| format!("--effect '{spec}': value is not a number"))?;
+            .with_context(|| format!("--effect '{spec}': '{}' is not a number", value.trim()))?;
         meta_eff.insert(e.name(), toml::Value::Float(v));
         effects.push((e, vec![v]));
     }
-    let (data, noise) = simulate_with_drifts(setup, &design, &sc.truth, &effects, &drifts, a.seed)?;
+    let (mut data, noise) =
+        simulate_with_drift_paths(setup, &design, &sc.truth, &effects, &drifts, a.seed)?;
+    if !injected.is_empty() {
+        let model = crate::model::effects::Extended::new(
+            setup.model.clone(),
+            effects.iter().map(|(e, _)| e.clone()).collect(),
+        );
+        let mut p = sc.truth.clone();
+        for (_, v) in &effects {
+            p.extend(v);
+        }
+        crate::diagnose::inject::apply(&model, &p, &mut data, &injected)
+            .map_err(|e| anyhow::anyhow!("--effect: {e}"))?;
+    }
     let mut meta = toml::Table::new();
     meta.insert(
         "generator".into(),

@@ -1,21 +1,29 @@
-//! Additive effects of issue 6 (`line`, `drift`): contributions to the readouts that are linear
-//! in their parameters at fixed base parameters, so they enter the whitened likelihood as extra
+//! Additive effects of issue 6 (`line`, `drift`, `glitch`): contributions to the readouts that
+//! are linear in their amplitudes at fixed base parameters, so they enter the whitened likelihood as extra
 //! columns, whitened, cut and projected exactly like the templates (`Likelihood::problem` applied
 //! to the raw column). The score test and the refit use the same formulas as the operator effects
 //! (`U = J_e^T r`, Schur complement against the fitted parameters), with `J_e` these columns.
 //!
-//! - `line`: `a sin(2 pi f t) + b cos(2 pi f t)` in one readout channel of one experiment, at a
-//!   frequency fixed per candidate (the unexplained narrow line found by the residual analysis,
-//!   refined on a fine grid around its periodogram bin).
+//! - `line`: `a sin(2 pi f t) + b cos(2 pi f t) = A sin(2 pi f t + phi)` in one readout channel of
+//!   one experiment; `a`, `b` linear, the frequency `f` a non-linear parameter (started at the
+//!   narrow line found by the residual analysis, refined on a fine grid around its periodogram
+//!   bin, then fitted with the amplitudes).
+//! - `glitch` ([`super::glitch`]): a transient entering the loop at a force or readout entry of
+//!   one experiment; the amplitude linear, the time `t0` and width `tau` non-linear.
 //! - `drift`: a linear drift of base parameter k over each run, `p_k(t) = p_k + d_k (t - T/2)/T`.
 //!   To first order the readouts change by `d_k ((t - T/2)/T) (d o_s / d p_k)(t)`, the raw
 //!   template derivative modulated in the time domain before whitening. The modulation does not
 //!   commute with the closed loop; the first-order form holds for a drift slow compared with the
 //!   loop time constants (the run length T is thousands of seconds, the loop settles in tens),
 //!   and for a drift small enough that second-order terms stay below the noise.
+//!
+//! Non-linear parameters (`f`, `t0`, `tau`) are fitted by Gauss-Newton together with the
+//! amplitudes, with analytic derivative columns `sum_j a_j d col_j / d theta`; their sigmas come
+//! from the same joint information matrix as the amplitudes'.
 
 use nalgebra::DMatrix;
 
+use super::glitch::{self, Entry, Grid, Part};
 use crate::fit::{ExperimentData, Likelihood};
 use crate::model::effects::{Category, Extended};
 use crate::model::ClosedLoopModel;
@@ -36,6 +44,21 @@ pub enum Additive {
     Drift {
         parameter: usize,
         parameter_name: String,
+        /// The second-order term `d2 P2(u)`, `P2(u) = u^2 - 1/12`, `u = (t - T/2)/T` (a nested
+        /// extension, proposed once the linear drift of the same parameter is in the model).
+        quadratic: bool,
+    },
+    Glitch {
+        experiment: usize,
+        experiment_name: String,
+        entry: Entry,
+        t0: f64,
+        tau: f64,
+        /// Look-elsewhere factor of the scan that found it (its p-values are multiplied by it).
+        trials: f64,
+        /// Variance of its matched-filter statistic under the noise-only run (at least 1): its
+        /// chi^2 statistics are divided by it.
+        noise_var: f64,
     },
 }
 
@@ -50,13 +73,47 @@ impl Additive {
         Some(Additive::Drift {
             parameter: k,
             parameter_name: name.to_string(),
+            quadratic: false,
         })
+    }
+
+    /// The second-order term nested in this linear drift (`None` for anything else).
+    pub fn quadratic_extension(&self) -> Option<Additive> {
+        match self {
+            Additive::Drift {
+                parameter,
+                parameter_name,
+                quadratic: false,
+            } => Some(Additive::Drift {
+                parameter: *parameter,
+                parameter_name: parameter_name.clone(),
+                quadratic: true,
+            }),
+            _ => None,
+        }
     }
 
     pub fn category(&self) -> Category {
         match self {
             Additive::Line { .. } => Category::Line,
             Additive::Drift { .. } => Category::Drift,
+            Additive::Glitch { .. } => Category::Glitch,
+        }
+    }
+
+    /// Look-elsewhere factor of the search that proposed it (1 unless found by a scan).
+    pub fn trials(&self) -> f64 {
+        match self {
+            Additive::Glitch { trials, .. } => trials.max(1.0),
+            _ => 1.0,
+        }
+    }
+
+    /// Noise calibration of its statistics (1 unless found by a calibrated scan).
+    pub fn noise_var(&self) -> f64 {
+        match self {
+            Additive::Glitch { noise_var, .. } => noise_var.max(1.0),
+            _ => 1.0,
         }
     }
 
@@ -72,7 +129,20 @@ impl Additive {
                 ["o1", "o12"][(*channel).min(1)],
                 f_hz * 1e3
             ),
-            Additive::Drift { parameter_name, .. } => format!("drift_{parameter_name}"),
+            Additive::Drift {
+                parameter_name,
+                quadratic,
+                ..
+            } => format!(
+                "drift{}_{parameter_name}",
+                if *quadratic { "2" } else { "" }
+            ),
+            Additive::Glitch {
+                experiment_name,
+                entry,
+                t0,
+                ..
+            } => format!("glitch_{experiment_name}_{}_{:.0}s", entry.key(), t0),
         }
     }
 
@@ -84,27 +154,136 @@ impl Additive {
                 f_hz,
                 ..
             } => format!(
-                "{experiment_name} {} at {:.2} mHz",
+                "{experiment_name} {} at {:.4} mHz",
                 ["o1", "o12"][(*channel).min(1)],
                 f_hz * 1e3
             ),
-            Additive::Drift { parameter_name, .. } => {
+            Additive::Drift {
+                parameter_name,
+                quadratic: false,
+                ..
+            } => {
                 format!("{parameter_name}(t) = {parameter_name} + d (t - T/2)/T over each run")
+            }
+            Additive::Drift {
+                parameter_name,
+                quadratic: true,
+                ..
+            } => format!(
+                "second order: {parameter_name}(t) = ... + d2 (((t - T/2)/T)^2 - 1/12) over each run"
+            ),
+            Additive::Glitch {
+                experiment_name,
+                entry,
+                t0,
+                tau,
+                ..
+            } => format!(
+                "{experiment_name} {} at t = {t0:.1} s (width {tau:.2} s)",
+                entry.describe()
+            ),
+        }
+    }
+
+    /// Names of the linear amplitudes (the columns).
+    pub fn parameter_names(&self) -> Vec<String> {
+        match self {
+            Additive::Line { .. } => vec!["line_sin".into(), "line_cos".into()],
+            Additive::Drift {
+                parameter_name,
+                quadratic,
+                ..
+            } => vec![format!(
+                "d{}_{parameter_name}",
+                if *quadratic { "2" } else { "" }
+            )],
+            Additive::Glitch { .. } => vec!["amplitude".into()],
+        }
+    }
+
+    /// Values of the non-linear parameters (line: f; glitch: t0, tau).
+    pub fn nonlinear(&self) -> Vec<f64> {
+        match self {
+            Additive::Line { f_hz, .. } => vec![*f_hz],
+            Additive::Drift { .. } => Vec::new(),
+            Additive::Glitch { t0, tau, .. } => vec![*t0, *tau],
+        }
+    }
+
+    /// Apply a Gauss-Newton step to the non-linear parameters, bounded to keep the linearisation
+    /// valid: a quarter periodogram bin for a line frequency, the width (at least one sample)
+    /// for a glitch time, a factor of two for its width (kept between 0.05 samples and T/4).
+    pub fn step_nonlinear(&mut self, step: &[f64], n: usize, dt: f64) {
+        let clamp = |x: f64, m: f64| if x.is_finite() { x.clamp(-m, m) } else { 0.0 };
+        match self {
+            Additive::Line { f_hz, .. } => {
+                if let Some(d) = step.first() {
+                    let bin = 1.0 / (n as f64 * dt);
+                    *f_hz = (*f_hz + clamp(*d, 0.25 * bin)).clamp(bin, 0.5 / dt - bin);
+                }
+            }
+            Additive::Drift { .. } => {}
+            Additive::Glitch { t0, tau, .. } => {
+                if let [d0, d1] = step {
+                    *t0 = (*t0 + clamp(*d0, tau.max(dt))).clamp(0.0, n as f64 * dt);
+                    let t = *tau + clamp(*d1, 0.5 * *tau);
+                    *tau = t.clamp(0.05 * dt, 0.25 * n as f64 * dt);
+                }
             }
         }
     }
 
-    pub fn parameter_names(&self) -> Vec<String> {
+    /// Names, values and sigmas as reported, from the amplitudes `amps` and the covariance `cov`
+    /// of (amplitudes, non-linear parameters). Line: amplitude A, phase phi (rad, of
+    /// `A sin(2 pi f t + phi)` with t from each run's first sample) and f_hz; glitch: amplitude
+    /// (m/s for a force, m for a readout transient), t0_s, tau_s; drift: d.
+    pub fn report(&self, amps: &[f64], cov: &DMatrix<f64>) -> (Vec<String>, Vec<f64>, Vec<f64>) {
+        let sd = |k: usize| {
+            if k < cov.nrows() {
+                cov[(k, k)].max(0.0).sqrt()
+            } else {
+                f64::NAN
+            }
+        };
         match self {
-            Additive::Line { .. } => vec!["line_sin".into(), "line_cos".into()],
-            Additive::Drift { parameter_name, .. } => vec![format!("d_{parameter_name}")],
+            Additive::Line { f_hz, .. } => {
+                let (a, b) = (amps[0], amps[1]);
+                let amp = a.hypot(b);
+                let phase = b.atan2(a);
+                let (sa, sp) = if cov.nrows() >= 2 && amp > 0.0 {
+                    let ga = [a / amp, b / amp];
+                    let gp = [-b / (amp * amp), a / (amp * amp)];
+                    let q = |g: [f64; 2]| {
+                        (g[0] * g[0] * cov[(0, 0)]
+                            + 2.0 * g[0] * g[1] * cov[(0, 1)]
+                            + g[1] * g[1] * cov[(1, 1)])
+                            .max(0.0)
+                            .sqrt()
+                    };
+                    (q(ga), q(gp))
+                } else {
+                    (f64::NAN, f64::NAN)
+                };
+                (
+                    vec!["amplitude".into(), "phase".into(), "f_hz".into()],
+                    vec![amp, phase, *f_hz],
+                    vec![sa, sp, sd(2)],
+                )
+            }
+            Additive::Drift { .. } => (self.parameter_names(), amps.to_vec(), vec![sd(0)]),
+            Additive::Glitch { t0, tau, .. } => (
+                vec!["amplitude".into(), "t0_s".into(), "tau_s".into()],
+                vec![amps[0], *t0, *tau],
+                vec![sd(0), sd(1), sd(2)],
+            ),
         }
     }
 
-    /// Raw (unwhitened) readout columns, one per parameter, at base parameters `p` of `lik`'s
-    /// model (full length n of every experiment and channel).
+    /// Raw (unwhitened) readout columns, one per amplitude, at full parameters `p` of `model`
+    /// (`lik` prepared for it), full length n of every experiment and channel.
     pub fn columns(
         &self,
+        model: &Extended,
         lik: &Likelihood<'_, Extended, 2>,
         data: &ExperimentData,
         p: &[f64],
@@ -127,19 +306,97 @@ impl Additive {
                 }
                 vec![s, c]
             }
-            Additive::Drift { parameter, .. } => {
+            Additive::Drift {
+                parameter,
+                quadratic,
+                ..
+            } => {
                 let (_, d) = lik.engine.templates_and_derivatives(p, None);
                 let mut col = d.into_iter().nth(*parameter).unwrap_or_else(zeros);
                 let t_half = 0.5 * n as f64;
                 for exp in &mut col {
                     for ch in exp.iter_mut() {
                         for (i, v) in ch.iter_mut().enumerate() {
-                            *v *= (i as f64 - t_half) / n as f64;
+                            let u = (i as f64 - t_half) / n as f64;
+                            *v *= if *quadratic { u * u - 1.0 / 12.0 } else { u };
                         }
                     }
                 }
                 vec![col]
             }
+            Additive::Glitch { .. } => vec![self.glitch_part(model, lik, data, p, Part::Value)],
+        }
+    }
+
+    fn glitch_part(
+        &self,
+        model: &Extended,
+        lik: &Likelihood<'_, Extended, 2>,
+        data: &ExperimentData,
+        p: &[f64],
+        part: Part,
+    ) -> Series {
+        let n = data.len();
+        let mut col = vec![vec![vec![0.0; n]; 2]; data.outputs.len()];
+        if let Additive::Glitch {
+            experiment,
+            entry,
+            t0,
+            tau,
+            ..
+        } = self
+        {
+            let grid = Grid {
+                n,
+                m: lik.engine.padded_len(),
+                dt: data.dt,
+            };
+            let h = glitch::entry_response(model, p, &grid, *entry);
+            let [a, b] = glitch::synthesize(&grid, &h, None, *entry, *t0, *tau, part);
+            if let Some(e) = col.get_mut(*experiment) {
+                *e = vec![a, b];
+            }
+        }
+        col
+    }
+
+    /// Raw derivative columns with respect to the non-linear parameters, `sum_j a_j d col_j /
+    /// d theta_q` at amplitudes `amps`.
+    pub fn nonlinear_columns(
+        &self,
+        model: &Extended,
+        lik: &Likelihood<'_, Extended, 2>,
+        data: &ExperimentData,
+        p: &[f64],
+        amps: &[f64],
+    ) -> Vec<Series> {
+        let n = data.len();
+        let n_exp = data.outputs.len();
+        match self {
+            Additive::Line {
+                experiment,
+                channel,
+                f_hz,
+                ..
+            } => {
+                let mut d = vec![vec![vec![0.0; n]; 2]; n_exp];
+                let w = 2.0 * std::f64::consts::PI * f_hz * data.dt;
+                let (a, b) = (amps[0], amps[1]);
+                for (i, v) in d[*experiment][*channel].iter_mut().enumerate() {
+                    let (s, c) = (w * i as f64).sin_cos();
+                    *v = 2.0 * std::f64::consts::PI * data.dt * i as f64 * (a * c - b * s);
+                }
+                vec![d]
+            }
+            Additive::Drift { .. } => Vec::new(),
+            Additive::Glitch { .. } => [Part::DT0, Part::DTau]
+                .into_iter()
+                .map(|part| {
+                    let mut s = self.glitch_part(model, lik, data, p, part);
+                    s.iter_mut().flatten().flatten().for_each(|v| *v *= amps[0]);
+                    s
+                })
+                .collect(),
         }
     }
 }

@@ -17,15 +17,23 @@
 //! effect. A candidate whose template derivative is almost a combination of the fitted ones is
 //! reported as degenerate, with its largest correlation.
 //!
-//! The additive categories `line` and `drift` ([`additive`]) are linear in their parameters and
-//! enter as extra whitened columns; they are refitted by alternating the nonlinear fit of the
-//! base parameters on the data minus the additive contributions with a joint Gauss-Newton step of
-//! the amplitudes. Scope of `line`: a narrow line of the nominal fit's residual is proposed as a
-//! `line` candidate only when it is seen in the same channel of at least two experiments (within
-//! two periodogram bins) or when [`DiagnoseConfig::lines`] is set; otherwise it stays unexplained.
-//! Glitches and other transients are reported as unexplained time-window excess.
+//! The additive categories `line`, `drift` and `glitch` ([`additive`]) are linear in their
+//! amplitudes and enter as extra whitened columns; they are refitted by alternating the nonlinear
+//! fit of the base parameters on the data minus the additive contributions with a joint
+//! Gauss-Newton step of the amplitudes and of their own non-linear parameters (line frequency,
+//! glitch time and width). Scope of `line`: a narrow line of the nominal fit's residual is
+//! proposed as a `line` candidate only when it is seen in the same channel of at least two
+//! experiments (within two periodogram bins) or when [`DiagnoseConfig::lines`] is set; otherwise
+//! it stays unexplained. A linear `drift` once added opens its nested second-order term as a new
+//! candidate (one more test in the Bonferroni count). Glitch candidates ([`glitch`]) are proposed
+//! afresh every round by a matched-filter scan of the current residual; their p-values carry the
+//! scan's look-elsewhere factor. When refits of one round cannot be told apart (chi^2 within the
+//! chi^2(1) quantile at `1 - alpha`), the added effect names the others as
+//! `indistinguishable_from`.
 
 pub mod additive;
+pub mod glitch;
+pub mod inject;
 pub mod redesign;
 pub mod report;
 pub mod residuals;
@@ -35,6 +43,7 @@ use std::sync::Arc;
 use nalgebra::DMatrix;
 use rayon::prelude::*;
 use serde::Serialize;
+use statrs::distribution::{ChiSquared, ContinuousCDF};
 
 use crate::fit::{fit, ExperimentData, FitConfig, FitError, FitResult, Likelihood, Whitener};
 use crate::model::effects::{library, Effect, Extended};
@@ -42,6 +51,7 @@ use crate::model::ClosedLoopModel;
 use crate::setup::{Setup, DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 use crate::sim::Series;
 
+pub use glitch::SimGlitch;
 pub use residuals::{ChannelReport, SpectrumCurve};
 
 #[derive(Debug, thiserror::Error)]
@@ -74,6 +84,9 @@ pub struct DiagnoseConfig {
     pub lines: bool,
     /// Propose `drift` candidates of the parameters in [`additive::DRIFT_PARAMETERS`].
     pub drifts: bool,
+    /// Scan the residual for glitches ([`glitch`]) every round and propose the best of each
+    /// entry point as a `glitch` candidate.
+    pub glitches: bool,
 }
 
 impl Default for DiagnoseConfig {
@@ -89,6 +102,7 @@ impl Default for DiagnoseConfig {
             whiten_from_model: false,
             lines: false,
             drifts: true,
+            glitches: true,
         }
     }
 }
@@ -144,6 +158,22 @@ pub struct AddedEffect {
     pub p_value: f64,
     pub most_correlated: Option<(String, f64)>,
     pub degenerate: bool,
+    /// Alternatives the data cannot tell from it (refits of the same round whose chi^2 is
+    /// within the chi^2(1) quantile at `1 - alpha` of its own), e.g. a kick on TM1 against one of
+    /// opposite sign on TM2, which the closed loop shows alike in the readouts.
+    pub indistinguishable_from: Vec<Alternative>,
+    /// Index of its additive effect in the final model (internal).
+    #[serde(skip)]
+    pub lin_index: Option<usize>,
+}
+
+/// A candidate the data cannot tell from an added effect.
+#[derive(Debug, Clone, Serialize)]
+pub struct Alternative {
+    pub name: String,
+    pub acts_on: String,
+    pub parameters: Vec<f64>,
+    pub delta_chi2: f64,
 }
 
 /// Residual excess that no effect explains.
@@ -270,7 +300,7 @@ fn stage(
 /// (score statistic, dimension, identifiable fraction, most correlated fitted parameter).
 type Score = (f64, usize, f64, Option<(usize, f64)>);
 /// A refitted extended model, its fit, raw residuals, additive effects and their sigmas.
-type Refit = (Extended, FitResult, Series, Linear, Vec<Vec<f64>>);
+type Refit = (Extended, FitResult, Series, Linear, Vec<DMatrix<f64>>);
 
 /// Score statistics of every candidate (indices into `pool`) at the current fit.
 fn score_round(
@@ -352,8 +382,9 @@ fn score_round(
 
 /// Additive effects in the model with their amplitudes.
 type Linear = Vec<(additive::Additive, Vec<f64>)>;
-/// A fit with additive effects: fit, raw residuals, amplitudes and their sigmas.
-type LinearFit = (FitResult, Series, Linear, Vec<Vec<f64>>);
+/// A fit with additive effects: fit, raw residuals, additive effects with their amplitudes, and
+/// the covariance of each one's (amplitudes, non-linear parameters).
+type LinearFit = (FitResult, Series, Linear, Vec<DMatrix<f64>>);
 
 /// Raw columns of every additive effect of `lin` at `p`, flattened, with their amplitudes.
 fn linear_columns(
@@ -370,7 +401,7 @@ fn linear_columns(
     }
     let lik = Likelihood::new(model, &data.inputs, data.dt, w.clone(), poly_degree)?;
     for (a, v) in lin {
-        cols.extend(a.columns(&lik, data, p));
+        cols.extend(a.columns(model, &lik, data, p));
         amps.extend(v);
     }
     Ok((cols, amps))
@@ -412,7 +443,7 @@ fn score_additive(
     let mut out = Vec::new();
     for a in cands {
         let je: Vec<Series> = a
-            .columns(&lik, data, estimate)
+            .columns(current, &lik, data, estimate)
             .into_iter()
             .map(|c| additive::whiten(&lik, data, c))
             .collect();
@@ -487,10 +518,70 @@ fn additive_candidates(
     out
 }
 
-/// Fit `model` with the additive effects `lin` (amplitudes as starting values): alternate the
-/// nonlinear fit on the data minus the additive contributions with a joint Gauss-Newton step of
-/// the amplitudes, then fit once more. The sigmas (base and amplitudes) are from the joint
-/// information; `nu` counts the amplitudes.
+/// Glitch candidates at the current fit: the matched-filter scan of its whitened residual
+/// ([`glitch::scan`]): for each entry point, the best experiment, position and width, each
+/// carrying the scan's look-elsewhere factor.
+fn glitch_candidates(
+    model: &Extended,
+    fit: &FitResult,
+    data: &ExperimentData,
+    w: &Whitener<2>,
+    poly_degree: usize,
+    noise: Option<(&[Vec<f64>], f64)>,
+) -> Result<Vec<additive::Additive>, DiagnoseError> {
+    let lik = Likelihood::new(model, &data.inputs, data.dt, w.clone(), poly_degree)?;
+    let grid = glitch::Grid {
+        n: data.len(),
+        m: lik.engine.padded_len(),
+        dt: data.dt,
+    };
+    let wr = w.response_on_grid(grid.m);
+    // Robust variance of the whitened residual (median of r^2 over that of chi^2(1)), so that
+    // the ranking is not set by the glitch itself.
+    let mut sq: Vec<f64> = fit
+        .residuals_w
+        .iter()
+        .flatten()
+        .flatten()
+        .map(|v| v * v)
+        .collect();
+    let scale = if sq.is_empty() {
+        1.0
+    } else {
+        let mid = sq.len() / 2;
+        let (_, m, _) = sq.select_nth_unstable_by(mid, f64::total_cmp);
+        (*m / 0.454_936_423_119_572_8).max(1.0)
+    };
+    let s = glitch::scan(
+        model,
+        &fit.estimate,
+        &grid,
+        &wr,
+        w.order(),
+        &fit.residuals_w,
+        scale,
+        noise,
+    );
+    Ok(s.peaks
+        .into_iter()
+        .map(|pk| additive::Additive::Glitch {
+            experiment: pk.experiment,
+            experiment_name: data.names[pk.experiment].clone(),
+            entry: pk.entry,
+            t0: pk.t0,
+            tau: pk.tau,
+            trials: s.trials,
+            noise_var: pk.noise_var,
+        })
+        .collect())
+}
+
+/// Fit `model` with the additive effects `lin` (amplitudes and non-linear parameters as starting
+/// values): alternate the nonlinear fit of the base parameters on the data minus the additive
+/// contributions with a joint Gauss-Newton step of the amplitudes and of the additive effects'
+/// non-linear parameters (line frequency, glitch time and width), then fit once more. The sigmas
+/// (base, amplitudes, non-linear) are from the joint information; `nu` counts the amplitudes and
+/// non-linear parameters.
 fn fit_linear(
     model: &Extended,
     guess: &[f64],
@@ -501,48 +592,80 @@ fn fit_linear(
 ) -> Result<LinearFit, DiagnoseError> {
     let mut lin = lin.clone();
     let mut est = guess.to_vec();
-    let n_lin: usize = lin.iter().map(|(_, v)| v.len()).sum();
+    let n_lin: usize = lin.iter().map(|(a, v)| v.len() + a.nonlinear().len()).sum();
+    let nonlinear = lin.iter().any(|(a, _)| !a.nonlinear().is_empty());
+    let passes = if nonlinear { 5 } else { 3 };
     let lik = Likelihood::new(model, &data.inputs, data.dt, w.clone(), poly_degree)?;
-    for pass in 0..3 {
+    for pass in 0..passes {
         let eff = effective_data(model, &lin, data, w, poly_degree, &est)?;
         let (mut f, raw) = fit_model(model, &eff, w, poly_degree, &est)?;
         est = f.estimate.clone();
         let prob = lik.problem(&eff)?;
         let (r, jn) = prob.residuals_and_jacobian(&est);
-        let (cols, _) = linear_columns(model, &lin, data, w, poly_degree, &est)?;
-        let je: Vec<Series> = cols
-            .into_iter()
-            .map(|c| additive::whiten(&lik, data, c))
-            .collect();
+        // Columns per additive effect: amplitudes, then non-linear parameters (the latter only
+        // once the amplitudes are non-zero; before that their columns vanish).
+        let mut je: Vec<Series> = Vec::new();
+        let mut layout: Vec<(usize, usize)> = Vec::new();
+        for (a, v) in &lin {
+            let cols = a.columns(model, &lik, data, &est);
+            let n_nl = if pass > 0 && v.iter().any(|x| *x != 0.0) {
+                a.nonlinear().len()
+            } else {
+                0
+            };
+            layout.push((v.len(), n_nl));
+            je.extend(cols.into_iter().map(|c| additive::whiten(&lik, data, c)));
+            if n_nl > 0 {
+                je.extend(
+                    a.nonlinear_columns(model, &lik, data, &est, v)
+                        .into_iter()
+                        .map(|c| additive::whiten(&lik, data, c)),
+                );
+            }
+        }
         let all: Vec<&Series> = jn.iter().chain(je.iter()).collect();
         let (_, inv) = additive::gram_inverse(&all);
         let inv = inv.ok_or_else(|| DiagnoseError::Input("singular joint information".into()))?;
         let nn = jn.len();
         let g = DMatrix::<f64>::from_fn(all.len(), 1, |a, _| additive::dot(all[a], &r));
         let step = &inv * g;
-        if pass == 2 {
+        if pass == passes - 1 {
             for k in 0..nn {
                 f.sigma[k] = inv[(k, k)].max(0.0).sqrt();
             }
             let mut j = nn;
-            let mut sigmas = Vec::new();
-            for (_, v) in &lin {
-                sigmas.push(
-                    (0..v.len())
-                        .map(|q| inv[(j + q, j + q)].max(0.0).sqrt())
-                        .collect(),
-                );
-                j += v.len();
+            let mut covs = Vec::new();
+            for (a, v) in &lin {
+                let (n_a, n_nl) = (v.len(), a.nonlinear().len());
+                let used = layout[covs.len()].1;
+                let dim = n_a + n_nl;
+                // Non-linear parameters without a column (zero amplitude): unknown sigma.
+                let cov = DMatrix::<f64>::from_fn(dim, dim, |x, y| {
+                    if x < n_a + used && y < n_a + used {
+                        inv[(j + x, j + y)]
+                    } else if x == y {
+                        f64::NAN
+                    } else {
+                        0.0
+                    }
+                });
+                covs.push(cov);
+                j += n_a + used;
             }
             f.nu = f.nu.saturating_sub(n_lin).max(1);
             f.chi2_reduced = f.chi2 / f.nu as f64;
-            return Ok((f, raw, lin, sigmas));
+            return Ok((f, raw, lin, covs));
         }
         let mut j = nn;
-        for (_, v) in &mut lin {
-            for a in v.iter_mut() {
-                *a += step[(j, 0)];
+        for ((a, v), (_, n_nl)) in lin.iter_mut().zip(&layout) {
+            for x in v.iter_mut() {
+                *x += step[(j, 0)];
                 j += 1;
+            }
+            if *n_nl > 0 {
+                let s: Vec<f64> = (0..*n_nl).map(|q| step[(j + q, 0)]).collect();
+                a.step_nonlinear(&s, data.len(), data.dt);
+                j += n_nl;
             }
         }
     }
@@ -682,18 +805,51 @@ pub fn diagnose(
         whitening_dof,
     );
 
+    // The whitened noise run calibrates the glitch scan.
+    let noise_w = usable_noise
+        .filter(|_| cfg.glitches)
+        .map(|nz| whitened_noise(&w, nz, cfg.poly_degree));
     let mut current = nominal.clone();
     let mut cur_fit = fit0.clone();
     let mut cur_raw = raw0.clone();
     let mut pool: Vec<Arc<dyn Effect>> = cfg.effects.clone();
     let mut lin_pool = additive_candidates(&nominal, &before, &fit0, data, cfg);
     let mut lin: Linear = Vec::new();
-    let mut lin_sigmas: Vec<Vec<f64>> = Vec::new();
+    let mut lin_covs: Vec<DMatrix<f64>> = Vec::new();
     let mut candidates = Vec::new();
-    let mut added = Vec::new();
-    let n_cand = (pool.len() + lin_pool.len()).max(1);
+    let mut added: Vec<AddedEffect> = Vec::new();
+    // The glitch scan is one test of each round's family; its own look-elsewhere factor (every
+    // position, entry and width it tried) multiplies each glitch candidate's p-values.
+    let mut n_cand = (pool.len() + lin_pool.len() + usize::from(cfg.glitches)).max(1);
     for round in 1..=cfg.max_effects {
-        if pool.is_empty() && lin_pool.is_empty() {
+        let mut round_lin = lin_pool.clone();
+        if cfg.glitches {
+            let g = glitch_candidates(
+                &current,
+                &cur_fit,
+                data,
+                &w,
+                cfg.poly_degree,
+                noise_w.as_deref().map(|r| (r, fpe)),
+            )?;
+            if round == 1 {
+                if let Some(a) = g.first() {
+                    notes.push(format!(
+                        "glitch scan: {:.0} trials per round (every analysed sample of every experiment, {} entry points, {} widths); glitch p-values carry that look-elsewhere factor{}",
+                        a.trials(),
+                        glitch::ENTRIES.len(),
+                        glitch::SCAN_WIDTHS.len(),
+                        if noise_w.is_some() {
+                            ", and each matched filter's statistic is calibrated by its variance over the noise-only run"
+                        } else {
+                            ""
+                        }
+                    ));
+                }
+            }
+            round_lin.extend(g);
+        }
+        if pool.is_empty() && round_lin.is_empty() {
             break;
         }
         let eff = effective_data(&current, &lin, data, &w, cfg.poly_degree, &cur_fit.estimate)?;
@@ -708,14 +864,15 @@ pub fn diagnose(
         scores.extend(score_additive(
             &current,
             &cur_fit.estimate,
-            &lin_pool,
+            &round_lin,
             data,
             &eff,
             &w,
             cfg.poly_degree,
         )?);
         let n_op = pool.len();
-        let describe: Vec<(String, &'static str, String, usize)> = pool
+        // (name, category, acts on, dimension, look-elsewhere factor, noise calibration)
+        let describe: Vec<(String, &'static str, String, usize, f64, f64)> = pool
             .iter()
             .map(|e| {
                 (
@@ -723,14 +880,18 @@ pub fn diagnose(
                     e.category().as_str(),
                     e.acts_on(),
                     e.parameter_names().len(),
+                    1.0,
+                    1.0,
                 )
             })
-            .chain(lin_pool.iter().map(|a| {
+            .chain(round_lin.iter().map(|a| {
                 (
                     a.name(),
                     a.category().as_str(),
                     a.acts_on(),
                     a.parameter_names().len(),
+                    a.trials(),
+                    a.noise_var(),
                 )
             }))
             .collect();
@@ -738,25 +899,28 @@ pub fn diagnose(
         let mut round_c: Vec<Candidate> = describe
             .iter()
             .zip(&scores)
-            .map(|((name, cat, acts, _), (lm, dim, frac, corr))| {
-                let most = corr.map(|(k, v)| (names[k].clone(), v));
-                Candidate {
-                    round,
-                    name: name.clone(),
-                    category: cat,
-                    acts_on: acts.clone(),
-                    score_statistic: *lm,
-                    score_p_value: residuals::chi2_sf(*dim as f64, *lm),
-                    identifiable_fraction: *frac,
-                    degenerate: *frac < 1e-6
-                        || most.as_ref().is_some_and(|(_, v)| v.abs() > cfg.degeneracy),
-                    most_correlated: most,
-                    delta_chi2: None,
-                    p_value: None,
-                    estimate: None,
-                    sigma: None,
-                }
-            })
+            .map(
+                |((name, cat, acts, _, trials, var), (lm, dim, frac, corr))| {
+                    let most = corr.map(|(k, v)| (names[k].clone(), v));
+                    Candidate {
+                        round,
+                        name: name.clone(),
+                        category: cat,
+                        acts_on: acts.clone(),
+                        score_statistic: *lm,
+                        score_p_value: (trials * residuals::chi2_sf(*dim as f64, *lm / var))
+                            .min(1.0),
+                        identifiable_fraction: *frac,
+                        degenerate: *frac < 1e-6
+                            || most.as_ref().is_some_and(|(_, v)| v.abs() > cfg.degeneracy),
+                        most_correlated: most,
+                        delta_chi2: None,
+                        p_value: None,
+                        estimate: None,
+                        sigma: None,
+                    }
+                },
+            )
             .collect();
         // Candidates worth a refit: score-significant, best first.
         let threshold = cfg.alpha / n_cand as f64;
@@ -786,7 +950,7 @@ pub fn diagnose(
                             .map(|(f, r, l, s)| (m, f, r, l, s))
                     }
                 } else {
-                    let a = lin_pool[i - n_op].clone();
+                    let a = round_lin[i - n_op].clone();
                     let mut l = lin.clone();
                     let dim = a.parameter_names().len();
                     l.push((a, vec![0.0; dim]));
@@ -798,13 +962,14 @@ pub fn diagnose(
             .collect();
         let mut best: Option<(usize, f64, f64)> = None;
         let mut best_fit = None;
+        let mut refitted: Vec<(usize, Alternative)> = Vec::new();
         for (i, res) in refits {
             match res {
                 Ok((m, f, raw, l, ls)) => {
-                    let dim = describe[i].3;
-                    let scale = f.chi2_reduced.max(1.0);
+                    let (dim, trials) = (describe[i].3, describe[i].4);
+                    let scale = f.chi2_reduced.max(describe[i].5).max(1.0);
                     let dchi2 = cur_fit.chi2 - f.chi2;
-                    let p = residuals::chi2_sf(dim as f64, dchi2 / scale);
+                    let p = (trials * residuals::chi2_sf(dim as f64, dchi2 / scale)).min(1.0);
                     let c = &mut round_c[i];
                     c.delta_chi2 = Some(dchi2);
                     c.p_value = Some(p);
@@ -822,9 +987,30 @@ pub fn diagnose(
                             c.most_correlated = Some((m.parameter_names()[q].clone(), v));
                             c.degenerate = v.abs() > cfg.degeneracy;
                         }
-                    } else {
-                        c.estimate = l.last().map(|x| x.1.clone());
-                        c.sigma = ls.last().cloned();
+                    } else if let (Some((a, v)), Some(cov)) = (l.last(), ls.last()) {
+                        let (_, values, sigmas) = a.report(v, cov);
+                        refitted.push((
+                            i,
+                            Alternative {
+                                name: a.name(),
+                                acts_on: a.acts_on(),
+                                parameters: values.clone(),
+                                delta_chi2: dchi2,
+                            },
+                        ));
+                        c.estimate = Some(values);
+                        c.sigma = Some(sigmas);
+                    }
+                    if i < n_op {
+                        refitted.push((
+                            i,
+                            Alternative {
+                                name: describe[i].0.clone(),
+                                acts_on: describe[i].2.clone(),
+                                parameters: c.estimate.clone().unwrap_or_default(),
+                                delta_chi2: dchi2,
+                            },
+                        ));
                     }
                     if f.termination.converged()
                         && p < threshold
@@ -845,26 +1031,43 @@ pub fn diagnose(
             break;
         };
         let c = &round_c[i];
-        let (parameter_names, parameters, sigmas) = if i < n_op {
+        // Refits of the same round the data cannot tell from the winner.
+        let q = ChiSquared::new(1.0)
+            .map(|d| d.inverse_cdf(1.0 - cfg.alpha))
+            .unwrap_or(6.63);
+        let indistinguishable_from: Vec<Alternative> = refitted
+            .into_iter()
+            .filter(|(k, a)| *k != i && a.delta_chi2 > dchi2 - q)
+            .map(|(_, a)| a)
+            .collect();
+        let (name, acts_on, parameter_names, parameters, sigmas, lin_index) = if i < n_op {
             let e = pool.remove(i);
             let r = m.range(m.effects.len() - 1);
             (
+                c.name.clone(),
+                c.acts_on.clone(),
                 e.parameter_names(),
                 f.estimate[r.clone()].to_vec(),
                 f.sigma[r].to_vec(),
+                None,
             )
         } else {
-            let a = lin_pool.remove(i - n_op);
-            (
-                a.parameter_names(),
-                l.last().map(|x| x.1.clone()).unwrap_or_default(),
-                ls.last().cloned().unwrap_or_default(),
-            )
+            if i - n_op < lin_pool.len() {
+                let a = lin_pool.remove(i - n_op);
+                // A linear drift opens its nested second-order term (one more test).
+                if let Some(q) = a.quadratic_extension() {
+                    lin_pool.push(q);
+                    n_cand += 1;
+                }
+            }
+            let (a, v) = l.last().expect("the refit added an additive effect");
+            let (names, values, sig) = a.report(v, ls.last().expect("one covariance each"));
+            (a.name(), a.acts_on(), names, values, sig, Some(l.len() - 1))
         };
         added.push(AddedEffect {
-            name: c.name.clone(),
+            name,
             category: c.category,
-            acts_on: c.acts_on.clone(),
+            acts_on,
             parameter_names,
             parameters,
             sigmas,
@@ -873,18 +1076,25 @@ pub fn diagnose(
             p_value: p,
             most_correlated: c.most_correlated.clone(),
             degenerate: c.degenerate,
+            indistinguishable_from,
+            lin_index,
         });
         current = m;
         cur_fit = f;
         cur_raw = raw;
         lin = l;
-        lin_sigmas = ls;
+        lin_covs = ls;
     }
-    // Additive amplitudes are re-estimated in every later refit: report the final ones.
-    for ((a, v), s) in lin.iter().zip(&lin_sigmas) {
-        if let Some(e) = added.iter_mut().find(|e| e.name == a.name()) {
-            e.parameters = v.clone();
-            e.sigmas = s.clone();
+    // Additive amplitudes (and line frequencies, glitch times and widths) are re-estimated in
+    // every later refit: report the final ones.
+    for (k, ((a, v), cov)) in lin.iter().zip(&lin_covs).enumerate() {
+        if let Some(e) = added.iter_mut().find(|e| e.lin_index == Some(k)) {
+            let (names, values, sigmas) = a.report(v, cov);
+            e.name = a.name();
+            e.acts_on = a.acts_on();
+            e.parameter_names = names;
+            e.parameters = values;
+            e.sigmas = sigmas;
         }
     }
     let after = stage(
@@ -1109,6 +1319,49 @@ pub fn simulate_with_drifts(
         for (oc, pc) in oe.iter_mut().zip(pe) {
             for (i, (o, q)) in oc.iter_mut().zip(pc).enumerate() {
                 *o += (q - *o) * i as f64 / n;
+            }
+        }
+    }
+    Ok((data, noise))
+}
+
+/// As [`simulate_with_drifts`], with drifts of first and second order: `drifts` holds
+/// (base parameter index, d, d2) for `p_k(t) = p_k + d u + d2 (u^2 - 1/12)`, `u = (t - T/2)/T`.
+/// Without a second-order term this is [`simulate_with_drifts`]; with one, the experiments are
+/// three same-seed realizations at `u = -1/2, 0, 1/2` interpolated quadratically in time (the
+/// drift to first order in d and d2).
+pub fn simulate_with_drift_paths(
+    setup: &Setup,
+    design: &crate::signal::Design,
+    truth: &[f64],
+    effects: &[(Arc<dyn Effect>, Vec<f64>)],
+    drifts: &[(usize, f64, f64)],
+    seed: u64,
+) -> Result<(ExperimentData, Vec<Vec<f64>>), DiagnoseError> {
+    if drifts.iter().all(|d| d.2 == 0.0) {
+        let linear: Vec<(usize, f64)> = drifts.iter().map(|d| (d.0, d.1)).collect();
+        return simulate_with_drifts(setup, design, truth, effects, &linear, seed);
+    }
+    let at = |u: f64| {
+        let mut p = truth.to_vec();
+        for &(k, d, d2) in drifts {
+            let v = p.get_mut(k).ok_or_else(|| {
+                DiagnoseError::Input(format!("drift of parameter {k}: no such parameter"))
+            })?;
+            *v += d * u + d2 * (u * u - 1.0 / 12.0);
+        }
+        simulate_with_effects(setup, design, &p, effects, seed)
+    };
+    let (mut data, noise) = at(-0.5)?;
+    let (mid, _) = at(0.0)?;
+    let (end, _) = at(0.5)?;
+    let n = data.len().max(1) as f64;
+    for ((oe, me), ee) in data.outputs.iter_mut().zip(&mid.outputs).zip(&end.outputs) {
+        for ((oc, mc), ec) in oe.iter_mut().zip(me).zip(ee) {
+            for (i, ((o, m), e)) in oc.iter_mut().zip(mc).zip(ec).enumerate() {
+                // Lagrange interpolation through the nodes u = -1/2, 0, 1/2.
+                let u = i as f64 / n - 0.5;
+                *o = *o * 2.0 * u * (u - 0.5) + m * (1.0 - 4.0 * u * u) + e * 2.0 * u * (u + 0.5);
             }
         }
     }

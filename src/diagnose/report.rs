@@ -25,6 +25,16 @@ fn named(names: &[String], v: &[f64]) -> Value {
     )
 }
 
+/// `v` with the digits its sigma `e` supports (two significant digits beyond it; at least five).
+fn with_sigma(v: f64, e: f64) -> String {
+    let digits = if e.is_finite() && e > 0.0 && v != 0.0 && v.is_finite() {
+        ((v.abs() / e).log10().ceil() as i64 + 1).clamp(4, 12) as usize
+    } else {
+        4
+    };
+    format!("{v:.digits$e}")
+}
+
 fn stage_json(s: &Stage, truth: Option<&[f64]>) -> Value {
     let per: Vec<Value> = s
         .channels
@@ -99,6 +109,7 @@ impl Diagnosis {
                     "score_statistic": num(a.score_statistic), "delta_chi2": num(a.delta_chi2), "p_value": num(a.p_value),
                     "most_correlated": a.most_correlated.as_ref().map(|(n, c)| json!({"parameter": n, "correlation": num(*c)})),
                     "degenerate": a.degenerate,
+                    "indistinguishable_from": a.indistinguishable_from.iter().map(|x| json!({"name": x.name, "acts_on": x.acts_on, "parameters": x.parameters.iter().map(|v| num(*v)).collect::<Vec<_>>(), "delta_chi2": num(x.delta_chi2)})).collect::<Vec<_>>(),
                 })
             })
             .collect();
@@ -186,7 +197,7 @@ impl Diagnosis {
                     .iter()
                     .zip(&a.parameters)
                     .zip(&a.sigmas)
-                    .map(|((n, v), e)| format!("{n} = {v:.4e} ± {e:.2e}"))
+                    .map(|((n, v), e)| format!("{n} = {} ± {e:.2e}", with_sigma(*v, *e)))
                     .collect();
                 let corr = a
                     .most_correlated
@@ -207,6 +218,22 @@ impl Diagnosis {
                 );
             }
             let _ = writeln!(s);
+            for a in &self.effects_added {
+                for x in &a.indistinguishable_from {
+                    let pars: Vec<String> =
+                        x.parameters.iter().map(|v| format!("{v:.4e}")).collect();
+                    let _ = writeln!(
+                        s,
+                        "> {} cannot be told from **{}** ({}; parameters {}; delta chi2 {:.1} against {:.1}).\n",
+                        a.name,
+                        x.name,
+                        x.acts_on,
+                        pars.join(", "),
+                        x.delta_chi2,
+                        a.delta_chi2
+                    );
+                }
+            }
         }
         let _ = writeln!(s, "## Parameters before and after\n");
         let truth = self.truth.as_deref();
@@ -321,8 +348,10 @@ impl Diagnosis {
         }
         let _ = writeln!(
             s,
-            "\nNot in the library (cut): slow parameter drift, narrow-band lines and glitches as effects. Lines and transients \
-             show up above as unexplained `line` / `time` excess and in the outlier counts."
+            "\nScope: a `line` candidate is proposed for a narrow line seen in the same channel of two or more experiments \
+             (or every line with --lines); other lines stay unexplained. Glitch candidates come from a matched-filter scan of \
+             the whitened residual over every time, entry point (force on TM1, TM2, spacecraft; transient in o1, o12) and width; \
+             their p-values include the scan's look-elsewhere factor (Bonferroni over every position, entry and width tried)."
         );
         s
     }
