@@ -111,7 +111,14 @@ fn structurally_degenerate_effects_stay_degenerate_under_any_added_stretch() {
     }
     // An effect the standard design measures only in part gains from the right stretch: a
     // thruster lag is a phase at high frequency (above f_max it becomes fully identifiable).
-    let r = probe(&setup, &truth, by_name("actuation_lag_df").unwrap(), &data, timing).unwrap();
+    let r = probe(
+        &setup,
+        &truth,
+        by_name("actuation_lag_df").unwrap(),
+        &data,
+        timing,
+    )
+    .unwrap();
     assert!(r.identifiable_fraction < 0.9, "{r:?}");
     assert!(
         r.above_f_max.as_ref().unwrap().identifiable_fraction > 0.99,
