@@ -215,6 +215,17 @@ fn effects_degenerate_with_fitted_parameters_are_reported_not_claimed() {
             "{effect}: identifiable fraction {}",
             cand.identifiable_fraction
         );
+        // The redesign verdict rides with the candidate: no single allowed stretch separates
+        // these (tests/redesign.rs checks the probe itself against a time-domain Jacobian).
+        let r = cand
+            .redesign
+            .as_ref()
+            .unwrap_or_else(|| panic!("{effect}: no redesign verdict"));
+        let best = r.within_constraints.as_ref().unwrap();
+        assert!(
+            best.identifiable_fraction < 1e-3 && best.frequency_hz <= r.f_max_hz,
+            "{effect}: {best:?}"
+        );
     }
 }
 

@@ -142,6 +142,8 @@ pub struct Candidate {
     pub p_value: Option<f64>,
     pub estimate: Option<Vec<f64>>,
     pub sigma: Option<Vec<f64>>,
+    /// For a degenerate operator effect: could one more injection stretch separate it?
+    pub redesign: Option<redesign::Redesign>,
 }
 
 /// An effect added by the diagnosis.
@@ -918,6 +920,7 @@ pub fn diagnose(
                         p_value: None,
                         estimate: None,
                         sigma: None,
+                        redesign: None,
                     }
                 },
             )
@@ -1108,6 +1111,7 @@ pub fn diagnose(
         whitening_dof,
     );
     let unexplained = find_unexplained(&after, cfg.alpha);
+    redesign_degenerate(setup, &fit0.estimate, data, cfg, &mut candidates, &mut notes);
     let mut spectra = Vec::new();
     for (st, res) in [
         ("before", &fit0.residuals_w),
@@ -1147,6 +1151,60 @@ pub fn diagnose(
         truth: truth.map(|t| t.to_vec()),
         seconds: start.elapsed().as_secs_f64(),
     })
+}
+
+/// Attach a redesign verdict ([`redesign::probe`]) to every degenerate operator candidate: is
+/// the effect separable with one more injection stretch of the `standard` design's timing, within
+/// the operating constraints or only above `f_max_hz`? Probed at the nominal estimate.
+fn redesign_degenerate(
+    setup: &Setup,
+    p: &[f64],
+    data: &ExperimentData,
+    cfg: &DiagnoseConfig,
+    candidates: &mut [Candidate],
+    notes: &mut Vec<String>,
+) {
+    let mut names: Vec<&str> = candidates
+        .iter()
+        .filter(|c| c.degenerate && cfg.effects.iter().any(|e| e.name() == c.name))
+        .map(|c| c.name.as_str())
+        .collect();
+    names.sort_unstable();
+    names.dedup();
+    if names.is_empty() {
+        return;
+    }
+    let timing = match setup.design("standard") {
+        Ok(d) => crate::design::space::DesignSpace::timing_of(&d, 7),
+        Err(e) => {
+            notes.push(format!(
+                "no redesign probe of the degenerate effects: the model has no usable `standard` design ({e})"
+            ));
+            return;
+        }
+    };
+    let verdicts: Vec<(String, Result<redesign::Redesign, String>)> = names
+        .par_iter()
+        .map(|&name| {
+            let res = match cfg.effects.iter().find(|e| e.name() == name) {
+                Some(e) => {
+                    redesign::probe(setup, p, e.clone(), data, timing).map_err(|e| e.to_string())
+                }
+                None => Err("not an operator effect".to_string()),
+            };
+            (name.to_string(), res)
+        })
+        .collect();
+    for (name, res) in verdicts {
+        match res {
+            Ok(r) => {
+                for c in candidates.iter_mut().filter(|c| c.name == name) {
+                    c.redesign = Some(r.clone());
+                }
+            }
+            Err(e) => notes.push(format!("redesign probe of {name} failed: {e}")),
+        }
+    }
 }
 
 /// Significant excess left after the final fit, at a Bonferroni threshold over every test made.

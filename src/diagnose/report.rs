@@ -5,7 +5,8 @@ use std::fmt::Write;
 
 use serde_json::{json, Map, Value};
 
-use super::{Diagnosis, Stage};
+use super::redesign::{Probe, Redesign};
+use super::{Candidate, Diagnosis, Stage};
 
 fn num(v: f64) -> Value {
     if v.is_finite() {
@@ -124,6 +125,12 @@ impl Diagnosis {
                     "most_correlated": c.most_correlated.as_ref().map(|(n, v)| json!({"parameter": n, "correlation": num(*v)})),
                     "degenerate": c.degenerate,
                     "delta_chi2": c.delta_chi2.map(num), "p_value": c.p_value.map(num),
+                    "redesign": c.redesign.as_ref().map(|r| json!({
+                        "identifiable_fraction": num(r.identifiable_fraction),
+                        "f_max_hz": num(r.f_max_hz),
+                        "within_constraints": r.within_constraints.as_ref().map(probe_json),
+                        "above_f_max": r.above_f_max.as_ref().map(probe_json),
+                    })),
                 })
             })
             .collect();
@@ -346,6 +353,40 @@ impl Diagnosis {
                     .unwrap_or_else(|| "-".into())
             );
         }
+        let degenerate: Vec<&Candidate> = {
+            let mut seen = std::collections::HashSet::new();
+            self.candidates
+                .iter()
+                .filter(|c| c.redesign.is_some() && seen.insert(c.name.as_str()))
+                .collect()
+        };
+        if !degenerate.is_empty() {
+            let _ = writeln!(
+                s,
+                "\n## Degenerate effects\n\nThese effects are (almost) absorbed by the fitted parameters: the data cannot attribute them. \
+                 The redesign probe adds one injection stretch of the standard design's length at the largest amplitude the \
+                 constraints allow, on each input and grid frequency, and reports the best identifiable fraction it reaches \
+                 (1 = fully separable).\n"
+            );
+            let _ = writeln!(s, "| effect | most correlated | identifiable now | best stretch <= f_max | best stretch above f_max | verdict |\n|---|---|---|---|---|---|");
+            for c in degenerate {
+                let r = c.redesign.as_ref().expect("filtered");
+                let corr = c
+                    .most_correlated
+                    .as_ref()
+                    .map(|(n, v)| format!("{n} ({v:+.4})"))
+                    .unwrap_or_else(|| "-".into());
+                let _ = writeln!(
+                    s,
+                    "| {} | {corr} | {:.2e} | {} | {} | {} |",
+                    c.name,
+                    r.identifiable_fraction,
+                    probe_md(r.within_constraints.as_ref()),
+                    probe_md(r.above_f_max.as_ref()),
+                    redesign_verdict(r),
+                );
+            }
+        }
         let _ = writeln!(
             s,
             "\nScope: a `line` candidate is proposed for a narrow line seen in the same channel of two or more experiments \
@@ -354,5 +395,40 @@ impl Diagnosis {
              their p-values include the scan's look-elsewhere factor (Bonferroni over every position, entry and width tried)."
         );
         s
+    }
+}
+
+fn probe_json(p: &Probe) -> Value {
+    json!({
+        "frequency_hz": num(p.frequency_hz), "input": p.input, "amplitude_m": num(p.amplitude_m),
+        "binding": p.binding, "identifiable_fraction": num(p.identifiable_fraction),
+    })
+}
+
+fn probe_md(p: Option<&Probe>) -> String {
+    p.map(|p| {
+        format!(
+            "{:.2e} at {:.2e} Hz on {} ({:.1e} m, {} bound)",
+            p.identifiable_fraction, p.frequency_hz, p.input, p.amplitude_m, p.binding
+        )
+    })
+    .unwrap_or_else(|| "-".into())
+}
+
+/// One-line reading of a redesign probe: separable (and how), or structural.
+fn redesign_verdict(r: &Redesign) -> String {
+    const SEPARABLE: f64 = 0.5;
+    let frac = |p: &Option<Probe>| p.as_ref().map_or(0.0, |p| p.identifiable_fraction);
+    if frac(&r.within_constraints) >= SEPARABLE {
+        let p = r.within_constraints.as_ref().expect("checked");
+        format!("separable: add a stretch at {:.2e} Hz on {}", p.frequency_hz, p.input)
+    } else if frac(&r.above_f_max) >= SEPARABLE {
+        let p = r.above_f_max.as_ref().expect("checked");
+        format!(
+            "separable only above f_max = {:.2e} Hz (at {:.2e} Hz on {})",
+            r.f_max_hz, p.frequency_hz, p.input
+        )
+    } else {
+        "structural: no single stretch separates it".into()
     }
 }
