@@ -1111,7 +1111,14 @@ pub fn diagnose(
         whitening_dof,
     );
     let unexplained = find_unexplained(&after, cfg.alpha);
-    redesign_degenerate(setup, &fit0.estimate, data, cfg, &mut candidates, &mut notes);
+    redesign_degenerate(
+        setup,
+        &fit0.estimate,
+        data,
+        cfg,
+        &mut candidates,
+        &mut notes,
+    );
     let mut spectra = Vec::new();
     for (st, res) in [
         ("before", &fit0.residuals_w),

@@ -185,6 +185,21 @@ impl Diagnosis {
             self.after.reference_chi2_reduced,
             self.unexplained.len()
         );
+        let mut degenerate: Vec<&str> = self
+            .candidates
+            .iter()
+            .filter(|c| c.degenerate)
+            .map(|c| c.name.as_str())
+            .collect();
+        degenerate.sort_unstable();
+        degenerate.dedup();
+        if !degenerate.is_empty() {
+            let _ = writeln!(
+                s,
+                "The data cannot tell {} from the fitted parameters (degenerate: the candidates table gives each one's correlation, \"Degenerate effects\" whether a redesign would separate the operator ones): an omitted one shows as a shifted estimate, not as a residual.\n",
+                degenerate.join(", ")
+            );
+        }
         let _ = writeln!(
             s,
             "Whitening: {} (order {}); family-wise false-alarm probability per decision {}.\n",
@@ -421,7 +436,10 @@ fn redesign_verdict(r: &Redesign) -> String {
     let frac = |p: &Option<Probe>| p.as_ref().map_or(0.0, |p| p.identifiable_fraction);
     if frac(&r.within_constraints) >= SEPARABLE {
         let p = r.within_constraints.as_ref().expect("checked");
-        format!("separable: add a stretch at {:.2e} Hz on {}", p.frequency_hz, p.input)
+        format!(
+            "separable: add a stretch at {:.2e} Hz on {}",
+            p.frequency_hz, p.input
+        )
     } else if frac(&r.above_f_max) >= SEPARABLE {
         let p = r.above_f_max.as_ref().expect("checked");
         format!(
