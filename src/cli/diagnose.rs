@@ -76,7 +76,8 @@ pub struct DiagnoseArgs {
     pub design: String,
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
-    /// Do not run scripts/plot_diagnose.py.
+    /// Do not draw psd.png and time_chi2.png (the embedded scripts/plot_diagnose.py, run with
+    /// python3; FREEFALL_PLOT_SCRIPT names another script).
     #[arg(long)]
     pub no_plots: bool,
 }
@@ -305,22 +306,39 @@ fn write_outputs(out: &Path, d: &Diagnosis, names: &[String], dt: f64) -> Result
 }
 
 /// Run scripts/plot_diagnose.py (next to the crate, or FREEFALL_PLOT_SCRIPT) on the output.
+/// The plot script, embedded so that an installed binary plots without the source tree.
+const PLOT_SCRIPT: &str = include_str!("../../scripts/plot_diagnose.py");
+
 fn plot(out: &Path) -> Result<()> {
-    let script = std::env::var_os("FREEFALL_PLOT_SCRIPT")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("scripts/plot_diagnose.py"));
-    if !script.exists() {
-        bail!("plot script {} not found", script.display());
-    }
+    // FREEFALL_PLOT_SCRIPT overrides the embedded script (for a customised figure).
+    let custom = std::env::var_os("FREEFALL_PLOT_SCRIPT").map(PathBuf::from);
+    let script = match &custom {
+        Some(p) if !p.exists() => bail!("plot script {} not found", p.display()),
+        Some(p) => p.clone(),
+        None => {
+            let p = out.join(".plot_diagnose.py");
+            std::fs::write(&p, PLOT_SCRIPT)
+                .with_context(|| format!("cannot write {}", p.display()))?;
+            p
+        }
+    };
     let o = std::process::Command::new("python3")
         .arg(&script)
         .arg(out)
-        .output()
-        .context("python3 not available")?;
+        .output();
+    if custom.is_none() {
+        let _ = std::fs::remove_file(&script);
+    }
+    let o = o.context("python3 not available")?;
     if !o.status.success() {
         let err = String::from_utf8_lossy(&o.stderr);
         let last = err.lines().last().unwrap_or("").to_string();
-        bail!("{} failed: {last}", script.display());
+        let hint = if last.contains("ModuleNotFoundError") {
+            " (install the plotting packages: python3 -m pip install numpy pyarrow matplotlib)"
+        } else {
+            ""
+        };
+        bail!("the plot script failed: {last}{hint}");
     }
     Ok(())
 }
