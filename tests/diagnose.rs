@@ -226,6 +226,27 @@ fn effects_degenerate_with_fitted_parameters_are_reported_not_claimed() {
             best.identifiable_fraction < 1e-3 && best.frequency_hz <= r.f_max_hz,
             "{effect}: {best:?}"
         );
+        // Oracle for the absorption: the nominal fit's actual error against the simulated truth
+        // matches the first-order bias I_nn^-1 I_ne theta of the partner parameter.
+        let a = r
+            .absorbed
+            .iter()
+            .find(|a| a.parameter == partner)
+            .unwrap_or_else(|| panic!("{effect}: {partner} not among {:?}", r.absorbed));
+        let k =
+            c.d.before
+                .parameter_names
+                .iter()
+                .position(|n| n == partner)
+                .unwrap();
+        let truth = c.d.truth.as_ref().unwrap();
+        let err = c.d.before.estimate[k] - truth[k];
+        let predicted = a.shift_per_unit * value;
+        let sigma = c.d.before.sigma[k];
+        assert!(
+            (err - predicted).abs() < 4.0 * sigma && err.abs() > 4.0 * sigma,
+            "{effect}: {partner} error {err:.3e}, predicted bias {predicted:.3e}, sigma {sigma:.1e}"
+        );
     }
 }
 

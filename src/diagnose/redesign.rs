@@ -41,11 +41,28 @@ pub struct Probe {
     pub identifiable_fraction: f64,
 }
 
+/// How an omitted effect biases a fitted parameter (first order, data's own injections):
+/// `b = I_nn^-1 I_ne theta` (the nominal fit absorbs the effect along the directions it spans).
+#[derive(Debug, Clone, Serialize)]
+pub struct Absorbed {
+    /// The fitted parameter that moves.
+    pub parameter: String,
+    /// The effect parameter that moves it.
+    pub effect_parameter: String,
+    /// Shift of `parameter` per unit of `effect_parameter`.
+    pub shift_per_unit: f64,
+    /// The shift at the effect's typical size, in units of the parameter's Fisher sigma.
+    pub shift_sigma_at_typical: f64,
+}
+
 /// The redesign verdict for one effect.
 #[derive(Debug, Clone, Serialize)]
 pub struct Redesign {
     /// The effect's identifiable fraction with the data's own injections.
     pub identifiable_fraction: f64,
+    /// The fitted parameters that absorb it most (largest shift in sigma at the typical size,
+    /// at most three per effect parameter); empty when the data carry no injection.
+    pub absorbed: Vec<Absorbed>,
     /// The best single added stretch at or below `f_max_hz`.
     pub within_constraints: Option<Probe>,
     /// The best single added stretch above `f_max_hz` (amplitude still limited).
@@ -100,6 +117,40 @@ pub fn identifiable_fraction(info: &DMatrix<f64>, k: usize) -> f64 {
     (0..k).map(|i| schur[(i, i)]).fold(1.0, f64::min).max(0.0)
 }
 
+/// First-order bias of the base parameters (the first `np - k`) by an omitted effect (the last
+/// `k`): `b_j = I_nn^-1 I_ne e_j` per effect parameter `j`, with the base block's inverse as
+/// the covariance of the nominal fit.
+fn absorption(info: &DMatrix<f64>, k: usize, names: &[String], typical: &[f64]) -> Vec<Absorbed> {
+    let nb = info.nrows() - k;
+    let inn = info.view((0, 0), (nb, nb)).into_owned();
+    let Some(cov) = crate::design::criteria::spd_inverse(&inn) else {
+        return Vec::new();
+    };
+    let mut out = Vec::new();
+    for j in 0..k {
+        let ine = info.view((0, nb + j), (nb, 1)).into_owned();
+        let b = &cov * ine;
+        let t = typical.get(j).copied().unwrap_or(1.0);
+        let mut col: Vec<Absorbed> = (0..nb)
+            .map(|q| Absorbed {
+                parameter: names[q].clone(),
+                effect_parameter: names[nb + j].clone(),
+                shift_per_unit: b[q],
+                shift_sigma_at_typical: b[q] * t / cov[(q, q)].sqrt(),
+            })
+            .filter(|a| a.shift_sigma_at_typical.is_finite())
+            .collect();
+        col.sort_by(|a, b| {
+            b.shift_sigma_at_typical
+                .abs()
+                .total_cmp(&a.shift_sigma_at_typical.abs())
+        });
+        col.truncate(3);
+        out.extend(col);
+    }
+    out
+}
+
 /// The redesign verdict for `effect` at base parameters `p` on `data`, for added stretches of
 /// the timing `timing` (its stretch length sets the frequency grid `m / stretch_s`).
 pub fn probe(
@@ -110,6 +161,7 @@ pub fn probe(
     timing: Timing,
 ) -> Result<Redesign, DesignError> {
     let k = effect.parameter_names().len();
+    let effect_typical = effect.typical();
     let model = Extended::new(setup.model.clone(), vec![effect]);
     let q = model.nested(p);
     let np = model.n_params();
@@ -124,6 +176,7 @@ pub fn probe(
         DMatrix::<f64>::zeros(np, np)
     };
     let now = identifiable_fraction(&info, k);
+    let absorbed = absorption(&info, k, &model.parameter_names(), &effect_typical);
 
     // One added stretch per grid frequency and input, at the largest allowed amplitude.
     let space = DesignSpace::new(setup, p, timing)?;
@@ -169,6 +222,7 @@ pub fn probe(
     }
     Ok(Redesign {
         identifiable_fraction: now,
+        absorbed,
         within_constraints: within,
         above_f_max: above,
         f_max_hz: space.f_max_hz,

@@ -127,6 +127,11 @@ impl Diagnosis {
                     "delta_chi2": c.delta_chi2.map(num), "p_value": c.p_value.map(num),
                     "redesign": c.redesign.as_ref().map(|r| json!({
                         "identifiable_fraction": num(r.identifiable_fraction),
+                        "absorbed": r.absorbed.iter().map(|a| json!({
+                            "parameter": a.parameter, "effect_parameter": a.effect_parameter,
+                            "shift_per_unit": num(a.shift_per_unit),
+                            "shift_sigma_at_typical": num(a.shift_sigma_at_typical),
+                        })).collect::<Vec<_>>(),
                         "f_max_hz": num(r.f_max_hz),
                         "within_constraints": r.within_constraints.as_ref().map(probe_json),
                         "above_f_max": r.above_f_max.as_ref().map(probe_json),
@@ -381,9 +386,10 @@ impl Diagnosis {
                 "\n## Degenerate effects\n\nThese effects are (almost) absorbed by the fitted parameters: the data cannot attribute them. \
                  The redesign probe adds one injection stretch of the standard design's length at the largest amplitude the \
                  constraints allow, on each input and grid frequency, and reports the best identifiable fraction it reaches \
-                 (1 = fully separable).\n"
+                 (1 = fully separable). \"Absorbed by\" is the first-order bias an omitted effect puts on the fitted \
+                 parameters, I_nn^-1 I_ne, per unit of the effect and in sigma at the effect's typical size.\n"
             );
-            let _ = writeln!(s, "| effect | most correlated | identifiable now | best stretch <= f_max | best stretch above f_max | verdict |\n|---|---|---|---|---|---|");
+            let _ = writeln!(s, "| effect | most correlated | absorbed by (shift per unit; at typical size) | identifiable now | best stretch <= f_max | best stretch above f_max | verdict |\n|---|---|---|---|---|---|---|");
             for c in degenerate {
                 let r = c.redesign.as_ref().expect("filtered");
                 let corr = c
@@ -393,8 +399,22 @@ impl Diagnosis {
                     .unwrap_or_else(|| "-".into());
                 let _ = writeln!(
                     s,
-                    "| {} | {corr} | {:.2e} | {} | {} | {} |",
+                    "| {} | {corr} | {} | {:.2e} | {} | {} | {} |",
                     c.name,
+                    r.absorbed
+                        .iter()
+                        .enumerate()
+                        .filter(|(i, a)| *i == 0 || a.shift_sigma_at_typical.abs() >= 0.5)
+                        .map(|(_, a)| a)
+                        .map(|a| format!(
+                            "{} ({:+.3e} per unit {}; {:+.1} sigma)",
+                            a.parameter,
+                            a.shift_per_unit,
+                            a.effect_parameter,
+                            a.shift_sigma_at_typical
+                        ))
+                        .collect::<Vec<_>>()
+                        .join(", "),
                     r.identifiable_fraction,
                     probe_md(r.within_constraints.as_ref()),
                     probe_md(r.above_f_max.as_ref()),
