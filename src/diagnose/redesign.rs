@@ -176,7 +176,7 @@ pub fn probe(
         DMatrix::<f64>::zeros(np, np)
     };
     let now = identifiable_fraction(&info, k);
-    let absorbed = absorption(&info, k, &model.parameter_names(), &effect_typical);
+    let absorbed = absorption(&info, k, model.parameter_names(), &effect_typical);
 
     // One added stretch per grid frequency and input, at the largest allowed amplitude.
     let space = DesignSpace::new(setup, p, timing)?;
