@@ -777,15 +777,28 @@ pub fn diagnose(
             "the whitening filter was fitted on the noise run: its whitened level is scaled by Akaike's final-prediction-error factor {fpe:.3} to serve as the reference"
         ));
     }
+    // Degrees of freedom of the estimated filter's spectrum at any frequency: T samples over
+    // the m = 2 p coefficients of each equation of the two-channel autoregression (as in the
+    // final-prediction-error factor above).
     let whitening_dof = match usable_noise {
         Some(nz) if whitening == "noise-only run" => {
-            Some((nz[0].len().saturating_sub(order) as f64 / order as f64).max(2.0))
+            Some((nz[0].len().saturating_sub(order) as f64 / (2 * order) as f64).max(2.0))
         }
         _ => None,
     };
     let noise_ref = usable_noise.and_then(|nz| {
         residuals::NoiseReference::new(&whitened_noise(&w, nz, cfg.poly_degree), data.dt, fpe)
     });
+    if let Some(nr) = noise_ref
+        .as_ref()
+        .filter(|nr| nr.vif.iter().any(|v| *v > 1.05))
+    {
+        notes.push(format!(
+            "the whitened noise run is not quite white (variance inflation of a windowed mean square: o1 {:.2}, o12 {:.2}); the time-window tests use correspondingly fewer degrees of freedom",
+            nr.vif[0],
+            nr.vif.get(1).copied().unwrap_or(1.0)
+        ));
+    }
 
     // Nominal fit.
     let nominal = Extended::new(base.clone(), Vec::new());
@@ -872,6 +885,18 @@ pub fn diagnose(
             &w,
             cfg.poly_degree,
         )?);
+        // Tail probability of a score or likelihood-ratio statistic of `dim` parameters. With a
+        // whitening filter estimated from the noise run (order p over N samples), the filter's
+        // spectrum at any frequency is itself uncertain, like an estimate with nu = N / p degrees
+        // of freedom, and scales the statistic by as much: chi^2(dim) / dim over chi^2(nu) / nu,
+        // an F(dim, nu) (the line search uses the same tail). Glitch statistics are calibrated
+        // on the noise run instead (`noise_var` != 1) and keep the chi^2 tail.
+        let tail = |dim: usize, stat: f64, noise_var: f64| match whitening_dof {
+            Some(nu) if noise_var == 1.0 && dim > 0 => {
+                residuals::f_sf(dim as f64, nu, stat / dim as f64)
+            }
+            _ => residuals::chi2_sf(dim as f64, stat),
+        };
         let n_op = pool.len();
         // (name, category, acts on, dimension, look-elsewhere factor, noise calibration)
         let describe: Vec<(String, &'static str, String, usize, f64, f64)> = pool
@@ -910,8 +935,7 @@ pub fn diagnose(
                         category: cat,
                         acts_on: acts.clone(),
                         score_statistic: *lm,
-                        score_p_value: (trials * residuals::chi2_sf(*dim as f64, *lm / var))
-                            .min(1.0),
+                        score_p_value: (trials * tail(*dim, *lm / var, *var)).min(1.0),
                         identifiable_fraction: *frac,
                         degenerate: *frac < 1e-6
                             || most.as_ref().is_some_and(|(_, v)| v.abs() > cfg.degeneracy),
@@ -972,7 +996,7 @@ pub fn diagnose(
                     let (dim, trials) = (describe[i].3, describe[i].4);
                     let scale = f.chi2_reduced.max(describe[i].5).max(1.0);
                     let dchi2 = cur_fit.chi2 - f.chi2;
-                    let p = (trials * residuals::chi2_sf(dim as f64, dchi2 / scale)).min(1.0);
+                    let p = (trials * tail(dim, dchi2 / scale, describe[i].5)).min(1.0);
                     let c = &mut round_c[i];
                     c.delta_chi2 = Some(dchi2);
                     c.p_value = Some(p);
@@ -1216,6 +1240,9 @@ fn redesign_degenerate(
 
 /// Significant excess left after the final fit, at a Bonferroni threshold over every test made.
 fn find_unexplained(after: &Stage, alpha: f64) -> Vec<Unexplained> {
+    // Three families (narrow lines, bands, time windows), each Bonferroni over its own tests:
+    // alpha / 3 apiece keeps the whole report's false-alarm probability at alpha.
+    let alpha = alpha / 3.0;
     let n_band: usize = after
         .channels
         .iter()

@@ -108,7 +108,7 @@ pub fn chi2_sf(dof: f64, x: f64) -> f64 {
     ChiSquared::new(dof).map(|d| d.sf(x)).unwrap_or(f64::NAN)
 }
 
-fn f_sf(d1: f64, d2: f64, x: f64) -> f64 {
+pub fn f_sf(d1: f64, d2: f64, x: f64) -> f64 {
     FisherSnedecor::new(d1, d2)
         .map(|d| d.sf(x))
         .unwrap_or(f64::NAN)
@@ -246,6 +246,48 @@ pub struct NoiseReference {
     pub z: Vec<Vec<f64>>,
     /// Mean square of each whitened noise-run channel: the chi^2/nu a correct model reaches.
     pub var: Vec<f64>,
+    /// Variance inflation of a windowed mean square, per channel: `1 + 2 sum_k rho_k^2` over
+    /// the lags of the whitened noise run's autocorrelation (Bartlett 1946). 1 for white noise;
+    /// above 1 where the whitening filter leaves colour, so that a window of `n` samples carries
+    /// `n / vif` degrees of freedom.
+    pub vif: Vec<f64>,
+    /// Samples of the noise run.
+    pub n: usize,
+}
+
+/// `1 + 2 sum_{k=1}^{L} (rho_k^2 - 1/N)` for the sample autocorrelation `rho_k` of `x`
+/// (`1/N`: the bias of `rho_k^2` for white noise), `L = min(N / 8, 2000)`; at least 1.
+pub fn variance_inflation(x: &[f64]) -> f64 {
+    let n = x.len();
+    let lags = (n / 8).min(2000);
+    if lags < 2 {
+        return 1.0;
+    }
+    let m = 2 * n;
+    let mut planner = RealFftPlanner::<f64>::new();
+    let fwd = planner.plan_fft_forward(m);
+    let inv = planner.plan_fft_inverse(m);
+    let mu = mean(x);
+    let mut buf: Vec<f64> = x
+        .iter()
+        .map(|v| v - mu)
+        .chain(std::iter::repeat_n(0.0, n))
+        .collect();
+    let mut spec = fwd.make_output_vec();
+    if fwd.process(&mut buf, &mut spec).is_err() {
+        return 1.0;
+    }
+    for c in &mut spec {
+        *c = Complex64::new(c.norm_sqr(), 0.0);
+    }
+    let mut acov = inv.make_output_vec();
+    if inv.process(&mut spec, &mut acov).is_err() || acov[0] <= 0.0 {
+        return 1.0;
+    }
+    let sum: f64 = (1..=lags)
+        .map(|k| (acov[k] / acov[0]).powi(2) - 1.0 / n as f64)
+        .sum();
+    (1.0 + 2.0 * sum).max(1.0)
 }
 
 impl NoiseReference {
@@ -268,7 +310,9 @@ impl NoiseReference {
             f = fc;
             z.push(zc.into_iter().map(|v| v * factor).collect());
         }
-        Some(NoiseReference { f, z, var })
+        let vif = whitened.iter().map(|c| variance_inflation(c)).collect();
+        let n = whitened.first().map_or(0, |c| c.len());
+        Some(NoiseReference { f, z, var, vif, n })
     }
 
     fn band(&self, c: usize, lo: f64, hi: f64) -> (f64, usize) {
@@ -379,12 +423,16 @@ pub fn analyse_channel(inp: &ChannelInput<'_>, noise: Option<&NoiseReference>) -
         let total = z.len() as f64;
         for &k in order.iter().take(50) {
             let power = z[k] / reference(k);
-            // P(max of `total` Exp(1) > power).
-            // Single-bin tail: Exp(1), or F(2, nu) = (1 + 2x/nu)^(-nu/2) for an estimated filter.
-            let tail = match inp.whitening_dof {
-                Some(nu) => (-(nu / 2.0) * (2.0 * power / nu).ln_1p()).exp(),
-                None => (-power).exp(),
-            };
+            // P(max of `total` single-bin tails > power). A bin over an exactly known level is
+            // Exp(1). Over an estimated one it is F(2, nu), tail (1 + 2x/nu)^(-nu/2): the local
+            // median of m ordinates scatters like a chi^2 level of about 0.96 m degrees of
+            // freedom (relative variance 1 / (m ln^2 2) against 2 / nu), and a whitening filter
+            // estimated from a noise run adds its own (`whitening_dof`); the two combine as
+            // 1/nu = 1/nu_median + 1/nu_filter. Without this, a 15% error of the reference
+            // multiplies the tail at the thresholds used here by ten or more.
+            let m = ((k + half + 1).min(z.len()) - k.saturating_sub(half)) as f64;
+            let nu = 1.0 / (1.0 / (0.96 * m) + inp.whitening_dof.map_or(0.0, |w| 1.0 / w));
+            let tail = (-(nu / 2.0) * (2.0 * power / nu).ln_1p()).exp();
             let p_value = (-(total * (-tail).ln_1p()).exp_m1()).clamp(0.0, 1.0);
             if p_value >= inp.alpha {
                 break;
@@ -405,8 +453,12 @@ pub fn analyse_channel(inp: &ChannelInput<'_>, noise: Option<&NoiseReference>) -
             }
         }
     }
-    // Time windows, against the noise run's whitened variance.
+    // Time windows, against the noise run's whitened variance: an F test whose degrees of
+    // freedom are the samples over the variance inflation of the whitened noise run (both the
+    // window's and the noise run's mean square scatter more when whitening leaves colour).
     let var_ref = noise.map_or(1.0, |nr| nr.var[inp.channel_index]).max(1e-12);
+    let vif = noise.map_or(1.0, |nr| nr.vif[inp.channel_index]);
+    let ref_dof = noise.map(|nr| nr.n as f64 / vif);
     let time = stretch_windows(inp.inputs, inp.raw.len(), (20.0 / dt).ceil() as usize)
         .into_iter()
         .filter_map(|(a, b)| {
@@ -424,7 +476,14 @@ pub fn analyse_channel(inp: &ChannelInput<'_>, noise: Option<&NoiseReference>) -
                 n: seg.len(),
                 chi2_reduced: c2 / seg.len() as f64,
                 excess: c2 / seg.len() as f64 / var_ref - 1.0,
-                p_value: chi2_sf(seg.len() as f64, c2 / var_ref),
+                p_value: {
+                    let d1 = seg.len() as f64 / vif;
+                    let ratio = c2 / seg.len() as f64 / var_ref;
+                    match ref_dof {
+                        Some(d2) => f_sf(d1, d2, ratio),
+                        None => chi2_sf(d1, d1 * ratio),
+                    }
+                },
             })
         })
         .collect();
