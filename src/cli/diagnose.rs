@@ -69,7 +69,8 @@ pub struct DiagnoseArgs {
     /// readout o1 or o12 of every experiment unless exp is given, e.g. line_o1=1e-10,f=0.0371.
     #[arg(long = "effect", value_name = "NAME=VALUE[,KEY=VALUE...]")]
     pub effects: Vec<String>,
-    /// With --simulate-into: scenario, design and seed.
+    /// With --simulate-into: scenario, design and seed. A scenario with a `glitch` table
+    /// (`glitches`) adds its random sine-Gaussian glitches to the noise (thesis sec. 4.5.7).
     #[arg(long, default_value = "monte_carlo")]
     pub scenario: String,
     #[arg(long, default_value = "standard")]
@@ -420,8 +421,15 @@ fn simulate(a: &DiagnoseArgs, setup: &crate::setup::Setup, dir: &Path) -> Result
         meta_eff.insert(e.name(), toml::Value::Float(v));
         effects.push((e, vec![v]));
     }
-    let (mut data, noise) =
-        simulate_with_drift_paths(setup, &design, &sc.truth, &effects, &drifts, a.seed)?;
+    let (mut data, noise) = simulate_with_drift_paths(
+        setup,
+        &design,
+        &sc.truth,
+        &effects,
+        &drifts,
+        sc.glitch.as_ref(),
+        a.seed,
+    )?;
     if !injected.is_empty() {
         let model = crate::model::effects::Extended::new(
             setup.model.clone(),
@@ -444,6 +452,17 @@ fn simulate(a: &DiagnoseArgs, setup: &crate::setup::Setup, dir: &Path) -> Result
         .into(),
     );
     meta.insert("scenario".into(), a.scenario.clone().into());
+    if let Some(g) = &sc.glitch {
+        // The scenario's random sine-Gaussian glitches (thesis sec. 4.5.7) are in the data.
+        meta.insert(
+            "scenario_glitches".into(),
+            format!(
+                "sine-Gaussian, {} of samples start one, f0 {:?} Hz, tau {:?} s, amplitude {:?} sigma of the white driving noise",
+                g.fraction, g.f0_hz, g.tau_s, g.amplitude_sigma
+            )
+            .into(),
+        );
+    }
     meta.insert("design".into(), a.design.clone().into());
     meta.insert("seed".into(), toml::Value::Integer(a.seed as i64));
     let mut t = toml::Table::new();

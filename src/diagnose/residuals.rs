@@ -71,9 +71,11 @@ pub struct ChannelReport {
     pub chi2_reduced: f64,
     pub excess_kurtosis: f64,
     pub kurtosis_err: f64,
-    /// Samples beyond 5 sigma, and how many Gaussian noise would give.
+    /// Samples beyond 5 sigma (of the noise run's whitened level when there is one), how many
+    /// Gaussian noise would give, and the time span they cover (s; None without outliers).
     pub outliers: usize,
     pub outliers_expected: f64,
+    pub outlier_span_s: Option<[f64; 2]>,
     /// Ljung-Box statistic over `ljung_box_lags` lags and its p-value (whiteness).
     pub ljung_box: f64,
     pub ljung_box_lags: usize,
@@ -355,7 +357,19 @@ pub fn analyse_channel(inp: &ChannelInput<'_>, noise: Option<&NoiseReference>) -
     let m = mean(r);
     let m2 = r.iter().map(|v| (v - m).powi(2)).sum::<f64>() / n.max(1) as f64;
     let m4 = r.iter().map(|v| (v - m).powi(4)).sum::<f64>() / n.max(1) as f64;
-    let outliers = r.iter().filter(|v| v.abs() > 5.0).count();
+    let cut = 5.0
+        * noise
+            .map_or(1.0, |nr| nr.var[inp.channel_index])
+            .max(1e-12)
+            .sqrt();
+    let out_idx: Vec<usize> = (0..n).filter(|&i| r[i].abs() > cut).collect();
+    let outliers = out_idx.len();
+    let outlier_span_s = out_idx.first().zip(out_idx.last()).map(|(a, b)| {
+        [
+            (a + inp.offset) as f64 * dt,
+            (b + inp.offset + 1) as f64 * dt,
+        ]
+    });
     let (lb, lags, lbp) = ljung_box(r, 20);
     let (f, z) = periodogram(r, dt);
     let (ks_statistic, ks_p) = match noise {
@@ -528,6 +542,7 @@ pub fn analyse_channel(inp: &ChannelInput<'_>, noise: Option<&NoiseReference>) -
         kurtosis_err: (24.0 / n.max(1) as f64).sqrt(),
         outliers,
         outliers_expected: n as f64 * 5.733e-7,
+        outlier_span_s,
         ljung_box: lb,
         ljung_box_lags: lags,
         ljung_box_p: lbp,
