@@ -1339,6 +1339,10 @@ fn find_unexplained(after: &Stage, alpha: f64) -> Vec<Unexplained> {
                 p_value: b.p_value,
             });
         }
+        let full_band = [
+            ch.bands.first().map_or(0.0, |b| b.band_hz[0]),
+            ch.bands.last().map_or(0.0, |b| b.band_hz[1]),
+        ];
         // Heavy tails: more samples beyond 5 sigma than Gaussian noise gives (Poisson).
         if let (Some(span), Ok(pois)) = (
             ch.outlier_span_s,
@@ -1351,10 +1355,7 @@ fn find_unexplained(after: &Stage, alpha: f64) -> Vec<Unexplained> {
                     experiment: ch.experiment.clone(),
                     channel: ch.channel.clone(),
                     kind: "outliers",
-                    band_hz: [
-                        ch.bands.first().map_or(0.0, |b| b.band_hz[0]),
-                        ch.bands.last().map_or(0.0, |b| b.band_hz[1]),
-                    ],
+                    band_hz: full_band,
                     time_s: span,
                     excess: ch.outliers as f64 / ch.outliers_expected.max(1e-300) - 1.0,
                     p_value: p,
@@ -1366,10 +1367,7 @@ fn find_unexplained(after: &Stage, alpha: f64) -> Vec<Unexplained> {
                 experiment: ch.experiment.clone(),
                 channel: ch.channel.clone(),
                 kind: "time",
-                band_hz: [
-                    ch.bands.first().map_or(0.0, |b| b.band_hz[0]),
-                    ch.bands.last().map_or(0.0, |b| b.band_hz[1]),
-                ],
+                band_hz: full_band,
                 time_s: t.time_s,
                 excess: t.excess,
                 p_value: t.p_value,
