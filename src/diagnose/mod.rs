@@ -308,6 +308,10 @@ type Score = (f64, usize, f64, Option<(usize, f64)>);
 type Refit = (Extended, FitResult, Series, Linear, Vec<DMatrix<f64>>);
 
 /// Score statistics of every candidate (indices into `pool`) at the current fit.
+/// Score tests of the operator candidates `pool` at the current fit. `extra` are whitened
+/// columns of further fitted nuisance parameters (the amplitudes of the additive effects
+/// already added), projected out like the model's own.
+#[allow(clippy::too_many_arguments)]
 fn score_round(
     current: &Extended,
     estimate: &[f64],
@@ -315,6 +319,7 @@ fn score_round(
     data: &ExperimentData,
     w: &Whitener<2>,
     poly_degree: usize,
+    extra: &[Series],
 ) -> Result<Vec<Score>, DiagnoseError> {
     let mut effects = current.effects.clone();
     effects.extend(pool.iter().cloned());
@@ -323,8 +328,10 @@ fn score_round(
     p.resize(full.n_params(), 0.0);
     let lik = Likelihood::new(&full, &data.inputs, data.dt, w.clone(), poly_degree)?;
     let prob = lik.problem(data)?;
-    let (r, j) = prob.residuals_and_jacobian(&p);
+    let (r, mut j) = prob.residuals_and_jacobian(&p);
     let np = full.n_params();
+    j.extend(extra.iter().cloned());
+    let nt = j.len();
     let dot = |a: &Series, b: &Series| -> f64 {
         a.iter()
             .zip(b)
@@ -332,15 +339,18 @@ fn score_round(
             .map(|(u, v)| u.iter().zip(v).map(|(s, t)| s * t).sum::<f64>())
             .sum()
     };
-    let info = DMatrix::<f64>::from_fn(np, np, |a, b| if a <= b { dot(&j[a], &j[b]) } else { 0.0 });
+    let info = DMatrix::<f64>::from_fn(nt, nt, |a, b| if a <= b { dot(&j[a], &j[b]) } else { 0.0 });
     let info = DMatrix::<f64>::from_fn(
-        np,
-        np,
+        nt,
+        nt,
         |a, b| if a <= b { info[(a, b)] } else { info[(b, a)] },
     );
-    let u: Vec<f64> = (0..np).map(|a| dot(&j[a], &r)).collect();
+    let u: Vec<f64> = (0..nt).map(|a| dot(&j[a], &r)).collect();
     let nn = estimate.len();
-    let n_idx: Vec<usize> = (0..nn).collect();
+    // Nuisance block: the fitted parameters, then the extra columns.
+    let n_idx: Vec<usize> = (0..nn).chain(np..nt).collect();
+    let nn = n_idx.len();
+    let n_base = estimate.len();
     let sub = |rows: &[usize], cols: &[usize]| {
         DMatrix::<f64>::from_fn(rows.len(), cols.len(), |a, b| info[(rows[a], cols[b])])
     };
@@ -375,7 +385,7 @@ fn score_round(
             DMatrix::<f64>::from_fn(idx.len(), idx.len(), |a, b| joint[(a, b)] / (dj[a] * dj[b]));
         let corr = jeq.pseudo_inverse(1e-14).ok().and_then(|cv| {
             let last = idx.len() - 1;
-            (0..nn)
+            (0..n_base)
                 .map(|k| (k, cv[(k, last)] / (cv[(k, k)] * cv[(last, last)]).sqrt()))
                 .filter(|(_, v)| v.is_finite())
                 .max_by(|a, b| a.1.abs().total_cmp(&b.1.abs()))
@@ -430,6 +440,9 @@ fn effective_data(
 
 /// Score statistics of additive candidates at the current fit (data `eff` already has the
 /// current additive effects removed).
+/// Score tests of the additive candidates `cands` at the current fit (`extra` as in
+/// [`score_round`]).
+#[allow(clippy::too_many_arguments)]
 fn score_additive(
     current: &Extended,
     estimate: &[f64],
@@ -438,10 +451,13 @@ fn score_additive(
     eff: &ExperimentData,
     w: &Whitener<2>,
     poly_degree: usize,
+    extra: &[Series],
 ) -> Result<Vec<Score>, DiagnoseError> {
     let lik = Likelihood::new(current, &data.inputs, data.dt, w.clone(), poly_degree)?;
     let prob = lik.problem(eff)?;
-    let (r, jn) = prob.residuals_and_jacobian(estimate);
+    let (r, mut jn) = prob.residuals_and_jacobian(estimate);
+    let n_base = jn.len();
+    jn.extend(extra.iter().cloned());
     let nn = jn.len();
     let (_, inn_inv) = additive::gram_inverse(&jn.iter().collect::<Vec<_>>());
     let inn_inv = inn_inv.ok_or_else(|| DiagnoseError::Input("singular information".into()))?;
@@ -462,7 +478,7 @@ fn score_additive(
         let mut cols: Vec<&Series> = jn.iter().collect();
         cols.push(&je[0]);
         let corr = additive::gram_inverse(&cols).1.and_then(|cv| {
-            (0..nn)
+            (0..n_base)
                 .map(|k| (k, cv[(k, nn)] / (cv[(k, k)] * cv[(nn, nn)]).sqrt()))
                 .filter(|(_, v)| v.is_finite())
                 .max_by(|x, y| x.1.abs().total_cmp(&y.1.abs()))
@@ -871,6 +887,18 @@ pub fn diagnose(
             break;
         }
         let eff = effective_data(&current, &lin, data, &w, cfg.poly_degree, &cur_fit.estimate)?;
+        // The amplitudes of the additive effects already added are fitted nuisance parameters
+        // of the score tests too.
+        let extra: Vec<Series> = if lin.is_empty() {
+            Vec::new()
+        } else {
+            let (cols, _) =
+                linear_columns(&current, &lin, data, &w, cfg.poly_degree, &cur_fit.estimate)?;
+            let lik = Likelihood::new(&current, &data.inputs, data.dt, w.clone(), cfg.poly_degree)?;
+            cols.into_iter()
+                .map(|c| additive::whiten(&lik, data, c))
+                .collect()
+        };
         let mut scores = score_round(
             &current,
             &cur_fit.estimate,
@@ -878,6 +906,7 @@ pub fn diagnose(
             &eff,
             &w,
             cfg.poly_degree,
+            &extra,
         )?;
         scores.extend(score_additive(
             &current,
@@ -887,6 +916,7 @@ pub fn diagnose(
             &eff,
             &w,
             cfg.poly_degree,
+            &extra,
         )?);
         // Tail probability of a score or likelihood-ratio statistic of `dim` parameters. With a
         // whitening filter estimated from the noise run (order p over N samples), the filter's
