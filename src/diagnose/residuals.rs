@@ -257,8 +257,10 @@ pub struct NoiseReference {
     pub n: usize,
 }
 
-/// `1 + 2 sum_{k=1}^{L} (rho_k^2 - 1/N)` for the sample autocorrelation `rho_k` of `x`
-/// (`1/N`: the bias of `rho_k^2` for white noise), `L = min(N / 8, 2000)`; at least 1.
+/// `1 + 2 sum_{k=1}^{L} rho_k^2` from the sample autocorrelation `rho_k` of `x`,
+/// `L = min(N / 8, 2000)`, at least 1. Each `rho_k^2` carries a bias of about `vif / N`
+/// (Bartlett's variance of a sample autocorrelation), so the raw sum is divided by
+/// `1 + 2 L / N`.
 pub fn variance_inflation(x: &[f64]) -> f64 {
     let n = x.len();
     let lags = (n / 8).min(2000);
@@ -286,10 +288,8 @@ pub fn variance_inflation(x: &[f64]) -> f64 {
     if inv.process(&mut spec, &mut acov).is_err() || acov[0] <= 0.0 {
         return 1.0;
     }
-    let sum: f64 = (1..=lags)
-        .map(|k| (acov[k] / acov[0]).powi(2) - 1.0 / n as f64)
-        .sum();
-    (1.0 + 2.0 * sum).max(1.0)
+    let sum: f64 = (1..=lags).map(|k| (acov[k] / acov[0]).powi(2)).sum();
+    ((1.0 + 2.0 * sum) / (1.0 + 2.0 * lags as f64 / n as f64)).max(1.0)
 }
 
 impl NoiseReference {
@@ -602,4 +602,36 @@ pub fn spectrum_curve(
         i = j;
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::variance_inflation;
+    use rand::SeedableRng;
+    use rand_distr::{Distribution, StandardNormal};
+    use rand_xoshiro::Xoshiro256PlusPlus;
+
+    fn ar1(phi: f64, n: usize, seed: u64) -> Vec<f64> {
+        let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed);
+        let mut x = 0.0;
+        (0..n + 100)
+            .map(|_| {
+                let e: f64 = StandardNormal.sample(&mut rng);
+                x = phi * x + e;
+                x
+            })
+            .skip(100)
+            .collect()
+    }
+
+    #[test]
+    fn variance_inflation_matches_bartlett_for_ar1() {
+        // Oracle: for AR(1) with coefficient phi, rho_k = phi^k and
+        // 1 + 2 sum_k rho_k^2 = (1 + phi^2) / (1 - phi^2); white noise gives 1.
+        let white = variance_inflation(&ar1(0.0, 20_000, 1));
+        assert!((white - 1.0).abs() < 0.05, "white: {white}");
+        let v = variance_inflation(&ar1(0.5, 20_000, 2));
+        let exact = (1.0 + 0.25) / (1.0 - 0.25);
+        assert!((v - exact).abs() < 0.1, "AR(1) 0.5: {v} vs {exact}");
+    }
 }
