@@ -29,7 +29,9 @@ fn main() {
     } else {
         DiagnoseConfig::default()
     };
-    let rows: Vec<(u64, Vec<String>, Vec<String>)> = (first..first + n)
+    // Per-test calibration: every band and time-window p-value of the final fit.
+    type Row = (u64, Vec<String>, Vec<String>, Vec<f64>, Vec<f64>);
+    let rows: Vec<Row> = (first..first + n)
         .into_par_iter()
         .map(|seed| {
             let (data, noise) =
@@ -58,12 +60,24 @@ fn main() {
                     )
                 })
                 .collect();
-            (seed, claims, unexpl)
+            let bands = d
+                .after
+                .channels
+                .iter()
+                .flat_map(|c| c.bands.iter().map(|b| b.p_value))
+                .collect();
+            let times = d
+                .after
+                .channels
+                .iter()
+                .flat_map(|c| c.time.iter().map(|t| t.p_value))
+                .collect();
+            (seed, claims, unexpl, bands, times)
         })
         .collect();
     let mut n_claim = 0;
     let mut n_unexpl = 0;
-    for (seed, claims, unexpl) in &rows {
+    for (seed, claims, unexpl, _, _) in &rows {
         if !claims.is_empty() || !unexpl.is_empty() {
             println!("seed {seed}: claims {claims:?}");
             for u in unexpl {
@@ -84,4 +98,18 @@ fn main() {
         n_claim,
         n_unexpl
     );
+    for (what, k) in [("band", 3), ("time-window", 4)] {
+        let p: Vec<f64> = rows
+            .iter()
+            .flat_map(|r| if k == 3 { r.3.clone() } else { r.4.clone() })
+            .collect();
+        let frac = |a: f64| p.iter().filter(|v| **v < a).count() as f64 / p.len().max(1) as f64;
+        println!(
+            "{what} tests: {} p-values; fraction below 0.1, 0.01, 0.001: {:.4}, {:.4}, {:.4}",
+            p.len(),
+            frac(0.1),
+            frac(0.01),
+            frac(0.001)
+        );
+    }
 }

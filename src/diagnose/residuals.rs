@@ -39,6 +39,8 @@ pub struct TimeReport {
     pub chi2_reduced: f64,
     /// chi^2/n over the noise run's (or 1), minus one.
     pub excess: f64,
+    /// The window's level against the rest of the run (F test; against the noise run's level
+    /// when the window is most of the run).
     pub p_value: f64,
 }
 
@@ -379,7 +381,15 @@ pub fn analyse_channel(inp: &ChannelInput<'_>, noise: Option<&NoiseReference>) -
         }
         _ => (None, None),
     };
-    // Bands.
+    // Bands. A whitening filter estimated from the noise run is a smoothed periodogram of it:
+    // averaged over a band of K bins its relative error has about the variance 1/K of the
+    // band's own periodogram level, which the in-sample whitened noise run (flattened by the
+    // fit) does not show. The band level's degrees of freedom are halved for it.
+    let band_inflation = if inp.whitening_dof.is_some() {
+        2.0
+    } else {
+        1.0
+    };
     let mut bands = Vec::new();
     if !f.is_empty() {
         let edges = band_edges(f[0], 0.5 / dt);
@@ -401,7 +411,7 @@ pub fn analyse_channel(inp: &ChannelInput<'_>, noise: Option<&NoiseReference>) -
                     Some((nl, nk)) if nk > 0 && nl > 0.0 => (
                         Some(nl),
                         level / nl - 1.0,
-                        f_sf(2.0 * k, 2.0 * nk as f64, level / nl),
+                        f_sf(2.0 * k / band_inflation, 2.0 * nk as f64, level / nl),
                     ),
                     _ => (None, level - 1.0, chi2_sf(2.0 * k, 2.0 * k * level)),
                 };
@@ -471,7 +481,11 @@ pub fn analyse_channel(inp: &ChannelInput<'_>, noise: Option<&NoiseReference>) -
     // freedom are the samples over the variance inflation of the whitened noise run (both the
     // window's and the noise run's mean square scatter more when whitening leaves colour).
     let var_ref = noise.map_or(1.0, |nr| nr.var[inp.channel_index]).max(1e-12);
-    let vif = noise.map_or(1.0, |nr| nr.vif[inp.channel_index]);
+    // The in-sample whitened noise run hides part of the filter's error; the residual's own
+    // autocorrelation shows it (out of sample), so the larger of the two is used.
+    let vif = noise
+        .map_or(1.0, |nr| nr.vif[inp.channel_index])
+        .max(variance_inflation(r));
     let ref_dof = noise.map(|nr| nr.n as f64 / vif);
     let time = stretch_windows(inp.inputs, inp.raw.len(), (20.0 / dt).ceil() as usize)
         .into_iter()
@@ -490,12 +504,23 @@ pub fn analyse_channel(inp: &ChannelInput<'_>, noise: Option<&NoiseReference>) -
                 n: seg.len(),
                 chi2_reduced: c2 / seg.len() as f64,
                 excess: c2 / seg.len() as f64 / var_ref - 1.0,
+                // Where in time: the window against the rest of the run (an F test), which
+                // does not depend on how well the noise run pins the overall level (a 1% error
+                // of it moved a 1350-sample window by a third of its sigma); an excess spread
+                // over the whole run is the band tests' to find. A single window is tested
+                // against the noise run's level.
                 p_value: {
                     let d1 = seg.len() as f64 / vif;
-                    let ratio = c2 / seg.len() as f64 / var_ref;
-                    match ref_dof {
-                        Some(d2) => f_sf(d1, d2, ratio),
-                        None => chi2_sf(d1, d1 * ratio),
+                    let rest = n - seg.len();
+                    if rest * 4 >= n {
+                        let ratio = (c2 / seg.len() as f64) / ((chi2 - c2).max(0.0) / rest as f64);
+                        f_sf(d1, rest as f64 / vif, ratio)
+                    } else {
+                        let ratio = c2 / seg.len() as f64 / var_ref;
+                        match ref_dof {
+                            Some(d2) => f_sf(d1, d2, ratio),
+                            None => chi2_sf(d1, d1 * ratio),
+                        }
                     }
                 },
             })
