@@ -10,7 +10,10 @@
 //! 2. The best-scoring candidates are refitted with their parameters free; the drop in chi^2,
 //!    scaled by the refit's chi^2/nu when it exceeds one (an F-type test robust to a slightly
 //!    mis-estimated noise level), is compared with chi^2(dim theta) at a Bonferroni threshold
-//!    `alpha / n_candidates`. The largest significant drop is added.
+//!    `alpha / n_candidates`. The largest significant drop is added. Under a whitening filter
+//!    estimated from the noise run (order p, T samples), both tests use F(dim, T / 2p) tails:
+//!    the filter's spectrum is itself an estimate and scales every statistic with it.
+//!    `examples/control_scan.rs` measures the resulting false-alarm rates.
 //!
 //! The loop stops when nothing is significant. Whatever excess remains (by experiment, channel,
 //! band, time window, or as a narrow line) is reported as unexplained; nothing is forced onto an
