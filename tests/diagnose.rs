@@ -279,6 +279,10 @@ fn control_dataset_claims_nothing() {
             "seed {seed}: unexplained {:?}",
             c.d.unexplained
         );
+        assert!(
+            c.d.robust.is_none(),
+            "seed {seed}: robust check without heavy tails"
+        );
         assert_nominal_within(&c);
     }
 }
@@ -335,6 +339,21 @@ fn the_thesis_glitch_population_is_reported_as_heavy_tails() {
         "{:?}",
         d.notes
     );
+    // The robust refit rides along. Oracle: the simulated truth; the Lorentzian estimator is
+    // not dragged by the transients, so it ends near the truth within its sandwich sigmas.
+    let r = d
+        .robust
+        .as_ref()
+        .expect("no robust check on heavy-tailed data");
+    assert!(r.converged);
+    for k in 0..sc.truth.len() {
+        let pull = (r.estimate[k] - sc.truth[k]) / r.sigma[k];
+        assert!(
+            pull.abs() < 4.0,
+            "{}: robust estimate {pull:.2} sigma from truth",
+            r.parameter_names[k]
+        );
+    }
 }
 
 #[test]

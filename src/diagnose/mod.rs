@@ -196,6 +196,20 @@ pub struct Unexplained {
     pub p_value: f64,
 }
 
+/// With heavy-tailed residuals: the final model refitted with the Lorentzian estimator
+/// `rho = log(1 + r^2)` (thesis sec. 4.5.7, "mean logarithmic deviation"), which outliers
+/// do not drag, against the Gaussian estimates.
+#[derive(Debug, Clone, Serialize)]
+pub struct RobustCheck {
+    pub estimator: &'static str,
+    pub converged: bool,
+    pub parameter_names: Vec<String>,
+    pub estimate: Vec<f64>,
+    pub sigma: Vec<f64>,
+    /// (robust - Gaussian) / Gaussian sigma, per parameter.
+    pub shift_sigma: Vec<f64>,
+}
+
 /// The complete diagnosis.
 #[derive(Debug, Clone)]
 pub struct Diagnosis {
@@ -213,6 +227,8 @@ pub struct Diagnosis {
     pub residuals_before: (Series, Series),
     pub residuals_after: (Series, Series),
     pub truth: Option<Vec<f64>>,
+    /// Present when the final residual is heavy-tailed (an `outliers` entry).
+    pub robust: Option<RobustCheck>,
     pub seconds: f64,
 }
 
@@ -1185,6 +1201,19 @@ pub fn diagnose(
             ))
         })
         .collect();
+    let robust = if tails.is_empty() {
+        None
+    } else {
+        robust_check(
+            &current,
+            &lin,
+            data,
+            &w,
+            cfg.poly_degree,
+            &cur_fit,
+            &mut notes,
+        )
+    };
     if !tails.is_empty() {
         notes.push(format!(
             "the residual is heavy-tailed ({}): a population of transients, more than the glitch category can add one by one (at most {} effects); the Gaussian likelihood is not robust to them (thesis sec. 4.5.7 compares estimators on such data)",
@@ -1237,8 +1266,50 @@ pub fn diagnose(
         residuals_before: (fit0.residuals_w, raw0),
         residuals_after: (cur_fit.residuals_w, cur_raw),
         truth: truth.map(|t| t.to_vec()),
+        robust,
         seconds: start.elapsed().as_secs_f64(),
     })
+}
+
+/// Refit the final model (its additive effects held at their amplitudes) with the Lorentzian
+/// estimator and compare with the Gaussian fit `gauss`.
+fn robust_check(
+    model: &Extended,
+    lin: &Linear,
+    data: &ExperimentData,
+    w: &Whitener<2>,
+    poly_degree: usize,
+    gauss: &FitResult,
+    notes: &mut Vec<String>,
+) -> Option<RobustCheck> {
+    let run = || -> Result<FitResult, DiagnoseError> {
+        let eff = effective_data(model, lin, data, w, poly_degree, &gauss.estimate)?;
+        let lik = Likelihood::new(model, &eff.inputs, eff.dt, w.clone(), poly_degree)?;
+        let prob = lik.problem(&eff)?;
+        let mut fc = FitConfig::new(model.parameter_names());
+        fc.estimator = crate::fit::Estimator::Log;
+        Ok(fit(model, &prob, &gauss.estimate, &fc)?)
+    };
+    match run() {
+        Ok(r) => Some(RobustCheck {
+            estimator: "log",
+            converged: r.termination.converged(),
+            parameter_names: model.parameter_names().to_vec(),
+            shift_sigma: r
+                .estimate
+                .iter()
+                .zip(&gauss.estimate)
+                .zip(&gauss.sigma)
+                .map(|((a, b), s)| (a - b) / s)
+                .collect(),
+            estimate: r.estimate,
+            sigma: r.sigma,
+        }),
+        Err(e) => {
+            notes.push(format!("the robust (log-estimator) refit failed: {e}"));
+            None
+        }
+    }
 }
 
 /// Attach a redesign verdict ([`redesign::probe`]) to every degenerate operator candidate: is

@@ -161,6 +161,12 @@ impl Diagnosis {
             "whitening_order": self.order,
             "alpha": self.alpha,
             "notes": self.notes,
+            "robust": self.robust.as_ref().map(|r| json!({
+                "estimator": r.estimator, "converged": r.converged,
+                "estimates": named(&r.parameter_names, &r.estimate),
+                "sigmas": named(&r.parameter_names, &r.sigma),
+                "shift_sigma": named(&r.parameter_names, &r.shift_sigma),
+            })),
             "seconds": num(self.seconds),
         })
     }
@@ -290,6 +296,30 @@ impl Diagnosis {
                 );
             }
             let _ = writeln!(s);
+        }
+        if let Some(r) = &self.robust {
+            let _ = writeln!(
+                s,
+                "\n## Robust check (heavy tails)\n\nThe residual is heavy-tailed (see Unexplained, kind `outliers`): the final model refitted with the \
+                 Lorentzian estimator rho = log(1 + r^2) (thesis sec. 4.5.7, \"mean logarithmic deviation\"), which outliers do not drag{}. \
+                 A large shift means the Gaussian estimates above are pulled by the outliers.\n",
+                if r.converged { "" } else { " (the refit did not converge)" }
+            );
+            let _ = writeln!(
+                s,
+                "| parameter | Gaussian | log estimator | shift [sigma] |\n|---|---|---|---|"
+            );
+            for (i, n) in r.parameter_names.iter().enumerate() {
+                let _ = writeln!(
+                    s,
+                    "| {n} | {:.6e} ± {:.2e} | {:.6e} ± {:.2e} | {:+.2} |",
+                    self.after.estimate[i],
+                    self.after.sigma[i],
+                    r.estimate[i],
+                    r.sigma[i],
+                    r.shift_sigma[i]
+                );
+            }
         }
         let _ = writeln!(s, "\n## Residuals by experiment and channel\n");
         let _ = writeln!(s, "| stage | experiment | channel | chi2/n | excess kurtosis | >5 sigma (expected) | Ljung-Box p | KS p vs noise | worst band [Hz] (excess, p) |\n|---|---|---|---|---|---|---|---|---|");
