@@ -939,12 +939,12 @@ pub fn diagnose(
         )?);
         // Tail probability of a score or likelihood-ratio statistic of `dim` parameters. With a
         // whitening filter estimated from the noise run (order p over N samples), the filter's
-        // spectrum at any frequency is itself uncertain, like an estimate with nu = N / p degrees
+        // spectrum at any frequency is itself uncertain, like an estimate with nu = N / 2p degrees
         // of freedom, and scales the statistic by as much: chi^2(dim) / dim over chi^2(nu) / nu,
         // an F(dim, nu) (the line search uses the same tail). Glitch statistics are calibrated
-        // on the noise run instead (`noise_var` != 1) and keep the chi^2 tail.
-        let tail = |dim: usize, stat: f64, noise_var: f64| match whitening_dof {
-            Some(nu) if noise_var == 1.0 && dim > 0 => {
+        // on the noise run instead and keep the chi^2 tail.
+        let tail = |dim: usize, stat: f64, category: &str| match whitening_dof {
+            Some(nu) if category != "glitch" && dim > 0 => {
                 residuals::f_sf(dim as f64, nu, stat / dim as f64)
             }
             _ => residuals::chi2_sf(dim as f64, stat),
@@ -987,7 +987,7 @@ pub fn diagnose(
                         category: cat,
                         acts_on: acts.clone(),
                         score_statistic: *lm,
-                        score_p_value: (trials * tail(*dim, *lm / var, *var)).min(1.0),
+                        score_p_value: (trials * tail(*dim, *lm / var, cat)).min(1.0),
                         identifiable_fraction: *frac,
                         degenerate: *frac < 1e-6
                             || most.as_ref().is_some_and(|(_, v)| v.abs() > cfg.degeneracy),
@@ -1048,7 +1048,7 @@ pub fn diagnose(
                     let (dim, trials) = (describe[i].3, describe[i].4);
                     let scale = f.chi2_reduced.max(describe[i].5).max(1.0);
                     let dchi2 = cur_fit.chi2 - f.chi2;
-                    let p = (trials * tail(dim, dchi2 / scale, describe[i].5)).min(1.0);
+                    let p = (trials * tail(dim, dchi2 / scale, describe[i].1)).min(1.0);
                     let c = &mut round_c[i];
                     c.delta_chi2 = Some(dchi2);
                     c.p_value = Some(p);
