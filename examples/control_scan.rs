@@ -60,19 +60,10 @@ fn main() {
                     )
                 })
                 .collect();
-            let bands = d
-                .after
-                .channels
-                .iter()
-                .flat_map(|c| c.bands.iter().map(|b| b.p_value))
-                .collect();
-            let times = d
-                .after
-                .channels
-                .iter()
-                .flat_map(|c| c.time.iter().map(|t| t.p_value))
-                .collect();
-            (seed, claims, unexpl, bands, times)
+            let ch = &d.after.channels;
+            let bands = ch.iter().flat_map(|c| c.bands.iter().map(|b| b.p_value));
+            let times = ch.iter().flat_map(|c| c.time.iter().map(|t| t.p_value));
+            (seed, claims, unexpl, bands.collect(), times.collect())
         })
         .collect();
     let mut n_claim = 0;

@@ -102,6 +102,17 @@ impl Setup {
         Ok(Whitener::from_psd(self.psd(p), dt, order, n)?)
     }
 
+    /// The glitches of `g` for a simulation directly at the analysis rate over `n` samples.
+    /// Glitch amplitudes are in units of the white driving sequence at the simulation rate; at
+    /// the analysis rate the same physical glitch is sqrt(simulate_hz / analyse_hz) times larger
+    /// in units of that (coarser) sequence.
+    pub fn analysis_glitches(&self, g: &GlitchSpec, n: usize) -> GlitchConfig {
+        let ratio = (self.spec.sampling.simulate_hz / self.spec.sampling.analyse_hz).sqrt();
+        let mut g = g.clone();
+        g.amplitude_sigma = [g.amplitude_sigma[0] * ratio, g.amplitude_sigma[1] * ratio];
+        GlitchConfig::new(&g, n)
+    }
+
     /// A simulator of `design` at parameters `truth`, directly at the analysis rate. The noise
     /// has the model PSD sampled at the analysis rate, i.e. the data an ideal anti-alias
     /// decimator would produce (the 10 Hz path with a real filter is `sim::decimated`).
@@ -112,16 +123,7 @@ impl Setup {
         glitch: Option<&GlitchSpec>,
     ) -> Result<Simulator<2>, Error> {
         let dt = self.analysis_dt();
-        let n = design.samples(dt);
-        // Glitch amplitudes are in units of the white driving sequence at the simulation rate;
-        // at the analysis rate the same physical glitch is sqrt(simulate_hz / analyse_hz)
-        // times larger in units of that (coarser) sequence.
-        let ratio = (self.spec.sampling.simulate_hz / self.spec.sampling.analyse_hz).sqrt();
-        let glitches = glitch.map(|g| {
-            let mut g = g.clone();
-            g.amplitude_sigma = [g.amplitude_sigma[0] * ratio, g.amplitude_sigma[1] * ratio];
-            GlitchConfig::new(&g, n)
-        });
+        let glitches = glitch.map(|g| self.analysis_glitches(g, design.samples(dt)));
         Ok(Simulator::new(
             &self.model,
             design,

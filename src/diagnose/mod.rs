@@ -326,7 +326,6 @@ type Score = (f64, usize, f64, Option<(usize, f64)>);
 /// A refitted extended model, its fit, raw residuals, additive effects and their sigmas.
 type Refit = (Extended, FitResult, Series, Linear, Vec<DMatrix<f64>>);
 
-/// Score statistics of every candidate (indices into `pool`) at the current fit.
 /// Score tests of the operator candidates `pool` at the current fit. `extra` are whitened
 /// columns of further fitted nuisance parameters (the amplitudes of the additive effects
 /// already added), projected out like the model's own.
@@ -457,10 +456,8 @@ fn effective_data(
     Ok(additive::subtract(data, &cols, &amps))
 }
 
-/// Score statistics of additive candidates at the current fit (data `eff` already has the
-/// current additive effects removed).
-/// Score tests of the additive candidates `cands` at the current fit (`extra` as in
-/// [`score_round`]).
+/// Score tests of the additive candidates `cands` at the current fit (data `eff` already has
+/// the current additive effects removed; `extra` as in [`score_round`]).
 #[allow(clippy::too_many_arguments)]
 fn score_additive(
     current: &Extended,
@@ -905,18 +902,20 @@ pub fn diagnose(
         if pool.is_empty() && round_lin.is_empty() {
             break;
         }
-        let eff = effective_data(&current, &lin, data, &w, cfg.poly_degree, &cur_fit.estimate)?;
-        // The amplitudes of the additive effects already added are fitted nuisance parameters
-        // of the score tests too.
-        let extra: Vec<Series> = if lin.is_empty() {
-            Vec::new()
+        // Data less the additive effects already added; their amplitudes are fitted nuisance
+        // parameters of the score tests too (`extra`: their whitened columns).
+        let (eff, extra) = if lin.is_empty() {
+            (data.clone(), Vec::new())
         } else {
-            let (cols, _) =
+            let (cols, amps) =
                 linear_columns(&current, &lin, data, &w, cfg.poly_degree, &cur_fit.estimate)?;
+            let eff = additive::subtract(data, &cols, &amps);
             let lik = Likelihood::new(&current, &data.inputs, data.dt, w.clone(), cfg.poly_degree)?;
-            cols.into_iter()
+            let extra: Vec<Series> = cols
+                .into_iter()
                 .map(|c| additive::whiten(&lik, data, c))
-                .collect()
+                .collect();
+            (eff, extra)
         };
         let mut scores = score_round(
             &current,
@@ -1201,10 +1200,9 @@ pub fn diagnose(
             ))
         })
         .collect();
-    let robust = if tails.is_empty() {
-        None
-    } else {
-        robust_check(
+    let mut robust = None;
+    if !tails.is_empty() {
+        robust = robust_check(
             &current,
             &lin,
             data,
@@ -1212,9 +1210,7 @@ pub fn diagnose(
             cfg.poly_degree,
             &cur_fit,
             &mut notes,
-        )
-    };
-    if !tails.is_empty() {
+        );
         notes.push(format!(
             "the residual is heavy-tailed ({}): a population of transients, more than the glitch category can add one by one (at most {} effects); the Gaussian likelihood is not robust to them (thesis sec. 4.5.7 compares estimators on such data)",
             tails.join("; "),
@@ -1323,14 +1319,17 @@ fn redesign_degenerate(
     candidates: &mut [Candidate],
     notes: &mut Vec<String>,
 ) {
-    let mut names: Vec<&str> = candidates
+    // The operator effects (additive ones have no operator to redesign for) flagged degenerate
+    // in some round.
+    let effects: Vec<&Arc<dyn Effect>> = cfg
+        .effects
         .iter()
-        .filter(|c| c.degenerate && cfg.effects.iter().any(|e| e.name() == c.name))
-        .map(|c| c.name.as_str())
+        .filter(|e| {
+            let name = e.name();
+            candidates.iter().any(|c| c.degenerate && c.name == name)
+        })
         .collect();
-    names.sort_unstable();
-    names.dedup();
-    if names.is_empty() {
+    if effects.is_empty() {
         return;
     }
     let timing = match setup.design("standard") {
@@ -1342,16 +1341,11 @@ fn redesign_degenerate(
             return;
         }
     };
-    let verdicts: Vec<(String, Result<redesign::Redesign, String>)> = names
+    let verdicts: Vec<(String, Result<redesign::Redesign, String>)> = effects
         .par_iter()
-        .map(|&name| {
-            let res = match cfg.effects.iter().find(|e| e.name() == name) {
-                Some(e) => {
-                    redesign::probe(setup, p, e.clone(), data, timing).map_err(|e| e.to_string())
-                }
-                None => Err("not an operator effect".to_string()),
-            };
-            (name.to_string(), res)
+        .map(|&e| {
+            let res = redesign::probe(setup, p, e.clone(), data, timing).map_err(|e| e.to_string());
+            (e.name(), res)
         })
         .collect();
     for (name, res) in verdicts {
@@ -1526,14 +1520,7 @@ pub fn simulate_glitched(
         .map_err(|e| DiagnoseError::Input(e.to_string()))?;
     let dt = setup.analysis_dt();
     let psd = |f: f64| setup.noise.readout_csd(&model, f, &p);
-    // Glitch amplitudes are in units of the white driving sequence at the simulation rate (as
-    // in `Setup::simulator`).
-    let ratio = (setup.spec.sampling.simulate_hz / setup.spec.sampling.analyse_hz).sqrt();
-    let glitches = glitch.map(|g| {
-        let mut g = g.clone();
-        g.amplitude_sigma = [g.amplitude_sigma[0] * ratio, g.amplitude_sigma[1] * ratio];
-        crate::noise::GlitchConfig::new(&g, design.samples(dt))
-    });
+    let glitches = glitch.map(|g| setup.analysis_glitches(g, design.samples(dt)));
     let sim = crate::sim::Simulator::new(
         &model,
         design,

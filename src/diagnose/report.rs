@@ -125,17 +125,8 @@ impl Diagnosis {
                     "most_correlated": c.most_correlated.as_ref().map(|(n, v)| json!({"parameter": n, "correlation": num(*v)})),
                     "degenerate": c.degenerate,
                     "delta_chi2": c.delta_chi2.map(num), "p_value": c.p_value.map(num),
-                    "redesign": c.redesign.as_ref().map(|r| json!({
-                        "identifiable_fraction": num(r.identifiable_fraction),
-                        "absorbed": r.absorbed.iter().map(|a| json!({
-                            "parameter": a.parameter, "effect_parameter": a.effect_parameter,
-                            "shift_per_unit": num(a.shift_per_unit),
-                            "shift_sigma_at_typical": num(a.shift_sigma_at_typical),
-                        })).collect::<Vec<_>>(),
-                        "f_max_hz": num(r.f_max_hz),
-                        "within_constraints": r.within_constraints.as_ref().map(probe_json),
-                        "above_f_max": r.above_f_max.as_ref().map(probe_json),
-                    })),
+                    // Its derived Serialize (non-finite numbers become null, as `num` does).
+                    "redesign": serde_json::to_value(&c.redesign).unwrap_or(Value::Null),
                 })
             })
             .collect();
@@ -431,12 +422,12 @@ impl Diagnosis {
                     s,
                     "| {} | {corr} | {} | {:.2e} | {} | {} | {} |",
                     c.name,
+                    // The largest absorber always, the others from half a sigma.
                     r.absorbed
                         .iter()
                         .enumerate()
                         .filter(|(i, a)| *i == 0 || a.shift_sigma_at_typical.abs() >= 0.5)
-                        .map(|(_, a)| a)
-                        .map(|a| format!(
+                        .map(|(_, a)| format!(
                             "{} ({:+.3e} per unit {}; {:+.1} sigma)",
                             a.parameter,
                             a.shift_per_unit,
@@ -461,13 +452,6 @@ impl Diagnosis {
         );
         s
     }
-}
-
-fn probe_json(p: &Probe) -> Value {
-    json!({
-        "frequency_hz": num(p.frequency_hz), "input": p.input, "amplitude_m": num(p.amplitude_m),
-        "binding": p.binding, "identifiable_fraction": num(p.identifiable_fraction),
-    })
 }
 
 fn probe_md(p: Option<&Probe>) -> String {
