@@ -11,6 +11,7 @@ use freefall::fit::{
 };
 use freefall::setup::{Setup, DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 use freefall::sim::rng::stream;
+use freefall::sim::WhitenedSimulator;
 
 fn bench(c: &mut Criterion) {
     let setup = Setup::embedded();
@@ -51,7 +52,7 @@ fn bench(c: &mut Criterion) {
     cached.jacobian = JacobianPolicy::Cached(std::sync::Arc::new(cache));
     // Campaign mode also draws the data whitened: the signal is whitened once, the noise is
     // colored and whitened in one step (same random numbers as `sim.draw`).
-    let wsim = lik.whitened_simulator(&sim).unwrap();
+    let wsim = WhitenedSimulator::new(&lik, &sim).unwrap();
     group.bench_function("simulate_whiten_fit_standard_1hz_cached_jacobian", |b| {
         b.iter(|| {
             r += 1;

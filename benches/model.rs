@@ -13,7 +13,7 @@ fn bench(c: &mut Criterion) {
     let setup = Setup::embedded();
     let p = setup.spec.scenario("monte_carlo").unwrap().truth;
     let n = 10_800;
-    let m = freefall::noise::generate::fast_len(2 * n);
+    let m = freefall::numerics::fft::fast_len(2 * n);
     let points: Vec<_> = (0..=m / 2)
         .map(|k| setup.model.prepare(k.max(1) as f64 / m as f64))
         .collect();

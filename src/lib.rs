@@ -8,12 +8,15 @@
 
 pub mod campaign;
 pub mod cli;
+pub mod data;
 pub mod design;
 pub mod diagnose;
 pub mod fit;
+pub mod forward;
 pub mod io;
 pub mod model;
 pub mod noise;
+pub mod numerics;
 pub mod setup;
 pub mod signal;
 pub mod sim;

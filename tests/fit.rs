@@ -8,6 +8,7 @@ use freefall::cli::model::{design_fisher, THESIS_SIGMA};
 use freefall::fit::{fit, Estimator, ExperimentData, FitConfig, Likelihood, Termination, Whitener};
 use freefall::setup::{Setup, DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 use freefall::sim::rng::stream;
+use freefall::sim::WhitenedSimulator;
 use freefall::spectral::{welch_psd, WelchConfig};
 use rayon::prelude::*;
 
@@ -405,7 +406,7 @@ fn whitened_draws_equal_the_whitened_raw_draws() {
             .unwrap();
         let lik =
             Likelihood::new(&b.setup.model, &sim.inputs, sim.dt, w, DEFAULT_POLY_DEGREE).unwrap();
-        let ws = lik.whitened_simulator(&sim).unwrap();
+        let ws = WhitenedSimulator::new(&lik, &sim).unwrap();
         let (mut r1, mut r2) = (stream(5, 1), stream(5, 1));
         let data = sim.draw(&mut r1);
         let noise = ExperimentData {

@@ -233,7 +233,7 @@ fn zero_padding_keeps_templates_causal() {
 #[test]
 fn parseval_holds_for_the_transform_convention() {
     // Oracle: sum x^2 dt = sum_k |X_k|^2 df over all bins, with X = dt * FFT(x).
-    use freefall::fit::fisher::InputSpectra;
+    use freefall::forward::fisher::InputSpectra;
     let d = single_stretch(70.0 / 40_000.0, 2e-6, 0);
     let dt = 0.5;
     let n = d.samples(dt);

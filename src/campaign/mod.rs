@@ -32,13 +32,15 @@ pub mod runner;
 pub mod slurm;
 pub mod spec;
 pub mod stats;
+pub mod tables;
 
 use std::path::PathBuf;
 
 pub use io_store::{load, merge, run, Loaded, Manifest, RunOptions, RunReport, Shard};
-pub use runner::{Row, Runner};
+pub use runner::Runner;
 pub use spec::{Campaign, DesignSource, Outputs, ScenarioSource};
 pub use stats::Aggregates;
+pub use stats::Row;
 
 /// Errors of the campaign engine. Every message is one line naming the file and key (or the
 /// part directory) at fault.

@@ -6,7 +6,7 @@
 //! chi^2 of a noise-only run drawn next from the same stream (thesis fig. "fit vs noise chi^2").
 //!
 //! Whitening is linear, so the data are drawn already whitened
-//! ([`Likelihood::whitened_simulator`]): the noise-free signal is whitened once per cell, and each
+//! ([`crate::sim::WhitenedSimulator`]): the noise-free signal is whitened once per cell, and each
 //! noise series is colored and whitened in one frequency-domain step on the noise generator's
 //! grid, from the very random numbers `Simulator::draw` would use. The noise-only run costs one
 //! noise draw per experiment and a sum of squares. Every fit starts from the cell's guess, where
@@ -15,9 +15,9 @@
 use rayon::prelude::*;
 
 use super::spec::{Campaign, ScenarioSource, WhitenAt};
-use super::stats::{Layout, ScenarioLabel};
+use super::stats::{Layout, Row, ScenarioLabel};
 use super::CampaignError;
-use crate::fit::problem::{ExperimentData, WhitenedSimulator};
+use crate::data::ExperimentData;
 use crate::fit::{
     fit, Estimator, FitConfig, JacobianCache, JacobianPolicy, Likelihood, JACOBIAN_REUSE_SIGMA,
 };
@@ -27,30 +27,7 @@ use crate::setup::Setup;
 use crate::signal::Design;
 use crate::sim::rng::stream;
 use crate::sim::Simulator;
-
-/// One fit of one realization (one row of `realizations.parquet`).
-#[derive(Debug, Clone, PartialEq)]
-pub struct Row {
-    pub scenario: usize,
-    pub design: usize,
-    pub estimator: usize,
-    pub realization: u64,
-    pub converged: bool,
-    /// `fit::Termination::as_str`, or `error: ...` when the fit could not be carried out.
-    pub termination: String,
-    pub iterations: u64,
-    pub chi2: f64,
-    pub nu: u64,
-    pub chi2_reduced: f64,
-    pub chi2_start_reduced: f64,
-    /// Noise-only statistic with the same estimator and normalisation, over `nu(0)`; NaN if off.
-    pub noise_chi2_reduced: f64,
-    pub seconds: f64,
-    pub estimate: Vec<f64>,
-    pub sigma: Vec<f64>,
-    /// Fit correlation coefficients of the pairs `i < j` ([`Layout::pairs`] order).
-    pub correlation: Vec<f64>,
-}
+use crate::sim::WhitenedSimulator;
 
 struct Cell<'s> {
     sim: Simulator<2>,
@@ -223,7 +200,7 @@ impl<'s> Runner<'s> {
                         c
                     })
                     .collect();
-                let wsim = lik.whitened_simulator(&sim).ok();
+                let wsim = WhitenedSimulator::new(&lik, &sim).ok();
                 cells.push(Cell {
                     sim,
                     lik,

@@ -2,17 +2,38 @@
 //! skewness, excess kurtosis), bivariate co-moments for the Monte Carlo correlation matrix, and
 //! the Jarque-Bera normality test. Memory is O(groups x parameters^2), independent of the number
 //! of realizations. Only converged fits enter the parameter statistics; failures are counted.
-//!
-//! Also the conversion between [`Row`]s and the `realizations` table, so that live runs, resumed
-//! runs and merges feed the accumulators the very same numbers in the very same order.
+//! Their tables (and the conversion of [`Row`]s to and from `realizations`, so that live runs,
+//! resumed runs and merges feed the accumulators the very same numbers in the very same order)
+//! are in `tables`.
 
 use serde::{Deserialize, Serialize};
 
-use super::runner::Row;
-use crate::io::{IoError, Table};
-
 /// Running central moments of one variable (Pebay 2008, "Formulas for robust, one-pass parallel
 /// computation of covariances and arbitrary-order statistical moments", eq. 2.1-2.3).
+/// One fit of one realization (one row of `realizations.parquet`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Row {
+    pub scenario: usize,
+    pub design: usize,
+    pub estimator: usize,
+    pub realization: u64,
+    pub converged: bool,
+    /// `fit::Termination::as_str`, or `error: ...` when the fit could not be carried out.
+    pub termination: String,
+    pub iterations: u64,
+    pub chi2: f64,
+    pub nu: u64,
+    pub chi2_reduced: f64,
+    pub chi2_start_reduced: f64,
+    /// Noise-only statistic with the same estimator and normalisation, over `nu(0)`; NaN if off.
+    pub noise_chi2_reduced: f64,
+    pub seconds: f64,
+    pub estimate: Vec<f64>,
+    pub sigma: Vec<f64>,
+    /// Fit correlation coefficients of the pairs `i < j` ([`Layout::pairs`] order).
+    pub correlation: Vec<f64>,
+}
+
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct Moments {
     pub n: u64,
@@ -73,7 +94,7 @@ impl Moments {
         (-jb / 2.0).exp()
     }
 
-    fn m2(&self) -> f64 {
+    pub(super) fn m2(&self) -> f64 {
         self.m2
     }
 }
@@ -104,7 +125,7 @@ impl Layout {
         (s * self.designs.len() + d) * self.estimators.len() + e
     }
 
-    fn group_labels(&self, g: usize) -> (usize, usize, usize) {
+    pub(super) fn group_labels(&self, g: usize) -> (usize, usize, usize) {
         let ne = self.estimators.len();
         let nd = self.designs.len();
         (g / (ne * nd), (g / ne) % nd, g % ne)
@@ -125,164 +146,30 @@ impl Layout {
             .map(|(i, j)| format!("corr_{}__{}", self.parameters[i], self.parameters[j]))
             .collect()
     }
-
-    /// The `realizations` table of `rows`.
-    pub fn rows_table(&self, rows: &[Row], seed: u64) -> Result<Table, IoError> {
-        let mut t = Table::new()
-            .with_str(
-                "scenario",
-                rows.iter().map(|r| self.scenarios[r.scenario].name.clone()),
-            )?
-            .with_str(
-                "design",
-                rows.iter().map(|r| self.designs[r.design].clone()),
-            )?
-            .with_str(
-                "estimator",
-                rows.iter().map(|r| self.estimators[r.estimator].clone()),
-            )?
-            .with_u64("realization", rows.iter().map(|r| r.realization).collect())?
-            .with_u64("seed", vec![seed; rows.len()])?
-            .with_bool("converged", rows.iter().map(|r| r.converged).collect())?
-            .with_str("termination", rows.iter().map(|r| r.termination.clone()))?
-            .with_u64("iterations", rows.iter().map(|r| r.iterations).collect())?
-            .with_f64("chi2", rows.iter().map(|r| r.chi2).collect())?
-            .with_u64("nu", rows.iter().map(|r| r.nu).collect())?
-            .with_f64(
-                "chi2_reduced",
-                rows.iter().map(|r| r.chi2_reduced).collect(),
-            )?
-            .with_f64(
-                "chi2_start_reduced",
-                rows.iter().map(|r| r.chi2_start_reduced).collect(),
-            )?
-            .with_f64(
-                "noise_chi2_reduced",
-                rows.iter().map(|r| r.noise_chi2_reduced).collect(),
-            )?
-            .with_f64("seconds", rows.iter().map(|r| r.seconds).collect())?;
-        for (k, p) in self.parameters.iter().enumerate() {
-            t.push_column(
-                p.clone(),
-                rows.iter().map(|r| r.estimate[k]).collect::<Vec<f64>>(),
-            )?;
-            t.push_column(
-                format!("{p}_sigma"),
-                rows.iter().map(|r| r.sigma[k]).collect::<Vec<f64>>(),
-            )?;
-            let pulls: Vec<f64> = rows
-                .iter()
-                .map(|r| (r.estimate[k] - self.scenarios[r.scenario].truth[k]) / r.sigma[k])
-                .collect();
-            t.push_column(format!("{p}_pull"), pulls)?;
-        }
-        for (c, name) in self.corr_columns().into_iter().enumerate() {
-            t.push_column(
-                name,
-                rows.iter().map(|r| r.correlation[c]).collect::<Vec<f64>>(),
-            )?;
-        }
-        Ok(t)
-    }
-
-    /// Rows back from a `realizations` table written by [`Layout::rows_table`]; labels must be
-    /// known to this layout.
-    pub fn rows_from_table(&self, t: &Table) -> Result<Vec<Row>, IoError> {
-        let label = || {
-            t.source()
-                .map(|p| p.to_path_buf())
-                .unwrap_or_else(|| "<realizations>".into())
-        };
-        let find = |names: &[String], col: &str, v: &str| {
-            names
-                .iter()
-                .position(|n| n == v)
-                .ok_or_else(|| IoError::Invalid {
-                    path: label(),
-                    message: format!(
-                        "column '{col}': unknown label '{v}' (expected one of {})",
-                        names.join(", ")
-                    ),
-                })
-        };
-        let snames: Vec<String> = self.scenarios.iter().map(|s| s.name.clone()).collect();
-        let (sc, de, es) = (
-            t.str_column("scenario")?,
-            t.str_column("design")?,
-            t.str_column("estimator")?,
-        );
-        let real = t.u64_column("realization")?;
-        let conv = t.bool_column("converged")?;
-        let term = t.str_column("termination")?;
-        let iters = t.u64_column("iterations")?;
-        let chi2 = t.f64_column("chi2")?;
-        let nu = t.u64_column("nu")?;
-        let chi2r = t.f64_column("chi2_reduced")?;
-        let chi2s = t.f64_column("chi2_start_reduced")?;
-        let noise = t.f64_column("noise_chi2_reduced")?;
-        let secs = t.f64_column("seconds")?;
-        let est: Vec<&[f64]> = self
-            .parameters
-            .iter()
-            .map(|p| t.f64_column(p))
-            .collect::<Result<_, _>>()?;
-        let sig: Vec<&[f64]> = self
-            .parameters
-            .iter()
-            .map(|p| t.f64_column(&format!("{p}_sigma")))
-            .collect::<Result<_, _>>()?;
-        let corr: Vec<&[f64]> = self
-            .corr_columns()
-            .iter()
-            .map(|c| t.f64_column(c))
-            .collect::<Result<_, _>>()?;
-        let mut rows = Vec::with_capacity(t.num_rows());
-        for i in 0..t.num_rows() {
-            rows.push(Row {
-                scenario: find(&snames, "scenario", &sc[i])?,
-                design: find(&self.designs, "design", &de[i])?,
-                estimator: find(&self.estimators, "estimator", &es[i])?,
-                realization: real[i],
-                converged: conv[i],
-                termination: term[i].clone(),
-                iterations: iters[i],
-                chi2: chi2[i],
-                nu: nu[i],
-                chi2_reduced: chi2r[i],
-                chi2_start_reduced: chi2s[i],
-                noise_chi2_reduced: noise[i],
-                seconds: secs[i],
-                estimate: est.iter().map(|c| c[i]).collect(),
-                sigma: sig.iter().map(|c| c[i]).collect(),
-                correlation: corr.iter().map(|c| c[i]).collect(),
-            });
-        }
-        Ok(rows)
-    }
 }
 
 /// Accumulators of one (scenario, design, estimator) group.
 #[derive(Debug, Clone)]
-struct Group {
-    rows: u64,
-    failed: u64,
-    nu: u64,
-    est: Vec<Moments>,
+pub(super) struct Group {
+    pub(super) rows: u64,
+    pub(super) failed: u64,
+    pub(super) nu: u64,
+    pub(super) est: Vec<Moments>,
     /// Co-moments `sum (x_i - mean_i)(x_j - mean_j)` for the pairs of [`Layout::pairs`].
-    co: Vec<f64>,
-    sigma: Vec<Moments>,
-    pull: Vec<Moments>,
-    fisher_corr: Vec<Moments>,
-    chi2: Moments,
-    noise_chi2: Moments,
+    pub(super) co: Vec<f64>,
+    pub(super) sigma: Vec<Moments>,
+    pub(super) pull: Vec<Moments>,
+    pub(super) fisher_corr: Vec<Moments>,
+    pub(super) chi2: Moments,
+    pub(super) noise_chi2: Moments,
 }
 
 /// One-pass aggregates of a campaign (or a shard of it).
 #[derive(Debug, Clone)]
 pub struct Aggregates {
     pub layout: Layout,
-    pairs: Vec<(usize, usize)>,
-    groups: Vec<Group>,
+    pub(super) pairs: Vec<(usize, usize)>,
+    pub(super) groups: Vec<Group>,
 }
 
 impl Aggregates {
@@ -346,164 +233,6 @@ impl Aggregates {
         if row.noise_chi2_reduced.is_finite() {
             g.noise_chi2.push(row.noise_chi2_reduced);
         }
-    }
-
-    /// `summary`: one row per scenario x design x estimator x parameter.
-    pub fn summary_table(&self) -> Result<Table, IoError> {
-        let l = &self.layout;
-        let mut cols: Vec<(&str, Vec<f64>)> = [
-            "true",
-            "mean",
-            "bias",
-            "bias_in_sigma",
-            "sd",
-            "mean_sigma",
-            "sd_over_sigma",
-            "skewness",
-            "excess_kurtosis",
-            "normality_p",
-            "sd_of_sigma",
-            "pull_mean",
-            "pull_sd",
-        ]
-        .into_iter()
-        .map(|n| (n, Vec::new()))
-        .collect();
-        let (mut sc, mut de, mut es, mut pa) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
-        let (mut n, mut failed) = (Vec::new(), Vec::new());
-        for (gi, g) in self.groups.iter().enumerate() {
-            let (s, d, e) = l.group_labels(gi);
-            for (k, p) in l.parameters.iter().enumerate() {
-                sc.push(l.scenarios[s].name.clone());
-                de.push(l.designs[d].clone());
-                es.push(l.estimators[e].clone());
-                pa.push(p.clone());
-                n.push(g.est[k].n);
-                failed.push(g.failed);
-                let m = &g.est[k];
-                let truth = l.scenarios[s].truth[k];
-                let bias = m.mean - truth;
-                let sd = m.sd();
-                let ms = g.sigma[k].mean;
-                let vals = [
-                    truth,
-                    if m.n > 0 { m.mean } else { f64::NAN },
-                    if m.n > 0 { bias } else { f64::NAN },
-                    bias / (sd / (m.n as f64).sqrt()),
-                    sd,
-                    if m.n > 0 { ms } else { f64::NAN },
-                    sd / ms,
-                    m.skewness(),
-                    m.excess_kurtosis(),
-                    m.normality_p(),
-                    g.sigma[k].sd(),
-                    if m.n > 0 { g.pull[k].mean } else { f64::NAN },
-                    g.pull[k].sd(),
-                ];
-                for (c, v) in cols.iter_mut().zip(vals) {
-                    c.1.push(v);
-                }
-            }
-        }
-        let mut t = Table::new()
-            .with_str("scenario", sc)?
-            .with_str("design", de)?
-            .with_str("estimator", es)?
-            .with_str("parameter", pa)?
-            .with_u64("n", n)?
-            .with_u64("failed", failed)?;
-        for (name, v) in cols {
-            t.push_column(name, v)?;
-        }
-        Ok(t)
-    }
-
-    /// `correlation`: one row per scenario x design x estimator x parameter pair (i < j).
-    pub fn correlation_table(&self) -> Result<Table, IoError> {
-        let l = &self.layout;
-        let (mut sc, mut de, mut es, mut pi, mut pj) =
-            (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
-        let (mut n, mut mc, mut fi, mut fsd) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
-        for (gi, g) in self.groups.iter().enumerate() {
-            let (s, d, e) = l.group_labels(gi);
-            for (c, &(i, j)) in self.pairs.iter().enumerate() {
-                sc.push(l.scenarios[s].name.clone());
-                de.push(l.designs[d].clone());
-                es.push(l.estimators[e].clone());
-                pi.push(l.parameters[i].clone());
-                pj.push(l.parameters[j].clone());
-                n.push(g.est[i].n);
-                mc.push(g.co[c] / (g.est[i].m2() * g.est[j].m2()).sqrt());
-                let f = &g.fisher_corr[c];
-                fi.push(if f.n > 0 { f.mean } else { f64::NAN });
-                fsd.push(f.sd());
-            }
-        }
-        Table::new()
-            .with_str("scenario", sc)?
-            .with_str("design", de)?
-            .with_str("estimator", es)?
-            .with_str("parameter_i", pi)?
-            .with_str("parameter_j", pj)?
-            .with_u64("n", n)?
-            .with_f64("mc_correlation", mc)?
-            .with_f64("fisher_correlation", fi)?
-            .with_f64("fisher_correlation_sd", fsd)
-    }
-
-    /// `chi2`: one row per scenario x design x estimator x statistic (`fit`: the reduced chi^2 at
-    /// the estimate; `noise`: the reduced chi^2 of a noise-only run, no fit), with the moments
-    /// expected for a chi^2 with nu degrees of freedom divided by nu.
-    pub fn chi2_table(&self) -> Result<Table, IoError> {
-        let l = &self.layout;
-        let (mut sc, mut de, mut es, mut st) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
-        let (mut n, mut nu) = (Vec::new(), Vec::new());
-        let mut cols: Vec<(&str, Vec<f64>)> = [
-            "mean",
-            "sd",
-            "expected_mean",
-            "expected_sd",
-            "skewness",
-            "excess_kurtosis",
-            "normality_p",
-        ]
-        .into_iter()
-        .map(|n| (n, Vec::new()))
-        .collect();
-        for (gi, g) in self.groups.iter().enumerate() {
-            let (s, d, e) = l.group_labels(gi);
-            for (name, m) in [("fit", &g.chi2), ("noise", &g.noise_chi2)] {
-                sc.push(l.scenarios[s].name.clone());
-                de.push(l.designs[d].clone());
-                es.push(l.estimators[e].clone());
-                st.push(name.to_string());
-                n.push(m.n);
-                nu.push(g.nu);
-                let vals = [
-                    if m.n > 0 { m.mean } else { f64::NAN },
-                    m.sd(),
-                    1.0,
-                    (2.0 / g.nu as f64).sqrt(),
-                    m.skewness(),
-                    m.excess_kurtosis(),
-                    m.normality_p(),
-                ];
-                for (c, v) in cols.iter_mut().zip(vals) {
-                    c.1.push(v);
-                }
-            }
-        }
-        let mut t = Table::new()
-            .with_str("scenario", sc)?
-            .with_str("design", de)?
-            .with_str("estimator", es)?
-            .with_str("statistic", st)?
-            .with_u64("n", n)?
-            .with_u64("nu", nu)?;
-        for (name, v) in cols {
-            t.push_column(name, v)?;
-        }
-        Ok(t)
     }
 }
 

@@ -9,12 +9,13 @@ use clap::Args;
 use serde::Serialize;
 
 use super::{ensure_parent, ModelOpt};
-use crate::fit::problem::ExperimentData;
+use crate::data::ExperimentData;
 use crate::fit::{fit as run_fit, Estimator, FitConfig, Likelihood, Whitener};
 use crate::io::{
     read_dataset, read_run, read_toml, write_json_atomic, write_parquet, Dataset, Run, Table,
 };
 use crate::model::check_stability;
+use crate::numerics::stats::moments;
 use crate::setup::{Setup, DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 use crate::spectral::{welch_csd, WelchConfig};
 
@@ -76,40 +77,6 @@ pub struct WhitenArgs {
     /// Output Parquet: t, o1_w, o12_w (after the filter's start-up samples).
     #[arg(long)]
     pub out: PathBuf,
-}
-
-/// Moments of a series with their Gaussian standard errors (thesis Table "whitening").
-#[derive(Debug, Clone, Copy, Serialize)]
-pub struct Moments {
-    pub n: usize,
-    pub mean: f64,
-    pub mean_err: f64,
-    pub sd: f64,
-    pub sd_err: f64,
-    pub skewness: f64,
-    pub skewness_err: f64,
-    pub excess_kurtosis: f64,
-    pub kurtosis_err: f64,
-}
-
-pub fn moments(x: &[f64]) -> Moments {
-    let n = x.len() as f64;
-    let mean = x.iter().sum::<f64>() / n;
-    let m2 = x.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n;
-    let m3 = x.iter().map(|v| (v - mean).powi(3)).sum::<f64>() / n;
-    let m4 = x.iter().map(|v| (v - mean).powi(4)).sum::<f64>() / n;
-    let sd = m2.sqrt();
-    Moments {
-        n: x.len(),
-        mean,
-        mean_err: sd / n.sqrt(),
-        sd,
-        sd_err: sd / (2.0 * n).sqrt(),
-        skewness: m3 / m2.powf(1.5),
-        skewness_err: (6.0 / n).sqrt(),
-        excess_kurtosis: m4 / (m2 * m2) - 3.0,
-        kurtosis_err: (24.0 / n).sqrt(),
-    }
 }
 
 fn outputs_of(run: &Run) -> Vec<Vec<f64>> {

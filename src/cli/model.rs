@@ -6,7 +6,7 @@ use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
 
 use super::{ensure_parent, ModelOpt};
-use crate::fit::fisher::{fisher_information, InputSpectra};
+use crate::forward::fisher::{fisher_information, InputSpectra};
 use crate::io::{write_parquet, Table};
 use crate::model::{check_stability, transfer, ClosedLoopModel};
 use crate::setup::Setup;

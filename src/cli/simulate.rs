@@ -6,7 +6,7 @@ use anyhow::Result;
 use clap::{Args, ValueEnum};
 
 use super::ModelOpt;
-use crate::fit::problem::ExperimentData;
+use crate::data::ExperimentData;
 use crate::io::{write_dataset, Dataset, Run};
 use crate::model::check_stability;
 use crate::setup::Setup;

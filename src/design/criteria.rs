@@ -242,23 +242,7 @@ impl Target {
     }
 }
 
-/// Inverse of a symmetric positive definite matrix, equilibrated against the parameters' very
-/// different units; None if not positive definite.
-pub fn spd_inverse(m: &DMatrix<f64>) -> Option<DMatrix<f64>> {
-    let n = m.nrows();
-    let mut d = vec![0.0; n];
-    for i in 0..n {
-        let v = m[(i, i)];
-        if !(v.is_finite() && v > 0.0) {
-            return None;
-        }
-        d[i] = 1.0 / v.sqrt();
-    }
-    let a = DMatrix::from_fn(n, n, |i, j| m[(i, j)] * d[i] * d[j]);
-    let inv = a.cholesky()?.inverse();
-    let out = DMatrix::from_fn(n, n, |i, j| inv[(i, j)] * d[i] * d[j]);
-    out.iter().all(|v| v.is_finite()).then_some(out)
-}
+pub use crate::numerics::linalg::spd_inverse;
 
 /// Everything the criteria and their gradients need at one information matrix.
 #[derive(Debug, Clone)]

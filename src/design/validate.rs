@@ -252,9 +252,9 @@ pub fn validate(setup: &Setup, cfg: &ValidationConfig) -> Result<Validation, Des
     let mut runs = Vec::new();
     for (k, (id, design, optimized)) in designs.into_iter().enumerate() {
         let (values, sigma_fast) = truth_study.score(&design)?;
-        let full = crate::fit::fisher::fisher_information(
+        let full = crate::forward::fisher::fisher_information(
             &setup.model,
-            &crate::fit::fisher::InputSpectra::<2>::from_series(
+            &crate::forward::fisher::InputSpectra::<2>::from_series(
                 &(0..design.experiments.len())
                     .map(|e| {
                         design.sample(

@@ -27,6 +27,7 @@ use super::glitch::{self, Entry, Grid, Part};
 use crate::fit::{ExperimentData, Likelihood};
 use crate::model::effects::{Category, Extended};
 use crate::model::ClosedLoopModel;
+use crate::numerics::linalg::equilibrated_pinv;
 use crate::sim::Series;
 
 /// Base parameters a drift candidate is proposed for.
@@ -427,33 +428,13 @@ pub fn subtract(data: &ExperimentData, columns: &[Series], amplitudes: &[f64]) -
     out
 }
 
-pub fn dot(a: &Series, b: &Series) -> f64 {
-    a.iter()
-        .zip(b)
-        .flat_map(|(x, y)| x.iter().zip(y))
-        .map(|(u, v)| u.iter().zip(v).map(|(s, t)| s * t).sum::<f64>())
-        .sum()
-}
+pub use crate::numerics::linalg::series_dot as dot;
 
-/// Gram matrix of columns `j`, with an equilibrated pseudo-inverse.
+/// Gram matrix of columns `j`, with its equilibrated pseudo-inverse.
 pub fn gram_inverse(j: &[&Series]) -> (DMatrix<f64>, Option<DMatrix<f64>>) {
     let m = j.len();
-    let mut g = DMatrix::<f64>::zeros(m, m);
-    for a in 0..m {
-        for b in a..m {
-            let v = dot(j[a], j[b]);
-            g[(a, b)] = v;
-            g[(b, a)] = v;
-        }
-    }
-    let d: Vec<f64> = (0..m)
-        .map(|k| g[(k, k)].sqrt().max(f64::MIN_POSITIVE))
-        .collect();
-    let eq = DMatrix::<f64>::from_fn(m, m, |a, b| g[(a, b)] / (d[a] * d[b]));
-    let inv = eq
-        .pseudo_inverse(1e-12)
-        .ok()
-        .map(|i| DMatrix::<f64>::from_fn(m, m, |a, b| i[(a, b)] / (d[a] * d[b])));
+    let g = DMatrix::<f64>::from_fn(m, m, |a, b| dot(j[a], j[b]));
+    let inv = equilibrated_pinv(&g);
     (g, inv)
 }
 

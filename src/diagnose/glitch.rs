@@ -282,7 +282,7 @@ fn zscan(
 ) -> Vec<(usize, f64)> {
     let n = kern[0].len();
     let nr = r[0].len();
-    let len = crate::noise::generate::fast_len(n + nr + 1);
+    let len = crate::numerics::fft::fast_len(n + nr + 1);
     let c0 = xcorr(&kern[0], &r[0], planner, len);
     let c1 = xcorr(&kern[1], &r[1], planner, len);
     let mut out = Vec::with_capacity(nr);
@@ -426,7 +426,7 @@ pub fn add_glitch(
     }
     let grid = Grid {
         n,
-        m: crate::noise::generate::fast_len(2 * n),
+        m: crate::numerics::fft::fast_len(2 * n),
         dt,
     };
     let h = entry_response(model, p, &grid, g.entry);

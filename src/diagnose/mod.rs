@@ -51,6 +51,8 @@ use statrs::distribution::{ChiSquared, ContinuousCDF};
 use crate::fit::{fit, ExperimentData, FitConfig, FitError, FitResult, Likelihood, Whitener};
 use crate::model::effects::{library, Effect, Extended};
 use crate::model::ClosedLoopModel;
+use crate::numerics::linalg::equilibrated_pinv;
+use crate::numerics::tol::{DEGENERATE_FRACTION, PINV_RCOND};
 use crate::setup::{Setup, DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 use crate::sim::Series;
 
@@ -61,6 +63,9 @@ pub use residuals::{ChannelReport, SpectrumCurve};
 pub enum DiagnoseError {
     #[error("{0}")]
     Input(String),
+    /// A numerical step failed on valid input (an SVD, a singular information matrix).
+    #[error("numerical failure: {0}")]
+    Numerical(String),
     #[error(transparent)]
     Fit(#[from] FitError),
     #[error(transparent)]
@@ -367,22 +372,13 @@ fn score_round(
     let nn = estimate.len();
     // Nuisance block: the fitted parameters, then the extra columns.
     let n_idx: Vec<usize> = (0..nn).chain(np..nt).collect();
-    let nn = n_idx.len();
     let n_base = estimate.len();
     let sub = |rows: &[usize], cols: &[usize]| {
         DMatrix::<f64>::from_fn(rows.len(), cols.len(), |a, b| info[(rows[a], cols[b])])
     };
-    // Equilibrated inverse of I_nn.
-    let inn = sub(&n_idx, &n_idx);
-    let d: Vec<f64> = (0..nn)
-        .map(|k| inn[(k, k)].sqrt().max(f64::MIN_POSITIVE))
-        .collect();
-    let eq = DMatrix::<f64>::from_fn(nn, nn, |a, b| inn[(a, b)] / (d[a] * d[b]));
-    let inv_eq = eq
-        .clone()
-        .pseudo_inverse(1e-12)
-        .map_err(|e| DiagnoseError::Input(e.to_string()))?;
-    let inn_inv = DMatrix::<f64>::from_fn(nn, nn, |a, b| inv_eq[(a, b)] / (d[a] * d[b]));
+    let inn_inv = equilibrated_pinv(&sub(&n_idx, &n_idx)).ok_or_else(|| {
+        DiagnoseError::Numerical("SVD of the fitted parameters' information failed".into())
+    })?;
     let mut out = Vec::new();
     for i in 0..pool.len() {
         let range = full.range(current.effects.len() + i);
@@ -395,13 +391,7 @@ fn score_round(
         // Correlation of the (first) effect parameter with each fitted parameter in the joint covariance.
         let mut idx = n_idx.clone();
         idx.push(e_idx[0]);
-        let joint = sub(&idx, &idx);
-        let dj: Vec<f64> = (0..idx.len())
-            .map(|k| joint[(k, k)].sqrt().max(f64::MIN_POSITIVE))
-            .collect();
-        let jeq =
-            DMatrix::<f64>::from_fn(idx.len(), idx.len(), |a, b| joint[(a, b)] / (dj[a] * dj[b]));
-        let corr = jeq.pseudo_inverse(1e-14).ok().and_then(|cv| {
+        let corr = equilibrated_pinv(&sub(&idx, &idx)).and_then(|cv| {
             let last = idx.len() - 1;
             (0..n_base)
                 .map(|k| (k, cv[(k, last)] / (cv[(k, k)] * cv[(last, last)]).sqrt()))
@@ -1632,18 +1622,18 @@ pub fn simulate_with_drift_paths(
 
 /// The score (Lagrange-multiplier) statistic `U^T S^+ U` of effect parameters with score `ue`,
 /// information `iee` and Schur complement `schur` (information left after the fitted
-/// parameters), and the identifiable fraction `min_k S_kk / I_kk`. Below a fraction of 1e-6 the
+/// parameters), and the identifiable fraction `min_k S_kk / I_kk`. Below [`DEGENERATE_FRACTION`] the
 /// Schur complement is rounding noise: the effect is indistinguishable from the fitted
 /// parameters and the statistic is reported as 0.
 fn score_statistic(schur: &DMatrix<f64>, iee: &DMatrix<f64>, ue: &DMatrix<f64>) -> (f64, f64) {
-    let lm = match schur.clone().pseudo_inverse(1e-14 * iee.norm()) {
+    let lm = match schur.clone().pseudo_inverse(PINV_RCOND * iee.norm()) {
         Ok(si) => (ue.transpose() * si * ue)[(0, 0)],
         Err(_) => f64::NAN,
     };
     let frac = (0..schur.nrows())
         .map(|k| schur[(k, k)] / iee[(k, k)].max(f64::MIN_POSITIVE))
         .fold(1.0, f64::min);
-    let lm = if frac < 1e-6 || !lm.is_finite() {
+    let lm = if frac < DEGENERATE_FRACTION || !lm.is_finite() {
         0.0
     } else {
         lm.max(0.0)

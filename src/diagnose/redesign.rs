@@ -22,10 +22,11 @@ use serde::Serialize;
 
 use crate::design::space::{DesignSpace, Timing, INPUTS};
 use crate::design::DesignError;
-use crate::fit::fisher::{fisher_information, InputSpectra};
 use crate::fit::ExperimentData;
+use crate::forward::fisher::{fisher_information, InputSpectra};
 use crate::model::closed_loop::{transfer_with_derivatives, CMat, ClosedLoopModel};
 use crate::model::effects::{Effect, Extended};
+use crate::numerics::tol::PINV_RCOND;
 use crate::setup::Setup;
 
 /// One added stretch and what it would make identifiable.
@@ -110,7 +111,7 @@ pub fn identifiable_fraction(info: &DMatrix<f64>, k: usize) -> f64 {
     let bb = n.view((0, 0), (nb, nb)).into_owned();
     let be = n.view((0, nb), (nb, k)).into_owned();
     let ee = n.view((nb, nb), (k, k)).into_owned();
-    let Ok(inv) = bb.pseudo_inverse(1e-15) else {
+    let Ok(inv) = bb.pseudo_inverse(PINV_RCOND) else {
         return f64::NAN;
     };
     let schur = ee - be.transpose() * inv * be;

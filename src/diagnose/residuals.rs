@@ -13,7 +13,10 @@
 use num_complex::Complex64;
 use realfft::RealFftPlanner;
 use serde::Serialize;
-use statrs::distribution::{ChiSquared, ContinuousCDF, FisherSnedecor};
+use statrs::distribution::{ChiSquared, ContinuousCDF};
+
+pub use crate::numerics::stats::{chi2_sf, f_sf, ks_two_sample};
+use crate::numerics::stats::{ljung_box, mean};
 
 use crate::spectral::{welch_csd, WelchConfig};
 
@@ -105,19 +108,6 @@ pub struct SpectrumCurve {
     pub hi: Vec<f64>,
 }
 
-pub fn chi2_sf(dof: f64, x: f64) -> f64 {
-    if !(x.is_finite() && dof > 0.0) {
-        return if x.is_finite() { 1.0 } else { 0.0 };
-    }
-    ChiSquared::new(dof).map(|d| d.sf(x)).unwrap_or(f64::NAN)
-}
-
-pub fn f_sf(d1: f64, d2: f64, x: f64) -> f64 {
-    FisherSnedecor::new(d1, d2)
-        .map(|d| d.sf(x))
-        .unwrap_or(f64::NAN)
-}
-
 /// Periodogram ordinates `z_k = |X_k|^2 / L`, k = 1..L/2 (DC and Nyquist dropped), and their
 /// frequencies.
 pub fn periodogram(x: &[f64], dt: f64) -> (Vec<f64>, Vec<f64>) {
@@ -156,10 +146,6 @@ pub fn band_edges(f_lo: f64, f_nyq: f64) -> Vec<f64> {
     edges
 }
 
-fn mean(v: &[f64]) -> f64 {
-    v.iter().sum::<f64>() / v.len().max(1) as f64
-}
-
 /// Windows of the time axis from the injection stretches: cut at the middle of every gap of
 /// at least `min_gap` samples where all inputs are zero. Falls back to 8 equal windows.
 pub fn stretch_windows(inputs: &[Vec<f64>], n: usize, min_gap: usize) -> Vec<(usize, usize)> {
@@ -193,55 +179,6 @@ pub fn stretch_windows(inputs: &[Vec<f64>], n: usize, min_gap: usize) -> Vec<(us
         .filter(|w| w[1] > w[0])
         .map(|w| (w[0], w[1]))
         .collect()
-}
-
-fn ljung_box(x: &[f64], h: usize) -> (f64, usize, f64) {
-    let l = x.len();
-    let h = h.min(l / 4).max(1);
-    let m = mean(x);
-    let c0: f64 = x.iter().map(|v| (v - m).powi(2)).sum();
-    let mut q = 0.0;
-    for k in 1..=h {
-        let ck: f64 = (k..l).map(|i| (x[i] - m) * (x[i - k] - m)).sum();
-        let rho = ck / c0.max(f64::MIN_POSITIVE);
-        q += rho * rho / (l - k) as f64;
-    }
-    q *= l as f64 * (l as f64 + 2.0);
-    (q, h, chi2_sf(h as f64, q))
-}
-
-/// Two-sample Kolmogorov-Smirnov statistic and asymptotic p-value.
-pub fn ks_two_sample(a: &[f64], b: &[f64]) -> (f64, f64) {
-    let mut a: Vec<f64> = a.iter().copied().filter(|v| v.is_finite()).collect();
-    let mut b: Vec<f64> = b.iter().copied().filter(|v| v.is_finite()).collect();
-    if a.is_empty() || b.is_empty() {
-        return (f64::NAN, f64::NAN);
-    }
-    a.sort_by(f64::total_cmp);
-    b.sort_by(f64::total_cmp);
-    let (na, nb) = (a.len() as f64, b.len() as f64);
-    let (mut i, mut j, mut d) = (0usize, 0usize, 0.0f64);
-    while i < a.len() && j < b.len() {
-        let v = a[i].min(b[j]);
-        while i < a.len() && a[i] <= v {
-            i += 1;
-        }
-        while j < b.len() && b[j] <= v {
-            j += 1;
-        }
-        d = d.max((i as f64 / na - j as f64 / nb).abs());
-    }
-    let ne = na * nb / (na + nb);
-    let lambda = (ne.sqrt() + 0.12 + 0.11 / ne.sqrt()) * d;
-    let mut p = 0.0;
-    for k in 1..=100 {
-        let term = 2.0 * (-1f64).powi(k - 1) * (-2.0 * (k as f64).powi(2) * lambda * lambda).exp();
-        p += term;
-        if term.abs() < 1e-12 {
-            break;
-        }
-    }
-    (d, p.clamp(0.0, 1.0))
 }
 
 /// The whitened noise run's periodogram, per channel, for the band references.

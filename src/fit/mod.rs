@@ -13,7 +13,6 @@
 //! relative to `|p| + sigma`.
 
 pub mod estimator;
-pub mod fisher;
 pub mod problem;
 pub mod whiten;
 
@@ -27,8 +26,9 @@ pub use estimator::Estimator;
 pub use problem::{ExperimentData, Likelihood, Problem};
 pub use whiten::Whitener;
 
+use crate::data::Series;
 use crate::model::closed_loop::{check_stability, ClosedLoopModel};
-use crate::sim::templates::Series;
+use crate::numerics::linalg::{dot, series_dot};
 
 #[derive(Debug, thiserror::Error)]
 pub enum FitError {
@@ -235,36 +235,6 @@ fn gram(j: &[Series]) -> DMatrix<f64> {
         }
     }
     a
-}
-
-/// `sum_t a_t b_t` with four independent accumulators (vectorisable; the summation order is
-/// fixed, so results are deterministic).
-#[inline]
-pub(crate) fn dot(a: &[f64], b: &[f64]) -> f64 {
-    let n = a.len().min(b.len());
-    let (a, b) = (&a[..n], &b[..n]);
-    let mut acc = [0.0f64; 4];
-    let (ca, cb) = (a.chunks_exact(4), b.chunks_exact(4));
-    let (ra, rb) = (ca.remainder(), cb.remainder());
-    for (x, y) in ca.zip(cb) {
-        for i in 0..4 {
-            acc[i] += x[i] * y[i];
-        }
-    }
-    let mut tail = 0.0;
-    for (x, y) in ra.iter().zip(rb) {
-        tail += x * y;
-    }
-    (acc[0] + acc[1]) + (acc[2] + acc[3]) + tail
-}
-
-/// `sum` over experiments and channels of `dot(a[e][c], b[e][c])`.
-fn series_dot(a: &Series, b: &Series) -> f64 {
-    a.iter()
-        .flatten()
-        .zip(b.iter().flatten())
-        .map(|(x, y)| dot(x, y))
-        .sum()
 }
 
 /// Result of one fit.

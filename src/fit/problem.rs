@@ -11,32 +11,10 @@
 
 use super::whiten::{poly_basis, project_out, Whitener};
 use super::FitError;
+pub use crate::data::ExperimentData;
+use crate::data::Series;
+use crate::forward::TemplateEngine;
 use crate::model::closed_loop::{CMat, ClosedLoopModel};
-use crate::noise::{ColoredNoise, GlitchConfig};
-use crate::sim::experiment::{noise_series, Simulator};
-use crate::sim::templates::{Series, TemplateEngine};
-
-/// Inputs and outputs of each experiment: `inputs[e][c]`, `outputs[e][c]`, all of length n.
-#[derive(Debug, Clone)]
-pub struct ExperimentData {
-    pub names: Vec<String>,
-    pub inputs: Vec<Vec<Vec<f64>>>,
-    pub outputs: Vec<Vec<Vec<f64>>>,
-    pub dt: f64,
-}
-
-impl ExperimentData {
-    pub fn len(&self) -> usize {
-        self.outputs
-            .first()
-            .and_then(|e| e.first())
-            .map_or(0, |c| c.len())
-    }
-
-    pub fn is_empty(&self) -> bool {
-        self.len() == 0
-    }
-}
 
 /// The parts of the likelihood that depend only on the inputs and the whitening filter: the
 /// template engine (FFT plans, injection spectra), the whitening response on its grid and the
@@ -47,6 +25,18 @@ pub struct Likelihood<'m, M: ClosedLoopModel<N>, const N: usize> {
     response: Vec<CMat<N>>,
     basis: Vec<Vec<f64>>,
     pub poly_degree: usize,
+}
+
+impl<M: ClosedLoopModel<N>, const N: usize> Likelihood<'_, M, N> {
+    /// The whitening filter's response on the template engine's padded grid.
+    pub fn response(&self) -> &[CMat<N>] {
+        &self.response
+    }
+
+    /// The nuisance polynomial basis over the valid samples.
+    pub fn basis(&self) -> &[Vec<f64>] {
+        &self.basis
+    }
 }
 
 impl<'m, M: ClosedLoopModel<N>, const N: usize> Likelihood<'m, M, N> {
@@ -94,7 +84,9 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> Likelihood<'m, M, N> {
             .collect()
     }
 
-    fn cut(&self, mut c: Vec<f64>) -> Vec<f64> {
+    /// Drop the filter's start-up samples of a whitened series and project out the nuisance
+    /// polynomial.
+    pub fn cut(&self, mut c: Vec<f64>) -> Vec<f64> {
         c.drain(..self.order());
         project_out(&mut c, &self.basis);
         c
@@ -173,96 +165,6 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> Likelihood<'m, M, N> {
             )));
         }
         Ok(Problem { lik: self, data_w })
-    }
-
-    /// A simulator of `sim`'s experiments whose realizations come out whitened, cut and
-    /// projected as [`Self::problem`] would make them, from the same random numbers as
-    /// `sim.draw` (campaigns need nothing else). Whitening is linear, so
-    /// `W (o_s + o_n) = W o_s + W o_n`: the signal is whitened once here, and the noise is
-    /// colored and whitened in one step on the noise generator's long grid
-    /// ([`ColoredNoise::filtered`]), which saves the forward and inverse FFTs of whitening per
-    /// realization. Fails if `sim` does not match this likelihood or its noise window starts
-    /// too close to the generator's start for the filter (then use `sim.draw` and `problem`).
-    pub fn whitened_simulator(&self, sim: &Simulator<N>) -> Result<WhitenedSimulator<N>, FitError> {
-        let p = self.order();
-        if sim.n != self.engine.len()
-            || sim.signal.len() != self.engine.n_experiments()
-            || (sim.dt - self.engine.dt()).abs() > 1e-12 * sim.dt
-        {
-            return Err(FitError::Input(
-                "the simulator does not match the likelihood's experiments".into(),
-            ));
-        }
-        if sim.noise.offset() < p || sim.noise.driving_len() <= p {
-            return Err(FitError::Input(format!(
-                "noise window offset {} is shorter than the whitening filter ({p} lags)",
-                sim.noise.offset()
-            )));
-        }
-        let response = self.whitener.response_on_grid(sim.noise.driving_len());
-        let signal_w = sim
-            .signal
-            .iter()
-            .map(|exp| {
-                self.engine
-                    .filter_series(exp, &self.response)
-                    .into_iter()
-                    .map(|c| self.cut(c))
-                    .collect()
-            })
-            .collect();
-        Ok(WhitenedSimulator {
-            signal_w,
-            noise: sim.noise.filtered(&response),
-            glitches: sim.glitches.clone(),
-            order: p,
-            basis: self.basis.clone(),
-        })
-    }
-}
-
-/// Realizations of a [`Simulator`] delivered whitened, cut and projected (see
-/// [`Likelihood::whitened_simulator`]). Built once per campaign cell; `Sync`.
-pub struct WhitenedSimulator<const N: usize> {
-    /// Whitened, cut and projected noise-free responses `W o_s` per experiment.
-    pub signal_w: Series,
-    noise: ColoredNoise<N>,
-    glitches: Option<GlitchConfig>,
-    order: usize,
-    basis: Vec<Vec<f64>>,
-}
-
-impl<const N: usize> WhitenedSimulator<N> {
-    /// One noise series (N channels) whitened, cut and projected; the random numbers of
-    /// `Simulator::noise_series`.
-    pub fn noise_series<R: rand::Rng + ?Sized>(&self, rng: &mut R) -> Vec<Vec<f64>> {
-        let mut x = noise_series(&self.noise, self.glitches.as_ref(), self.order, rng);
-        for c in x.iter_mut() {
-            project_out(c, &self.basis);
-        }
-        x
-    }
-
-    /// One realization of every experiment, whitened, cut and projected; the random numbers
-    /// of `Simulator::draw`.
-    pub fn draw<R: rand::Rng + ?Sized>(&self, rng: &mut R) -> Series {
-        self.signal_w
-            .iter()
-            .map(|sig| {
-                let mut noise = self.noise_series(rng);
-                for (nc, sc) in noise.iter_mut().zip(sig) {
-                    nc.iter_mut().zip(sc).for_each(|(a, b)| *a += b);
-                }
-                noise
-            })
-            .collect()
-    }
-
-    /// A noise-only run of every experiment (no injections), whitened, cut and projected.
-    pub fn draw_noise<R: rand::Rng + ?Sized>(&self, rng: &mut R) -> Series {
-        (0..self.signal_w.len())
-            .map(|_| self.noise_series(rng))
-            .collect()
     }
 }
 

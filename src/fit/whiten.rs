@@ -325,7 +325,7 @@ pub fn poly_basis(n: usize, deg: usize) -> Vec<Vec<f64>> {
 /// Project `x` onto the orthogonal complement of the orthonormal `basis`, in place.
 pub fn project_out(x: &mut [f64], basis: &[Vec<f64>]) {
     for b in basis {
-        let dot = super::dot(x, b);
+        let dot = crate::numerics::linalg::dot(x, b);
         x.iter_mut().zip(b).for_each(|(a, c)| *a -= dot * c);
     }
 }
@@ -336,7 +336,7 @@ pub fn sample_autocovariance<const N: usize>(
     max_lag: usize,
 ) -> Vec<SMatrix<f64, N, N>> {
     let n = x[0].len();
-    let m = crate::noise::generate::fast_len(2 * n);
+    let m = crate::numerics::fft::fast_len(2 * n);
     let mut planner = rustfft::FftPlanner::<f64>::new();
     let fwd = planner.plan_fft_forward(m);
     let inv = planner.plan_fft_inverse(m);

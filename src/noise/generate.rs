@@ -18,7 +18,7 @@ use realfft::{ComplexToReal, RealFftPlanner, RealToComplex};
 
 use super::NoiseError;
 use crate::model::closed_loop::CMat;
-use crate::sim::scratch::with_buffers;
+use crate::numerics::fft::{fast_len, with_buffers};
 
 /// Lower-triangular `L` with `L L^H = S` for a Hermitian positive semi-definite `S`; negative
 /// pivots from round-off are clamped to zero so a channel without noise yields zeros.
@@ -68,23 +68,6 @@ impl<const N: usize> std::fmt::Debug for ColoredNoise<N> {
             "ColoredNoise {{ n: {}, m: {}, dt: {} }}",
             self.n, self.m, self.dt
         )
-    }
-}
-
-/// A length >= `min` whose only prime factors are 2, 3 and 5 (fast FFT sizes).
-pub fn fast_len(min: usize) -> usize {
-    let mut m = min.max(2);
-    loop {
-        let mut r = m;
-        for p in [2, 3, 5] {
-            while r.is_multiple_of(p) {
-                r /= p;
-            }
-        }
-        if r == 1 {
-            return m;
-        }
-        m += 1;
     }
 }
 

@@ -6,7 +6,7 @@
 
 use rand::Rng;
 
-use crate::fit::problem::ExperimentData;
+use crate::data::ExperimentData;
 use crate::model::closed_loop::{CMat, ClosedLoopModel};
 use crate::noise::{GlitchConfig, NoiseError};
 use crate::signal::Design;

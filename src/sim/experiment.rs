@@ -3,11 +3,12 @@
 
 use rand::Rng;
 
-use crate::fit::problem::ExperimentData;
+use crate::data::ExperimentData;
+use crate::data::Series;
+use crate::forward::TemplateEngine;
 use crate::model::closed_loop::{CMat, ClosedLoopModel};
 use crate::noise::{ColoredNoise, GlitchConfig, NoiseError};
 use crate::signal::Design;
-use crate::sim::templates::{Series, TemplateEngine};
 
 /// Everything needed to draw realizations of one design at one parameter set. Built once;
 /// `draw` is then cheap and deterministic in the RNG it is given.

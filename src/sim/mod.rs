@@ -5,8 +5,9 @@
 pub mod decimated;
 pub mod experiment;
 pub mod rng;
-pub(crate) mod scratch;
-pub mod templates;
+pub mod whitened;
 
+pub use crate::data::Series;
+pub use crate::forward::TemplateEngine;
 pub use experiment::Simulator;
-pub use templates::{Series, TemplateEngine};
+pub use whitened::WhitenedSimulator;

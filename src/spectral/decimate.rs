@@ -15,6 +15,7 @@
 //! form, cost N / factor * taps).
 
 use super::SpectralError;
+use crate::numerics::linalg::dot;
 
 /// Design attenuation of the stopband and ripple of the passband, in dB. 85 dB leaves margin over
 /// the 80 dB requirement for the Kaiser length formula's approximation.
@@ -79,27 +80,6 @@ fn kaiser_lowpass(fc: f64, width: f64, atten_db: f64) -> Vec<f64> {
     let dc: f64 = h.iter().sum();
     h.iter_mut().for_each(|v| *v /= dc);
     h
-}
-
-/// Dot product with independent partial sums so the compiler can vectorise it.
-#[inline]
-fn dot(a: &[f64], b: &[f64]) -> f64 {
-    const W: usize = 8;
-    let mut acc = [0.0; W];
-    let ca = a.chunks_exact(W);
-    let cb = b.chunks_exact(W);
-    let tail: f64 = ca
-        .remainder()
-        .iter()
-        .zip(cb.remainder())
-        .map(|(x, y)| x * y)
-        .sum();
-    for (x, y) in ca.zip(cb) {
-        for i in 0..W {
-            acc[i] += x[i] * y[i];
-        }
-    }
-    acc.iter().sum::<f64>() + tail
 }
 
 impl Decimator {

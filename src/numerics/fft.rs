@@ -1,6 +1,8 @@
-//! Per-thread scratch buffers for the FFT-heavy inner loops (templates, noise generation), so
-//! that a fit or a campaign worker does not allocate and zero megabytes per evaluation. The
-//! buffers only ever grow; callers overwrite what they read.
+//! FFT sizing and scratch: fast transform lengths, and per-thread scratch buffers for the
+//! FFT-heavy inner loops (templates, noise generation), so that a fit or a campaign worker does
+//! not allocate and zero megabytes per evaluation. The buffers only ever grow; callers
+//! overwrite what they read. Plans are made once by their owners (RustFFT's plan-once,
+//! execute-many) and scratch is passed explicitly to the kernels.
 
 use std::cell::RefCell;
 
@@ -12,7 +14,7 @@ thread_local! {
 
 /// Run `f` with a complex buffer of `nc` and a real buffer of `nr` elements (contents
 /// unspecified). Re-entrant calls get fresh buffers.
-pub(crate) fn with_buffers<T>(
+pub fn with_buffers<T>(
     nc: usize,
     nr: usize,
     f: impl FnOnce(&mut [Complex64], &mut [f64]) -> T,
@@ -30,4 +32,21 @@ pub(crate) fn with_buffers<T>(
         }
         Err(_) => f(&mut vec![Complex64::new(0.0, 0.0); nc], &mut vec![0.0; nr]),
     })
+}
+
+/// A length >= `min` whose only prime factors are 2, 3 and 5 (fast FFT sizes).
+pub fn fast_len(min: usize) -> usize {
+    let mut m = min.max(2);
+    loop {
+        let mut r = m;
+        for p in [2, 3, 5] {
+            while r.is_multiple_of(p) {
+                r /= p;
+            }
+        }
+        if r == 1 {
+            return m;
+        }
+        m += 1;
+    }
 }

@@ -14,11 +14,9 @@ use std::sync::Arc;
 use num_complex::Complex64;
 use realfft::{ComplexToReal, RealFftPlanner, RealToComplex};
 
+use crate::data::Series;
 use crate::model::closed_loop::{CMat, ClosedLoopModel};
-use crate::noise::generate::fast_len;
-
-/// Series per experiment, per channel: `out[e][c][t]`.
-pub type Series = Vec<Vec<Vec<f64>>>;
+use crate::numerics::fft::fast_len;
 
 pub struct TemplateEngine<'m, M: ClosedLoopModel<N>, const N: usize> {
     model: &'m M,
@@ -241,7 +239,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
             })
             .collect();
         let n_scratch = self.inv.get_scratch_len();
-        super::scratch::with_buffers(ne * N * nb + n_scratch, self.m, |cbuf, out| {
+        crate::numerics::fft::with_buffers(ne * N * nb + n_scratch, self.m, |cbuf, out| {
             let (specs, scratch) = cbuf.split_at_mut(ne * N * nb);
             let mut tblock = [CMat::<N>::zeros(); BLOCK];
             for start in (0..nb).step_by(BLOCK) {

@@ -1,0 +1,78 @@
+//! Dense linear algebra shared by the fit, the design criteria and the diagnosis: one dot
+//! product, one equilibrated SPD inverse and one equilibrated pseudo-inverse.
+//!
+//! Information matrices mix parameters whose units differ by up to ten decades (w^2 in s^-2,
+//! delays in s, gains dimensionless), so every inverse is taken of the equilibrated matrix
+//! `D^-1/2 M D^-1/2` (unit diagonal) and scaled back: the cuts in `tol` are then relative
+//! to a matrix whose entries are correlations.
+
+use nalgebra::DMatrix;
+
+use super::tol::PINV_RCOND;
+
+/// `sum_t a_t b_t` with four independent accumulators (vectorisable; the summation order is
+/// fixed, so results are deterministic).
+#[inline]
+pub fn dot(a: &[f64], b: &[f64]) -> f64 {
+    let n = a.len().min(b.len());
+    let (a, b) = (&a[..n], &b[..n]);
+    let mut acc = [0.0f64; 4];
+    let (ca, cb) = (a.chunks_exact(4), b.chunks_exact(4));
+    let (ra, rb) = (ca.remainder(), cb.remainder());
+    for (x, y) in ca.zip(cb) {
+        for i in 0..4 {
+            acc[i] += x[i] * y[i];
+        }
+    }
+    let mut tail = 0.0;
+    for (x, y) in ra.iter().zip(rb) {
+        tail += x * y;
+    }
+    (acc[0] + acc[1]) + (acc[2] + acc[3]) + tail
+}
+
+/// `sum` of [`dot`] over experiments and channels of two series `x[e][c][t]`.
+pub fn series_dot(a: &[Vec<Vec<f64>>], b: &[Vec<Vec<f64>>]) -> f64 {
+    a.iter()
+        .zip(b)
+        .flat_map(|(x, y)| x.iter().zip(y))
+        .map(|(u, v)| dot(u, v))
+        .sum()
+}
+
+/// The equilibrated matrix `D^-1/2 M D^-1/2` and the scales `d_i = sqrt(M_ii)` (floored at
+/// the smallest positive number so a zero row stays zero rather than NaN).
+pub fn equilibrate(m: &DMatrix<f64>) -> (DMatrix<f64>, Vec<f64>) {
+    let n = m.nrows();
+    let d: Vec<f64> = (0..n)
+        .map(|k| m[(k, k)].max(0.0).sqrt().max(f64::MIN_POSITIVE))
+        .collect();
+    (DMatrix::from_fn(n, n, |a, b| m[(a, b)] / (d[a] * d[b])), d)
+}
+
+/// Moore-Penrose inverse of a symmetric positive semi-definite `m`, taken in equilibrated
+/// coordinates with the relative cut [`PINV_RCOND`]; None if the SVD fails.
+pub fn equilibrated_pinv(m: &DMatrix<f64>) -> Option<DMatrix<f64>> {
+    let n = m.nrows();
+    let (eq, d) = equilibrate(m);
+    let inv = eq.pseudo_inverse(PINV_RCOND).ok()?;
+    Some(DMatrix::from_fn(n, n, |a, b| inv[(a, b)] / (d[a] * d[b])))
+}
+
+/// Inverse of a symmetric positive definite matrix, equilibrated against the parameters' very
+/// different units; None if not positive definite.
+pub fn spd_inverse(m: &DMatrix<f64>) -> Option<DMatrix<f64>> {
+    let n = m.nrows();
+    let mut d = vec![0.0; n];
+    for i in 0..n {
+        let v = m[(i, i)];
+        if !(v.is_finite() && v > 0.0) {
+            return None;
+        }
+        d[i] = 1.0 / v.sqrt();
+    }
+    let a = DMatrix::from_fn(n, n, |i, j| m[(i, j)] * d[i] * d[j]);
+    let inv = a.cholesky()?.inverse();
+    let out = DMatrix::from_fn(n, n, |i, j| inv[(i, j)] * d[i] * d[j]);
+    out.iter().all(|v| v.is_finite()).then_some(out)
+}

@@ -1,0 +1,9 @@
+//! Numerical building blocks with no physics in them: tolerances with their derivations
+//! (`tol`), dense linear algebra (`linalg`), FFT sizing and scratch (`fft`) and sample
+//! statistics and distribution tails (`stats`). Every other layer may use them; they use
+//! nothing of the crate.
+
+pub mod fft;
+pub mod linalg;
+pub mod stats;
+pub mod tol;

@@ -1,0 +1,113 @@
+//! Sample statistics and distribution tails shared by whitening checks, campaigns and the
+//! diagnosis: moments with their large-sample errors, chi^2 and F survival functions
+//! (statrs), the Ljung-Box portmanteau test and the two-sample Kolmogorov-Smirnov test.
+
+use serde::Serialize;
+use statrs::distribution::{ChiSquared, ContinuousCDF, FisherSnedecor};
+
+use super::tol::KS_SERIES_TERM;
+
+/// Arithmetic mean (0 for an empty slice).
+pub fn mean(v: &[f64]) -> f64 {
+    v.iter().sum::<f64>() / v.len().max(1) as f64
+}
+
+/// Moments of a series with their Gaussian standard errors (thesis Table "whitening").
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct Moments {
+    pub n: usize,
+    pub mean: f64,
+    pub mean_err: f64,
+    pub sd: f64,
+    pub sd_err: f64,
+    pub skewness: f64,
+    pub skewness_err: f64,
+    pub excess_kurtosis: f64,
+    pub kurtosis_err: f64,
+}
+
+pub fn moments(x: &[f64]) -> Moments {
+    let n = x.len() as f64;
+    let mean = x.iter().sum::<f64>() / n;
+    let m2 = x.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n;
+    let m3 = x.iter().map(|v| (v - mean).powi(3)).sum::<f64>() / n;
+    let m4 = x.iter().map(|v| (v - mean).powi(4)).sum::<f64>() / n;
+    let sd = m2.sqrt();
+    Moments {
+        n: x.len(),
+        mean,
+        mean_err: sd / n.sqrt(),
+        sd,
+        sd_err: sd / (2.0 * n).sqrt(),
+        skewness: m3 / m2.powf(1.5),
+        skewness_err: (6.0 / n).sqrt(),
+        excess_kurtosis: m4 / (m2 * m2) - 3.0,
+        kurtosis_err: (24.0 / n).sqrt(),
+    }
+}
+
+/// Survival function of chi^2 with `dof` degrees of freedom (1 for a non-finite statistic's
+/// degenerate cases, 0 for an infinite statistic).
+pub fn chi2_sf(dof: f64, x: f64) -> f64 {
+    if !(x.is_finite() && dof > 0.0) {
+        return if x.is_finite() { 1.0 } else { 0.0 };
+    }
+    ChiSquared::new(dof).map(|d| d.sf(x)).unwrap_or(f64::NAN)
+}
+
+pub fn f_sf(d1: f64, d2: f64, x: f64) -> f64 {
+    FisherSnedecor::new(d1, d2)
+        .map(|d| d.sf(x))
+        .unwrap_or(f64::NAN)
+}
+
+/// Ljung-Box portmanteau statistic over `h` lags (at most a quarter of the series), its lag
+/// count and p-value (Ljung & Box 1978).
+pub fn ljung_box(x: &[f64], h: usize) -> (f64, usize, f64) {
+    let l = x.len();
+    let h = h.min(l / 4).max(1);
+    let m = mean(x);
+    let c0: f64 = x.iter().map(|v| (v - m).powi(2)).sum();
+    let mut q = 0.0;
+    for k in 1..=h {
+        let ck: f64 = (k..l).map(|i| (x[i] - m) * (x[i - k] - m)).sum();
+        let rho = ck / c0.max(f64::MIN_POSITIVE);
+        q += rho * rho / (l - k) as f64;
+    }
+    q *= l as f64 * (l as f64 + 2.0);
+    (q, h, chi2_sf(h as f64, q))
+}
+
+/// Two-sample Kolmogorov-Smirnov statistic and asymptotic p-value.
+pub fn ks_two_sample(a: &[f64], b: &[f64]) -> (f64, f64) {
+    let mut a: Vec<f64> = a.iter().copied().filter(|v| v.is_finite()).collect();
+    let mut b: Vec<f64> = b.iter().copied().filter(|v| v.is_finite()).collect();
+    if a.is_empty() || b.is_empty() {
+        return (f64::NAN, f64::NAN);
+    }
+    a.sort_by(f64::total_cmp);
+    b.sort_by(f64::total_cmp);
+    let (na, nb) = (a.len() as f64, b.len() as f64);
+    let (mut i, mut j, mut d) = (0usize, 0usize, 0.0f64);
+    while i < a.len() && j < b.len() {
+        let v = a[i].min(b[j]);
+        while i < a.len() && a[i] <= v {
+            i += 1;
+        }
+        while j < b.len() && b[j] <= v {
+            j += 1;
+        }
+        d = d.max((i as f64 / na - j as f64 / nb).abs());
+    }
+    let ne = na * nb / (na + nb);
+    let lambda = (ne.sqrt() + 0.12 + 0.11 / ne.sqrt()) * d;
+    let mut p = 0.0;
+    for k in 1..=100 {
+        let term = 2.0 * (-1f64).powi(k - 1) * (-2.0 * (k as f64).powi(2) * lambda * lambda).exp();
+        p += term;
+        if term.abs() < KS_SERIES_TERM {
+            break;
+        }
+    }
+    (d, p.clamp(0.0, 1.0))
+}

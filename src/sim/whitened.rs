@@ -1,0 +1,106 @@
+//! Realizations of a [`Simulator`] delivered whitened, cut and projected as
+//! [`Likelihood::problem`] would make them, from the same random numbers as `Simulator::draw`
+//! (campaigns need nothing else). Whitening is linear, so `W (o_s + o_n) = W o_s + W o_n`:
+//! the signal is whitened once, and the noise is colored and whitened in one step on the
+//! noise generator's long grid ([`ColoredNoise::filtered`]), which saves the forward and
+//! inverse FFTs of whitening per realization.
+
+use super::experiment::{noise_series, Simulator};
+use crate::data::Series;
+use crate::fit::whiten::project_out;
+use crate::fit::{FitError, Likelihood};
+use crate::model::closed_loop::ClosedLoopModel;
+use crate::noise::{ColoredNoise, GlitchConfig};
+
+/// Realizations of a [`Simulator`] delivered whitened, cut and projected (see the module
+/// doc). Built once per campaign cell; `Sync`.
+pub struct WhitenedSimulator<const N: usize> {
+    /// Whitened, cut and projected noise-free responses `W o_s` per experiment.
+    pub signal_w: Series,
+    noise: ColoredNoise<N>,
+    glitches: Option<GlitchConfig>,
+    order: usize,
+    basis: Vec<Vec<f64>>,
+}
+
+impl<const N: usize> WhitenedSimulator<N> {
+    /// A simulator of `sim`'s experiments whose realizations come out whitened, cut and
+    /// projected as [`Likelihood::problem`] would make them, from the same random numbers as
+    /// `sim.draw` (campaigns need nothing else). Whitening is linear, so
+    /// `W (o_s + o_n) = W o_s + W o_n`: the signal is whitened once here, and the noise is
+    /// colored and whitened in one step on the noise generator's long grid
+    /// ([`ColoredNoise::filtered`]), which saves the forward and inverse FFTs of whitening per
+    /// realization. Fails if `sim` does not match this likelihood or its noise window starts
+    /// too close to the generator's start for the filter (then use `sim.draw` and `problem`).
+    pub fn new<M: ClosedLoopModel<N>>(
+        lik: &Likelihood<'_, M, N>,
+        sim: &Simulator<N>,
+    ) -> Result<Self, FitError> {
+        let p = lik.order();
+        if sim.n != lik.engine.len()
+            || sim.signal.len() != lik.engine.n_experiments()
+            || (sim.dt - lik.engine.dt()).abs() > 1e-12 * sim.dt
+        {
+            return Err(FitError::Input(
+                "the simulator does not match the likelihood's experiments".into(),
+            ));
+        }
+        if sim.noise.offset() < p || sim.noise.driving_len() <= p {
+            return Err(FitError::Input(format!(
+                "noise window offset {} is shorter than the whitening filter ({p} lags)",
+                sim.noise.offset()
+            )));
+        }
+        let response = lik.whitener.response_on_grid(sim.noise.driving_len());
+        let signal_w = sim
+            .signal
+            .iter()
+            .map(|exp| {
+                lik.engine
+                    .filter_series(exp, lik.response())
+                    .into_iter()
+                    .map(|c| lik.cut(c))
+                    .collect()
+            })
+            .collect();
+        Ok(WhitenedSimulator {
+            signal_w,
+            noise: sim.noise.filtered(&response),
+            glitches: sim.glitches.clone(),
+            order: p,
+            basis: lik.basis().to_vec(),
+        })
+    }
+
+    /// One noise series (N channels) whitened, cut and projected; the random numbers of
+    /// `Simulator::noise_series`.
+    pub fn noise_series<R: rand::Rng + ?Sized>(&self, rng: &mut R) -> Vec<Vec<f64>> {
+        let mut x = noise_series(&self.noise, self.glitches.as_ref(), self.order, rng);
+        for c in x.iter_mut() {
+            project_out(c, &self.basis);
+        }
+        x
+    }
+
+    /// One realization of every experiment, whitened, cut and projected; the random numbers
+    /// of `Simulator::draw`.
+    pub fn draw<R: rand::Rng + ?Sized>(&self, rng: &mut R) -> Series {
+        self.signal_w
+            .iter()
+            .map(|sig| {
+                let mut noise = self.noise_series(rng);
+                for (nc, sc) in noise.iter_mut().zip(sig) {
+                    nc.iter_mut().zip(sc).for_each(|(a, b)| *a += b);
+                }
+                noise
+            })
+            .collect()
+    }
+
+    /// A noise-only run of every experiment (no injections), whitened, cut and projected.
+    pub fn draw_noise<R: rand::Rng + ?Sized>(&self, rng: &mut R) -> Series {
+        (0..self.signal_w.len())
+            .map(|_| self.noise_series(rng))
+            .collect()
+    }
+}
