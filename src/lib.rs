@@ -8,6 +8,7 @@
 
 pub mod campaign;
 pub mod cli;
+pub mod config;
 pub mod data;
 pub mod design;
 pub mod diagnose;

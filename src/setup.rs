@@ -3,6 +3,7 @@
 //! design and diagnosis so that every job builds them the same way.
 
 use crate::fit::{FitError, Whitener};
+use crate::forward::fisher::{fisher_information, InputSpectra};
 use crate::model::closed_loop::CMat;
 use crate::model::spec::GlitchSpec;
 use crate::model::{LpfX, ModelError, ModelSpec};
@@ -154,4 +155,16 @@ impl Setup {
             glitch,
         )?)
     }
+}
+
+/// Fisher information of a design's experiments at the analysis rate (README formula), at
+/// parameters `p` under the model noise PSD at `p`.
+pub fn design_fisher(setup: &Setup, design: &Design, p: &[f64]) -> nalgebra::DMatrix<f64> {
+    let dt = setup.analysis_dt();
+    let n = design.samples(dt);
+    let inputs: Vec<Vec<Vec<f64>>> = (0..design.experiments.len())
+        .map(|e| design.sample(e, 2, 0.0, dt, n))
+        .collect();
+    let spectra = InputSpectra::<2>::from_series(&inputs, dt);
+    fisher_information(&setup.model, &spectra, p, setup.psd(p))
 }

@@ -1,10 +1,10 @@
 //! Optimal-design tests. Each test names its oracle. Tolerances live in `tol`.
 
-use freefall::cli::model::design_fisher;
 use freefall::design::criteria::{default_target_names, spd_inverse, Evaluation};
 use freefall::design::search::{efficient_rounding, phi_flat};
 use freefall::design::space::{ExactDesign, Timing};
 use freefall::design::{optimize, Criterion, DesignSpace, Layout, OptimizeConfig, Scaling, Target};
+use freefall::setup::design_fisher;
 use freefall::setup::Setup;
 use rand::Rng;
 

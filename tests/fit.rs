@@ -4,8 +4,9 @@
 //! Gaussian moments of whitened noise with the thesis's whitening-table uncertainties, and the
 //! thesis's non-standard scenarios (sec. 4.5.6-4.5.7).
 
-use freefall::cli::model::{design_fisher, THESIS_SIGMA};
 use freefall::fit::{fit, Estimator, ExperimentData, FitConfig, Likelihood, Termination, Whitener};
+use freefall::model::lpf_x::THESIS_SIGMA;
+use freefall::setup::design_fisher;
 use freefall::setup::{Setup, DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 use freefall::sim::rng::stream;
 use freefall::sim::WhitenedSimulator;

@@ -7,7 +7,7 @@ use clap::{Args, Subcommand};
 use serde::Deserialize;
 
 use super::ModelOpt;
-use crate::design::criteria::{CriterionValues, Evaluation};
+use crate::design::criteria::{CriterionValues, Evaluation, Kind, Matrix};
 use crate::design::space::{CandidateSet, Constraint, DesignSpace, Layout, INPUTS};
 use crate::design::validate::{validate as run_validation, Study, Validation, ValidationConfig};
 use crate::design::{Criterion, Optimized, Scaling};
@@ -34,10 +34,10 @@ pub struct StudyOpt {
     /// Scenario whose true parameters the design is computed at.
     #[arg(long, default_value = "monte_carlo")]
     pub scenario: String,
-    /// Parameter scaling for T and E: natural, nominal or standard (relative to the standard
-    /// design's Fisher sigmas).
-    #[arg(long, default_value = "standard")]
-    pub scaling: String,
+    /// Parameter scaling for T and E (standard: relative to the standard design's Fisher
+    /// sigmas).
+    #[arg(long, value_enum, default_value_t = Scaling::Standard)]
+    pub scaling: Scaling,
     /// Target parameters (comma-separated; default: the non-delay ones, as in thesis ch. 5).
     #[arg(long, value_delimiter = ',')]
     pub parameters: Option<Vec<String>>,
@@ -47,19 +47,28 @@ pub struct StudyOpt {
 pub struct OptimizeArgs {
     #[command(flatten)]
     pub study: StudyOpt,
-    /// Criterion: d, e, t, or all (the six criteria).
-    #[arg(long, default_value = "t")]
-    pub criterion: String,
-    /// Matrix the criterion acts on: information or covariance.
-    #[arg(long, default_value = "information")]
-    pub on: String,
+    /// Criterion (all: the six criteria, whatever --on says).
+    #[arg(long, value_enum, default_value_t = CriterionArg::T)]
+    pub criterion: CriterionArg,
+    /// Matrix the criterion acts on.
+    #[arg(long, value_enum, default_value_t = Matrix::Information)]
+    pub on: Matrix,
     /// separate (Exp. 1 on oi1, Exp. 2 on oi12) or simultaneous (Exp. 3 on both).
-    #[arg(long, default_value = "separate")]
-    pub layout: String,
+    #[arg(long, value_enum, default_value_t = Layout::Separate)]
+    pub layout: Layout,
     /// Output directory: designs.parquet, designs/*.toml, limits, derivatives, methods,
     /// landscape and signals Parquet files.
     #[arg(long)]
     pub out: PathBuf,
+}
+
+/// `--criterion`: one of the thesis's criteria, or all six.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum CriterionArg {
+    D,
+    E,
+    T,
+    All,
 }
 
 #[derive(Debug, Args)]
@@ -100,7 +109,7 @@ pub fn run(c: DesignCmd) -> Result<()> {
 
 fn study(setup: &Setup, o: &StudyOpt) -> Result<Study> {
     let p = setup.spec.scenario(&o.scenario)?.truth;
-    let scaling = Scaling::parse(&o.scaling).context("--scaling")?;
+    let scaling = o.scaling;
     Ok(Study::new(
         setup,
         &p,
@@ -110,11 +119,14 @@ fn study(setup: &Setup, o: &StudyOpt) -> Result<Study> {
     )?)
 }
 
-fn criteria(kind: &str, on: &str) -> Result<Vec<Criterion>> {
-    if kind == "all" {
-        return Ok(Criterion::ALL.to_vec());
-    }
-    Ok(vec![Criterion::parse(kind, on).context("--criterion/--on")?])
+fn criteria(kind: CriterionArg, on: Matrix) -> Vec<Criterion> {
+    let kind = match kind {
+        CriterionArg::All => return Criterion::ALL.to_vec(),
+        CriterionArg::D => Kind::D,
+        CriterionArg::E => Kind::E,
+        CriterionArg::T => Kind::T,
+    };
+    vec![Criterion { kind, on }]
 }
 
 /// File-name-safe id.
@@ -525,8 +537,8 @@ fn print_design(space: &DesignSpace, d: &Design) {
 fn optimize(a: OptimizeArgs) -> Result<()> {
     let setup = a.study.model.setup()?;
     let st = study(&setup, &a.study)?;
-    let layout = Layout::parse(&a.layout).context("--layout")?;
-    let crits = criteria(&a.criterion, &a.on)?;
+    let layout = a.layout;
+    let crits = criteria(a.criterion, a.on);
     ensure_dir(&a.out)?;
     ensure_dir(a.out.join("designs"))?;
     let names = setup.parameter_names();
@@ -623,7 +635,7 @@ fn evaluate(a: EvaluateArgs) -> Result<()> {
     let info = space.information(&design)?;
     let ev = Evaluation::new(&info, &st.target)
         .with_context(|| format!("{}: the information matrix is singular", a.design.display()))?;
-    let full = super::model::design_fisher(&setup, &design, &st.p);
+    let full = crate::setup::design_fisher(&setup, &design, &st.p);
     let full_sigma: Vec<f64> = crate::design::criteria::spd_inverse(&full)
         .map_or(vec![f64::NAN; full.nrows()], |c| {
             (0..c.nrows()).map(|i| c[(i, i)].sqrt()).collect()
@@ -712,8 +724,9 @@ fn validate(a: ValidateArgs) -> Result<()> {
             .collect()
     };
     let realizations = a.realizations.unwrap_or(spec.realizations);
-    if realizations < 2 {
-        bail!("{origin}: key 'design_validation.realizations' must be >= 2, got {realizations}");
+    let max = crate::design::validate::DESIGN_STREAM_STRIDE;
+    if realizations < 2 || realizations as u64 > max {
+        bail!("{origin}: key 'design_validation.realizations' must be in 2..={max}, got {realizations}");
     }
     let cfg = ValidationConfig {
         scenario: spec.scenario.clone(),

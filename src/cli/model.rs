@@ -6,9 +6,10 @@ use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
 
 use super::{ensure_parent, ModelOpt};
-use crate::forward::fisher::{fisher_information, InputSpectra};
 use crate::io::{write_parquet, Table};
+use crate::model::lpf_x::THESIS_SIGMA;
 use crate::model::{check_stability, transfer, ClosedLoopModel};
+use crate::setup::design_fisher;
 use crate::setup::Setup;
 
 #[derive(Debug, Subcommand)]
@@ -130,32 +131,6 @@ fn grid_table(a: GridArgs, noise: bool) -> Result<()> {
     write_parquet(&a.out, &table)?;
     eprintln!("wrote {} ({} frequencies)", a.out.display(), f.len());
     Ok(())
-}
-
-/// Thesis Table "Monte Carlo validation": mean expected standard deviations.
-pub const THESIS_SIGMA: [(&str, f64); 7] = [
-    ("w1_sq", 1e-9),
-    ("w12_sq", 5e-10),
-    ("s21", 4e-7),
-    ("a_df", 4e-4),
-    ("a_sus", 2e-5),
-    ("dt1", 3e-4),
-    ("dt12", 1e-3),
-];
-
-/// Fisher information of a design's experiments at the analysis rate (README formula).
-pub fn design_fisher(
-    setup: &Setup,
-    design: &crate::signal::Design,
-    p: &[f64],
-) -> nalgebra::DMatrix<f64> {
-    let dt = setup.analysis_dt();
-    let n = design.samples(dt);
-    let inputs: Vec<Vec<Vec<f64>>> = (0..design.experiments.len())
-        .map(|e| design.sample(e, 2, 0.0, dt, n))
-        .collect();
-    let spectra = InputSpectra::<2>::from_series(&inputs, dt);
-    fisher_information(&setup.model, &spectra, p, setup.psd(p))
 }
 
 fn fisher(a: FisherArgs) -> Result<()> {

@@ -38,9 +38,11 @@ use nalgebra::DMatrix;
 use super::DesignError;
 
 /// Information or covariance matrix.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum Matrix {
+    #[value(alias = "info")]
     Information,
+    #[value(alias = "cov")]
     Covariance,
 }
 
@@ -137,7 +139,7 @@ impl Criterion {
 }
 
 /// Parameter scaling for T and E (module docs).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum Scaling {
     Natural,
     Nominal,

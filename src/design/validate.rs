@@ -17,6 +17,11 @@ use crate::setup::{Setup, DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 use crate::signal::Design;
 use crate::sim::rng::stream;
 
+/// Random streams of design `k`'s Monte Carlo start at `DESIGN_STREAM_STRIDE * (k + 1)`: one
+/// stream per realization, so designs never share a stream while a study has fewer than this
+/// many realizations per design (validation refuses more).
+pub const DESIGN_STREAM_STRIDE: u64 = 1_000_000;
+
 /// Everything a design study needs at one parameter point.
 #[derive(Debug, Clone)]
 pub struct Study {
@@ -280,7 +285,7 @@ pub fn validate(setup: &Setup, cfg: &ValidationConfig) -> Result<Validation, Des
             &truth,
             &preliminary,
             cfg.seed,
-            1_000_000 * (k as u64 + 1),
+            DESIGN_STREAM_STRIDE * (k as u64 + 1),
             cfg.realizations,
         )?;
         runs.push(DesignRun {

@@ -46,12 +46,12 @@ use std::sync::Arc;
 use nalgebra::DMatrix;
 use rayon::prelude::*;
 use serde::Serialize;
-use statrs::distribution::{ChiSquared, ContinuousCDF};
 
 use crate::fit::{fit, ExperimentData, FitConfig, FitError, FitResult, Likelihood, Whitener};
 use crate::model::effects::{library, Effect, Extended};
 use crate::model::ClosedLoopModel;
 use crate::numerics::linalg::equilibrated_pinv;
+use crate::numerics::stats::chi2_isf;
 use crate::numerics::tol::{DEGENERATE_FRACTION, PINV_RCOND};
 use crate::setup::{Setup, DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 use crate::sim::Series;
@@ -66,6 +66,8 @@ pub enum DiagnoseError {
     /// A numerical step failed on valid input (an SVD, a singular information matrix).
     #[error("numerical failure: {0}")]
     Numerical(String),
+    #[error(transparent)]
+    Config(#[from] crate::config::OutOfRange),
     #[error(transparent)]
     Fit(#[from] FitError),
     #[error(transparent)]
@@ -112,6 +114,18 @@ impl Default for DiagnoseConfig {
             drifts: true,
             glitches: true,
         }
+    }
+}
+
+impl DiagnoseConfig {
+    /// Check every setting's range (see [`crate::config`]) before any work starts: an `alpha`
+    /// of 1.5 has no quantile, and an order of 0 would "diagnose" unwhitened data.
+    pub fn validate(&self) -> Result<(), crate::config::OutOfRange> {
+        use crate::config::{at_least_one, fraction, probability};
+        at_least_one("order", self.order)?;
+        probability("alpha", self.alpha)?;
+        at_least_one("confirm_top", self.confirm_top)?;
+        fraction("degeneracy", self.degeneracy)
     }
 }
 
@@ -219,7 +233,7 @@ pub struct RobustCheck {
 #[derive(Debug, Clone)]
 pub struct Diagnosis {
     pub notes: Vec<String>,
-    pub whitening: String,
+    pub whitening: WhiteningSource,
     pub order: usize,
     pub alpha: f64,
     pub before: Stage,
@@ -328,8 +342,11 @@ fn stage(
 
 /// (score statistic, dimension, identifiable fraction, most correlated fitted parameter).
 type Score = (f64, usize, f64, Option<(usize, f64)>);
-/// A refitted extended model, its fit, raw residuals, additive effects and their sigmas.
-type Refit = (Extended, FitResult, Series, Linear, Vec<DMatrix<f64>>);
+/// A refitted extended model and its fit.
+struct Refit {
+    model: Extended,
+    fit: LinearFit,
+}
 
 /// Score tests of the operator candidates `pool` at the current fit. `extra` are whitened
 /// columns of further fitted nuisance parameters (the amplitudes of the additive effects
@@ -405,9 +422,16 @@ fn score_round(
 
 /// Additive effects in the model with their amplitudes.
 type Linear = Vec<(additive::Additive, Vec<f64>)>;
-/// A fit with additive effects: fit, raw residuals, additive effects with their amplitudes, and
-/// the covariance of each one's (amplitudes, non-linear parameters).
-type LinearFit = (FitResult, Series, Linear, Vec<DMatrix<f64>>);
+/// A fit with additive effects.
+struct LinearFit {
+    fit: FitResult,
+    /// Raw (unwhitened) residuals.
+    raw: Series,
+    /// The additive effects with their fitted amplitudes.
+    linear: Linear,
+    /// Covariance of each additive effect's (amplitudes, non-linear parameters).
+    covariances: Vec<DMatrix<f64>>,
+}
 
 /// Raw columns of every additive effect of `lin` at `p`, flattened, with their amplitudes.
 fn linear_columns(
@@ -681,7 +705,12 @@ fn fit_linear(
             }
             f.nu = f.nu.saturating_sub(n_lin).max(1);
             f.chi2_reduced = f.chi2 / f.nu as f64;
-            return Ok((f, raw, lin, covs));
+            return Ok(LinearFit {
+                fit: f,
+                raw,
+                linear: lin,
+                covariances: covs,
+            });
         }
         let mut j = nn;
         for ((a, v), (_, n_nl)) in lin.iter_mut().zip(&layout) {
@@ -699,6 +728,139 @@ fn fit_linear(
     unreachable!("the loop returns on its last pass")
 }
 
+/// Where the whitening filter of a diagnosis comes from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+pub enum WhiteningSource {
+    /// Least squares on the dataset's noise-only run (`Whitener::from_series`).
+    #[serde(rename = "noise-only run")]
+    NoiseRun,
+    /// The model noise cross-PSD at the starting point (`Whitener::from_psd`).
+    #[serde(rename = "model noise PSD")]
+    ModelPsd,
+}
+
+impl std::fmt::Display for WhiteningSource {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            WhiteningSource::NoiseRun => "noise-only run",
+            WhiteningSource::ModelPsd => "model noise PSD",
+        })
+    }
+}
+
+/// The whitening of a diagnosis and the noise run's reference level under it.
+struct Whitening<'a> {
+    /// The noise run, when it can serve as a reference (no dead channel, long enough).
+    usable_noise: Option<&'a [Vec<f64>]>,
+    /// Akaike's final-prediction-error factor of the noise run's whitened level (1 if none).
+    fpe: f64,
+    filter: Whitener<2>,
+    source: WhiteningSource,
+    noise_ref: Option<residuals::NoiseReference>,
+    /// Degrees of freedom of a filter estimated from the noise run (None for the model's).
+    whitening_dof: Option<f64>,
+}
+
+/// Choose the whitening filter: the noise run when it is usable and not overridden, else the
+/// model noise PSD at `guess`; every fallback is a note. With a filter fitted on the noise run,
+/// that run's whitened level is an in-sample estimate, scaled by Akaike's final-prediction-error
+/// factor `(T + m) / (T - m)`, `m = 2 p` coefficients per equation of the two-channel
+/// autoregression, and the filter's spectrum carries `T / m` degrees of freedom.
+#[allow(clippy::too_many_arguments)]
+fn whitening<'a>(
+    setup: &Setup,
+    data: &ExperimentData,
+    noise: Option<&'a [Vec<f64>]>,
+    guess: &[f64],
+    from_model: bool,
+    order: usize,
+    poly_degree: usize,
+    notes: &mut Vec<String>,
+) -> Result<Whitening<'a>, DiagnoseError> {
+    let n = data.len();
+    let mut w_opt = None;
+    if let Some(nz) = noise {
+        check_series("noise run", nz)?;
+        if nz.iter().any(|c| c.iter().all(|v| *v == 0.0)) {
+            notes.push("a noise-run channel is all zeros: the noise run is ignored and the model noise is used".into());
+        } else if from_model {
+            notes.push("whitening from the model noise PSD (asked for); the noise run is the reference of the band and time tests".into());
+        } else if nz.first().map_or(0, |c| c.len()) < 4 * order + 50 {
+            notes.push(format!("the noise run is too short for a whitening filter of order {order}: the model noise is used"));
+        } else {
+            match Whitener::<2>::from_series(nz, order) {
+                Ok(w) => {
+                    w_opt = Some((w, WhiteningSource::NoiseRun));
+                }
+                Err(e) => notes.push(format!(
+                    "whitening from the noise run failed ({e}): the model noise is used"
+                )),
+            }
+        }
+    } else {
+        notes.push("the dataset has no noise-only run: whitening uses the model noise PSD at the starting point, and band excesses are judged against white unit noise".into());
+    }
+    let (w, whitening) = match w_opt {
+        Some(w) => w,
+        None => (
+            setup.whitener_from_model(guess, n, data.dt, order)?,
+            WhiteningSource::ModelPsd,
+        ),
+    };
+    let usable_noise = noise.filter(|nz| {
+        nz.iter().all(|c| c.iter().any(|v| *v != 0.0))
+            && nz.first().map_or(0, |c| c.len()) > order + 50
+    });
+    // The noise run's whitened level is an in-sample estimate when the filter was fitted on it.
+    let fpe = match usable_noise {
+        Some(nz) if whitening == WhiteningSource::NoiseRun => {
+            let t = nz[0].len().saturating_sub(order) as f64;
+            let m = (2 * order) as f64;
+            if t > 2.0 * m {
+                (t + m) / (t - m)
+            } else {
+                1.0
+            }
+        }
+        _ => 1.0,
+    };
+    if fpe > 1.0 {
+        notes.push(format!(
+            "the whitening filter was fitted on the noise run: its whitened level is scaled by Akaike's final-prediction-error factor {fpe:.3} to serve as the reference"
+        ));
+    }
+    // Degrees of freedom of the estimated filter's spectrum at any frequency: T samples over
+    // the m = 2 p coefficients of each equation of the two-channel autoregression (as in the
+    // final-prediction-error factor above).
+    let whitening_dof = match usable_noise {
+        Some(nz) if whitening == WhiteningSource::NoiseRun => {
+            Some((nz[0].len().saturating_sub(order) as f64 / (2 * order) as f64).max(2.0))
+        }
+        _ => None,
+    };
+    let noise_ref = usable_noise.and_then(|nz| {
+        residuals::NoiseReference::new(&whitened_noise(&w, nz, poly_degree), data.dt, fpe)
+    });
+    if let Some(nr) = noise_ref
+        .as_ref()
+        .filter(|nr| nr.vif.iter().any(|v| *v > 1.05))
+    {
+        notes.push(format!(
+            "the whitened noise run is not quite white (variance inflation of a windowed mean square: o1 {:.2}, o12 {:.2}); the time-window tests use correspondingly fewer degrees of freedom",
+            nr.vif[0],
+            nr.vif.get(1).copied().unwrap_or(1.0)
+        ));
+    }
+    Ok(Whitening {
+        filter: w,
+        source: whitening,
+        noise_ref,
+        whitening_dof,
+        usable_noise,
+        fpe,
+    })
+}
+
 /// Run the diagnosis on experiments `data`, with an optional noise-only run (`noise[c]`), from
 /// the base-parameter `guess`. `truth` (simulated data) is carried into the report.
 pub fn diagnose(
@@ -709,6 +871,7 @@ pub fn diagnose(
     truth: Option<&[f64]>,
     cfg: &DiagnoseConfig,
 ) -> Result<Diagnosis, DiagnoseError> {
+    cfg.validate()?;
     let start = std::time::Instant::now();
     let mut notes = Vec::new();
     if data.outputs.is_empty() {
@@ -748,82 +911,23 @@ pub fn diagnose(
         order = reduced;
     }
     let base = setup.model.clone();
-    // Whitening filter: noise run, else model noise.
-    let mut whitening = String::new();
-    let mut w_opt = None;
-    if let Some(nz) = noise {
-        check_series("noise run", nz)?;
-        if nz.iter().any(|c| c.iter().all(|v| *v == 0.0)) {
-            notes.push("a noise-run channel is all zeros: the noise run is ignored and the model noise is used".into());
-        } else if cfg.whiten_from_model {
-            notes.push("whitening from the model noise PSD (asked for); the noise run is the reference of the band and time tests".into());
-        } else if nz.first().map_or(0, |c| c.len()) < 4 * order + 50 {
-            notes.push(format!("the noise run is too short for a whitening filter of order {order}: the model noise is used"));
-        } else {
-            match Whitener::<2>::from_series(nz, order) {
-                Ok(w) => {
-                    whitening = "noise-only run".into();
-                    w_opt = Some(w);
-                }
-                Err(e) => notes.push(format!(
-                    "whitening from the noise run failed ({e}): the model noise is used"
-                )),
-            }
-        }
-    } else {
-        notes.push("the dataset has no noise-only run: whitening uses the model noise PSD at the starting point, and band excesses are judged against white unit noise".into());
-    }
-    let w = match w_opt {
-        Some(w) => w,
-        None => {
-            whitening = "model noise PSD".into();
-            setup.whitener_from_model(guess, n, data.dt, order)?
-        }
-    };
-    let usable_noise = noise.filter(|nz| {
-        nz.iter().all(|c| c.iter().any(|v| *v != 0.0))
-            && nz.first().map_or(0, |c| c.len()) > order + 50
-    });
-    // The noise run's whitened level is an in-sample estimate when the filter was fitted on it.
-    let fpe = match usable_noise {
-        Some(nz) if whitening == "noise-only run" => {
-            let t = nz[0].len().saturating_sub(order) as f64;
-            let m = (2 * order) as f64;
-            if t > 2.0 * m {
-                (t + m) / (t - m)
-            } else {
-                1.0
-            }
-        }
-        _ => 1.0,
-    };
-    if fpe > 1.0 {
-        notes.push(format!(
-            "the whitening filter was fitted on the noise run: its whitened level is scaled by Akaike's final-prediction-error factor {fpe:.3} to serve as the reference"
-        ));
-    }
-    // Degrees of freedom of the estimated filter's spectrum at any frequency: T samples over
-    // the m = 2 p coefficients of each equation of the two-channel autoregression (as in the
-    // final-prediction-error factor above).
-    let whitening_dof = match usable_noise {
-        Some(nz) if whitening == "noise-only run" => {
-            Some((nz[0].len().saturating_sub(order) as f64 / (2 * order) as f64).max(2.0))
-        }
-        _ => None,
-    };
-    let noise_ref = usable_noise.and_then(|nz| {
-        residuals::NoiseReference::new(&whitened_noise(&w, nz, cfg.poly_degree), data.dt, fpe)
-    });
-    if let Some(nr) = noise_ref
-        .as_ref()
-        .filter(|nr| nr.vif.iter().any(|v| *v > 1.05))
-    {
-        notes.push(format!(
-            "the whitened noise run is not quite white (variance inflation of a windowed mean square: o1 {:.2}, o12 {:.2}); the time-window tests use correspondingly fewer degrees of freedom",
-            nr.vif[0],
-            nr.vif.get(1).copied().unwrap_or(1.0)
-        ));
-    }
+    let Whitening {
+        filter: w,
+        source: whitening,
+        noise_ref,
+        whitening_dof,
+        usable_noise,
+        fpe,
+    } = whitening(
+        setup,
+        data,
+        noise,
+        guess,
+        cfg.whiten_from_model,
+        order,
+        cfg.poly_degree,
+        &mut notes,
+    )?;
 
     // Nominal fit.
     let nominal = Extended::new(base.clone(), Vec::new());
@@ -1011,19 +1115,30 @@ pub fn diagnose(
                     let mut g = cur_fit.estimate.clone();
                     g.resize(m.n_params(), 0.0);
                     if lin.is_empty() {
-                        fit_model(&m, data, &w, cfg.poly_degree, &g)
-                            .map(|(f, r)| (m, f, r, Vec::new(), Vec::new()))
+                        fit_model(&m, data, &w, cfg.poly_degree, &g).map(|(f, raw)| Refit {
+                            model: m,
+                            fit: LinearFit {
+                                fit: f,
+                                raw,
+                                linear: Vec::new(),
+                                covariances: Vec::new(),
+                            },
+                        })
                     } else {
                         fit_linear(&m, &g, &lin, data, &w, cfg.poly_degree)
-                            .map(|(f, r, l, s)| (m, f, r, l, s))
+                            .map(|fit| Refit { model: m, fit })
                     }
                 } else {
                     let a = round_lin[i - n_op].clone();
                     let mut l = lin.clone();
                     let dim = a.parameter_names().len();
                     l.push((a, vec![0.0; dim]));
-                    fit_linear(&current, &cur_fit.estimate, &l, data, &w, cfg.poly_degree)
-                        .map(|(f, r, l, s)| (current.clone(), f, r, l, s))
+                    fit_linear(&current, &cur_fit.estimate, &l, data, &w, cfg.poly_degree).map(
+                        |fit| Refit {
+                            model: current.clone(),
+                            fit,
+                        },
+                    )
                 };
                 (i, res)
             })
@@ -1033,7 +1148,17 @@ pub fn diagnose(
         let mut refitted: Vec<(usize, Alternative)> = Vec::new();
         for (i, res) in refits {
             match res {
-                Ok((m, f, raw, l, ls)) => {
+                Ok(refit) => {
+                    let Refit {
+                        model: m,
+                        fit:
+                            LinearFit {
+                                fit: f,
+                                raw,
+                                linear: l,
+                                covariances: ls,
+                            },
+                    } = refit;
                     let (dim, trials) = (describe[i].3, describe[i].4);
                     let scale = f.chi2_reduced.max(describe[i].5).max(1.0);
                     let dchi2 = cur_fit.chi2 - f.chi2;
@@ -1085,7 +1210,15 @@ pub fn diagnose(
                         && best.is_none_or(|(_, d, _)| dchi2 > d)
                     {
                         best = Some((i, dchi2, p));
-                        best_fit = Some((m, f, raw, l, ls));
+                        best_fit = Some(Refit {
+                            model: m,
+                            fit: LinearFit {
+                                fit: f,
+                                raw,
+                                linear: l,
+                                covariances: ls,
+                            },
+                        });
                     }
                 }
                 Err(e) => notes.push(format!(
@@ -1095,14 +1228,25 @@ pub fn diagnose(
             }
         }
         candidates.extend(round_c.iter().cloned());
-        let (Some((i, dchi2, p)), Some((m, f, raw, l, ls))) = (best, best_fit) else {
+        let (
+            Some((i, dchi2, p)),
+            Some(Refit {
+                model: m,
+                fit:
+                    LinearFit {
+                        fit: f,
+                        raw,
+                        linear: l,
+                        covariances: ls,
+                    },
+            }),
+        ) = (best, best_fit)
+        else {
             break;
         };
         let c = &round_c[i];
         // Refits of the same round the data cannot tell from the winner.
-        let q = ChiSquared::new(1.0)
-            .map(|d| d.inverse_cdf(1.0 - cfg.alpha))
-            .unwrap_or(6.63);
+        let q = chi2_isf(1.0, cfg.alpha);
         let indistinguishable_from: Vec<Alternative> = refitted
             .into_iter()
             .filter(|(k, a)| *k != i && a.delta_chi2 > dchi2 - q)

@@ -43,6 +43,8 @@ pub enum FitError {
     #[error("{0}")]
     Input(String),
     #[error(transparent)]
+    Config(#[from] crate::config::OutOfRange),
+    #[error(transparent)]
     Model(#[from] crate::model::ModelError),
 }
 
@@ -135,6 +137,14 @@ impl FitConfig {
             bounds: physical_bounds(names),
             jacobian: JacobianPolicy::Exact,
         }
+    }
+
+    /// Check every setting's range (see [`crate::config`]).
+    pub fn validate(&self) -> Result<(), crate::config::OutOfRange> {
+        use crate::config::{at_least_one, positive};
+        at_least_one("max_iterations", self.max_iterations)?;
+        positive("ftol", self.ftol)?;
+        positive("ptol", self.ptol)
     }
 }
 
@@ -376,6 +386,7 @@ pub fn fit<M: ClosedLoopModel<N>, const N: usize>(
     guess: &[f64],
     cfg: &FitConfig,
 ) -> Result<FitResult, FitError> {
+    cfg.validate()?;
     let start = Instant::now();
     let np = model.n_params();
     let est = cfg.estimator;

@@ -47,6 +47,7 @@ impl<const N: usize> Whitener<N> {
     /// matrix. (The Levinson-Whittle recursion is faster but loses positive definiteness in
     /// floating point for o12's dynamic range; a direct solve of a few hundred unknowns is cheap.)
     pub fn from_autocovariance(r: &[SMatrix<f64, N, N>], order: usize) -> Result<Self, FitError> {
+        crate::config::at_least_one("order", order)?;
         if r.len() <= order {
             return Err(FitError::Input(format!(
                 "need {} autocovariance lags for order {order}, got {}",
@@ -118,6 +119,7 @@ impl<const N: usize> Whitener<N> {
     /// The normal matrix is built in O(n p) with the diagonal recursion
     /// `G[j][k] = G[j-1][k-1] + x_{p-1-j} x_{p-1-k}^T - x_{n-1-j} x_{n-1-k}^T`.
     pub fn from_series(series: &[Vec<f64>], order: usize) -> Result<Self, FitError> {
+        crate::config::at_least_one("order", order)?;
         if series.len() != N {
             return Err(FitError::Input(format!(
                 "whitening needs {N} channels, got {}",
@@ -205,6 +207,16 @@ impl<const N: usize> Whitener<N> {
         order: usize,
         n_data: usize,
     ) -> Result<Self, FitError> {
+        crate::config::at_least_one("order", order)?;
+        // Checked before the O(order^2) normal matrix is allocated: a filter longer than the
+        // data it is meant for has no valid whitened sample.
+        if n_data <= order {
+            return Err(FitError::TooShort {
+                what: format!("series for a whitening filter of order {order}"),
+                len: n_data,
+                need: order + 1,
+            });
+        }
         let len = (PSD_RESOLUTION * n_data.max(order + 1)).next_power_of_two();
         Self::from_autocovariance(&psd_autocovariance::<N>(psd, dt, len, order), order)
     }

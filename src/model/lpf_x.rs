@@ -335,3 +335,14 @@ impl ClosedLoopModel<2> for LpfX {
         })
     }
 }
+
+/// Thesis Table "Monte Carlo validation": mean expected standard deviations.
+pub const THESIS_SIGMA: [(&str, f64); 7] = [
+    ("w1_sq", 1e-9),
+    ("w12_sq", 5e-10),
+    ("s21", 4e-7),
+    ("a_df", 4e-4),
+    ("a_sus", 2e-5),
+    ("dt1", 3e-4),
+    ("dt12", 1e-3),
+];

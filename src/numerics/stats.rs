@@ -61,6 +61,15 @@ pub fn f_sf(d1: f64, d2: f64, x: f64) -> f64 {
         .unwrap_or(f64::NAN)
 }
 
+/// Upper-tail quantile of chi^2 with `dof` degrees of freedom: the `x` with `P(X > x) = alpha`
+/// (NaN outside `dof > 0`, `0 < alpha < 1`).
+pub fn chi2_isf(dof: f64, alpha: f64) -> f64 {
+    match ChiSquared::new(dof) {
+        Ok(d) if alpha > 0.0 && alpha < 1.0 => d.inverse_cdf(1.0 - alpha),
+        _ => f64::NAN,
+    }
+}
+
 /// Ljung-Box portmanteau statistic over `h` lags (at most a quarter of the series), its lag
 /// count and p-value (Ljung & Box 1978).
 pub fn ljung_box(x: &[f64], h: usize) -> (f64, usize, f64) {
