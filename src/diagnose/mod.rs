@@ -46,7 +46,7 @@ use std::sync::Arc;
 use nalgebra::DMatrix;
 use rayon::prelude::*;
 use serde::Serialize;
-use statrs::distribution::{ChiSquared, ContinuousCDF};
+use statrs::distribution::ChiSquared;
 
 use crate::fit::{fit, ExperimentData, FitConfig, FitError, FitResult, Likelihood, Whitener};
 use crate::model::effects::{library, Effect, Extended};
@@ -61,6 +61,8 @@ pub use residuals::{ChannelReport, SpectrumCurve};
 pub enum DiagnoseError {
     #[error("{0}")]
     Input(String),
+    #[error("alpha = {value}: the false-alarm probability must lie strictly between 0 and 1")]
+    Alpha { value: f64 },
     #[error(transparent)]
     Fit(#[from] FitError),
     #[error(transparent)]
@@ -721,6 +723,9 @@ pub fn diagnose(
 ) -> Result<Diagnosis, DiagnoseError> {
     let start = std::time::Instant::now();
     let mut notes = Vec::new();
+    if !(cfg.alpha > 0.0 && cfg.alpha < 1.0) {
+        return Err(DiagnoseError::Alpha { value: cfg.alpha });
+    }
     if data.outputs.is_empty() {
         return Err(DiagnoseError::Input(
             "the dataset has no experiments".into(),
@@ -1111,8 +1116,9 @@ pub fn diagnose(
         let c = &round_c[i];
         // Refits of the same round the data cannot tell from the winner.
         let q = ChiSquared::new(1.0)
-            .map(|d| d.inverse_cdf(1.0 - cfg.alpha))
-            .unwrap_or(6.63);
+            .ok()
+            .and_then(|d| crate::spectral::welch::chi2_quantile(&d, 1.0 - cfg.alpha))
+            .ok_or(DiagnoseError::Alpha { value: cfg.alpha })?;
         let indistinguishable_from: Vec<Alternative> = refitted
             .into_iter()
             .filter(|(k, a)| *k != i && a.delta_chi2 > dchi2 - q)
