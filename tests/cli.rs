@@ -272,6 +272,45 @@ fn dataset(dir: &Path) -> PathBuf {
     ds
 }
 
+#[test]
+fn absurd_guesses_and_alpha_end_in_errors_not_hangs() {
+    // Oracle: the reproducers (they used to loop forever): a guess with w12_sq = 1e160
+    // overflows the characteristic polynomial; alpha = 1.5 is no probability (statrs' inverse
+    // CDF never returns for p outside [0, 1]). Both must end with a one-line error naming the
+    // value at fault.
+    let d = tmp();
+    let ds = dataset(&d.path().join("h"));
+    let guess = d.path().join("guess.toml");
+    std::fs::write(
+        &guess,
+        "w1_sq = -1.3e-6\nw12_sq = 1e160\ns21 = 0.0\na_df = 1.0\na_sus = 1.0\ndt1 = 0.0\ndt12 = 0.0\n",
+    )
+    .unwrap();
+    let out = d.path().join("fit");
+    fails(
+        &[
+            "fit",
+            s(&ds.join("dataset.toml")),
+            "--guess",
+            s(&guess),
+            "--out",
+            s(&out),
+        ],
+        &["w12_sq=1e160", "stability check"],
+    );
+    fails(
+        &[
+            "diagnose",
+            s(&ds.join("dataset.toml")),
+            "--alpha",
+            "1.5",
+            "--out",
+            s(&d.path().join("diag")),
+        ],
+        &["alpha", "1.5"],
+    );
+}
+
 fn rewrite(path: &Path, f: impl FnOnce(&mut Vec<(String, Vec<f64>)>, &mut Vec<f64>)) {
     let run = read_run(path).unwrap();
     let mut cols = run.columns.clone();

@@ -75,7 +75,7 @@ fn verdict(
 ) -> Option<freefall::model::closed_loop::Instability> {
     let mut q = ext.nested(p);
     *q.last_mut().unwrap() = theta;
-    ext.instability(&q)
+    ext.instability(&q).unwrap()
 }
 
 /// Compares the extended model's stability (argument principle + continuation, no polynomial)
@@ -93,7 +93,7 @@ fn compare_with_polynomial(
     );
     let (mut stable, mut unstable) = (0, 0);
     for &theta in sizes {
-        let oracle = exact(theta).instability(&p);
+        let oracle = exact(theta).instability(&p).unwrap();
         let got = verdict(&ext, &p, theta);
         assert_eq!(
             got.is_some(),
@@ -166,7 +166,7 @@ fn every_effect_at_typical_size_keeps_the_loop_stable() {
         let mut q = ext.nested(&p);
         let n = q.len();
         q[n - 1] = e.typical()[0];
-        assert_eq!(ext.instability(&q), None, "{}", e.name());
+        assert_eq!(ext.instability(&q).unwrap(), None, "{}", e.name());
         freefall::model::check_stability(&ext, &q, None).unwrap();
     }
 }

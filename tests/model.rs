@@ -84,6 +84,27 @@ fn every_scenario_is_stable_and_an_unstable_set_is_named() {
 }
 
 #[test]
+fn out_of_range_parameters_end_in_an_error_naming_them() {
+    // Oracle: the reproducers, which used to spin forever in the eigenvalue iteration
+    // (coefficients overflowing to inf/NaN, or a companion matrix the Schur iteration never
+    // deflates). Each must return an error naming the stage and the parameter at fault.
+    let (spec, m) = lpf();
+    let names = m.parameter_names().to_vec();
+    for (name, value) in [("w12_sq", 1e160), ("s21", 1e160), ("w1_sq", -1e308)] {
+        let mut p = spec.nominal();
+        p[names.iter().position(|n| n == name).unwrap()] = value;
+        for reference in [None, Some(&spec.nominal()[..])] {
+            let err = check_stability(&m, &p, reference).unwrap_err().to_string();
+            assert!(
+                err.contains("stability check") && err.contains(&format!("{name}={value:e}")),
+                "{name}: {err}"
+            );
+            assert_eq!(err.lines().count(), 1, "{err}");
+        }
+    }
+}
+
+#[test]
 fn closed_loop_poles_match_det_delta_zeros() {
     // Oracle: at a closed-loop pole, Delta is singular, so |det Delta| drops to ~0 relative to
     // its size nearby. We check det(Delta(s)) * denominators equals the characteristic

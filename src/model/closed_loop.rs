@@ -15,7 +15,7 @@
 use nalgebra::SMatrix;
 use num_complex::Complex64;
 
-use super::poly::Poly;
+use super::poly::{Poly, RootsError};
 use super::ModelError;
 
 pub type CMat<const N: usize> = SMatrix<Complex64, N, N>;
@@ -76,18 +76,21 @@ pub trait ClosedLoopModel<const N: usize>: Send + Sync {
     /// `None` if the closed loop at `p` is stable, else how it is unstable. The default takes
     /// the roots of [`Self::characteristic_polynomial`]; a model whose operators are not
     /// polynomial in `s` overrides it.
-    fn instability(&self, p: &[f64]) -> Option<Instability> {
-        let poles = self.characteristic_polynomial(p).roots();
+    /// Err when the poles cannot be computed at `p` (see [`Poly::roots`]).
+    fn instability(&self, p: &[f64]) -> Result<Option<Instability>, RootsError> {
+        let poles = self.characteristic_polynomial(p).roots()?;
         let scale = poles.iter().fold(1e-12_f64, |m, z| m.max(z.norm()));
         let rhp: Vec<Complex64> = poles
             .into_iter()
             .filter(|z| z.re >= -1e-14 * scale)
             .collect();
-        let pole = rhp.iter().copied().max_by(|a, b| a.re.total_cmp(&b.re))?;
-        Some(Instability {
+        let Some(pole) = rhp.iter().copied().max_by(|a, b| a.re.total_cmp(&b.re)) else {
+            return Ok(None);
+        };
+        Ok(Some(Instability {
             pole: Some(pole),
             count: rhp.len(),
-        })
+        }))
     }
 
     fn n_params(&self) -> usize {
@@ -232,11 +235,12 @@ pub struct Instability {
     pub count: usize,
 }
 
-/// Closed-loop poles of the model at `p`.
+/// Closed-loop poles of the model at `p`; Err when they cannot be computed (see
+/// [`Poly::roots`]).
 pub fn closed_loop_poles<M: ClosedLoopModel<N>, const N: usize>(
     model: &M,
     p: &[f64],
-) -> Vec<Complex64> {
+) -> Result<Vec<Complex64>, RootsError> {
     model.characteristic_polynomial(p).roots()
 }
 
@@ -255,10 +259,32 @@ pub fn check_stability<M: ClosedLoopModel<N>, const N: usize>(
             value: *v,
         });
     }
-    let unstable = |q: &[f64]| model.instability(q);
-    let Some(instability) = unstable(p) else {
-        return Ok(());
+    let instability = match model.instability(p) {
+        Ok(None) => return Ok(()),
+        Ok(Some(i)) => i,
+        Err(source) => {
+            // Which single parameters, set back to `reference` (or to zero without one), make
+            // the poles computable: those are out of range.
+            let mut culprits: Vec<(String, f64)> = (0..p.len())
+                .filter(|&k| {
+                    let mut q = p.to_vec();
+                    q[k] = reference.and_then(|r| r.get(k).copied()).unwrap_or(0.0);
+                    q[k] != p[k] && model.instability(&q).is_ok()
+                })
+                .map(|k| (names[k].clone(), p[k]))
+                .collect();
+            if culprits.is_empty() {
+                culprits = names.iter().cloned().zip(p.iter().copied()).collect();
+            }
+            return Err(ModelError::PolesNotComputable {
+                stage: "closed-loop stability check",
+                culprits,
+                cause: source,
+            });
+        }
     };
+    // A parameter set whose poles cannot be computed does not count as restoring stability.
+    let unstable = |q: &[f64]| model.instability(q).unwrap_or(Some(instability));
     let culprits: Vec<String> = match reference {
         Some(r) => (0..p.len().min(r.len()))
             .filter(|&k| p[k] != r[k])

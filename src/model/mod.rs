@@ -38,6 +38,17 @@ pub enum ModelError {
     },
     #[error("unknown injection design '{name}'; known designs: {}", known.join(", "))]
     UnknownDesign { name: String, known: Vec<String> },
+    #[error(
+        "{stage}: the closed-loop poles cannot be computed at {} ({cause}); the value is out of range",
+        culprits.iter().map(|(n, v)| format!("{n}={v:e}")).collect::<Vec<_>>().join(", ")
+    )]
+    PolesNotComputable {
+        stage: &'static str,
+        /// The parameters whose value alone makes the poles uncomputable, or every parameter
+        /// when no single one does.
+        culprits: Vec<(String, f64)>,
+        cause: poly::RootsError,
+    },
     #[error("parameter {name} is not finite ({value})")]
     NonFiniteParameter { name: String, value: f64 },
     #[error(

@@ -1,7 +1,23 @@
 //! Real polynomials in s (ascending coefficients) and their roots, for closed-loop stability.
 
-use nalgebra::DMatrix;
+use nalgebra::{DMatrix, Schur};
 use num_complex::Complex64;
+
+/// Why [`Poly::roots`] could not find the roots.
+#[derive(Debug, Clone, Copy, PartialEq, thiserror::Error)]
+pub enum RootsError {
+    /// A coefficient overflowed (or is NaN): the parameters that built the polynomial are out
+    /// of any physical range, and a companion matrix built from it would never converge.
+    #[error("coefficient of s^{power} is not finite ({value})")]
+    NonFiniteCoefficient { power: usize, value: f64 },
+    /// The Schur iteration of the (balanced) companion matrix did not converge.
+    #[error("the eigenvalue iteration of the degree-{degree} companion matrix did not converge in {iterations} iterations")]
+    NoConvergence { degree: usize, iterations: usize },
+}
+
+/// Iterations of the Schur decomposition allowed per root: LAPACK's `hqr` allows 30 per
+/// eigenvalue; three times that leaves room for the hard but solvable cases.
+const SCHUR_ITERATIONS_PER_ROOT: usize = 100;
 
 /// Polynomial with real coefficients, `c[0] + c[1] s + c[2] s^2 + ...`.
 #[derive(Debug, Clone, PartialEq)]
@@ -69,12 +85,19 @@ impl Poly {
     }
 
     /// Roots from the eigenvalues of the companion matrix. The variable is rescaled so that the
-    /// coefficients are balanced: LPF loops span poles from 1e-4 to 1 rad/s.
-    pub fn roots(&self) -> Vec<Complex64> {
+    /// coefficients are balanced: LPF loops span poles from 1e-4 to 1 rad/s. Err, never a
+    /// hang, when a coefficient is not finite or the eigenvalue iteration does not converge.
+    pub fn roots(&self) -> Result<Vec<Complex64>, RootsError> {
+        if let Some((power, value)) = self.0.iter().enumerate().find(|(_, c)| !c.is_finite()) {
+            return Err(RootsError::NonFiniteCoefficient {
+                power,
+                value: *value,
+            });
+        }
         let c = self.trimmed();
         let n = c.len() - 1;
         if n == 0 {
-            return Vec::new();
+            return Ok(Vec::new());
         }
         // Scale s = k x with k = geometric mean of |c0/cn|^(1/n), a cheap balancing.
         let k = if c[0] != 0.0 {
@@ -96,6 +119,20 @@ impl Poly {
         for i in 0..n {
             m[(i, n - 1)] = -scaled[i] / lead;
         }
-        m.complex_eigenvalues().iter().map(|z| z * k).collect()
+        if let Some((i, _)) = m.iter().enumerate().find(|(_, v)| !v.is_finite()) {
+            // The balancing overflowed: report the coefficient that did it.
+            let power = i % n;
+            return Err(RootsError::NonFiniteCoefficient {
+                power,
+                value: scaled[power] / lead,
+            });
+        }
+        let iterations = SCHUR_ITERATIONS_PER_ROOT * n;
+        let schur =
+            Schur::try_new(m, f64::EPSILON, iterations).ok_or(RootsError::NoConvergence {
+                degree: n,
+                iterations,
+            })?;
+        Ok(schur.complex_eigenvalues().iter().map(|z| z * k).collect())
     }
 }

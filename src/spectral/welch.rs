@@ -278,17 +278,37 @@ pub fn chi2_confidence_factors(nu: f64, level: f64) -> Result<(f64, f64), Spectr
         value: nu,
         expected: "finite and > 0",
     })?;
-    let q_lo = chi2_quantile(&dist, alpha / 2.0);
-    let q_hi = chi2_quantile(&dist, 1.0 - alpha / 2.0);
+    let quantile = |p: f64| {
+        chi2_quantile(&dist, p).ok_or(SpectralError::InvalidParameter {
+            name: "confidence level",
+            value: level,
+            expected: "a level whose chi^2 quantiles are finite",
+        })
+    };
+    let q_lo = quantile(alpha / 2.0)?;
+    let q_hi = quantile(1.0 - alpha / 2.0)?;
     Ok((nu / q_hi, nu / q_lo))
 }
 
 /// Quantile of a chi^2 distribution by bisection on its CDF (statrs' default inverse CDF stops
-/// after 16 bisections, too coarse for confidence bands).
-fn chi2_quantile(dist: &ChiSquared, p: f64) -> f64 {
-    let mut hi = 1.0;
-    while dist.cdf(hi) < p {
+/// after 16 bisections, too coarse for confidence bands, and never returns for `p` outside
+/// [0, 1]). `None` unless `0 < p < 1` and the quantile is finite; every loop is bounded.
+pub(crate) fn chi2_quantile(dist: &ChiSquared, p: f64) -> Option<f64> {
+    if !(p > 0.0 && p < 1.0) {
+        return None;
+    }
+    // 2^1100 overflows to infinity: the doubling ends by then whatever the distribution.
+    let mut hi = 1.0_f64;
+    for _ in 0..1100 {
+        let c = dist.cdf(hi);
+        if c >= p || c.is_nan() || !hi.is_finite() {
+            break;
+        }
         hi *= 2.0;
+    }
+    let c = dist.cdf(hi);
+    if !hi.is_finite() || c.is_nan() || c < p {
+        return None;
     }
     let mut lo = 0.0;
     for _ in 0..200 {
@@ -302,7 +322,7 @@ fn chi2_quantile(dist: &ChiSquared, p: f64) -> f64 {
             break;
         }
     }
-    0.5 * (lo + hi)
+    Some(0.5 * (lo + hi))
 }
 
 /// Equivalent degrees of freedom of a Welch estimate (Percival & Walden 1993, eq. 292b).
@@ -522,10 +542,21 @@ mod tests {
     }
 
     #[test]
+    fn chi2_quantile_refuses_non_probabilities_and_matches_tables() {
+        // Oracle: the chi^2(1) quantile at 0.99 is 6.6349 (Abramowitz & Stegun table 26.8);
+        // p outside (0, 1) has no quantile (it used to loop forever).
+        let d = ChiSquared::new(1.0).unwrap();
+        assert!((chi2_quantile(&d, 0.99).unwrap() - 6.6349).abs() < 1e-4);
+        for p in [-0.5, 0.0, 1.0, 1.5, f64::NAN] {
+            assert_eq!(chi2_quantile(&d, p), None, "p = {p}");
+        }
+    }
+
+    #[test]
     fn chi2_quantiles() {
         // chi^2_10 2.5% and 97.5% quantiles: 3.2470, 20.4832 (standard tables).
         let d = ChiSquared::new(10.0).unwrap();
-        assert!((chi2_quantile(&d, 0.025) - 3.246_973).abs() < 1e-5);
-        assert!((chi2_quantile(&d, 0.975) - 20.483_18).abs() < 1e-4);
+        assert!((chi2_quantile(&d, 0.025).unwrap() - 3.246_973).abs() < 1e-5);
+        assert!((chi2_quantile(&d, 0.975).unwrap() - 20.483_18).abs() < 1e-4);
     }
 }

@@ -44,6 +44,7 @@ use super::closed_loop::{
 };
 use super::lpf_x::{LpfPoint, LpfX};
 use super::poly::Poly;
+use super::poly::RootsError;
 
 /// The categories of issue 6 (`report.json` field `category`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -282,7 +283,7 @@ impl ClosedLoopModel<2> for Extended {
         self.base.characteristic_polynomial(&p[..self.n_base])
     }
 
-    fn instability(&self, p: &[f64]) -> Option<Instability> {
+    fn instability(&self, p: &[f64]) -> Result<Option<Instability>, RootsError> {
         stability::instability(self, p)
     }
 

@@ -20,6 +20,7 @@ use num_complex::Complex64;
 use super::Extended;
 use crate::model::closed_loop::{ClosedLoopModel, Instability};
 use crate::model::lpf_x::LpfPoint;
+use crate::model::poly::RootsError;
 
 /// Log-spaced frequency range of the phase tracking (Hz), and the starting density.
 const F_LO: f64 = 1e-9;
@@ -109,7 +110,12 @@ fn phase_change(
 /// real axis and splits).
 pub(super) fn locate(model: &Extended, p: &[f64]) -> Option<Complex64> {
     let n_base = model.n_base();
-    let base_poles = model.base.characteristic_polynomial(&p[..n_base]).roots();
+    // The base poles were computable when `instability` got here.
+    let base_poles = model
+        .base
+        .characteristic_polynomial(&p[..n_base])
+        .roots()
+        .unwrap_or_default();
     let char_fn = |s: Complex64, q: &[f64]| {
         let pt = model.base.prepare_s(s);
         let nominal = model.nested(&q[..n_base]);
@@ -169,15 +175,15 @@ fn newton(f: &dyn Fn(Complex64) -> Complex64, mut z: Complex64) -> Option<Comple
 }
 
 /// The extended model's [`ClosedLoopModel::instability`].
-pub(super) fn instability(model: &Extended, p: &[f64]) -> Option<Instability> {
+pub(super) fn instability(model: &Extended, p: &[f64]) -> Result<Option<Instability>, RootsError> {
     let n_base = model.n_base();
-    if let Some(i) = model.base.instability(&p[..n_base]) {
-        return Some(i);
+    if let Some(i) = model.base.instability(&p[..n_base])? {
+        return Ok(Some(i));
     }
     if p[n_base..].iter().all(|v| *v == 0.0) {
-        return None;
+        return Ok(None);
     }
-    match extra_rhp_zeros(model, p) {
+    Ok(match extra_rhp_zeros(model, p) {
         Some(0) => None,
         Some(count) => Some(Instability {
             pole: locate(model, p),
@@ -187,5 +193,5 @@ pub(super) fn instability(model: &Extended, p: &[f64]) -> Option<Instability> {
             pole: None,
             count: 0,
         }),
-    }
+    })
 }
