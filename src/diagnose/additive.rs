@@ -1,8 +1,9 @@
-//! Additive effects of issue 6 (`line`, `drift`, `glitch`): contributions to the readouts that
-//! are linear in their amplitudes at fixed base parameters, so they enter the whitened likelihood as extra
-//! columns, whitened, cut and projected exactly like the templates (`Likelihood::problem` applied
-//! to the raw column). The score test and the refit use the same formulas as the operator effects
-//! (`U = J_e^T r`, Schur complement against the fitted parameters), with `J_e` these columns.
+//! Additive effects (`line`, `drift`, `glitch`; thesis "Non-standard scenario" sections):
+//! contributions to the readouts that are linear in their amplitudes at fixed base parameters, so
+//! they enter the whitened likelihood as extra columns, whitened, cut and projected exactly like
+//! the templates (`Likelihood::problem` applied to the raw column). The score test and the refit
+//! use the same formulas as the operator effects (`U = J_e^T r`, Schur complement against the
+//! fitted parameters), with `J_e` these columns.
 //!
 //! - `line`: `a sin(2 pi f t) + b cos(2 pi f t) = A sin(2 pi f t + phi)` in one readout channel of
 //!   one experiment; `a`, `b` linear, the frequency `f` a non-linear parameter (started at the

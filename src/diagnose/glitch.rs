@@ -1,5 +1,6 @@
-//! Glitches (issue 6, category `glitch`): transient disturbances localized in time, entering the
-//! closed loop where a noise source of the model enters it (`ClosedLoopModel::noise_entry`):
+//! Glitches (thesis "Non-standard scenario: non-Gaussianities", category `glitch`): transient
+//! disturbances localized in time, entering the closed loop where a noise source of the model
+//! enters it (`ClosedLoopModel::noise_entry`):
 //!
 //! - a force pulse on TM1 (`f_1`), TM2 (`f_2`) or the spacecraft (`f_sc`), per unit mass: the
 //!   readouts see the loop's response `Delta^-1 G f(t)`;

@@ -1,5 +1,6 @@
-//! Diagnosis (issue 6): fit the nominal model, find where the whitened residual is in excess,
-//! name the library effect the data want, add it, refit, repeat, and report before and after.
+//! Diagnosis (model-error search on the thesis's "Parameter estimation"): fit the nominal model,
+//! find where the whitened residual is in excess, name the library effect the data want, add it,
+//! refit, repeat, and report before and after.
 //!
 //! Attribution is a forward selection with two tests per round:
 //! 1. Score (Lagrange-multiplier) test of every candidate effect's parameters theta at zero,
@@ -1149,16 +1150,8 @@ pub fn diagnose(
         for (i, res) in refits {
             match res {
                 Ok(refit) => {
-                    let Refit {
-                        model: m,
-                        fit:
-                            LinearFit {
-                                fit: f,
-                                raw,
-                                linear: l,
-                                covariances: ls,
-                            },
-                    } = refit;
+                    let (m, f) = (&refit.model, &refit.fit.fit);
+                    let (l, ls) = (&refit.fit.linear, &refit.fit.covariances);
                     let (dim, trials) = (describe[i].3, describe[i].4);
                     let scale = f.chi2_reduced.max(describe[i].5).max(1.0);
                     let dchi2 = cur_fit.chi2 - f.chi2;
@@ -1210,15 +1203,7 @@ pub fn diagnose(
                         && best.is_none_or(|(_, d, _)| dchi2 > d)
                     {
                         best = Some((i, dchi2, p));
-                        best_fit = Some(Refit {
-                            model: m,
-                            fit: LinearFit {
-                                fit: f,
-                                raw,
-                                linear: l,
-                                covariances: ls,
-                            },
-                        });
+                        best_fit = Some(refit);
                     }
                 }
                 Err(e) => notes.push(format!(

@@ -1,4 +1,4 @@
-//! The diagnosis as `report.json` (the keys of issue 6) and as readable Markdown. Rendering to
+//! The diagnosis as `report.json` and as readable Markdown. Rendering to
 //! strings and JSON values only; writing is the CLI's job.
 
 use std::fmt::Write;

@@ -1,6 +1,7 @@
-//! Residual analysis of a fit (issue 6, part 2): where the misfit is, by experiment, channel,
-//! frequency band and injection stretch, plus whiteness, coherence with the injections, a
-//! two-sample test against the noise run and the tails.
+//! Residual analysis of a fit (the whitened residuals of thesis "Estimation method" and
+//! "Whitening"): where the misfit is, by experiment, channel, frequency band and injection stretch,
+//! plus whiteness, coherence with the injections, a two-sample test against the noise run and the
+//! tails.
 //!
 //! Everything works on the *whitened* residuals, which are unit-variance white noise when the
 //! model is right. Frequency splits use the raw periodogram of the whitened residual: its

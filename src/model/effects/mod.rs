@@ -1,4 +1,4 @@
-//! The effect library (issue 6): named, parameterised extensions of the LPF-x operators that the
+//! The effect library: named, parameterised extensions of the LPF-x operators that the
 //! reference model lacks. Every effect is an additive perturbation of `D`, `S` or `A C` (thesis
 //! sec. 3.4-3.5: cross-talk as operator imperfections dD, dS, dA; sec. 4.1.1: anelasticity and
 //! damping) that vanishes when its parameters are zero, so the nominal model is nested in every
@@ -46,7 +46,9 @@ use super::lpf_x::{LpfPoint, LpfX};
 use super::poly::Poly;
 use super::poly::RootsError;
 
-/// The categories of issue 6 (`report.json` field `category`).
+/// The kind of a missing effect: operator imperfection (thesis sec. 3.4-3.5), additive readout
+/// contribution, or transient (thesis "Non-standard scenario: non-Gaussianities") (`report.json`
+/// field `category`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Category {
