@@ -40,7 +40,9 @@ impl<const N: usize> DecimatedSimulator<N> {
             .map_err(|e| NoiseError::Decimation(e.to_string()))?;
         let dt_out = dt_sim * factor as f64;
         let n_out = design.samples(dt_out);
-        let margin_out = decimator.edge_samples().div_ceil(factor) + 1;
+        // `edge_samples` counts output samples whose filter reaches past an end of the series;
+        // one more on each side keeps every kept sample's support inside the simulated grid.
+        let margin_out = decimator.edge_samples() + 1;
         let n_sim = (n_out + 2 * margin_out) * factor;
         let t0 = -(margin_out as f64) * dt_out;
         let glitches = glitch.map(|g| GlitchConfig::new(g, n_out));
@@ -58,6 +60,13 @@ impl<const N: usize> DecimatedSimulator<N> {
 
     fn decimate(&self, x: &[f64]) -> Vec<f64> {
         self.decimator.decimate(x)[self.first..self.first + self.n_out].to_vec()
+    }
+
+    /// Whether every kept output sample's filter support lies inside the simulated grid of
+    /// `n_sim` samples (no edge transient in the output).
+    pub fn fully_supported(&self) -> bool {
+        let (offset, valid) = self.decimator.decimate_valid(&vec![0.0; self.sim.n]);
+        offset <= self.first && self.first + self.n_out <= offset + valid.len()
     }
 
     /// One realization of every experiment at the analysis rate.
