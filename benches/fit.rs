@@ -4,13 +4,14 @@
 //!
 //!     cargo bench --bench fit
 
-use criterion::{black_box, criterion_group, criterion_main, Criterion};
+use criterion::{criterion_group, criterion_main, Criterion};
 use freefall::fit::{
     fit, objective, Estimator, FitConfig, JacobianCache, JacobianPolicy, Likelihood,
     JACOBIAN_REUSE_SIGMA,
 };
 use freefall::setup::{Setup, DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 use freefall::sim::rng::stream;
+use std::hint::black_box;
 
 fn bench(c: &mut Criterion) {
     let setup = Setup::embedded();
