@@ -5,11 +5,12 @@
 //! The issue asks for at least 1e4 evaluations per second; criterion prints the time per
 //! evaluation (the reciprocal is the rate).
 
-use criterion::{black_box, criterion_group, criterion_main, Criterion as Bench};
+use criterion::{criterion_group, criterion_main, Criterion as Bench};
 use freefall::design::criteria::{default_target_names, Evaluation};
 use freefall::design::search::phi_flat;
 use freefall::design::{Criterion, Layout, Scaling};
 use freefall::setup::Setup;
+use std::hint::black_box;
 
 fn bench(c: &mut Bench) {
     let setup = Setup::embedded();

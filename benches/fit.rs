@@ -4,7 +4,7 @@
 //!
 //!     cargo bench --bench fit
 
-use criterion::{black_box, criterion_group, criterion_main, Criterion};
+use criterion::{criterion_group, criterion_main, Criterion};
 use freefall::fit::{
     fit, objective, Estimator, FitConfig, JacobianCache, JacobianPolicy, Likelihood,
     JACOBIAN_REUSE_SIGMA,
@@ -12,6 +12,7 @@ use freefall::fit::{
 use freefall::setup::{Setup, DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 use freefall::sim::rng::stream;
 use freefall::sim::WhitenedSimulator;
+use std::hint::black_box;
 
 fn bench(c: &mut Criterion) {
     let setup = Setup::embedded();

@@ -3,11 +3,12 @@
 //!   (the padded template grid of a 3-hour series);
 //! - a 3-hour two-channel noise run, at 1 Hz and at 10 Hz.
 
-use criterion::{black_box, criterion_group, criterion_main, Criterion};
+use criterion::{criterion_group, criterion_main, Criterion};
 use freefall::model::{CMat, ClosedLoopModel};
 use freefall::noise::ColoredNoise;
 use freefall::setup::{Setup, NOISE_OVERSAMPLE};
 use freefall::sim::rng::stream;
+use std::hint::black_box;
 
 fn bench(c: &mut Criterion) {
     let setup = Setup::embedded();

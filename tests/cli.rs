@@ -383,14 +383,14 @@ fn bad_datasets_name_the_file_row_and_column() {
     let short = d.path().join("short");
     std::fs::create_dir_all(&short).unwrap();
     let run = |n: usize| {
-        use rand::Rng;
+        use rand::RngExt;
         let mut rng = freefall::sim::rng::stream(1, n as u64);
         let cols = ["oi1", "oi12", "o1", "o12"]
             .iter()
             .map(|c| {
                 (
                     c.to_string(),
-                    (0..n).map(|_| rng.gen::<f64>() * 1e-9).collect(),
+                    (0..n).map(|_| rng.random::<f64>() * 1e-9).collect(),
                 )
             })
             .collect();

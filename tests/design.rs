@@ -6,7 +6,7 @@ use freefall::design::space::{ExactDesign, Timing};
 use freefall::design::{optimize, Criterion, DesignSpace, Layout, OptimizeConfig, Scaling, Target};
 use freefall::setup::design_fisher;
 use freefall::setup::Setup;
-use rand::Rng;
+use rand::RngExt;
 
 mod tol {
     /// Fast (sum-of-stretches) vs full FFT-formula information: relative error of the Fisher
@@ -255,7 +255,7 @@ fn optimum_is_certified_and_no_random_design_beats_the_bound() {
                     .iter()
                     .map(|g| {
                         (0..g.slots)
-                            .map(|_| rng.gen_range(0..g.candidates.len()))
+                            .map(|_| rng.random_range(0..g.candidates.len()))
                             .collect()
                     })
                     .collect(),

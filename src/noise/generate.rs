@@ -12,7 +12,7 @@
 use std::sync::Arc;
 
 use num_complex::Complex64;
-use rand::Rng;
+use rand::{Rng, RngExt};
 use rand_distr::StandardNormal;
 use realfft::{ComplexToReal, RealFftPlanner, RealToComplex};
 

@@ -3,7 +3,7 @@
 //! uniformly in their ranges. They are added to the white driving sequence of the noise, in
 //! units of its standard deviation, and then colored with it, as the thesis does.
 
-use rand::Rng;
+use rand::{Rng, RngExt};
 
 use crate::model::spec::GlitchSpec;
 
@@ -61,7 +61,7 @@ impl GlitchConfig {
         let s = &self.spec;
         let mut u = |r: [f64; 2]| {
             if r[1] > r[0] {
-                rng.gen_range(r[0]..r[1])
+                rng.random_range(r[0]..r[1])
             } else {
                 r[0]
             }
