@@ -311,6 +311,49 @@ fn absurd_guesses_and_alpha_end_in_errors_not_hangs() {
     );
 }
 
+#[test]
+fn a_fit_that_never_moved_is_not_converged_and_a_bad_chi2_is_flagged() {
+    // Oracle: the reproducer. Readouts in nm (x 1e9, inputs unchanged) are no
+    // displacement the model can produce: no step lowers chi^2, the estimate is the guess, and
+    // chi^2/nu is ~1e5, thousands of standard deviations (sqrt(2/nu)) above 1.
+    let d = tmp();
+    let ds = d.path().join("nm");
+    ok(&[
+        "simulate",
+        "--scenario",
+        "monte_carlo",
+        "--seed",
+        "5",
+        "--out",
+        s(&ds),
+    ]);
+    for f in ["exp1.parquet", "exp2.parquet", "noise.parquet"] {
+        rewrite(&ds.join(f), |cols, _| {
+            for (n, c) in cols.iter_mut() {
+                if n == "o1" || n == "o12" {
+                    c.iter_mut().for_each(|v| *v *= 1e9);
+                }
+            }
+        });
+    }
+    let out = d.path().join("fit");
+    let o = run(&["fit", s(&ds.join("dataset.toml")), "--out", s(&out)]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success(),
+        "a fit that never moved must fail: {err}"
+    );
+    assert!(
+        err.contains("warning: chi2/nu") && err.contains("did not converge"),
+        "{err}"
+    );
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("fit.json")).unwrap()).unwrap();
+    assert_eq!(json["converged"], false, "{json}");
+    assert_eq!(json["termination"], "no_step_accepted", "{json}");
+    assert_eq!(json["warnings"].as_array().unwrap().len(), 1, "{json}");
+}
+
 fn rewrite(path: &Path, f: impl FnOnce(&mut Vec<(String, Vec<f64>)>, &mut Vec<f64>)) {
     let run = read_run(path).unwrap();
     let mut cols = run.columns.clone();

@@ -323,6 +323,9 @@ struct FitJson {
     jacobian_evaluations: usize,
     termination: &'static str,
     converged: bool,
+    /// Why the result should not be trusted even if converged (see
+    /// [`crate::fit::chi2_excess_warning`]).
+    warnings: Vec<String>,
     seconds: f64,
     estimator: String,
     whitening: String,
@@ -383,6 +386,9 @@ pub fn fit(a: FitArgs) -> Result<()> {
         jacobian_evaluations: res.jacobian_evaluations,
         termination: res.termination.as_str(),
         converged: res.termination.converged(),
+        warnings: crate::fit::chi2_excess_warning(res.chi2_reduced, res.nu)
+            .into_iter()
+            .collect(),
         seconds: res.seconds,
         estimator: a.estimator.to_string(),
         whitening: source,
@@ -424,6 +430,9 @@ pub fn fit(a: FitArgs) -> Result<()> {
         println!();
     }
     eprintln!("wrote {}", a.out.display());
+    for w in &json.warnings {
+        eprintln!("warning: {w}");
+    }
     if !res.termination.converged() {
         bail!("the fit did not converge: {}", res.termination.as_str());
     }
