@@ -521,3 +521,96 @@ fn guess_files_and_estimators() {
         "{err}"
     );
 }
+
+/// Run `freefall args` with a stdout whose reader is gone (`| head -1` that already exited).
+fn closed_stdout(args: &[&str]) -> std::process::ExitStatus {
+    let mut child = bin()
+        .args(args)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("binary runs");
+    drop(child.stdout.take());
+    let o = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !err.contains("panicked") && !err.contains("Broken pipe"),
+        "{args:?}: {err}"
+    );
+    o.status
+}
+
+// Oracle: the reproducer (`design optimize ... | head -1` exited 101 before writing
+// designs.parquet): every printing command, its stdout closed, exits 0 with its files written.
+#[test]
+fn a_closed_stdout_ends_quietly_after_the_files_are_written() {
+    let d = tmp();
+    let ds = dataset(&d.path().join("p"));
+    let p = |name: &str| d.path().join(name);
+    let cases: Vec<(Vec<String>, Vec<PathBuf>)> = vec![
+        (
+            vec![
+                "model".into(),
+                "fisher".into(),
+                "--scenario".into(),
+                "monte_carlo".into(),
+                "--out".into(),
+                s(&p("fisher.parquet")).into(),
+            ],
+            vec![p("fisher.parquet"), p("fisher_corr.parquet")],
+        ),
+        (
+            vec![
+                "whiten".into(),
+                s(&ds.join("noise.parquet")).into(),
+                "--model-psd".into(),
+                "--scenario".into(),
+                "monte_carlo".into(),
+                "--out".into(),
+                s(&p("w.parquet")).into(),
+            ],
+            vec![p("w.parquet")],
+        ),
+        (
+            vec![
+                "fit".into(),
+                s(&ds.join("dataset.toml")).into(),
+                "--out".into(),
+                s(&p("fit")).into(),
+            ],
+            vec![p("fit/fit.json"), p("fit/estimates.parquet")],
+        ),
+        (
+            vec![
+                "diagnose".into(),
+                s(&ds.join("dataset.toml")).into(),
+                "--order".into(),
+                "100".into(),
+                "--no-plots".into(),
+                "--out".into(),
+                s(&p("diag")).into(),
+            ],
+            vec![p("diag/report.md"), p("diag/report.json")],
+        ),
+        (vec!["diagnose".into(), "--list-effects".into()], vec![]),
+        (
+            vec![
+                "design".into(),
+                "optimize".into(),
+                "--criterion".into(),
+                "all".into(),
+                "--out".into(),
+                s(&p("design")).into(),
+            ],
+            vec![p("design/designs.parquet")],
+        ),
+    ];
+    for (args, files) in cases {
+        let args: Vec<&str> = args.iter().map(|a| a.as_str()).collect();
+        let status = closed_stdout(&args);
+        assert_eq!(status.code(), Some(0), "{args:?}");
+        for f in files {
+            assert!(f.exists(), "{args:?}: {} missing", f.display());
+        }
+    }
+}

@@ -1,5 +1,24 @@
 //! Command-line interface: thin clap subcommands that parse, call the library and print.
 //! `anyhow` is used only here. Every failure is one line on stderr and a non-zero exit.
+//! Standard output goes through [`out!`]/[`outln!`]: a closed stdout (`| head -1`) ends the
+//! printing quietly, the command still writes its files and exits 0.
+
+/// `print!` that never panics; see [`write_stdout`].
+macro_rules! out {
+    ($($t:tt)*) => {
+        $crate::cli::write_stdout(format_args!($($t)*))
+    };
+}
+
+/// `println!` that never panics; see [`write_stdout`].
+macro_rules! outln {
+    () => {
+        $crate::cli::write_stdout(format_args!("\n"))
+    };
+    ($($t:tt)*) => {
+        $crate::cli::write_stdout(format_args!("{}\n", format_args!($($t)*)))
+    };
+}
 
 pub mod analysis;
 pub mod campaign;
@@ -60,6 +79,26 @@ pub struct ModelOpt {
 impl ModelOpt {
     pub fn setup(&self) -> Result<Setup> {
         Setup::load(self.model.as_deref()).map_err(anyhow::Error::from)
+    }
+}
+
+/// Set once a write to stdout failed: nothing more is printed.
+static STDOUT_CLOSED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+/// Print to stdout. A reader that went away (`BrokenPipe`, e.g. `| head -1`) silences the rest
+/// of the output without error, so the command carries on, writes its files and exits 0; any
+/// other write error is reported once on stderr and also silences stdout.
+pub fn write_stdout(args: std::fmt::Arguments<'_>) {
+    use std::io::Write;
+    use std::sync::atomic::Ordering;
+    if STDOUT_CLOSED.load(Ordering::Relaxed) {
+        return;
+    }
+    if let Err(e) = std::io::stdout().lock().write_fmt(args) {
+        STDOUT_CLOSED.store(true, Ordering::Relaxed);
+        if e.kind() != std::io::ErrorKind::BrokenPipe {
+            eprintln!("warning: cannot write to standard output: {e}");
+        }
     }
 }
 
