@@ -614,3 +614,48 @@ fn a_closed_stdout_ends_quietly_after_the_files_are_written() {
         }
     }
 }
+
+// Oracle: the reproducer (`psd run.parquet --out run.parquet` replaced its input): an
+// output path that is an input file is refused with a one-line error naming both, and the input
+// is left byte for byte as it was (also when spelled differently, through `..`).
+#[test]
+fn an_output_path_equal_to_an_input_is_refused() {
+    let d = tmp();
+    let ds = dataset(&d.path().join("o"));
+    let noise = ds.join("noise.parquet");
+    let before = std::fs::read(&noise).unwrap();
+    let other = ds.join("..").join("ds").join("noise.parquet");
+    fails(
+        &["psd", s(&noise), "--out", s(&other)],
+        &["--out", "is the input RUN", "noise.parquet"],
+    );
+    fails(
+        &[
+            "whiten",
+            s(&ds.join("exp1.parquet")),
+            "--noise",
+            s(&noise),
+            "--out",
+            s(&noise),
+        ],
+        &["--out", "--noise", "noise.parquet"],
+    );
+    assert_eq!(std::fs::read(&noise).unwrap(), before, "input modified");
+    let model = d.path().join("m.toml");
+    std::fs::write(&model, freefall::model::spec::EMBEDDED_LPF_X).unwrap();
+    fails(
+        &[
+            "model",
+            "transfer",
+            "--model",
+            s(&model),
+            "--out",
+            s(&model),
+        ],
+        &["--model", "m.toml"],
+    );
+    assert_eq!(
+        std::fs::read_to_string(&model).unwrap(),
+        freefall::model::spec::EMBEDDED_LPF_X
+    );
+}
