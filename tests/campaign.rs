@@ -411,3 +411,159 @@ fn shards_tile_the_realizations() {
         assert!(e.contains(bad) && e.contains("K/N"), "{e}");
     }
 }
+
+/// Start `campaign run FILE --out OUT` and kill it once `.partial` holds a chunk; the names of
+/// the chunks it left.
+fn interrupted(file: &Path, out: &Path) -> Vec<PathBuf> {
+    let mut child = Command::new(BIN)
+        .args(["campaign", "run"])
+        .arg(file)
+        .arg("--out")
+        .arg(out)
+        .args(["--threads", "1", "--quiet"])
+        .spawn()
+        .unwrap();
+    let chunks = || -> Vec<PathBuf> {
+        std::fs::read_dir(out.join(".partial"))
+            .map(|d| {
+                d.filter_map(|e| e.ok())
+                    .filter(|e| e.file_name().to_string_lossy().starts_with("chunk-"))
+                    .map(|e| e.path())
+                    .collect()
+            })
+            .unwrap_or_default()
+    };
+    let t0 = Instant::now();
+    while chunks().is_empty() && t0.elapsed() < Duration::from_secs(120) {
+        assert!(child.try_wait().unwrap().is_none(), "finished too early");
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+    chunks()
+}
+
+// Oracle: the reproducer (two runs of different seeds into one --out used to mix their
+// chunks) against a clean run of the winner's campaign into its own folder.
+#[test]
+fn concurrent_runs_into_one_folder_do_not_mix() {
+    let tmp = tempfile::tempdir().unwrap();
+    const N: u64 = 40;
+    let text = small(N, 1, "");
+    let fa = write_campaign(tmp.path(), "a.toml", &text);
+    let fb = write_campaign(tmp.path(), "b.toml", &text.replace("seed = 7", "seed = 8"));
+    let out = tmp.path().join("shared");
+    std::fs::create_dir_all(&out).unwrap();
+    let spawn = |f: &Path| {
+        Command::new(BIN)
+            .args(["campaign", "run"])
+            .arg(f)
+            .arg("--out")
+            .arg(&out)
+            .args(["--threads", "1", "--quiet"])
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap()
+    };
+    let (a, b) = (spawn(&fa), spawn(&fb));
+    let (oa, ob) = (a.wait_with_output().unwrap(), b.wait_with_output().unwrap());
+    assert_ne!(
+        oa.status.success(),
+        ob.status.success(),
+        "exactly one run proceeds: {} / {}",
+        String::from_utf8_lossy(&oa.stderr),
+        String::from_utf8_lossy(&ob.stderr)
+    );
+    let (winner, loser) = if oa.status.success() {
+        (&fa, &ob)
+    } else {
+        (&fb, &oa)
+    };
+    let err = String::from_utf8_lossy(&loser.stderr);
+    assert_eq!(err.trim().lines().count(), 1, "{err}");
+    assert!(err.contains(out.to_str().unwrap()), "{err}");
+    let reference = tmp.path().join("reference");
+    run_lib(winner, &reference, Shard::WHOLE, 1);
+    assert_same_dirs(&reference, &out);
+
+    // While a run holds the folder, a second one is refused by the lock, naming the folder.
+    let held = tmp.path().join("held");
+    let long = write_campaign(tmp.path(), "long.toml", &small(300, 1, ""));
+    let mut first = spawn_into(&long, &held);
+    let t0 = Instant::now();
+    while !held.join(".partial").exists() && t0.elapsed() < Duration::from_secs(120) {
+        std::thread::sleep(Duration::from_millis(1));
+    }
+    let o = Command::new(BIN)
+        .args(["campaign", "run"])
+        .arg(&fb)
+        .arg("--out")
+        .arg(&held)
+        .arg("--quiet")
+        .output()
+        .unwrap();
+    assert!(
+        first.try_wait().unwrap().is_none(),
+        "the first run ended before the check"
+    );
+    first.kill().unwrap();
+    first.wait().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success());
+    assert!(
+        err.contains("another campaign run") && err.contains(held.to_str().unwrap()),
+        "{err}"
+    );
+}
+
+fn spawn_into(file: &Path, out: &Path) -> std::process::Child {
+    Command::new(BIN)
+        .args(["campaign", "run"])
+        .arg(file)
+        .arg("--out")
+        .arg(out)
+        .args(["--threads", "1", "--quiet"])
+        .spawn()
+        .unwrap()
+}
+
+// Oracle: the chunk's name carries the config hash of the campaign that wrote it; a chunk of
+// the seed-8 campaign offered to the seed-7 campaign's resume is refused, by name.
+#[test]
+fn resume_refuses_a_chunk_of_another_campaign() {
+    let tmp = tempfile::tempdir().unwrap();
+    let text = small(300, 1, "");
+    let fa = write_campaign(tmp.path(), "a.toml", &text);
+    let fb = write_campaign(tmp.path(), "b.toml", &text.replace("seed = 7", "seed = 8"));
+    let (outa, outb) = (tmp.path().join("a"), tmp.path().join("b"));
+    let mine = interrupted(&fa, &outa);
+    let theirs = interrupted(&fb, &outb);
+    assert!(!mine.is_empty() && !theirs.is_empty());
+    // Offer their last chunk under its own name, and under the name of one of ours.
+    let last = theirs.iter().max().unwrap();
+    let copied = outa.join(".partial").join(last.file_name().unwrap());
+    for dest in [copied.clone(), mine.iter().max().unwrap().clone()] {
+        let backup = std::fs::read(&dest).ok();
+        std::fs::copy(last, &dest).unwrap();
+        let o = Command::new(BIN)
+            .args(["campaign", "run"])
+            .arg(&fa)
+            .arg("--out")
+            .arg(&outa)
+            .args(["--resume", "--quiet"])
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success(), "a foreign chunk was accepted");
+        assert_eq!(err.trim().lines().count(), 1, "{err}");
+        assert!(
+            err.contains(dest.file_name().unwrap().to_str().unwrap())
+                && err.contains("another campaign"),
+            "{err}"
+        );
+        match backup {
+            Some(b) => std::fs::write(&dest, b).unwrap(),
+            None => std::fs::remove_file(&dest).unwrap(),
+        }
+    }
+}

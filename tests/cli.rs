@@ -311,6 +311,49 @@ fn absurd_guesses_and_alpha_end_in_errors_not_hangs() {
     );
 }
 
+#[test]
+fn a_fit_that_never_moved_is_not_converged_and_a_bad_chi2_is_flagged() {
+    // Oracle: the reproducer. Readouts in nm (x 1e9, inputs unchanged) are no
+    // displacement the model can produce: no step lowers chi^2, the estimate is the guess, and
+    // chi^2/nu is ~1e5, thousands of standard deviations (sqrt(2/nu)) above 1.
+    let d = tmp();
+    let ds = d.path().join("nm");
+    ok(&[
+        "simulate",
+        "--scenario",
+        "monte_carlo",
+        "--seed",
+        "5",
+        "--out",
+        s(&ds),
+    ]);
+    for f in ["exp1.parquet", "exp2.parquet", "noise.parquet"] {
+        rewrite(&ds.join(f), |cols, _| {
+            for (n, c) in cols.iter_mut() {
+                if n == "o1" || n == "o12" {
+                    c.iter_mut().for_each(|v| *v *= 1e9);
+                }
+            }
+        });
+    }
+    let out = d.path().join("fit");
+    let o = run(&["fit", s(&ds.join("dataset.toml")), "--out", s(&out)]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success(),
+        "a fit that never moved must fail: {err}"
+    );
+    assert!(
+        err.contains("warning: chi2/nu") && err.contains("did not converge"),
+        "{err}"
+    );
+    let json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("fit.json")).unwrap()).unwrap();
+    assert_eq!(json["converged"], false, "{json}");
+    assert_eq!(json["termination"], "no_step_accepted", "{json}");
+    assert_eq!(json["warnings"].as_array().unwrap().len(), 1, "{json}");
+}
+
 fn rewrite(path: &Path, f: impl FnOnce(&mut Vec<(String, Vec<f64>)>, &mut Vec<f64>)) {
     let run = read_run(path).unwrap();
     let mut cols = run.columns.clone();
@@ -476,5 +519,143 @@ fn guess_files_and_estimators() {
     assert!(
         !o.status.success() && err.contains("cubic") && !err.contains("panicked"),
         "{err}"
+    );
+}
+
+/// Run `freefall args` with a stdout whose reader is gone (`| head -1` that already exited).
+fn closed_stdout(args: &[&str]) -> std::process::ExitStatus {
+    let mut child = bin()
+        .args(args)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("binary runs");
+    drop(child.stdout.take());
+    let o = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !err.contains("panicked") && !err.contains("Broken pipe"),
+        "{args:?}: {err}"
+    );
+    o.status
+}
+
+// Oracle: the reproducer (`design optimize ... | head -1` exited 101 before writing
+// designs.parquet): every printing command, its stdout closed, exits 0 with its files written.
+#[test]
+fn a_closed_stdout_ends_quietly_after_the_files_are_written() {
+    let d = tmp();
+    let ds = dataset(&d.path().join("p"));
+    let p = |name: &str| d.path().join(name);
+    let cases: Vec<(Vec<String>, Vec<PathBuf>)> = vec![
+        (
+            vec![
+                "model".into(),
+                "fisher".into(),
+                "--scenario".into(),
+                "monte_carlo".into(),
+                "--out".into(),
+                s(&p("fisher.parquet")).into(),
+            ],
+            vec![p("fisher.parquet"), p("fisher_corr.parquet")],
+        ),
+        (
+            vec![
+                "whiten".into(),
+                s(&ds.join("noise.parquet")).into(),
+                "--model-psd".into(),
+                "--scenario".into(),
+                "monte_carlo".into(),
+                "--out".into(),
+                s(&p("w.parquet")).into(),
+            ],
+            vec![p("w.parquet")],
+        ),
+        (
+            vec![
+                "fit".into(),
+                s(&ds.join("dataset.toml")).into(),
+                "--out".into(),
+                s(&p("fit")).into(),
+            ],
+            vec![p("fit/fit.json"), p("fit/estimates.parquet")],
+        ),
+        (
+            vec![
+                "diagnose".into(),
+                s(&ds.join("dataset.toml")).into(),
+                "--order".into(),
+                "100".into(),
+                "--no-plots".into(),
+                "--out".into(),
+                s(&p("diag")).into(),
+            ],
+            vec![p("diag/report.md"), p("diag/report.json")],
+        ),
+        (vec!["diagnose".into(), "--list-effects".into()], vec![]),
+        (
+            vec![
+                "design".into(),
+                "optimize".into(),
+                "--criterion".into(),
+                "all".into(),
+                "--out".into(),
+                s(&p("design")).into(),
+            ],
+            vec![p("design/designs.parquet")],
+        ),
+    ];
+    for (args, files) in cases {
+        let args: Vec<&str> = args.iter().map(|a| a.as_str()).collect();
+        let status = closed_stdout(&args);
+        assert_eq!(status.code(), Some(0), "{args:?}");
+        for f in files {
+            assert!(f.exists(), "{args:?}: {} missing", f.display());
+        }
+    }
+}
+
+// Oracle: the reproducer (`psd run.parquet --out run.parquet` replaced its input): an
+// output path that is an input file is refused with a one-line error naming both, and the input
+// is left byte for byte as it was (also when spelled differently, through `..`).
+#[test]
+fn an_output_path_equal_to_an_input_is_refused() {
+    let d = tmp();
+    let ds = dataset(&d.path().join("o"));
+    let noise = ds.join("noise.parquet");
+    let before = std::fs::read(&noise).unwrap();
+    let other = ds.join("..").join("ds").join("noise.parquet");
+    fails(
+        &["psd", s(&noise), "--out", s(&other)],
+        &["--out", "is the input RUN", "noise.parquet"],
+    );
+    fails(
+        &[
+            "whiten",
+            s(&ds.join("exp1.parquet")),
+            "--noise",
+            s(&noise),
+            "--out",
+            s(&noise),
+        ],
+        &["--out", "--noise", "noise.parquet"],
+    );
+    assert_eq!(std::fs::read(&noise).unwrap(), before, "input modified");
+    let model = d.path().join("m.toml");
+    std::fs::write(&model, freefall::model::spec::EMBEDDED_LPF_X).unwrap();
+    fails(
+        &[
+            "model",
+            "transfer",
+            "--model",
+            s(&model),
+            "--out",
+            s(&model),
+        ],
+        &["--model", "m.toml"],
+    );
+    assert_eq!(
+        std::fs::read_to_string(&model).unwrap(),
+        freefall::model::spec::EMBEDDED_LPF_X
     );
 }

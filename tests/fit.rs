@@ -439,3 +439,29 @@ fn whitened_draws_equal_the_whitened_raw_draws() {
         assert_eq!(problem.nu(7), lik.problem(&data).unwrap().nu(7));
     }
 }
+
+#[test]
+fn chi2_excess_warning_follows_the_spread_of_chi2_over_nu() {
+    // Oracle: under the model chi^2/nu has mean 1 and standard deviation sqrt(2/nu); the flag is
+    // documented as > 10 of those above 1 and > 2.
+    use freefall::fit::chi2_excess_warning;
+    // nu = 40000: sd = 0.00707; 10 sd = 1.07 is below the factor-2 floor.
+    assert!(chi2_excess_warning(1.5, 40_000).is_none());
+    assert!(chi2_excess_warning(2.01, 40_000).is_some());
+    // nu = 8: sd = 0.5; the flag starts at 1 + 10 * 0.5 = 6.
+    assert!(chi2_excess_warning(5.9, 8).is_none());
+    assert!(chi2_excess_warning(6.1, 8).is_some());
+    assert!(chi2_excess_warning(f64::NAN, 8).is_some());
+    assert!(chi2_excess_warning(1.0, 1).is_none());
+}
+
+#[test]
+fn only_a_moved_fit_counts_as_converged() {
+    // Oracle: the definition (a step accepted and a stopping rule met); campaigns
+    // count rows with `converged = Termination::converged()` false as failed.
+    assert!(!Termination::NoStepAccepted.converged());
+    assert!(!Termination::MaxIterations.converged());
+    assert!(!Termination::NonFinite.converged());
+    assert!(Termination::NoImprovement.converged());
+    assert!(Termination::ChiSquareTolerance.converged());
+}

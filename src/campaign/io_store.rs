@@ -2,9 +2,10 @@
 //! design files, checkpoint chunks and `--resume`, shard parts and `merge`, the output tables and
 //! `manifest.json`.
 //!
-//! Layout of an output directory while running: `.partial/state.json` (config hash and shard)
-//! and `.partial/chunk-<start>-<end>.parquet`, one atomically written file per finished batch of
-//! realizations `start..end`. A killed run keeps every finished chunk; `--resume` replays them
+//! Layout of an output directory while running: `.lock` (held by the run, so that a second run
+//! into the same directory fails), `.partial/state.json` (config hash and shard) and
+//! `.partial/chunk-<start>-<end>-<config hash>.parquet`, one atomically written file per finished
+//! batch of realizations `start..end`; `--resume` refuses a chunk of another config hash. A killed run keeps every finished chunk; `--resume` replays them
 //! through the aggregators (same order, same numbers) and continues with the next realization.
 //! At the end the chunks are streamed into `realizations.parquet`, the aggregate tables and
 //! `manifest.json` are written, and `.partial` is removed.
@@ -269,8 +270,38 @@ pub fn host_name() -> String {
         .unwrap_or_else(|| "unknown".into())
 }
 
-/// Finished chunks `(start, end, path)` in `.partial`, sorted by start.
-fn list_chunks(dir: &Path) -> Result<Vec<(u64, u64, PathBuf)>, CampaignError> {
+/// Characters of the config hash every chunk name carries.
+const CHUNK_HASH_LEN: usize = 16;
+
+/// Lock file in the output directory, held (exclusive `flock`) for a run's duration so that a
+/// second run into the same `--out` fails instead of mixing its chunks in. The file is left in
+/// place: removing it would let a third run lock a fresh file while the second still holds the
+/// old one.
+const LOCK: &str = ".lock";
+
+/// Take the output directory's lock, or fail naming the folder if another run holds it. The
+/// lock lasts as long as the returned file is open.
+fn lock_out(out: &Path) -> Result<std::fs::File, CampaignError> {
+    io::ensure_dir(out)?;
+    let path = out.join(LOCK);
+    let file = std::fs::OpenOptions::new()
+        .create(true)
+        .truncate(false)
+        .write(true)
+        .open(&path)
+        .map_err(|e| IoError::write(&path, e))?;
+    match file.try_lock() {
+        Ok(()) => Ok(file),
+        Err(std::fs::TryLockError::WouldBlock) => Err(CampaignError::Locked {
+            path: out.to_path_buf(),
+        }),
+        Err(std::fs::TryLockError::Error(e)) => Err(IoError::write(&path, e).into()),
+    }
+}
+
+/// Finished chunks `(start, end, path)` in `.partial`, sorted by start; Err on a chunk whose name
+/// does not carry `config_hash` (one copied from another campaign).
+fn list_chunks(dir: &Path, config_hash: &str) -> Result<Vec<(u64, u64, PathBuf)>, CampaignError> {
     let mut out = Vec::new();
     let entries = std::fs::read_dir(dir).map_err(|e| IoError::read(dir, e))?;
     for entry in entries {
@@ -282,20 +313,41 @@ fn list_chunks(dir: &Path) -> Result<Vec<(u64, u64, PathBuf)>, CampaignError> {
         else {
             continue;
         };
-        let parsed = core
-            .split_once('-')
+        let mut fields = core.splitn(3, '-');
+        let (a, b, hash) = (fields.next(), fields.next(), fields.next().unwrap_or(""));
+        let parsed = a
+            .zip(b)
             .and_then(|(a, b)| Some((a.parse::<u64>().ok()?, b.parse::<u64>().ok()?)));
         let Some((a, b)) = parsed else {
             return Err(store_err(&entry.path(), "unexpected chunk file name"));
         };
+        if hash != short_hash(config_hash) {
+            return Err(CampaignError::ForeignChunk {
+                path: entry.path(),
+                chunk_hash: if hash.is_empty() {
+                    "none".into()
+                } else {
+                    hash.to_string()
+                },
+                config_hash: short_hash(config_hash).to_string(),
+            });
+        }
         out.push((a, b, entry.path()));
     }
     out.sort();
     Ok(out)
 }
 
-fn chunk_path(partial: &Path, start: u64, end: u64) -> PathBuf {
-    partial.join(format!("chunk-{start:012}-{end:012}.parquet"))
+fn short_hash(config_hash: &str) -> &str {
+    &config_hash[..config_hash.len().min(CHUNK_HASH_LEN)]
+}
+
+/// `chunk-<start>-<end>-<config hash prefix>.parquet`: the name ties the chunk to its campaign.
+fn chunk_path(partial: &Path, start: u64, end: u64, config_hash: &str) -> PathBuf {
+    partial.join(format!(
+        "chunk-{start:012}-{end:012}-{}.parquet",
+        short_hash(config_hash)
+    ))
 }
 
 /// Run (or resume) a campaign or one shard of it into `opts.out`. `progress` is called after each
@@ -318,6 +370,8 @@ pub fn run(
         range_start: start,
         range_end: end,
     };
+    // Held until this function returns (the file is closed on drop, releasing the lock).
+    let _lock = lock_out(out)?;
 
     if manifest_path.exists() {
         let m: Manifest = read_json(&manifest_path)?;
@@ -379,11 +433,22 @@ pub fn run(
 
     // Replay the finished chunks in order.
     let mut next = start;
-    for (a, b, path) in list_chunks(&partial)? {
+    for (a, b, path) in list_chunks(&partial, &loaded.config_hash)? {
         if a != next || b <= a || b > end {
             return Err(store_err(&path, format!("chunk does not continue the run at realization {next}; remove .partial to start over")));
         }
-        let rows = layout.rows_from_table(&read_parquet(&path)?)?;
+        let table = read_parquet(&path)?;
+        // The name carries the config hash; the rows carry the seed (a renamed foreign chunk).
+        if let Some(seed) = table.u64_column("seed")?.iter().find(|s| **s != c.seed) {
+            return Err(store_err(
+                &path,
+                format!(
+                    "chunk of another campaign (seed {seed}), this run has seed {}; remove it (or .partial) to start over",
+                    c.seed
+                ),
+            ));
+        }
+        let rows = layout.rows_from_table(&table)?;
         if rows.len() as u64 != (b - a) * runner.rows_per_realization() as u64 {
             return Err(store_err(&path, "chunk has the wrong number of rows"));
         }
@@ -409,7 +474,10 @@ pub fn run(
             let stop = (next + batch).min(end);
             let rows = pool.install(|| runner.run_range(next, stop));
             let table = layout.rows_table(&rows, c.seed)?;
-            write_parquet(chunk_path(&partial, next, stop), &table)?;
+            write_parquet(
+                chunk_path(&partial, next, stop, &loaded.config_hash),
+                &table,
+            )?;
             for r in &rows {
                 agg.add(r);
                 fit_seconds += r.seconds;
@@ -437,7 +505,7 @@ pub fn run(
     };
     if outputs.realizations {
         let mut app = ParquetAppender::create(out.join("realizations.parquet"))?;
-        let chunks = list_chunks(&partial)?;
+        let chunks = list_chunks(&partial, &loaded.config_hash)?;
         if chunks.is_empty() {
             app.append(&layout.rows_table(&[], c.seed)?)?;
         }

@@ -56,6 +56,23 @@ pub enum CampaignError {
     /// An output directory or shard part that cannot be used (resume, merge).
     #[error("{}: {reason}", path.display())]
     Store { path: PathBuf, reason: String },
+    /// Another `campaign run` holds the output directory's lock.
+    #[error(
+        "{}: another campaign run is writing to this folder (it holds {}/.lock); wait for it to finish or use another --out",
+        path.display(), path.display()
+    )]
+    Locked { path: PathBuf },
+    /// A checkpoint chunk of another campaign (or of a build without config hashes in chunk
+    /// names) in `.partial`: `--resume` must not mix it in.
+    #[error(
+        "{}: chunk of another campaign (config hash {chunk_hash}), this run is config hash {config_hash}; remove it (or .partial) to start over",
+        path.display()
+    )]
+    ForeignChunk {
+        path: PathBuf,
+        chunk_hash: String,
+        config_hash: String,
+    },
     #[error(transparent)]
     Io(#[from] crate::io::IoError),
     #[error("{context}: {source}")]

@@ -120,11 +120,13 @@ pub fn whiten(a: WhitenArgs) -> Result<()> {
     let w = whitener.apply(&outputs_of(&run));
     let basis = crate::fit::whiten::poly_basis(w[0].len(), a.poly_degree);
     let p = whitener.order();
-    println!("whitening filter: order {p}, from {source}; first {p} samples dropped");
-    println!(
-        "{:<8} {:<10} {:>22} {:>20} {:>20} {:>20}",
+    // Printed once the file is written.
+    let mut report =
+        format!("whitening filter: order {p}, from {source}; first {p} samples dropped\n");
+    report.push_str(&format!(
+        "{:<8} {:<10} {:>22} {:>20} {:>20} {:>20}\n",
         "channel", "stage", "mean", "sd", "skewness", "excess kurtosis"
-    );
+    ));
     let mut cols = Vec::new();
     for (c, name) in ["o1", "o12"].iter().enumerate() {
         let raw = moments(&w[c]);
@@ -132,10 +134,10 @@ pub fn whiten(a: WhitenArgs) -> Result<()> {
         crate::fit::whiten::project_out(&mut det, &basis);
         let d = moments(&det);
         for (stage, m) in [("whitened", raw), (&*format!("poly{}", a.poly_degree), d)] {
-            println!(
-                "{name:<8} {stage:<10} {:>10.4} ± {:<9.4} {:>8.4} ± {:<9.4} {:>8.4} ± {:<9.4} {:>8.4} ± {:<9.4}",
+            report.push_str(&format!(
+                "{name:<8} {stage:<10} {:>10.4} ± {:<9.4} {:>8.4} ± {:<9.4} {:>8.4} ± {:<9.4} {:>8.4} ± {:<9.4}\n",
                 m.mean, m.mean_err, m.sd, m.sd_err, m.skewness, m.skewness_err, m.excess_kurtosis, m.kurtosis_err
-            );
+            ));
         }
         cols.push(det);
     }
@@ -146,6 +148,7 @@ pub fn whiten(a: WhitenArgs) -> Result<()> {
         .with_f64("o12_w", cols[1].clone())?;
     ensure_parent(&a.out)?;
     write_parquet(&a.out, &table)?;
+    out!("{report}");
     eprintln!("wrote {}", a.out.display());
     Ok(())
 }
@@ -290,6 +293,9 @@ struct FitJson {
     jacobian_evaluations: usize,
     termination: &'static str,
     converged: bool,
+    /// Why the result should not be trusted even if converged (see
+    /// [`crate::fit::chi2_excess_warning`]).
+    warnings: Vec<String>,
     seconds: f64,
     estimator: String,
     whitening: String,
@@ -350,6 +356,9 @@ pub fn fit(a: FitArgs) -> Result<()> {
         jacobian_evaluations: res.jacobian_evaluations,
         termination: res.termination.as_str(),
         converged: res.termination.converged(),
+        warnings: crate::fit::chi2_excess_warning(res.chi2_reduced, res.nu)
+            .into_iter()
+            .collect(),
         seconds: res.seconds,
         estimator: a.estimator.to_string(),
         whitening: source,
@@ -359,7 +368,7 @@ pub fn fit(a: FitArgs) -> Result<()> {
     write_json_atomic(a.out.join("fit.json"), &json)?;
 
     let truth = truth_from_meta(&ds, &names);
-    println!(
+    outln!(
         "chi2/nu = {:.4} (nu = {}), from {:.4e} at the guess; {} iterations, {} ({:.2} s)",
         res.chi2_reduced,
         res.nu,
@@ -368,29 +377,38 @@ pub fn fit(a: FitArgs) -> Result<()> {
         res.termination.as_str(),
         res.seconds
     );
-    print!(
+    out!(
         "{:<8} {:>16} {:>12} {:>16}",
-        "param", "estimate", "sigma", "guess"
+        "param",
+        "estimate",
+        "sigma",
+        "guess"
     );
     if truth.is_some() {
-        print!(" {:>16} {:>9}", "truth", "pull");
+        out!(" {:>16} {:>9}", "truth", "pull");
     }
-    println!();
+    outln!();
     for k in 0..names.len() {
-        print!(
+        out!(
             "{:<8} {:>16.8e} {:>12.3e} {:>16.6e}",
-            names[k], res.estimate[k], res.sigma[k], guess[k]
+            names[k],
+            res.estimate[k],
+            res.sigma[k],
+            guess[k]
         );
         if let Some(t) = &truth {
-            print!(
+            out!(
                 " {:>16.8e} {:>9.2}",
                 t[k],
                 (res.estimate[k] - t[k]) / res.sigma[k]
             );
         }
-        println!();
+        outln!();
     }
     eprintln!("wrote {}", a.out.display());
+    for w in &json.warnings {
+        eprintln!("warning: {w}");
+    }
     if !res.termination.converged() {
         bail!("the fit did not converge: {}", res.termination.as_str());
     }

@@ -111,16 +111,16 @@ pub fn run(c: CampaignCmd) -> Result<()> {
                 },
             };
             let written = slurm::write(&opts)?;
-            println!(
+            outln!(
                 "wrote {} and {}",
                 written.array.display(),
                 written.merge.display()
             );
             if a.submit {
                 let ids = slurm::submit(&written)?;
-                println!("submitted array job {} and merge job {}", ids.0, ids.1);
+                outln!("submitted array job {} and merge job {}", ids.0, ids.1);
             } else {
-                println!("submit with: {}", written.submit.display());
+                outln!("submit with: {}", written.submit.display());
             }
             Ok(())
         }

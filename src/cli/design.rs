@@ -510,7 +510,8 @@ impl Diagnostics {
     }
 }
 
-fn print_design(space: &DesignSpace, d: &Design) {
+/// The design's injections, one line per input, appended to `report`.
+fn print_design(report: &mut String, space: &DesignSpace, d: &Design) {
     let t = space.timing.stretch_s;
     for e in &d.experiments {
         for (c, inp) in e.inputs.iter().enumerate() {
@@ -529,7 +530,12 @@ fn print_design(space: &DesignSpace, d: &Design) {
                     )
                 })
                 .collect();
-            println!("  {} {}: {}", e.name, space.input_names[c], s.join(", "));
+            report.push_str(&format!(
+                "  {} {}: {}\n",
+                e.name,
+                space.input_names[c],
+                s.join(", ")
+            ));
         }
     }
 }
@@ -545,6 +551,7 @@ fn optimize(a: OptimizeArgs) -> Result<()> {
     let mut rows = DesignRows::default();
     let mut diag = Diagnostics::default();
     let mut signals = SignalRows::default();
+    let mut report = String::new();
     let scaling = st.scaling.name();
     for (id, d) in [
         ("standard".to_string(), st.standard.clone()),
@@ -580,22 +587,24 @@ fn optimize(a: OptimizeArgs) -> Result<()> {
             &toml_design(&d),
         )?;
         let cert = opt.certificate;
-        println!(
-            "{id}: phi = {:.6e}; certificate: upper bound {:.6e}, max directional derivative {:.6}, efficiency >= {:.4}",
+        report.push_str(&format!(
+            "{id}: phi = {:.6e}; certificate: upper bound {:.6e}, max directional derivative {:.6}, efficiency >= {:.4}\n",
             opt.phi, cert.upper_bound, cert.max_directional_derivative, cert.efficiency_lower_bound
-        );
+        ));
         for m in &opt.methods {
-            println!(
-                "  {:<34} phi = {:.6e} ({} evaluations)",
+            report.push_str(&format!(
+                "  {:<34} phi = {:.6e} ({} evaluations)\n",
                 m.method, m.phi, m.evaluations
-            );
+            ));
         }
-        print_design(&st.space, &d);
+        print_design(&mut report, &st.space, &d);
     }
     write_parquet(a.out.join("designs.parquet"), &rows.table(&names)?)?;
     write_parquet(a.out.join("limits.parquet"), &limits_table(&st.space)?)?;
     write_parquet(a.out.join("signals.parquet"), &signals.table()?)?;
     diag.write(&a.out)?;
+    // Printed only once every file is written.
+    out!("{report}");
     eprintln!(
         "wrote {}/designs.parquet and designs/*.toml",
         a.out.display()
@@ -641,27 +650,31 @@ fn evaluate(a: EvaluateArgs) -> Result<()> {
             (0..c.nrows()).map(|i| c[(i, i)].sqrt()).collect()
         });
     let (std_values, std_sigma) = st.score(&st.standard)?;
-    println!(
+    outln!(
         "design '{}' ({} violation(s)); scaling {}; targets {}",
         design.name,
         violations.len(),
         st.scaling.name(),
         st.target.names.join(", ")
     );
-    println!("{:<24} {:>14} {:>14}", "criterion", "design", "standard");
+    outln!("{:<24} {:>14} {:>14}", "criterion", "design", "standard");
     for ((n, v), (_, s)) in ev.values().named().iter().zip(std_values.named().iter()) {
-        println!("{n:<24} {v:>14.6e} {s:>14.6e}");
+        outln!("{n:<24} {v:>14.6e} {s:>14.6e}");
     }
-    println!(
+    outln!(
         "{:<8} {:>12} {:>12} {:>12} {:>8}",
-        "param", "sigma_fast", "sigma_full", "standard", "ratio"
+        "param",
+        "sigma_fast",
+        "sigma_full",
+        "standard",
+        "ratio"
     );
     let names = setup.parameter_names();
     let sig: Vec<f64> = (0..names.len())
         .map(|i| ev.inverse[(i, i)].sqrt())
         .collect();
     for k in 0..names.len() {
-        println!(
+        outln!(
             "{:<8} {:>12.3e} {:>12.3e} {:>12.3e} {:>8.3}",
             names[k],
             sig[k],
@@ -953,7 +966,7 @@ fn write_validation(
     )?;
     let md = markdown(setup, v, &summaries, cfg);
     write_text_atomic(out.join("validation.md"), &md)?;
-    print!("{md}");
+    out!("{md}");
     eprintln!("wrote {}/validation.md, validation.parquet, designs.parquet, correlations.parquet, fits.parquet", out.display());
     Ok(())
 }

@@ -85,12 +85,14 @@ pub struct DiagnoseArgs {
 
 pub fn run(a: DiagnoseArgs) -> Result<()> {
     if a.list_effects {
-        println!(
+        outln!(
             "{:<28} {:<20} {:<12} acts on",
-            "effect", "category", "parameter"
+            "effect",
+            "category",
+            "parameter"
         );
         for e in library() {
-            println!(
+            outln!(
                 "{:<28} {:<20} {:<12} {}",
                 e.name(),
                 e.category().as_str(),
@@ -99,24 +101,24 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
             );
         }
         for p in crate::diagnose::additive::DRIFT_PARAMETERS {
-            println!(
+            outln!(
                 "{:<28} {:<20} {:<12} {p}(t) = {p} + d (t - T/2)/T over each run",
                 format!("drift_{p}"),
                 "drift",
                 format!("d_{p}")
             );
-            println!(
+            outln!(
                 "{:<28} {:<20} {:<12} + d2 (((t - T/2)/T)^2 - 1/12), tested once drift_{p} is added",
                 format!("drift2_{p}"),
                 "drift",
                 format!("d2_{p}")
             );
         }
-        println!(
+        outln!(
             "{:<28} {:<20} {:<12} a detected narrow line in one channel (coherent across experiments, or --lines)",
             "line_EXP_CHANNEL_FmHz", "line", "A,phase,f"
         );
-        println!(
+        outln!(
             "{:<28} {:<20} {:<12} a transient (Gaussian pulse) entering the loop at a TM/spacecraft force or a readout, found by a matched-filter scan",
             "glitch_EXP_ENTRY_Ts", "glitch", "A,t0,tau"
         );
@@ -181,7 +183,7 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
         }
     }
     write_text_atomic(a.out.join("report.md"), &md)?;
-    println!(
+    outln!(
         "chi2/nu {:.4} -> {:.4} (reference {:.4}); added: {}; unexplained: {}; {:.2} s",
         d.before.chi2_reduced,
         d.after.chi2_reduced,

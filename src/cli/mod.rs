@@ -1,5 +1,24 @@
 //! Command-line interface: thin clap subcommands that parse, call the library and print.
 //! `anyhow` is used only here. Every failure is one line on stderr and a non-zero exit.
+//! Standard output goes through [`out!`]/[`outln!`]: a closed stdout (`| head -1`) ends the
+//! printing quietly, the command still writes its files and exits 0.
+
+/// `print!` that never panics; see [`write_stdout`].
+macro_rules! out {
+    ($($t:tt)*) => {
+        $crate::cli::write_stdout(format_args!($($t)*))
+    };
+}
+
+/// `println!` that never panics; see [`write_stdout`].
+macro_rules! outln {
+    () => {
+        $crate::cli::write_stdout(format_args!("\n"))
+    };
+    ($($t:tt)*) => {
+        $crate::cli::write_stdout(format_args!("{}\n", format_args!($($t)*)))
+    };
+}
 
 pub mod analysis;
 pub mod campaign;
@@ -8,7 +27,7 @@ pub mod diagnose;
 pub mod model;
 pub mod simulate;
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result};
 use clap::{Args, Parser, Subcommand};
@@ -63,9 +82,33 @@ impl ModelOpt {
     }
 }
 
+/// Set once a write to stdout failed: nothing more is printed.
+static STDOUT_CLOSED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+/// Print to stdout. A reader that went away (`BrokenPipe`, e.g. `| head -1`) silences the rest
+/// of the output without error, so the command carries on, writes its files and exits 0; any
+/// other write error is reported once on stderr and also silences stdout.
+pub fn write_stdout(args: std::fmt::Arguments<'_>) {
+    use std::io::Write;
+    use std::sync::atomic::Ordering;
+    if STDOUT_CLOSED.load(Ordering::Relaxed) {
+        return;
+    }
+    if let Err(e) = std::io::stdout().lock().write_fmt(args) {
+        STDOUT_CLOSED.store(true, Ordering::Relaxed);
+        if e.kind() != std::io::ErrorKind::BrokenPipe {
+            eprintln!("warning: cannot write to standard output: {e}");
+        }
+    }
+}
+
 /// Run the CLI; returns the process exit code.
 pub fn run() -> i32 {
     let cli = Cli::parse();
+    if let Err(e) = refuse_output_over_input(&cli.command) {
+        eprintln!("error: {}", one_line(&e));
+        return 1;
+    }
     let res = match cli.command {
         Command::Model(c) => model::run(c),
         Command::Simulate(a) => simulate::run(a),
@@ -83,6 +126,103 @@ pub fn run() -> i32 {
             1
         }
     }
+}
+
+/// A command-line path and the flag or argument that named it.
+type Named<'a> = (&'static str, &'a Path);
+
+/// Possibly absent inputs, and the outputs.
+type InputsOutputs<'a> = (Vec<Option<Named<'a>>>, Vec<Named<'a>>);
+
+/// The files a command reads and the paths it writes.
+fn command_paths(cmd: &Command) -> (Vec<Named<'_>>, Vec<Named<'_>>) {
+    fn model(m: &ModelOpt) -> Option<Named<'_>> {
+        m.model.as_deref().map(|p| ("--model", p))
+    }
+    fn guess(g: &Option<String>) -> Option<Named<'_>> {
+        g.as_deref().map(|g| ("--guess", Path::new(g)))
+    }
+    let (inputs, outputs): InputsOutputs<'_> = match cmd {
+        Command::Model(model::ModelCmd::Transfer(a) | model::ModelCmd::Noise(a)) => {
+            (vec![model(&a.model)], vec![("--out", &a.out)])
+        }
+        Command::Model(model::ModelCmd::Fisher(a)) => {
+            (vec![model(&a.model)], vec![("--out", &a.out)])
+        }
+        Command::Simulate(a) => (vec![model(&a.model)], vec![("--out", &a.out)]),
+        Command::Psd(a) => (vec![Some(("RUN", &a.run))], vec![("--out", &a.out)]),
+        Command::Whiten(a) => (
+            vec![
+                Some(("RUN", &a.run)),
+                a.noise.as_deref().map(|p| ("--noise", p)),
+                model(&a.model),
+            ],
+            vec![("--out", &a.out)],
+        ),
+        Command::Fit(a) => (
+            vec![
+                Some(("DATASET", &a.dataset)),
+                model(&a.model),
+                guess(&a.guess),
+            ],
+            vec![("--out", &a.out)],
+        ),
+        Command::Diagnose(a) => (
+            vec![
+                a.dataset.as_deref().map(|p| ("DATASET", p)),
+                model(&a.model),
+                guess(&a.guess),
+            ],
+            vec![("--out", &a.out)],
+        ),
+        Command::Campaign(campaign::CampaignCmd::Run(a)) => (
+            vec![a.file.as_deref().map(|p| ("FILE", p))],
+            vec![("--out", &a.out)],
+        ),
+        Command::Campaign(campaign::CampaignCmd::Merge(a)) => (
+            a.parts
+                .iter()
+                .map(|p| Some(("PART", p.as_path())))
+                .collect(),
+            vec![("--out", &a.out)],
+        ),
+        Command::Campaign(campaign::CampaignCmd::Slurm(a)) => {
+            (vec![Some(("FILE", &a.file))], vec![("--out", &a.out)])
+        }
+        Command::Design(design::DesignCmd::Optimize(a)) => {
+            (vec![model(&a.study.model)], vec![("--out", &a.out)])
+        }
+        Command::Design(design::DesignCmd::Evaluate(a)) => (
+            vec![Some(("DESIGN", &a.design)), model(&a.study.model)],
+            a.out.iter().map(|p| ("--out", p.as_path())).collect(),
+        ),
+        Command::Design(design::DesignCmd::Validate(a)) => (
+            vec![Some(("CAMPAIGN", &a.campaign)), model(&a.model)],
+            a.out.iter().map(|p| ("--out", p.as_path())).collect(),
+        ),
+    };
+    (inputs.into_iter().flatten().collect(), outputs)
+}
+
+/// Err when an output path is one of the command's input files (`psd run.parquet --out
+/// run.parquet` would replace its input): same file after resolving links and `..`.
+fn refuse_output_over_input(cmd: &Command) -> Result<()> {
+    let (inputs, outputs) = command_paths(cmd);
+    for (oflag, out) in &outputs {
+        let Ok(o) = out.canonicalize() else {
+            continue; // not there yet: cannot be an existing input
+        };
+        for (iflag, input) in &inputs {
+            if input.canonicalize().is_ok_and(|i| i == o) {
+                anyhow::bail!(
+                    "{oflag} '{}' is the input {iflag} '{}': writing it would replace the input; choose another output path",
+                    out.display(),
+                    input.display()
+                );
+            }
+        }
+    }
+    Ok(())
 }
 
 /// The error chain on one line.

@@ -158,21 +158,25 @@ fn fisher(a: FisherArgs) -> Result<()> {
     let corr_path = a.out.with_file_name(format!("{stem}_corr.parquet"));
     write_parquet(&a.out, &table)?;
     write_parquet(&corr_path, &corr_table)?;
-    println!(
+    outln!(
         "{:<8} {:>14} {:>12} {:>12} {:>7}",
-        "param", "value", "sigma", "thesis", "ratio"
+        "param",
+        "value",
+        "sigma",
+        "thesis",
+        "ratio"
     );
     for (k, n) in names.iter().enumerate() {
         let thesis = THESIS_SIGMA.iter().find(|(t, _)| t == n).map(|(_, v)| *v);
         match thesis {
-            Some(t) => println!(
+            Some(t) => outln!(
                 "{n:<8} {:>14.6e} {:>12.3e} {:>12.1e} {:>7.2}",
                 p[k],
                 sigma[k],
                 t,
                 sigma[k] / t
             ),
-            None => println!("{n:<8} {:>14.6e} {:>12.3e}", p[k], sigma[k]),
+            None => outln!("{n:<8} {:>14.6e} {:>12.3e}", p[k], sigma[k]),
         }
     }
     eprintln!("wrote {} and {}", a.out.display(), corr_path.display());

@@ -54,13 +54,18 @@ pub enum FitError {
 pub enum Termination {
     ChiSquareTolerance,
     ParameterTolerance,
-    /// No step lowers chi^2 any more: a minimum to numerical precision.
+    /// No step lowers chi^2 any more after at least one accepted step: a minimum to numerical
+    /// precision.
     NoImprovement,
+    /// Not even the first step lowered chi^2: the estimate is the guess, nothing shows it is a
+    /// minimum (a guess far out of range, or data in the wrong unit). Not converged.
+    NoStepAccepted,
     MaxIterations,
     NonFinite,
 }
 
 impl Termination {
+    /// True only when a step was accepted and a stopping rule was met.
     pub fn converged(self) -> bool {
         matches!(
             self,
@@ -75,9 +80,34 @@ impl Termination {
             Termination::ChiSquareTolerance => "chi2_tolerance",
             Termination::ParameterTolerance => "parameter_tolerance",
             Termination::NoImprovement => "no_improvement",
+            Termination::NoStepAccepted => "no_step_accepted",
             Termination::MaxIterations => "max_iterations",
             Termination::NonFinite => "non_finite",
         }
+    }
+}
+
+/// How many standard deviations of chi^2/nu above 1 a fit may lie before it is flagged.
+pub const CHI2_EXCESS_SIGMAS: f64 = 10.0;
+
+/// A warning when `chi2_reduced` is implausible for a fit that describes the data: under the
+/// model chi^2 follows a chi^2(nu) distribution, so chi^2/nu has mean 1 and standard deviation
+/// `sqrt(2/nu)`. The fit is flagged when chi^2/nu exceeds 1 by more than
+/// [`CHI2_EXCESS_SIGMAS`] of those standard deviations *and* by more than a factor 2: the
+/// first rule alone would flag the small misfits of an approximate whitening filter at large nu
+/// (nu = 40000 gives sqrt(2/nu) = 0.007), the second alone would pass anything at small nu.
+pub fn chi2_excess_warning(chi2_reduced: f64, nu: usize) -> Option<String> {
+    let sd = (2.0 / nu.max(1) as f64).sqrt();
+    let threshold = (1.0 + CHI2_EXCESS_SIGMAS * sd).max(2.0);
+    if chi2_reduced.is_nan() || chi2_reduced > threshold {
+        Some(format!(
+            "chi2/nu = {chi2_reduced:.4e} exceeds 1 by {:.1e} standard deviations of chi2/nu \
+             (nu = {nu}, flagged above {threshold:.3}): the model and noise do not describe the \
+             data (readouts in the wrong unit, or a guess far from the minimum?)",
+            (chi2_reduced - 1.0) / sd
+        ))
+    } else {
+        None
     }
 }
 
@@ -461,7 +491,11 @@ pub fn fit<M: ClosedLoopModel<N>, const N: usize>(
                 lambda *= 10.0;
             }
             let Some((trial, ft, rt)) = accepted else {
-                termination = Termination::NoImprovement;
+                termination = if it == 1 {
+                    Termination::NoStepAccepted
+                } else {
+                    Termination::NoImprovement
+                };
                 break 'outer;
             };
             let rel_f = (f - ft) / ft.max(f64::MIN_POSITIVE);
