@@ -257,6 +257,17 @@ fn under_performing_converges_from_a_far_guess() {
         let pull = (far.estimate[k] - b.truth[k]) / far.sigma[k];
         assert!(pull.abs() < 2.0, "parameter {k}: pull {pull}");
     }
+    // A warm start at the minimum (as diagnose's refits start from the previous estimate):
+    // the Gauss-Newton model predicts no decrease worth a step, so no step is needed and the
+    // fit is converged there, not "no step accepted".
+    let again = fit(&b.setup.model, &problem, &far.estimate, &cfg).unwrap();
+    assert!(again.termination.converged(), "{:?}", again.termination);
+    assert!(
+        again.chi2 <= far.chi2 * (1.0 + cfg.ftol),
+        "{} vs {}",
+        again.chi2,
+        far.chi2
+    );
 }
 
 #[test]

@@ -54,11 +54,12 @@ pub enum FitError {
 pub enum Termination {
     ChiSquareTolerance,
     ParameterTolerance,
-    /// No step lowers chi^2 any more after at least one accepted step: a minimum to numerical
-    /// precision.
+    /// No step lowers chi^2 any more, after at least one accepted step or from a start the
+    /// Gauss-Newton model already places at the minimum: a minimum to numerical precision.
     NoImprovement,
-    /// Not even the first step lowered chi^2: the estimate is the guess, nothing shows it is a
-    /// minimum (a guess far out of range, or data in the wrong unit). Not converged.
+    /// Not even the first step lowered chi^2 although the Gauss-Newton model predicted a
+    /// decrease above the tolerance: the estimate is the guess, nothing shows it is a minimum
+    /// (a guess far out of range, or data in the wrong unit). Not converged.
     NoStepAccepted,
     MaxIterations,
     NonFinite,
@@ -382,6 +383,15 @@ fn damped_solve(a: &DMatrix<f64>, g: &DVector<f64>, lambda: f64) -> Option<DVect
     Some(DVector::from_fn(n, |i, _| x[i] / d[i]))
 }
 
+/// Whether the start point is already a minimum to the chi^2 tolerance: the Gauss-Newton step
+/// `A^-1 g` would lower the objective by `g^T A^-1 g` (the quadratic model of
+/// `sum (r - J d)^2`, and its IRLS analogue), and that is below `ftol` of it. A warm start at
+/// the optimum (a refit from the previous estimate) then converges without a step, while a guess
+/// from which no step could be taken although one was predicted to help does not.
+fn at_minimum(a: &DMatrix<f64>, g: &DVector<f64>, f: f64, ftol: f64) -> bool {
+    damped_solve(a, g, 0.0).is_some_and(|d| g.dot(&d) <= ftol * f)
+}
+
 fn invert_spd(a: &DMatrix<f64>) -> Option<DMatrix<f64>> {
     let n = a.nrows();
     let d: Vec<f64> = (0..n).map(|k| a[(k, k)].sqrt()).collect();
@@ -491,10 +501,10 @@ pub fn fit<M: ClosedLoopModel<N>, const N: usize>(
                 lambda *= 10.0;
             }
             let Some((trial, ft, rt)) = accepted else {
-                termination = if it == 1 {
-                    Termination::NoStepAccepted
-                } else {
+                termination = if it > 1 || at_minimum(&a, &g, f, cfg.ftol) {
                     Termination::NoImprovement
+                } else {
+                    Termination::NoStepAccepted
                 };
                 break 'outer;
             };
