@@ -75,7 +75,7 @@ def main():
     corr = pq.read_table(os.path.join(a.out, "correlation.parquet")).to_pydict()
     params = list(dict.fromkeys(summary["parameter"]))
     truth = {}
-    for s, d, e, p, t in zip(summary["scenario"], summary["design"], summary["estimator"], summary["parameter"], summary["true"]):
+    for s, d, e, p, t in zip(summary["scenario"], summary["design"], summary["estimator"], summary["parameter"], summary["truth"] if "truth" in summary else summary["true"]):
         truth[(s, d, e, p)] = t
     keys = np.array([f"{s}\x00{d}\x00{e}" for s, d, e in zip(rows["scenario"], rows["design"], rows["estimator"])])
     conv = np.array(rows["converged"], dtype=bool)

@@ -22,3 +22,4 @@ pub mod setup;
 pub mod signal;
 pub mod sim;
 pub mod spectral;
+pub mod units;

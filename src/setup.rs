@@ -72,6 +72,15 @@ impl Setup {
         self.spec.parameter_names()
     }
 
+    /// Units of the parameters, in the order of [`Self::parameter_names`].
+    pub fn parameter_units(&self) -> Vec<String> {
+        self.spec
+            .parameters
+            .iter()
+            .map(|p| p.unit.clone())
+            .collect()
+    }
+
     /// Analysis sampling interval (1 / analyse_hz).
     pub fn analysis_dt(&self) -> f64 {
         1.0 / self.spec.sampling.analyse_hz

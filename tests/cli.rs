@@ -93,7 +93,7 @@ fn model_products_write_the_documented_columns() {
     ]);
     assert!(out.contains("w1_sq") && out.contains("thesis"));
     let tab = read_parquet(&f).unwrap();
-    assert_eq!(tab.names(), ["parameter", "value", "sigma"]);
+    assert_eq!(tab.names(), ["parameter", "value", "sigma", "unit"]);
     assert!(tab.f64_column("sigma").unwrap().iter().all(|v| *v > 0.0));
     let corr = read_parquet(d.path().join("sub/fisher_corr.parquet")).unwrap();
     assert_eq!(corr.names(), ["parameter_i", "parameter_j", "corr"]);
@@ -144,7 +144,10 @@ fn simulate_then_fit_recovers_the_truth() {
     ]);
     assert!(out.contains("pull"));
     let est = read_parquet(fit.join("estimates.parquet")).unwrap();
-    assert_eq!(est.names(), ["parameter", "estimate", "sigma", "guess"]);
+    assert_eq!(
+        est.names(),
+        ["parameter", "estimate", "sigma", "guess", "unit"]
+    );
     let truth = freefall::setup::Setup::embedded()
         .spec
         .scenario("monte_carlo")
@@ -174,7 +177,7 @@ fn simulate_then_fit_recovers_the_truth() {
         assert!(json.get(key).is_some(), "fit.json lacks {key}");
     }
     assert!((json["chi2_reduced"].as_f64().unwrap() - 1.0).abs() < 0.1);
-    let res = read_parquet(fit.join("residuals.parquet")).unwrap();
+    let res = freefall::io::read_parquet_nulls_as_nan(fit.join("residuals.parquet")).unwrap();
     assert_eq!(
         res.names(),
         ["experiment", "channel", "t", "raw", "whitened"]
@@ -337,7 +340,25 @@ fn a_fit_that_never_moved_is_not_converged_and_a_bad_chi2_is_flagged() {
         });
     }
     let out = d.path().join("fit");
+    // The units check stops it first, naming the channel and the likely unit (the level is
+    // 1e9 times the model's noise level).
     let o = run(&["fit", s(&ds.join("dataset.toml")), "--out", s(&out)]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success());
+    assert!(
+        err.contains("o1 is") && err.contains("nanometres") && err.contains("--force"),
+        "{err}"
+    );
+    assert_eq!(err.trim().lines().count(), 1, "{err}");
+    assert!(!out.join("fit.json").exists());
+    // Forced, the fit runs and says it did not converge.
+    let o = run(&[
+        "fit",
+        s(&ds.join("dataset.toml")),
+        "--force",
+        "--out",
+        s(&out),
+    ]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(
         !o.status.success(),
@@ -657,5 +678,33 @@ fn an_output_path_equal_to_an_input_is_refused() {
     assert_eq!(
         std::fs::read_to_string(&model).unwrap(),
         freefall::model::spec::EMBEDDED_LPF_X
+    );
+}
+
+#[test]
+fn completions_and_man_page_are_printed() {
+    // Oracle: clap_complete's bash script defines the completion function for the binary's
+    // name; clap_mangen's page starts with the roff title header naming it.
+    let o = run(&["completions", "bash"]);
+    assert!(o.status.success());
+    let script = String::from_utf8_lossy(&o.stdout);
+    assert!(script.contains("_freefall()"), "{script}");
+    assert!(script.contains("diagnose"), "subcommands are completed");
+    let o = run(&["man"]);
+    assert!(o.status.success());
+    let page = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        page.starts_with(".ie") || page.contains(".TH freefall"),
+        "{page}"
+    );
+    // The global --quiet is accepted anywhere and silences the "wrote" line.
+    let d = tmp();
+    let out = d.path().join("f.parquet");
+    let o = run(&["model", "fisher", "-q", "--out", s(&out)]);
+    assert!(o.status.success() && out.exists());
+    assert!(
+        o.stderr.is_empty(),
+        "{}",
+        String::from_utf8_lossy(&o.stderr)
     );
 }

@@ -7,6 +7,8 @@
 //! scripts/requirements.txt). Where a package is missing the test says which on the terminal (not
 //! in captured output) and returns; where `CI=true` a missing package fails it instead.
 
+mod common;
+
 use std::path::Path;
 use std::process::Command;
 
@@ -82,29 +84,6 @@ const VARIANTS: [(&str, &str); 13] = [
     ("duckdb_zstd", "ZSTD"),
 ];
 
-/// A message that bypasses the test harness's output capture.
-fn visible(msg: &str) {
-    use std::io::Write;
-    let _ = writeln!(std::io::stderr().lock(), "{msg}");
-}
-
-/// The Python packages (or python3 itself) that are missing.
-fn missing_python() -> Vec<&'static str> {
-    let python = Command::new("python3").arg("--version").output();
-    if !python.is_ok_and(|o| o.status.success()) {
-        return vec!["python3"];
-    }
-    ["pyarrow", "pandas", "polars", "duckdb"]
-        .into_iter()
-        .filter(|m| {
-            !Command::new("python3")
-                .args(["-c", &format!("import {m}")])
-                .output()
-                .is_ok_and(|o| o.status.success())
-        })
-        .collect()
-}
-
 fn ok(args: &[&std::ffi::OsStr]) {
     let o = Command::new(BIN).args(args).output().expect("binary runs");
     assert!(
@@ -144,15 +123,10 @@ fn codecs(path: &Path) -> Vec<&'static str> {
 
 #[test]
 fn every_codec_and_writer_reads_and_fits_like_the_snappy_original() {
-    let missing = missing_python();
-    if !missing.is_empty() {
-        let msg = format!(
-            "SKIPPED every_codec_and_writer_reads_and_fits_like_the_snappy_original: missing {} \
-             (pip install -r scripts/requirements.txt)",
-            missing.join(", ")
-        );
-        assert!(std::env::var("CI").map_or(true, |v| v != "true"), "{msg}");
-        visible(&msg);
+    if common::skip_without_python(
+        "every_codec_and_writer_reads_and_fits_like_the_snappy_original",
+        &["pyarrow", "pandas", "polars", "duckdb"],
+    ) {
         return;
     }
     let tmp = tempfile::tempdir().unwrap();

@@ -174,7 +174,7 @@ fn table_builder_checks_lengths_and_names() {
             ("a".into(), Column::F64(vec![1.0, 2.0])),
             ("b".into(), Column::U64(vec![1])),
         ],
-        source: None,
+        ..Table::default()
     };
     let err = write_parquet(dir.path().join("bad.parquet"), &bad).unwrap_err();
     assert_contains(&err.to_string(), &["'b'"]);
@@ -715,12 +715,29 @@ fn unsupported_extension_and_non_numeric_columns() {
     for (n, v) in good_columns(3) {
         table.push_column(n, v).unwrap();
     }
+    // An undeclared non-numeric column is left out with a note (measured-data format: extra
+    // columns never make a file unreadable); a required column that is not numeric is refused.
     let table = table.with_str("label", ["a", "b", "c"]).unwrap();
+    write_parquet(&path, &table).unwrap();
+    let (run, notes) = freefall::io::read_run_noted(&path).unwrap();
+    assert!(!run.has_column("label"));
+    assert_contains(
+        &notes.join("\n"),
+        &["labels.parquet", "'label' ignored", "utf8"],
+    );
+    let path = dir.path().join("text_o1.parquet");
+    let mut table = Table::new();
+    for (n, v) in good_columns(3) {
+        if n != "o1" {
+            table.push_column(n, v).unwrap();
+        }
+    }
+    let table = table.with_str("o1", ["a", "b", "c"]).unwrap();
     write_parquet(&path, &table).unwrap();
     let err = read_run(&path).unwrap_err();
     assert_contains(
         &err.to_string(),
-        &["labels.parquet", "'label'", "utf8", "numeric"],
+        &["text_o1.parquet", "'o1'", "utf8", "numeric"],
     );
 }
 
@@ -1011,6 +1028,7 @@ fn write_dataset_validates_before_writing() {
             ("b".into(), sample_run(11, 1.0, 0.0)),
         ],
         meta: toml::Table::new(),
+        notes: Vec::new(),
     };
     let err = write_dataset(&out, &ds).unwrap_err();
     assert_contains(
@@ -1096,4 +1114,110 @@ proptest! {
             prop_assert!((back.dt - dt).abs() <= tol, "dt {} vs {}", back.dt, dt);
         }
     }
+}
+
+/// A run as telemetry tools write it: `t` in the given Arrow form, float64 readouts, plus
+/// undeclared extra columns (a quality flag with nulls, a status string, a dictionary-encoded
+/// mode and a numeric temperature).
+fn telemetry_run(path: &Path, t: ArrayRef, readouts: DataType) {
+    use arrow::array::{Array, DictionaryArray, Int64Array, StringArray};
+    use arrow::datatypes::Int32Type;
+    let n = t.len();
+    let sine = |k: f64| -> Vec<f64> { (0..n).map(|i| 1e-9 * (k * i as f64).sin()).collect() };
+    let readout = |v: Vec<f64>| -> ArrayRef {
+        match readouts {
+            DataType::Float32 => Arc::new(Float32Array::from(
+                v.iter().map(|&x| x as f32).collect::<Vec<_>>(),
+            )),
+            _ => Arc::new(Float64Array::from(v)),
+        }
+    };
+    let flag: Vec<Option<i64>> = (0..n).map(|i| (i != 3).then_some(0)).collect();
+    let status: Vec<&str> = (0..n).map(|_| "nominal").collect();
+    let mode: DictionaryArray<Int32Type> = (0..n).map(|_| "science").collect();
+    let t_type = t.data_type().clone();
+    write_arrow(
+        path,
+        vec![
+            Field::new("t", t_type, false),
+            Field::new("oi1", DataType::Float64, false),
+            Field::new("oi12", DataType::Float64, false),
+            Field::new("o1", readouts.clone(), false),
+            Field::new("o12", readouts.clone(), false),
+            Field::new("quality", DataType::Int64, true),
+            Field::new("status", DataType::Utf8, false),
+            Field::new("mode", mode.data_type().clone(), false),
+            Field::new("temperature", DataType::Float64, false),
+        ],
+        vec![
+            t,
+            Arc::new(Float64Array::from(vec![0.0; n])),
+            Arc::new(Float64Array::from(vec![0.0; n])),
+            readout(sine(0.1)),
+            readout(sine(0.2)),
+            Arc::new(Int64Array::from(flag)),
+            Arc::new(StringArray::from(status)),
+            Arc::new(mode),
+            Arc::new(Float64Array::from(vec![293.0; n])),
+        ],
+    );
+}
+
+#[test]
+fn telemetry_columns_timestamps_and_float32_are_read_with_notes() {
+    // Oracle: the measured-data format (README): undeclared columns never make a file
+    // unreadable; a timestamp t becomes seconds from the first sample; float32 readouts and every
+    // column left out get a one-line note naming the file and column.
+    use arrow::array::TimestampNanosecondArray;
+    let dir = tmp();
+    let path = dir.path().join("tm.parquet");
+    let start_ns: i64 = 1_780_000_000_000_000_000;
+    let t = TimestampNanosecondArray::from(
+        (0..20)
+            .map(|i| start_ns + i * 100_000_000)
+            .collect::<Vec<i64>>(),
+    )
+    .with_timezone("UTC");
+    telemetry_run(&path, Arc::new(t), DataType::Float32);
+    let (run, notes) = freefall::io::read_run_noted(&path).unwrap();
+    assert_eq!(run.t0, 0.0);
+    assert!((run.dt - 0.1).abs() < 1e-12, "dt {}", run.dt);
+    let all = notes.join("\n");
+    for expected in [
+        "'quality' ignored (a null at row 3)",
+        "'mode' ignored (type Dictionary",
+        "'o1' is float32",
+        "'o12' is float32",
+        "timestamps",
+        "'status' ignored (type utf8)",
+        "kept but not used by the model: temperature",
+    ] {
+        assert!(all.contains(expected), "missing '{expected}' in:\n{all}");
+    }
+    assert!(notes.iter().all(|n| n.contains("tm.parquet")), "{all}");
+    assert!(run.has_column("temperature") && !run.has_column("quality"));
+}
+
+#[test]
+fn integer_time_in_nanoseconds_or_milliseconds_is_refused_with_the_unit() {
+    // Oracle: an integer t stepping by 1e9 (or 1e3) at 1 Hz is nanoseconds (milliseconds), not
+    // seconds; read as seconds it would make a run of 317 years.
+    use arrow::array::Int64Array;
+    let dir = tmp();
+    for (step, unit) in [(1_000_000_000i64, "nanoseconds"), (1_000, "milliseconds")] {
+        let path = dir.path().join(format!("{unit}.parquet"));
+        let t = Int64Array::from((0..20).map(|i| i * step).collect::<Vec<_>>());
+        telemetry_run(&path, Arc::new(t), DataType::Float64);
+        let err = read_run(&path).unwrap_err().to_string();
+        assert_contains(&err, &[&format!("{unit}.parquet"), "'t'", unit]);
+        assert_eq!(err.lines().count(), 1, "{err}");
+    }
+    // Integer seconds are fine.
+    let path = dir.path().join("seconds.parquet");
+    telemetry_run(
+        &path,
+        Arc::new(Int64Array::from((0..20).collect::<Vec<i64>>())),
+        DataType::Float64,
+    );
+    assert_eq!(read_run(&path).unwrap().dt, 1.0);
 }

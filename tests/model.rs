@@ -95,8 +95,12 @@ fn out_of_range_parameters_end_in_an_error_naming_them() {
         p[names.iter().position(|n| n == name).unwrap()] = value;
         for reference in [None, Some(&spec.nominal()[..])] {
             let err = check_stability(&m, &p, reference).unwrap_err().to_string();
+            // Either verdict is an answer: the poles cannot be computed ("stability check"),
+            // or they can and some lie in the right half plane ("unstable"; nalgebra 0.35's Schur
+            // iteration converges on s21 = 1e160's companion matrix, 0.33's did not).
             assert!(
-                err.contains("stability check") && err.contains(&format!("{name}={value:e}")),
+                (err.contains("stability check") || err.contains("unstable"))
+                    && err.contains(&format!("{name}={value:e}")),
                 "{name}: {err}"
             );
             assert_eq!(err.lines().count(), 1, "{err}");

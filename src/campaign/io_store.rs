@@ -10,6 +10,7 @@
 //! At the end the chunks are streamed into `realizations.parquet`, the aggregate tables and
 //! `manifest.json` are written, and `.partial` is removed.
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
@@ -20,6 +21,7 @@ use super::runner::{resolve_scenarios, Runner};
 use super::spec::{Campaign, DesignSource};
 use super::stats::{Aggregates, Layout};
 use super::CampaignError;
+use crate::io::Provenance;
 use crate::io::{
     self, read_json, read_parquet, write_json_atomic, write_parquet, IoError, ParquetAppender,
     Table,
@@ -360,6 +362,13 @@ pub fn run(
     let started = now_unix();
     let clock = Instant::now();
     let c = &loaded.campaign;
+    let meta = table_meta(
+        "campaign run",
+        &loaded.campaign_sha256,
+        &loaded.model_label,
+        &loaded.model_sha256,
+        &loaded.config_hash,
+    );
     let (start, end) = opts.shard.range(c.realizations);
     let out = &opts.out;
     let manifest_path = out.join(MANIFEST);
@@ -473,7 +482,7 @@ pub fn run(
         while next < end {
             let stop = (next + batch).min(end);
             let rows = pool.install(|| runner.run_range(next, stop));
-            let table = layout.rows_table(&rows, c.seed)?;
+            let table = layout.rows_table(&rows, c.seed)?.with_meta_all(&meta);
             write_parquet(
                 chunk_path(&partial, next, stop, &loaded.config_hash),
                 &table,
@@ -507,14 +516,14 @@ pub fn run(
         let mut app = ParquetAppender::create(out.join("realizations.parquet"))?;
         let chunks = list_chunks(&partial, &loaded.config_hash)?;
         if chunks.is_empty() {
-            app.append(&layout.rows_table(&[], c.seed)?)?;
+            app.append(&layout.rows_table(&[], c.seed)?.with_meta_all(&meta))?;
         }
         for (_, _, path) in chunks {
             app.append(&read_parquet(&path)?)?;
         }
         app.finish()?;
     }
-    write_aggregates(out, &agg, &outputs.names())?;
+    write_aggregates(out, &agg, &outputs.names(), &meta)?;
     let (fits, failed) = agg.counts();
     let wall = clock.elapsed().as_secs_f64();
     let manifest = Manifest {
@@ -554,18 +563,51 @@ pub fn run(
     })
 }
 
-fn write_aggregates(out: &Path, agg: &Aggregates, outputs: &[String]) -> Result<(), CampaignError> {
+fn write_aggregates(
+    out: &Path,
+    agg: &Aggregates,
+    outputs: &[String],
+    meta: &BTreeMap<String, String>,
+) -> Result<(), CampaignError> {
     let want = |n: &str| outputs.iter().any(|o| o == n);
     if want("summary") {
-        write_parquet(out.join("summary.parquet"), &agg.summary_table()?)?;
+        write_parquet(
+            out.join("summary.parquet"),
+            &agg.summary_table()?.with_meta_all(meta),
+        )?;
     }
     if want("correlation") {
-        write_parquet(out.join("correlation.parquet"), &agg.correlation_table()?)?;
+        write_parquet(
+            out.join("correlation.parquet"),
+            &agg.correlation_table()?.with_meta_all(meta),
+        )?;
     }
     if want("chi2") {
-        write_parquet(out.join("chi2.parquet"), &agg.chi2_table()?)?;
+        write_parquet(
+            out.join("chi2.parquet"),
+            &agg.chi2_table()?.with_meta_all(meta),
+        )?;
     }
     Ok(())
+}
+
+/// Key-value metadata of every campaign table: version, command and the hashes of the
+/// manifest (campaign file, model file, config hash).
+fn table_meta(
+    command: &str,
+    campaign_sha256: &str,
+    model: &str,
+    model_sha256: &str,
+    config_hash: &str,
+) -> BTreeMap<String, String> {
+    let mut m = Provenance::new(command).with_campaign(config_hash).meta;
+    m.insert(
+        "freefall.campaign_file_sha256".into(),
+        campaign_sha256.into(),
+    );
+    m.insert("freefall.model".into(), model.into());
+    m.insert("freefall.model_sha256".into(), model_sha256.into());
+    m
 }
 
 fn short(h: &str) -> &str {
@@ -708,7 +750,14 @@ pub fn merge(parts: &[PathBuf], out: &Path) -> Result<Manifest, CampaignError> {
         app.append(&t)?;
     }
     app.finish()?;
-    write_aggregates(out, &agg, &first.outputs)?;
+    let meta = table_meta(
+        "campaign merge",
+        &first.campaign_sha256,
+        &first.model,
+        &first.model_sha256,
+        &first.config_hash,
+    );
+    write_aggregates(out, &agg, &first.outputs, &meta)?;
     let (fits, failed) = agg.counts();
     let manifest = Manifest {
         shard: Shard::WHOLE,

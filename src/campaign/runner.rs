@@ -211,6 +211,7 @@ impl<'s> Runner<'s> {
         }
         let layout = Layout {
             parameters: names,
+            units: setup.parameter_units(),
             scenarios: scenarios
                 .iter()
                 .map(|s| ScenarioLabel {

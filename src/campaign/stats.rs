@@ -104,6 +104,9 @@ impl Moments {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Layout {
     pub parameters: Vec<String>,
+    /// Units of the parameters (empty in manifests written before units were recorded).
+    #[serde(default)]
+    pub units: Vec<String>,
     pub scenarios: Vec<ScenarioLabel>,
     pub designs: Vec<String>,
     pub estimators: Vec<String>,

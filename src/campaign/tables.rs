@@ -5,7 +5,41 @@
 use super::stats::{Aggregates, Layout, Row};
 use crate::io::{IoError, Table};
 
+/// Name the summary table's true-value column had before it was renamed to `truth` (an SQL
+/// keyword: DuckDB's `SELECT true` returns the constant). Readers accept both.
+pub const LEGACY_TRUTH_COLUMN: &str = "true";
+
 impl Layout {
+    /// Unit of parameter `k` ("" when the manifest predates recorded units).
+    pub fn unit(&self, k: usize) -> &str {
+        self.units.get(k).map_or("", String::as_str)
+    }
+
+    /// Units of the realizations table's columns.
+    fn row_units(&self) -> Vec<(String, String)> {
+        let mut u: Vec<(String, String)> = [
+            ("chi2", "1"),
+            ("chi2_reduced", "1"),
+            ("chi2_start_reduced", "1"),
+            ("noise_chi2_reduced", "1"),
+            ("seconds", "s"),
+        ]
+        .iter()
+        .map(|(a, b)| (a.to_string(), b.to_string()))
+        .collect();
+        for (k, p) in self.parameters.iter().enumerate() {
+            u.push((p.clone(), self.unit(k).to_string()));
+            u.push((format!("{p}_sigma"), self.unit(k).to_string()));
+            u.push((format!("{p}_pull"), "1".to_string()));
+        }
+        u.extend(
+            self.corr_columns()
+                .into_iter()
+                .map(|c| (c, "1".to_string())),
+        );
+        u
+    }
+
     /// The `realizations` table of `rows`.
     pub fn rows_table(&self, rows: &[Row], seed: u64) -> Result<Table, IoError> {
         let mut t = Table::new()
@@ -21,13 +55,19 @@ impl Layout {
                 "estimator",
                 rows.iter().map(|r| self.estimators[r.estimator].clone()),
             )?
-            .with_u64("realization", rows.iter().map(|r| r.realization).collect())?
+            .with_counts(
+                "realization",
+                &rows.iter().map(|r| r.realization).collect::<Vec<_>>(),
+            )?
             .with_u64("seed", vec![seed; rows.len()])?
             .with_bool("converged", rows.iter().map(|r| r.converged).collect())?
             .with_str("termination", rows.iter().map(|r| r.termination.clone()))?
-            .with_u64("iterations", rows.iter().map(|r| r.iterations).collect())?
+            .with_counts(
+                "iterations",
+                &rows.iter().map(|r| r.iterations).collect::<Vec<_>>(),
+            )?
             .with_f64("chi2", rows.iter().map(|r| r.chi2).collect())?
-            .with_u64("nu", rows.iter().map(|r| r.nu).collect())?
+            .with_counts("nu", &rows.iter().map(|r| r.nu).collect::<Vec<_>>())?
             .with_f64(
                 "chi2_reduced",
                 rows.iter().map(|r| r.chi2_reduced).collect(),
@@ -62,7 +102,7 @@ impl Layout {
                 rows.iter().map(|r| r.correlation[c]).collect::<Vec<f64>>(),
             )?;
         }
-        Ok(t)
+        Ok(t.with_units(self.row_units()))
     }
 
     /// Rows back from a `realizations` table written by [`Layout::rows_table`]; labels must be
@@ -91,12 +131,12 @@ impl Layout {
             t.str_column("design")?,
             t.str_column("estimator")?,
         );
-        let real = t.u64_column("realization")?;
+        let real = t.count_column("realization")?;
         let conv = t.bool_column("converged")?;
         let term = t.str_column("termination")?;
-        let iters = t.u64_column("iterations")?;
+        let iters = t.count_column("iterations")?;
         let chi2 = t.f64_column("chi2")?;
-        let nu = t.u64_column("nu")?;
+        let nu = t.count_column("nu")?;
         let chi2r = t.f64_column("chi2_reduced")?;
         let chi2s = t.f64_column("chi2_start_reduced")?;
         let noise = t.f64_column("noise_chi2_reduced")?;
@@ -146,7 +186,7 @@ impl Aggregates {
     pub fn summary_table(&self) -> Result<Table, IoError> {
         let l = &self.layout;
         let mut cols: Vec<(&str, Vec<f64>)> = [
-            "true",
+            "truth",
             "mean",
             "bias",
             "bias_in_sigma",
@@ -164,10 +204,11 @@ impl Aggregates {
         .map(|n| (n, Vec::new()))
         .collect();
         let (mut sc, mut de, mut es, mut pa) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
-        let (mut n, mut failed) = (Vec::new(), Vec::new());
+        let (mut n, mut failed, mut unit) = (Vec::new(), Vec::new(), Vec::new());
         for (gi, g) in self.groups.iter().enumerate() {
             let (s, d, e) = l.group_labels(gi);
             for (k, p) in l.parameters.iter().enumerate() {
+                unit.push(l.unit(k).to_string());
                 sc.push(l.scenarios[s].name.clone());
                 de.push(l.designs[d].clone());
                 es.push(l.estimators[e].clone());
@@ -204,12 +245,17 @@ impl Aggregates {
             .with_str("design", de)?
             .with_str("estimator", es)?
             .with_str("parameter", pa)?
-            .with_u64("n", n)?
-            .with_u64("failed", failed)?;
+            .with_str("unit", unit)?
+            .with_counts("n", &n)?
+            .with_counts("failed", &failed)?;
         for (name, v) in cols {
             t.push_column(name, v)?;
         }
-        Ok(t)
+        Ok(t.with_meta(
+            "freefall.units_note",
+            "truth, mean, bias, sd, mean_sigma and sd_of_sigma are in the row's unit; the other \
+             statistics are dimensionless",
+        ))
     }
 
     /// `correlation`: one row per scenario x design x estimator x parameter pair (i < j).
@@ -239,7 +285,7 @@ impl Aggregates {
             .with_str("estimator", es)?
             .with_str("parameter_i", pi)?
             .with_str("parameter_j", pj)?
-            .with_u64("n", n)?
+            .with_counts("n", &n)?
             .with_f64("mc_correlation", mc)?
             .with_f64("fisher_correlation", fi)?
             .with_f64("fisher_correlation_sd", fsd)
@@ -292,8 +338,8 @@ impl Aggregates {
             .with_str("design", de)?
             .with_str("estimator", es)?
             .with_str("statistic", st)?
-            .with_u64("n", n)?
-            .with_u64("nu", nu)?;
+            .with_counts("n", &n)?
+            .with_counts("nu", &nu)?;
         for (name, v) in cols {
             t.push_column(name, v)?;
         }

@@ -12,7 +12,8 @@ use super::{ensure_parent, ModelOpt};
 use crate::data::ExperimentData;
 use crate::fit::{fit as run_fit, Estimator, FitConfig, Likelihood, Whitener};
 use crate::io::{
-    read_dataset, read_run, read_toml, write_json_atomic, write_parquet, Dataset, Run, Table,
+    read_dataset, read_run, read_toml, write_json_atomic, write_parquet, Dataset, Provenance, Run,
+    Table,
 };
 use crate::model::check_stability;
 use crate::numerics::stats::moments;
@@ -40,10 +41,19 @@ pub fn psd(a: PsdArgs) -> Result<()> {
         .with_f64("s22", cs.psd(1))?
         .with_f64("s12_re", s12.iter().map(|z| z.re).collect())?
         .with_f64("s12_im", s12.iter().map(|z| z.im).collect())?
-        .with_f64("coherence", cs.coherence(0, 1))?;
+        .with_f64("coherence", cs.coherence(0, 1))?
+        .with_units([
+            ("f", "Hz"),
+            ("s11", "m^2/Hz"),
+            ("s22", "m^2/Hz"),
+            ("s12_re", "m^2/Hz"),
+            ("s12_im", "m^2/Hz"),
+            ("coherence", "1"),
+        ])
+        .with_meta_all(&Provenance::new("psd").with_run(&a.run)?.meta);
     ensure_parent(&a.out)?;
     write_parquet(&a.out, &table)?;
-    eprintln!(
+    info!(
         "wrote {} ({} bins, {} segments, {:.1} equivalent degrees of freedom)",
         a.out.display(),
         cs.f.len(),
@@ -145,11 +155,13 @@ pub fn whiten(a: WhitenArgs) -> Result<()> {
     let table = Table::new()
         .with_f64("t", t)?
         .with_f64("o1_w", cols[0].clone())?
-        .with_f64("o12_w", cols[1].clone())?;
+        .with_f64("o12_w", cols[1].clone())?
+        .with_units([("t", "s"), ("o1_w", "1"), ("o12_w", "1")])
+        .with_meta_all(&Provenance::new("whiten").with_run(&a.run)?.meta);
     ensure_parent(&a.out)?;
     write_parquet(&a.out, &table)?;
     out!("{report}");
-    eprintln!("wrote {}", a.out.display());
+    info!("wrote {}", a.out.display());
     Ok(())
 }
 
@@ -179,6 +191,9 @@ pub struct FitArgs {
     /// Output directory (created): estimates.parquet, correlation.parquet, fit.json, residuals.parquet.
     #[arg(long)]
     pub out: PathBuf,
+    /// Fit readouts whose level fails the units check (see `freefall::units`).
+    #[arg(long)]
+    pub force: bool,
 }
 
 /// The experiments of a dataset as fit input.
@@ -301,15 +316,23 @@ struct FitJson {
     whitening: String,
     whitening_order: usize,
     poly_degree: usize,
+    /// Version, model and dataset hashes (the same keys as the tables' metadata).
+    provenance: BTreeMap<String, String>,
 }
 
 pub fn fit(a: FitArgs) -> Result<()> {
     let setup = a.model.setup()?;
     let ds = read_dataset(&a.dataset)?;
+    for n in &ds.notes {
+        info!("note: {n}");
+    }
     let data = experiment_data(&ds)?;
     let guess = resolve_guess(&setup, a.guess.as_deref())?;
     check_stability(&setup.model, &guess, Some(&setup.spec.nominal()))
         .context("the starting point")?;
+    if !a.force {
+        crate::units::check_dataset(&setup, &guess, &ds)?;
+    }
     let (whitener, source) = dataset_whitener(
         &setup,
         &ds,
@@ -320,7 +343,7 @@ pub fn fit(a: FitArgs) -> Result<()> {
         a.whitening,
     )?;
     if ds.noise.is_none() && a.whitening == WhiteningSource::Auto {
-        eprintln!("note: whitening from the {source}");
+        info!("note: whitening from the {source}");
     }
     let lik = Likelihood::new(&setup.model, &data.inputs, data.dt, whitener, a.poly_degree)
         .with_context(|| a.dataset.display().to_string())?;
@@ -332,19 +355,31 @@ pub fn fit(a: FitArgs) -> Result<()> {
 
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("cannot create output directory '{}'", a.out.display()))?;
+    let prov = Provenance::new("fit")
+        .with_model(&setup.spec)
+        .with_dataset(&ds)?;
     let est = Table::new()
         .with_str("parameter", names.clone())?
         .with_f64("estimate", res.estimate.clone())?
         .with_f64("sigma", res.sigma.clone())?
-        .with_f64("guess", guess.clone())?;
+        .with_f64("guess", guess.clone())?
+        .with_str("unit", setup.parameter_units())?
+        .with_meta_all(&prov.meta)
+        .with_meta(
+            "freefall.units_note",
+            "estimate, sigma and guess are in the row's unit",
+        );
     write_parquet(a.out.join("estimates.parquet"), &est)?;
     write_parquet(
         a.out.join("correlation.parquet"),
-        &super::correlation_table(&names, |i, j| res.correlation[(i, j)])?,
+        &super::correlation_table(&names, |i, j| res.correlation[(i, j)])?
+            .with_meta_all(&prov.meta),
     )?;
+    let t0: Vec<f64> = ds.experiments.iter().map(|(_, r)| r.t0).collect();
     write_parquet(
         a.out.join("residuals.parquet"),
-        &residual_table(&problem, &data, &res.estimate, &res.residuals_w)?,
+        &residual_table(&problem, &data, &t0, &res.estimate, &res.residuals_w)?
+            .with_meta_all(&prov.meta),
     )?;
     let json = FitJson {
         chi2: res.chi2,
@@ -364,6 +399,7 @@ pub fn fit(a: FitArgs) -> Result<()> {
         whitening: source,
         whitening_order: a.order,
         poly_degree: a.poly_degree,
+        provenance: prov.meta.clone(),
     };
     write_json_atomic(a.out.join("fit.json"), &json)?;
 
@@ -405,7 +441,7 @@ pub fn fit(a: FitArgs) -> Result<()> {
         }
         outln!();
     }
-    eprintln!("wrote {}", a.out.display());
+    info!("wrote {}", a.out.display());
     for w in &json.warnings {
         eprintln!("warning: {w}");
     }
@@ -424,11 +460,12 @@ pub fn truth_from_meta(ds: &Dataset, names: &[String]) -> Option<Vec<f64>> {
         .collect()
 }
 
-/// Long-format residual table: experiment, channel, t, raw, whitened (NaN where the whitening
-/// filter has not started).
+/// Long-format residual table: experiment, channel, t (from each experiment's own start `t0`),
+/// raw, whitened (null where the whitening filter has not started).
 pub fn residual_table<M: crate::model::ClosedLoopModel<2>>(
     problem: &crate::fit::Problem<'_, '_, M, 2>,
     data: &ExperimentData,
+    t0: &[f64],
     p: &[f64],
     whitened: &crate::sim::Series,
 ) -> Result<Table> {
@@ -441,7 +478,7 @@ pub fn residual_table<M: crate::model::ClosedLoopModel<2>>(
             for i in 0..data.len() {
                 exp.push(name.clone());
                 ch.push(cname.to_string());
-                t.push(i as f64 * data.dt);
+                t.push(t0.get(e).copied().unwrap_or(0.0) + i as f64 * data.dt);
                 r.push(raw[e][c][i]);
                 w.push(if i >= order {
                     whitened[e][c][i - order]
@@ -456,5 +493,7 @@ pub fn residual_table<M: crate::model::ClosedLoopModel<2>>(
         .with_str("channel", ch)?
         .with_f64("t", t)?
         .with_f64("raw", r)?
-        .with_f64("whitened", w)?)
+        .with_f64("whitened", w)?
+        .with_units([("t", "s"), ("raw", "m"), ("whitened", "1")])
+        .with_nan_as_null("whitened"))
 }

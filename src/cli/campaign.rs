@@ -36,9 +36,6 @@ pub struct RunArgs {
     /// Worker threads (default: all cores).
     #[arg(long)]
     pub threads: Option<usize>,
-    /// No progress bar.
-    #[arg(long)]
-    pub quiet: bool,
 }
 
 #[derive(Debug, Args)]
@@ -136,7 +133,7 @@ fn run_campaign(a: RunArgs) -> Result<()> {
         threads: a.threads,
     };
     crate::io::ensure_dir(&a.out)?;
-    let show = !a.quiet && std::io::stderr().is_terminal();
+    let show = !super::quiet() && std::io::stderr().is_terminal();
     let bar = if show {
         let pb = indicatif::ProgressBar::new(0);
         pb.set_style(
@@ -174,7 +171,7 @@ fn run_campaign(a: RunArgs) -> Result<()> {
         );
         return Ok(());
     }
-    if !a.quiet {
+    if !super::quiet() {
         eprintln!(
             "campaign '{}' shard {}: realizations {}..{} ({} resumed), {} fits, {} failed, {:.1} s on {} threads ({:.2} realizations/s); wrote {}",
             m.campaign,

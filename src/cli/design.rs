@@ -605,7 +605,7 @@ fn optimize(a: OptimizeArgs) -> Result<()> {
     diag.write(&a.out)?;
     // Printed only once every file is written.
     out!("{report}");
-    eprintln!(
+    info!(
         "wrote {}/designs.parquet and designs/*.toml",
         a.out.display()
     );
@@ -638,7 +638,7 @@ fn evaluate(a: EvaluateArgs) -> Result<()> {
             );
         }
         for v in &violations {
-            eprintln!("note: {}: {v}", a.design.display());
+            info!("note: {}: {v}", a.design.display());
         }
     }
     let info = space.information(&design)?;
@@ -967,7 +967,7 @@ fn write_validation(
     let md = markdown(setup, v, &summaries, cfg);
     write_text_atomic(out.join("validation.md"), &md)?;
     out!("{md}");
-    eprintln!("wrote {}/validation.md, validation.parquet, designs.parquet, correlations.parquet, fits.parquet", out.display());
+    info!("wrote {}/validation.md, validation.parquet, designs.parquet, correlations.parquet, fits.parquet", out.display());
     Ok(())
 }
 

@@ -28,6 +28,9 @@ pub struct DiagnoseArgs {
     /// Starting point: a scenario name or a parameter TOML (default: nominal).
     #[arg(long)]
     pub guess: Option<String>,
+    /// Analyse readouts whose level fails the units check (see `freefall::units`).
+    #[arg(long)]
+    pub force: bool,
     /// Whitening filter order (lags).
     #[arg(long, default_value_t = DEFAULT_WHITENING_ORDER)]
     pub order: usize,
@@ -132,9 +135,15 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
         return simulate(&a, &setup, &dataset);
     }
     let ds = read_dataset(&dataset)?;
+    for n in &ds.notes {
+        info!("note: {n}");
+    }
     let data = experiment_data(&ds)?;
     let names = setup.parameter_names();
     let guess = resolve_guess(&setup, a.guess.as_deref())?;
+    if !a.force {
+        crate::units::check_dataset(&setup, &guess, &ds)?;
+    }
     let truth = truth_from_meta(&ds, &names);
     let noise: Option<Vec<Vec<f64>>> = ds
         .noise
@@ -170,14 +179,17 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
     .with_context(|| dataset.display().to_string())?;
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("cannot create output directory '{}'", a.out.display()))?;
-    write_outputs(&a.out, &d, &data.names, data.dt)?;
+    let prov = crate::io::Provenance::new("diagnose")
+        .with_model(&setup.spec)
+        .with_dataset(&ds)?;
+    write_outputs(&a.out, &d, &data.names, data.dt, &prov.meta)?;
     let mut md = d.to_markdown(&dataset.display().to_string());
     if !a.no_plots {
         match plot(&a.out) {
             Ok(()) => md.push_str("\n## Plots\n\n![residual spectra](psd.png)\n\n![time-resolved chi2](time_chi2.png)\n"),
             Err(e) => {
                 let note = format!("\n> note: no plots ({e}); the plot data are in spectra.parquet and time_chi2.parquet\n");
-                eprintln!("note: no plots ({e})");
+                info!("note: no plots ({e})");
                 md.push_str(&note);
             }
         }
@@ -201,14 +213,24 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
         d.seconds
     );
     for n in &d.notes {
-        eprintln!("note: {n}");
+        info!("note: {n}");
     }
-    eprintln!("wrote {}", a.out.display());
+    info!("wrote {}", a.out.display());
     Ok(())
 }
 
-fn write_outputs(out: &Path, d: &Diagnosis, names: &[String], dt: f64) -> Result<()> {
-    write_json_atomic(out.join("report.json"), &d.to_json())?;
+fn write_outputs(
+    out: &Path,
+    d: &Diagnosis,
+    names: &[String],
+    dt: f64,
+    meta: &std::collections::BTreeMap<String, String>,
+) -> Result<()> {
+    let mut json = d.to_json();
+    if let Some(o) = json.as_object_mut() {
+        o.insert("provenance".into(), serde_json::to_value(meta)?);
+    }
+    write_json_atomic(out.join("report.json"), &json)?;
     for (stage, (w, raw)) in [
         ("before", &d.residuals_before),
         ("after", &d.residuals_after),
@@ -235,7 +257,10 @@ fn write_outputs(out: &Path, d: &Diagnosis, names: &[String], dt: f64) -> Result
             .with_str("channel", ch)?
             .with_f64("t", t)?
             .with_f64("raw", r)?
-            .with_f64("whitened", wv)?;
+            .with_f64("whitened", wv)?
+            .with_units([("t", "s"), ("raw", "m"), ("whitened", "1")])
+            .with_nan_as_null("whitened")
+            .with_meta_all(meta);
         write_parquet(out.join(format!("residuals_{stage}.parquet")), &table)?;
     }
     let (mut st, mut exp, mut ch, mut f, mut lv, mut lo, mut hi) = (
@@ -267,7 +292,9 @@ fn write_outputs(out: &Path, d: &Diagnosis, names: &[String], dt: f64) -> Result
             .with_f64("f", f)?
             .with_f64("level", lv)?
             .with_f64("lo90", lo)?
-            .with_f64("hi90", hi)?,
+            .with_f64("hi90", hi)?
+            .with_units([("f", "Hz"), ("level", "1"), ("lo90", "1"), ("hi90", "1")])
+            .with_meta_all(meta),
     )?;
     let (mut st, mut exp, mut ch, mut t0, mut t1, mut c2, mut ex, mut p) = (
         Vec::new(),
@@ -303,7 +330,14 @@ fn write_outputs(out: &Path, d: &Diagnosis, names: &[String], dt: f64) -> Result
             .with_f64("t_hi", t1)?
             .with_f64("chi2_reduced", c2)?
             .with_f64("excess", ex)?
-            .with_f64("p_value", p)?,
+            .with_f64("p_value", p)?
+            .with_units([
+                ("t_lo", "s"),
+                ("t_hi", "s"),
+                ("chi2_reduced", "1"),
+                ("excess", "1"),
+            ])
+            .with_meta_all(meta),
     )?;
     Ok(())
 }
@@ -474,6 +508,6 @@ fn simulate(a: &DiagnoseArgs, setup: &crate::setup::Setup, dir: &Path) -> Result
     meta.insert("truth".into(), toml::Value::Table(t));
     meta.insert("effects".into(), toml::Value::Table(meta_eff));
     let path = super::simulate::write_simulated(dir, &data, &noise, meta)?;
-    eprintln!("wrote {}", path.display());
+    info!("wrote {}", path.display());
     Ok(())
 }

@@ -10,6 +10,16 @@ macro_rules! out {
     };
 }
 
+/// `eprintln!` for information (what was written, notes), silenced by the global `--quiet`.
+/// Errors and warnings keep `eprintln!`.
+macro_rules! info {
+    ($($t:tt)*) => {
+        if !$crate::cli::quiet() {
+            eprintln!($($t)*);
+        }
+    };
+}
+
 /// `println!` that never panics; see [`write_stdout`].
 macro_rules! outln {
     () => {
@@ -41,6 +51,9 @@ use crate::setup::Setup;
     about = "System identification of drag-free closed-loop experiments (LISA Pathfinder kind)"
 )]
 pub struct Cli {
+    /// No progress bars, notes or "wrote" lines on stderr (results, warnings and errors stay).
+    #[arg(short, long, global = true)]
+    pub quiet: bool,
     #[command(subcommand)]
     pub command: Command,
 }
@@ -66,6 +79,13 @@ pub enum Command {
     Design(design::DesignCmd),
     /// Find what a fitted model is missing: residuals, effect attribution, refit, report.
     Diagnose(diagnose::DiagnoseArgs),
+    /// Print a shell completion script (e.g. `freefall completions bash > ~/.local/share/bash-completion/completions/freefall`).
+    Completions {
+        /// Shell to complete for.
+        shell: clap_complete::Shell,
+    },
+    /// Print the man page (roff) of freefall (e.g. `freefall man | man -l -`).
+    Man,
 }
 
 /// `--model FILE`: a model file of the lpf_x.toml schema (default: the embedded one).
@@ -80,6 +100,14 @@ impl ModelOpt {
     pub fn setup(&self) -> Result<Setup> {
         Setup::load(self.model.as_deref()).map_err(anyhow::Error::from)
     }
+}
+
+/// Set by the global `--quiet`.
+static QUIET: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+/// Whether the global `--quiet` was given.
+pub fn quiet() -> bool {
+    QUIET.load(std::sync::atomic::Ordering::Relaxed)
 }
 
 /// Set once a write to stdout failed: nothing more is printed.
@@ -105,6 +133,7 @@ pub fn write_stdout(args: std::fmt::Arguments<'_>) {
 /// Run the CLI; returns the process exit code.
 pub fn run() -> i32 {
     let cli = Cli::parse();
+    QUIET.store(cli.quiet, std::sync::atomic::Ordering::Relaxed);
     if let Err(e) = refuse_output_over_input(&cli.command) {
         eprintln!("error: {}", one_line(&e));
         return 1;
@@ -118,6 +147,23 @@ pub fn run() -> i32 {
         Command::Campaign(c) => campaign::run(c),
         Command::Design(c) => design::run(c),
         Command::Diagnose(a) => diagnose::run(a),
+        Command::Completions { shell } => {
+            let mut out = Vec::new();
+            clap_complete::generate(
+                shell,
+                &mut <Cli as clap::CommandFactory>::command(),
+                "freefall",
+                &mut out,
+            );
+            write_stdout(format_args!("{}", String::from_utf8_lossy(&out)));
+            Ok(())
+        }
+        Command::Man => (|| {
+            let mut out = Vec::new();
+            clap_mangen::Man::new(<Cli as clap::CommandFactory>::command()).render(&mut out)?;
+            write_stdout(format_args!("{}", String::from_utf8_lossy(&out)));
+            Ok(())
+        })(),
     };
     match res {
         Ok(()) => 0,
@@ -196,6 +242,7 @@ fn command_paths(cmd: &Command) -> (Vec<Named<'_>>, Vec<Named<'_>>) {
             vec![Some(("DESIGN", &a.design)), model(&a.study.model)],
             a.out.iter().map(|p| ("--out", p.as_path())).collect(),
         ),
+        Command::Completions { .. } | Command::Man => (Vec::new(), Vec::new()),
         Command::Design(design::DesignCmd::Validate(a)) => (
             vec![Some(("CAMPAIGN", &a.campaign)), model(&a.model)],
             a.out.iter().map(|p| ("--out", p.as_path())).collect(),
@@ -254,5 +301,6 @@ pub fn correlation_table(
     Ok(crate::io::Table::new()
         .with_str("parameter_i", pairs().map(|(i, _)| names[i].clone()))?
         .with_str("parameter_j", pairs().map(|(_, j)| names[j].clone()))?
-        .with_f64("corr", pairs().map(|(i, j)| corr(i, j)).collect())?)
+        .with_f64("corr", pairs().map(|(i, j)| corr(i, j)).collect())?
+        .with_unit("corr", "1"))
 }

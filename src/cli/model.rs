@@ -6,7 +6,7 @@ use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
 
 use super::{ensure_parent, ModelOpt};
-use crate::io::{write_parquet, Table};
+use crate::io::{write_parquet, Provenance, Table};
 use crate::model::lpf_x::THESIS_SIGMA;
 use crate::model::{check_stability, transfer, ClosedLoopModel};
 use crate::setup::design_fisher;
@@ -127,9 +127,30 @@ fn grid_table(a: GridArgs, noise: bool) -> Result<()> {
                 )?;
         }
     }
+    let units: Vec<(String, &str)> = table
+        .names()
+        .iter()
+        .map(|n| {
+            let u = match *n {
+                "f" => "Hz",
+                _ if noise => "m^2/Hz",
+                _ => "1",
+            };
+            (n.to_string(), u)
+        })
+        .collect();
+    let table = table.with_units(units).with_meta_all(
+        &Provenance::new(if noise {
+            "model noise"
+        } else {
+            "model transfer"
+        })
+        .with_model(&setup.spec)
+        .meta,
+    );
     ensure_parent(&a.out)?;
     write_parquet(&a.out, &table)?;
-    eprintln!("wrote {} ({} frequencies)", a.out.display(), f.len());
+    info!("wrote {} ({} frequencies)", a.out.display(), f.len());
     Ok(())
 }
 
@@ -144,11 +165,15 @@ fn fisher(a: FisherArgs) -> Result<()> {
         .context("Fisher information is singular: the design cannot constrain every parameter")?;
     let names = setup.parameter_names();
     let sigma: Vec<f64> = (0..names.len()).map(|k| cov[(k, k)].sqrt()).collect();
+    let prov = Provenance::new("model fisher").with_model(&setup.spec);
     let table = Table::new()
         .with_str("parameter", names.clone())?
         .with_f64("value", p.clone())?
-        .with_f64("sigma", sigma.clone())?;
-    let corr_table = super::correlation_table(&names, |i, j| cov[(i, j)] / (sigma[i] * sigma[j]))?;
+        .with_f64("sigma", sigma.clone())?
+        .with_str("unit", setup.parameter_units())?
+        .with_meta_all(&prov.meta);
+    let corr_table = super::correlation_table(&names, |i, j| cov[(i, j)] / (sigma[i] * sigma[j]))?
+        .with_meta_all(&prov.meta);
     ensure_parent(&a.out)?;
     let stem = a
         .out
@@ -179,6 +204,6 @@ fn fisher(a: FisherArgs) -> Result<()> {
             None => outln!("{n:<8} {:>14.6e} {:>12.3e}", p[k], sigma[k]),
         }
     }
-    eprintln!("wrote {} and {}", a.out.display(), corr_path.display());
+    info!("wrote {} and {}", a.out.display(), corr_path.display());
     Ok(())
 }

@@ -110,7 +110,7 @@ pub fn run(a: SimulateArgs) -> Result<()> {
     };
     let meta = simulation_meta(&setup, &a.scenario, &a.design, a.seed, &sc.truth, a.rate);
     let path = write_simulated(&a.out, &data, &noise, meta)?;
-    eprintln!(
+    info!(
         "wrote {} ({} experiments of {} samples at {} Hz, plus a noise run)",
         path.display(),
         data.names.len(),

@@ -25,7 +25,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use super::atomic::{ensure_dir, parent_dir, read_text, toml_error, write_toml_atomic};
-use super::run::{read_run, write_run, Run, TIME_TOLERANCE};
+use super::run::{read_run_noted, write_run, Run, TIME_TOLERANCE};
 use super::{in_memory, IoError};
 
 /// File name of the dataset description written by [`write_dataset`].
@@ -45,6 +45,9 @@ pub struct Dataset {
     pub experiments: Vec<(String, Run)>,
     /// Free-form metadata (`[meta]`), e.g. scenario, seed, `[meta.truth]` parameter values.
     pub meta: toml::Table,
+    /// What the reader did leniently (columns ignored, timestamps converted, float32 readouts),
+    /// one line each, for the commands to print as notes.
+    pub notes: Vec<String>,
 }
 
 /// The on-disk form.
@@ -74,6 +77,7 @@ impl Dataset {
             noise: None,
             experiments,
             meta: toml::Table::new(),
+            notes: Vec::new(),
         };
         d.validate()?;
         Ok(d)
@@ -263,14 +267,20 @@ pub fn read_dataset(path: impl AsRef<Path>) -> Result<Dataset, IoError> {
             Ok(dir.join(file))
         }
     };
+    let mut notes = Vec::new();
+    let mut read = |file: PathBuf| -> Result<Run, IoError> {
+        let (run, n) = read_run_noted(file)?;
+        notes.extend(n);
+        Ok(run)
+    };
     let noise = match &spec.noise {
-        Some(file) => Some(read_run(resolve(file, "the noise run")?)?),
+        Some(file) => Some(read(resolve(file, "the noise run")?)?),
         None => None,
     };
     let mut experiments = Vec::with_capacity(spec.experiment.len());
     for entry in &spec.experiment {
         let file = resolve(&entry.file, &format!("experiment '{}'", entry.name))?;
-        experiments.push((entry.name.clone(), read_run(file)?));
+        experiments.push((entry.name.clone(), read(file)?));
     }
     check_consistency(path, noise.as_ref(), &experiments)?;
     Ok(Dataset {
@@ -278,6 +288,7 @@ pub fn read_dataset(path: impl AsRef<Path>) -> Result<Dataset, IoError> {
         noise,
         experiments,
         meta: spec.meta,
+        notes,
     })
 }
 

@@ -22,21 +22,25 @@
 
 pub mod atomic;
 pub mod dataset;
+pub mod provenance;
 pub mod run;
 pub mod table;
 
 use std::path::{Path, PathBuf};
 
 pub use atomic::{
-    ensure_dir, file_sha256, read_json, read_text, read_toml, write_bytes_atomic,
+    ensure_dir, file_sha256, read_json, read_text, read_toml, sha256_hex, write_bytes_atomic,
     write_json_atomic, write_text_atomic, write_toml_atomic, AtomicFile,
 };
 pub use dataset::{read_dataset, write_dataset, Dataset, DATASET_FILE_NAME};
+pub use provenance::Provenance;
 pub use run::{
-    read_csv, read_run, write_run, Run, INPUT_COLUMNS, MIN_ROWS, OUTPUT_COLUMNS, TIME_COLUMN,
-    TIME_TOLERANCE,
+    read_csv, read_run, read_run_noted, write_run, Run, INPUT_COLUMNS, MIN_ROWS, OUTPUT_COLUMNS,
+    TIME_COLUMN, TIME_TOLERANCE,
 };
-pub use table::{read_parquet, write_parquet, Column, ParquetAppender, Table};
+pub use table::{
+    read_parquet, read_parquet_nulls_as_nan, write_parquet, Column, ParquetAppender, Table,
+};
 
 /// An I/O or validation failure, naming the file and the row, column or key at fault.
 #[derive(Debug, thiserror::Error)]

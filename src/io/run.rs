@@ -21,7 +21,7 @@ use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 
 use super::atomic::AtomicFile;
-use super::table::{read_parquet, write_parquet, Column, Table};
+use super::table::{read_parquet_tolerant, write_parquet, Column, ReadReport, Table};
 use super::{in_memory, IoError, DEBUG_MAX_ROWS};
 
 /// Name of the time column [s].
@@ -359,11 +359,80 @@ fn format_of(path: &Path) -> Result<Format, IoError> {
 /// Reads and validates a run file (Parquet or CSV, chosen by extension). See the module docs for
 /// the checks.
 pub fn read_run(path: impl AsRef<Path>) -> Result<Run, IoError> {
+    read_run_noted(path).map(|(run, _)| run)
+}
+
+/// Smallest integer step of `t` read as a unit finer than seconds: an integer time column
+/// stepping by a multiple of 1000 is milliseconds (or micro-, nanoseconds), not seconds (no
+/// drag-free experiment is sampled once every 17 minutes).
+pub const INTEGER_TIME_STEP_LIMIT: i64 = 1000;
+
+/// [`read_run`], plus notes on what was read leniently: undeclared columns left out (a
+/// quality flag with nulls, a string or dictionary column), timestamps converted to seconds from
+/// the first sample, float32 readouts, numeric columns the model does not use.
+pub fn read_run_noted(path: impl AsRef<Path>) -> Result<(Run, Vec<String>), IoError> {
     let path = path.as_ref();
-    let table = match format_of(path)? {
-        Format::Parquet => read_parquet(path)?,
-        Format::Csv => read_csv(path)?,
+    let mut required = vec![TIME_COLUMN];
+    required.extend(REQUIRED);
+    let (mut table, report) = match format_of(path)? {
+        Format::Parquet => read_parquet_tolerant(path, &required)?,
+        Format::Csv => (read_csv(path)?, ReadReport::default()),
     };
+    let label = path.display();
+    let mut notes: Vec<String> = report
+        .skipped
+        .iter()
+        .map(|(c, why)| format!("{label}: column '{c}' ignored ({why})"))
+        .collect();
+    for c in report
+        .float32
+        .iter()
+        .filter(|c| REQUIRED.contains(&c.as_str()))
+    {
+        notes.push(format!(
+            "{label}: '{c}' is float32 (about 7 significant digits): its rounding is noise the \
+             model does not have and can raise chi2/nu"
+        ));
+    }
+    if report.timestamps.iter().any(|c| c == TIME_COLUMN) {
+        if let Some((_, col)) = table.columns.iter_mut().find(|(n, _)| n == TIME_COLUMN) {
+            if let Column::I64(ns) = col {
+                // Differences in integer nanoseconds first: exact, then to seconds.
+                let start = ns.first().copied().unwrap_or(0);
+                *col = Column::F64(ns.iter().map(|&x| (x - start) as f64 * 1e-9).collect());
+                notes.push(format!(
+                    "{label}: 't' holds timestamps; times are seconds from the first sample \
+                     ({:.3} s after the Unix epoch)",
+                    start as f64 * 1e-9
+                ));
+            }
+        }
+    } else {
+        check_integer_time(path, &table)?;
+    }
+    // Readable but not numeric (a status string, a boolean flag): not data for the model.
+    table.columns.retain(|(name, column)| {
+        let keep =
+            column.to_f64().is_some() || REQUIRED.contains(&name.as_str()) || name == TIME_COLUMN;
+        if !keep {
+            notes.push(format!(
+                "{label}: column '{name}' ignored (type {})",
+                column.type_name()
+            ));
+        }
+        keep
+    });
+    let unused: Vec<&str> = table
+        .names()
+        .into_iter()
+        .filter(|n| *n != TIME_COLUMN && !REQUIRED.contains(n))
+        .collect();
+    if !unused.is_empty() {
+        notes.push(format!(
+            "{label}: columns kept but not used by the model: {}",
+            unused.join(", ")
+        ));
+    }
     let mut columns = Vec::with_capacity(table.columns.len());
     for (name, column) in &table.columns {
         let values = column.to_f64().ok_or_else(|| IoError::ColumnType {
@@ -374,7 +443,39 @@ pub fn read_run(path: impl AsRef<Path>) -> Result<Run, IoError> {
         })?;
         columns.push((name.clone(), values));
     }
-    run_from_columns(path, columns)
+    Ok((run_from_columns(path, columns)?, notes))
+}
+
+/// Refuses an integer `t` column whose step says it is not in seconds.
+fn check_integer_time(path: &Path, table: &Table) -> Result<(), IoError> {
+    let ints: Vec<i64> = match table.column(TIME_COLUMN) {
+        Ok(Column::I64(v)) => v.clone(),
+        Ok(Column::U64(v)) => v.iter().map(|&x| x as i64).collect(),
+        _ => return Ok(()),
+    };
+    let Some(step) = ints
+        .windows(2)
+        .map(|w| w[1] - w[0])
+        .filter(|d| *d > 0)
+        .min()
+    else {
+        return Ok(());
+    };
+    if step >= INTEGER_TIME_STEP_LIMIT && step % INTEGER_TIME_STEP_LIMIT == 0 {
+        let unit = match step {
+            s if s % 1_000_000_000 == 0 => "nanoseconds (divide by 1e9)",
+            s if s % 1_000_000 == 0 => "microseconds (divide by 1e6)",
+            _ => "milliseconds (divide by 1e3)",
+        };
+        return Err(IoError::invalid(
+            path,
+            format!(
+                "column 't' is integer with a step of {step}: it looks like {unit}; freefall \
+                 reads t in seconds (or as an Arrow timestamp)"
+            ),
+        ));
+    }
+    Ok(())
 }
 
 /// Writes `run` atomically with columns `t`, `oi1`, `oi12`, `o1`, `o12`, then the extras:
@@ -508,5 +609,6 @@ pub fn read_csv(path: impl AsRef<Path>) -> Result<Table, IoError> {
             .map(|(n, v)| (n, Column::F64(v)))
             .collect(),
         source: Some(path.to_path_buf()),
+        ..Table::default()
     })
 }

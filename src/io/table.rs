@@ -5,7 +5,15 @@
 //! atomically (Snappy compression); [`ParquetAppender`] streams many same-schema tables into one
 //! file and renames it into place on [`ParquetAppender::finish`]. [`read_parquet`] reads any file
 //! whose columns are float32/float64, (unsigned) integers, boolean or utf8 without nulls.
+//!
+//! Written tables describe themselves: the Parquet key-value metadata carries
+//! `freefall.version` (the crate version), whatever the caller added with [`Table::with_meta`]
+//! (model, dataset and campaign hashes) and `freefall.units`, a JSON object of the units set with
+//! [`Table::with_unit`]; each field's Arrow metadata carries its `unit` too. Columns marked with
+//! [`Table::with_nan_as_null`] store NaN (a value that does not exist, such as a whitened
+//! residual inside the filter's start-up) as a Parquet null.
 
+use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::fmt;
 use std::fs::File;
 use std::path::{Path, PathBuf};
@@ -17,7 +25,7 @@ use arrow::array::{
 };
 use arrow::datatypes::{
     DataType, Field, Float32Type, Float64Type, Int16Type, Int32Type, Int64Type, Int8Type, Schema,
-    SchemaRef, UInt16Type, UInt32Type, UInt64Type, UInt8Type,
+    SchemaRef, TimeUnit, UInt16Type, UInt32Type, UInt64Type, UInt8Type,
 };
 use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
 use parquet::arrow::ArrowWriter;
@@ -155,7 +163,20 @@ impl From<Vec<String>> for Column {
 pub struct Table {
     pub columns: Vec<(String, Column)>,
     pub source: Option<PathBuf>,
+    /// Key-value metadata written with the table (besides `freefall.version` and the units).
+    pub meta: BTreeMap<String, String>,
+    /// Unit of each column that has one (SI symbols, `1` for dimensionless).
+    pub units: BTreeMap<String, String>,
+    /// `f64` columns whose NaN values are written as nulls.
+    pub nan_as_null: BTreeSet<String>,
 }
+
+/// Key of the crate version in every written table's metadata.
+pub const VERSION_KEY: &str = "freefall.version";
+/// Key of the JSON object of column units in every written table's metadata.
+pub const UNITS_KEY: &str = "freefall.units";
+/// Key of a column's unit in its Arrow field metadata.
+pub const FIELD_UNIT_KEY: &str = "unit";
 
 /// Summarises long tables instead of printing every value.
 impl fmt::Debug for Table {
@@ -232,6 +253,42 @@ impl Table {
     ) -> Result<Table, IoError> {
         let values = values.into_iter().map(Into::into).collect();
         self.with_column(name, Column::Str(values))
+    }
+
+    /// Adds a key-value pair to the metadata written with the table.
+    pub fn with_meta(mut self, key: impl Into<String>, value: impl Into<String>) -> Table {
+        self.meta.insert(key.into(), value.into());
+        self
+    }
+
+    /// Adds every pair of `meta` to the metadata written with the table.
+    pub fn with_meta_all(mut self, meta: &BTreeMap<String, String>) -> Table {
+        self.meta
+            .extend(meta.iter().map(|(k, v)| (k.clone(), v.clone())));
+        self
+    }
+
+    /// Sets the unit of column `name` (written in the field's metadata and in `freefall.units`).
+    pub fn with_unit(mut self, name: impl Into<String>, unit: impl Into<String>) -> Table {
+        self.units.insert(name.into(), unit.into());
+        self
+    }
+
+    /// Sets the units of several columns.
+    pub fn with_units<N: Into<String>, U: Into<String>>(
+        mut self,
+        units: impl IntoIterator<Item = (N, U)>,
+    ) -> Table {
+        for (n, u) in units {
+            self.units.insert(n.into(), u.into());
+        }
+        self
+    }
+
+    /// Writes the NaN values of `f64` column `name` as nulls (missing values, not numbers).
+    pub fn with_nan_as_null(mut self, name: impl Into<String>) -> Table {
+        self.nan_as_null.insert(name.into());
+        self
     }
 
     /// Adds a column in place; same checks as [`Table::with_column`].
@@ -319,6 +376,37 @@ impl Table {
         }
     }
 
+    /// A count column (`int64`, or `uint64` as tables before 0.1 wrote counts) as `u64`; a
+    /// negative value is an error naming the column and row.
+    pub fn count_column(&self, name: &str) -> Result<Vec<u64>, IoError> {
+        match self.column(name)? {
+            Column::U64(v) => Ok(v.clone()),
+            Column::I64(v) => v
+                .iter()
+                .enumerate()
+                .map(|(row, &x)| {
+                    u64::try_from(x).map_err(|_| {
+                        IoError::invalid(
+                            &self.label(),
+                            format!("column '{name}' row {row}: negative count {x}"),
+                        )
+                    })
+                })
+                .collect(),
+            other => Err(self.type_error(name, "int64", other)),
+        }
+    }
+
+    /// Adds an `int64` column of counts (every integer column freefall writes is `int64`, the
+    /// type pandas, polars and DuckDB default to).
+    pub fn with_counts(self, name: impl Into<String>, values: &[u64]) -> Result<Table, IoError> {
+        let v = values
+            .iter()
+            .map(|&x| i64::try_from(x).unwrap_or(i64::MAX))
+            .collect();
+        self.with_column(name, Column::I64(v))
+    }
+
     /// The `boolean` column called `name`.
     pub fn bool_column(&self, name: &str) -> Result<&[bool], IoError> {
         match self.column(name)? {
@@ -391,16 +479,51 @@ impl Table {
     }
 
     fn arrow_schema(&self) -> SchemaRef {
-        Arc::new(Schema::new(
-            self.columns
-                .iter()
-                .map(|(n, c)| Field::new(n, c.data_type(), false))
-                .collect::<Vec<_>>(),
-        ))
+        let fields: Vec<Field> = self
+            .columns
+            .iter()
+            .map(|(n, c)| {
+                let field = Field::new(n, c.data_type(), self.nan_as_null.contains(n));
+                match self.units.get(n) {
+                    Some(u) => field
+                        .with_metadata(HashMap::from([(FIELD_UNIT_KEY.to_string(), u.clone())])),
+                    None => field,
+                }
+            })
+            .collect();
+        let mut meta: HashMap<String, String> = self
+            .meta
+            .iter()
+            .map(|(k, v)| (k.clone(), v.clone()))
+            .collect();
+        meta.insert(VERSION_KEY.into(), env!("CARGO_PKG_VERSION").into());
+        let units: BTreeMap<&str, &str> = self
+            .columns
+            .iter()
+            .filter_map(|(n, _)| Some((n.as_str(), self.units.get(n)?.as_str())))
+            .collect();
+        if !units.is_empty() {
+            meta.insert(
+                UNITS_KEY.into(),
+                serde_json::to_string(&units).expect("a map of strings serialises"),
+            );
+        }
+        Arc::new(Schema::new_with_metadata(fields, meta))
     }
 
     fn to_record_batch(&self, schema: SchemaRef, path: &Path) -> Result<RecordBatch, IoError> {
-        let arrays = self.columns.iter().map(|(_, c)| c.to_arrow()).collect();
+        let arrays = self
+            .columns
+            .iter()
+            .map(|(n, c)| match c {
+                Column::F64(v) if self.nan_as_null.contains(n) => Arc::new(
+                    v.iter()
+                        .map(|x| (!x.is_nan()).then_some(*x))
+                        .collect::<Float64Array>(),
+                ) as ArrayRef,
+                c => c.to_arrow(),
+            })
+            .collect();
         RecordBatch::try_new(schema, arrays)
             .map_err(|e| IoError::invalid(path, format!("cannot build record batch: {e}")))
     }
@@ -542,11 +665,20 @@ impl ParquetAppender {
                     .iter()
                     .map(|(n, c)| (n.clone(), c.empty_like()))
                     .collect(),
-                source: None,
+                nan_as_null: batch.nan_as_null.clone(),
+                ..Table::default()
             });
         }
         let schema = self.arrow_schema.clone().expect("schema set above");
-        let record_batch = batch.to_record_batch(schema, &self.dest)?;
+        // Nulls follow the first batch's marking, whatever later batches say.
+        let record_batch = match &self.schema {
+            Some(first) if first.nan_as_null != batch.nan_as_null => Table {
+                nan_as_null: first.nan_as_null.clone(),
+                ..batch.clone()
+            }
+            .to_record_batch(schema, &self.dest)?,
+            _ => batch.to_record_batch(schema, &self.dest)?,
+        };
         let writer = self
             .writer
             .as_mut()
@@ -575,10 +707,48 @@ impl ParquetAppender {
 /// Reads a Parquet file into a [`Table`] whose `source` is `path`.
 ///
 /// float32 and float64 become [`Column::F64`]; int8..int64 [`Column::I64`]; uint8..uint64
-/// [`Column::U64`]; boolean [`Column::Bool`]; utf8 and large utf8 [`Column::Str`]. Other types and
-/// null values are errors naming the column (and row).
+/// [`Column::U64`]; boolean [`Column::Bool`]; utf8 and large utf8 [`Column::Str`]; Arrow
+/// timestamps [`Column::I64`] nanoseconds since the Unix epoch. Other types and null values are
+/// errors naming the column (and row).
 pub fn read_parquet(path: impl AsRef<Path>) -> Result<Table, IoError> {
-    let path = path.as_ref();
+    read_parquet_with(path.as_ref(), None, false).map(|(t, _)| t)
+}
+
+/// Like [`read_parquet`], but nulls in float columns (missing values, as freefall writes them
+/// with [`Table::with_nan_as_null`]) read as NaN, and those columns are marked to write back as
+/// nulls. Nulls in other columns are still errors.
+pub fn read_parquet_nulls_as_nan(path: impl AsRef<Path>) -> Result<Table, IoError> {
+    read_parquet_with(path.as_ref(), None, true).map(|(t, _)| t)
+}
+
+/// What [`read_parquet_tolerant`] did besides reading: columns it left out and why, and the
+/// columns stored with less than float64 precision or as timestamps.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ReadReport {
+    /// `(column, reason)` of every column left out.
+    pub skipped: Vec<(String, String)>,
+    /// float32 columns (7 significant digits), read as float64.
+    pub float32: Vec<String>,
+    /// Timestamp columns, read as int64 nanoseconds since the Unix epoch.
+    pub timestamps: Vec<String>,
+}
+
+/// Like [`read_parquet`], but a column not in `required` whose type freefall cannot read (a
+/// dictionary-encoded flag, a struct) or that holds a null is left out and reported instead of
+/// failing the file. Required columns get the strict checks.
+pub fn read_parquet_tolerant(
+    path: impl AsRef<Path>,
+    required: &[&str],
+) -> Result<(Table, ReadReport), IoError> {
+    read_parquet_with(path.as_ref(), Some(required), false)
+}
+
+/// The reader: strict when `required` is `None`, else tolerant of the other columns.
+fn read_parquet_with(
+    path: &Path,
+    required: Option<&[&str]>,
+    float_nulls_as_nan: bool,
+) -> Result<(Table, ReadReport), IoError> {
     let file = File::open(path).map_err(|e| IoError::read(path, e))?;
     let parquet_err = |e: parquet::errors::ParquetError| match e {
         parquet::errors::ParquetError::External(inner) => {
@@ -595,27 +765,57 @@ pub fn read_parquet(path: impl AsRef<Path>) -> Result<Table, IoError> {
             message: other.to_string(),
         },
     };
+    let strict = |name: &str| required.is_none_or(|r| r.contains(&name));
     let builder = ParquetRecordBatchReaderBuilder::try_new(file).map_err(parquet_err)?;
     let schema = builder.schema().clone();
-
+    let mut report = ReadReport::default();
     let mut table = Table {
         columns: Vec::with_capacity(schema.fields().len()),
         source: Some(path.to_path_buf()),
+        meta: schema
+            .metadata()
+            .iter()
+            .filter(|(k, _)| k.as_str() != UNITS_KEY)
+            .map(|(k, v)| (k.clone(), v.clone()))
+            .collect(),
+        units: schema
+            .fields()
+            .iter()
+            .filter_map(|f| Some((f.name().clone(), f.metadata().get(FIELD_UNIT_KEY)?.clone())))
+            .collect(),
+        nan_as_null: BTreeSet::new(),
     };
-    for field in schema.fields() {
-        let column = empty_column_for(field.data_type()).ok_or_else(|| IoError::ColumnType {
-            path: path.to_path_buf(),
-            column: field.name().clone(),
-            expected: "float32, float64, (unsigned) integer, boolean or utf8".to_string(),
-            found: field.data_type().to_string(),
-        })?;
+    // Index into the file's columns of every kept column.
+    let mut kept: Vec<usize> = Vec::new();
+    for (i, field) in schema.fields().iter().enumerate() {
+        let Some(column) = empty_column_for(field.data_type()) else {
+            if strict(field.name()) {
+                return Err(IoError::ColumnType {
+                    path: path.to_path_buf(),
+                    column: field.name().clone(),
+                    expected: "float32, float64, (unsigned) integer, timestamp, boolean or utf8"
+                        .to_string(),
+                    found: field.data_type().to_string(),
+                });
+            }
+            report
+                .skipped
+                .push((field.name().clone(), format!("type {}", field.data_type())));
+            continue;
+        };
         if table.columns.iter().any(|(n, _)| n == field.name()) {
             return Err(IoError::DuplicateColumn {
                 path: path.to_path_buf(),
                 column: field.name().clone(),
             });
         }
+        match field.data_type() {
+            DataType::Float32 => report.float32.push(field.name().clone()),
+            DataType::Timestamp(..) => report.timestamps.push(field.name().clone()),
+            _ => {}
+        }
         table.columns.push((field.name().clone(), column));
+        kept.push(i);
     }
 
     let reader = builder
@@ -623,25 +823,55 @@ pub fn read_parquet(path: impl AsRef<Path>) -> Result<Table, IoError> {
         .build()
         .map_err(parquet_err)?;
     let mut row0 = 0;
+    let mut dropped: Vec<usize> = Vec::new();
     for batch in reader {
         let batch = batch.map_err(|e| IoError::Parquet {
             path: path.to_path_buf(),
             message: e.to_string(),
         })?;
-        for ((name, column), array) in table.columns.iter_mut().zip(batch.columns()) {
+        for (k, &i) in kept.iter().enumerate() {
+            let (name, column) = &mut table.columns[k];
+            let array = batch.column(i);
+            if dropped.contains(&k) {
+                continue;
+            }
+            if array.null_count() > 0 && float_nulls_as_nan && matches!(column, Column::F64(_)) {
+                let floats = arrow::compute::cast(array, &DataType::Float64)
+                    .expect("a float32 or float64 column casts to float64");
+                if let Column::F64(v) = column {
+                    let f = floats.as_primitive::<Float64Type>();
+                    v.extend(
+                        (0..f.len()).map(|r| if f.is_null(r) { f64::NAN } else { f.value(r) }),
+                    );
+                }
+                table.nan_as_null.insert(name.clone());
+                continue;
+            }
             if array.null_count() > 0 {
-                let row = (0..array.len()).find(|&i| array.is_null(i)).unwrap_or(0);
-                return Err(IoError::NullValue {
-                    path: path.to_path_buf(),
-                    column: name.clone(),
-                    row: row0 + row,
-                });
+                let row = row0 + (0..array.len()).find(|&r| array.is_null(r)).unwrap_or(0);
+                if strict(name) {
+                    return Err(IoError::NullValue {
+                        path: path.to_path_buf(),
+                        column: name.clone(),
+                        row,
+                    });
+                }
+                report
+                    .skipped
+                    .push((name.clone(), format!("a null at row {row}")));
+                dropped.push(k);
+                continue;
             }
             extend_from_arrow(column, array.as_ref());
         }
         row0 += batch.num_rows();
     }
-    Ok(table)
+    let mut k = 0;
+    table.columns.retain(|_| {
+        k += 1;
+        !dropped.contains(&(k - 1))
+    });
+    Ok((table, report))
 }
 
 fn empty_column_for(dt: &DataType) -> Option<Column> {
@@ -655,6 +885,7 @@ fn empty_column_for(dt: &DataType) -> Option<Column> {
         }
         DataType::Boolean => Column::Bool(Vec::new()),
         DataType::Utf8 | DataType::LargeUtf8 => Column::Str(Vec::new()),
+        DataType::Timestamp(..) => Column::I64(Vec::new()),
         _ => return None,
     })
 }
@@ -720,6 +951,25 @@ fn extend_from_arrow(column: &mut Column, array: &dyn Array) {
                 .iter()
                 .map(|&x| u64::from(x)),
         ),
+        (Column::I64(v), DataType::Timestamp(unit, _)) => {
+            // Nanoseconds since the epoch, in integers (f64 seconds since 1970 would keep only
+            // ~0.2 us); the time zone only changes how a timestamp is shown.
+            let ns_per_tick = match unit {
+                TimeUnit::Second => 1_000_000_000,
+                TimeUnit::Millisecond => 1_000_000,
+                TimeUnit::Microsecond => 1_000,
+                TimeUnit::Nanosecond => 1,
+            };
+            let ticks = arrow::compute::cast(array, &DataType::Int64)
+                .expect("a timestamp casts to its int64 ticks");
+            v.extend(
+                ticks
+                    .as_primitive::<Int64Type>()
+                    .values()
+                    .iter()
+                    .map(|&x| x.saturating_mul(ns_per_tick)),
+            )
+        }
         (Column::Bool(v), DataType::Boolean) => v.extend(array.as_boolean().values().iter()),
         (Column::Str(v), DataType::Utf8) => v.extend(
             array

@@ -175,6 +175,9 @@ pub struct ModelSpec {
     /// Where the spec came from, for error messages ("embedded lpf_x.toml" or a path).
     #[serde(skip)]
     pub origin: String,
+    /// Hex SHA-256 of the model file's text (provenance of every output).
+    #[serde(skip)]
+    pub sha256: String,
 }
 
 /// Names the LPF-x model knows, in the thesis's order (Table "modeled system parameters").
@@ -193,6 +196,7 @@ impl ModelSpec {
             span: e.span().map(|s| line_of(text, s.start)),
         })?;
         spec.origin = origin.to_string();
+        spec.sha256 = crate::io::sha256_hex(text.as_bytes());
         spec.validate()?;
         Ok(spec)
     }

@@ -1,0 +1,46 @@
+//! Helpers shared by the integration tests that call Python (pyarrow, pandas, polars, DuckDB:
+//! all in scripts/requirements.txt, which CI installs).
+
+#![allow(dead_code)]
+
+use std::process::Command;
+
+/// Prints on the terminal even when the test's output is captured.
+pub fn visible(msg: &str) {
+    use std::io::Write;
+    let _ = writeln!(std::io::stderr().lock(), "{msg}");
+}
+
+/// The Python packages among `modules` (or python3 itself) that are missing.
+pub fn missing_python(modules: &[&'static str]) -> Vec<&'static str> {
+    let python = Command::new("python3").arg("--version").output();
+    if !python.is_ok_and(|o| o.status.success()) {
+        return vec!["python3"];
+    }
+    modules
+        .iter()
+        .copied()
+        .filter(|m| {
+            !Command::new("python3")
+                .args(["-c", &format!("import {m}")])
+                .output()
+                .is_ok_and(|o| o.status.success())
+        })
+        .collect()
+}
+
+/// True when the test should skip for want of `modules`: says so on the terminal, and fails
+/// instead under `CI=true`, where scripts/requirements.txt is installed.
+pub fn skip_without_python(test: &str, modules: &[&'static str]) -> bool {
+    let missing = missing_python(modules);
+    if missing.is_empty() {
+        return false;
+    }
+    let msg = format!(
+        "SKIPPED {test}: missing {} (pip install -r scripts/requirements.txt)",
+        missing.join(", ")
+    );
+    assert!(std::env::var("CI").map_or(true, |v| v != "true"), "{msg}");
+    visible(&msg);
+    true
+}
