@@ -110,10 +110,13 @@ pub(crate) fn find_unexplained(after: &Stage, alpha: f64) -> Vec<Unexplained> {
         {
             // A band whose excess is one of the lines above is not reported twice.
             if out.iter().any(|u| {
-                u.kind == ExcessKind::Line && u.experiment == ch.experiment && u.channel == ch.channel && {
-                    let f = 0.5 * (u.band_hz[0] + u.band_hz[1]);
-                    f >= b.band_hz[0] && f <= b.band_hz[1]
-                }
+                u.kind == ExcessKind::Line
+                    && u.experiment == ch.experiment
+                    && u.channel == ch.channel
+                    && {
+                        let f = 0.5 * (u.band_hz[0] + u.band_hz[1]);
+                        f >= b.band_hz[0] && f <= b.band_hz[1]
+                    }
             }) && b.p_value > BAND_BEYOND_LINE_P
             {
                 continue;
@@ -165,4 +168,3 @@ pub(crate) fn find_unexplained(after: &Stage, alpha: f64) -> Vec<Unexplained> {
     }
     out
 }
-

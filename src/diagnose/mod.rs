@@ -349,7 +349,6 @@ impl std::fmt::Display for WhiteningSource {
     }
 }
 
-
 /// Run the diagnosis on experiments `data`, with an optional noise-only run (`noise[c]`), from
 /// the base-parameter `guess`. `truth` (simulated data) is carried into the report.
 pub fn diagnose(
@@ -486,7 +485,10 @@ fn spectra(
 ) -> Vec<SpectrumCurve> {
     let data = problem.data;
     let mut out = Vec::new();
-    for (st, res) in [("before", &before.residuals_w), ("after", &after.residuals_w)] {
+    for (st, res) in [
+        ("before", &before.residuals_w),
+        ("after", &after.residuals_w),
+    ] {
         for (e, en) in data.names.iter().enumerate() {
             for ch in Channel::ALL {
                 let r = &res[e][ch.index()];
@@ -494,7 +496,9 @@ fn spectra(
             }
         }
     }
-    let reference = problem.noise.filter(|_| problem.whitening.noise_ref.is_some());
+    let reference = problem
+        .noise
+        .filter(|_| problem.whitening.noise_ref.is_some());
     if let Some(nz) = reference {
         let wn = problem::whitened_noise(problem.filter(), nz, problem.cfg.poly_degree);
         for ch in Channel::ALL {

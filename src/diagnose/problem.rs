@@ -215,11 +215,7 @@ fn whitening<'a>(
     // At least two degrees of freedom, so that the F tails stay defined.
     let whitening_dof = fitted_on.map(|(t, m)| (t / m).max(2.0));
     let noise_ref = usable_noise.and_then(|nz| {
-        residuals::NoiseReference::new(
-            &whitened_noise(&filter, nz, cfg.poly_degree),
-            data.dt,
-            fpe,
-        )
+        residuals::NoiseReference::new(&whitened_noise(&filter, nz, cfg.poly_degree), data.dt, fpe)
     });
     if let Some(nr) = noise_ref
         .as_ref()

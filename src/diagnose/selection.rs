@@ -13,9 +13,11 @@
 //! - **Refit**: the best score-significant candidates of each family (persistent effects:
 //!   operator effects, drifts, lines; transients: glitches) are refitted, `confirm_top` of each,
 //!   so that loud glitches never take the slots of an operator effect.
-//! - **Decide**: the largest significant chi^2 drop among refits that converged, are not
-//!   degenerate with a fitted parameter and whose estimate lies in the physical range is added,
-//!   if its family is under its limit (`max_effects`, `max_glitches`).
+//! - **Decide**: the largest significant chi^2 drop among refits that converged and whose
+//!   estimate lies in the physical range is added, if its family is under its limit
+//!   (`max_effects`, `max_glitches`). If that candidate is degenerate with a fitted parameter
+//!   the selection stops instead: it is not claimed, and whatever would be added after it
+//!   would only be fitted to its residual (a proxy).
 
 use std::sync::Arc;
 
@@ -72,8 +74,11 @@ pub enum StopReason {
     Limits,
     /// No candidate was left to test.
     NoCandidates,
-    /// No refit of the round was significant, converged, identifiable and physical.
+    /// No refit of the round was significant, converged and physical.
     NothingSignificant,
+    /// The largest significant chi^2 drop is a candidate degenerate with a fitted parameter:
+    /// it is not claimed, and nothing is added in its place.
+    Degenerate,
 }
 
 /// The outcome of one round.
@@ -215,6 +220,23 @@ pub fn next_round(
     let refits = refit(problem, state, &described, &mut tested, &open, obs);
     state.candidates.extend(tested.iter().cloned());
     let outcome = decide(problem, state, &described, &tested, refits);
+    if outcome == Round::Stop(StopReason::Degenerate) {
+        let best = tested
+            .iter()
+            .filter_map(|c| Some((c, c.delta_chi2?)))
+            .filter(|(c, _)| c.degenerate)
+            .max_by(|a, b| a.1.total_cmp(&b.1))
+            .map(|(c, _)| c);
+        if let Some(c) = best {
+            let (with, corr) = c.most_correlated.clone().unwrap_or_default();
+            obs.note(&format!(
+                "round {}: the largest significant chi^2 drop ({:.1}) is {}, degenerate with {with} (correlation {corr:+.3}): it is not claimed, and nothing is added in its place",
+                state.round,
+                c.delta_chi2.unwrap_or(f64::NAN),
+                c.name
+            ));
+        }
+    }
     obs.round(state.round, &outcome);
     Ok(outcome)
 }
@@ -530,23 +552,25 @@ fn decide(
             )
         })
         .collect();
+    let drop = |i: usize| tested[i].delta_chi2.unwrap_or(f64::NEG_INFINITY);
     let best = refits
         .into_iter()
         .filter(|(i, r)| {
             let c = &tested[*i];
             r.fit.fit.termination.converged()
                 && c.p_value.is_some_and(|p| p < threshold)
-                && !c.degenerate
                 && !c.outside_physical_range
                 && state.open(cfg, described[*i].family())
         })
-        .max_by(|a, b| {
-            let d = |i: usize| tested[i].delta_chi2.unwrap_or(f64::NEG_INFINITY);
-            d(a.0).total_cmp(&d(b.0))
-        });
+        .max_by(|a, b| drop(a.0).total_cmp(&drop(b.0)));
     let Some((i, refit)) = best else {
         return Round::Stop(StopReason::NothingSignificant);
     };
+    if tested[i].degenerate {
+        // The data want most an effect they cannot attribute: anything added after it would
+        // be fitted to its residual, a proxy.
+        return Round::Stop(StopReason::Degenerate);
+    }
     let c = &tested[i];
     let dchi2 = c.delta_chi2.unwrap_or(f64::NAN);
     // Refits of the same round the data cannot tell from the winner.
@@ -749,7 +773,10 @@ fn score_statistic(
     let (lm, step) = match schur.clone().pseudo_inverse(PINV_RCOND * iee.norm()) {
         Ok(si) => {
             let step = &si * ue;
-            ((ue.transpose() * &step)[(0, 0)], step.iter().copied().collect())
+            (
+                (ue.transpose() * &step)[(0, 0)],
+                step.iter().copied().collect(),
+            )
         }
         Err(_) => (f64::NAN, vec![f64::NAN; ue.nrows()]),
     };

@@ -164,4 +164,3 @@ pub fn simulate_with_drift_paths(
     }
     Ok((data, noise))
 }
-

@@ -27,6 +27,8 @@ pub struct Explanation {
     pub shift_per_unit: f64,
     /// The effect size that explains the whole shift.
     pub equivalent: f64,
+    /// `equivalent` over the effect's typical size (explanations are listed smallest first).
+    pub relative_size: f64,
 }
 
 /// A fitted base parameter far outside its prior.
@@ -72,17 +74,20 @@ fn explanations(parameter: &str, shift: f64, candidates: &[Candidate]) -> Vec<Ex
         let r = c.redesign.as_ref().expect("filtered");
         for a in r.absorbed.iter().filter(|a| a.parameter == parameter) {
             let equivalent = shift / a.shift_per_unit;
-            // The effect parameter's physical lower bound, if any.
-            let lower = effect.as_ref().and_then(|e| {
-                let k = e
-                    .parameter_names()
-                    .iter()
-                    .position(|n| *n == a.effect_parameter)?;
-                e.lower_bounds().get(k).copied().flatten()
-            });
+            // The effect parameter's physical lower bound and typical size, if known.
+            let (lower, typical) = effect
+                .as_ref()
+                .and_then(|e| {
+                    let names = e.parameter_names();
+                    let k = names.iter().position(|n| *n == a.effect_parameter)?;
+                    Some((e.lower_bounds()[k], e.typical().get(k).copied()))
+                })
+                .unwrap_or((None, None));
             let physical = lower.is_none_or(|lo| equivalent >= lo);
             if equivalent.is_finite() && physical {
+                // Size relative to the effect's typical one: the most plausible first.
                 out.push(Explanation {
+                    relative_size: typical.map_or(f64::INFINITY, |t| (equivalent / t).abs()),
                     effect: c.name.clone(),
                     effect_parameter: a.effect_parameter.clone(),
                     shift_per_unit: a.shift_per_unit,
@@ -91,6 +96,7 @@ fn explanations(parameter: &str, shift: f64, candidates: &[Candidate]) -> Vec<Ex
             }
         }
     }
+    out.sort_by(|a, b| a.relative_size.total_cmp(&b.relative_size));
     out
 }
 
