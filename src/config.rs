@@ -30,6 +30,16 @@ pub fn at_least_one(option: &'static str, v: usize) -> Result<(), OutOfRange> {
     check(option, v, v >= 1, "at least 1")
 }
 
+/// A count with an upper limit `max` (`expected` states it, e.g. "at most 20").
+pub fn at_most(
+    option: &'static str,
+    v: usize,
+    max: usize,
+    expected: &'static str,
+) -> Result<(), OutOfRange> {
+    check(option, v, v <= max, expected)
+}
+
 fn check(
     option: &'static str,
     v: impl std::fmt::Display,

@@ -30,6 +30,8 @@ fn diagnose_config_fields_are_checked() {
         (Box::new(|c| c.confirm_top = 0), "confirm_top", "0"),
         (Box::new(|c| c.degeneracy = 1.5), "degeneracy", "1.5"),
         (Box::new(|c| c.degeneracy = -0.1), "degeneracy", "-0.1"),
+        (Box::new(|c| c.max_effects = 21), "max_effects", "21"),
+        (Box::new(|c| c.max_glitches = 1000), "max_glitches", "1000"),
     ];
     for (set, option, value) in cases {
         let mut c = DiagnoseConfig::default();

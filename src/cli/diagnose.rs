@@ -10,7 +10,9 @@ use clap::Args;
 
 use super::analysis::{experiment_data, resolve_guess, truth_from_meta};
 use super::ModelOpt;
-use crate::diagnose::{diagnose, simulate_with_drift_paths, DiagnoseConfig, Diagnosis};
+use crate::diagnose::{
+    diagnose_observed, simulate_with_drift_paths, DiagnoseConfig, Diagnosis, Observer,
+};
 use crate::io::{read_dataset, write_json_atomic, write_parquet, write_text_atomic, Table};
 use crate::model::effects::{by_name, library};
 use crate::setup::{DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
@@ -39,9 +41,12 @@ pub struct DiagnoseArgs {
     /// Family-wise false-alarm probability of each decision (Bonferroni over candidates).
     #[arg(long, default_value_t = 0.01)]
     pub alpha: f64,
-    /// At most this many effects are added.
+    /// At most this many effects (operator effects, drifts, lines) are added.
     #[arg(long, default_value_t = 3)]
     pub max_effects: usize,
+    /// At most this many glitches are added (counted apart from --max-effects).
+    #[arg(long, default_value_t = 3)]
+    pub max_glitches: usize,
     /// Whiten with the model noise PSD instead of the noise run (which then only serves as the
     /// reference of the band and time tests).
     #[arg(long = "model-psd")]
@@ -163,18 +168,20 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
         poly_degree: a.poly_degree,
         alpha: a.alpha,
         max_effects: a.max_effects,
+        max_glitches: a.max_glitches,
         whiten_from_model: a.model_psd,
         lines: a.lines,
         glitches: !a.no_glitches,
         ..Default::default()
     };
-    let d = diagnose(
+    let d = diagnose_observed(
         &setup,
         &data,
         noise.as_deref(),
         &guess,
         truth.as_deref(),
         &cfg,
+        &mut PrintNotes,
     )
     .with_context(|| dataset.display().to_string())?;
     std::fs::create_dir_all(&a.out)
@@ -212,11 +219,17 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
         d.unexplained.len(),
         d.seconds
     );
-    for n in &d.notes {
-        info!("note: {n}");
-    }
     info!("wrote {}", a.out.display());
     Ok(())
+}
+
+/// Prints each note of the diagnosis as it is made.
+struct PrintNotes;
+
+impl Observer for PrintNotes {
+    fn note(&mut self, text: &str) {
+        info!("note: {text}");
+    }
 }
 
 fn write_outputs(

@@ -104,7 +104,7 @@ impl Diagnosis {
             .iter()
             .map(|a| {
                 json!({
-                    "name": a.name, "category": a.category, "acts_on": a.acts_on,
+                    "name": a.name, "category": a.category, "family": a.family, "acts_on": a.acts_on,
                     "parameters": named(&a.parameter_names, &a.parameters),
                     "sigmas": named(&a.parameter_names, &a.sigmas),
                     "score_statistic": num(a.score_statistic), "delta_chi2": num(a.delta_chi2), "p_value": num(a.p_value),
@@ -124,6 +124,8 @@ impl Diagnosis {
                     "identifiable_fraction": num(c.identifiable_fraction),
                     "most_correlated": c.most_correlated.as_ref().map(|(n, v)| json!({"parameter": n, "correlation": num(*v)})),
                     "degenerate": c.degenerate,
+                    "outside_physical_range": c.outside_physical_range,
+                    "estimate": c.estimate.as_ref().map(|v| v.iter().map(|x| num(*x)).collect::<Vec<_>>()),
                     "delta_chi2": c.delta_chi2.map(num), "p_value": c.p_value.map(num),
                     // Its derived Serialize (non-finite numbers become null, as `num` does).
                     "redesign": serde_json::to_value(&c.redesign).unwrap_or(Value::Null),
@@ -147,6 +149,12 @@ impl Diagnosis {
             "effects_added": added,
             "candidates": cands,
             "unexplained": unexpl,
+            "prior_tension": self.prior_tension.iter().map(|t| json!({
+                "parameter": t.parameter, "estimate": num(t.estimate), "sigma": num(t.sigma),
+                "prior": num(t.prior), "prior_sigma": num(t.prior_sigma), "shift": num(t.shift),
+                "tension_sigma": num(t.tension_sigma),
+                "explained_by": t.explained_by.iter().map(|x| json!({"effect": x.effect, "effect_parameter": x.effect_parameter, "shift_per_unit": num(x.shift_per_unit), "equivalent": num(x.equivalent)})).collect::<Vec<_>>(),
+            })).collect::<Vec<_>>(),
             "parameter_shifts_sigma": Value::Object(self.shifts_sigma().into_iter().map(|(n, v)| (n, num(v))).collect()),
             "whitening": self.whitening,
             "whitening_order": self.order,
@@ -162,9 +170,26 @@ impl Diagnosis {
         })
     }
 
-    /// `report.md`.
+    /// `report.md`: one writer per section.
     pub fn to_markdown(&self, title: &str) -> String {
         let mut s = String::new();
+        self.md_header(&mut s, title);
+        self.md_added(&mut s);
+        self.md_parameters(&mut s);
+        self.md_prior_tension(&mut s);
+        self.md_robust(&mut s);
+        self.md_residuals(&mut s);
+        self.md_unexplained(&mut s);
+        self.md_candidates(&mut s);
+        self.md_degenerate(&mut s);
+        self.md_scope(&mut s);
+        s
+    }
+}
+
+impl Diagnosis {
+    /// Title, verdict, degenerate effects, whitening and notes.
+    fn md_header(&self, s: &mut String, title: &str) {
         let _ = writeln!(s, "# Diagnosis of {title}\n");
         let verdict = if self.effects_added.is_empty() {
             "no effect of the library is supported by the data".to_string()
@@ -210,6 +235,10 @@ impl Diagnosis {
         for n in &self.notes {
             let _ = writeln!(s, "> note: {n}\n");
         }
+    }
+
+    /// Effects added, and the alternatives the data cannot tell from them.
+    fn md_added(&self, s: &mut String) {
         let _ = writeln!(s, "## Effects added\n");
         if self.effects_added.is_empty() {
             let _ = writeln!(s, "None.\n");
@@ -259,6 +288,10 @@ impl Diagnosis {
                 }
             }
         }
+    }
+
+    /// Base parameters before and after (and against the truth of simulated data).
+    fn md_parameters(&self, s: &mut String) {
         let _ = writeln!(s, "## Parameters before and after\n");
         let truth = self.truth.as_deref();
         let _ = write!(s, "| parameter | before | after | shift [sigma_before] |");
@@ -288,6 +321,10 @@ impl Diagnosis {
             }
             let _ = writeln!(s);
         }
+    }
+
+    /// The robust refit, when the residual is heavy-tailed.
+    fn md_robust(&self, s: &mut String) {
         if let Some(r) = &self.robust {
             let _ = writeln!(
                 s,
@@ -312,6 +349,10 @@ impl Diagnosis {
                 );
             }
         }
+    }
+
+    /// Residual tests by experiment and channel.
+    fn md_residuals(&self, s: &mut String) {
         let _ = writeln!(s, "\n## Residuals by experiment and channel\n");
         let _ = writeln!(s, "| stage | experiment | channel | chi2/n | excess kurtosis | >5 sigma (expected) | Ljung-Box p | KS p vs noise | worst band [Hz] (excess, p) |\n|---|---|---|---|---|---|---|---|---|");
         for (st, stage) in [("before", &self.before), ("after", &self.after)] {
@@ -342,6 +383,10 @@ impl Diagnosis {
                 );
             }
         }
+    }
+
+    /// Excess no effect explains.
+    fn md_unexplained(&self, s: &mut String) {
         let _ = writeln!(s, "\n## Unexplained\n");
         if self.unexplained.is_empty() {
             let _ = writeln!(s, "Nothing: the residual after the final fit is consistent with the noise in every experiment, channel, band and injection stretch.\n");
@@ -364,6 +409,53 @@ impl Diagnosis {
             }
             let _ = writeln!(s);
         }
+    }
+
+    /// Fitted parameters far outside their prior, with the degenerate candidates that would
+    /// explain each shift.
+    fn md_prior_tension(&self, s: &mut String) {
+        if self.prior_tension.is_empty() {
+            return;
+        }
+        let _ = writeln!(
+            s,
+            "\n## Prior tension\n\nFitted parameters beyond their prior (model file `nominal` ± `prior_sigma`) at the Bonferroni level alpha / n_parameters. \
+             An effect the data cannot tell from a parameter shows as such a shift; \"explained by\" names the degenerate candidates whose \
+             first-order absorption (table \"Degenerate effects\") gives the whole shift, with the size that does.\n"
+        );
+        for t in &self.prior_tension {
+            let why: Vec<String> = t
+                .explained_by
+                .iter()
+                .map(|x| {
+                    format!(
+                        "{} ({} = {:.2e}) would explain it exactly ({:+.3e} per unit)",
+                        x.effect, x.effect_parameter, x.equivalent, x.shift_per_unit
+                    )
+                })
+                .collect();
+            let _ = writeln!(
+                s,
+                "- {} = {:.3e} ± {:.1e} is {:.2e} {} its prior {:.3e} ± {:.1e} ({:+.1} sigma){}.",
+                t.parameter,
+                t.estimate,
+                t.sigma,
+                t.shift.abs(),
+                if t.shift > 0.0 { "above" } else { "below" },
+                t.prior,
+                t.prior_sigma,
+                t.tension_sigma,
+                if why.is_empty() {
+                    "; no degenerate candidate explains it".to_string()
+                } else {
+                    format!("; {}", why.join("; or "))
+                }
+            );
+        }
+    }
+
+    /// Every candidate of every round.
+    fn md_candidates(&self, s: &mut String) {
         let _ = writeln!(s, "## Candidates (score test at zero, per round)\n");
         let _ = writeln!(s, "| round | effect | category | score | p | identifiable | most correlated | delta chi2 | p (refit) |\n|---|---|---|---|---|---|---|---|---|");
         for c in &self.candidates {
@@ -376,7 +468,12 @@ impl Diagnosis {
                         if c.degenerate { " degenerate" } else { "" }
                     )
                 })
-                .unwrap_or_default();
+                .unwrap_or_default()
+                + if c.outside_physical_range {
+                    " outside physical range"
+                } else {
+                    ""
+                };
             let _ = writeln!(
                 s,
                 "| {} | {} | {} | {:.2} | {:.1e} | {:.2e} | {corr} | {} | {} |",
@@ -394,6 +491,10 @@ impl Diagnosis {
                     .unwrap_or_else(|| "-".into())
             );
         }
+    }
+
+    /// Degenerate effects: absorption and redesign verdict.
+    fn md_degenerate(&self, s: &mut String) {
         let degenerate: Vec<&Candidate> = {
             let mut seen = std::collections::HashSet::new();
             self.candidates
@@ -443,6 +544,10 @@ impl Diagnosis {
                 );
             }
         }
+    }
+
+    /// What the line and glitch candidates cover.
+    fn md_scope(&self, s: &mut String) {
         let _ = writeln!(
             s,
             "\nScope: a `line` candidate is proposed for a narrow line seen in the same channel of two or more experiments \
@@ -450,7 +555,6 @@ impl Diagnosis {
              the whitened residual over every time, entry point (force on TM1, TM2, spacecraft; transient in o1, o12) and width; \
              their p-values include the scan's look-elsewhere factor (Bonferroni over every position, entry and width tried)."
         );
-        s
     }
 }
 

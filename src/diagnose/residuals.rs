@@ -289,6 +289,16 @@ pub struct ChannelInput<'a> {
     pub whitening_dof: Option<f64>,
 }
 
+/// Samples beyond 5 sigma expected of `n` Gaussian samples: `P(|z| > 5) = 5.733e-7`.
+const OUTLIER_PROBABILITY: f64 = 5.733e-7;
+/// Ljung-Box lags.
+const LJUNG_BOX_LAGS: usize = 20;
+/// Floor of a variance or level (a dead channel must not divide by zero).
+const TINY_LEVEL: f64 = 1e-12;
+
+/// Residual tests of one experiment's channel: moments and outliers, whiteness (Ljung-Box),
+/// the two-sample KS test against the noise run, bands, lines, time windows and coherence with
+/// the injections.
 pub fn analyse_channel(inp: &ChannelInput<'_>, noise: Option<&NoiseReference>) -> ChannelReport {
     let r = inp.whitened;
     let dt = inp.dt;
@@ -300,17 +310,16 @@ pub fn analyse_channel(inp: &ChannelInput<'_>, noise: Option<&NoiseReference>) -
     let cut = 5.0
         * noise
             .map_or(1.0, |nr| nr.var[inp.channel_index])
-            .max(1e-12)
+            .max(TINY_LEVEL)
             .sqrt();
     let out_idx: Vec<usize> = (0..n).filter(|&i| r[i].abs() > cut).collect();
-    let outliers = out_idx.len();
     let outlier_span_s = out_idx.first().zip(out_idx.last()).map(|(a, b)| {
         [
             (a + inp.offset) as f64 * dt,
             (b + inp.offset + 1) as f64 * dt,
         ]
     });
-    let (lb, lags, lbp) = ljung_box(r, 20);
+    let (lb, lags, lbp) = ljung_box(r, LJUNG_BOX_LAGS);
     let (f, z) = periodogram(r, dt);
     let (ks_statistic, ks_p) = match noise {
         Some(nr) if !z.is_empty() => {
@@ -319,6 +328,41 @@ pub fn analyse_channel(inp: &ChannelInput<'_>, noise: Option<&NoiseReference>) -
         }
         _ => (None, None),
     };
+    ChannelReport {
+        experiment: inp.experiment.to_string(),
+        channel: inp.channel.to_string(),
+        n,
+        chi2,
+        chi2_reduced: chi2 / n.max(1) as f64,
+        excess_kurtosis: if m2 > 0.0 {
+            m4 / (m2 * m2) - 3.0
+        } else {
+            f64::NAN
+        },
+        kurtosis_err: (24.0 / n.max(1) as f64).sqrt(),
+        outliers: out_idx.len(),
+        outliers_expected: n as f64 * OUTLIER_PROBABILITY,
+        outlier_span_s,
+        ljung_box: lb,
+        ljung_box_lags: lags,
+        ljung_box_p: lbp,
+        ks_statistic,
+        ks_p,
+        coherence: coherence_tests(inp),
+        bands: band_tests(inp, noise, &f, &z),
+        time: time_tests(inp, noise, chi2),
+        lines: line_tests(inp, &f, &z),
+    }
+}
+
+/// Band levels of the periodogram `(f, z)` against the noise run's (or white unit noise).
+fn band_tests(
+    inp: &ChannelInput<'_>,
+    noise: Option<&NoiseReference>,
+    f: &[f64],
+    z: &[f64],
+) -> Vec<BandReport> {
+    let dt = inp.dt;
     // Bands. A whitening filter estimated from the noise run is a smoothed periodogram of it:
     // averaged over a band of K bins its relative error has about the variance 1/K of the
     // band's own periodogram level, which the in-sample whitened noise run (flattened by the
@@ -335,7 +379,7 @@ pub fn analyse_channel(inp: &ChannelInput<'_>, noise: Option<&NoiseReference>) -
             let (lo, hi) = (w[0], w[1]);
             let v: Vec<f64> = f
                 .iter()
-                .zip(&z)
+                .zip(z)
                 .filter(|(ff, _)| **ff >= lo && (**ff < hi || hi >= 0.5 / dt))
                 .map(|(_, z)| *z)
                 .collect();
@@ -363,6 +407,11 @@ pub fn analyse_channel(inp: &ChannelInput<'_>, noise: Option<&NoiseReference>) -
             });
         }
     }
+    bands
+}
+
+/// The largest periodogram ordinates against their local level (narrow lines).
+fn line_tests(inp: &ChannelInput<'_>, f: &[f64], z: &[f64]) -> Vec<LineReport> {
     // Lines: the largest ordinates against their band's reference level.
     let mut lines = Vec::new();
     if !z.is_empty() {
@@ -415,17 +464,29 @@ pub fn analyse_channel(inp: &ChannelInput<'_>, noise: Option<&NoiseReference>) -
             }
         }
     }
+    lines
+}
+
+/// Each injection stretch's window against the rest of the run (or the noise run's level).
+fn time_tests(
+    inp: &ChannelInput<'_>,
+    noise: Option<&NoiseReference>,
+    chi2: f64,
+) -> Vec<TimeReport> {
+    let (r, dt, n) = (inp.whitened, inp.dt, inp.whitened.len());
     // Time windows, against the noise run's whitened variance: an F test whose degrees of
     // freedom are the samples over the variance inflation of the whitened noise run (both the
     // window's and the noise run's mean square scatter more when whitening leaves colour).
-    let var_ref = noise.map_or(1.0, |nr| nr.var[inp.channel_index]).max(1e-12);
+    let var_ref = noise
+        .map_or(1.0, |nr| nr.var[inp.channel_index])
+        .max(TINY_LEVEL);
     // The in-sample whitened noise run hides part of the filter's error; the residual's own
     // autocorrelation shows it (out of sample), so the larger of the two is used.
     let vif = noise
         .map_or(1.0, |nr| nr.vif[inp.channel_index])
         .max(variance_inflation(r));
     let ref_dof = noise.map(|nr| nr.n as f64 / vif);
-    let time = stretch_windows(inp.inputs, inp.raw.len(), (20.0 / dt).ceil() as usize)
+    stretch_windows(inp.inputs, inp.raw.len(), (20.0 / dt).ceil() as usize)
         .into_iter()
         .filter_map(|(a, b)| {
             let (a, b) = (a.max(inp.offset), b.max(inp.offset));
@@ -463,7 +524,12 @@ pub fn analyse_channel(inp: &ChannelInput<'_>, noise: Option<&NoiseReference>) -
                 },
             })
         })
-        .collect();
+        .collect()
+}
+
+/// Coherence of the raw residual with each non-zero injection.
+fn coherence_tests(inp: &ChannelInput<'_>) -> Vec<CoherenceReport> {
+    let dt = inp.dt;
     // Coherence of the raw residual with each non-zero injection.
     let mut coherence = Vec::new();
     for (c, x) in inp.inputs.iter().enumerate() {
@@ -491,31 +557,7 @@ pub fn analyse_channel(inp: &ChannelInput<'_>, noise: Option<&NoiseReference>) -
             threshold: 1.0 - inp.alpha.powf(1.0 / (keff - 1.0)),
         });
     }
-    ChannelReport {
-        experiment: inp.experiment.to_string(),
-        channel: inp.channel.to_string(),
-        n,
-        chi2,
-        chi2_reduced: chi2 / n.max(1) as f64,
-        excess_kurtosis: if m2 > 0.0 {
-            m4 / (m2 * m2) - 3.0
-        } else {
-            f64::NAN
-        },
-        kurtosis_err: (24.0 / n.max(1) as f64).sqrt(),
-        outliers,
-        outliers_expected: n as f64 * 5.733e-7,
-        outlier_span_s,
-        ljung_box: lb,
-        ljung_box_lags: lags,
-        ljung_box_p: lbp,
-        ks_statistic,
-        ks_p,
-        coherence,
-        bands,
-        time,
-        lines,
-    }
+    coherence
 }
 
 /// Log-binned periodogram of a whitened series (about 12 points per decade), with the 90%

@@ -27,6 +27,20 @@ pub struct Likelihood<'m, M: ClosedLoopModel<N>, const N: usize> {
     pub poly_degree: usize,
 }
 
+/// Series of `n` samples leave enough after a whitening filter of order `p`, the nuisance
+/// polynomial and `np` parameters (two spare degrees of freedom).
+fn check_length(n: usize, p: usize, poly_degree: usize, np: usize) -> Result<(), FitError> {
+    let need = p + poly_degree + 2 + np;
+    if n < need {
+        return Err(FitError::TooShort {
+            what: format!("experiment series for a whitening filter of order {p}"),
+            len: n,
+            need,
+        });
+    }
+    Ok(())
+}
+
 impl<M: ClosedLoopModel<N>, const N: usize> Likelihood<'_, M, N> {
     /// The whitening filter's response on the template engine's padded grid.
     pub fn response(&self) -> &[CMat<N>] {
@@ -52,24 +66,37 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> Likelihood<'m, M, N> {
             .first()
             .and_then(|e| e.first())
             .map_or(0, |c| c.len());
-        let p = whitener.order();
-        let need = p + poly_degree + 2 + model.n_params();
-        if n < need {
-            return Err(FitError::TooShort {
-                what: format!("experiment series for a whitening filter of order {p}"),
-                len: n,
-                need,
-            });
-        }
+        check_length(n, whitener.order(), poly_degree, model.n_params())?;
         let engine = TemplateEngine::new(model, inputs, dt);
         let response = whitener.response_on_grid(engine.padded_len());
-        let basis = poly_basis(n - p, poly_degree);
+        let basis = poly_basis(n - whitener.order(), poly_degree);
         Ok(Likelihood {
             engine,
             whitener,
             response,
             basis,
             poly_degree,
+        })
+    }
+
+    /// This likelihood (template engine, whitening response, nuisance basis) for another model
+    /// with the same frequency points, without re-planning: see [`TemplateEngine::for_model`].
+    pub fn for_model<'n, M2: ClosedLoopModel<N, Point = M::Point>>(
+        &self,
+        model: &'n M2,
+    ) -> Result<Likelihood<'n, M2, N>, FitError> {
+        check_length(
+            self.engine.len(),
+            self.order(),
+            self.poly_degree,
+            model.n_params(),
+        )?;
+        Ok(Likelihood {
+            engine: self.engine.for_model(model),
+            whitener: self.whitener.clone(),
+            response: self.response.clone(),
+            basis: self.basis.clone(),
+            poly_degree: self.poly_degree,
         })
     }
 

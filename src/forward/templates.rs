@@ -78,6 +78,30 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
         }
     }
 
+    /// The same planned engine (FFT plans, input spectra, frequency points) for another model
+    /// that shares this one's frequency points (e.g. a model extended by effects that act on the
+    /// same base model): nothing is re-planned or re-transformed.
+    pub fn for_model<'n, M2: ClosedLoopModel<N, Point = M::Point>>(
+        &self,
+        model: &'n M2,
+    ) -> TemplateEngine<'n, M2, N> {
+        TemplateEngine {
+            model,
+            n: self.n,
+            m: self.m,
+            dt: self.dt,
+            points: self.points.clone(),
+            inputs_f: self.inputs_f.clone(),
+            fwd: self.fwd.clone(),
+            inv: self.inv.clone(),
+        }
+    }
+
+    /// The model the templates are computed for.
+    pub fn model(&self) -> &'m M {
+        self.model
+    }
+
     pub fn len(&self) -> usize {
         self.n
     }

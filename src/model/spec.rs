@@ -51,6 +51,10 @@ pub struct ParameterSpec {
     pub name: String,
     pub unit: String,
     pub nominal: f64,
+    /// Width of the prior on the parameter (centred on `nominal`), when known: the diagnosis
+    /// lists fitted values far outside it (default: `nominal` known to its order of magnitude).
+    #[serde(default)]
+    pub prior_sigma: Option<f64>,
     #[serde(default)]
     pub description: String,
 }
@@ -255,6 +259,12 @@ impl ModelSpec {
         for p in &self.parameters {
             if !p.nominal.is_finite() {
                 return Err(self.bad(&format!("parameter.{}.nominal", p.name), "must be finite"));
+            }
+            if let Some(w) = p.prior_sigma.filter(|w| !(w.is_finite() && *w > 0.0)) {
+                return Err(self.bad(
+                    &format!("parameter.{}.prior_sigma", p.name),
+                    format!("{w} must be finite and > 0"),
+                ));
             }
         }
         for (name, src) in &self.noise {

@@ -65,6 +65,10 @@ impl Effect for ActuationLag {
     fn typical(&self) -> Vec<f64> {
         vec![0.1]
     }
+    /// A time constant is not negative (a negative one would be a lead, not a lag).
+    fn lower_bounds(&self) -> Vec<Option<f64>> {
+        vec![Some(0.0)]
+    }
     fn perturb(
         &self,
         base: &LpfX,

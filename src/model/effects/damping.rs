@@ -31,6 +31,10 @@ impl Effect for Damping {
     fn typical(&self) -> Vec<f64> {
         vec![1e-6]
     }
+    /// Damping dissipates: gamma >= 0 (a negative one would feed the TM energy).
+    fn lower_bounds(&self) -> Vec<Option<f64>> {
+        vec![Some(0.0)]
+    }
     fn perturb(
         &self,
         base: &LpfX,

@@ -59,6 +59,10 @@ impl Effect for LossAngle {
     fn typical(&self) -> Vec<f64> {
         vec![0.02]
     }
+    /// Anelastic loss dissipates: phi >= 0 (thesis sec. 4.1.1).
+    fn lower_bounds(&self) -> Vec<Option<f64>> {
+        vec![Some(0.0)]
+    }
     fn perturb(
         &self,
         base: &LpfX,

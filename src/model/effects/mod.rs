@@ -92,6 +92,12 @@ pub trait Effect: Send + Sync + std::fmt::Debug {
     fn parameter_names(&self) -> Vec<String>;
     /// A physically sized value of each parameter (used to scale reports and tests).
     fn typical(&self) -> Vec<f64>;
+    /// The physical lower bound of each parameter (None: unbounded). The nested value zero is
+    /// always feasible; a bound at zero makes the diagnosis's tests of the effect one-sided and
+    /// an estimate below it is never claimed.
+    fn lower_bounds(&self) -> Vec<Option<f64>> {
+        vec![None; self.parameter_names().len()]
+    }
     /// Add the perturbation at parameters `theta` to `ops` (base parameters `p`).
     fn perturb(&self, base: &LpfX, pt: &LpfPoint, p: &[f64], theta: &[f64], ops: &mut Operators<2>);
     /// Derivative of the perturbation with respect to its own parameter `k`.

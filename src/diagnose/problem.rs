@@ -1,0 +1,555 @@
+//! The diagnosis problem, planned once: the checked data, the whitening filter (from the noise
+//! run, or the model noise PSD of thesis ch. 4 at the starting point) and the noise run's
+//! reference level under it, and one likelihood plan (FFT plans, input spectra, frequency points,
+//! whitening response, nuisance basis) that every extended model of the forward selection reuses.
+//! The fits of the selection (nominal, with operator effects, with additive columns) are methods
+//! of the problem, so that each round only says what it fits.
+
+use nalgebra::DMatrix;
+
+use super::additive;
+use super::observer::Observer;
+use super::residuals;
+use super::{Channel, DiagnoseConfig, DiagnoseError, Stage, WhiteningSource};
+use crate::fit::{fit, ExperimentData, FitConfig, FitResult, Likelihood, Whitener};
+use crate::model::effects::Extended;
+use crate::model::lpf_x::LpfX;
+use crate::model::ClosedLoopModel;
+use crate::setup::Setup;
+use crate::sim::Series;
+
+/// Samples a whitening filter of order p needs beyond `4 p`: the least-squares fit of the
+/// two-channel autoregression on the noise run, and the shortest run the residual tests read.
+const MIN_SAMPLES_BEYOND_FILTER: usize = 50;
+/// The shortest run a diagnosis accepts (the band and window tests need some 64 samples).
+const MIN_SAMPLES: usize = 64;
+/// The smallest whitening order a shortened run may fall to.
+const MIN_ORDER: usize = 8;
+/// Variance inflation of the whitened noise run above which a note says it is not quite white.
+const VIF_NOTE: f64 = 1.05;
+
+/// Additive effects in the model with their amplitudes.
+pub(crate) type Linear = Vec<(additive::Additive, Vec<f64>)>;
+
+/// A fit with additive effects.
+#[derive(Clone)]
+pub(crate) struct LinearFit {
+    pub fit: FitResult,
+    /// Raw (unwhitened) residuals.
+    pub raw: Series,
+    /// The additive effects with their fitted amplitudes.
+    pub linear: Linear,
+    /// Covariance of each additive effect's (amplitudes, non-linear parameters).
+    pub covariances: Vec<DMatrix<f64>>,
+}
+
+/// The whitening of a diagnosis and the noise run's reference level under it.
+pub(crate) struct Whitening<'a> {
+    /// The noise run, when it can serve as a reference (no dead channel, long enough).
+    pub usable_noise: Option<&'a [Vec<f64>]>,
+    /// Akaike's final-prediction-error factor of the noise run's whitened level (1 if none).
+    pub fpe: f64,
+    pub filter: Whitener<2>,
+    pub source: WhiteningSource,
+    pub noise_ref: Option<residuals::NoiseReference>,
+    /// Degrees of freedom of a filter estimated from the noise run (None for the model's).
+    pub whitening_dof: Option<f64>,
+}
+
+/// Everything a round of the forward selection reads and never changes.
+pub struct DiagnosisProblem<'a> {
+    pub setup: &'a Setup,
+    pub data: &'a ExperimentData,
+    pub noise: Option<&'a [Vec<f64>]>,
+    pub cfg: &'a DiagnoseConfig,
+    /// The whitening order (the configured one, reduced for a short run).
+    pub order: usize,
+    pub(crate) whitening: Whitening<'a>,
+    /// The likelihood planned once on the base model; [`Self::likelihood`] retargets it.
+    planned: Likelihood<'a, LpfX, 2>,
+    /// The whitened noise run that calibrates the glitch scan (with glitches and a usable run).
+    pub(crate) noise_w: Option<Vec<Vec<f64>>>,
+    /// The reference model with no effect.
+    pub nominal: Extended,
+}
+
+fn check_series(what: &str, s: &[Vec<f64>]) -> Result<(), DiagnoseError> {
+    for (c, x) in s.iter().enumerate() {
+        if let Some(i) = x.iter().position(|v| !v.is_finite()) {
+            return Err(DiagnoseError::Input(format!(
+                "{what}, channel {c}: non-finite value at sample {i}"
+            )));
+        }
+    }
+    Ok(())
+}
+
+/// The noise run whitened by `w`, cut and with the nuisance polynomial projected out.
+pub(crate) fn whitened_noise(
+    w: &Whitener<2>,
+    noise: &[Vec<f64>],
+    poly_degree: usize,
+) -> Vec<Vec<f64>> {
+    let mut out = w.apply(noise);
+    if let Some(n) = out.first().map(|c| c.len()) {
+        let basis = crate::fit::whiten::poly_basis(n, poly_degree);
+        for c in &mut out {
+            crate::fit::whiten::project_out(c, &basis);
+        }
+    }
+    out
+}
+
+/// Every experiment finite, no dead readout; notes for experiments without injection.
+fn check_data(data: &ExperimentData, obs: &mut dyn Observer) -> Result<(), DiagnoseError> {
+    if data.outputs.is_empty() {
+        return Err(DiagnoseError::Input(
+            "the dataset has no experiments".into(),
+        ));
+    }
+    for (e, name) in data.names.iter().enumerate() {
+        check_series(&format!("experiment '{name}' outputs"), &data.outputs[e])?;
+        check_series(&format!("experiment '{name}' inputs"), &data.inputs[e])?;
+        for (c, x) in data.outputs[e].iter().enumerate() {
+            if x.iter().all(|v| *v == 0.0) {
+                return Err(DiagnoseError::Input(format!(
+                    "experiment '{name}': readout channel {} is all zeros (a dead or unrecorded channel); the whitened likelihood cannot use it",
+                    Channel::from_index(c)
+                )));
+            }
+        }
+        if data.inputs[e].iter().all(|x| x.iter().all(|v| *v == 0.0)) {
+            obs.note(&format!(
+                "experiment '{name}' has no injection: it constrains the noise only"
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// The configured order, reduced (with a note) when the run is too short for it.
+fn whitening_order(n: usize, order: usize, obs: &mut dyn Observer) -> Result<usize, DiagnoseError> {
+    if n >= 4 * order + MIN_SAMPLES_BEYOND_FILTER {
+        return Ok(order);
+    }
+    let reduced = (n.saturating_sub(MIN_SAMPLES_BEYOND_FILTER) / 4).max(4);
+    if reduced < MIN_ORDER || n < MIN_SAMPLES {
+        return Err(DiagnoseError::Input(format!(
+            "the experiments have {n} samples: too short for a diagnosis (need at least {MIN_SAMPLES})"
+        )));
+    }
+    obs.note(&format!(
+        "the run is short ({n} samples): whitening order reduced from {order} to {reduced}"
+    ));
+    Ok(reduced)
+}
+
+/// The filter fitted on the noise run when it is usable and not overridden; every reason not
+/// to use it is a note.
+fn noise_run_filter(
+    noise: Option<&[Vec<f64>]>,
+    from_model: bool,
+    order: usize,
+    obs: &mut dyn Observer,
+) -> Result<Option<Whitener<2>>, DiagnoseError> {
+    let Some(nz) = noise else {
+        obs.note("the dataset has no noise-only run: whitening uses the model noise PSD at the starting point, and band excesses are judged against white unit noise");
+        return Ok(None);
+    };
+    check_series("noise run", nz)?;
+    if nz.iter().any(|c| c.iter().all(|v| *v == 0.0)) {
+        obs.note("a noise-run channel is all zeros: the noise run is ignored and the model noise is used");
+    } else if from_model {
+        obs.note("whitening from the model noise PSD (asked for); the noise run is the reference of the band and time tests");
+    } else if nz.first().map_or(0, |c| c.len()) < 4 * order + MIN_SAMPLES_BEYOND_FILTER {
+        obs.note(&format!("the noise run is too short for a whitening filter of order {order}: the model noise is used"));
+    } else {
+        match Whitener::<2>::from_series(nz, order) {
+            Ok(w) => return Ok(Some(w)),
+            Err(e) => obs.note(&format!(
+                "whitening from the noise run failed ({e}): the model noise is used"
+            )),
+        }
+    }
+    Ok(None)
+}
+
+/// Choose the whitening filter: the noise run when it is usable and not overridden, else the
+/// model noise PSD at `guess`. With a filter fitted on the noise run, that run's whitened level
+/// is an in-sample estimate, scaled by Akaike's final-prediction-error factor `(T + m) / (T - m)`,
+/// `m = 2 p` coefficients per equation of the two-channel autoregression, and the filter's
+/// spectrum carries `T / m` degrees of freedom.
+fn whitening<'a>(
+    setup: &Setup,
+    data: &ExperimentData,
+    noise: Option<&'a [Vec<f64>]>,
+    guess: &[f64],
+    cfg: &DiagnoseConfig,
+    order: usize,
+    obs: &mut dyn Observer,
+) -> Result<Whitening<'a>, DiagnoseError> {
+    let (filter, source) = match noise_run_filter(noise, cfg.whiten_from_model, order, obs)? {
+        Some(w) => (w, WhiteningSource::NoiseRun),
+        None => (
+            setup.whitener_from_model(guess, data.len(), data.dt, order)?,
+            WhiteningSource::ModelPsd,
+        ),
+    };
+    let usable_noise = noise.filter(|nz| {
+        nz.iter().all(|c| c.iter().any(|v| *v != 0.0))
+            && nz.first().map_or(0, |c| c.len()) > order + MIN_SAMPLES_BEYOND_FILTER
+    });
+    // Samples over coefficients per equation of the filter fitted on the noise run.
+    let fitted_on = usable_noise
+        .filter(|_| source == WhiteningSource::NoiseRun)
+        .map(|nz| (nz[0].len().saturating_sub(order) as f64, (2 * order) as f64));
+    let fpe = match fitted_on {
+        Some((t, m)) if t > 2.0 * m => (t + m) / (t - m),
+        _ => 1.0,
+    };
+    if fpe > 1.0 {
+        obs.note(&format!(
+            "the whitening filter was fitted on the noise run: its whitened level is scaled by Akaike's final-prediction-error factor {fpe:.3} to serve as the reference"
+        ));
+    }
+    // At least two degrees of freedom, so that the F tails stay defined.
+    let whitening_dof = fitted_on.map(|(t, m)| (t / m).max(2.0));
+    let noise_ref = usable_noise.and_then(|nz| {
+        residuals::NoiseReference::new(&whitened_noise(&filter, nz, cfg.poly_degree), data.dt, fpe)
+    });
+    if let Some(nr) = noise_ref
+        .as_ref()
+        .filter(|nr| nr.vif.iter().any(|v| *v > VIF_NOTE))
+    {
+        obs.note(&format!(
+            "the whitened noise run is not quite white (variance inflation of a windowed mean square: o1 {:.2}, o12 {:.2}); the time-window tests use correspondingly fewer degrees of freedom",
+            nr.vif[0],
+            nr.vif.get(1).copied().unwrap_or(1.0)
+        ));
+    }
+    Ok(Whitening {
+        filter,
+        source,
+        noise_ref,
+        whitening_dof,
+        usable_noise,
+        fpe,
+    })
+}
+
+impl<'a> DiagnosisProblem<'a> {
+    /// Check the data, choose the whitening and plan the likelihood, once.
+    pub fn plan(
+        setup: &'a Setup,
+        data: &'a ExperimentData,
+        noise: Option<&'a [Vec<f64>]>,
+        guess: &[f64],
+        cfg: &'a DiagnoseConfig,
+        obs: &mut dyn Observer,
+    ) -> Result<Self, DiagnoseError> {
+        cfg.validate()?;
+        check_data(data, obs)?;
+        let order = whitening_order(data.len(), cfg.order, obs)?;
+        let whitening = whitening(setup, data, noise, guess, cfg, order, obs)?;
+        let planned = Likelihood::new(
+            &setup.model,
+            &data.inputs,
+            data.dt,
+            whitening.filter.clone(),
+            cfg.poly_degree,
+        )?;
+        let noise_w = whitening
+            .usable_noise
+            .filter(|_| cfg.glitches)
+            .map(|nz| whitened_noise(&whitening.filter, nz, cfg.poly_degree));
+        Ok(DiagnosisProblem {
+            setup,
+            data,
+            noise,
+            cfg,
+            order,
+            whitening,
+            planned,
+            noise_w,
+            nominal: Extended::new(setup.model.clone(), Vec::new()),
+        })
+    }
+
+    pub fn whitening_source(&self) -> WhiteningSource {
+        self.whitening.source
+    }
+
+    pub(crate) fn filter(&self) -> &Whitener<2> {
+        &self.whitening.filter
+    }
+
+    /// The planned likelihood for `model` (no re-planning).
+    pub fn likelihood<'m>(
+        &self,
+        model: &'m Extended,
+    ) -> Result<Likelihood<'m, Extended, 2>, DiagnoseError> {
+        Ok(self.planned.for_model(model)?)
+    }
+
+    /// Tail probability of a score or likelihood-ratio statistic of `dim` parameters. With a
+    /// whitening filter estimated from the noise run (order p over N samples), the filter's
+    /// spectrum at any frequency is itself uncertain, like an estimate with nu = N / 2p degrees
+    /// of freedom, and scales the statistic by as much: chi^2(dim) / dim over chi^2(nu) / nu, an
+    /// F(dim, nu) (the line search uses the same tail). Statistics `calibrated` on the noise run
+    /// (the glitch scan's) keep the chi^2 tail.
+    pub fn tail(&self, dim: usize, stat: f64, calibrated: bool) -> f64 {
+        match self.whitening.whitening_dof {
+            Some(nu) if !calibrated && dim > 0 => {
+                residuals::f_sf(dim as f64, nu, stat / dim as f64)
+            }
+            _ => residuals::chi2_sf(dim as f64, stat),
+        }
+    }
+
+    /// Fit `model` from `guess` to `data` (the experiments, or the experiments less additive
+    /// contributions); also returns raw residuals.
+    pub(crate) fn fit(
+        &self,
+        lik: &Likelihood<'_, Extended, 2>,
+        data: &ExperimentData,
+        guess: &[f64],
+    ) -> Result<(FitResult, Series), DiagnoseError> {
+        let model = lik.engine.model();
+        let prob = lik.problem(data)?;
+        let res = fit(
+            model,
+            &prob,
+            guess,
+            &FitConfig::new(model.parameter_names()),
+        )?;
+        let raw = prob.raw_residuals(data, &res.estimate);
+        Ok((res, raw))
+    }
+
+    /// Fit `model` without additive effects.
+    pub(crate) fn fit_plain(
+        &self,
+        model: &Extended,
+        guess: &[f64],
+    ) -> Result<LinearFit, DiagnoseError> {
+        let lik = self.likelihood(model)?;
+        let (fit, raw) = self.fit(&lik, self.data, guess)?;
+        Ok(LinearFit {
+            fit,
+            raw,
+            linear: Vec::new(),
+            covariances: Vec::new(),
+        })
+    }
+
+    /// Raw columns of every additive effect of `lin` at `p`, flattened, with their amplitudes.
+    pub(crate) fn linear_columns(
+        &self,
+        lik: &Likelihood<'_, Extended, 2>,
+        lin: &Linear,
+        p: &[f64],
+    ) -> (Vec<Series>, Vec<f64>) {
+        let model = lik.engine.model();
+        let (mut cols, mut amps) = (Vec::new(), Vec::new());
+        for (a, v) in lin {
+            cols.extend(a.columns(model, lik, self.data, p));
+            amps.extend(v);
+        }
+        (cols, amps)
+    }
+
+    /// The data minus the additive contributions of `lin` at base parameters `p`.
+    pub(crate) fn effective_data(
+        &self,
+        lik: &Likelihood<'_, Extended, 2>,
+        lin: &Linear,
+        p: &[f64],
+    ) -> ExperimentData {
+        if lin.is_empty() {
+            return self.data.clone();
+        }
+        let (cols, amps) = self.linear_columns(lik, lin, p);
+        additive::subtract(self.data, &cols, &amps)
+    }
+
+    /// One fit's summary with the residual tests of every experiment and channel.
+    pub(crate) fn stage(&self, model: &Extended, f: &LinearFit) -> Stage {
+        let (res, raw, data) = (&f.fit, &f.raw, self.data);
+        let noise_ref = self.whitening.noise_ref.as_ref();
+        let inputs = model.input_names();
+        let mut channels = Vec::new();
+        for (e, en) in data.names.iter().enumerate() {
+            for ch in Channel::ALL {
+                let c = ch.index();
+                let inp = residuals::ChannelInput {
+                    experiment: en,
+                    channel: ch.as_str(),
+                    channel_index: c,
+                    whitened: &res.residuals_w[e][c],
+                    offset: self.order,
+                    raw: &raw[e][c],
+                    inputs: &data.inputs[e],
+                    input_names: inputs,
+                    dt: data.dt,
+                    alpha: self.cfg.alpha,
+                    whitening_dof: self.whitening.whitening_dof,
+                };
+                channels.push(residuals::analyse_channel(&inp, noise_ref));
+            }
+        }
+        Stage {
+            chi2: res.chi2,
+            chi2_reduced: res.chi2_reduced,
+            nu: res.nu,
+            converged: res.termination.converged(),
+            parameter_names: model.parameter_names().to_vec(),
+            estimate: res.estimate.clone(),
+            sigma: res.sigma.clone(),
+            reference_chi2_reduced: noise_ref.map_or(1.0, |n| {
+                n.var.iter().sum::<f64>() / n.var.len().max(1) as f64
+            }),
+            channels,
+        }
+    }
+}
+
+/// Gauss-Newton passes of [`DiagnosisProblem::fit_linear`]: enough for the amplitudes alone
+/// (linear: one pass converges, the others absorb the base parameters' move), more when line
+/// frequencies or glitch times and widths move with them.
+const PASSES_LINEAR: usize = 3;
+const PASSES_NONLINEAR: usize = 5;
+
+/// The whitened columns of the additive effects of `lin` at `est`: amplitudes, then non-linear
+/// parameters (only once the amplitudes are non-zero; before that their columns vanish), and
+/// per effect (amplitudes, non-linear parameters with a column).
+fn additive_jacobian(
+    lik: &Likelihood<'_, Extended, 2>,
+    data: &ExperimentData,
+    lin: &Linear,
+    est: &[f64],
+    first_pass: bool,
+) -> (Vec<Series>, Vec<(usize, usize)>) {
+    let model = lik.engine.model();
+    let mut je: Vec<Series> = Vec::new();
+    let mut layout: Vec<(usize, usize)> = Vec::new();
+    for (a, v) in lin {
+        let cols = a.columns(model, lik, data, est);
+        let n_nl = if !first_pass && v.iter().any(|x| *x != 0.0) {
+            a.nonlinear().len()
+        } else {
+            0
+        };
+        layout.push((v.len(), n_nl));
+        je.extend(cols.into_iter().map(|c| additive::whiten(lik, data, c)));
+        if n_nl > 0 {
+            je.extend(
+                a.nonlinear_columns(model, lik, data, est, v)
+                    .into_iter()
+                    .map(|c| additive::whiten(lik, data, c)),
+            );
+        }
+    }
+    (je, layout)
+}
+
+/// Covariance of each additive effect's (amplitudes, non-linear parameters) from the joint
+/// inverse information `inv` (its first `nn` rows the base parameters); a non-linear parameter
+/// without a column (zero amplitude) has an unknown (NaN) variance.
+fn additive_covariances(
+    inv: &DMatrix<f64>,
+    nn: usize,
+    lin: &Linear,
+    layout: &[(usize, usize)],
+) -> Vec<DMatrix<f64>> {
+    let mut j = nn;
+    let mut covs = Vec::new();
+    for ((a, v), &(_, used)) in lin.iter().zip(layout) {
+        let (n_a, n_nl) = (v.len(), a.nonlinear().len());
+        let dim = n_a + n_nl;
+        let cov = DMatrix::<f64>::from_fn(dim, dim, |x, y| {
+            if x < n_a + used && y < n_a + used {
+                inv[(j + x, j + y)]
+            } else if x == y {
+                f64::NAN
+            } else {
+                0.0
+            }
+        });
+        covs.push(cov);
+        j += n_a + used;
+    }
+    covs
+}
+
+impl DiagnosisProblem<'_> {
+    /// Fit `model` with the additive effects `lin` (amplitudes and non-linear parameters as
+    /// starting values): alternate the nonlinear fit of the base parameters on the data minus the
+    /// additive contributions with a joint Gauss-Newton step of the amplitudes and of the
+    /// additive effects' non-linear parameters (line frequency, glitch time and width), then fit
+    /// once more. The sigmas (base, amplitudes, non-linear) are from the joint information; `nu`
+    /// counts the amplitudes and non-linear parameters.
+    pub(crate) fn fit_linear(
+        &self,
+        model: &Extended,
+        guess: &[f64],
+        lin: &Linear,
+    ) -> Result<LinearFit, DiagnoseError> {
+        if lin.is_empty() {
+            return self.fit_plain(model, guess);
+        }
+        let data = self.data;
+        let mut lin = lin.clone();
+        let mut est = guess.to_vec();
+        let n_lin: usize = lin.iter().map(|(a, v)| v.len() + a.nonlinear().len()).sum();
+        let nonlinear = lin.iter().any(|(a, _)| !a.nonlinear().is_empty());
+        let passes = if nonlinear {
+            PASSES_NONLINEAR
+        } else {
+            PASSES_LINEAR
+        };
+        let lik = self.likelihood(model)?;
+        for pass in 0..passes {
+            let eff = self.effective_data(&lik, &lin, &est);
+            let (mut f, raw) = self.fit(&lik, &eff, &est)?;
+            est = f.estimate.clone();
+            let prob = lik.problem(&eff)?;
+            let (r, jn) = prob.residuals_and_jacobian(&est);
+            let (je, layout) = additive_jacobian(&lik, data, &lin, &est, pass == 0);
+            let all: Vec<&Series> = jn.iter().chain(je.iter()).collect();
+            let (_, inv) = additive::gram_inverse(&all);
+            let inv = inv.ok_or_else(|| {
+                DiagnoseError::Numerical("singular joint information of the additive fit".into())
+            })?;
+            let nn = jn.len();
+            if pass == passes - 1 {
+                for k in 0..nn {
+                    f.sigma[k] = inv[(k, k)].max(0.0).sqrt();
+                }
+                f.nu = f.nu.saturating_sub(n_lin).max(1);
+                f.chi2_reduced = f.chi2 / f.nu as f64;
+                let covariances = additive_covariances(&inv, nn, &lin, &layout);
+                return Ok(LinearFit {
+                    fit: f,
+                    raw,
+                    linear: lin,
+                    covariances,
+                });
+            }
+            let g = DMatrix::<f64>::from_fn(all.len(), 1, |a, _| additive::dot(all[a], &r));
+            let step = &inv * g;
+            let mut j = nn;
+            for ((a, v), (_, n_nl)) in lin.iter_mut().zip(&layout) {
+                for x in v.iter_mut() {
+                    *x += step[(j, 0)];
+                    j += 1;
+                }
+                if *n_nl > 0 {
+                    let s: Vec<f64> = (0..*n_nl).map(|q| step[(j + q, 0)]).collect();
+                    a.step_nonlinear(&s, data.len(), data.dt);
+                    j += n_nl;
+                }
+            }
+        }
+        unreachable!("the loop returns on its last pass")
+    }
+}
