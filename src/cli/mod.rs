@@ -20,6 +20,7 @@ macro_rules! outln {
     };
 }
 
+pub mod accel;
 pub mod analysis;
 pub mod campaign;
 pub mod design;
@@ -66,6 +67,8 @@ pub enum Command {
     Design(design::DesignCmd),
     /// Find what a fitted model is missing: residuals, effect attribution, refit, report.
     Diagnose(diagnose::DiagnoseArgs),
+    /// Total equivalent acceleration: readouts through Delta(p), spectra, model, noise budget.
+    Accel(accel::AccelArgs),
 }
 
 /// `--model FILE`: a model file of the lpf_x.toml schema (default: the embedded one).
@@ -118,6 +121,7 @@ pub fn run() -> i32 {
         Command::Campaign(c) => campaign::run(c),
         Command::Design(c) => design::run(c),
         Command::Diagnose(a) => diagnose::run(a),
+        Command::Accel(a) => accel::run(a),
     };
     match res {
         Ok(()) => 0,
@@ -172,6 +176,14 @@ fn command_paths(cmd: &Command) -> (Vec<Named<'_>>, Vec<Named<'_>>) {
                 a.dataset.as_deref().map(|p| ("DATASET", p)),
                 model(&a.model),
                 guess(&a.guess),
+            ],
+            vec![("--out", &a.out)],
+        ),
+        Command::Accel(a) => (
+            vec![
+                Some(("INPUT", &a.input)),
+                a.params.as_deref().map(|p| ("--params", p)),
+                model(&a.model),
             ],
             vec![("--out", &a.out)],
         ),
