@@ -4,7 +4,8 @@
 use std::f64::consts::PI;
 
 use freefall::accel::{
-    budget, derivative::PI_STENCIL, projection, welch_psd, DeltaEstimator, Response, Stencil,
+    budget, derivative::PI_STENCIL, projection, welch_psd, AccelPsd, DeltaEstimator, Response,
+    Stencil,
 };
 use freefall::noise::ColoredNoise;
 use freefall::setup::{Setup, NOISE_OVERSAMPLE};
@@ -153,8 +154,8 @@ fn guidance_injections_leave_no_acceleration_at_the_true_parameters() {
         let sig = rms(&full[0]).max(rms(&full[1]));
         // Highest injected frequency 64 cycles / 1200 s = 53 mHz: (w dt)^2 / 3 = 3.7 %.
         let w = 2.0 * PI * 64.0 / 1200.0 * DT;
-        for ch in 0..2 {
-            let res = rms(&g[ch]);
+        for (ch, gc) in g.iter().enumerate() {
+            let res = rms(gc);
             assert!(
                 res < w * w / 3.0 * sig,
                 "experiment {e}, g{}: residual rms {res:e} vs injected {sig:e}",
@@ -162,6 +163,27 @@ fn guidance_injections_leave_no_acceleration_at_the_true_parameters() {
             );
         }
     }
+}
+
+/// Welch PSDs (thesis settings, 90 % band) of the acceleration `est` makes of the readouts `o`,
+/// and the model's projection for readout noise at `p_noise`.
+fn spectra(
+    setup: &Setup,
+    est: &DeltaEstimator<'_, freefall::model::LpfX, 2>,
+    o: &[Vec<f64>],
+    p_noise: &[f64],
+) -> (AccelPsd, Vec<[f64; 2]>) {
+    let g = est.apply([&o[0], &o[1]], None).unwrap();
+    let psd = welch_psd(&[&g[0], &g[1]], DT, &WelchConfig::default(), LEVEL).unwrap();
+    let model = projection(
+        est,
+        &setup.model,
+        &setup.noise,
+        p_noise,
+        &psd.f,
+        Response::Estimator,
+    );
+    (psd, model)
 }
 
 /// Mean and 90 % band check of a Welch estimate against a model PSD over `[f_lo, f_hi]`.
@@ -199,19 +221,9 @@ fn estimate_psd_matches_the_model_projection_and_the_budget_sums_to_it() {
     // Two days: 16 Welch segments of ~34 000 s resolve 0.1 mHz.
     let n = 2 * 86_400;
     let o = noise_run(&setup, &sc.truth, n, 7);
-    let welch = WelchConfig::default();
     for p in [&sc.truth, &sc.guess] {
         let est = DeltaEstimator::new(&setup.model, p, DT, Stencil::default()).unwrap();
-        let g = est.apply([&o[0], &o[1]], None).unwrap();
-        let psd = welch_psd(&[&g[0], &g[1]], DT, &welch, LEVEL).unwrap();
-        let model = projection(
-            &est,
-            &setup.model,
-            &setup.noise,
-            &sc.truth,
-            &psd.f,
-            Response::Estimator,
-        );
+        let (psd, model) = spectra(&setup, &est, &o, &sc.truth);
         // Welch bins are correlated over ~3 neighbours (92-dB Blackman-Harris ENBW 2 bins plus
         // overlap): the standard error of a mean over m bins is about sqrt(3 * 2 / (nu m)).
         for ch in 0..2 {
@@ -241,13 +253,12 @@ fn estimate_psd_matches_the_model_projection_and_the_budget_sums_to_it() {
         );
         assert_eq!(terms.len(), setup.noise.sources.len());
         for (k, row) in model.iter().enumerate() {
-            for ch in 0..2 {
+            for (ch, want) in row.iter().enumerate() {
                 let sum: f64 = terms.iter().map(|t| t.psd[k][ch]).sum();
                 assert!(
-                    (sum / row[ch] - 1.0).abs() < 0.01,
-                    "f = {}: budget {sum:e} vs projection {:e}",
-                    psd.f[k],
-                    row[ch]
+                    (sum / want - 1.0).abs() < 0.01,
+                    "f = {}: budget {sum:e} vs projection {want:e}",
+                    psd.f[k]
                 );
             }
         }
@@ -284,20 +295,9 @@ fn identification_removes_the_excess_of_the_under_performing_scenario() {
     let setup = Setup::embedded();
     let sc = setup.spec.scenario("under_performing").unwrap();
     let o = noise_run(&setup, &sc.truth, SIX_DAYS, 11);
-    let welch = WelchConfig::default();
     let spectra = |p: &[f64]| {
         let est = DeltaEstimator::new(&setup.model, p, DT, Stencil::default()).unwrap();
-        let g = est.apply([&o[0], &o[1]], None).unwrap();
-        let psd = welch_psd(&[&g[0], &g[1]], DT, &welch, LEVEL).unwrap();
-        let model = projection(
-            &est,
-            &setup.model,
-            &setup.noise,
-            &sc.truth,
-            &psd.f,
-            Response::Estimator,
-        );
-        (psd, model)
+        spectra(&setup, &est, &o, &sc.truth)
     };
     let (truth, m_truth) = spectra(&sc.truth);
     let (guess, m_guess) = spectra(&sc.guess);

@@ -258,7 +258,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> DeltaEstimator<'m, M, N> {
             .map(|spec| {
                 // The DC and (even m) Nyquist bins of a real series are real.
                 spec[0].im = 0.0;
-                if m % 2 == 0 {
+                if m.is_multiple_of(2) {
                     spec[nb - 1].im = 0.0;
                 }
                 inv.process(spec, &mut buf)
