@@ -330,3 +330,75 @@ fn identification_removes_the_excess_of_the_under_performing_scenario() {
         );
     }
 }
+
+/// Oracle: the documented outputs, and linearity of the budget read back from the files. End to
+/// end: `simulate` a short dataset, `accel` its noise run with a segment; accel_psd.parquet holds
+/// the whole run and the segment, the budget's sources sum to the projection column, and a
+/// reversed segment is a one-line error naming it.
+#[test]
+fn cli_writes_the_documented_tables() {
+    use freefall::io::read_parquet;
+    use std::process::Command;
+    let dir = tempfile::tempdir().unwrap();
+    let ds = dir.path().join("ds");
+    let bin = env!("CARGO_BIN_EXE_freefall");
+    let run = |args: &[&str]| Command::new(bin).args(args).output().unwrap();
+    let o = run(&[
+        "simulate",
+        "--scenario",
+        "under_performing",
+        "--rate",
+        "analysis",
+        "--noise-duration",
+        "40000",
+        "--out",
+        ds.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let out = dir.path().join("acc");
+    let dataset = ds.join("dataset.toml");
+    let args = |seg: &str| {
+        vec![
+            "accel".to_string(),
+            dataset.to_str().unwrap().to_string(),
+            "--scenario".into(),
+            "under_performing".into(),
+            "--segment".into(),
+            seg.into(),
+            "--no-plots".into(),
+            "--out".into(),
+            out.to_str().unwrap().to_string(),
+        ]
+    };
+    let a = args("0:20000");
+    let o = run(&a.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let acc = read_parquet(out.join("accel.parquet")).unwrap();
+    assert_eq!(acc.names(), ["t", "g1", "g12"]);
+    assert_eq!(acc.num_rows(), 40_000 - 4);
+    let psd = read_parquet(out.join("accel_psd.parquet")).unwrap();
+    let seg = psd.str_column("segment").unwrap();
+    assert!(seg.iter().any(|s| s == "all") && seg.iter().any(|s| s == "0:20000"));
+    let model = psd.f64_column("model_g12").unwrap();
+    let f = psd.f64_column("f").unwrap();
+    let bud = read_parquet(out.join("budget.parquet")).unwrap();
+    let (bf, bs) = (
+        bud.f64_column("f").unwrap(),
+        bud.f64_column("S_g12").unwrap(),
+    );
+    for (k, fk) in f.iter().enumerate().filter(|(k, _)| seg[*k] == "all") {
+        let sum: f64 = (0..bf.len()).filter(|&j| bf[j] == *fk).map(|j| bs[j]).sum();
+        assert!(
+            (sum / model[k] - 1.0).abs() < 0.01,
+            "f = {fk}: {sum:e} vs {:e}",
+            model[k]
+        );
+    }
+    let a = args("300:100");
+    let o = run(&a.iter().map(String::as_str).collect::<Vec<_>>());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && err.contains("300:100") && err.trim().lines().count() == 1,
+        "{err}"
+    );
+}
