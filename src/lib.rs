@@ -6,6 +6,7 @@
 //! architecture; "thesis" in the docs is the LISA Pathfinder system-identification thesis whose
 //! chapters 3-5 give the equations.
 
+pub mod accel;
 pub mod campaign;
 pub mod cli;
 pub mod config;

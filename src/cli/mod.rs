@@ -30,6 +30,7 @@ macro_rules! outln {
     };
 }
 
+pub mod accel;
 pub mod analysis;
 pub mod campaign;
 pub mod design;
@@ -86,6 +87,8 @@ pub enum Command {
     },
     /// Print the man page (roff) of freefall (e.g. `freefall man | man -l -`).
     Man,
+    /// Total equivalent acceleration: readouts through Delta(p), spectra, model, noise budget.
+    Accel(accel::AccelArgs),
 }
 
 /// `--model FILE`: a model file of the lpf_x.toml schema (default: the embedded one).
@@ -164,6 +167,7 @@ pub fn run() -> i32 {
             write_stdout(format_args!("{}", String::from_utf8_lossy(&out)));
             Ok(())
         })(),
+        Command::Accel(a) => accel::run(a),
     };
     match res {
         Ok(()) => 0,
@@ -218,6 +222,14 @@ fn command_paths(cmd: &Command) -> (Vec<Named<'_>>, Vec<Named<'_>>) {
                 a.dataset.as_deref().map(|p| ("DATASET", p)),
                 model(&a.model),
                 guess(&a.guess),
+            ],
+            vec![("--out", &a.out)],
+        ),
+        Command::Accel(a) => (
+            vec![
+                Some(("INPUT", &a.input)),
+                a.params.as_deref().map(|p| ("--params", p)),
+                model(&a.model),
             ],
             vec![("--out", &a.out)],
         ),

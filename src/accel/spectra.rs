@@ -1,0 +1,148 @@
+//! Spectra of the total equivalent acceleration (thesis sec. 4.6): Welch estimates with chi^2
+//! confidence bands, the model's projection `S_g = Delta S_o Delta^H` (thesis eq. "S_{n,f}"),
+//! and its noise budget, one term per physical source, which sum to the projection.
+
+use num_complex::Complex64;
+
+use super::operator::DeltaEstimator;
+use super::AccelError;
+use crate::model::closed_loop::{transfer, CMat, ClosedLoopModel, NoiseEntry};
+use crate::noise::{shapes, NoiseModel};
+use crate::spectral::{welch_csd, WelchConfig};
+
+/// One-sided Welch PSDs of the acceleration channels, the DC bin left out.
+#[derive(Debug, Clone)]
+pub struct AccelPsd {
+    /// Frequencies (Hz), from the first non-zero bin.
+    pub f: Vec<f64>,
+    /// `psd[c][k]`: PSD of channel c (m^2 s^-4 Hz^-1).
+    pub psd: Vec<Vec<f64>>,
+    /// Confidence factors: the true PSD lies in `[lo * psd, hi * psd]` with probability `level`.
+    pub lo: f64,
+    pub hi: f64,
+    pub level: f64,
+    /// Equivalent degrees of freedom of each bin.
+    pub dof: f64,
+}
+
+/// Welch PSDs of the channels `g` (spacing `dt`) with the `level` confidence band.
+pub fn welch_psd(
+    g: &[&[f64]],
+    dt: f64,
+    cfg: &WelchConfig,
+    level: f64,
+) -> Result<AccelPsd, AccelError> {
+    let cs = welch_csd(g, dt, cfg)?;
+    let (lo, hi) = cs.psd_confidence(level)?;
+    Ok(AccelPsd {
+        f: cs.f[1..].to_vec(),
+        psd: (0..g.len()).map(|c| cs.psd(c)[1..].to_vec()).collect(),
+        lo,
+        hi,
+        level,
+        dof: cs.dof(),
+    })
+}
+
+/// Which `Delta` the projection uses.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Response {
+    /// What the estimator applies (discrete derivative and running sum): the prediction of the
+    /// Welch estimate of the estimator's output.
+    Estimator,
+    /// The model's continuous `Delta(f)`.
+    Continuous,
+}
+
+impl<M: ClosedLoopModel<N>, const N: usize> DeltaEstimator<'_, M, N> {
+    fn delta(&self, f: f64, which: Response) -> CMat<N> {
+        match which {
+            Response::Estimator => self.response(f),
+            Response::Continuous => self.continuous(f),
+        }
+    }
+}
+
+/// Diagonal of `Delta S_o(p_noise) Delta^H` at each `f > 0`: the acceleration PSD of each
+/// channel predicted when readouts whose noise the model gives at `p_noise` are converted with
+/// this estimator's parameters (thesis sec. 4.6: `Delta(p_est) S_o(p_true) Delta(p_est)^H`).
+/// This is the function a before/after comparison calls with two parameter vectors.
+pub fn projection<M: ClosedLoopModel<N>, const N: usize>(
+    est: &DeltaEstimator<'_, M, N>,
+    model: &M,
+    noise: &NoiseModel<N>,
+    p_noise: &[f64],
+    f: &[f64],
+    which: Response,
+) -> Vec<[f64; N]> {
+    f.iter()
+        .map(|&fk| {
+            let d = est.delta(fk, which);
+            let s = d * noise.readout_csd(model, fk, p_noise) * d.adjoint();
+            std::array::from_fn(|i| s[(i, i)].re)
+        })
+        .collect()
+}
+
+/// One noise source's contribution to the acceleration PSDs.
+#[derive(Debug, Clone)]
+pub struct BudgetTerm {
+    pub source: String,
+    /// `"force"` or `"readout"`: where the source enters the loop.
+    pub entry: &'static str,
+    /// `psd[k][c]` at the frequencies given to [`budget`].
+    pub psd: Vec<[f64; N_MAX]>,
+}
+
+/// Channels carried by a [`BudgetTerm`] (the x-axis model has two).
+pub const N_MAX: usize = 2;
+
+/// Noise budget of the projection: for each source of `noise` (mutually uncorrelated), its PSD
+/// pushed through the closed loop at `p_noise` to the readouts and back through `est`:
+/// `Delta_est Delta(p_noise)^-1 G_j` for a force, `Delta_est Delta(p_noise)^-1 D S^-1 w_j` for a
+/// readout. With `est` at `p_noise` the first is `G_j` itself (thesis eq. "equation of motion in
+/// the sensed coordinates"). The terms sum to [`projection`].
+pub fn budget<M: ClosedLoopModel<N>, const N: usize>(
+    est: &DeltaEstimator<'_, M, N>,
+    model: &M,
+    noise: &NoiseModel<N>,
+    p_noise: &[f64],
+    f: &[f64],
+    which: Response,
+) -> Vec<BudgetTerm> {
+    assert!(N <= N_MAX, "budget carries at most {N_MAX} channels");
+    let mut terms: Vec<BudgetTerm> = noise
+        .sources
+        .iter()
+        .map(|(name, _, entry)| BudgetTerm {
+            source: name.clone(),
+            entry: match entry {
+                NoiseEntry::Force(_) => "force",
+                NoiseEntry::Readout(_) => "readout",
+            },
+            psd: Vec::with_capacity(f.len()),
+        })
+        .collect();
+    for &fk in f {
+        let pt = model.prepare(fk);
+        let tr = transfer(model, &pt, p_noise);
+        let to_acc = est.delta(fk, which) * tr.delta_inv;
+        let ds = tr.ops.d * tr.ops.s.try_inverse().unwrap_or_else(CMat::<N>::identity);
+        for (term, (_, src, entry)) in terms.iter_mut().zip(&noise.sources) {
+            let col: [Complex64; N] = match entry {
+                NoiseEntry::Force(g) => std::array::from_fn(|i| Complex64::new(g[i], 0.0)),
+                NoiseEntry::Readout(w) => {
+                    std::array::from_fn(|i| (0..N).map(|j| ds[(i, j)] * w[j]).sum::<Complex64>())
+                }
+            };
+            let psd = shapes::psd(src, fk);
+            let mut row = [0.0; N_MAX];
+            for (i, r) in row.iter_mut().enumerate().take(N) {
+                let v: Complex64 = (0..N).map(|j| to_acc[(i, j)] * col[j]).sum();
+                *r = v.norm_sqr() * psd;
+            }
+            term.psd.push(row);
+        }
+    }
+    terms
+}

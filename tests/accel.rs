@@ -1,0 +1,404 @@
+//! Total equivalent acceleration through Delta(p) (thesis sec. 3.1 eq. "ifo2acc", 4.6).
+//! Each test names its oracle.
+
+use std::f64::consts::PI;
+
+use freefall::accel::{
+    budget, derivative::PI_STENCIL, projection, welch_psd, AccelPsd, DeltaEstimator, Response,
+    Stencil,
+};
+use freefall::noise::ColoredNoise;
+use freefall::setup::{Setup, NOISE_OVERSAMPLE};
+use freefall::sim::rng::stream;
+use freefall::spectral::WelchConfig;
+use num_complex::Complex64;
+
+/// Analysis sampling interval of the reference model (1 Hz).
+const DT: f64 = 1.0;
+/// Six days at 1 Hz (thesis sec. 4.6: "a very long noise run, ~6 days").
+const SIX_DAYS: usize = 6 * 86_400;
+/// Confidence level of the bands (the issue's 90 %).
+const LEVEL: f64 = 0.9;
+
+fn noise_run(setup: &Setup, truth: &[f64], n: usize, seed: u64) -> Vec<Vec<f64>> {
+    let gen = ColoredNoise::new(setup.psd(truth), n, DT, NOISE_OVERSAMPLE).unwrap();
+    gen.generate(&mut stream(seed, 0))
+}
+
+/// Oracle: analytic. The stencil differentiates a quadratic exactly, and a sampled sinusoid is
+/// multiplied by its response `[2a cos 2x + 2b cos x + c] / dt^2` (x = w dt), which for the "pi"
+/// estimator is `-sin^2(x) / dt^2`.
+#[test]
+fn stencil_is_exact_on_quadratics_and_has_its_response_on_sines() {
+    for a in [PI_STENCIL, 2.0 / 7.0, -1.0 / 12.0] {
+        let st = Stencil::new(a).unwrap();
+        let dt = 0.5;
+        let x: Vec<f64> = (0..20)
+            .map(|k| {
+                let t = k as f64 * dt;
+                3.0 * t * t - 2.0 * t + 1.0
+            })
+            .collect();
+        let mut out = vec![0.0; x.len() - 4];
+        st.accumulate(&x, dt, 1.0, &mut out);
+        assert!(
+            out.iter().all(|v| (v - 6.0).abs() < 1e-9),
+            "a = {a}: {out:?}"
+        );
+        let f = 0.13;
+        let h = st.response(f, dt);
+        let x: Vec<f64> = (0..40)
+            .map(|k| (2.0 * PI * f * k as f64 * dt + 0.3).sin())
+            .collect();
+        let mut out = vec![0.0; x.len() - 4];
+        st.accumulate(&x, dt, 1.0, &mut out);
+        for (k, v) in out.iter().enumerate() {
+            assert!((v - h * x[k + 2]).abs() < 1e-12, "a = {a}, sample {k}");
+        }
+    }
+    let w = 2.0 * PI * 0.13 * 0.5;
+    let pi = Stencil::default().response(0.13, 0.5);
+    assert!((pi + (w.sin() / 0.5).powi(2)).abs() < 1e-12);
+    assert!(Stencil::new(f64::NAN).is_err());
+}
+
+/// Oracle: frequency response. A sinusoidal readout (or guidance) series converted by the
+/// estimator equals `Re[Delta_h(f) e^{iwt}]` (or `-Re[A C T(f) e^{iwt}]`) away from the ends,
+/// where `Delta_h` is the estimator's response; this checks the time-domain stencil, the
+/// running-sum integrator and the zero-padded FFT convolution together. Below 10 mHz `Delta_h`
+/// agrees with the model's continuous `Delta` to (w dt)^2 / 3.
+#[test]
+fn time_domain_estimate_follows_the_frequency_response() {
+    let setup = Setup::embedded();
+    let p = setup.spec.scenario("under_performing").unwrap().truth;
+    let est = DeltaEstimator::new(&setup.model, &p, DT, Stencil::default()).unwrap();
+    let n = 40_000;
+    // A whole number of cycles is not needed: the FFT part is a linear convolution.
+    for f in [3.1e-4, 2.7e-3, 4.9e-2, 0.21] {
+        let resp = est.response(f);
+        let cont = est.continuous(f);
+        if f < 1e-2 {
+            let rel = (resp - cont).norm() / cont.norm();
+            assert!(
+                rel < (2.0 * PI * f * DT).powi(2),
+                "f = {f}: |Delta_h - Delta| = {rel:e}"
+            );
+        }
+        for input in 0..2 {
+            let x: Vec<f64> = (0..n)
+                .map(|k| (2.0 * PI * f * k as f64 * DT).cos())
+                .collect();
+            let zero = vec![0.0; n];
+            let mut o = [zero.as_slice(), zero.as_slice()];
+            o[input] = &x;
+            let g = est.apply(o, None).unwrap();
+            // Compare the mean-free middle halves (the running sum's start constant is unknown).
+            for ch in 0..2 {
+                let mid = |v: &dyn Fn(usize) -> f64| -> Vec<f64> {
+                    let s: Vec<f64> = (n / 4..3 * n / 4).map(v).collect();
+                    let m = s.iter().sum::<f64>() / s.len() as f64;
+                    s.iter().map(|x| x - m).collect()
+                };
+                let got = mid(&|k| g[ch][k - est.edge()]);
+                let want = mid(&|k| {
+                    let e = Complex64::new(0.0, 2.0 * PI * f * k as f64 * DT).exp();
+                    (resp[(ch, input)] * e).re
+                });
+                let scale = resp[(ch, input)].norm();
+                let err = got
+                    .iter()
+                    .zip(&want)
+                    .map(|(a, b)| (a - b).abs())
+                    .fold(0.0, f64::max);
+                // The FFT part applies the continuous control laws up to Nyquist; where a law
+                // does not vanish there its kernel has 1/(pi d) tails, and the abrupt start and
+                // end of the series leak in by at most |R(f_Nyquist)| / (pi d), d >= n / 4 = 1e4
+                // samples here: 3.2e-5 |R|, bounded by 1e-4 |R|.
+                let tail = est.multipliers(0.5 / DT).0[(ch, input)].norm();
+                assert!(
+                    err <= 1e-9 * scale + 1e-4 * tail,
+                    "f = {f}, readout {input} -> g{ch}: max error {err:e} vs |Delta_h| {scale:e}"
+                );
+            }
+        }
+    }
+}
+
+/// Oracle: the closed loop's own algebra (thesis eq. "equation of motion in the sensed
+/// coordinates"). The noise-free response to guidance injections, `o = Delta^-1 A C T o_i`
+/// (templates of the identification experiments), converts to zero acceleration at the true
+/// parameters: `Delta o - A C T o_i = 0`, up to the discrete derivative's `(H - s^2) o`, which is
+/// at most `(w dt)^2 / 3` of the inertia term at the injections' highest frequency.
+#[test]
+fn guidance_injections_leave_no_acceleration_at_the_true_parameters() {
+    use freefall::forward::TemplateEngine;
+    let setup = Setup::embedded();
+    let p = setup.spec.scenario("under_performing").unwrap().truth;
+    let design = setup.design("standard").unwrap();
+    let n = design.samples(DT);
+    let inputs: Vec<Vec<Vec<f64>>> = (0..design.experiments.len())
+        .map(|e| design.sample(e, 2, 0.0, DT, n))
+        .collect();
+    let engine = TemplateEngine::new(&setup.model, &inputs, DT);
+    let outputs = engine.templates(&p, None);
+    let est = DeltaEstimator::new(&setup.model, &p, DT, Stencil::default()).unwrap();
+    for (e, (oi, o)) in inputs.iter().zip(&outputs).enumerate() {
+        let g = est.apply([&o[0], &o[1]], Some([&oi[0], &oi[1]])).unwrap();
+        // The same readouts without subtracting the injection: Delta o = A C T o_i.
+        let full = est.apply([&o[0], &o[1]], None).unwrap();
+        let rms = |v: &[f64]| {
+            let m = v.iter().sum::<f64>() / v.len() as f64;
+            (v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / v.len() as f64).sqrt()
+        };
+        // The injected acceleration of the experiment (its larger channel).
+        let sig = rms(&full[0]).max(rms(&full[1]));
+        // Highest injected frequency 64 cycles / 1200 s = 53 mHz: (w dt)^2 / 3 = 3.7 %.
+        let w = 2.0 * PI * 64.0 / 1200.0 * DT;
+        for (ch, gc) in g.iter().enumerate() {
+            let res = rms(gc);
+            assert!(
+                res < w * w / 3.0 * sig,
+                "experiment {e}, g{}: residual rms {res:e} vs injected {sig:e}",
+                ch + 1
+            );
+        }
+    }
+}
+
+/// Welch PSDs (thesis settings, 90 % band) of the acceleration `est` makes of the readouts `o`,
+/// and the model's projection for readout noise at `p_noise`.
+fn spectra(
+    setup: &Setup,
+    est: &DeltaEstimator<'_, freefall::model::LpfX, 2>,
+    o: &[Vec<f64>],
+    p_noise: &[f64],
+) -> (AccelPsd, Vec<[f64; 2]>) {
+    let g = est.apply([&o[0], &o[1]], None).unwrap();
+    let psd = welch_psd(&[&g[0], &g[1]], DT, &WelchConfig::default(), LEVEL).unwrap();
+    let model = projection(
+        est,
+        &setup.model,
+        &setup.noise,
+        p_noise,
+        &psd.f,
+        Response::Estimator,
+    );
+    (psd, model)
+}
+
+/// Mean and 90 % band check of a Welch estimate against a model PSD over `[f_lo, f_hi]`.
+/// Returns (mean ratio, fraction of bins inside the band, bins).
+fn compare(
+    f: &[f64],
+    est: &[f64],
+    model: &[f64],
+    lo: f64,
+    hi: f64,
+    band: (f64, f64),
+) -> (f64, f64, usize) {
+    let idx: Vec<usize> = (0..f.len())
+        .filter(|&k| f[k] >= band.0 && f[k] <= band.1)
+        .collect();
+    let ratio = idx.iter().map(|&k| est[k] / model[k]).sum::<f64>() / idx.len() as f64;
+    let inside = idx
+        .iter()
+        .filter(|&&k| model[k] >= lo * est[k] && model[k] <= hi * est[k])
+        .count() as f64
+        / idx.len() as f64;
+    (ratio, inside, idx.len())
+}
+
+/// Oracle: Welch PSD vs model. The Welch PSD of the acceleration of a simulated noise run agrees
+/// with the projection `Delta_h S_o Delta_h^H` of the model (for Delta at the truth and at the
+/// guess): the mean ratio per decade is 1 within 5 standard errors of a Welch average, and at
+/// least 80 % of the bins hold the model inside their 90 % band. The noise budget sums to the
+/// projection (thesis eq. "equation of motion in the sensed coordinates": the sources are
+/// uncorrelated, their contributions add) within 1 % (in fact to round-off).
+#[test]
+fn estimate_psd_matches_the_model_projection_and_the_budget_sums_to_it() {
+    let setup = Setup::embedded();
+    let sc = setup.spec.scenario("under_performing").unwrap();
+    // Two days: 16 Welch segments of ~34 000 s resolve 0.1 mHz.
+    let n = 2 * 86_400;
+    let o = noise_run(&setup, &sc.truth, n, 7);
+    for p in [&sc.truth, &sc.guess] {
+        let est = DeltaEstimator::new(&setup.model, p, DT, Stencil::default()).unwrap();
+        let (psd, model) = spectra(&setup, &est, &o, &sc.truth);
+        // Welch bins are correlated over ~3 neighbours (92-dB Blackman-Harris ENBW 2 bins plus
+        // overlap): the standard error of a mean over m bins is about sqrt(3 * 2 / (nu m)).
+        for ch in 0..2 {
+            let m: Vec<f64> = model.iter().map(|r| r[ch]).collect();
+            for band in [(1e-4, 1e-3), (1e-3, 1e-2), (1e-2, 1e-1), (1e-1, 0.45)] {
+                let (ratio, inside, bins) = compare(&psd.f, &psd.psd[ch], &m, psd.lo, psd.hi, band);
+                let se = (6.0 / (psd.dof * bins as f64)).sqrt();
+                assert!(
+                    (ratio - 1.0).abs() < 5.0 * se,
+                    "g{} band {band:?}: mean ratio {ratio:.4} (standard error {se:.4}, {bins} bins)",
+                    ch + 1
+                );
+                assert!(
+                    inside >= 0.8,
+                    "g{} band {band:?}: {inside:.2} inside the band",
+                    ch + 1
+                );
+            }
+        }
+        let terms = budget(
+            &est,
+            &setup.model,
+            &setup.noise,
+            &sc.truth,
+            &psd.f,
+            Response::Estimator,
+        );
+        assert_eq!(terms.len(), setup.noise.sources.len());
+        for (k, row) in model.iter().enumerate() {
+            for (ch, want) in row.iter().enumerate() {
+                let sum: f64 = terms.iter().map(|t| t.psd[k][ch]).sum();
+                assert!(
+                    (sum / want - 1.0).abs() < 0.01,
+                    "f = {}: budget {sum:e} vs projection {want:e}",
+                    psd.f[k]
+                );
+            }
+        }
+    }
+}
+
+/// Best-fit parameters of the under-performing scenario quoted by the thesis (sec. 4.6, list
+/// "the best-fit values"); the delays, which Delta does not contain, are the truth's.
+const THESIS_BEST_FIT: [f64; 7] = [
+    -2.9998e-6, -2.0000e-6, -1.4998e-3, 0.61994, 0.599990, 0.6, 0.4,
+];
+
+/// Mean of `sqrt(a / b)` over the bins of `f` in `band`.
+fn asd_ratio(f: &[f64], a: &[f64], b: &[f64], band: (f64, f64)) -> f64 {
+    let idx: Vec<usize> = (0..f.len())
+        .filter(|&k| f[k] >= band.0 && f[k] <= band.1)
+        .collect();
+    idx.iter().map(|&k| (a[k] / b[k]).sqrt()).sum::<f64>() / idx.len() as f64
+}
+
+/// Oracle: thesis sec. 4.6, Figure "conv2acc", and the model's projection. Under-performing
+/// scenario, 6-day noise run at 1 Hz, Delta at the guess (no identification) vs the truth:
+/// - near 50 mHz the estimate exceeds the true-parameter one by a factor in [1.5, 2.5] in
+///   amplitude (thesis: about 2, unsuppressed thruster noise);
+/// - near 0.4 mHz by the factor the projection `Delta S_o Delta^H` predicts, within 10 %, and at
+///   least 2.5. The thesis reports about 4 there; the reference model's suspension controller
+///   (designed to reproduce the thesis's closed-loop features, not its industrial law) gives
+///   `|Delta22(guess) / Delta22(truth)|` = 2.7 at 0.4 mHz, so the thesis's [3, 5] is not
+///   reachable with this model (README, "Total equivalent acceleration");
+/// - with the thesis's best-fit parameters the estimate lies inside the 90 % band of the
+///   true-parameter estimate at every frequency above 0.1 mHz.
+#[test]
+fn identification_removes_the_excess_of_the_under_performing_scenario() {
+    let setup = Setup::embedded();
+    let sc = setup.spec.scenario("under_performing").unwrap();
+    let o = noise_run(&setup, &sc.truth, SIX_DAYS, 11);
+    let spectra = |p: &[f64]| {
+        let est = DeltaEstimator::new(&setup.model, p, DT, Stencil::default()).unwrap();
+        spectra(&setup, &est, &o, &sc.truth)
+    };
+    let (truth, m_truth) = spectra(&sc.truth);
+    let (guess, m_guess) = spectra(&sc.guess);
+    let (fit, _) = spectra(&THESIS_BEST_FIT);
+    let f = &truth.f;
+    let m12 = |m: &[[f64; 2]]| m.iter().map(|r| r[1]).collect::<Vec<f64>>();
+    let factor = |band: (f64, f64)| {
+        let r = asd_ratio(f, &guess.psd[1], &truth.psd[1], band);
+        let r_model = asd_ratio(f, &m12(&m_guess), &m12(&m_truth), band);
+        assert!(
+            (r / r_model - 1.0).abs() < 0.1,
+            "band {band:?} Hz: estimated factor {r:.3} vs model {r_model:.3}"
+        );
+        r
+    };
+    let low = factor((0.35e-3, 0.45e-3));
+    assert!(low >= 2.5, "0.4 mHz: guess / truth = {low:.2} in amplitude");
+    let high = factor((48e-3, 52e-3));
+    assert!(
+        (1.5..=2.5).contains(&high),
+        "50 mHz: guess / truth = {high:.2} in amplitude, expected in [1.5, 2.5]"
+    );
+    for (k, &fk) in f.iter().enumerate().filter(|(_, &fk)| fk > 1e-4) {
+        let (s, t) = (fit.psd[1][k], truth.psd[1][k]);
+        assert!(
+            s >= truth.lo * t && s <= truth.hi * t,
+            "f = {fk:e}: best-fit {s:e} outside [{:e}, {:e}]",
+            truth.lo * t,
+            truth.hi * t
+        );
+    }
+}
+
+/// Oracle: the documented outputs, and linearity of the budget read back from the files. End to
+/// end: `simulate` a short dataset, `accel` its noise run with a segment; accel_psd.parquet holds
+/// the whole run and the segment, the budget's sources sum to the projection column, and a
+/// reversed segment is a one-line error naming it.
+#[test]
+fn cli_writes_the_documented_tables() {
+    use freefall::io::read_parquet;
+    use std::process::Command;
+    let dir = tempfile::tempdir().unwrap();
+    let ds = dir.path().join("ds");
+    let bin = env!("CARGO_BIN_EXE_freefall");
+    let run = |args: &[&str]| Command::new(bin).args(args).output().unwrap();
+    let o = run(&[
+        "simulate",
+        "--scenario",
+        "under_performing",
+        "--rate",
+        "analysis",
+        "--noise-duration",
+        "40000",
+        "--out",
+        ds.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let out = dir.path().join("acc");
+    let dataset = ds.join("dataset.toml");
+    let args = |seg: &str| {
+        vec![
+            "accel".to_string(),
+            dataset.to_str().unwrap().to_string(),
+            "--scenario".into(),
+            "under_performing".into(),
+            "--segment".into(),
+            seg.into(),
+            "--no-plots".into(),
+            "--out".into(),
+            out.to_str().unwrap().to_string(),
+        ]
+    };
+    let a = args("0:20000");
+    let o = run(&a.iter().map(String::as_str).collect::<Vec<_>>());
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let acc = read_parquet(out.join("accel.parquet")).unwrap();
+    assert_eq!(acc.names(), ["t", "g1", "g12"]);
+    assert_eq!(acc.num_rows(), 40_000 - 4);
+    let psd = read_parquet(out.join("accel_psd.parquet")).unwrap();
+    let seg = psd.str_column("segment").unwrap();
+    assert!(seg.iter().any(|s| s == "all") && seg.iter().any(|s| s == "0:20000"));
+    let model = psd.f64_column("model_g12").unwrap();
+    let f = psd.f64_column("f").unwrap();
+    let bud = read_parquet(out.join("budget.parquet")).unwrap();
+    let (bf, bs) = (
+        bud.f64_column("f").unwrap(),
+        bud.f64_column("S_g12").unwrap(),
+    );
+    for (k, fk) in f.iter().enumerate().filter(|(k, _)| seg[*k] == "all") {
+        let sum: f64 = (0..bf.len()).filter(|&j| bf[j] == *fk).map(|j| bs[j]).sum();
+        assert!(
+            (sum / model[k] - 1.0).abs() < 0.01,
+            "f = {fk}: {sum:e} vs {:e}",
+            model[k]
+        );
+    }
+    let a = args("300:100");
+    let o = run(&a.iter().map(String::as_str).collect::<Vec<_>>());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && err.contains("300:100") && err.trim().lines().count() == 1,
+        "{err}"
+    );
+}
