@@ -58,13 +58,22 @@ impl LpfX {
         }
     }
 
-    fn d(&self, pt: &LpfPoint, p: &[f64]) -> CMat<2> {
+    /// The stiffness `K` of `D = s^2 + K` (per unit mass, rows x1 and x12).
+    pub fn stiffness(&self, p: &[f64]) -> [[f64; 2]; 2] {
         let (w1, w12, mt, g) = (p[W1], p[W12], self.mt, self.gamma_x);
+        [
+            [(1.0 + 2.0 * mt) * w1 + mt * w12, g + mt * (w1 + w12)],
+            [w12, w1 + w12 - 2.0 * g],
+        ]
+    }
+
+    fn d(&self, pt: &LpfPoint, p: &[f64]) -> CMat<2> {
+        let k = self.stiffness(p);
         m2(
-            pt.s2 + c((1.0 + 2.0 * mt) * w1 + mt * w12),
-            c(g + mt * (w1 + w12)),
-            c(w12),
-            pt.s2 + c(w1 + w12 - 2.0 * g),
+            pt.s2 + c(k[0][0]),
+            c(k[0][1]),
+            c(k[1][0]),
+            pt.s2 + c(k[1][1]),
         )
     }
 }
