@@ -100,6 +100,44 @@ pub struct InitialConditions {
     pub v12: f64,
 }
 
+impl std::str::FromStr for InitialConditions {
+    type Err = String;
+
+    /// `o1=M,o12=M,v1=M/S,v12=M/S`, any subset (the others are zero), each key at most once.
+    fn from_str(text: &str) -> Result<Self, String> {
+        let mut ic = InitialConditions::default();
+        let mut seen: Vec<&str> = Vec::new();
+        for item in text.split(',').map(str::trim).filter(|s| !s.is_empty()) {
+            let (key, value) = item
+                .split_once('=')
+                .ok_or_else(|| format!("'{item}' is not KEY=VALUE (keys o1, o12, v1, v12)"))?;
+            let key = key.trim();
+            let v: f64 = value
+                .trim()
+                .parse()
+                .ok()
+                .filter(|v: &f64| v.is_finite())
+                .ok_or_else(|| format!("{key}: '{}' is not a finite number", value.trim()))?;
+            let slot = match key {
+                "o1" => &mut ic.o1,
+                "o12" => &mut ic.o12,
+                "v1" => &mut ic.v1,
+                "v12" => &mut ic.v12,
+                _ => return Err(format!("unknown key '{key}' (expected o1, o12, v1, v12)")),
+            };
+            if seen.contains(&key) {
+                return Err(format!("{key} is given twice"));
+            }
+            seen.push(key);
+            *slot = v;
+        }
+        if seen.is_empty() {
+            return Err("empty (expected o1=M,o12=M,v1=M/S,v12=M/S)".into());
+        }
+        Ok(ic)
+    }
+}
+
 type Mat<const R: usize, const C: usize> = [[f64; C]; R];
 
 fn to_array<const R: usize, const C: usize>(m: &DMatrix<f64>) -> Mat<R, C> {
