@@ -6,6 +6,7 @@ pub mod discrete;
 pub mod effects;
 pub mod lpf_x;
 pub mod poly;
+pub mod sampled;
 pub mod spec;
 pub mod zpk;
 
