@@ -1,9 +1,13 @@
 //! The time-domain simulator's inner loop: control steps of the digital LPF-x loop per
 //! second on one core (plant state update, two difference equations, held commands; target
 //! at least 1e6 per second), with and without a computation delay; and one whole noise run
-//! (noise generation at 10 Hz plus the loop plus decimation) for scale.
+//! (noise generation at 10 Hz plus the loop plus decimation) for scale; and the sampled-data
+//! model's `T_{oi->o}` with its 7 derivatives on the grid of one 1 Hz experiment (compare
+//! `transfer_and_7_derivatives_1hz_grid` of the model bench, the continuous loop).
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
+use freefall::model::spec::LoopKind;
+use freefall::model::{CMat, ClosedLoopModel, ModelSpec};
 use freefall::setup::Setup;
 use freefall::signal::{Design, Experiment};
 use freefall::sim::rng::stream;
@@ -64,6 +68,23 @@ fn bench(c: &mut Criterion) {
         })
     });
     slow.finish();
+    let mut spec = ModelSpec::embedded();
+    spec.control_loop.kind = LoopKind::Digital;
+    let digital = Setup::new(spec).unwrap();
+    let n = 10_800;
+    let m = freefall::numerics::fft::fast_len(2 * n);
+    let points: Vec<_> = (0..=m / 2)
+        .map(|k| digital.model.prepare(k.max(1) as f64 / m as f64))
+        .collect();
+    let mut t = vec![CMat::<2>::zeros(); points.len()];
+    let mut d = vec![CMat::<2>::zeros(); 7 * points.len()];
+    c.bench_function("sampled_data_transfer_and_7_derivatives_1hz_grid", |b| {
+        b.iter(|| {
+            digital
+                .model
+                .transfer_grid(black_box(&points), black_box(&p), &mut t, Some(&mut d))
+        })
+    });
 }
 
 criterion_group!(benches, bench);

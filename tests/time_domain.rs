@@ -237,6 +237,13 @@ fn digital_setup(disc: Discretisation, tau: f64) -> Setup {
     Setup::new(spec).unwrap()
 }
 
+/// The digital model's closed-loop poles in `z` (its `poles` are `s = ln(z) / h`).
+fn model_z_poles(setup: &Setup, p: &[f64]) -> Vec<Complex64> {
+    let h = setup.spec.control_dt();
+    let poles = setup.model.poles(p).unwrap();
+    poles.iter().map(|s| (s * h).exp()).collect()
+}
+
 /// Loop variants checked against the sampled-data model: the on-board default, and a
 /// computation delay with each stable discretisation. (ZOH-discretised controllers make the
 /// reference loop unstable: see `zoh_discretised_controllers_destabilise_the_loop`.)
@@ -289,13 +296,7 @@ fn sampled_data_poles_are_the_simulated_loop_eigenvalues() {
         let cfg = LoopConfig::from_spec(&setup.spec);
         let lp = DigitalLoop::new(&setup.model, &p, &cfg);
         let sim_poles = lp.poles().unwrap();
-        let model_poles: Vec<Complex64> = setup
-            .model
-            .poles(&p)
-            .unwrap()
-            .iter()
-            .map(|s| (s * cfg.dt).exp())
-            .collect();
+        let model_poles = model_z_poles(&setup, &p);
         assert_eq!(sim_poles.len(), model_poles.len(), "{disc:?} {tau}");
         for z in &sim_poles {
             let nearest = model_poles
@@ -391,13 +392,7 @@ fn free_response_decays_as_the_closed_loop_poles_say() {
     let zero = vec![0.0; n];
     let o = lp.run([&zero, &zero], [&zero, &zero], [&zero, &zero]);
     assert_eq!((o[0][0], o[1][0]), (ic.o1, ic.o12));
-    let poles: Vec<Complex64> = setup
-        .model
-        .poles(&p)
-        .unwrap()
-        .iter()
-        .map(|s| (s * cfg.dt).exp())
-        .collect();
+    let poles = model_z_poles(&setup, &p);
     // Real basis: Re and Im of z^k for each complex pair (upper half plane), z^k for a real z.
     let modes: Vec<Complex64> = poles.iter().copied().filter(|z| z.im >= 0.0).collect();
     let mut cols: Vec<Vec<f64>> = Vec::new();
