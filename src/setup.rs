@@ -10,6 +10,9 @@ use crate::model::{LpfX, ModelError, ModelSpec};
 use crate::noise::{GlitchConfig, NoiseError, NoiseModel};
 use crate::signal::{Design, SignalError};
 use crate::sim::decimated::DecimatedSimulator;
+use crate::sim::time_domain::{
+    InitialConditions, LoopConfig, TimeDomainError, TimeDomainSimulator,
+};
 use crate::sim::Simulator;
 
 /// Default order of the whitening filter (see `fit::whiten`): long enough to resolve the
@@ -33,6 +36,8 @@ pub enum Error {
     Fit(#[from] FitError),
     #[error(transparent)]
     Io(#[from] crate::io::IoError),
+    #[error(transparent)]
+    TimeDomain(#[from] TimeDomainError),
     #[error("{0}")]
     Other(String),
 }
@@ -162,6 +167,33 @@ impl Setup {
             self.spec.decimation(),
             NOISE_OVERSAMPLE,
             glitch,
+        )?)
+    }
+}
+
+impl Setup {
+    /// The time-domain simulator of the digital loop (`sim::time_domain`): controllers at
+    /// simulate_hz as `[control_loop]` says, telemetry decimated to analyse_hz by the
+    /// anti-alias FIR, optional initial conditions. Glitches are refused (not simulated).
+    pub fn time_domain_simulator(
+        &self,
+        design: &Design,
+        truth: &[f64],
+        glitch: Option<&GlitchSpec>,
+        initial: Option<InitialConditions>,
+    ) -> Result<TimeDomainSimulator, Error> {
+        if glitch.is_some() {
+            return Err(TimeDomainError::Glitches.into());
+        }
+        Ok(TimeDomainSimulator::new(
+            &self.model,
+            &self.noise,
+            &LoopConfig::from_spec(&self.spec),
+            self.spec.decimation(),
+            design,
+            truth,
+            initial,
+            NOISE_OVERSAMPLE,
         )?)
     }
 }

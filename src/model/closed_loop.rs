@@ -74,11 +74,17 @@ pub trait ClosedLoopModel<const N: usize>: Send + Sync {
     fn noise_entry(&self, name: &str) -> Option<NoiseEntry<N>>;
 
     /// `None` if the closed loop at `p` is stable, else how it is unstable. The default takes
-    /// the roots of [`Self::characteristic_polynomial`]; a model whose operators are not
+    /// [`Self::poles`]; a model whose operators are not
     /// polynomial in `s` overrides it.
     /// Err when the poles cannot be computed at `p` (see [`Poly::roots`]).
+    /// The closed-loop poles as Laplace variables `s` (a sampled-data model maps its poles in
+    /// `z` to `s = ln(z) / h`). Default: the roots of [`Self::characteristic_polynomial`].
+    fn poles(&self, p: &[f64]) -> Result<Vec<Complex64>, RootsError> {
+        self.characteristic_polynomial(p).roots()
+    }
+
     fn instability(&self, p: &[f64]) -> Result<Option<Instability>, RootsError> {
-        let poles = self.characteristic_polynomial(p).roots()?;
+        let poles = self.poles(p)?;
         let scale = poles.iter().fold(1e-12_f64, |m, z| m.max(z.norm()));
         let rhp: Vec<Complex64> = poles
             .into_iter()
@@ -159,7 +165,11 @@ pub fn transfer<M: ClosedLoopModel<N>, const N: usize>(
     pt: &M::Point,
     p: &[f64],
 ) -> Transfer<N> {
-    let ops = model.operators(pt, p);
+    transfer_of(model.operators(pt, p))
+}
+
+/// `Delta`, `T_{oi->o}` and `T_{oi->fc}` from operators already evaluated at one frequency.
+pub fn transfer_of<const N: usize>(ops: Operators<N>) -> Transfer<N> {
     let s_inv =
         inverse(&ops.s).unwrap_or_else(|| CMat::<N>::from_element(Complex64::new(f64::NAN, 0.0)));
     let delta = ops.d * s_inv + ops.ac;
@@ -184,13 +194,27 @@ pub fn transfer_with_derivatives<M: ClosedLoopModel<N>, const N: usize>(
     p: &[f64],
     d_out: &mut [CMat<N>],
 ) -> Transfer<N> {
-    let tr = transfer(model, pt, p);
+    transfer_with_derivatives_of(
+        model.operators(pt, p),
+        |k| model.derivative(pt, p, k),
+        d_out,
+    )
+}
+
+/// The same from operators already evaluated at one frequency and their derivative
+/// `der(k)` with respect to parameter `k`, for `k` in `0..d_out.len()`.
+pub fn transfer_with_derivatives_of<const N: usize>(
+    ops: Operators<N>,
+    der: impl Fn(usize) -> OperatorDerivative<N>,
+    d_out: &mut [CMat<N>],
+) -> Transfer<N> {
+    let tr = transfer_of(ops);
     let ops = &tr.ops;
     let s_inv =
         inverse(&ops.s).unwrap_or_else(|| CMat::<N>::from_element(Complex64::new(f64::NAN, 0.0)));
     let d_s_inv = ops.d * s_inv;
     for (k, out) in d_out.iter_mut().enumerate() {
-        let der = model.derivative(pt, p, k);
+        let der = der(k);
         let mut d_delta: Option<CMat<N>> = None;
         let mut add = |m: CMat<N>| {
             d_delta = Some(match d_delta {
@@ -241,7 +265,7 @@ pub fn closed_loop_poles<M: ClosedLoopModel<N>, const N: usize>(
     model: &M,
     p: &[f64],
 ) -> Result<Vec<Complex64>, RootsError> {
-    model.characteristic_polynomial(p).roots()
+    model.poles(p)
 }
 
 /// Err if any closed-loop pole has a non-negative real part. The error names every parameter,

@@ -1,13 +1,23 @@
 //! LISA Pathfinder along the optical axis x (thesis sec. 3.3 and 4.1; operators as fixed by
 //! `reference/README.md`). Parameters, in order: w1_sq, w12_sq, s21, a_df, a_sus, dt1, dt12.
+//!
+//! The loop is continuous (the thesis's operators in `s`) or, with `[control_loop] kind =
+//! "digital"`, the sampled-data loop of the spacecraft: discrete controllers in
+//! `z = exp(s h)`, held commands and a continuous plant, whose operators `D_d(z)` and
+//! `H(z) A C(z)` are built in [`super::sampled`].
 
 use std::f64::consts::PI;
 
 use num_complex::Complex64;
 
-use super::closed_loop::{CMat, ClosedLoopModel, NoiseEntry, OperatorDerivative, Operators};
-use super::poly::Poly;
-use super::spec::ModelSpec;
+use super::closed_loop::{
+    transfer_of, transfer_with_derivatives_of, CMat, ClosedLoopModel, NoiseEntry,
+    OperatorDerivative, Operators,
+};
+use super::discrete::DiscreteTf;
+use super::poly::{Poly, RootsError};
+use super::sampled::{law_polynomials_in_w, s_of_w, z_and_zm1, HeldPlant};
+use super::spec::{LoopKind, ModelSpec};
 use super::zpk::Zpk;
 
 const I: Complex64 = Complex64 { re: 0.0, im: 1.0 };
@@ -27,7 +37,19 @@ pub struct LpfX {
     pub gamma_x: f64,
     pub c_df: Zpk,
     pub c_sus: Zpk,
+    /// The sampled-data loop's laws, when the model is digital.
+    pub digital: Option<DigitalLaws>,
     names: Vec<String>,
+}
+
+/// The control laws of the digital loop at the control interval `h`, and the computation
+/// delay `tau` before each command's hold.
+#[derive(Debug, Clone)]
+pub struct DigitalLaws {
+    pub h: f64,
+    pub tau: f64,
+    pub c_df: DiscreteTf,
+    pub c_sus: DiscreteTf,
 }
 
 /// Parameter-independent quantities at one frequency.
@@ -37,6 +59,9 @@ pub struct LpfPoint {
     pub s2: Complex64,
     pub c_df: Complex64,
     pub c_sus: Complex64,
+    /// `z = exp(s h)` and `z - 1` (without cancellation) of a digital model; zero otherwise.
+    pub z: Complex64,
+    pub zm1: Complex64,
 }
 
 pub const W1: usize = 0;
@@ -49,22 +74,65 @@ pub const DT12: usize = 6;
 
 impl LpfX {
     pub fn from_spec(spec: &ModelSpec) -> Self {
+        let (c_df, c_sus) = (
+            spec.controllers.drag_free.zpk(),
+            spec.controllers.suspension.zpk(),
+        );
+        let cl = &spec.control_loop;
+        let digital = (cl.kind == LoopKind::Digital).then(|| {
+            let h = spec.control_dt();
+            DigitalLaws {
+                h,
+                tau: cl.computation_delay_s,
+                c_df: DiscreteTf::from_zpk(&c_df, h, cl.discretisation),
+                c_sus: DiscreteTf::from_zpk(&c_sus, h, cl.discretisation),
+            }
+        });
         LpfX {
             mt: spec.constants.m_tm / spec.constants.m_sc,
             gamma_x: spec.constants.gamma_x,
-            c_df: spec.controllers.drag_free.zpk(),
-            c_sus: spec.controllers.suspension.zpk(),
+            c_df,
+            c_sus,
+            digital,
             names: spec.parameter_names(),
         }
     }
 
-    fn d(&self, pt: &LpfPoint, p: &[f64]) -> CMat<2> {
+    /// `dK/dw1_sq` and `dK/dw12_sq` (`K` is linear in both).
+    pub fn stiffness_derivatives(&self) -> [[[f64; 2]; 2]; 2] {
+        let mt = self.mt;
+        [[[1.0 + 2.0 * mt, mt], [0.0, 1.0]], [[mt, mt], [1.0, 1.0]]]
+    }
+
+    /// The held plant of the digital loop at `p`, `None` for a continuous model.
+    pub fn held_plant(&self, p: &[f64]) -> Option<HeldPlant> {
+        let dl = self.digital.as_ref()?;
+        let m = |a: [[f64; 2]; 2]| nalgebra::Matrix2::new(a[0][0], a[0][1], a[1][0], a[1][1]);
+        let dk = self.stiffness_derivatives();
+        Some(HeldPlant::new(
+            m(self.stiffness(p)),
+            [m(dk[0]), m(dk[1])],
+            dl.h,
+            dl.tau,
+        ))
+    }
+
+    /// The stiffness `K` of `D = s^2 + K` (per unit mass, rows x1 and x12).
+    pub fn stiffness(&self, p: &[f64]) -> [[f64; 2]; 2] {
         let (w1, w12, mt, g) = (p[W1], p[W12], self.mt, self.gamma_x);
+        [
+            [(1.0 + 2.0 * mt) * w1 + mt * w12, g + mt * (w1 + w12)],
+            [w12, w1 + w12 - 2.0 * g],
+        ]
+    }
+
+    fn d(&self, pt: &LpfPoint, p: &[f64]) -> CMat<2> {
+        let k = self.stiffness(p);
         m2(
-            pt.s2 + c((1.0 + 2.0 * mt) * w1 + mt * w12),
-            c(g + mt * (w1 + w12)),
-            c(w12),
-            pt.s2 + c(w1 + w12 - 2.0 * g),
+            pt.s2 + c(k[0][0]),
+            c(k[0][1]),
+            c(k[1][0]),
+            pt.s2 + c(k[1][1]),
         )
     }
 }
@@ -226,12 +294,156 @@ impl LpfX {
     /// The operators' point at a complex Laplace variable `s` (off the imaginary axis, for the
     /// stability analysis of models that are not polynomial in `s`).
     pub fn prepare_s(&self, s: Complex64) -> LpfPoint {
-        LpfPoint {
-            s,
-            s2: s * s,
-            c_df: self.c_df.eval(s),
-            c_sus: self.c_sus.eval(s),
+        match &self.digital {
+            None => LpfPoint {
+                s,
+                s2: s * s,
+                c_df: self.c_df.eval(s),
+                c_sus: self.c_sus.eval(s),
+                z: c(0.0),
+                zm1: c(0.0),
+            },
+            Some(dl) => {
+                let (z, zm1) = z_and_zm1(s, dl.h);
+                LpfPoint {
+                    s,
+                    s2: s * s,
+                    c_df: dl.c_df.eval(z),
+                    c_sus: dl.c_sus.eval(z),
+                    z,
+                    zm1,
+                }
+            }
         }
+    }
+
+    /// The operators at one point with dynamics `d` and the computation-delay factor `hold`
+    /// (`None`: identity) on the actuated control.
+    fn operators_with(
+        &self,
+        pt: &LpfPoint,
+        p: &[f64],
+        d: CMat<2>,
+        hold: Option<CMat<2>>,
+    ) -> Operators<2> {
+        let z = c(0.0);
+        let one = c(1.0);
+        let mt = self.mt;
+        let ac = m2(
+            pt.c_df * p[A_DF],
+            pt.c_sus * (mt * p[A_SUS]),
+            z,
+            pt.c_sus * p[A_SUS],
+        );
+        Operators {
+            d,
+            s: m2(one, z, c(p[S21]), one),
+            ac: hold.map_or(ac, |h| h * ac),
+            c: m2(pt.c_df, pt.c_sus * mt, z, pt.c_sus),
+            t: m2((-pt.s * p[DT1]).exp(), z, z, (-pt.s * p[DT12]).exp()),
+        }
+    }
+
+    fn digital_operators(&self, pt: &LpfPoint, p: &[f64], plant: &HeldPlant) -> Operators<2> {
+        self.operators_with(pt, p, plant.d(pt.z, pt.zm1), plant.delay_factor(pt.z))
+    }
+
+    /// `d(operators)/dp_k`, with the held plant for a digital model.
+    fn derivative_with(
+        &self,
+        pt: &LpfPoint,
+        p: &[f64],
+        k: usize,
+        plant: Option<&HeldPlant>,
+    ) -> OperatorDerivative<2> {
+        let z = c(0.0);
+        let mt = self.mt;
+        let hold = plant.and_then(|pl| pl.delay_factor(pt.z));
+        let held = |m: CMat<2>| hold.map_or(m, |h| h * m);
+        let mut der = OperatorDerivative::default();
+        match k {
+            W1 | W12 => {
+                let j = k - W1;
+                der.d = Some(match plant {
+                    Some(pl) => pl.d_derivative(pt.z, pt.zm1, j),
+                    None => {
+                        let dk = self.stiffness_derivatives()[j];
+                        m2(c(dk[0][0]), c(dk[0][1]), c(dk[1][0]), c(dk[1][1]))
+                    }
+                });
+                if let Some(dh) = plant.and_then(|pl| pl.delay_factor_derivative(pt.z, j)) {
+                    let ac = m2(
+                        pt.c_df * p[A_DF],
+                        pt.c_sus * (mt * p[A_SUS]),
+                        z,
+                        pt.c_sus * p[A_SUS],
+                    );
+                    der.ac = Some(dh * ac);
+                }
+            }
+            S21 => der.s = Some(m2(z, z, c(1.0), z)),
+            A_DF => der.ac = Some(held(m2(pt.c_df, z, z, z))),
+            A_SUS => der.ac = Some(held(m2(z, pt.c_sus * mt, z, pt.c_sus))),
+            DT1 => der.t = Some(m2(-pt.s * (-pt.s * p[DT1]).exp(), z, z, z)),
+            DT12 => der.t = Some(m2(z, z, z, -pt.s * (-pt.s * p[DT12]).exp())),
+            _ => panic!("LpfX has 7 parameters, asked for derivative {k}"),
+        }
+        der
+    }
+
+    /// `T_{oi->o}` (and derivatives) of the digital loop on a grid: the held plant once,
+    /// then the generic operator algebra per point.
+    fn digital_transfer_grid(
+        &self,
+        plant: &HeldPlant,
+        points: &[LpfPoint],
+        p: &[f64],
+        t_out: &mut [CMat<2>],
+        d_out: Option<&mut [CMat<2>]>,
+    ) {
+        let np = self.names.len();
+        match d_out {
+            None => {
+                for (pt, t) in points.iter().zip(t_out.iter_mut()) {
+                    *t = transfer_of(self.digital_operators(pt, p, plant)).oi_o;
+                }
+            }
+            Some(d) => {
+                for (k, (pt, t)) in points.iter().zip(t_out.iter_mut()).enumerate() {
+                    *t = transfer_with_derivatives_of(
+                        self.digital_operators(pt, p, plant),
+                        |j| self.derivative_with(pt, p, j, Some(plant)),
+                        &mut d[k * np..(k + 1) * np],
+                    )
+                    .oi_o;
+                }
+            }
+        }
+    }
+
+    /// The digital loop's characteristic polynomial in `w = z - 1` (ascending powers), whose
+    /// roots `1 + w` are the closed-loop poles in `z`: `det(m Delta_d)` with each column of
+    /// `m Delta_d` multiplied by its controller's denominator (`m = z + 1`, or `z (z + 1)`
+    /// with a computation delay; see `sampled::HeldPlant::polynomial_matrices`). Its degree is
+    /// the loop's state dimension. `None` for a continuous model.
+    pub fn digital_characteristic_polynomial(&self, p: &[f64]) -> Option<Poly> {
+        let dl = self.digital.as_ref()?;
+        let (dm, hm) = self.held_plant(p)?.polynomial_matrices();
+        let (ndf, ddf) = law_polynomials_in_w(&dl.c_df);
+        let (nsus, dsus) = law_polynomials_in_w(&dl.c_sus);
+        let (s21, a_df, a_sus, mt) = (p[S21], p[A_DF], p[A_SUS], self.mt);
+        let entry = |i: usize| {
+            let col1 = dm[i][0]
+                .sub(&dm[i][1].scale(s21))
+                .mul(&ddf)
+                .add(&hm[i][0].mul(&ndf).scale(a_df));
+            let col2 = dm[i][1]
+                .mul(&dsus)
+                .add(&hm[i][0].scale(mt).add(&hm[i][1]).mul(&nsus).scale(a_sus));
+            (col1, col2)
+        };
+        let ((p00, p01), (p10, p11)) = (entry(0), entry(1));
+        Some(p00.mul(&p11).sub(&p01.mul(&p10)))
     }
 }
 
@@ -255,40 +467,29 @@ impl ClosedLoopModel<2> for LpfX {
     }
 
     fn operators(&self, pt: &LpfPoint, p: &[f64]) -> Operators<2> {
-        let z = c(0.0);
-        let one = c(1.0);
-        let mt = self.mt;
-        Operators {
-            d: self.d(pt, p),
-            s: m2(one, z, c(p[S21]), one),
-            ac: m2(
-                pt.c_df * p[A_DF],
-                pt.c_sus * (mt * p[A_SUS]),
-                z,
-                pt.c_sus * p[A_SUS],
-            ),
-            c: m2(pt.c_df, pt.c_sus * mt, z, pt.c_sus),
-            t: m2((-pt.s * p[DT1]).exp(), z, z, (-pt.s * p[DT12]).exp()),
+        match self.held_plant(p) {
+            Some(plant) => self.digital_operators(pt, p, &plant),
+            None => self.operators_with(pt, p, self.d(pt, p), None),
         }
     }
 
     fn derivative(&self, pt: &LpfPoint, p: &[f64], k: usize) -> OperatorDerivative<2> {
-        let z = c(0.0);
-        let mt = self.mt;
-        let mut der = OperatorDerivative::default();
-        match k {
-            W1 => der.d = Some(m2(c(1.0 + 2.0 * mt), c(mt), z, c(1.0))),
-            W12 => der.d = Some(m2(c(mt), c(mt), c(1.0), c(1.0))),
-            S21 => der.s = Some(m2(z, z, c(1.0), z)),
-            A_DF => der.ac = Some(m2(pt.c_df, z, z, z)),
-            A_SUS => der.ac = Some(m2(z, pt.c_sus * mt, z, pt.c_sus)),
-            DT1 => der.t = Some(m2(-pt.s * (-pt.s * p[DT1]).exp(), z, z, z)),
-            DT12 => der.t = Some(m2(z, z, z, -pt.s * (-pt.s * p[DT12]).exp())),
-            _ => panic!("LpfX has 7 parameters, asked for derivative {k}"),
-        }
-        der
+        self.derivative_with(pt, p, k, self.held_plant(p).as_ref())
     }
 
+    /// For a digital model, the poles in `z` mapped to `s = ln(z) / h`.
+    fn poles(&self, p: &[f64]) -> Result<Vec<Complex64>, RootsError> {
+        match (&self.digital, self.digital_characteristic_polynomial(p)) {
+            (Some(dl), Some(poly)) => {
+                Ok(poly.roots()?.into_iter().map(|w| s_of_w(w, dl.h)).collect())
+            }
+            _ => self.characteristic_polynomial(p).roots(),
+        }
+    }
+
+    /// The continuous loop's polynomial (for a digital model too: the effect library's
+    /// stability continuation starts from it; the digital model's own poles are
+    /// [`ClosedLoopModel::poles`]).
     fn characteristic_polynomial(&self, p: &[f64]) -> Poly {
         let (w1, w12, s21, a_df, a_sus, mt, g) = (
             p[W1],
@@ -320,7 +521,10 @@ impl ClosedLoopModel<2> for LpfX {
         t_out: &mut [CMat<2>],
         d_out: Option<&mut [CMat<2>]>,
     ) {
-        self.fast_transfer_grid(points, p, t_out, d_out)
+        match self.held_plant(p) {
+            Some(plant) => self.digital_transfer_grid(&plant, points, p, t_out, d_out),
+            None => self.fast_transfer_grid(points, p, t_out, d_out),
+        }
     }
 
     fn noise_entry(&self, name: &str) -> Option<NoiseEntry<2>> {

@@ -2,9 +2,11 @@
 //! (`closed_loop`), the LPF-x reference model (`lpf_x`) and its TOML description (`spec`).
 
 pub mod closed_loop;
+pub mod discrete;
 pub mod effects;
 pub mod lpf_x;
 pub mod poly;
+pub mod sampled;
 pub mod spec;
 pub mod zpk;
 

@@ -6,6 +6,7 @@ use std::collections::BTreeMap;
 
 use serde::Deserialize;
 
+use super::discrete::{Discretisation, MAX_ORDER};
 use super::zpk::Zpk;
 use super::ModelError;
 
@@ -176,6 +177,9 @@ pub struct ModelSpec {
     pub scenarios: BTreeMap<String, ScenarioSpec>,
     #[serde(default)]
     pub expected_features: Option<ExpectedFeatures>,
+    /// How the control loop runs (optional table; default: continuous model, Tustin, no delay).
+    #[serde(default)]
+    pub control_loop: ControlLoopSpec,
     /// Where the spec came from, for error messages ("embedded lpf_x.toml" or a path).
     #[serde(skip)]
     pub origin: String,
@@ -319,6 +323,7 @@ impl ModelSpec {
                 format!("simulate_hz / analyse_hz must be a positive integer, got {ratio}"),
             ));
         }
+        self.validate_control_loop()?;
         for (name, sc) in &self.scenarios {
             for (which, set) in [("true", &sc.truth), ("guess", &sc.guess)] {
                 for k in set.keys() {
@@ -402,6 +407,66 @@ impl ModelSpec {
     /// Decimation factor from the simulation to the analysis rate.
     pub fn decimation(&self) -> usize {
         (self.sampling.simulate_hz / self.sampling.analyse_hz).round() as usize
+    }
+}
+
+/// Which frequency response the model uses: the thesis's continuous loop, or the sampled-data
+/// loop (discrete controllers at `sampling.simulate_hz`, commands held, continuous plant).
+#[derive(Debug, Clone, Copy, Default, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "snake_case")]
+pub enum LoopKind {
+    #[default]
+    Continuous,
+    Digital,
+}
+
+/// `[control_loop]`: the digital loop that produces the data. The time-domain simulator always
+/// runs it; `kind` selects whether the model's frequency response is that loop's
+/// (`digital`) or the continuous idealisation (`continuous`, the thesis's tables).
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ControlLoopSpec {
+    #[serde(default)]
+    pub kind: LoopKind,
+    /// How C_df and C_sus are discretised at the control rate.
+    #[serde(default)]
+    pub discretisation: Discretisation,
+    /// Time from a readout sample to the start of the hold of the command computed from it,
+    /// in `[0, 1 / simulate_hz)`.
+    #[serde(default)]
+    pub computation_delay_s: f64,
+}
+
+impl ModelSpec {
+    /// Control interval `h = 1 / simulate_hz` of the digital loop.
+    pub fn control_dt(&self) -> f64 {
+        1.0 / self.sampling.simulate_hz
+    }
+
+    fn validate_control_loop(&self) -> Result<(), ModelError> {
+        let tau = self.control_loop.computation_delay_s;
+        let h = self.control_dt();
+        if !(tau.is_finite() && (0.0..h).contains(&tau)) {
+            return Err(self.bad(
+                "control_loop.computation_delay_s",
+                format!("must be in [0, {h}) s (one control interval), got {tau}"),
+            ));
+        }
+        for (name, ctrl) in [
+            ("drag_free", &self.controllers.drag_free),
+            ("suspension", &self.controllers.suspension),
+        ] {
+            if ctrl.poles.len() > MAX_ORDER {
+                return Err(self.bad(
+                    &format!("controllers.{name}.poles"),
+                    format!(
+                        "{} poles: a digital control law runs up to order {MAX_ORDER}",
+                        ctrl.poles.len()
+                    ),
+                ));
+            }
+        }
+        Ok(())
     }
 }
 

@@ -13,6 +13,53 @@ use crate::signal::Design;
 use crate::sim::experiment::Simulator;
 use crate::spectral::Decimator;
 
+/// The simulation-rate grid behind a decimated output of a design: `n_sim` samples spaced
+/// `dt_sim` from `t0 < 0`, so that the `n_out` kept outputs (spacing `dt_out`, the first at
+/// `t = 0`) are decimator outputs `first..first + n_out`, each fully supported.
+#[derive(Debug, Clone)]
+pub struct DecimationGrid {
+    pub decimator: Decimator,
+    pub dt_sim: f64,
+    pub n_sim: usize,
+    pub t0: f64,
+    pub n_out: usize,
+    pub dt_out: f64,
+    /// Index of the first kept decimator output.
+    pub first: usize,
+}
+
+impl DecimationGrid {
+    pub fn new(design: &Design, dt_sim: f64, factor: usize) -> Result<Self, NoiseError> {
+        let decimator = Decimator::new(factor, 1.0 / dt_sim)
+            .map_err(|e| NoiseError::Decimation(e.to_string()))?;
+        let dt_out = dt_sim * factor as f64;
+        let n_out = design.samples(dt_out);
+        // `edge_samples` counts output samples whose filter reaches past an end of the series;
+        // one more on each side keeps every kept sample's support inside the simulated grid.
+        let margin_out = decimator.edge_samples() + 1;
+        Ok(DecimationGrid {
+            decimator,
+            dt_sim,
+            n_sim: (n_out + 2 * margin_out) * factor,
+            t0: -(margin_out as f64) * dt_out,
+            n_out,
+            dt_out,
+            first: margin_out,
+        })
+    }
+
+    /// The kept outputs of decimating a series on this grid.
+    pub fn keep(&self, x: &[f64]) -> Vec<f64> {
+        self.decimator.decimate(x)[self.first..self.first + self.n_out].to_vec()
+    }
+
+    /// Whether every kept output's filter support lies inside the grid.
+    pub fn fully_supported(&self) -> bool {
+        let (offset, valid) = self.decimator.decimate_valid(&vec![0.0; self.n_sim]);
+        offset <= self.first && self.first + self.n_out <= offset + valid.len()
+    }
+}
+
 /// A simulator at `dt_sim` whose output is decimated by `factor`.
 pub struct DecimatedSimulator<const N: usize> {
     pub sim: Simulator<N>,
@@ -20,8 +67,7 @@ pub struct DecimatedSimulator<const N: usize> {
     /// Output samples and spacing.
     pub n_out: usize,
     pub dt_out: f64,
-    /// Index of the first kept decimator output.
-    first: usize,
+    grid: DecimationGrid,
 }
 
 impl<const N: usize> DecimatedSimulator<N> {
@@ -36,37 +82,28 @@ impl<const N: usize> DecimatedSimulator<N> {
         oversample: usize,
         glitch: Option<&crate::model::spec::GlitchSpec>,
     ) -> Result<Self, NoiseError> {
-        let decimator = Decimator::new(factor, 1.0 / dt_sim)
-            .map_err(|e| NoiseError::Decimation(e.to_string()))?;
-        let dt_out = dt_sim * factor as f64;
-        let n_out = design.samples(dt_out);
-        // `edge_samples` counts output samples whose filter reaches past an end of the series;
-        // one more on each side keeps every kept sample's support inside the simulated grid.
-        let margin_out = decimator.edge_samples() + 1;
-        let n_sim = (n_out + 2 * margin_out) * factor;
-        let t0 = -(margin_out as f64) * dt_out;
-        let glitches = glitch.map(|g| GlitchConfig::new(g, n_out));
+        let grid = DecimationGrid::new(design, dt_sim, factor)?;
+        let glitches = glitch.map(|g| GlitchConfig::new(g, grid.n_out));
         let sim = Simulator::on_grid(
-            model, design, truth, psd, dt_sim, t0, n_sim, oversample, glitches,
+            model, design, truth, psd, dt_sim, grid.t0, grid.n_sim, oversample, glitches,
         )?;
         Ok(DecimatedSimulator {
             sim,
-            decimator,
-            n_out,
-            dt_out,
-            first: margin_out,
+            decimator: grid.decimator.clone(),
+            n_out: grid.n_out,
+            dt_out: grid.dt_out,
+            grid,
         })
     }
 
     fn decimate(&self, x: &[f64]) -> Vec<f64> {
-        self.decimator.decimate(x)[self.first..self.first + self.n_out].to_vec()
+        self.grid.keep(x)
     }
 
     /// Whether every kept output sample's filter support lies inside the simulated grid of
     /// `n_sim` samples (no edge transient in the output).
     pub fn fully_supported(&self) -> bool {
-        let (offset, valid) = self.decimator.decimate_valid(&vec![0.0; self.sim.n]);
-        offset <= self.first && self.first + self.n_out <= offset + valid.len()
+        self.grid.fully_supported()
     }
 
     /// One realization of every experiment at the analysis rate.

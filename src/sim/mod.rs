@@ -5,6 +5,7 @@
 pub mod decimated;
 pub mod experiment;
 pub mod rng;
+pub mod time_domain;
 pub mod whitened;
 
 pub use crate::data::Series;
