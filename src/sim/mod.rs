@@ -1,6 +1,7 @@
 //! Simulation of identification experiments (thesis sec. 4.3): templates plus a noise
 //! realization, `o_exp = o_s + o_n`; a noise-only run is produced the same way with zero
-//! injections.
+//! injections. `time_domain` instead steps the digital loop sample by sample (held commands,
+//! discrete controllers, exactly integrated plant), as the spacecraft makes its data.
 
 pub mod decimated;
 pub mod experiment;
