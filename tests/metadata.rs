@@ -64,7 +64,7 @@ fn every_output_table_describes_itself() {
     let tables = outputs(tmp.path());
     assert!(tables.len() >= 9, "{tables:?}");
     for path in &tables {
-        let t = read_parquet(path).unwrap();
+        let t = freefall::io::read_parquet_nulls_as_nan(path).unwrap();
         assert_eq!(
             t.meta.get(VERSION_KEY).map(String::as_str),
             Some(env!("CARGO_PKG_VERSION")),
