@@ -237,7 +237,7 @@ pub fn run(a: AccelArgs) -> Result<()> {
     );
     report_levels(&whole, &terms);
     if !a.no_plots {
-        if let Err(e) = run_plot_script(&a.out, PLOT_SCRIPT, "plot_accel.py") {
+        if let Err(e) = super::run_plot_script(&a.out, PLOT_SCRIPT, "plot_accel.py") {
             info!("note: no accel.png: {e:#}");
         }
     }
@@ -300,34 +300,3 @@ fn budget_rows(f: &[f64], terms: &[accel::BudgetTerm]) -> Result<Table> {
 
 /// The plot script, embedded so that an installed binary plots without the source tree.
 const PLOT_SCRIPT: &str = include_str!("../../scripts/plot_accel.py");
-
-/// Run a plot script with python3 on the output directory `out`: FREEFALL_PLOT_SCRIPT if set,
-/// else `embedded` written to `out/.{name}` for the run and removed after. Shared shape of the
-/// commands that draw their figures (`diagnose` has its own copy of this function).
-pub fn run_plot_script(out: &Path, embedded: &str, name: &str) -> Result<()> {
-    let custom = std::env::var_os("FREEFALL_PLOT_SCRIPT").map(PathBuf::from);
-    let script = match &custom {
-        Some(p) if !p.exists() => bail!("plot script {} not found", p.display()),
-        Some(p) => p.clone(),
-        None => {
-            let p = out.join(format!(".{name}"));
-            std::fs::write(&p, embedded)
-                .with_context(|| format!("cannot write {}", p.display()))?;
-            p
-        }
-    };
-    let o = std::process::Command::new("python3")
-        .arg(&script)
-        .arg(out)
-        .output();
-    if custom.is_none() {
-        let _ = std::fs::remove_file(&script);
-    }
-    let o = o.context("python3 not available")?;
-    if !o.status.success() {
-        let err = String::from_utf8_lossy(&o.stderr);
-        let last = err.lines().last().unwrap_or("").to_string();
-        bail!("the plot script failed: {last}");
-    }
-    Ok(())
-}

@@ -360,37 +360,7 @@ fn write_outputs(
 const PLOT_SCRIPT: &str = include_str!("../../scripts/plot_diagnose.py");
 
 fn plot(out: &Path) -> Result<()> {
-    // FREEFALL_PLOT_SCRIPT overrides the embedded script (for a customised figure).
-    let custom = std::env::var_os("FREEFALL_PLOT_SCRIPT").map(PathBuf::from);
-    let script = match &custom {
-        Some(p) if !p.exists() => bail!("plot script {} not found", p.display()),
-        Some(p) => p.clone(),
-        None => {
-            let p = out.join(".plot_diagnose.py");
-            std::fs::write(&p, PLOT_SCRIPT)
-                .with_context(|| format!("cannot write {}", p.display()))?;
-            p
-        }
-    };
-    let o = std::process::Command::new("python3")
-        .arg(&script)
-        .arg(out)
-        .output();
-    if custom.is_none() {
-        let _ = std::fs::remove_file(&script);
-    }
-    let o = o.context("python3 not available")?;
-    if !o.status.success() {
-        let err = String::from_utf8_lossy(&o.stderr);
-        let last = err.lines().last().unwrap_or("").to_string();
-        let hint = if last.contains("ModuleNotFoundError") {
-            " (install the plotting packages: python3 -m pip install numpy pyarrow matplotlib)"
-        } else {
-            ""
-        };
-        bail!("the plot script failed: {last}{hint}");
-    }
-    Ok(())
+    super::run_plot_script(out, PLOT_SCRIPT, "plot_diagnose.py")
 }
 
 fn simulate(a: &DiagnoseArgs, setup: &crate::setup::Setup, dir: &Path) -> Result<()> {
