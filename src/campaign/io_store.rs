@@ -614,12 +614,9 @@ fn short(h: &str) -> &str {
     &h[..h.len().min(12)]
 }
 
-/// Merge finished shard parts into `out`: the same tables as one unsharded run. Refuses parts
-/// that are unfinished, of another campaign (config hash), of another shard layout, overlapping
-/// or leaving a gap; the error names the part.
-pub fn merge(parts: &[PathBuf], out: &Path) -> Result<Manifest, CampaignError> {
-    let started = now_unix();
-    let clock = Instant::now();
+/// The manifests of finished parts of one campaign (same config hash, shard count, labels,
+/// seed and size), each with its directory; the error names the part at fault.
+fn load_parts(parts: &[PathBuf], out: &Path) -> Result<Vec<(Manifest, PathBuf)>, CampaignError> {
     if parts.is_empty() {
         return Err(store_err(out, "no part directories to merge"));
     }
@@ -678,6 +675,16 @@ pub fn merge(parts: &[PathBuf], out: &Path) -> Result<Manifest, CampaignError> {
         }
         ms.push((m, p.clone()));
     }
+    Ok(ms)
+}
+
+/// Merge finished shard parts into `out`: the same tables as one unsharded run. Refuses parts
+/// that are unfinished, of another campaign (config hash), of another shard layout, overlapping
+/// or leaving a gap; the error names the part.
+pub fn merge(parts: &[PathBuf], out: &Path) -> Result<Manifest, CampaignError> {
+    let started = now_unix();
+    let clock = Instant::now();
+    let mut ms = load_parts(parts, out)?;
     ms.sort_by_key(|(m, _)| (m.range_start, m.shard.index));
     let first = ms[0].0.clone();
     let mut next = 0u64;
