@@ -7,6 +7,7 @@
 //! chapters 3-5 give the equations.
 
 pub mod accel;
+pub mod analysis;
 pub mod campaign;
 pub mod cli;
 pub mod config;

@@ -315,7 +315,17 @@ fn information_equals_inverse_monte_carlo_covariance() {
         .unwrap();
     let design = set.to_design(&study.space, &opt.design, "d-optimal");
     let n = 48;
-    let fits = freefall::design::validate::monte_carlo(&setup, &design, &p, &p, 11, 0, n).unwrap();
+    // Through the campaign runner (design::validate::monte_carlo): realizations 1..=n.
+    let (_, fits) = freefall::design::validate::monte_carlo(
+        &setup,
+        std::slice::from_ref(&design),
+        &p,
+        &p,
+        11,
+        1..n as u64 + 1,
+    )
+    .unwrap();
+    assert!(fits.iter().all(|f| f.converged));
     let info = study.space.information(&design).unwrap();
     let sigma_f = sigmas(&info);
     let np = p.len();

@@ -914,8 +914,9 @@ fn cli_simulates_a_line_and_the_diagnosis_fits_its_frequency() {
     let ds = dir.path().join("ds");
     let out = dir.path().join("out");
     let exe = env!("CARGO_BIN_EXE_freefall");
+    // `freefall simulate --effect` (which `diagnose --simulate-into` is an alias of).
     let bad = std::process::Command::new(exe)
-        .args(["diagnose", ds.to_str().unwrap(), "--simulate-into"])
+        .args(["simulate", "--out", ds.to_str().unwrap()])
         .args(["--effect", "line_o1=1e-10,freq=0.0371"])
         .output()
         .unwrap();
@@ -923,13 +924,7 @@ fn cli_simulates_a_line_and_the_diagnosis_fits_its_frequency() {
     let err = String::from_utf8_lossy(&bad.stderr);
     assert!(err.contains("'freq=0.0371'"), "{err}");
     let st = std::process::Command::new(exe)
-        .args([
-            "diagnose",
-            ds.to_str().unwrap(),
-            "--simulate-into",
-            "--seed",
-            "52",
-        ])
+        .args(["simulate", "--out", ds.to_str().unwrap(), "--seed", "52"])
         .args(["--effect", "line_o1=1e-10,f=0.0371,phase=0.3"])
         .status()
         .unwrap();

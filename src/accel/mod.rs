@@ -20,6 +20,7 @@
 
 pub mod derivative;
 pub mod operator;
+pub mod report;
 pub mod spectra;
 
 pub use derivative::Stencil;

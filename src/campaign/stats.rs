@@ -167,6 +167,22 @@ pub(super) struct Group {
     pub(super) noise_chi2: Moments,
 }
 
+/// Read-only statistics of one group; the parameter statistics hold converged fits only.
+#[derive(Debug, Clone, Copy)]
+pub struct GroupStats<'a> {
+    /// Fits seen, and how many of them failed.
+    pub fits: u64,
+    pub failed: u64,
+    /// Per parameter: the estimates, the fit sigmas and the pulls `(estimate - truth) / sigma`.
+    pub estimate: &'a [Moments],
+    pub sigma: &'a [Moments],
+    pub pull: &'a [Moments],
+    /// Per pair of [`Layout::pairs`]: the fits' own correlation coefficients.
+    pub fisher_corr: &'a [Moments],
+    /// Reduced chi^2 at the estimate.
+    pub chi2: &'a Moments,
+}
+
 /// One-pass aggregates of a campaign (or a shard of it).
 #[derive(Debug, Clone)]
 pub struct Aggregates {
@@ -195,6 +211,20 @@ impl Aggregates {
             groups: vec![g; layout.groups()],
             pairs,
             layout,
+        }
+    }
+
+    /// Statistics of the (scenario, design, estimator) group `(s, d, e)`.
+    pub fn group_stats(&self, s: usize, d: usize, e: usize) -> GroupStats<'_> {
+        let g = &self.groups[self.layout.group(s, d, e)];
+        GroupStats {
+            fits: g.rows,
+            failed: g.failed,
+            estimate: &g.est,
+            sigma: &g.sigma,
+            pull: &g.pull,
+            fisher_corr: &g.fisher_corr,
+            chi2: &g.chi2,
         }
     }
 

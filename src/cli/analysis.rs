@@ -1,24 +1,20 @@
 //! `freefall psd`, `freefall whiten` and `freefall fit`: time series in, spectra, whitened
 //! series and estimates out. Measured and simulated data take the same path.
 
-use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use serde::Serialize;
 
 use super::{ensure_parent, ModelOpt};
-use crate::data::ExperimentData;
-use crate::fit::{fit as run_fit, Estimator, FitConfig, Likelihood, Whitener};
-use crate::io::{
-    read_dataset, read_run, read_toml, write_json_atomic, write_parquet, Dataset, Provenance, Run,
-    Table,
+use crate::analysis::{
+    correlation_table, dataset_whitener, estimates_table, experiment_data, outputs_of, psd_table,
+    residual_table, resolve_guess, truth_from_meta, whitened_table, FitSummary, Whitening,
 };
+use crate::fit::{fit as run_fit, Estimator, FitConfig, Likelihood, Whitener};
+use crate::io::{read_dataset, read_run, write_json_atomic, write_parquet, Provenance};
 use crate::model::check_stability;
-use crate::numerics::stats::moments;
 use crate::setup::{Setup, DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
-use crate::spectral::{welch_csd, WelchConfig};
 
 #[derive(Debug, Args)]
 pub struct PsdArgs {
@@ -31,26 +27,8 @@ pub struct PsdArgs {
 
 pub fn psd(a: PsdArgs) -> Result<()> {
     let run = read_run(&a.run)?;
-    let [o1, o12] = run.outputs();
-    let cs = welch_csd(&[o1, o12], run.dt, &WelchConfig::default())
-        .with_context(|| format!("{}", a.run.display()))?;
-    let s12 = cs.csd(0, 1);
-    let table = Table::new()
-        .with_f64("f", cs.f.clone())?
-        .with_f64("s11", cs.psd(0))?
-        .with_f64("s22", cs.psd(1))?
-        .with_f64("s12_re", s12.iter().map(|z| z.re).collect())?
-        .with_f64("s12_im", s12.iter().map(|z| z.im).collect())?
-        .with_f64("coherence", cs.coherence(0, 1))?
-        .with_units([
-            ("f", "Hz"),
-            ("s11", "m^2/Hz"),
-            ("s22", "m^2/Hz"),
-            ("s12_re", "m^2/Hz"),
-            ("s12_im", "m^2/Hz"),
-            ("coherence", "1"),
-        ])
-        .with_meta_all(&Provenance::new("psd").with_run(&a.run)?.meta);
+    let (table, cs) = psd_table(&run).with_context(|| format!("{}", a.run.display()))?;
+    let table = table.with_meta_all(&Provenance::new("psd").with_run(&a.run)?.meta);
     ensure_parent(&a.out)?;
     write_parquet(&a.out, &table)?;
     info!(
@@ -89,10 +67,6 @@ pub struct WhitenArgs {
     pub out: PathBuf,
 }
 
-fn outputs_of(run: &Run) -> Vec<Vec<f64>> {
-    run.outputs().iter().map(|c| c.to_vec()).collect()
-}
-
 /// Parameters of a scenario's truth, or the nominal ones.
 fn psd_parameters(setup: &Setup, scenario: Option<&str>) -> Result<Vec<f64>> {
     Ok(match scenario {
@@ -127,37 +101,12 @@ pub fn whiten(a: WhitenArgs) -> Result<()> {
             whitener.order()
         );
     }
-    let w = whitener.apply(&outputs_of(&run));
-    let basis = crate::fit::whiten::poly_basis(w[0].len(), a.poly_degree);
+    let (table, moments) = whitened_table(&run, &whitener, a.poly_degree)?;
     let p = whitener.order();
     // Printed once the file is written.
-    let mut report =
-        format!("whitening filter: order {p}, from {source}; first {p} samples dropped\n");
-    report.push_str(&format!(
-        "{:<8} {:<10} {:>22} {:>20} {:>20} {:>20}\n",
-        "channel", "stage", "mean", "sd", "skewness", "excess kurtosis"
-    ));
-    let mut cols = Vec::new();
-    for (c, name) in ["o1", "o12"].iter().enumerate() {
-        let raw = moments(&w[c]);
-        let mut det = w[c].clone();
-        crate::fit::whiten::project_out(&mut det, &basis);
-        let d = moments(&det);
-        for (stage, m) in [("whitened", raw), (&*format!("poly{}", a.poly_degree), d)] {
-            report.push_str(&format!(
-                "{name:<8} {stage:<10} {:>10.4} ± {:<9.4} {:>8.4} ± {:<9.4} {:>8.4} ± {:<9.4} {:>8.4} ± {:<9.4}\n",
-                m.mean, m.mean_err, m.sd, m.sd_err, m.skewness, m.skewness_err, m.excess_kurtosis, m.kurtosis_err
-            ));
-        }
-        cols.push(det);
-    }
-    let t: Vec<f64> = (p..run.len()).map(|i| run.t0 + i as f64 * run.dt).collect();
-    let table = Table::new()
-        .with_f64("t", t)?
-        .with_f64("o1_w", cols[0].clone())?
-        .with_f64("o12_w", cols[1].clone())?
-        .with_units([("t", "s"), ("o1_w", "1"), ("o12_w", "1")])
-        .with_meta_all(&Provenance::new("whiten").with_run(&a.run)?.meta);
+    let report =
+        format!("whitening filter: order {p}, from {source}; first {p} samples dropped\n{moments}");
+    let table = table.with_meta_all(&Provenance::new("whiten").with_run(&a.run)?.meta);
     ensure_parent(&a.out)?;
     write_parquet(&a.out, &table)?;
     out!("{report}");
@@ -183,8 +132,8 @@ pub struct FitArgs {
     pub order: usize,
     /// Where the whitening filter comes from: the dataset's noise run if it has one (auto),
     /// the noise run, or the model's noise PSD at the guess.
-    #[arg(long, value_enum, default_value_t = WhiteningSource::Auto)]
-    pub whitening: WhiteningSource,
+    #[arg(long, value_enum, default_value_t = Whitening::Auto)]
+    pub whitening: Whitening,
     /// Degree of the whitened-domain polynomial nuisance per experiment and channel.
     #[arg(long, default_value_t = DEFAULT_POLY_DEGREE)]
     pub poly_degree: usize,
@@ -194,130 +143,6 @@ pub struct FitArgs {
     /// Fit readouts whose level fails the units check (see `freefall::units`).
     #[arg(long)]
     pub force: bool,
-}
-
-/// The experiments of a dataset as fit input.
-pub fn experiment_data(ds: &Dataset) -> Result<ExperimentData> {
-    let dt = ds.dt().context("dataset has no runs")?;
-    Ok(ExperimentData {
-        names: ds.experiments.iter().map(|(n, _)| n.clone()).collect(),
-        inputs: ds
-            .experiments
-            .iter()
-            .map(|(_, r)| r.inputs().iter().map(|c| c.to_vec()).collect())
-            .collect(),
-        outputs: ds.experiments.iter().map(|(_, r)| outputs_of(r)).collect(),
-        dt,
-    })
-}
-
-/// Resolve `--guess`: scenario name or parameter file.
-pub fn resolve_guess(setup: &Setup, guess: Option<&str>) -> Result<Vec<f64>> {
-    let names = setup.parameter_names();
-    let Some(g) = guess else {
-        return Ok(setup.spec.nominal());
-    };
-    if setup.spec.scenarios.contains_key(g) {
-        return Ok(setup.spec.scenario(g)?.guess);
-    }
-    let path = Path::new(g);
-    if !path.exists() {
-        bail!(
-            "--guess '{g}' is neither a scenario ({}) nor an existing file",
-            setup
-                .spec
-                .scenarios
-                .keys()
-                .cloned()
-                .collect::<Vec<_>>()
-                .join(", ")
-        );
-    }
-    let map: BTreeMap<String, f64> = read_toml(path)?;
-    for k in map.keys() {
-        if !names.contains(k) {
-            bail!(
-                "{}: unknown parameter '{k}' (expected {})",
-                path.display(),
-                names.join(", ")
-            );
-        }
-    }
-    names
-        .iter()
-        .map(|n| {
-            map.get(n)
-                .copied()
-                .with_context(|| format!("{}: missing parameter '{n}'", path.display()))
-        })
-        .collect()
-}
-
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum WhiteningSource {
-    Auto,
-    Noise,
-    Model,
-}
-
-/// Whitening filter for a dataset: from its noise run, else from the model PSD at `p`.
-pub fn dataset_whitener(
-    setup: &Setup,
-    ds: &Dataset,
-    p: &[f64],
-    n: usize,
-    dt: f64,
-    order: usize,
-    source: WhiteningSource,
-) -> Result<(Whitener<2>, String)> {
-    if source == WhiteningSource::Noise && ds.noise.is_none() {
-        bail!("--whitening noise: the dataset has no noise run");
-    }
-    if source == WhiteningSource::Model {
-        return Ok((
-            setup.whitener_from_model(p, n, dt, order)?,
-            "model noise PSD".into(),
-        ));
-    }
-    match &ds.noise {
-        Some(noise) => {
-            let label = noise
-                .path
-                .as_ref()
-                .map(|p| p.display().to_string())
-                .unwrap_or_else(|| "noise run".into());
-            let w = Whitener::<2>::from_series(&outputs_of(noise), order)
-                .with_context(|| label.clone())?;
-            Ok((w, format!("noise run {label}")))
-        }
-        None => Ok((
-            setup.whitener_from_model(p, n, dt, order)?,
-            "model noise PSD (the dataset has no noise run)".into(),
-        )),
-    }
-}
-
-#[derive(Debug, Serialize)]
-struct FitJson {
-    chi2: f64,
-    nu: usize,
-    chi2_reduced: f64,
-    chi2_start_reduced: f64,
-    iterations: usize,
-    evaluations: usize,
-    jacobian_evaluations: usize,
-    termination: &'static str,
-    converged: bool,
-    /// Why the result should not be trusted even if converged (see
-    /// [`crate::fit::chi2_excess_warning`]).
-    warnings: Vec<String>,
-    seconds: f64,
-    estimator: String,
-    whitening: String,
-    whitening_order: usize,
-    poly_degree: usize,
-    /// Version, model and dataset hashes (the same keys as the tables' metadata).
-    provenance: BTreeMap<String, String>,
 }
 
 pub fn fit(a: FitArgs) -> Result<()> {
@@ -342,7 +167,7 @@ pub fn fit(a: FitArgs) -> Result<()> {
         a.order,
         a.whitening,
     )?;
-    if ds.noise.is_none() && a.whitening == WhiteningSource::Auto {
+    if ds.noise.is_none() && a.whitening == Whitening::Auto {
         info!("note: whitening from the {source}");
     }
     let lik = Likelihood::new(&setup.model, &data.inputs, data.dt, whitener, a.poly_degree)
@@ -352,148 +177,44 @@ pub fn fit(a: FitArgs) -> Result<()> {
     cfg.estimator = a.estimator;
     let res = run_fit(&setup.model, &problem, &guess, &cfg)?;
     let names = setup.parameter_names();
-
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("cannot create output directory '{}'", a.out.display()))?;
     let prov = Provenance::new("fit")
         .with_model(&setup.spec)
         .with_dataset(&ds)?;
-    let est = Table::new()
-        .with_str("parameter", names.clone())?
-        .with_f64("estimate", res.estimate.clone())?
-        .with_f64("sigma", res.sigma.clone())?
-        .with_f64("guess", guess.clone())?
-        .with_str("unit", setup.parameter_units())?
-        .with_meta_all(&prov.meta)
-        .with_meta(
-            "freefall.units_note",
-            "estimate, sigma and guess are in the row's unit",
-        );
-    write_parquet(a.out.join("estimates.parquet"), &est)?;
+    let est = estimates_table(&names, setup.parameter_units(), &res, &guess)?;
+    write_parquet(
+        a.out.join("estimates.parquet"),
+        &est.with_meta_all(&prov.meta),
+    )?;
     write_parquet(
         a.out.join("correlation.parquet"),
-        &super::correlation_table(&names, |i, j| res.correlation[(i, j)])?
-            .with_meta_all(&prov.meta),
+        &correlation_table(&names, |i, j| res.correlation[(i, j)])?.with_meta_all(&prov.meta),
     )?;
     let t0: Vec<f64> = ds.experiments.iter().map(|(_, r)| r.t0).collect();
+    let raw = problem.raw_residuals(&data, &res.estimate);
+    let residuals = residual_table(
+        &data.names,
+        &t0,
+        data.dt,
+        &raw,
+        &res.residuals_w,
+        problem.lik.order(),
+    )?;
     write_parquet(
         a.out.join("residuals.parquet"),
-        &residual_table(&problem, &data, &t0, &res.estimate, &res.residuals_w)?
-            .with_meta_all(&prov.meta),
+        &residuals.with_meta_all(&prov.meta),
     )?;
-    let json = FitJson {
-        chi2: res.chi2,
-        nu: res.nu,
-        chi2_reduced: res.chi2_reduced,
-        chi2_start_reduced: res.chi2_start / res.nu as f64,
-        iterations: res.iterations,
-        evaluations: res.evaluations,
-        jacobian_evaluations: res.jacobian_evaluations,
-        termination: res.termination.as_str(),
-        converged: res.termination.converged(),
-        warnings: crate::fit::chi2_excess_warning(res.chi2_reduced, res.nu)
-            .into_iter()
-            .collect(),
-        seconds: res.seconds,
-        estimator: a.estimator.to_string(),
-        whitening: source,
-        whitening_order: a.order,
-        poly_degree: a.poly_degree,
-        provenance: prov.meta.clone(),
-    };
-    write_json_atomic(a.out.join("fit.json"), &json)?;
-
+    let summary = FitSummary::new(&res, a.estimator, source, a.order, a.poly_degree, prov.meta);
+    write_json_atomic(a.out.join("fit.json"), &summary)?;
     let truth = truth_from_meta(&ds, &names);
-    outln!(
-        "chi2/nu = {:.4} (nu = {}), from {:.4e} at the guess; {} iterations, {} ({:.2} s)",
-        res.chi2_reduced,
-        res.nu,
-        json.chi2_start_reduced,
-        res.iterations,
-        res.termination.as_str(),
-        res.seconds
-    );
-    out!(
-        "{:<8} {:>16} {:>12} {:>16}",
-        "param",
-        "estimate",
-        "sigma",
-        "guess"
-    );
-    if truth.is_some() {
-        out!(" {:>16} {:>9}", "truth", "pull");
-    }
-    outln!();
-    for k in 0..names.len() {
-        out!(
-            "{:<8} {:>16.8e} {:>12.3e} {:>16.6e}",
-            names[k],
-            res.estimate[k],
-            res.sigma[k],
-            guess[k]
-        );
-        if let Some(t) = &truth {
-            out!(
-                " {:>16.8e} {:>9.2}",
-                t[k],
-                (res.estimate[k] - t[k]) / res.sigma[k]
-            );
-        }
-        outln!();
-    }
+    out!("{}", summary.text(&names, &res, &guess, truth.as_deref()));
     info!("wrote {}", a.out.display());
-    for w in &json.warnings {
+    for w in &summary.warnings {
         eprintln!("warning: {w}");
     }
-    if !res.termination.converged() {
-        bail!("the fit did not converge: {}", res.termination.as_str());
+    if !summary.converged {
+        bail!("the fit did not converge: {}", summary.termination);
     }
     Ok(())
-}
-
-/// `[meta.truth]` of a simulated dataset, if complete.
-pub fn truth_from_meta(ds: &Dataset, names: &[String]) -> Option<Vec<f64>> {
-    let t = ds.meta.get("truth")?.as_table()?;
-    names
-        .iter()
-        .map(|n| t.get(n).and_then(|v| v.as_float()))
-        .collect()
-}
-
-/// Long-format residual table: experiment, channel, t (from each experiment's own start `t0`),
-/// raw, whitened (null where the whitening filter has not started).
-pub fn residual_table<M: crate::model::ClosedLoopModel<2>>(
-    problem: &crate::fit::Problem<'_, '_, M, 2>,
-    data: &ExperimentData,
-    t0: &[f64],
-    p: &[f64],
-    whitened: &crate::sim::Series,
-) -> Result<Table> {
-    let raw = problem.raw_residuals(data, p);
-    let order = problem.lik.order();
-    let (mut exp, mut ch, mut t, mut r, mut w) =
-        (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
-    for (e, name) in data.names.iter().enumerate() {
-        for (c, cname) in ["o1", "o12"].iter().enumerate() {
-            for i in 0..data.len() {
-                exp.push(name.clone());
-                ch.push(cname.to_string());
-                t.push(t0.get(e).copied().unwrap_or(0.0) + i as f64 * data.dt);
-                r.push(raw[e][c][i]);
-                w.push(if i >= order {
-                    whitened[e][c][i - order]
-                } else {
-                    f64::NAN
-                });
-            }
-        }
-    }
-    Ok(Table::new()
-        .with_str("experiment", exp)?
-        .with_str("channel", ch)?
-        .with_f64("t", t)?
-        .with_f64("raw", r)?
-        .with_f64("whitened", w)?
-        .with_units([("t", "s"), ("raw", "m"), ("whitened", "1")])
-        .with_nan_as_null("whitened"))
 }

@@ -303,20 +303,6 @@ pub fn ensure_parent(path: &std::path::Path) -> Result<()> {
     Ok(())
 }
 
-/// Long-format correlation table `parameter_i, parameter_j, corr` of a square matrix.
-pub fn correlation_table(
-    names: &[String],
-    corr: impl Fn(usize, usize) -> f64,
-) -> Result<crate::io::Table> {
-    let n = names.len();
-    let pairs = || (0..n).flat_map(|i| (0..n).map(move |j| (i, j)));
-    Ok(crate::io::Table::new()
-        .with_str("parameter_i", pairs().map(|(i, _)| names[i].clone()))?
-        .with_str("parameter_j", pairs().map(|(_, j)| names[j].clone()))?
-        .with_f64("corr", pairs().map(|(i, j)| corr(i, j)).collect())?
-        .with_unit("corr", "1"))
-}
-
 /// Run a plot script with python3 on the output directory `out`: FREEFALL_PLOT_SCRIPT if set,
 /// else `embedded` written to `out/.{name}` for the run and removed after. Shared by the
 /// commands that draw their figures (`diagnose`, `accel`).

@@ -6,10 +6,9 @@ use anyhow::{bail, Context, Result};
 use clap::{Args, Subcommand};
 
 use super::{ensure_parent, ModelOpt};
-use crate::io::{write_parquet, Provenance, Table};
-use crate::model::lpf_x::THESIS_SIGMA;
-use crate::model::{check_stability, transfer, ClosedLoopModel};
-use crate::setup::design_fisher;
+use crate::analysis::model_tables::{fisher_errors, log_grid, noise_table, transfer_table};
+use crate::io::{write_parquet, Provenance};
+use crate::model::check_stability;
 use crate::setup::Setup;
 
 #[derive(Debug, Subcommand)]
@@ -75,23 +74,10 @@ fn parameters(setup: &Setup, scenario: Option<&str>) -> Result<Vec<f64>> {
     Ok(p)
 }
 
-/// Log-spaced grid with checked bounds.
-pub fn log_grid(fmin: f64, fmax: f64, points: usize) -> Result<Vec<f64>> {
-    if !(fmin.is_finite() && fmax.is_finite() && fmin > 0.0 && fmax > fmin) {
-        bail!("bad frequency range: need 0 < --fmin < --fmax, got fmin={fmin}, fmax={fmax}");
-    }
-    if points < 2 {
-        bail!("--points must be at least 2, got {points}");
-    }
-    Ok((0..points)
-        .map(|i| fmin * (fmax / fmin).powf(i as f64 / (points - 1) as f64))
-        .collect())
-}
-
 fn grid_table(a: GridArgs, noise: bool) -> Result<()> {
     let setup = a.model.setup()?;
     let p = parameters(&setup, a.scenario.as_deref())?;
-    let f = log_grid(a.fmin, a.fmax, a.points)?;
+    let f = log_grid(a.fmin, a.fmax, a.points).map_err(anyhow::Error::msg)?;
     let nyquist = 0.5 * setup.spec.sampling.simulate_hz;
     if a.fmax > nyquist {
         bail!(
@@ -99,57 +85,14 @@ fn grid_table(a: GridArgs, noise: bool) -> Result<()> {
             a.fmax
         );
     }
-    let mut table = Table::new().with_f64("f", f.clone())?;
-    if noise {
-        let s: Vec<_> = f
-            .iter()
-            .map(|&x| setup.noise.readout_csd(&setup.model, x, &p))
-            .collect();
-        table = table
-            .with_f64("s11", s.iter().map(|m| m[(0, 0)].re).collect())?
-            .with_f64("s22", s.iter().map(|m| m[(1, 1)].re).collect())?
-            .with_f64("s12_re", s.iter().map(|m| m[(0, 1)].re).collect())?
-            .with_f64("s12_im", s.iter().map(|m| m[(0, 1)].im).collect())?;
+    let (table, command) = if noise {
+        (noise_table(&setup, &p, &f)?, "model noise")
     } else {
-        let t: Vec<_> = f
-            .iter()
-            .map(|&x| transfer(&setup.model, &setup.model.prepare(x), &p).oi_o)
-            .collect();
-        for (name, o, i) in [("t11", 0, 0), ("t12", 0, 1), ("t21", 1, 0), ("t22", 1, 1)] {
-            table = table
-                .with_f64(
-                    format!("{name}_re"),
-                    t.iter().map(|m| m[(o, i)].re).collect(),
-                )?
-                .with_f64(
-                    format!("{name}_im"),
-                    t.iter().map(|m| m[(o, i)].im).collect(),
-                )?;
-        }
-    }
-    let units: Vec<(String, &str)> = table
-        .names()
-        .iter()
-        .map(|n| {
-            let u = match *n {
-                "f" => "Hz",
-                _ if noise => "m^2/Hz",
-                _ => "1",
-            };
-            (n.to_string(), u)
-        })
-        .collect();
-    let table = table.with_units(units).with_meta_all(
-        &Provenance::new(if noise {
-            "model noise"
-        } else {
-            "model transfer"
-        })
-        .with_model(&setup.spec)
-        .meta,
-    );
+        (transfer_table(&setup, &p, &f)?, "model transfer")
+    };
+    let prov = Provenance::new(command).with_model(&setup.spec);
     ensure_parent(&a.out)?;
-    write_parquet(&a.out, &table)?;
+    write_parquet(&a.out, &table.with_meta_all(&prov.meta))?;
     info!("wrote {} ({} frequencies)", a.out.display(), f.len());
     Ok(())
 }
@@ -158,22 +101,9 @@ fn fisher(a: FisherArgs) -> Result<()> {
     let setup = a.model.setup()?;
     let p = parameters(&setup, Some(&a.scenario))?;
     let design = setup.design(&a.design)?;
-    let info = design_fisher(&setup, &design, &p);
-    let cov = info
-        .clone()
-        .try_inverse()
+    let fe = fisher_errors(&setup, &design, &p)?
         .context("Fisher information is singular: the design cannot constrain every parameter")?;
-    let names = setup.parameter_names();
-    let sigma: Vec<f64> = (0..names.len()).map(|k| cov[(k, k)].sqrt()).collect();
     let prov = Provenance::new("model fisher").with_model(&setup.spec);
-    let table = Table::new()
-        .with_str("parameter", names.clone())?
-        .with_f64("value", p.clone())?
-        .with_f64("sigma", sigma.clone())?
-        .with_str("unit", setup.parameter_units())?
-        .with_meta_all(&prov.meta);
-    let corr_table = super::correlation_table(&names, |i, j| cov[(i, j)] / (sigma[i] * sigma[j]))?
-        .with_meta_all(&prov.meta);
     ensure_parent(&a.out)?;
     let stem = a
         .out
@@ -181,29 +111,9 @@ fn fisher(a: FisherArgs) -> Result<()> {
         .map(|s| s.to_string_lossy().to_string())
         .unwrap_or_else(|| "fisher".into());
     let corr_path = a.out.with_file_name(format!("{stem}_corr.parquet"));
-    write_parquet(&a.out, &table)?;
-    write_parquet(&corr_path, &corr_table)?;
-    outln!(
-        "{:<8} {:>14} {:>12} {:>12} {:>7}",
-        "param",
-        "value",
-        "sigma",
-        "thesis",
-        "ratio"
-    );
-    for (k, n) in names.iter().enumerate() {
-        let thesis = THESIS_SIGMA.iter().find(|(t, _)| t == n).map(|(_, v)| *v);
-        match thesis {
-            Some(t) => outln!(
-                "{n:<8} {:>14.6e} {:>12.3e} {:>12.1e} {:>7.2}",
-                p[k],
-                sigma[k],
-                t,
-                sigma[k] / t
-            ),
-            None => outln!("{n:<8} {:>14.6e} {:>12.3e}", p[k], sigma[k]),
-        }
-    }
+    write_parquet(&a.out, &fe.table.with_meta_all(&prov.meta))?;
+    write_parquet(&corr_path, &fe.correlation.with_meta_all(&prov.meta))?;
+    out!("{}", fe.text);
     info!("wrote {} and {}", a.out.display(), corr_path.display());
     Ok(())
 }

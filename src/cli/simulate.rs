@@ -2,12 +2,14 @@
 
 use std::path::PathBuf;
 
-use anyhow::Result;
+use anyhow::{bail, Result};
 use clap::{Args, ValueEnum};
 
 use super::ModelOpt;
 use crate::data::ExperimentData;
-use crate::io::{write_dataset, Dataset, Run};
+use crate::diagnose::inject::EffectSet;
+use crate::diagnose::simulate_effect_set;
+use crate::io::{write_dataset, Dataset};
 use crate::model::check_stability;
 use crate::setup::Setup;
 use crate::sim::rng::stream;
@@ -52,9 +54,9 @@ pub struct SimulateArgs {
     /// Seed: the experiments use random stream (seed, 0), the noise run stream (seed, 1).
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
-    /// Simulation path.
-    #[arg(long, value_enum, default_value_t = Rate::Decimated)]
-    pub rate: Rate,
+    /// Simulation path (default: decimated; analysis with --effect).
+    #[arg(long, value_enum)]
+    pub rate: Option<Rate>,
     /// Simulation engine.
     #[arg(long, value_enum, default_value_t = Engine::FrequencyDomain)]
     pub engine: Engine,
@@ -67,41 +69,23 @@ pub struct SimulateArgs {
     /// characterises noise on runs of 12 to 28 hours, longer than the 3-hour experiments).
     #[arg(long)]
     pub noise_duration: Option<f64>,
+    /// An effect the nominal model lacks, switched on in the truth (repeatable; simulated at
+    /// the analysis rate with the frequency-domain engine). Forms:
+    /// `EFFECT=VALUE` for a library effect (`freefall diagnose --list-effects`), e.g.
+    /// loss_angle_tm2=0.01;
+    /// `drift_PARAMETER=D[,d2=D2]` drifts a base parameter by D over each run, linearly, plus
+    /// D2 (u^2 - 1/12) with u = (t - T/2)/T when d2 is given;
+    /// `glitch_ENTRY=AMP,t0=S[,tau=S][,exp=NAME]` adds a Gaussian pulse of width tau (default
+    /// 1 s) at t0 (s from the run start) entering the loop at ENTRY = tm1, tm2, sc (force: AMP is
+    /// the velocity kick in m/s) or o1, o12 (readout transient: AMP is its peak in m), in the
+    /// first experiment unless exp is given, e.g. glitch_tm2=3e-12,t0=4000;
+    /// `line_CHANNEL=AMP,f=HZ[,phase=RAD][,exp=NAME]` adds AMP sin(2 pi f t + phase) (m) to
+    /// readout o1 or o12 of every experiment unless exp is given, e.g. line_o1=1e-10,f=0.0371.
+    #[arg(long = "effect", value_name = "NAME=VALUE[,KEY=VALUE...]")]
+    pub effects: Vec<String>,
     /// Output directory (created).
     #[arg(long)]
     pub out: PathBuf,
-}
-
-/// A run from N input and N output series at spacing dt.
-pub fn make_run(inputs: &[Vec<f64>], outputs: &[Vec<f64>], dt: f64) -> Result<Run> {
-    let cols = vec![
-        ("oi1".to_string(), inputs[0].clone()),
-        ("oi12".to_string(), inputs[1].clone()),
-        ("o1".to_string(), outputs[0].clone()),
-        ("o12".to_string(), outputs[1].clone()),
-    ];
-    Ok(Run::new(0.0, dt, cols)?)
-}
-
-/// Write experiments plus a noise run as a dataset, with metadata.
-pub fn write_simulated(
-    dir: &std::path::Path,
-    data: &ExperimentData,
-    noise: &[Vec<f64>],
-    meta: toml::Table,
-) -> Result<PathBuf> {
-    let mut exps = Vec::new();
-    for (e, name) in data.names.iter().enumerate() {
-        exps.push((
-            name.clone(),
-            make_run(&data.inputs[e], &data.outputs[e], data.dt)?,
-        ));
-    }
-    let zeros = vec![vec![0.0; noise[0].len()]; 2];
-    let ds = Dataset::new(exps)?
-        .with_noise(make_run(&zeros, noise, data.dt)?)?
-        .with_meta(meta);
-    Ok(write_dataset(dir, &ds)?)
 }
 
 pub fn run(a: SimulateArgs) -> Result<()> {
@@ -111,9 +95,7 @@ pub fn run(a: SimulateArgs) -> Result<()> {
     let design = setup.design(&a.design)?;
     let noise_duration = a.noise_duration.unwrap_or(4.0 * design.duration_s);
     if !(noise_duration.is_finite() && noise_duration > 0.0) {
-        anyhow::bail!(
-            "--noise-duration must be a positive number of seconds, got {noise_duration}"
-        );
+        bail!("--noise-duration must be a positive number of seconds, got {noise_duration}");
     }
     let noise_design = crate::signal::Design {
         duration_s: noise_duration,
@@ -123,17 +105,37 @@ pub fn run(a: SimulateArgs) -> Result<()> {
         }],
         ..design.clone()
     };
-    if a.engine == Engine::TimeDomain && a.rate == Rate::Analysis {
-        anyhow::bail!(
+    let default_rate = if a.effects.is_empty() {
+        Rate::Decimated
+    } else {
+        Rate::Analysis
+    };
+    let rate = a.rate.unwrap_or(default_rate);
+    if a.engine == Engine::TimeDomain && rate == Rate::Analysis {
+        bail!(
             "--rate analysis is for the frequency-domain engine; the time-domain engine steps \
              the loop at simulate_hz and decimates"
         );
     }
     if a.engine == Engine::FrequencyDomain && a.initial.is_some() {
-        anyhow::bail!("--initial needs --engine time-domain");
+        bail!("--initial needs --engine time-domain");
+    }
+    if !a.effects.is_empty() && (a.engine, rate) != (Engine::FrequencyDomain, Rate::Analysis) {
+        bail!("--effect simulates with the frequency-domain engine at the analysis rate (--rate analysis)");
     }
     let glitch = sc.glitch.as_ref();
-    let (data, noise) = match (a.engine, a.rate) {
+    let effects =
+        EffectSet::parse(&a.effects, &setup.parameter_names()).map_err(anyhow::Error::msg)?;
+    let (data, noise) = match (a.engine, rate) {
+        _ if !effects.is_empty() => simulate_effect_set(
+            &setup,
+            &design,
+            Some(&noise_design),
+            &sc.truth,
+            &effects,
+            glitch,
+            a.seed,
+        )?,
         (Engine::TimeDomain, _) => {
             let sim = setup.time_domain_simulator(&design, &sc.truth, glitch, a.initial)?;
             let nsim = setup.time_domain_simulator(&noise_design, &sc.truth, glitch, a.initial)?;
@@ -150,7 +152,63 @@ pub fn run(a: SimulateArgs) -> Result<()> {
             draw_all(|r| sim.draw(r), |r| nsim.noise_series(r), a.seed)
         }
     };
-    let mut meta = simulation_meta(&setup, &a.scenario, &a.design, a.seed, &sc.truth, a.rate);
+    let mut meta = simulation_meta(&setup, &a, &sc, rate);
+    if !effects.is_empty() {
+        meta.insert("effects".into(), toml::Value::Table(effects.meta));
+    }
+    let path = write_dataset(&a.out, &Dataset::simulated(&data, &noise, meta)?)?;
+    info!(
+        "wrote {} ({} experiments of {} samples at {} Hz, plus a noise run)",
+        path.display(),
+        data.names.len(),
+        data.len(),
+        1.0 / data.dt
+    );
+    Ok(())
+}
+
+/// All experiments from stream (seed, 0), the noise run from stream (seed, 1).
+fn draw_all(
+    draw: impl Fn(&mut rand_xoshiro::Xoshiro256PlusPlus) -> ExperimentData,
+    noise: impl Fn(&mut rand_xoshiro::Xoshiro256PlusPlus) -> Vec<Vec<f64>>,
+    seed: u64,
+) -> (ExperimentData, Vec<Vec<f64>>) {
+    (draw(&mut stream(seed, 0)), noise(&mut stream(seed, 1)))
+}
+
+/// `[meta]` of a simulated dataset: generator, model, scenario (and its glitch population),
+/// design, seed, rate, engine, initial conditions and the truth.
+fn simulation_meta(
+    setup: &Setup,
+    a: &SimulateArgs,
+    sc: &crate::model::spec::Scenario,
+    rate: Rate,
+) -> toml::Table {
+    let mut meta = toml::Table::new();
+    meta.insert(
+        "generator".into(),
+        format!("freefall {}", env!("CARGO_PKG_VERSION")).into(),
+    );
+    meta.insert("model".into(), setup.spec.origin.clone().into());
+    meta.insert("scenario".into(), a.scenario.clone().into());
+    if let Some(g) = &sc.glitch {
+        // The scenario's random sine-Gaussian glitches (thesis sec. 4.5.7) are in the data.
+        meta.insert(
+            "scenario_glitches".into(),
+            format!(
+                "sine-Gaussian, {} of samples start one, f0 {:?} Hz, tau {:?} s, amplitude {:?} sigma of the white driving noise",
+                g.fraction, g.f0_hz, g.tau_s, g.amplitude_sigma
+            )
+            .into(),
+        );
+    }
+    meta.insert("design".into(), a.design.clone().into());
+    meta.insert("seed".into(), toml::Value::Integer(a.seed as i64));
+    let rate = match rate {
+        Rate::Decimated => "decimated",
+        Rate::Analysis => "analysis",
+    };
+    meta.insert("rate".into(), rate.into());
     meta.insert("engine".into(), a.engine.as_str().into());
     if a.engine == Engine::TimeDomain {
         let cl = &setup.spec.control_loop;
@@ -172,54 +230,8 @@ pub fn run(a: SimulateArgs) -> Result<()> {
         }
         meta.insert("initial".into(), toml::Value::Table(t));
     }
-    let path = write_simulated(&a.out, &data, &noise, meta)?;
-    info!(
-        "wrote {} ({} experiments of {} samples at {} Hz, plus a noise run)",
-        path.display(),
-        data.names.len(),
-        data.len(),
-        1.0 / data.dt
-    );
-    Ok(())
-}
-
-/// All experiments from stream (seed, 0), the noise run from stream (seed, 1).
-fn draw_all(
-    draw: impl Fn(&mut rand_xoshiro::Xoshiro256PlusPlus) -> ExperimentData,
-    noise: impl Fn(&mut rand_xoshiro::Xoshiro256PlusPlus) -> Vec<Vec<f64>>,
-    seed: u64,
-) -> (ExperimentData, Vec<Vec<f64>>) {
-    (draw(&mut stream(seed, 0)), noise(&mut stream(seed, 1)))
-}
-
-fn simulation_meta(
-    setup: &Setup,
-    scenario: &str,
-    design: &str,
-    seed: u64,
-    truth: &[f64],
-    rate: Rate,
-) -> toml::Table {
-    let mut meta = toml::Table::new();
-    meta.insert(
-        "generator".into(),
-        format!("freefall {}", env!("CARGO_PKG_VERSION")).into(),
-    );
-    meta.insert("model".into(), setup.spec.origin.clone().into());
-    meta.insert("scenario".into(), scenario.into());
-    meta.insert("design".into(), design.into());
-    meta.insert("seed".into(), toml::Value::Integer(seed as i64));
-    meta.insert(
-        "rate".into(),
-        (if rate == Rate::Decimated {
-            "decimated"
-        } else {
-            "analysis"
-        })
-        .into(),
-    );
     let mut t = toml::Table::new();
-    for (n, v) in setup.parameter_names().iter().zip(truth) {
+    for (n, v) in setup.parameter_names().iter().zip(&sc.truth) {
         t.insert(n.clone(), toml::Value::Float(*v));
     }
     meta.insert("truth".into(), toml::Value::Table(t));

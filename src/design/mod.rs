@@ -30,6 +30,7 @@
 //! every constraint.
 
 pub mod criteria;
+pub mod report;
 pub mod search;
 pub mod space;
 pub mod validate;
@@ -62,8 +63,19 @@ pub enum DesignError {
     Constraint(Box<Violation>),
     #[error("design '{design}': {reason}")]
     Invalid { design: String, reason: String },
+    /// A setting with a bad value (criterion, scaling, target parameter).
     #[error("{0}")]
     Config(String),
+    /// A key of a settings file with a bad value.
+    #[error("{}: key '{key}': {reason}", file.display())]
+    Key {
+        file: std::path::PathBuf,
+        key: String,
+        reason: String,
+    },
+    /// Step 1 of the validation (the preliminary fit) did not converge.
+    #[error("the preliminary fit of the standard design did not converge ({0})")]
+    Preliminary(String),
     #[error(
         "the information matrix is singular: the design cannot constrain every parameter ({0})"
     )]
@@ -72,4 +84,10 @@ pub enum DesignError {
     Signal(#[from] crate::signal::SignalError),
     #[error(transparent)]
     Model(#[from] crate::model::ModelError),
+    #[error(transparent)]
+    Setup(#[from] crate::setup::Error),
+    #[error(transparent)]
+    Campaign(#[from] crate::campaign::CampaignError),
+    #[error(transparent)]
+    Io(#[from] crate::io::IoError),
 }

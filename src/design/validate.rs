@@ -1,10 +1,13 @@
 //! The thesis's four-step validation of optimal designs (ch. 5, sec. "Multi-experiment,
 //! single-input"): (1) fit the standard experiments on one simulated realization; (2) optimise
 //! the criteria around those estimates; (3) Monte Carlo fits with each design; (4) fit sigmas,
-//! biases in sigma units and correlations against the standard design. No I/O here: the CLI
-//! writes the tables.
+//! biases in sigma units and correlations against the standard design. The Monte Carlo fits
+//! run through [`crate::campaign::runner::Runner`], so a validation and a campaign of the same
+//! designs are the same fits; [`super::report`] writes the tables.
 
-use rayon::prelude::*;
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
 
 use super::criteria::{
     default_target_names, spd_inverse, Criterion, CriterionValues, Evaluation, Scaling, Target,
@@ -12,15 +15,13 @@ use super::criteria::{
 use super::search::{optimize, OptimizeConfig, Optimized};
 use super::space::{CandidateSet, DesignSpace, ExactDesign, Layout};
 use super::DesignError;
-use crate::fit::{fit, FitConfig, Likelihood};
+use crate::campaign::runner::Runner;
+use crate::campaign::spec::{Campaign, FitOptions, Outputs, WhitenAt};
+use crate::campaign::stats::{Aggregates, Layout as RowLayout, Row};
+use crate::fit::{Estimator, FitConfig};
+use crate::model::spec::Scenario;
 use crate::setup::{Setup, DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 use crate::signal::Design;
-use crate::sim::rng::stream;
-
-/// Random streams of design `k`'s Monte Carlo start at `DESIGN_STREAM_STRIDE * (k + 1)`: one
-/// stream per realization, so designs never share a stream while a study has fewer than this
-/// many realizations per design (validation refuses more).
-pub const DESIGN_STREAM_STRIDE: u64 = 1_000_000;
 
 /// Everything a design study needs at one parameter point.
 #[derive(Debug, Clone)]
@@ -127,28 +128,90 @@ impl Study {
     }
 }
 
-/// Settings of the validation campaign (`campaigns/optimal_design.toml`).
+/// Settings of the validation campaign (`[design_validation]` of a campaign file, e.g.
+/// `campaigns/optimal_design.toml`).
 #[derive(Debug, Clone)]
 pub struct ValidationConfig {
+    /// The file the settings came from (named in messages).
+    pub file: PathBuf,
     pub scenario: String,
     pub seed: u64,
+    /// Monte Carlo fits per design (realizations `1..=realizations` of the seed's streams;
+    /// realization 0 is the preliminary fit of step 1).
     pub realizations: usize,
     pub criteria: Vec<Criterion>,
     pub simultaneous_criteria: Vec<Criterion>,
     pub scaling: Scaling,
     pub parameters: Option<Vec<String>>,
+    /// Output folder (the file's `out`, resolved as given).
+    pub out: PathBuf,
 }
 
-/// One fit of one realization.
-#[derive(Debug, Clone)]
-pub struct FitRow {
-    pub realization: usize,
-    pub estimate: Vec<f64>,
-    pub sigma: Vec<f64>,
-    pub correlation: Vec<f64>,
-    pub chi2_reduced: f64,
-    pub iterations: usize,
-    pub converged: bool,
+/// `[design_validation]` of a campaign file, as written.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ValidationFile {
+    design_validation: ValidationSpec,
+}
+
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ValidationSpec {
+    scenario: String,
+    seed: u64,
+    realizations: usize,
+    criteria: Vec<String>,
+    #[serde(default)]
+    simultaneous_criteria: Vec<String>,
+    #[serde(default)]
+    scaling: Option<String>,
+    parameters: Option<Vec<String>>,
+    out: PathBuf,
+}
+
+/// Fewest Monte Carlo fits per design: a standard deviation needs two.
+pub const MIN_VALIDATION_REALIZATIONS: usize = 2;
+
+impl ValidationConfig {
+    /// Read and check `[design_validation]` of `file`; `realizations` overrides the file's.
+    pub fn from_file(file: &Path, realizations: Option<usize>) -> Result<Self, DesignError> {
+        let spec = crate::io::read_toml::<ValidationFile>(file)?.design_validation;
+        let bad = |key: &str, reason: String| DesignError::Key {
+            file: file.to_path_buf(),
+            key: format!("design_validation.{key}"),
+            reason,
+        };
+        let parse_list = |key: &str, v: &[String]| -> Result<Vec<Criterion>, DesignError> {
+            v.iter()
+                .map(|n| Criterion::from_name(n).map_err(|e| bad(key, e.to_string())))
+                .collect()
+        };
+        let realizations = realizations.unwrap_or(spec.realizations);
+        if realizations < MIN_VALIDATION_REALIZATIONS {
+            return Err(bad(
+                "realizations",
+                format!("must be at least {MIN_VALIDATION_REALIZATIONS}, got {realizations}"),
+            ));
+        }
+        let scaling = match &spec.scaling {
+            None => Scaling::Standard,
+            Some(s) => Scaling::parse(s).map_err(|e| bad("scaling", e.to_string()))?,
+        };
+        Ok(ValidationConfig {
+            file: file.to_path_buf(),
+            scenario: spec.scenario,
+            seed: spec.seed,
+            realizations,
+            criteria: parse_list("criteria", &spec.criteria)?,
+            simultaneous_criteria: parse_list(
+                "simultaneous_criteria",
+                &spec.simultaneous_criteria,
+            )?,
+            scaling,
+            parameters: spec.parameters,
+            out: spec.out,
+        })
+    }
 }
 
 /// One design of the comparison with its Monte Carlo fits.
@@ -157,11 +220,13 @@ pub struct DesignRun {
     pub id: String,
     pub design: Design,
     pub optimized: Option<Optimized>,
+    /// Criteria of the fast information at the truth.
     pub values: CriterionValues,
-    /// Fast and full-formula Fisher sigmas of every parameter at the truth.
+    /// Marginal Fisher sigmas, fast information (sum of stretches) and full formula.
     pub sigma_fast: Vec<f64>,
     pub sigma_full: Vec<f64>,
-    pub fits: Vec<FitRow>,
+    /// Its fits, in realization order (`Row::design` is this run's index).
+    pub fits: Vec<Row>,
 }
 
 /// Outcome of [`validate`].
@@ -171,69 +236,75 @@ pub struct Validation {
     pub preliminary: Vec<f64>,
     pub study: Study,
     pub runs: Vec<DesignRun>,
+    /// Campaign statistics of the Monte Carlo fits: scenario 0 (the truth), design k = run k,
+    /// estimator 0 (squared).
+    pub aggregates: Aggregates,
 }
 
-/// Monte Carlo fits of `design` at `truth`, each from `start`.
+/// Monte Carlo fits of `designs` at `truth`, each from `start` (which is also where the
+/// whitening filter's noise PSD is taken, as in the thesis's validation), over realizations
+/// `realizations` of `seed`. They run through the campaign runner, so they are the very fits
+/// `freefall campaign run` makes of these designs (same streams, same determinism contract:
+/// realization `r` of every design draws the noise of stream `r`, common random numbers across
+/// designs). Rows in order (realization, design).
 pub fn monte_carlo(
     setup: &Setup,
-    design: &Design,
+    designs: &[Design],
     truth: &[f64],
     start: &[f64],
     seed: u64,
-    offset: u64,
-    n: usize,
-) -> Result<Vec<FitRow>, DesignError> {
-    let other = |e: String| DesignError::Config(format!("design '{}': {e}", design.name));
-    let sim = setup
-        .simulator(design, truth, None)
-        .map_err(|e| other(e.to_string()))?;
-    let dt = setup.analysis_dt();
-    let whitener = setup
-        .whitener_from_model(start, sim.n, dt, DEFAULT_WHITENING_ORDER)
-        .map_err(|e| other(e.to_string()))?;
-    let lik = Likelihood::new(&setup.model, &sim.inputs, dt, whitener, DEFAULT_POLY_DEGREE)
-        .map_err(|e| other(e.to_string()))?;
-    let cfg = FitConfig::new(&setup.parameter_names());
-    let rows: Vec<Result<FitRow, DesignError>> = (0..n)
-        .into_par_iter()
-        .map(|r| {
-            let mut rng = stream(seed, offset + r as u64);
-            let data = sim.draw(&mut rng);
-            let problem = lik.problem(&data).map_err(|e| other(e.to_string()))?;
-            let res = fit(&setup.model, &problem, start, &cfg).map_err(|e| other(e.to_string()))?;
-            Ok(FitRow {
-                realization: r,
-                estimate: res.estimate,
-                sigma: res.sigma,
-                correlation: res.correlation.iter().copied().collect(),
-                chi2_reduced: res.chi2_reduced,
-                iterations: res.iterations,
-                converged: res.termination.converged(),
-            })
-        })
-        .collect();
-    rows.into_iter().collect()
+    realizations: std::ops::Range<u64>,
+) -> Result<(RowLayout, Vec<Row>), DesignError> {
+    let names = setup.parameter_names();
+    let campaign = Campaign {
+        file: PathBuf::from("design validation"),
+        name: "design-validation".into(),
+        description: String::new(),
+        model: None,
+        seed,
+        realizations: realizations.end,
+        estimators: vec![Estimator::Squared],
+        outputs: Outputs::ALL,
+        batch: 1,
+        scenarios: Vec::new(),
+        designs: Vec::new(),
+        fit: FitOptions {
+            whitening_order: DEFAULT_WHITENING_ORDER,
+            poly_degree: DEFAULT_POLY_DEGREE,
+            max_iterations: FitConfig::new(&names).max_iterations,
+            whiten_at: WhitenAt::Guess,
+            noise_chi2: false,
+            cached_jacobian: true,
+        },
+    };
+    let scenario = Scenario {
+        name: "validation".into(),
+        truth: truth.to_vec(),
+        guess: start.to_vec(),
+        glitch: None,
+    };
+    let runner = Runner::new(setup, &campaign, vec![scenario], designs)?;
+    let rows = runner.run_range(realizations.start, realizations.end);
+    Ok((runner.layout, rows))
 }
 
-/// Run the four steps.
-pub fn validate(setup: &Setup, cfg: &ValidationConfig) -> Result<Validation, DesignError> {
-    let sc = setup.spec.scenario(&cfg.scenario)?;
-    let truth = sc.truth.clone();
-    // Step 1: standard experiments, one realization, fit from the scenario's guess.
-    let standard = setup
-        .design("standard")
-        .map_err(|e| DesignError::Config(e.to_string()))?;
-    let prelim = monte_carlo(setup, &standard, &truth, &sc.guess, cfg.seed, 0, 1)?;
-    let preliminary = prelim[0].estimate.clone();
-    // Step 2: optimise around the estimates.
-    let study = Study::new(
-        setup,
-        &preliminary,
-        cfg.scaling,
-        cfg.parameters.as_deref(),
-        None,
-    )?;
-    let mut designs: Vec<(String, Design, Option<Optimized>)> = vec![
+/// Marginal sigmas of the full-formula Fisher information of `design` at `p`; NaN where it is
+/// singular.
+fn full_sigmas(setup: &Setup, design: &Design, p: &[f64]) -> Vec<f64> {
+    let full = crate::setup::design_fisher(setup, design, p);
+    spd_inverse(&full).map_or(vec![f64::NAN; p.len()], |c| {
+        (0..c.nrows()).map(|i| c[(i, i)].sqrt()).collect()
+    })
+}
+
+/// Step 2: the standard and thesis designs, then the optimum of every configured criterion,
+/// as (id, design, optimisation).
+fn candidate_designs(
+    study: &Study,
+    standard: &Design,
+    cfg: &ValidationConfig,
+) -> Result<Vec<(String, Design, Option<Optimized>)>, DesignError> {
+    let mut designs = vec![
         ("standard".into(), standard.clone(), None),
         (
             "thesis_t_information".into(),
@@ -252,50 +323,63 @@ pub fn validate(setup: &Setup, cfg: &ValidationConfig) -> Result<Validation, Des
             designs.push((id, d, Some(opt)));
         }
     }
-    // Steps 3-4: Monte Carlo fits with every design at the truth, from the preliminary estimates.
+    Ok(designs)
+}
+
+/// Run the four steps.
+pub fn validate(setup: &Setup, cfg: &ValidationConfig) -> Result<Validation, DesignError> {
+    let sc = setup.spec.scenario(&cfg.scenario)?;
+    let truth = sc.truth.clone();
+    // Step 1: standard experiments, realization 0, fitted from the scenario's guess.
+    let standard = setup.design("standard")?;
+    let (_, prelim) = monte_carlo(
+        setup,
+        std::slice::from_ref(&standard),
+        &truth,
+        &sc.guess,
+        cfg.seed,
+        0..1,
+    )?;
+    let prelim = &prelim[0];
+    if !prelim.converged {
+        return Err(DesignError::Preliminary(prelim.termination.clone()));
+    }
+    let preliminary = prelim.estimate.clone();
+    // Step 2: optimise around the estimates.
+    let study = Study::new(
+        setup,
+        &preliminary,
+        cfg.scaling,
+        cfg.parameters.as_deref(),
+        None,
+    )?;
+    let designs = candidate_designs(&study, &standard, cfg)?;
+    // Steps 3-4: Monte Carlo fits with every design at the truth, from the preliminary
+    // estimates, on realizations 1..=n (0 was the preliminary fit's).
     let truth_study = Study::new(setup, &truth, cfg.scaling, cfg.parameters.as_deref(), None)?;
+    let plain: Vec<Design> = designs.iter().map(|d| d.1.clone()).collect();
+    let (mut layout, rows) = monte_carlo(
+        setup,
+        &plain,
+        &truth,
+        &preliminary,
+        cfg.seed,
+        1..cfg.realizations as u64 + 1,
+    )?;
+    layout.designs = designs.iter().map(|d| d.0.clone()).collect();
+    let mut aggregates = Aggregates::new(layout);
+    rows.iter().for_each(|r| aggregates.add(r));
     let mut runs = Vec::new();
     for (k, (id, design, optimized)) in designs.into_iter().enumerate() {
         let (values, sigma_fast) = truth_study.score(&design)?;
-        let full = crate::forward::fisher::fisher_information(
-            &setup.model,
-            &crate::forward::fisher::InputSpectra::<2>::from_series(
-                &(0..design.experiments.len())
-                    .map(|e| {
-                        design.sample(
-                            e,
-                            2,
-                            0.0,
-                            setup.analysis_dt(),
-                            design.samples(setup.analysis_dt()),
-                        )
-                    })
-                    .collect::<Vec<_>>(),
-                setup.analysis_dt(),
-            ),
-            &truth,
-            setup.psd(&truth),
-        );
-        let sigma_full = spd_inverse(&full).map_or(vec![f64::NAN; truth.len()], |c| {
-            (0..c.nrows()).map(|i| c[(i, i)].sqrt()).collect()
-        });
-        let fits = monte_carlo(
-            setup,
-            &design,
-            &truth,
-            &preliminary,
-            cfg.seed,
-            DESIGN_STREAM_STRIDE * (k as u64 + 1),
-            cfg.realizations,
-        )?;
         runs.push(DesignRun {
             id,
+            sigma_full: full_sigmas(setup, &design, &truth),
             design,
             optimized,
             values,
             sigma_fast,
-            sigma_full,
-            fits,
+            fits: rows.iter().filter(|r| r.design == k).cloned().collect(),
         });
     }
     Ok(Validation {
@@ -303,5 +387,6 @@ pub fn validate(setup: &Setup, cfg: &ValidationConfig) -> Result<Validation, Des
         preliminary,
         study,
         runs,
+        aggregates,
     })
 }

@@ -262,3 +262,97 @@ mod tests {
         }
     }
 }
+
+/// Everything a list of `--effect` specs switches on in a simulated truth: library effects
+/// with their values, base-parameter drifts `(index, d, d2)`, glitches and lines; and the
+/// `[meta.effects]` table that records them in the dataset (one key per spec, numbered when a
+/// name repeats).
+#[derive(Debug, Clone, Default)]
+pub struct EffectSet {
+    pub effects: Vec<(std::sync::Arc<dyn crate::model::effects::Effect>, Vec<f64>)>,
+    pub drifts: Vec<(usize, f64, f64)>,
+    pub injected: Vec<Injected>,
+    pub meta: toml::Table,
+}
+
+impl EffectSet {
+    /// Parse the specs (module docs, and `drift_PARAMETER=D[,d2=D2]` or `EFFECT=VALUE` for a
+    /// library effect); `names` are the model's base parameters. Errors name the spec and the
+    /// token at fault.
+    pub fn parse(specs: &[String], names: &[String]) -> Result<EffectSet, String> {
+        let mut set = EffectSet::default();
+        for spec in specs {
+            if let Some(it) = parse(spec)? {
+                let key = spec.split([',', '=']).next().unwrap_or(spec).trim();
+                set.insert_meta(key, toml::Value::String(spec.clone()));
+                set.injected.push(it);
+                continue;
+            }
+            let (name, value) = spec
+                .split_once('=')
+                .ok_or_else(|| format!("--effect '{spec}': expected NAME=VALUE"))?;
+            let name = name.trim();
+            if let Some(k) = name
+                .strip_prefix("drift_")
+                .and_then(|p| names.iter().position(|n| n == p))
+            {
+                set.push_drift(spec, name, k, value)?;
+                continue;
+            }
+            let e = crate::model::effects::by_name(name).ok_or_else(|| {
+                let known: Vec<String> = crate::model::effects::library()
+                    .iter()
+                    .map(|e| e.name())
+                    .collect();
+                format!(
+                    "--effect '{spec}': unknown effect '{name}'; known: drift_PARAMETER (a linear drift d over the run), glitch_ENTRY=AMP,t0=S, line_CHANNEL=AMP,f=HZ, {}",
+                    known.join(", ")
+                )
+            })?;
+            let v = number(spec, value.trim(), value)?;
+            set.insert_meta(&e.name(), toml::Value::Float(v));
+            set.effects.push((e, vec![v]));
+        }
+        Ok(set)
+    }
+
+    /// `drift_NAME=D[,d2=D2]` of base parameter `k`.
+    fn push_drift(&mut self, spec: &str, name: &str, k: usize, value: &str) -> Result<(), String> {
+        let mut parts = value.split(',');
+        let v = number(spec, name, parts.next().unwrap_or(""))?;
+        let mut d2 = 0.0;
+        for t in parts {
+            let x = t
+                .trim()
+                .strip_prefix("d2=")
+                .ok_or_else(|| format!("--effect '{spec}': '{}': expected d2=VALUE", t.trim()))?;
+            d2 = number(spec, t.trim(), x)?;
+        }
+        self.insert_meta(name, toml::Value::Float(v));
+        if d2 != 0.0 {
+            let base = &name["drift_".len()..];
+            self.insert_meta(&format!("drift2_{base}"), toml::Value::Float(d2));
+        }
+        self.drifts.push((k, v, d2));
+        Ok(())
+    }
+
+    /// Record `value` under `key`, or `key_2`, `key_3`, ... when the key is taken.
+    fn insert_meta(&mut self, key: &str, value: toml::Value) {
+        let free = (1..)
+            .map(|k| {
+                if k == 1 {
+                    key.to_string()
+                } else {
+                    format!("{key}_{k}")
+                }
+            })
+            .find(|k| !self.meta.contains_key(k))
+            .expect("an unused key");
+        self.meta.insert(free, value);
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.effects.is_empty() && self.drifts.is_empty() && self.injected.is_empty()
+    }
+}

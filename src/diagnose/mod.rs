@@ -53,6 +53,7 @@ pub mod report;
 pub mod residuals;
 pub mod selection;
 mod simulate;
+pub mod tables;
 pub mod tension;
 
 use std::sync::Arc;
@@ -73,7 +74,8 @@ pub use problem::DiagnosisProblem;
 pub use residuals::{ChannelReport, SpectrumCurve};
 pub use selection::{next_round, DiagnosisState, Family, Round, StopReason};
 pub use simulate::{
-    simulate_glitched, simulate_with_drift_paths, simulate_with_drifts, simulate_with_effects,
+    simulate_effect_set, simulate_glitched, simulate_with_drift_paths, simulate_with_drifts,
+    simulate_with_effects,
 };
 pub use tension::{Explanation, PriorTension};
 

@@ -164,3 +164,46 @@ pub fn simulate_with_drift_paths(
     }
     Ok((data, noise))
 }
+
+/// Experiments of `design` and a noise-only run of `noise_design` (default: `design`'s
+/// length) whose truth carries everything in `set`: the library effects and drifts through
+/// [`simulate_with_drift_paths`], then the glitches and lines added through the extended loop
+/// (`inject::apply`). Streams (seed, 0) for the experiments and (seed, 1) for the noise run.
+/// This is `freefall simulate --effect ...`.
+pub fn simulate_effect_set(
+    setup: &Setup,
+    design: &crate::signal::Design,
+    noise_design: Option<&crate::signal::Design>,
+    truth: &[f64],
+    set: &super::inject::EffectSet,
+    glitch: Option<&crate::model::spec::GlitchSpec>,
+    seed: u64,
+) -> Result<(ExperimentData, Vec<Vec<f64>>), DiagnoseError> {
+    let (mut data, mut noise) = simulate_with_drift_paths(
+        setup,
+        design,
+        truth,
+        &set.effects,
+        &set.drifts,
+        glitch,
+        seed,
+    )?;
+    if let Some(nd) = noise_design.filter(|nd| nd.duration_s != design.duration_s) {
+        // The noise run at the truth (drifts are a property of the experiments' runs).
+        let (_, n) = simulate_glitched(setup, nd, truth, &set.effects, glitch, seed)?;
+        noise = n;
+    }
+    if !set.injected.is_empty() {
+        let model = Extended::new(
+            setup.model.clone(),
+            set.effects.iter().map(|(e, _)| e.clone()).collect(),
+        );
+        let mut p = truth.to_vec();
+        for (_, v) in &set.effects {
+            p.extend(v);
+        }
+        super::inject::apply(&model, &p, &mut data, &set.injected)
+            .map_err(|e| DiagnoseError::Input(format!("--effect: {e}")))?;
+    }
+    Ok((data, noise))
+}

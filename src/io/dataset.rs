@@ -70,6 +70,34 @@ struct ExperimentEntry {
 }
 
 impl Dataset {
+    /// A simulated dataset: the experiments of `data` (inputs oi1, oi12 and readouts o1, o12,
+    /// from t = 0) plus a noise-only run of readouts `noise` (inputs zero), with `meta`.
+    pub fn simulated(
+        data: &crate::data::ExperimentData,
+        noise: &[Vec<f64>],
+        meta: toml::Table,
+    ) -> Result<Dataset, IoError> {
+        let run = |inputs: &[Vec<f64>], outputs: &[Vec<f64>]| {
+            let names = ["oi1", "oi12", "o1", "o12"];
+            let cols = names
+                .iter()
+                .map(|n| n.to_string())
+                .zip(inputs.iter().chain(outputs).cloned())
+                .collect();
+            Run::new(0.0, data.dt, cols)
+        };
+        let exps = data
+            .names
+            .iter()
+            .enumerate()
+            .map(|(e, name)| Ok((name.clone(), run(&data.inputs[e], &data.outputs[e])?)))
+            .collect::<Result<Vec<_>, IoError>>()?;
+        let zeros = vec![vec![0.0; noise.first().map_or(0, Vec::len)]; 2];
+        Ok(Dataset::new(exps)?
+            .with_noise(run(&zeros, noise)?)?
+            .with_meta(meta))
+    }
+
     /// A validated in-memory dataset (no noise run, no metadata).
     pub fn new(experiments: Vec<(String, Run)>) -> Result<Dataset, IoError> {
         let d = Dataset {

@@ -1,0 +1,196 @@
+//! A dataset on its way into an estimator: the shared front end of `fit`, `diagnose` and
+//! `accel`. It turns a measured-data [`Dataset`] (reference README, "measured-data format")
+//! into fit input, resolves the starting point, chooses the whitening filter (thesis sec.
+//! "whitening": from a noise-only run by least squares, or from the model's noise cross-PSD),
+//! and lays the results out as tables ([`tables`]). Measured and simulated data take the same
+//! path; nothing here prints.
+
+pub mod model_tables;
+pub mod tables;
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use crate::data::ExperimentData;
+use crate::fit::Whitener;
+use crate::io::{read_toml, Dataset, IoError, Run};
+use crate::setup::Setup;
+
+pub use tables::{
+    correlation_table, estimates_table, psd_table, residual_table, whitened_table, FitSummary,
+};
+
+/// Errors of the front end; each names the option, file or parameter at fault.
+#[derive(Debug, thiserror::Error)]
+pub enum AnalysisError {
+    #[error("the dataset has no runs")]
+    NoRuns,
+    #[error("--guess '{guess}' is neither a scenario ({scenarios}) nor an existing file")]
+    UnknownGuess { guess: String, scenarios: String },
+    #[error("{}: {reason}", file.display())]
+    GuessFile { file: PathBuf, reason: String },
+    #[error("--whitening noise: the dataset has no noise run")]
+    NoNoiseRun,
+    #[error("{}: {source}", what)]
+    Whitening {
+        what: String,
+        #[source]
+        source: crate::fit::FitError,
+    },
+    #[error(transparent)]
+    Io(#[from] IoError),
+    #[error(transparent)]
+    Setup(#[from] crate::setup::Error),
+}
+
+type Result<T> = std::result::Result<T, AnalysisError>;
+
+/// The readouts `[o1, o12]` of a run as owned series.
+pub fn outputs_of(run: &Run) -> Vec<Vec<f64>> {
+    run.outputs().iter().map(|c| c.to_vec()).collect()
+}
+
+/// The experiments of a dataset as fit input.
+pub fn experiment_data(ds: &Dataset) -> Result<ExperimentData> {
+    let dt = ds.dt().ok_or(AnalysisError::NoRuns)?;
+    Ok(ExperimentData {
+        names: ds.experiments.iter().map(|(n, _)| n.clone()).collect(),
+        inputs: ds
+            .experiments
+            .iter()
+            .map(|(_, r)| r.inputs().iter().map(|c| c.to_vec()).collect())
+            .collect(),
+        outputs: ds.experiments.iter().map(|(_, r)| outputs_of(r)).collect(),
+        dt,
+    })
+}
+
+/// The starting point `--guess`: a scenario name (its guess), a TOML file of
+/// `parameter = value` (every parameter, no other key), or the model's nominal parameters.
+pub fn resolve_guess(setup: &Setup, guess: Option<&str>) -> Result<Vec<f64>> {
+    let names = setup.parameter_names();
+    let Some(g) = guess else {
+        return Ok(setup.spec.nominal());
+    };
+    if setup.spec.scenarios.contains_key(g) {
+        return Ok(setup
+            .spec
+            .scenario(g)
+            .map_err(crate::setup::Error::from)?
+            .guess);
+    }
+    let path = Path::new(g);
+    if !path.exists() {
+        let scenarios: Vec<String> = setup.spec.scenarios.keys().cloned().collect();
+        return Err(AnalysisError::UnknownGuess {
+            guess: g.to_string(),
+            scenarios: scenarios.join(", "),
+        });
+    }
+    let bad = |reason: String| AnalysisError::GuessFile {
+        file: path.to_path_buf(),
+        reason,
+    };
+    let map: BTreeMap<String, f64> = read_toml(path)?;
+    if let Some(k) = map.keys().find(|k| !names.contains(k)) {
+        return Err(bad(format!(
+            "unknown parameter '{k}' (expected {})",
+            names.join(", ")
+        )));
+    }
+    names
+        .iter()
+        .map(|n| {
+            map.get(n)
+                .copied()
+                .ok_or_else(|| bad(format!("missing parameter '{n}'")))
+        })
+        .collect()
+}
+
+/// Where the whitening filter should come from (`--whitening`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Whitening {
+    /// The dataset's noise run if it has one, else the model's noise PSD.
+    Auto,
+    /// The dataset's noise run (an error if it has none).
+    Noise,
+    /// The model's noise cross-PSD at the starting point.
+    Model,
+}
+
+/// Whitening filter of order `order` for `n` samples at `dt` of a dataset, chosen by `source`;
+/// with a description of where it came from.
+pub fn dataset_whitener(
+    setup: &Setup,
+    ds: &Dataset,
+    p: &[f64],
+    n: usize,
+    dt: f64,
+    order: usize,
+    source: Whitening,
+) -> Result<(Whitener<2>, String)> {
+    let from_model = |why: &str| -> Result<(Whitener<2>, String)> {
+        Ok((
+            setup.whitener_from_model(p, n, dt, order)?,
+            format!("model noise PSD{why}"),
+        ))
+    };
+    match (source, &ds.noise) {
+        (Whitening::Noise, None) => Err(AnalysisError::NoNoiseRun),
+        (Whitening::Model, _) => from_model(""),
+        (_, None) => from_model(" (the dataset has no noise run)"),
+        (_, Some(noise)) => {
+            let label = noise
+                .path
+                .as_ref()
+                .map_or_else(|| "noise run".into(), |p| p.display().to_string());
+            let w = Whitener::<2>::from_series(&outputs_of(noise), order).map_err(|e| {
+                AnalysisError::Whitening {
+                    what: label.clone(),
+                    source: e,
+                }
+            })?;
+            Ok((w, format!("noise run {label}")))
+        }
+    }
+}
+
+/// `[meta.truth]` of a simulated dataset, if it gives every parameter (integers are read as
+/// numbers too: `a_df = 0` is a truth).
+pub fn truth_from_meta(ds: &Dataset, names: &[String]) -> Option<Vec<f64>> {
+    let t = ds.meta.get("truth")?.as_table()?;
+    names
+        .iter()
+        .map(|n| {
+            t.get(n)
+                .and_then(|v| v.as_float().or_else(|| v.as_integer().map(|i| i as f64)))
+        })
+        .collect()
+}
+
+/// Parameter values from a `freefall fit` estimates table (columns parameter, estimate), in
+/// the model's order `names`.
+pub fn parameters_from_estimates(path: &Path, names: &[String]) -> Result<Vec<f64>> {
+    let t = crate::io::read_parquet(path)?;
+    let pn = t.str_column("parameter")?;
+    let est = t.f64_column("estimate")?;
+    let bad = |reason: String| AnalysisError::GuessFile {
+        file: path.to_path_buf(),
+        reason,
+    };
+    names
+        .iter()
+        .map(|n| {
+            let k = pn
+                .iter()
+                .position(|x| x == n)
+                .ok_or_else(|| bad(format!("no row for parameter '{n}'")))?;
+            let v = est[k];
+            if !v.is_finite() {
+                return Err(bad(format!("parameter '{n}' estimate is {v}")));
+            }
+            Ok(v)
+        })
+        .collect()
+}

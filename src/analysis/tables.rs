@@ -1,0 +1,257 @@
+//! The tables of `psd`, `whiten` and `fit` (and the residual layout `diagnose` shares): long
+//! format, one unit per column (Parquet field metadata) or a `unit` column where rows differ.
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+
+use serde::Serialize;
+
+use crate::fit::{FitResult, Whitener};
+use crate::io::{IoError, Run, Table};
+use crate::numerics::stats::moments;
+use crate::spectral::{welch_csd, CrossSpectrum, WelchConfig};
+
+/// Readout channel names, in series order.
+pub const CHANNELS: [&str; 2] = ["o1", "o12"];
+
+/// One-sided Welch cross-spectrum of a run's readouts (thesis settings): f, s11, s22, s12_re,
+/// s12_im, coherence.
+pub fn psd_table(run: &Run) -> Result<(Table, CrossSpectrum), crate::spectral::SpectralError> {
+    let [o1, o12] = run.outputs();
+    let cs = welch_csd(&[o1, o12], run.dt, &WelchConfig::default())?;
+    let s12 = cs.csd(0, 1);
+    let table = (|| -> Result<Table, IoError> {
+        Ok(Table::new()
+            .with_f64("f", cs.f.clone())?
+            .with_f64("s11", cs.psd(0))?
+            .with_f64("s22", cs.psd(1))?
+            .with_f64("s12_re", s12.iter().map(|z| z.re).collect())?
+            .with_f64("s12_im", s12.iter().map(|z| z.im).collect())?
+            .with_f64("coherence", cs.coherence(0, 1))?
+            .with_units([
+                ("f", "Hz"),
+                ("s11", "m^2/Hz"),
+                ("s22", "m^2/Hz"),
+                ("s12_re", "m^2/Hz"),
+                ("s12_im", "m^2/Hz"),
+                ("coherence", "1"),
+            ]))
+    })()
+    .expect("columns of equal length");
+    Ok((table, cs))
+}
+
+/// A run whitened by `whitener`, with a polynomial of `poly_degree` projected out: the table
+/// t, o1_w, o12_w (after the filter's start-up samples) and a report of the moments of each
+/// channel before and after the projection (white unit-variance noise: mean 0, sd 1, skewness
+/// 0, excess kurtosis 0, each with its standard error).
+pub fn whitened_table(
+    run: &Run,
+    whitener: &Whitener<2>,
+    poly_degree: usize,
+) -> Result<(Table, String), IoError> {
+    let w = whitener.apply(&super::outputs_of(run));
+    let basis = crate::fit::whiten::poly_basis(w[0].len(), poly_degree);
+    let p = whitener.order();
+    let mut report = String::new();
+    let _ = writeln!(
+        report,
+        "{:<8} {:<10} {:>22} {:>20} {:>20} {:>20}",
+        "channel", "stage", "mean", "sd", "skewness", "excess kurtosis"
+    );
+    let mut cols = Vec::new();
+    for (c, name) in CHANNELS.iter().enumerate() {
+        let raw = moments(&w[c]);
+        let mut det = w[c].clone();
+        crate::fit::whiten::project_out(&mut det, &basis);
+        let d = moments(&det);
+        for (stage, m) in [("whitened", raw), (&*format!("poly{poly_degree}"), d)] {
+            let _ = writeln!(
+                report,
+                "{name:<8} {stage:<10} {:>10.4} ± {:<9.4} {:>8.4} ± {:<9.4} {:>8.4} ± {:<9.4} {:>8.4} ± {:<9.4}",
+                m.mean, m.mean_err, m.sd, m.sd_err, m.skewness, m.skewness_err, m.excess_kurtosis, m.kurtosis_err
+            );
+        }
+        cols.push(det);
+    }
+    let t: Vec<f64> = (p..run.len()).map(|i| run.t0 + i as f64 * run.dt).collect();
+    let [o1, o12]: [Vec<f64>; 2] = cols.try_into().expect("two channels");
+    let table = Table::new()
+        .with_f64("t", t)?
+        .with_f64("o1_w", o1)?
+        .with_f64("o12_w", o12)?
+        .with_units([("t", "s"), ("o1_w", "1"), ("o12_w", "1")]);
+    Ok((table, report))
+}
+
+/// Long-format correlation table `parameter_i, parameter_j, corr` of a square matrix.
+pub fn correlation_table(
+    names: &[String],
+    corr: impl Fn(usize, usize) -> f64,
+) -> Result<Table, IoError> {
+    let n = names.len();
+    let pairs = || (0..n).flat_map(|i| (0..n).map(move |j| (i, j)));
+    Ok(Table::new()
+        .with_str("parameter_i", pairs().map(|(i, _)| names[i].clone()))?
+        .with_str("parameter_j", pairs().map(|(_, j)| names[j].clone()))?
+        .with_f64("corr", pairs().map(|(i, j)| corr(i, j)).collect())?
+        .with_unit("corr", "1"))
+}
+
+/// Long-format residuals: experiment, channel, t (from each experiment's own start `t0[e]`),
+/// raw, whitened (null where the whitening filter of order `order` has not started).
+/// `raw[e][c]` has one value per sample; `whitened[e][c]` starts at sample `order`.
+pub fn residual_table(
+    names: &[String],
+    t0: &[f64],
+    dt: f64,
+    raw: &[Vec<Vec<f64>>],
+    whitened: &[Vec<Vec<f64>>],
+    order: usize,
+) -> Result<Table, IoError> {
+    let (mut exp, mut ch, mut t, mut r, mut w) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    for (e, name) in names.iter().enumerate() {
+        for (c, cname) in CHANNELS.iter().enumerate() {
+            for (i, &v) in raw[e][c].iter().enumerate() {
+                exp.push(name.clone());
+                ch.push(cname.to_string());
+                t.push(t0.get(e).copied().unwrap_or(0.0) + i as f64 * dt);
+                r.push(v);
+                w.push(
+                    i.checked_sub(order)
+                        .and_then(|k| whitened[e][c].get(k).copied())
+                        .unwrap_or(f64::NAN),
+                );
+            }
+        }
+    }
+    Ok(Table::new()
+        .with_str("experiment", exp)?
+        .with_str("channel", ch)?
+        .with_f64("t", t)?
+        .with_f64("raw", r)?
+        .with_f64("whitened", w)?
+        .with_units([("t", "s"), ("raw", "m"), ("whitened", "1")])
+        .with_nan_as_null("whitened"))
+}
+
+/// estimates.parquet of a fit: parameter, estimate, sigma, guess, unit.
+pub fn estimates_table(
+    names: &[String],
+    units: Vec<String>,
+    res: &FitResult,
+    guess: &[f64],
+) -> Result<Table, IoError> {
+    Ok(Table::new()
+        .with_str("parameter", names.to_vec())?
+        .with_f64("estimate", res.estimate.clone())?
+        .with_f64("sigma", res.sigma.clone())?
+        .with_f64("guess", guess.to_vec())?
+        .with_str("unit", units)?
+        .with_meta(
+            "freefall.units_note",
+            "estimate, sigma and guess are in the row's unit",
+        ))
+}
+
+/// fit.json: the fit's statistics, settings and provenance.
+#[derive(Debug, Serialize)]
+pub struct FitSummary {
+    pub chi2: f64,
+    pub nu: usize,
+    pub chi2_reduced: f64,
+    pub chi2_start_reduced: f64,
+    pub iterations: usize,
+    pub evaluations: usize,
+    pub jacobian_evaluations: usize,
+    pub termination: &'static str,
+    pub converged: bool,
+    /// Why the result should not be trusted even if converged (see
+    /// [`crate::fit::chi2_excess_warning`]).
+    pub warnings: Vec<String>,
+    pub seconds: f64,
+    pub estimator: String,
+    pub whitening: String,
+    pub whitening_order: usize,
+    pub poly_degree: usize,
+    /// Version, model and dataset hashes (the same keys as the tables' metadata).
+    pub provenance: BTreeMap<String, String>,
+}
+
+impl FitSummary {
+    /// The summary of `res`, fitted with the given settings.
+    pub fn new(
+        res: &FitResult,
+        estimator: crate::fit::Estimator,
+        whitening: String,
+        whitening_order: usize,
+        poly_degree: usize,
+        provenance: BTreeMap<String, String>,
+    ) -> Self {
+        FitSummary {
+            chi2: res.chi2,
+            nu: res.nu,
+            chi2_reduced: res.chi2_reduced,
+            chi2_start_reduced: res.chi2_start / res.nu as f64,
+            iterations: res.iterations,
+            evaluations: res.evaluations,
+            jacobian_evaluations: res.jacobian_evaluations,
+            termination: res.termination.as_str(),
+            converged: res.termination.converged(),
+            warnings: crate::fit::chi2_excess_warning(res.chi2_reduced, res.nu)
+                .into_iter()
+                .collect(),
+            seconds: res.seconds,
+            estimator: estimator.to_string(),
+            whitening,
+            whitening_order,
+            poly_degree,
+            provenance,
+        }
+    }
+
+    /// The printable result: chi^2 line, then one line per parameter (with the truth and the
+    /// pull when `truth` is known).
+    pub fn text(
+        &self,
+        names: &[String],
+        res: &FitResult,
+        guess: &[f64],
+        truth: Option<&[f64]>,
+    ) -> String {
+        let mut s = String::new();
+        let _ = writeln!(
+            s,
+            "chi2/nu = {:.4} (nu = {}), from {:.4e} at the guess; {} iterations, {} ({:.2} s)",
+            self.chi2_reduced,
+            self.nu,
+            self.chi2_start_reduced,
+            self.iterations,
+            self.termination,
+            self.seconds
+        );
+        let _ = write!(
+            s,
+            "{:<8} {:>16} {:>12} {:>16}",
+            "param", "estimate", "sigma", "guess"
+        );
+        if truth.is_some() {
+            let _ = write!(s, " {:>16} {:>9}", "truth", "pull");
+        }
+        s.push('\n');
+        for k in 0..names.len() {
+            let _ = write!(
+                s,
+                "{:<8} {:>16.8e} {:>12.3e} {:>16.6e}",
+                names[k], res.estimate[k], res.sigma[k], guess[k]
+            );
+            if let Some(t) = truth {
+                let pull = (res.estimate[k] - t[k]) / res.sigma[k];
+                let _ = write!(s, " {:>16.8e} {:>9.2}", t[k], pull);
+            }
+            s.push('\n');
+        }
+        s
+    }
+}

@@ -1,0 +1,150 @@
+//! The diagnosis's files: `report.json` (with provenance), `residuals_before.parquet` and
+//! `residuals_after.parquet` (the residual layout of `fit`, t from each run's own start),
+//! `spectra.parquet` (whitened residual spectra with 90 % bands) and `time_chi2.parquet`
+//! (windowed chi^2 with its excess and p-value), and the effect library as text.
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::path::Path;
+
+use super::Diagnosis;
+use crate::analysis::residual_table;
+use crate::io::{write_json_atomic, write_parquet, IoError, Table};
+
+/// Where the experiments sit in time: names, each run's first sample time and the spacing.
+pub struct Timeline<'a> {
+    pub names: &'a [String],
+    pub t0: &'a [f64],
+    pub dt: f64,
+}
+
+impl Diagnosis {
+    /// Write report.json and the tables to `out` (which must exist), each carrying `meta`.
+    pub fn write_tables(
+        &self,
+        out: &Path,
+        runs: &Timeline<'_>,
+        meta: &BTreeMap<String, String>,
+    ) -> Result<(), IoError> {
+        let mut json = self.to_json();
+        if let Some(o) = json.as_object_mut() {
+            let prov = meta
+                .iter()
+                .map(|(k, v)| (k.clone(), serde_json::Value::String(v.clone())))
+                .collect();
+            o.insert("provenance".into(), serde_json::Value::Object(prov));
+        }
+        write_json_atomic(out.join("report.json"), &json)?;
+        for (stage, (w, raw)) in [
+            ("before", &self.residuals_before),
+            ("after", &self.residuals_after),
+        ] {
+            let table = residual_table(runs.names, runs.t0, runs.dt, raw, w, self.order)?;
+            write_parquet(
+                out.join(format!("residuals_{stage}.parquet")),
+                &table.with_meta_all(meta),
+            )?;
+        }
+        write_parquet(
+            out.join("spectra.parquet"),
+            &self.spectra_table()?.with_meta_all(meta),
+        )?;
+        write_parquet(
+            out.join("time_chi2.parquet"),
+            &self.time_chi2_table()?.with_meta_all(meta),
+        )
+    }
+
+    fn spectra_table(&self) -> Result<Table, IoError> {
+        let rows = || {
+            self.spectra
+                .iter()
+                .flat_map(|s| (0..s.f.len()).map(move |i| (s, i)))
+        };
+        Table::new()
+            .with_str("stage", rows().map(|(s, _)| s.stage.clone()))?
+            .with_str("experiment", rows().map(|(s, _)| s.experiment.clone()))?
+            .with_str("channel", rows().map(|(s, _)| s.channel.clone()))?
+            .with_f64("f", rows().map(|(s, i)| s.f[i]).collect())?
+            .with_f64("level", rows().map(|(s, i)| s.level[i]).collect())?
+            .with_f64("lo90", rows().map(|(s, i)| s.lo[i]).collect())?
+            .with_f64("hi90", rows().map(|(s, i)| s.hi[i]).collect())
+            .map(|t| t.with_units([("f", "Hz"), ("level", "1"), ("lo90", "1"), ("hi90", "1")]))
+    }
+
+    fn time_chi2_table(&self) -> Result<Table, IoError> {
+        let rows = || {
+            [("before", &self.before), ("after", &self.after)]
+                .into_iter()
+                .flat_map(|(stage, s)| {
+                    s.channels
+                        .iter()
+                        .flat_map(move |c| c.time.iter().map(move |t| (stage, c, t)))
+                })
+        };
+        Table::new()
+            .with_str("stage", rows().map(|(s, _, _)| s.to_string()))?
+            .with_str("experiment", rows().map(|(_, c, _)| c.experiment.clone()))?
+            .with_str("channel", rows().map(|(_, c, _)| c.channel.clone()))?
+            .with_f64("t_lo", rows().map(|(_, _, t)| t.time_s[0]).collect())?
+            .with_f64("t_hi", rows().map(|(_, _, t)| t.time_s[1]).collect())?
+            .with_f64(
+                "chi2_reduced",
+                rows().map(|(_, _, t)| t.chi2_reduced).collect(),
+            )?
+            .with_f64("excess", rows().map(|(_, _, t)| t.excess).collect())?
+            .with_f64("p_value", rows().map(|(_, _, t)| t.p_value).collect())
+            .map(|t| {
+                t.with_units([
+                    ("t_lo", "s"),
+                    ("t_hi", "s"),
+                    ("chi2_reduced", "1"),
+                    ("excess", "1"),
+                ])
+            })
+    }
+}
+
+/// The effect library, one line per effect or family (`freefall diagnose --list-effects`).
+pub fn effect_list() -> String {
+    let mut s = String::new();
+    let mut line = |a: &str, b: &str, c: &str, d: &str| {
+        let _ = writeln!(s, "{a:<28} {b:<20} {c:<12} {d}");
+    };
+    line("effect", "category", "parameter", "acts on");
+    for e in crate::model::effects::library() {
+        line(
+            &e.name(),
+            e.category().as_str(),
+            &e.parameter_names().join(","),
+            &e.acts_on(),
+        );
+    }
+    for p in super::additive::DRIFT_PARAMETERS {
+        line(
+            &format!("drift_{p}"),
+            "drift",
+            &format!("d_{p}"),
+            &format!("{p}(t) = {p} + d (t - T/2)/T over each run"),
+        );
+        line(
+            &format!("drift2_{p}"),
+            "drift",
+            &format!("d2_{p}"),
+            &format!("+ d2 (((t - T/2)/T)^2 - 1/12), tested once drift_{p} is added"),
+        );
+    }
+    line(
+        "line_EXP_CHANNEL_FmHz",
+        "line",
+        "A,phase,f",
+        "a detected narrow line in one channel (coherent across experiments, or --lines)",
+    );
+    line(
+        "glitch_EXP_ENTRY_Ts",
+        "glitch",
+        "A,t0,tau",
+        "a transient (Gaussian pulse) entering the loop at a TM/spacecraft force or a readout, found by a matched-filter scan",
+    );
+    s
+}
