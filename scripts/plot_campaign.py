@@ -143,7 +143,7 @@ def estimate_panel(ax, v, truth, sigma, name, unit):
     tu = tex_unit(unit)
     bias = (mean / scale) / sigma if sigma > 0 else float("nan")
     ax.set_title(
-        f"{name}, truth {truth:.6g} {tu}\nMC sd {fmt_num(sd)}, Fisher $\\sigma$ {fmt_num(sigma)} {tu}, "
+        f"{name}, truth {truth:.6g} {tu}\nMC sd {fmt_num(sd)}, Fisher $\\sigma$ {fmt_num(sigma)}{' ' + tu if tu else ''}, "
         f"sd/$\\sigma$ {sd / sigma:.2f}, bias {bias:+.2f}$\\sigma$",
         fontsize=7,
     )
