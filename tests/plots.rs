@@ -76,7 +76,10 @@ fn every_plot_script_has_help() {
         let out = python(name, &["--help"]);
         assert!(out.starts_with("usage:"), "{name} --help: {out}");
         assert!(out.contains("--out"), "{name} --help names no --out: {out}");
-        assert!(out.contains("plots/"), "{name} --help states no default folder: {out}");
+        assert!(
+            out.contains("plots/"),
+            "{name} --help states no default folder: {out}"
+        );
     }
 }
 
@@ -104,12 +107,24 @@ fn every_plot_script_draws_from_the_binarys_tables() {
             .join("plots")
             .join(format!("monte_carlo_standard_squared_{fig}.png"));
         assert_png(&p);
-        assert!(listed.contains(s(&p)), "{} not listed: {listed}", p.display());
+        assert!(
+            listed.contains(s(&p)),
+            "{} not listed: {listed}",
+            p.display()
+        );
     }
 
     // Design: one criterion, then the plots to a folder of our choice.
     let des = dir.join("des");
-    ok(&["design", "optimize", "--criterion", "d", "--quiet", "--out", s(&des)]);
+    ok(&[
+        "design",
+        "optimize",
+        "--criterion",
+        "d",
+        "--quiet",
+        "--out",
+        s(&des),
+    ]);
     let figs = dir.join("design-figs");
     python("plot_design.py", &[s(&des), "--out", s(&figs)]);
     for fig in ["limits.png", "derivatives.png", "signals_standard.png"] {
