@@ -1,9 +1,22 @@
 #!/usr/bin/env python3
-"""Plot of a `freefall accel` output directory: accel.png, the amplitude spectral densities of the
-total equivalent acceleration g12 (top) and g1 (bottom) of the whole run and of each --segment, with
-their confidence bands, the model's projection Delta S_o Delta^H and (for the whole run) the noise
-budget per source. Needs numpy, matplotlib and pyarrow."""
+"""Plot of a `freefall accel` output folder.
+
+    python3 scripts/plot_accel.py ACCEL_DIR [--out DIR]
+
+Figures go to ACCEL_DIR/plots/ unless --out DIR is given (the convention of every
+scripts/plot_*.py). `freefall accel` runs this script (embedded in the binary; the environment
+variable FREEFALL_PLOT_SCRIPT names another) as `python3 SCRIPT ACCEL_DIR`.
+
+  accel.png  amplitude spectral densities of the total equivalent acceleration g12 (top) and g1
+             (bottom) of the whole run and of each --segment, with their confidence bands, the
+             model's projection Delta S_o Delta^H and (for the whole run) the noise budget per
+             source.
+Units come from the tables (Parquet field metadata "unit", key-value "freefall.units"); a table
+without them is read in the units freefall writes (f in Hz, S_* in m^2 s^-4 Hz^-1).
+Needs numpy, matplotlib and pyarrow.
+"""
 import argparse
+import json
 from pathlib import Path
 
 import matplotlib
@@ -13,44 +26,112 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pyarrow.parquet as pq  # noqa: E402
 
+DPI = 100
+BUDGET_STYLES = [(0, (1, 1.5)), (0, (4, 1.5, 1, 1.5)), (0, (6, 2)), (0, (2, 2))]
+# The units freefall writes, for tables written before they carried them.
+DEFAULT_UNITS = {"f": "Hz", "S_g1": "m^2 s^-4 Hz^-1", "S_g12": "m^2 s^-4 Hz^-1"}
+
+
+def column_units(table):
+    """Units per column: key-value metadata "freefall.units" (JSON), then field metadata "unit"."""
+    units = {}
+    raw = (table.schema.metadata or {}).get(b"freefall.units")
+    if raw:
+        try:
+            units.update(json.loads(raw))
+        except ValueError:
+            pass
+    for f in table.schema:
+        if f.metadata and b"unit" in f.metadata:
+            units[f.name] = f.metadata[b"unit"].decode()
+    return units
+
+
+def tex_unit(u):
+    """'m s^-2 Hz^-1/2' -> matplotlib mathtext superscripts."""
+    out, i = [], 0
+    while i < len(u):
+        if u[i] == "^":
+            j = i + 1
+            while j < len(u) and (u[j].isdigit() or u[j] in "-/."):
+                j += 1
+            out.append("$^{" + u[i + 1:j] + "}$")
+            i = j
+        else:
+            out.append(u[i])
+            i += 1
+    return "".join(out)
+
+
+def asd_unit(psd_unit):
+    """The unit of sqrt(S) for the PSD units freefall writes ('m^2 s^-4 Hz^-1')."""
+    known = {"m^2 s^-4 Hz^-1": "m s^-2 Hz^-1/2", "m^2 Hz^-1": "m Hz^-1/2", "1": "1"}
+    return known.get(psd_unit, f"({psd_unit})^1/2")
+
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("out", type=Path, help="output directory of `freefall accel`")
-    ap.add_argument("--png", type=Path, default=None, help="figure path (default OUT/accel.png)")
+    ap = argparse.ArgumentParser(
+        description="Amplitude spectral densities of the total equivalent acceleration (accel.png) "
+        "of a `freefall accel` output folder.",
+        epilog="Figures go to ACCEL_DIR/plots/ unless --out DIR.",
+    )
+    ap.add_argument("input", type=Path, metavar="ACCEL_DIR", help="output folder of `freefall accel`")
+    ap.add_argument("--out", type=Path, metavar="DIR", help="folder for accel.png (default: ACCEL_DIR/plots)")
+    ap.add_argument("--png", type=Path, help=argparse.SUPPRESS)  # the old option: the figure's path
     args = ap.parse_args()
-    psd = pq.read_table(args.out / "accel_psd.parquet").to_pydict()
-    bud = pq.read_table(args.out / "budget.parquet").to_pydict()
+    if not (args.input / "accel_psd.parquet").exists():
+        ap.exit(1, f"error: {args.input / 'accel_psd.parquet'}: not found (run `freefall accel ... --out {args.input}` first)\n")
+    psd_t = pq.read_table(args.input / "accel_psd.parquet")
+    units = dict(DEFAULT_UNITS)
+    units.update(column_units(psd_t))
+    psd = psd_t.to_pydict()
+    bud = pq.read_table(args.input / "budget.parquet").to_pydict()
     seg = np.array(psd["segment"])
-    fig, axes = plt.subplots(2, 1, figsize=(8, 8), sharex=True)
+    f_all = np.array(psd["f"], dtype=float)
+    level = 100 * psd["level"][0] if psd["level"] else 90
+    fig, axes = plt.subplots(2, 1, figsize=(10, 8), sharex=True)
     for ax, ch in zip(axes, ("g12", "g1")):
         for i, name in enumerate(dict.fromkeys(seg)):
             m = seg == name
-            f = np.array(psd["f"])[m]
-            s = np.array(psd[f"S_{ch}"])[m]
+            f = f_all[m]
             color = f"C{i}"
-            level = 100 * psd["level"][0]
-            ax.loglog(f, np.sqrt(s), color=color, lw=1, label=f"estimate ({name})")
+            ax.loglog(f, np.sqrt(np.array(psd[f"S_{ch}"])[m]), color=color, lw=1.2, zorder=3,
+                      label=f"estimate ({'whole run' if name == 'all' else name + ' s'})")
             ax.fill_between(f, np.sqrt(np.array(psd[f"S_{ch}_lo"])[m]), np.sqrt(np.array(psd[f"S_{ch}_hi"])[m]),
-                            color=color, alpha=0.2, lw=0, label=f"{level:.0f}% band ({name})")
+                            color=color, alpha=0.2, lw=0, zorder=2, label=f"{level:.0f} % band ({'whole run' if name == 'all' else name + ' s'})")
             if name == "all":
-                ax.loglog(f, np.sqrt(np.array(psd[f"model_{ch}"])[m]), "k--", lw=1.2, label="model Delta S_o Delta^H")
-        est = np.sqrt(np.array(psd[f"S_{ch}"]))
+                ax.loglog(f, np.sqrt(np.array(psd[f"model_{ch}"])[m]), "k--", lw=1.3, zorder=4,
+                          label="model $\\Delta S_o \\Delta^H$")
+        est = np.sqrt(np.array(psd[f"S_{ch}"], dtype=float))
         # Budget terms far below the estimate (and the Nyquist zero of the derivative) would
-        # stretch the axis over ten decades: show three decades below the lowest estimate.
-        ax.set_ylim(est[est > 0].min() * 1e-3, est.max() * 3)
+        # stretch the axis over ten decades: show two decades below the estimate's 2nd percentile.
+        ax.set_ylim(np.percentile(est[est > 0], 2) * 1e-2, est.max() * 3)
         src = np.array(bud["source"])
         for j, name in enumerate(dict.fromkeys(src)):
             m = src == name
-            ax.loglog(np.array(bud["f"])[m], np.sqrt(np.array(bud[f"S_{ch}"])[m]), lw=0.7, ls=":",
-                      color=f"C{(j + 3) % 10}", label=f"budget: {name}")
-        ax.set_ylabel(f"sqrt(S_{ch}) [m s^-2 Hz^-1/2]")
-        ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=6, ncol=2, loc="upper right")
-    axes[-1].set_xlabel("f [Hz]")
-    fig.suptitle("Total equivalent acceleration through Delta(p)")
-    fig.tight_layout()
-    fig.savefig(args.png or args.out / "accel.png", dpi=110)
+            ax.loglog(np.array(bud["f"])[m], np.sqrt(np.array(bud[f"S_{ch}"])[m]), lw=1.1,
+                      ls=BUDGET_STYLES[j % len(BUDGET_STYLES)], color=f"C{(j + 3) % 10}", zorder=1,
+                      label=f"budget: {name}")
+        unit = tex_unit(asd_unit(units.get(f"S_{ch}", DEFAULT_UNITS[f"S_{ch}"])))
+        ax.set_ylabel(f"$\\sqrt{{S_{{{ch}}}}}$ [{unit}]")
+        ax.set_title(f"{ch}", fontsize=10, loc="left")
+        ax.grid(True, which="major", alpha=0.4)
+        ax.grid(True, which="minor", alpha=0.12)
+    axes[-1].set_xlabel(f"f [{units.get('f', 'Hz')}]")
+    # One legend for both panels, right of them: it never covers a trace.
+    h, lab = axes[0].get_legend_handles_labels()
+    fig.legend(h, lab, loc="center left", bbox_to_anchor=(0.74, 0.5), fontsize=8, frameon=False)
+    fig.suptitle("Total equivalent acceleration through $\\Delta(p)$: amplitude spectral densities")
+    fig.tight_layout(rect=(0, 0, 0.74, 1))
+    if args.png:
+        png = args.png
+        png.parent.mkdir(parents=True, exist_ok=True)
+    else:
+        png_dir = args.out or args.input / "plots"
+        png_dir.mkdir(parents=True, exist_ok=True)
+        png = png_dir / "accel.png"
+    fig.savefig(png, dpi=DPI)
+    print(png)
 
 
 if __name__ == "__main__":
