@@ -75,7 +75,7 @@ pub struct DiagnoseArgs {
     pub design: String,
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
-    /// Do not draw psd.png and time_chi2.png (the embedded scripts/plot_diagnose.py, run with
+    /// Do not draw plots/psd.png and plots/time_chi2.png (the embedded scripts/plot_diagnose.py, run with
     /// python3; FREEFALL_PLOT_SCRIPT names another script).
     #[arg(long)]
     pub no_plots: bool,
@@ -153,7 +153,7 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
     let mut md = d.to_markdown(&dataset.display().to_string());
     if !a.no_plots {
         match plot(&a.out) {
-            Ok(()) => md.push_str("\n## Plots\n\n![residual spectra](psd.png)\n\n![time-resolved chi2](time_chi2.png)\n"),
+            Ok(()) => md.push_str("\n## Plots\n\n![residual spectra](plots/psd.png)\n\n![time-resolved chi2](plots/time_chi2.png)\n"),
             Err(e) => {
                 let note = format!("\n> note: no plots ({e}); the plot data are in spectra.parquet and time_chi2.parquet\n");
                 info!("note: no plots ({e})");
