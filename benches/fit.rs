@@ -23,7 +23,7 @@ fn bench(c: &mut Criterion) {
         .whitener_from_model(&sc.truth, sim.n, sim.dt, DEFAULT_WHITENING_ORDER)
         .unwrap();
     let lik = Likelihood::new(&setup.model, &sim.inputs, sim.dt, w, DEFAULT_POLY_DEGREE).unwrap();
-    let cfg = FitConfig::new(&setup.parameter_names());
+    let cfg = FitConfig::new(&setup.model);
     let mut r = 0u64;
     let mut group = c.benchmark_group("realization");
     group.sample_size(30);

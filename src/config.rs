@@ -20,6 +20,11 @@ pub fn positive(option: &'static str, v: f64) -> Result<(), OutOfRange> {
     check(option, v, v.is_finite() && v > 0.0, "finite and > 0")
 }
 
+/// `v` must be finite (a prior mean, a value to hold a parameter at).
+pub fn finite(option: &'static str, v: f64) -> Result<(), OutOfRange> {
+    check(option, v, v.is_finite(), "finite")
+}
+
 /// `v` must lie in (0, 1] (a fraction, a correlation threshold).
 pub fn fraction(option: &'static str, v: f64) -> Result<(), OutOfRange> {
     check(option, v, v > 0.0 && v <= 1.0, "in (0, 1]")

@@ -43,7 +43,7 @@ fn diagnose_config_fields_are_checked() {
 #[test]
 fn fit_config_fields_are_checked() {
     let names: Vec<String> = ["w1_sq".to_string()].to_vec();
-    FitConfig::new(&names)
+    FitConfig::unbounded(names.len())
         .validate()
         .expect("defaults are valid");
     let cases: Vec<Case<FitConfig>> = vec![
@@ -53,7 +53,7 @@ fn fit_config_fields_are_checked() {
         (Box::new(|c| c.ptol = 0.0), "ptol", "0"),
     ];
     for (set, option, value) in cases {
-        let mut c = FitConfig::new(&names);
+        let mut c = FitConfig::unbounded(names.len());
         set(&mut c);
         named(c.validate().unwrap_err(), option, value);
     }

@@ -78,7 +78,7 @@ fn time_domain_fisher_agrees_with_the_frequency_domain_formula() {
         &b.setup.model,
         &lik.problem(&data).unwrap(),
         &b.truth,
-        &FitConfig::new(&b.setup.parameter_names()),
+        &FitConfig::new(&b.setup.model),
     )
     .unwrap();
     let td = res.information.clone().try_inverse().unwrap();
@@ -180,7 +180,7 @@ fn monte_carlo_scatter_agrees_with_fisher_errors() {
         .whitener_from_model(&b.truth, sim.n, sim.dt, DEFAULT_WHITENING_ORDER)
         .unwrap();
     let lik = Likelihood::new(&b.setup.model, &sim.inputs, sim.dt, w, DEFAULT_POLY_DEGREE).unwrap();
-    let cfg = FitConfig::new(&b.setup.parameter_names());
+    let cfg = FitConfig::new(&b.setup.model);
     let results: Vec<_> = (0..120u64)
         .into_par_iter()
         .map(|r| {
@@ -230,7 +230,7 @@ fn under_performing_converges_from_a_far_guess() {
     let lik = Likelihood::new(&b.setup.model, &sim.inputs, sim.dt, w, DEFAULT_POLY_DEGREE).unwrap();
     let data: ExperimentData = sim.draw(&mut stream(4, 0));
     let problem = lik.problem(&data).unwrap();
-    let cfg = FitConfig::new(&b.setup.parameter_names());
+    let cfg = FitConfig::new(&b.setup.model);
     let far = fit(&b.setup.model, &problem, &b.guess, &cfg).unwrap();
     let near = fit(&b.setup.model, &problem, &b.truth, &cfg).unwrap();
     assert!(far.termination.converged(), "{:?}", far.termination);
@@ -290,7 +290,7 @@ fn robust_estimators_on_glitches_behave_as_in_the_thesis() {
     let data = sim.draw(&mut stream(9, 0));
     let problem = lik.problem(&data).unwrap();
     let run = |e: Estimator| {
-        let mut cfg = FitConfig::new(&b.setup.parameter_names());
+        let mut cfg = FitConfig::new(&b.setup.model);
         cfg.estimator = e;
         fit(&b.setup.model, &problem, &b.guess, &cfg).unwrap()
     };
@@ -360,7 +360,7 @@ fn cached_jacobians_give_the_exact_fits() {
         .whitener_from_model(&b.truth, sim.n, sim.dt, DEFAULT_WHITENING_ORDER)
         .unwrap();
     let lik = Likelihood::new(&b.setup.model, &sim.inputs, sim.dt, w, DEFAULT_POLY_DEGREE).unwrap();
-    let exact = FitConfig::new(&b.setup.parameter_names());
+    let exact = FitConfig::new(&b.setup.model);
     let first = fit(
         &b.setup.model,
         &lik.problem(&sim.draw(&mut stream(77, 0))).unwrap(),
@@ -475,4 +475,142 @@ fn only_a_moved_fit_counts_as_converged() {
     assert!(!Termination::NonFinite.converged());
     assert!(Termination::NoImprovement.converged());
     assert!(Termination::ChiSquareTolerance.converged());
+}
+
+#[test]
+fn parameter_ranges_come_from_the_model_file() {
+    // Oracle: the embedded lpf_x.toml's `lower` keys (gains >= 1e-3, delays >= 0, no other
+    // bound) are the bounds every fit of that model gets; a file whose range leaves out the
+    // nominal value is refused, naming the parameter.
+    let setup = Setup::load(None).unwrap();
+    let cfg = FitConfig::new(&setup.model);
+    for (n, b) in setup.parameter_names().iter().zip(&cfg.bounds) {
+        let lo = match n.as_str() {
+            "a_df" | "a_sus" => 1e-3,
+            "dt1" | "dt12" => 0.0,
+            _ => f64::NEG_INFINITY,
+        };
+        assert_eq!((b.lo, b.hi), (lo, f64::INFINITY), "{n}");
+    }
+    let text = freefall::model::spec::EMBEDDED_LPF_X.replacen("lower = 0.0", "lower = 0.5", 1);
+    assert_ne!(text, freefall::model::spec::EMBEDDED_LPF_X);
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("model.toml");
+    std::fs::write(&path, text).unwrap();
+    let err = Setup::load(Some(&path)).err().expect("refused").to_string();
+    assert!(
+        err.contains("parameter.dt1") && err.contains("nominal"),
+        "{err}"
+    );
+}
+
+#[test]
+fn fixed_parameters_and_gaussian_priors() {
+    // Oracles (linear Gaussian conditioning on the free fit's covariance C):
+    // - holding w1_sq at its truth t moves every other estimate to p_o + C_of / C_ff (t - p_f)
+    //   (to first order), and nu is one higher;
+    // - a Gaussian prior of width equal to w1_sq's Fisher sigma, centred anywhere, halves its
+    //   variance: sigma shrinks by 1/sqrt(2) (Sherman-Morrison: C_ff - C_ff^2 / (2 C_ff)),
+    //   within 5 %.
+    let b = Bench::new("monte_carlo");
+    let design = b.setup.design("standard").unwrap();
+    let sim = b.setup.simulator(&design, &b.truth, None).unwrap();
+    let w = b
+        .setup
+        .whitener_from_model(&b.truth, sim.n, sim.dt, DEFAULT_WHITENING_ORDER)
+        .unwrap();
+    let lik = Likelihood::new(&b.setup.model, &sim.inputs, sim.dt, w, DEFAULT_POLY_DEGREE).unwrap();
+    let problem = lik.problem(&sim.draw(&mut stream(31, 0))).unwrap();
+    let free = fit(
+        &b.setup.model,
+        &problem,
+        &b.guess,
+        &FitConfig::new(&b.setup.model),
+    )
+    .unwrap();
+    let f = 0; // w1_sq
+    let mut start = b.guess.clone();
+    start[f] = b.truth[f];
+    let cfg = FitConfig::new(&b.setup.model).fix(f);
+    let held = fit(&b.setup.model, &problem, &start, &cfg).unwrap();
+    assert!(held.termination.converged(), "{:?}", held.termination);
+    assert_eq!(held.nu, free.nu + 1);
+    assert_eq!(held.estimate[f], b.truth[f]);
+    assert_eq!(held.sigma[f], 0.0);
+    let c = &free.covariance;
+    for k in (0..7).filter(|&k| k != f) {
+        let predicted = free.estimate[k] + c[(k, f)] / c[(f, f)] * (b.truth[f] - free.estimate[f]);
+        let off = (held.estimate[k] - predicted) / held.sigma[k];
+        assert!(
+            off.abs() < 0.05,
+            "parameter {k}: {off} sigma from the conditional mean"
+        );
+    }
+    let prior = freefall::fit::Prior {
+        mean: b.truth[f],
+        sigma: free.sigma[f],
+    };
+    let cfg = FitConfig::new(&b.setup.model).with_prior(f, prior);
+    let shrunk = fit(&b.setup.model, &problem, &b.guess, &cfg).unwrap();
+    let ratio = shrunk.sigma[f] / free.sigma[f];
+    assert!(
+        (ratio * 2f64.sqrt() - 1.0).abs() < 0.05,
+        "sigma ratio {ratio}"
+    );
+}
+
+#[test]
+fn fix_and_prior_options_are_parsed_and_checked() {
+    // Oracle: the documented forms `--fix NAME[=VALUE]` and `--prior NAME=MEAN,SIGMA`; every bad
+    // spec is refused with the option, the spec and the token at fault.
+    use freefall::analysis::constrain_parameters;
+    let setup = Setup::load(None).unwrap();
+    let names = setup.parameter_names();
+    let mut guess = setup.spec.nominal();
+    let cfg = constrain_parameters(
+        &names,
+        &["w1_sq=-1.2e-6".into(), "dt1".into()],
+        &["s21=1e-4,2e-5".into()],
+        &mut guess,
+        FitConfig::new(&setup.model),
+    )
+    .unwrap();
+    assert_eq!(guess[0], -1.2e-6);
+    assert_eq!(cfg.fixed, [true, false, false, false, false, true, false]);
+    assert_eq!(
+        cfg.priors[2],
+        Some(freefall::fit::Prior {
+            mean: 1e-4,
+            sigma: 2e-5
+        })
+    );
+    for (fix, prior, needle) in [
+        ("nope", "", "--fix 'nope': unknown parameter 'nope'"),
+        ("w1_sq=abc", "", "'abc' is not a finite number"),
+        (
+            "",
+            "s21=1e-4",
+            "--prior 's21=1e-4': expected NAME=MEAN,SIGMA",
+        ),
+        ("", "s21=1e-4,0", "SIGMA must be > 0"),
+        ("", "s21=1e-4,inf", "'inf' is not a finite number"),
+    ] {
+        let fix: Vec<String> = (!fix.is_empty())
+            .then(|| fix.to_string())
+            .into_iter()
+            .collect();
+        let prior: Vec<String> = (!prior.is_empty())
+            .then(|| prior.to_string())
+            .into_iter()
+            .collect();
+        let err = constrain_parameters(
+            &names,
+            &fix,
+            &prior,
+            &mut guess,
+            FitConfig::new(&setup.model),
+        )
+        .unwrap_err();
+        assert!(err.contains(needle), "{err}");
+    }
 }

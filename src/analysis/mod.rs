@@ -194,3 +194,60 @@ pub fn parameters_from_estimates(path: &Path, names: &[String]) -> Result<Vec<f6
         })
         .collect()
 }
+
+/// Apply `--fix NAME[=VALUE]` (hold a parameter at VALUE, default its starting value) and
+/// `--prior NAME=MEAN,SIGMA` (a Gaussian prior) to a fit's settings and starting point.
+/// Errors name the option, the spec and the token at fault.
+pub fn constrain_parameters(
+    names: &[String],
+    fix: &[String],
+    prior: &[String],
+    guess: &mut [f64],
+    mut cfg: crate::fit::FitConfig,
+) -> std::result::Result<crate::fit::FitConfig, String> {
+    let index = |opt: &str, spec: &str, name: &str| {
+        names.iter().position(|n| n == name.trim()).ok_or_else(|| {
+            format!(
+                "{opt} '{spec}': unknown parameter '{}' (expected {})",
+                name.trim(),
+                names.join(", ")
+            )
+        })
+    };
+    let number = |opt: &str, spec: &str, v: &str| {
+        v.trim()
+            .parse::<f64>()
+            .ok()
+            .filter(|x| x.is_finite())
+            .ok_or_else(|| format!("{opt} '{spec}': '{}' is not a finite number", v.trim()))
+    };
+    for spec in fix {
+        let (name, value) = match spec.split_once('=') {
+            Some((n, v)) => (n, Some(number("--fix", spec, v)?)),
+            None => (spec.as_str(), None),
+        };
+        let k = index("--fix", spec, name)?;
+        if let Some(v) = value {
+            guess[k] = v;
+        }
+        cfg = cfg.fix(k);
+    }
+    for spec in prior {
+        let (name, rest) = spec
+            .split_once('=')
+            .ok_or_else(|| format!("--prior '{spec}': expected NAME=MEAN,SIGMA"))?;
+        let k = index("--prior", spec, name)?;
+        let (mean, sigma) = rest
+            .split_once(',')
+            .ok_or_else(|| format!("--prior '{spec}': expected NAME=MEAN,SIGMA"))?;
+        let (mean, sigma) = (
+            number("--prior", spec, mean)?,
+            number("--prior", spec, sigma)?,
+        );
+        if sigma <= 0.0 {
+            return Err(format!("--prior '{spec}': SIGMA must be > 0"));
+        }
+        cfg = cfg.with_prior(k, crate::fit::Prior { mean, sigma });
+    }
+    Ok(cfg)
+}

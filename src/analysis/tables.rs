@@ -175,6 +175,10 @@ pub struct FitSummary {
     pub whitening: String,
     pub whitening_order: usize,
     pub poly_degree: usize,
+    /// Parameters held at their starting value (`--fix`).
+    pub fixed: Vec<String>,
+    /// Gaussian priors (`--prior`): parameter -> [mean, sigma].
+    pub priors: BTreeMap<String, [f64; 2]>,
     /// Version, model and dataset hashes (the same keys as the tables' metadata).
     pub provenance: BTreeMap<String, String>,
 }
@@ -207,8 +211,23 @@ impl FitSummary {
             whitening,
             whitening_order,
             poly_degree,
+            fixed: Vec::new(),
+            priors: BTreeMap::new(),
             provenance,
         }
+    }
+
+    /// Record the fixed parameters and priors of `cfg` (parameter names `names`).
+    pub fn with_constraints(mut self, names: &[String], cfg: &crate::fit::FitConfig) -> Self {
+        for (k, n) in names.iter().enumerate() {
+            if cfg.fixed[k] {
+                self.fixed.push(n.clone());
+            }
+            if let Some(q) = cfg.priors[k] {
+                self.priors.insert(n.clone(), [q.mean, q.sigma]);
+            }
+        }
+        self
     }
 
     /// The printable result: chi^2 line, then one line per parameter (with the truth and the

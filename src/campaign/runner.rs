@@ -185,7 +185,7 @@ impl<'s> Runner<'s> {
                     campaign.fit.poly_degree,
                 )
                 .map_err(|e| ctx(label.clone())(e.into()))?;
-                let mut base = FitConfig::new(&names);
+                let mut base = FitConfig::new(&setup.model);
                 base.max_iterations = campaign.fit.max_iterations;
                 if campaign.fit.cached_jacobian {
                     base.jacobian = cell_jacobians(setup, &sim, &lik, sc, campaign.seed, &base)

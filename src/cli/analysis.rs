@@ -8,8 +8,9 @@ use clap::Args;
 
 use super::{ensure_parent, ModelOpt};
 use crate::analysis::{
-    correlation_table, dataset_whitener, estimates_table, experiment_data, outputs_of, psd_table,
-    residual_table, resolve_guess, truth_from_meta, whitened_table, FitSummary, Whitening,
+    constrain_parameters, correlation_table, dataset_whitener, estimates_table, experiment_data,
+    outputs_of, psd_table, residual_table, resolve_guess, truth_from_meta, whitened_table,
+    FitSummary, Whitening,
 };
 use crate::fit::{fit as run_fit, Estimator, FitConfig, Likelihood, Whitener};
 use crate::io::{read_dataset, read_run, write_json_atomic, write_parquet, Provenance};
@@ -143,6 +144,14 @@ pub struct FitArgs {
     /// Fit readouts whose level fails the units check (see `freefall::units`).
     #[arg(long)]
     pub force: bool,
+    /// Hold a parameter fixed (repeatable): NAME at its starting value, or NAME=VALUE. It is
+    /// not fitted, not counted in nu, and its sigma is 0.
+    #[arg(long, value_name = "NAME[=VALUE]")]
+    pub fix: Vec<String>,
+    /// A Gaussian prior on a parameter (repeatable): it adds ((p - MEAN) / SIGMA)^2 to the
+    /// objective and 1 / SIGMA^2 to the information.
+    #[arg(long, value_name = "NAME=MEAN,SIGMA")]
+    pub prior: Vec<String>,
 }
 
 pub fn fit(a: FitArgs) -> Result<()> {
@@ -152,7 +161,15 @@ pub fn fit(a: FitArgs) -> Result<()> {
         info!("note: {n}");
     }
     let data = experiment_data(&ds)?;
-    let guess = resolve_guess(&setup, a.guess.as_deref())?;
+    let mut guess = resolve_guess(&setup, a.guess.as_deref())?;
+    let mut cfg = constrain_parameters(
+        &setup.parameter_names(),
+        &a.fix,
+        &a.prior,
+        &mut guess,
+        FitConfig::new(&setup.model),
+    )
+    .map_err(anyhow::Error::msg)?;
     check_stability(&setup.model, &guess, Some(&setup.spec.nominal()))
         .context("the starting point")?;
     if !a.force {
@@ -173,9 +190,10 @@ pub fn fit(a: FitArgs) -> Result<()> {
     let lik = Likelihood::new(&setup.model, &data.inputs, data.dt, whitener, a.poly_degree)
         .with_context(|| a.dataset.display().to_string())?;
     let problem = lik.problem(&data)?;
-    let mut cfg = FitConfig::new(&setup.parameter_names());
     cfg.estimator = a.estimator;
+    let working = super::Working::new("fitting");
     let res = run_fit(&setup.model, &problem, &guess, &cfg)?;
+    drop(working);
     let names = setup.parameter_names();
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("cannot create output directory '{}'", a.out.display()))?;
@@ -205,7 +223,8 @@ pub fn fit(a: FitArgs) -> Result<()> {
         a.out.join("residuals.parquet"),
         &residuals.with_meta_all(&prov.meta),
     )?;
-    let summary = FitSummary::new(&res, a.estimator, source, a.order, a.poly_degree, prov.meta);
+    let summary = FitSummary::new(&res, a.estimator, source, a.order, a.poly_degree, prov.meta)
+        .with_constraints(&names, &cfg);
     write_json_atomic(a.out.join("fit.json"), &summary)?;
     let truth = truth_from_meta(&ds, &names);
     out!("{}", summary.text(&names, &res, &guess, truth.as_deref()));

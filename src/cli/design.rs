@@ -131,7 +131,9 @@ fn optimize(a: OptimizeArgs) -> Result<()> {
     let st = study(&setup, &a.study)?;
     ensure_dir(&a.out)?;
     let crits = criteria(a.criterion, a.on);
+    let working = super::Working::new("optimising");
     let report = write_optimization(&setup, &st, a.layout, &crits, &a.out)?;
+    drop(working);
     // Printed only once every file is written.
     out!("{report}");
     info!(
@@ -176,7 +178,9 @@ fn validate(a: ValidateArgs) -> Result<()> {
         2 + cfg.criteria.len() + cfg.simultaneous_criteria.len(),
         cfg.realizations
     );
+    let working = super::Working::new("validating");
     let v = run_validation(&setup, &cfg)?;
+    drop(working);
     let md = write_validation(&setup, &v, &cfg, &out)?;
     out!("{md}");
     info!(

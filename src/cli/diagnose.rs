@@ -34,6 +34,7 @@ pub struct DiagnoseArgs {
     /// Whitening filter order (lags).
     #[arg(long, default_value_t = DEFAULT_WHITENING_ORDER)]
     pub order: usize,
+    /// Degree of the whitened-domain polynomial nuisance per experiment and channel.
     #[arg(long, default_value_t = DEFAULT_POLY_DEGREE)]
     pub poly_degree: usize,
     /// Family-wise false-alarm probability of each decision (Bonferroni over candidates).
@@ -67,12 +68,16 @@ pub struct DiagnoseArgs {
     /// `freefall simulate --effect`).
     #[arg(long = "effect", value_name = "NAME=VALUE[,KEY=VALUE...]")]
     pub effects: Vec<String>,
-    /// With --simulate-into: scenario, design and seed. A scenario with a `glitch` table
-    /// (`glitches`) adds its random sine-Gaussian glitches to the noise (thesis sec. 4.5.7).
+    /// With --simulate-into: the scenario whose truth generates the data. A scenario with a
+    /// `glitch` table (`glitches`) adds its random sine-Gaussian glitches to the noise (thesis
+    /// sec. 4.5.7).
     #[arg(long, default_value = "monte_carlo")]
     pub scenario: String,
+    /// With --simulate-into: the injection design of the model file.
     #[arg(long, default_value = "standard")]
     pub design: String,
+    /// With --simulate-into: the seed (experiments from stream (seed, 0), the noise run from
+    /// stream (seed, 1)).
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
     /// Do not draw plots/psd.png and plots/time_chi2.png (the embedded scripts/plot_diagnose.py, run with
@@ -128,6 +133,7 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
         glitches: !a.no_glitches,
         ..Default::default()
     };
+    let working = super::Working::new("diagnosing");
     let d = diagnose_observed(
         &setup,
         &data,
@@ -138,6 +144,7 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
         &mut PrintNotes,
     )
     .with_context(|| dataset.display().to_string())?;
+    drop(working);
     std::fs::create_dir_all(&a.out)
         .with_context(|| format!("cannot create output directory '{}'", a.out.display()))?;
     let prov = crate::io::Provenance::new("diagnose")

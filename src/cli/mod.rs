@@ -284,6 +284,37 @@ fn refuse_output_over_input(cmd: &Command) -> Result<()> {
     Ok(())
 }
 
+/// A spinner with `msg` and the elapsed time on stderr while a command works (hidden under
+/// `--quiet` or when stderr is not a terminal); cleared when dropped.
+pub struct Working(Option<indicatif::ProgressBar>);
+
+impl Working {
+    pub fn new(msg: &str) -> Working {
+        use std::io::IsTerminal;
+        if quiet() || !std::io::stderr().is_terminal() {
+            return Working(None);
+        }
+        let pb = indicatif::ProgressBar::new_spinner();
+        if let Ok(style) = indicatif::ProgressStyle::with_template("{spinner} {msg} {elapsed}") {
+            pb.set_style(style);
+        }
+        pb.set_message(msg.to_string());
+        pb.enable_steady_tick(std::time::Duration::from_millis(SPINNER_TICK_MS));
+        Working(Some(pb))
+    }
+}
+
+/// Spinner redraw interval (fast enough to look alive, slow enough to cost nothing).
+const SPINNER_TICK_MS: u64 = 120;
+
+impl Drop for Working {
+    fn drop(&mut self) {
+        if let Some(pb) = &self.0 {
+            pb.finish_and_clear();
+        }
+    }
+}
+
 /// The error chain on one line.
 pub fn one_line(e: &anyhow::Error) -> String {
     let text = e

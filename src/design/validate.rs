@@ -18,7 +18,7 @@ use super::DesignError;
 use crate::campaign::runner::Runner;
 use crate::campaign::spec::{Campaign, FitOptions, Outputs, WhitenAt};
 use crate::campaign::stats::{Aggregates, Layout as RowLayout, Row};
-use crate::fit::{Estimator, FitConfig};
+use crate::fit::Estimator;
 use crate::model::spec::Scenario;
 use crate::setup::{Setup, DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 use crate::signal::Design;
@@ -255,7 +255,6 @@ pub fn monte_carlo(
     seed: u64,
     realizations: std::ops::Range<u64>,
 ) -> Result<(RowLayout, Vec<Row>), DesignError> {
-    let names = setup.parameter_names();
     let campaign = Campaign {
         file: PathBuf::from("design validation"),
         name: "design-validation".into(),
@@ -271,7 +270,7 @@ pub fn monte_carlo(
         fit: FitOptions {
             whitening_order: DEFAULT_WHITENING_ORDER,
             poly_degree: DEFAULT_POLY_DEGREE,
-            max_iterations: FitConfig::new(&names).max_iterations,
+            max_iterations: crate::fit::DEFAULT_MAX_ITERATIONS,
             whiten_at: WhitenAt::Guess,
             noise_chi2: false,
             cached_jacobian: true,

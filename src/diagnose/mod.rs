@@ -528,7 +528,7 @@ fn robust_check(
         let lik = problem.likelihood(model)?;
         let eff = problem.effective_data(&lik, &state.fit.linear, &gauss.estimate);
         let prob = lik.problem(&eff)?;
-        let mut fc = FitConfig::new(model.parameter_names());
+        let mut fc = FitConfig::new(model);
         fc.estimator = crate::fit::Estimator::Log;
         Ok(fit(model, &prob, &gauss.estimate, &fc)?)
     };

@@ -316,12 +316,7 @@ impl<'a> DiagnosisProblem<'a> {
     ) -> Result<(FitResult, Series), DiagnoseError> {
         let model = lik.engine.model();
         let prob = lik.problem(data)?;
-        let res = fit(
-            model,
-            &prob,
-            guess,
-            &FitConfig::new(model.parameter_names()),
-        )?;
+        let res = fit(model, &prob, guess, &FitConfig::new(model))?;
         let raw = prob.raw_residuals(data, &res.estimate);
         Ok((res, raw))
     }

@@ -126,26 +126,19 @@ impl Bound {
     };
 }
 
-/// Physical bounds for LPF-x-like parameter names (see module docs).
-pub fn physical_bounds(names: &[String]) -> Vec<Bound> {
-    names
-        .iter()
-        .map(|n| {
-            if n.starts_with("a_") {
-                Bound {
-                    lo: 1e-3,
-                    hi: f64::INFINITY,
-                }
-            } else if n.starts_with("dt") {
-                Bound {
-                    lo: 0.0,
-                    hi: f64::INFINITY,
-                }
-            } else {
-                Bound::FREE
-            }
-        })
-        .collect()
+/// Levenberg-Marquardt iterations before a fit gives up (a fit from a guess within tens of
+/// sigma takes 2-10).
+pub const DEFAULT_MAX_ITERATIONS: usize = 100;
+/// Relative tolerance of the stopping rules on chi^2 and on the step (thesis sec. "estimation":
+/// stop when neither changes by more than 1e-4 of itself, far below the statistical error).
+pub const DEFAULT_TOLERANCE: f64 = 1e-4;
+
+/// A Gaussian prior on one parameter: `(p - mean) / sigma` enters the objective as one more
+/// whitened residual, and `1 / sigma^2` the information.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Prior {
+    pub mean: f64,
+    pub sigma: f64,
 }
 
 #[derive(Debug, Clone)]
@@ -156,18 +149,87 @@ pub struct FitConfig {
     pub ptol: f64,
     pub bounds: Vec<Bound>,
     pub jacobian: JacobianPolicy,
+    /// Parameters held at their starting value: not fitted, not counted in nu, sigma 0.
+    pub fixed: Vec<bool>,
+    /// Gaussian priors per parameter (`None`: none).
+    pub priors: Vec<Option<Prior>>,
 }
 
 impl FitConfig {
-    pub fn new(names: &[String]) -> Self {
+    /// Defaults for fitting `model`: squared estimator, exact Jacobians, and the parameter
+    /// ranges the model declares ([`ClosedLoopModel::parameter_bounds`]; the model file's
+    /// `lower`/`upper` for LPF-x).
+    pub fn new<M: ClosedLoopModel<N>, const N: usize>(model: &M) -> Self {
+        FitConfig {
+            bounds: model
+                .parameter_bounds()
+                .into_iter()
+                .map(|(lo, hi)| Bound { lo, hi })
+                .collect(),
+            ..Self::unbounded(model.n_params())
+        }
+    }
+
+    /// Defaults for `n` parameters without bounds.
+    pub fn unbounded(n: usize) -> Self {
         FitConfig {
             estimator: Estimator::Squared,
-            max_iterations: 100,
-            ftol: 1e-4,
-            ptol: 1e-4,
-            bounds: physical_bounds(names),
+            max_iterations: DEFAULT_MAX_ITERATIONS,
+            ftol: DEFAULT_TOLERANCE,
+            ptol: DEFAULT_TOLERANCE,
+            bounds: vec![Bound::FREE; n],
             jacobian: JacobianPolicy::Exact,
+            fixed: vec![false; n],
+            priors: vec![None; n],
         }
+    }
+
+    /// Hold the parameter at index `k` at its starting value.
+    pub fn fix(mut self, k: usize) -> Self {
+        self.fixed[k] = true;
+        self
+    }
+
+    /// A Gaussian prior on the parameter at index `k`.
+    pub fn with_prior(mut self, k: usize, prior: Prior) -> Self {
+        self.priors[k] = Some(prior);
+        self
+    }
+
+    /// The priors' contribution to the objective, `sum ((p_k - mean_k) / sigma_k)^2`.
+    fn prior_chi2(&self, p: &[f64]) -> f64 {
+        self.priors
+            .iter()
+            .zip(p)
+            .filter_map(|(q, x)| q.map(|q| ((x - q.mean) / q.sigma).powi(2)))
+            .sum()
+    }
+
+    /// Normal equations of the data `(a, g)` with the priors added and the fixed parameters
+    /// taken out (their rows and columns zero, unit diagonal: a zero step).
+    fn constrain(
+        &self,
+        mut a: DMatrix<f64>,
+        mut g: DVector<f64>,
+        p: &[f64],
+    ) -> (DMatrix<f64>, DVector<f64>) {
+        for (k, q) in self.priors.iter().enumerate() {
+            if let Some(q) = q {
+                a[(k, k)] += 1.0 / (q.sigma * q.sigma);
+                g[k] += (q.mean - p[k]) / (q.sigma * q.sigma);
+            }
+        }
+        for k in (0..p.len()).filter(|&k| self.fixed[k]) {
+            a.row_mut(k).fill(0.0);
+            a.column_mut(k).fill(0.0);
+            a[(k, k)] = 1.0;
+            g[k] = 0.0;
+        }
+        (a, g)
+    }
+
+    fn n_free(&self) -> usize {
+        self.fixed.iter().filter(|f| !**f).count()
     }
 
     /// Check every setting's range (see [`crate::config`]).
@@ -175,7 +237,12 @@ impl FitConfig {
         use crate::config::{at_least_one, positive};
         at_least_one("max_iterations", self.max_iterations)?;
         positive("ftol", self.ftol)?;
-        positive("ptol", self.ptol)
+        positive("ptol", self.ptol)?;
+        for q in self.priors.iter().flatten() {
+            positive("prior sigma", q.sigma)?;
+            crate::config::finite("prior mean", q.mean)?;
+        }
+        Ok(())
     }
 }
 
@@ -460,8 +527,16 @@ pub fn fit<M: ClosedLoopModel<N>, const N: usize>(
             let (r, j) = problem.residuals_and_jacobian(p);
             (r, Cow::Owned(j), None)
         };
+    if cfg.fixed.len() != np || cfg.priors.len() != np || cfg.bounds.len() != np {
+        return Err(FitError::Singular(format!(
+            "the fit settings hold {} bounds, {} fixed flags and {} priors for {np} parameters",
+            cfg.bounds.len(),
+            cfg.fixed.len(),
+            cfg.priors.len()
+        )));
+    }
     let (mut r, mut j, mut known) = jac_at(&p, None);
-    let mut f = objective(est, &r);
+    let mut f = objective(est, &r) + cfg.prior_chi2(&p);
     let chi2_start = f;
     let mut lambda = 1e-3;
     let mut termination = Termination::MaxIterations;
@@ -472,6 +547,7 @@ pub fn fit<M: ClosedLoopModel<N>, const N: usize>(
         'outer: for it in 1..=cfg.max_iterations {
             iterations = it;
             let (a, g) = normal_equations_with(est, &r, &j, known);
+            let (a, g) = cfg.constrain(a, g, &p);
             let sigma: Vec<f64> = match invert_spd(&a) {
                 Some(c) => (0..np).map(|k| c[(k, k)].sqrt()).collect(),
                 None => vec![0.0; np],
@@ -492,7 +568,7 @@ pub fn fit<M: ClosedLoopModel<N>, const N: usize>(
                 }
                 let rt = problem.residuals(&trial);
                 nfev += 1;
-                let ft = objective(est, &rt);
+                let ft = objective(est, &rt) + cfg.prior_chi2(&trial);
                 if ft.is_finite() && ft < f {
                     accepted = Some((trial, ft, rt));
                     lambda = (lambda / 10.0).max(1e-12);
@@ -528,19 +604,25 @@ pub fn fit<M: ClosedLoopModel<N>, const N: usize>(
             }
         }
     }
+    // The data's chi^2 (without the priors' terms) over the data's degrees of freedom, the
+    // fitted parameters only counted.
     let f = objective(est, &r);
-    let nu = problem.nu(np);
+    let nu = problem.nu(cfg.n_free());
     let chi2_reduced = f / nu as f64;
     // Only `J^T J` is needed here: reuse a cached one, or form it without the gradient.
     let info = match known {
         Some(a) => a.clone(),
         None => gram(&j),
     };
-    let base = invert_spd(&info).ok_or_else(|| {
+    let (info, _) = cfg.constrain(info, DVector::zeros(np), &p);
+    let mut base = invert_spd(&info).ok_or_else(|| {
         FitError::Singular(
             "Fisher information at the estimate (a parameter the data cannot constrain?)".into(),
         )
     })?;
+    for k in (0..np).filter(|&k| cfg.fixed[k]) {
+        base[(k, k)] = 0.0;
+    }
     let scale = match est {
         Estimator::Squared => chi2_reduced,
         _ => robust_scale(est, &r),

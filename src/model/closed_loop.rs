@@ -103,6 +103,12 @@ pub trait ClosedLoopModel<const N: usize>: Send + Sync {
         self.parameter_names().len()
     }
 
+    /// Physical range `(lower, upper)` of each parameter, which a fit never leaves. Default:
+    /// unbounded.
+    fn parameter_bounds(&self) -> Vec<(f64, f64)> {
+        vec![(f64::NEG_INFINITY, f64::INFINITY); self.n_params()]
+    }
+
     /// `T_{oi->o}` at every point of a grid into `t_out`, and, if `d_out` is given, its
     /// derivatives into `d_out[bin * n_params + k]`. The default runs the generic operator
     /// algebra per point; a model may override it with a faster specialised form, which must

@@ -40,6 +40,8 @@ pub struct LpfX {
     /// The sampled-data loop's laws, when the model is digital.
     pub digital: Option<DigitalLaws>,
     names: Vec<String>,
+    /// Each parameter's `(lower, upper)` from the model file.
+    bounds: Vec<(f64, f64)>,
 }
 
 /// The control laws of the digital loop at the control interval `h`, and the computation
@@ -95,6 +97,7 @@ impl LpfX {
             c_sus,
             digital,
             names: spec.parameter_names(),
+            bounds: spec.parameters.iter().map(|p| p.bounds()).collect(),
         }
     }
 
@@ -452,6 +455,10 @@ impl ClosedLoopModel<2> for LpfX {
 
     fn parameter_names(&self) -> &[String] {
         &self.names
+    }
+
+    fn parameter_bounds(&self) -> Vec<(f64, f64)> {
+        self.bounds.clone()
     }
 
     fn readout_names(&self) -> [&'static str; 2] {

@@ -56,8 +56,24 @@ pub struct ParameterSpec {
     /// lists fitted values far outside it (default: `nominal` known to its order of magnitude).
     #[serde(default)]
     pub prior_sigma: Option<f64>,
+    /// Physical range of the parameter, which the fit never leaves (a gain is positive, a delay
+    /// is not negative); open ends when left out.
+    #[serde(default)]
+    pub lower: Option<f64>,
+    #[serde(default)]
+    pub upper: Option<f64>,
     #[serde(default)]
     pub description: String,
+}
+
+impl ParameterSpec {
+    /// `(lower, upper)`, infinite where the file sets no bound.
+    pub fn bounds(&self) -> (f64, f64) {
+        (
+            self.lower.unwrap_or(f64::NEG_INFINITY),
+            self.upper.unwrap_or(f64::INFINITY),
+        )
+    }
 }
 
 /// Spectral shape of a noise source (one-sided ASD), see `noise::shapes`.
@@ -268,6 +284,24 @@ impl ModelSpec {
                 return Err(self.bad(
                     &format!("parameter.{}.prior_sigma", p.name),
                     format!("{w} must be finite and > 0"),
+                ));
+            }
+            for (key, v) in [("lower", p.lower), ("upper", p.upper)] {
+                if let Some(v) = v.filter(|v| !v.is_finite()) {
+                    return Err(self.bad(
+                        &format!("parameter.{}.{key}", p.name),
+                        format!("{v} must be finite (leave the key out for no bound)"),
+                    ));
+                }
+            }
+            let (lo, hi) = p.bounds();
+            if !(lo < hi && (lo..=hi).contains(&p.nominal)) {
+                return Err(self.bad(
+                    &format!("parameter.{}", p.name),
+                    format!(
+                        "the range [{lo}, {hi}] must be non-empty and hold the nominal value {}",
+                        p.nominal
+                    ),
                 ));
             }
         }

@@ -240,6 +240,15 @@ impl ClosedLoopModel<2> for Extended {
         &self.names
     }
 
+    /// The base model's ranges; effect parameters are left free in the fit, so that the
+    /// one-sided test of a bounded effect (`Effect::lower_bounds`) sees the unconstrained
+    /// estimate and can refuse a claim outside the physical range.
+    fn parameter_bounds(&self) -> Vec<(f64, f64)> {
+        let mut b = self.base.parameter_bounds();
+        b.resize(self.names.len(), (f64::NEG_INFINITY, f64::INFINITY));
+        b
+    }
+
     fn readout_names(&self) -> [&'static str; 2] {
         self.base.readout_names()
     }
