@@ -51,6 +51,7 @@ pub mod problem;
 pub mod redesign;
 pub mod report;
 pub mod residuals;
+pub mod science;
 pub mod selection;
 mod simulate;
 pub mod tables;
@@ -285,6 +286,9 @@ pub struct Diagnosis {
     pub truth: Option<Vec<f64>>,
     /// Present when the final residual is heavy-tailed (an `outliers` entry).
     pub robust: Option<RobustCheck>,
+    /// The acceleration noise (S_g12) through Delta before and after (`science`); `None` when
+    /// no run is long enough for the estimate.
+    pub acceleration: Option<science::AccelChange>,
     pub seconds: f64,
 }
 
@@ -388,7 +392,28 @@ pub fn diagnose_observed(
     let before = problem.stage(&problem.nominal, &fit0);
     let mut state = DiagnosisState::new(&problem, fit0.clone(), &before);
     while let Round::Added(_) = next_round(&problem, &mut state, &mut both)? {}
+    let final_model = state.model.clone();
     let mut d = finish(&problem, state, &fit0, before, &mut both);
+    // The science product: the noise run's readouts (or the first experiment's, guidance
+    // removed) through Delta before and after.
+    let (source, o, oi) = match noise {
+        Some(n) => ("noise run".to_string(), [&n[0][..], &n[1][..]], None),
+        None => (
+            data.names[0].clone(),
+            [&data.outputs[0][0][..], &data.outputs[0][1][..]],
+            Some([&data.inputs[0][0][..], &data.inputs[0][1][..]]),
+        ),
+    };
+    d.acceleration = science::compare(
+        &problem.nominal,
+        &d.before.estimate,
+        &final_model,
+        &d.after.estimate,
+        data.dt,
+        &source,
+        o,
+        oi,
+    );
     d.notes = notes.0;
     d.truth = truth.map(|t| t.to_vec());
     d.seconds = start.elapsed().as_secs_f64();
@@ -440,6 +465,7 @@ fn finish(
         residuals_after: (state.fit.fit.residuals_w, state.fit.raw),
         truth: None,
         robust,
+        acceleration: None,
         seconds: 0.0,
     }
 }

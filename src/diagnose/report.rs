@@ -166,6 +166,16 @@ impl Diagnosis {
                 "sigmas": named(&r.parameter_names, &r.sigma),
                 "shift_sigma": named(&r.parameter_names, &r.shift_sigma),
             })),
+            "acceleration": self.acceleration.as_ref().map(|a| json!({
+                "source": a.source,
+                "largest_ratio": num(a.largest_ratio),
+                "at_hz": num(a.at_hz),
+                "band_hz": [num(a.band_hz[0]), num(a.band_hz[1])],
+                "welch_band_factors_90": [num(a.band_lo), num(a.band_hi)],
+                "f": a.f.iter().map(|v| num(*v)).collect::<Vec<_>>(),
+                "s_g12_before": a.before.iter().map(|v| num(*v)).collect::<Vec<_>>(),
+                "s_g12_after": a.after.iter().map(|v| num(*v)).collect::<Vec<_>>(),
+            })),
             "seconds": num(self.seconds),
         })
     }
@@ -177,6 +187,7 @@ impl Diagnosis {
         self.md_added(&mut s);
         self.md_parameters(&mut s);
         self.md_prior_tension(&mut s);
+        self.md_acceleration(&mut s);
         self.md_robust(&mut s);
         self.md_residuals(&mut s);
         self.md_unexplained(&mut s);
@@ -188,6 +199,18 @@ impl Diagnosis {
 }
 
 impl Diagnosis {
+    /// The science product before and after (`science`).
+    fn md_acceleration(&self, s: &mut String) {
+        let Some(a) = &self.acceleration else {
+            return;
+        };
+        let _ = writeln!(
+            s,
+            "\n## Acceleration noise before and after\n\nThe total equivalent differential acceleration noise S_g12 (thesis sec. 4.6) of the {} through Delta, with the parameters before the diagnosis (nominal model at its fit) and after it (final model). The largest change is a factor {:.3} at {:.3e} Hz (band {:.3e} - {:.3e} Hz, where the change is at least half as large in log). For scale, one Welch estimate alone lies within a factor [{:.2}, {:.2}] of the true PSD (90 %); both estimates come from the same readouts, so their ratio carries no such scatter. The spectra are in report.json (`acceleration`).",
+            a.source, a.largest_ratio, a.at_hz, a.band_hz[0], a.band_hz[1], a.band_lo, a.band_hi
+        );
+    }
+
     /// Title, verdict, degenerate effects, whitening and notes.
     fn md_header(&self, s: &mut String, title: &str) {
         let _ = writeln!(s, "# Diagnosis of {title}\n");
