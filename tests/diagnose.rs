@@ -1229,3 +1229,52 @@ fn an_operator_effect_and_three_loud_glitches_are_all_added() {
         );
     }
 }
+
+#[test]
+fn a_command_line_prior_drives_the_prior_tension() {
+    // Oracle: the case above with the s21 prior given as a constraint of the diagnosis
+    // (`diagnose --prior s21=0.9e-4,2e-5`) on the embedded model, whose own s21 prior is
+    // 0 +- 1e-4: the tension is measured against the given prior and explained by the leak at an
+    // equivalent size within 10 % of 3e-4.
+    let leak = 3e-4;
+    let setup = Setup::embedded();
+    let design = setup.design("standard").unwrap();
+    let sc = setup.spec.scenario("monte_carlo").unwrap();
+    let eff = vec![(by_name("actuation_crosstalk_df_x12").unwrap(), vec![leak])];
+    let (data, noise) = simulate_with_effects(&setup, &design, &sc.truth, &eff, 7).unwrap();
+    let k = setup
+        .parameter_names()
+        .iter()
+        .position(|n| n == "s21")
+        .unwrap();
+    let cfg = DiagnoseConfig {
+        constraints: freefall::fit::Constraints {
+            fixed: Vec::new(),
+            priors: vec![(
+                k,
+                freefall::fit::Prior {
+                    mean: 0.9e-4,
+                    sigma: 2e-5,
+                },
+            )],
+        },
+        ..Default::default()
+    };
+    let d = diagnose(&setup, &data, Some(&noise), &sc.guess, None, &cfg).unwrap();
+    let t = d
+        .prior_tension
+        .iter()
+        .find(|t| t.parameter == "s21")
+        .unwrap_or_else(|| panic!("no s21 tension in {:?}", d.prior_tension));
+    assert_eq!((t.prior, t.prior_sigma), (0.9e-4, 2e-5));
+    let x = t
+        .explained_by
+        .iter()
+        .find(|x| x.effect == "actuation_crosstalk_df_x12")
+        .unwrap_or_else(|| panic!("s21 tension not explained by the leak: {t:?}"));
+    assert!(
+        (x.equivalent - leak).abs() < 0.1 * leak,
+        "equivalent {:e} vs {leak:e}",
+        x.equivalent
+    );
+}

@@ -563,18 +563,18 @@ fn fixed_parameters_and_gaussian_priors() {
 fn fix_and_prior_options_are_parsed_and_checked() {
     // Oracle: the documented forms `--fix NAME[=VALUE]` and `--prior NAME=MEAN,SIGMA`; every bad
     // spec is refused with the option, the spec and the token at fault.
-    use freefall::analysis::constrain_parameters;
+    use freefall::analysis::parse_constraints;
     let setup = Setup::load(None).unwrap();
     let names = setup.parameter_names();
     let mut guess = setup.spec.nominal();
-    let cfg = constrain_parameters(
+    let cfg = parse_constraints(
         &names,
         &["w1_sq=-1.2e-6".into(), "dt1".into()],
         &["s21=1e-4,2e-5".into()],
         &mut guess,
-        FitConfig::new(&setup.model),
     )
-    .unwrap();
+    .unwrap()
+    .apply(FitConfig::new(&setup.model));
     assert_eq!(guess[0], -1.2e-6);
     assert_eq!(cfg.fixed, [true, false, false, false, false, true, false]);
     assert_eq!(
@@ -603,14 +603,7 @@ fn fix_and_prior_options_are_parsed_and_checked() {
             .then(|| prior.to_string())
             .into_iter()
             .collect();
-        let err = constrain_parameters(
-            &names,
-            &fix,
-            &prior,
-            &mut guess,
-            FitConfig::new(&setup.model),
-        )
-        .unwrap_err();
+        let err = parse_constraints(&names, &fix, &prior, &mut guess).unwrap_err();
         assert!(err.contains(needle), "{err}");
     }
 }

@@ -195,16 +195,16 @@ pub fn parameters_from_estimates(path: &Path, names: &[String]) -> Result<Vec<f6
         .collect()
 }
 
-/// Apply `--fix NAME[=VALUE]` (hold a parameter at VALUE, default its starting value) and
-/// `--prior NAME=MEAN,SIGMA` (a Gaussian prior) to a fit's settings and starting point.
-/// Errors name the option, the spec and the token at fault.
-pub fn constrain_parameters(
+/// Parse `--fix NAME[=VALUE]` (hold a parameter at VALUE, default its starting value, which
+/// is then set in `guess`) and `--prior NAME=MEAN,SIGMA` (a Gaussian prior) into
+/// [`crate::fit::Constraints`]. Errors name the option, the spec and the token at fault.
+pub fn parse_constraints(
     names: &[String],
     fix: &[String],
     prior: &[String],
     guess: &mut [f64],
-    mut cfg: crate::fit::FitConfig,
-) -> std::result::Result<crate::fit::FitConfig, String> {
+) -> std::result::Result<crate::fit::Constraints, String> {
+    let mut out = crate::fit::Constraints::default();
     let index = |opt: &str, spec: &str, name: &str| {
         names.iter().position(|n| n == name.trim()).ok_or_else(|| {
             format!(
@@ -230,7 +230,7 @@ pub fn constrain_parameters(
         if let Some(v) = value {
             guess[k] = v;
         }
-        cfg = cfg.fix(k);
+        out.fixed.push(k);
     }
     for spec in prior {
         let (name, rest) = spec
@@ -247,7 +247,7 @@ pub fn constrain_parameters(
         if sigma <= 0.0 {
             return Err(format!("--prior '{spec}': SIGMA must be > 0"));
         }
-        cfg = cfg.with_prior(k, crate::fit::Prior { mean, sigma });
+        out.priors.push((k, crate::fit::Prior { mean, sigma }));
     }
-    Ok(cfg)
+    Ok(out)
 }

@@ -8,8 +8,8 @@ use clap::Args;
 
 use super::{ensure_parent, ModelOpt};
 use crate::analysis::{
-    constrain_parameters, correlation_table, dataset_whitener, estimates_table, experiment_data,
-    outputs_of, psd_table, residual_table, resolve_guess, truth_from_meta, whitened_table,
+    correlation_table, dataset_whitener, estimates_table, experiment_data, outputs_of,
+    parse_constraints, psd_table, residual_table, resolve_guess, truth_from_meta, whitened_table,
     FitSummary, Whitening,
 };
 use crate::fit::{fit as run_fit, Estimator, FitConfig, Likelihood, Whitener};
@@ -162,14 +162,9 @@ pub fn fit(a: FitArgs) -> Result<()> {
     }
     let data = experiment_data(&ds)?;
     let mut guess = resolve_guess(&setup, a.guess.as_deref())?;
-    let mut cfg = constrain_parameters(
-        &setup.parameter_names(),
-        &a.fix,
-        &a.prior,
-        &mut guess,
-        FitConfig::new(&setup.model),
-    )
-    .map_err(anyhow::Error::msg)?;
+    let constraints = parse_constraints(&setup.parameter_names(), &a.fix, &a.prior, &mut guess)
+        .map_err(anyhow::Error::msg)?;
+    let mut cfg = constraints.apply(FitConfig::new(&setup.model));
     check_stability(&setup.model, &guess, Some(&setup.spec.nominal()))
         .context("the starting point")?;
     if !a.force {

@@ -9,7 +9,7 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 
 use super::ModelOpt;
-use crate::analysis::{experiment_data, resolve_guess, truth_from_meta};
+use crate::analysis::{experiment_data, parse_constraints, resolve_guess, truth_from_meta};
 use crate::diagnose::tables::Timeline;
 use crate::diagnose::{diagnose_observed, DiagnoseConfig, Observer};
 use crate::io::{read_dataset, write_text_atomic};
@@ -37,6 +37,14 @@ pub struct DiagnoseArgs {
     /// Degree of the whitened-domain polynomial nuisance per experiment and channel.
     #[arg(long, default_value_t = DEFAULT_POLY_DEGREE)]
     pub poly_degree: usize,
+    /// Hold a base parameter fixed in every fit (repeatable): NAME at its starting value, or
+    /// NAME=VALUE.
+    #[arg(long, value_name = "NAME[=VALUE]")]
+    pub fix: Vec<String>,
+    /// A Gaussian prior on a base parameter in every fit (repeatable); it also replaces the
+    /// model file's prior in the prior-tension report.
+    #[arg(long, value_name = "NAME=MEAN,SIGMA")]
+    pub prior: Vec<String>,
     /// Family-wise false-alarm probability of each decision (Bonferroni over candidates).
     #[arg(long, default_value_t = 0.01)]
     pub alpha: f64,
@@ -104,7 +112,9 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
     }
     let data = experiment_data(&ds)?;
     let names = setup.parameter_names();
-    let guess = resolve_guess(&setup, a.guess.as_deref())?;
+    let mut guess = resolve_guess(&setup, a.guess.as_deref())?;
+    let constraints =
+        parse_constraints(&names, &a.fix, &a.prior, &mut guess).map_err(anyhow::Error::msg)?;
     if !a.force {
         crate::units::check_dataset(&setup, &guess, &ds)?;
     }
@@ -131,6 +141,7 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
         whiten_from_model: a.model_psd,
         lines: a.lines,
         glitches: !a.no_glitches,
+        constraints,
         ..Default::default()
     };
     let working = super::Working::new("diagnosing");

@@ -127,6 +127,11 @@ pub struct DiagnoseConfig {
     /// Scan the residual for glitches ([`glitch`]) every round and propose the best of each
     /// entry point as a `glitch` candidate.
     pub glitches: bool,
+    /// Base parameters held fixed and Gaussian priors, in every fit of the diagnosis (effect
+    /// parameters stay free). The score tests keep every base parameter as a nuisance, which
+    /// only costs them power. A prior here also replaces the model file's in the prior-tension
+    /// report.
+    pub constraints: crate::fit::Constraints,
 }
 
 impl Default for DiagnoseConfig {
@@ -144,6 +149,7 @@ impl Default for DiagnoseConfig {
             lines: false,
             drifts: true,
             glitches: true,
+            constraints: crate::fit::Constraints::default(),
         }
     }
 }
@@ -447,7 +453,13 @@ fn finish(
     let unexplained = excess::find_unexplained(&after, cfg.alpha);
     let robust = heavy_tails(problem, &state, &after, &unexplained, obs);
     redesign_degenerate(problem, &fit0.fit.estimate, &mut state.candidates, obs);
-    let prior_tension = tension::prior_tension(problem.setup, &after, cfg.alpha, &state.candidates);
+    let prior_tension = tension::prior_tension(
+        problem.setup,
+        &cfg.constraints,
+        &after,
+        cfg.alpha,
+        &state.candidates,
+    );
     let spectra = spectra(problem, &fit0.fit, &state.fit.fit);
     Diagnosis {
         notes: Vec::new(),
@@ -554,7 +566,7 @@ fn robust_check(
         let lik = problem.likelihood(model)?;
         let eff = problem.effective_data(&lik, &state.fit.linear, &gauss.estimate);
         let prob = lik.problem(&eff)?;
-        let mut fc = FitConfig::new(model);
+        let mut fc = problem.cfg.constraints.apply(FitConfig::new(model));
         fc.estimator = crate::fit::Estimator::Log;
         Ok(fit(model, &prob, &gauss.estimate, &fc)?)
     };

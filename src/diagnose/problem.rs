@@ -316,7 +316,8 @@ impl<'a> DiagnosisProblem<'a> {
     ) -> Result<(FitResult, Series), DiagnoseError> {
         let model = lik.engine.model();
         let prob = lik.problem(data)?;
-        let res = fit(model, &prob, guess, &FitConfig::new(model))?;
+        let cfg = self.cfg.constraints.apply(FitConfig::new(model));
+        let res = fit(model, &prob, guess, &cfg)?;
         let raw = prob.raw_residuals(data, &res.estimate);
         Ok((res, raw))
     }

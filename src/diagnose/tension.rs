@@ -46,13 +46,18 @@ pub struct PriorTension {
     pub explained_by: Vec<Explanation>,
 }
 
-/// The prior (centre, width) of each base parameter, when it has one.
-pub fn priors(setup: &Setup) -> Vec<Option<(f64, f64)>> {
+/// The prior (centre, width) of each base parameter, when it has one: a prior of the
+/// diagnosis's constraints (`--prior`), else the model file's.
+pub fn priors(setup: &Setup, constraints: &crate::fit::Constraints) -> Vec<Option<(f64, f64)>> {
     setup
         .spec
         .parameters
         .iter()
-        .map(|p| {
+        .enumerate()
+        .map(|(k, p)| {
+            if let Some((_, q)) = constraints.priors.iter().find(|(i, _)| *i == k) {
+                return Some((q.mean, q.sigma));
+            }
             let width = p
                 .prior_sigma
                 .unwrap_or(DEFAULT_PRIOR_RELATIVE * p.nominal.abs());
@@ -104,11 +109,12 @@ fn explanations(parameter: &str, shift: f64, candidates: &[Candidate]) -> Vec<Ex
 /// level `alpha / n_parameters`, each with the degenerate `candidates` that would explain it.
 pub fn prior_tension(
     setup: &Setup,
+    constraints: &crate::fit::Constraints,
     after: &Stage,
     alpha: f64,
     candidates: &[Candidate],
 ) -> Vec<PriorTension> {
-    let priors = priors(setup);
+    let priors = priors(setup, constraints);
     let n = priors.len().max(1);
     let z = chi2_isf(1.0, alpha / n as f64).sqrt();
     let mut out = Vec::new();

@@ -141,6 +141,31 @@ pub struct Prior {
     pub sigma: f64,
 }
 
+/// Fixed parameters and priors by parameter index, as given on a command line or in a campaign
+/// file; [`Constraints::apply`] puts them into a [`FitConfig`] of any model whose parameters
+/// start with the indexed ones (an extended model's effect parameters stay free).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Constraints {
+    pub fixed: Vec<usize>,
+    pub priors: Vec<(usize, Prior)>,
+}
+
+impl Constraints {
+    pub fn apply(&self, mut cfg: FitConfig) -> FitConfig {
+        for &k in &self.fixed {
+            cfg = cfg.fix(k);
+        }
+        for &(k, q) in &self.priors {
+            cfg = cfg.with_prior(k, q);
+        }
+        cfg
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.fixed.is_empty() && self.priors.is_empty()
+    }
+}
+
 #[derive(Debug, Clone)]
 pub struct FitConfig {
     pub estimator: Estimator,
