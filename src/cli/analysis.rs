@@ -191,9 +191,6 @@ pub struct FitArgs {
     /// Output directory (created): estimates.parquet, correlation.parquet, fit.json, residuals.parquet.
     #[arg(long)]
     pub out: PathBuf,
-    /// Fit readouts whose level fails the units check (see `freefall::units`).
-    #[arg(long)]
-    pub force: bool,
 }
 
 /// The experiments of a dataset as fit input.
@@ -330,7 +327,7 @@ pub fn fit(a: FitArgs) -> Result<()> {
     let guess = resolve_guess(&setup, a.guess.as_deref())?;
     check_stability(&setup.model, &guess, Some(&setup.spec.nominal()))
         .context("the starting point")?;
-    if !a.force {
+    if !super::force() {
         crate::units::check_dataset(&setup, &guess, &ds)?;
     }
     let (whitener, source) = dataset_whitener(
@@ -451,12 +448,15 @@ pub fn fit(a: FitArgs) -> Result<()> {
     Ok(())
 }
 
-/// `[meta.truth]` of a simulated dataset, if complete.
+/// `[meta.truth]` of a simulated dataset, if complete; integer values (`a_df = 1`) count.
 pub fn truth_from_meta(ds: &Dataset, names: &[String]) -> Option<Vec<f64>> {
     let t = ds.meta.get("truth")?.as_table()?;
     names
         .iter()
-        .map(|n| t.get(n).and_then(|v| v.as_float()))
+        .map(|n| {
+            t.get(n)
+                .and_then(|v| v.as_float().or(v.as_integer().map(|i| i as f64)))
+        })
         .collect()
 }
 

@@ -30,9 +30,6 @@ pub struct DiagnoseArgs {
     /// Starting point: a scenario name or a parameter TOML (default: nominal).
     #[arg(long)]
     pub guess: Option<String>,
-    /// Analyse readouts whose level fails the units check (see `freefall::units`).
-    #[arg(long)]
-    pub force: bool,
     /// Whitening filter order (lags).
     #[arg(long, default_value_t = DEFAULT_WHITENING_ORDER)]
     pub order: usize,
@@ -146,7 +143,7 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
     let data = experiment_data(&ds)?;
     let names = setup.parameter_names();
     let guess = resolve_guess(&setup, a.guess.as_deref())?;
-    if !a.force {
+    if !super::force() {
         crate::units::check_dataset(&setup, &guess, &ds)?;
     }
     let truth = truth_from_meta(&ds, &names);

@@ -123,6 +123,7 @@ pub fn run(a: SimulateArgs) -> Result<()> {
         }],
         ..design.clone()
     };
+    setup.check_simulation_size(&noise_design, "--noise-duration")?;
     if a.engine == Engine::TimeDomain && a.rate == Rate::Analysis {
         anyhow::bail!(
             "--rate analysis is for the frequency-domain engine; the time-domain engine steps \

@@ -212,6 +212,16 @@ impl DesignSpace {
                 timing.slots, timing.stretch_s, timing.gap_s, timing.start_s, timing.duration_s
             )));
         }
+        // Size check before the experiment's spectra are allocated (at the analysis rate, as the
+        // design information is computed): `duration_s = 1e7` used to take 8 GB.
+        let samples = timing.duration_s * setup.spec.sampling.analyse_hz;
+        crate::config::fits_in_memory(
+            "duration_s",
+            timing.duration_s,
+            samples * crate::setup::SIMULATION_BYTES_PER_SAMPLE,
+            &format!("the design's spectra over {samples:.3e} samples"),
+        )
+        .map_err(|e| bad(e.to_string()))?;
         for (k, v) in [
             ("o_max_m", cons.o_max_m),
             ("thruster_force_max_n", cons.thruster_force_max_n),

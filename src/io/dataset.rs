@@ -247,6 +247,33 @@ fn check_keys(path: &Path, raw: &toml::Table) -> Result<(), IoError> {
     Ok(())
 }
 
+/// Refuses one file under two experiment names: the same path after resolving links and `..`,
+/// or the same content (a copy). Counted twice, it would shrink every sigma by sqrt(2).
+fn check_distinct_files(path: &Path, files: &[(String, PathBuf)]) -> Result<(), IoError> {
+    let mut seen: Vec<(&str, PathBuf, String)> = Vec::with_capacity(files.len());
+    for (name, file) in files {
+        let canonical = file.canonicalize().map_err(|e| IoError::read(file, e))?;
+        let hash = super::atomic::file_sha256(file)?;
+        if let Some((other, _, _)) = seen.iter().find(|(_, c, h)| *c == canonical || *h == hash) {
+            let how = if seen.iter().any(|(_, c, _)| *c == canonical) {
+                "the same file"
+            } else {
+                "a copy of the same file (identical content)"
+            };
+            return Err(IoError::invalid(
+                path,
+                format!(
+                    "experiments '{other}' and '{name}' are {how} ({}): one experiment counted \
+                     twice would shrink every sigma by sqrt(2)",
+                    file.display()
+                ),
+            ));
+        }
+        seen.push((name, canonical, hash));
+    }
+    Ok(())
+}
+
 /// Reads a dataset TOML file and loads and validates all its runs (see the module docs).
 pub fn read_dataset(path: impl AsRef<Path>) -> Result<Dataset, IoError> {
     let path = path.as_ref();
@@ -277,10 +304,17 @@ pub fn read_dataset(path: impl AsRef<Path>) -> Result<Dataset, IoError> {
         Some(file) => Some(read(resolve(file, "the noise run")?)?),
         None => None,
     };
-    let mut experiments = Vec::with_capacity(spec.experiment.len());
+    let mut files = Vec::with_capacity(spec.experiment.len());
     for entry in &spec.experiment {
-        let file = resolve(&entry.file, &format!("experiment '{}'", entry.name))?;
-        experiments.push((entry.name.clone(), read(file)?));
+        files.push((
+            entry.name.clone(),
+            resolve(&entry.file, &format!("experiment '{}'", entry.name))?,
+        ));
+    }
+    check_distinct_files(path, &files)?;
+    let mut experiments = Vec::with_capacity(files.len());
+    for (name, file) in files {
+        experiments.push((name, read(file)?));
     }
     check_consistency(path, noise.as_ref(), &experiments)?;
     Ok(Dataset {
