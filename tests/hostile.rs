@@ -385,7 +385,7 @@ fn merge_refuses_a_finished_campaign_and_its_own_inputs_unless_force() {
     .unwrap();
     let p1 = d.path().join("p1");
     let p2 = d.path().join("p2");
-    for (shard, p) in [("1/2", &p1), ("2/2", &p2)] {
+    for (shard, p) in [("0/2", &p1), ("1/2", &p2)] {
         ok(&["campaign", "run", s(&camp), "--shard", shard, "--out", s(p)]);
     }
     let merged = d.path().join("merged");
@@ -493,7 +493,11 @@ fn unknown_keys_are_refused_everywhere() {
     .unwrap();
     fails(&["design", "evaluate", s(&design)], &["design.toml", "colour"]);
     // [expected_features].
-    let model = model_with(d.path(), "[expected_features]", "[expected_features]\nT33 = 1.0");
+    let model = model_with(
+        d.path(),
+        "\n[expected_features]\n",
+        "\n[expected_features]\nT33 = 1.0\n",
+    );
     fails(
         &["model", "transfer", "--model", s(&model), "--out", s(&d.path().join("t.parquet"))],
         &["model.toml", "T33"],
@@ -555,7 +559,11 @@ fn the_singular_explanation_names_the_weak_direction() {
     let m = DMatrix::from_row_slice(3, 3, &[1.0, 0.0, 0.0, 0.0, 1e12, 1e6, 0.0, 1e6, 1.0]);
     let e = explain_singular("Fisher information", &m, &names);
     assert!(e.contains("do not constrain the direction"), "{e}");
-    assert!(e.contains(" b") && e.contains(" c") && !e.contains(" a "), "{e}");
+    let direction = &e[e.find("direction").unwrap()..e.find("(equilibrated").unwrap()];
+    // Opposite signs on b and c (the largest component first, positive), nothing on a.
+    assert!(direction.starts_with("direction +0.71 "), "{e}");
+    assert!(direction.contains("-0.71 "), "{e}");
+    assert!(direction.contains(" b ") && direction.contains(" c ") && !direction.contains(" a "), "{e}");
     assert!(e.contains("the same file under two experiment names"), "{e}");
     let mut z = m.clone();
     z[(0, 0)] = 0.0;

@@ -378,6 +378,7 @@ pub fn fit(a: FitArgs) -> Result<()> {
         &residual_table(&problem, &data, &t0, &res.estimate, &res.residuals_w)?
             .with_meta_all(&prov.meta),
     )?;
+    let excess = crate::fit::chi2_excess_warning(res.chi2_reduced, res.nu);
     let json = FitJson {
         chi2: res.chi2,
         nu: res.nu,
@@ -387,10 +388,9 @@ pub fn fit(a: FitArgs) -> Result<()> {
         evaluations: res.evaluations,
         jacobian_evaluations: res.jacobian_evaluations,
         termination: res.termination.as_str(),
-        converged: res.termination.converged(),
-        warnings: crate::fit::chi2_excess_warning(res.chi2_reduced, res.nu)
-            .into_iter()
-            .collect(),
+        // A fit far above its noise reference describes nothing, whatever stopped it.
+        converged: res.termination.converged() && excess.is_none(),
+        warnings: excess.iter().cloned().collect(),
         seconds: res.seconds,
         estimator: a.estimator.to_string(),
         whitening: source,
@@ -444,6 +444,14 @@ pub fn fit(a: FitArgs) -> Result<()> {
     }
     if !res.termination.converged() {
         bail!("the fit did not converge: {}", res.termination.as_str());
+    }
+    if excess.is_some() {
+        bail!(
+            "the fit did not converge: {} but chi2/nu = {:.4e} (see the warning; are the \
+             readouts in metres?)",
+            res.termination.as_str(),
+            res.chi2_reduced
+        );
     }
     Ok(())
 }

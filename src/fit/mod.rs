@@ -443,7 +443,11 @@ pub fn explain_singular(stage: &str, info: &DMatrix<f64>, names: &[String]) -> S
                 .map(|(c, n)| (*c, n.as_str()))
                 .filter(|(c, _)| c.abs() >= 0.2)
                 .collect();
-            parts.sort_by(|a, b| b.0.abs().partial_cmp(&a.0.abs()).unwrap_or(std::cmp::Ordering::Equal));
+            parts.sort_by(|a, b| b.0.abs().total_cmp(&a.0.abs()));
+            // An eigenvector's sign is arbitrary: show the largest component positive.
+            if parts.first().is_some_and(|(c, _)| *c < 0.0) {
+                parts.iter_mut().for_each(|(c, _)| *c = -*c);
+            }
             let direction = parts
                 .iter()
                 .map(|(c, n)| format!("{c:+.2} {n}"))
