@@ -293,6 +293,19 @@ fn huge_durations_are_refused_with_the_estimated_bytes() {
         ],
         &["duration_s = 10000000", "GB", "design 'standard'"],
     );
+    // A design file for `design evaluate`: checked before its spectra are allocated.
+    let design = d.path().join("long.toml");
+    std::fs::write(
+        &design,
+        "name = \"x\"\nstretch_s = 1200.0\ngap_s = 150.0\nstart_s = 150.0\nduration_s = 1e7\n\
+         [[experiments]]\nname = \"e1\"\ninputs = [[{f_hz = 8.333333333333334e-4, amplitude = 1e-7}], []]\n",
+    )
+    .unwrap();
+    fails_within(
+        Duration::from_secs(5),
+        &["design", "evaluate", s(&design)],
+        &["long.toml", "duration_s = 10000000", "10.0 GB", "4.0 GB of memory available"],
+    );
 }
 
 #[test]
@@ -546,7 +559,23 @@ fn zero_injections_name_the_parameters_without_information() {
     }
     fails(
         &["fit", s(&ds.join("dataset.toml")), "--out", s(&d.path().join("f"))],
-        &["singular matrix", "no information on", "are the injections zero?"],
+        &["singular matrix", "no information on w1_sq, w12_sq", "injections that are zero?"],
+    );
+}
+
+#[test]
+fn one_experiment_names_the_parameter_it_cannot_see() {
+    // Only exp1 (injections on oi1): nothing excites dt12, the delay of the oi12 path.
+    let d = tmp();
+    let ds = copy_dataset(d.path());
+    let toml = ds.join("dataset.toml");
+    let text = std::fs::read_to_string(&toml).unwrap();
+    let start = text.find("[[experiment]]\nname = \"exp2\"").unwrap();
+    let end = start + text[start..].find("\n\n").unwrap() + 2;
+    std::fs::write(&toml, format!("{}{}", &text[..start], &text[end..])).unwrap();
+    fails(
+        &["fit", s(&toml), "--out", s(&d.path().join("f"))],
+        &["singular matrix", "no information on dt12", "one experiment where two are needed"],
     );
 }
 

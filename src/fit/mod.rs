@@ -430,8 +430,8 @@ pub fn explain_singular(stage: &str, info: &DMatrix<f64>, names: &[String]) -> S
         .collect();
     if !none.is_empty() {
         return format!(
-            "{stage}: the data carry no information on {} (their templates are zero: are the \
-             injections zero?)",
+            "{stage}: the data carry no information on {} (zero templates: no experiment excites \
+             it; one experiment where two are needed, or injections that are zero?)",
             none.join(", ")
         );
     }
