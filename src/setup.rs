@@ -141,7 +141,11 @@ impl Setup {
     /// Checked before a simulator of `design` is built: the longest run's samples at the
     /// simulation rate times [`SIMULATION_BYTES_PER_SAMPLE`] must fit in memory. `option` names
     /// what set the duration (a design's `duration_s`, `--noise-duration`).
-    pub fn check_simulation_size(&self, design: &Design, option: &'static str) -> Result<(), Error> {
+    pub fn check_simulation_size(
+        &self,
+        design: &Design,
+        option: &'static str,
+    ) -> Result<(), Error> {
         let samples = design.duration_s / self.simulation_dt();
         crate::config::fits_in_memory(
             option,

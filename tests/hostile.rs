@@ -29,7 +29,11 @@ fn stderr(o: &Output) -> String {
 
 fn ok(args: &[&str]) -> Output {
     let o = run(args);
-    assert!(o.status.success(), "freefall {args:?} failed: {}", stderr(&o));
+    assert!(
+        o.status.success(),
+        "freefall {args:?} failed: {}",
+        stderr(&o)
+    );
     o
 }
 
@@ -39,7 +43,11 @@ fn fails(args: &[&str], needles: &[&str]) -> String {
     let err = stderr(&o);
     assert!(!o.status.success(), "freefall {args:?} should fail: {err}");
     assert!(!err.contains("panicked"), "panic: {err}");
-    assert_eq!(err.trim().lines().count(), 1, "one-line error expected: {err}");
+    assert_eq!(
+        err.trim().lines().count(),
+        1,
+        "one-line error expected: {err}"
+    );
     for n in needles {
         assert!(err.contains(n), "error for {args:?} lacks '{n}': {err}");
     }
@@ -50,7 +58,11 @@ fn fails(args: &[&str], needles: &[&str]) -> String {
 fn fails_within(limit: Duration, args: &[&str], needles: &[&str]) -> String {
     let t = Instant::now();
     let err = fails(args, needles);
-    assert!(t.elapsed() < limit, "freefall {args:?} took {:?}", t.elapsed());
+    assert!(
+        t.elapsed() < limit,
+        "freefall {args:?} took {:?}",
+        t.elapsed()
+    );
     err
 }
 
@@ -197,8 +209,7 @@ fn data_scaled_by_1e150_end_quickly_and_never_claim_convergence() {
     assert!(!err.contains("panicked"), "{err}");
     if out.join("fit.json").exists() {
         let json: serde_json::Value =
-            serde_json::from_str(&std::fs::read_to_string(out.join("fit.json")).unwrap())
-                .unwrap();
+            serde_json::from_str(&std::fs::read_to_string(out.join("fit.json")).unwrap()).unwrap();
         assert_eq!(json["converged"], false, "{json}");
     }
 }
@@ -281,7 +292,11 @@ fn huge_durations_are_refused_with_the_estimated_bytes() {
         ],
         &["--noise-duration = 1000000000", "TB", "bytes"],
     );
-    let model = model_with(d.path(), "[injections.standard]", "[injections.standard]\nduration_s = 1e7");
+    let model = model_with(
+        d.path(),
+        "[injections.standard]",
+        "[injections.standard]\nduration_s = 1e7",
+    );
     fails_within(
         Duration::from_secs(5),
         &[
@@ -304,7 +319,12 @@ fn huge_durations_are_refused_with_the_estimated_bytes() {
     fails_within(
         Duration::from_secs(5),
         &["design", "evaluate", s(&design)],
-        &["long.toml", "duration_s = 10000000", "10.0 GB", "4.0 GB of memory available"],
+        &[
+            "long.toml",
+            "duration_s = 10000000",
+            "10.0 GB",
+            "4.0 GB of memory available",
+        ],
     );
 }
 
@@ -337,8 +357,7 @@ fn too_many_threads_are_clamped_to_the_machine_with_a_note() {
         stderr(&o)
     );
     let m: serde_json::Value =
-        serde_json::from_str(&std::fs::read_to_string(out.join("manifest.json")).unwrap())
-            .unwrap();
+        serde_json::from_str(&std::fs::read_to_string(out.join("manifest.json")).unwrap()).unwrap();
     assert_eq!(m["threads"], cores as u64, "{m}");
     assert!(t.elapsed() < Duration::from_secs(120));
 }
@@ -354,7 +373,10 @@ fn chi2_far_above_its_noise_reference_is_flagged() {
     // Against a noise reference of 3 (the noise model is itself off by 3): 4 passes, 7 not.
     assert!(chi2_excess_over(4.0, 20_000, 3.0).is_none());
     let w = chi2_excess_over(7.0, 20_000, 3.0).unwrap();
-    assert!(w.contains("noise reference 3.0000") && w.contains("flagged above 6.000"), "{w}");
+    assert!(
+        w.contains("noise reference 3.0000") && w.contains("flagged above 6.000"),
+        "{w}"
+    );
     // No usable reference counts as 1; NaN is always flagged.
     assert!(chi2_excess_over(2.5, 20_000, f64::NAN).is_some());
     assert!(chi2_excess_over(f64::NAN, 20_000, 1.0).is_some());
@@ -369,7 +391,12 @@ fn a_non_empty_out_is_refused_unless_force() {
     // simulate over an existing dataset.
     fails(
         &["simulate", "--rate", "analysis", "--out", s(&ds)],
-        &["--out", "is a non-empty directory", "'dataset.toml'", "--force"],
+        &[
+            "--out",
+            "is a non-empty directory",
+            "'dataset.toml'",
+            "--force",
+        ],
     );
     // psd over an existing file.
     let psd = d.path().join("psd.parquet");
@@ -379,7 +406,13 @@ fn a_non_empty_out_is_refused_unless_force() {
         &["psd.parquet", "--out is an existing file", "--force"],
     );
     assert_eq!(std::fs::read(&psd).unwrap(), b"keep me");
-    ok(&["psd", s(&ds.join("exp1.parquet")), "--force", "--out", s(&psd)]);
+    ok(&[
+        "psd",
+        s(&ds.join("exp1.parquet")),
+        "--force",
+        "--out",
+        s(&psd),
+    ]);
     assert!(read_run(&psd).is_err(), "a PSD table is not a run");
     // An empty folder is fine.
     let empty = d.path().join("empty");
@@ -405,7 +438,12 @@ fn merge_refuses_a_finished_campaign_and_its_own_inputs_unless_force() {
     ok(&["campaign", "merge", s(&p1), s(&p2), "--out", s(&merged)]);
     fails(
         &["campaign", "merge", s(&p1), s(&p2), "--out", s(&merged)],
-        &["merged", "is a finished campaign", "'manifest.json'", "--force"],
+        &[
+            "merged",
+            "is a finished campaign",
+            "'manifest.json'",
+            "--force",
+        ],
     );
     ok(&[
         "campaign",
@@ -419,7 +457,13 @@ fn merge_refuses_a_finished_campaign_and_its_own_inputs_unless_force() {
     // Its own input: refused even with --force (it would be read while being replaced).
     fails(
         &[
-            "campaign", "merge", s(&p1), s(&p2), "--force", "--out", s(&p1),
+            "campaign",
+            "merge",
+            s(&p1),
+            s(&p2),
+            "--force",
+            "--out",
+            s(&p1),
         ],
         &["--out", "is the input PART", "p1"],
     );
@@ -433,7 +477,11 @@ fn one_file_under_two_experiment_names_is_refused() {
     let ds = copy_dataset(d.path());
     let toml = ds.join("dataset.toml");
     let text = std::fs::read_to_string(&toml).unwrap();
-    std::fs::write(&toml, text.replace("file = \"exp2.parquet\"", "file = \"exp1.parquet\"")).unwrap();
+    std::fs::write(
+        &toml,
+        text.replace("file = \"exp2.parquet\"", "file = \"exp1.parquet\""),
+    )
+    .unwrap();
     let err = read_dataset(&toml).unwrap_err().to_string();
     assert!(
         err.contains("experiments 'exp1' and 'exp2' are the same file") && err.contains("sqrt(2)"),
@@ -441,9 +489,16 @@ fn one_file_under_two_experiment_names_is_refused() {
     );
     // A copy (another path, the same bytes) too.
     std::fs::copy(ds.join("exp1.parquet"), ds.join("copy.parquet")).unwrap();
-    std::fs::write(&toml, text.replace("file = \"exp2.parquet\"", "file = \"copy.parquet\"")).unwrap();
+    std::fs::write(
+        &toml,
+        text.replace("file = \"exp2.parquet\"", "file = \"copy.parquet\""),
+    )
+    .unwrap();
     let err = read_dataset(&toml).unwrap_err().to_string();
-    assert!(err.contains("a copy of the same file (identical content)"), "{err}");
+    assert!(
+        err.contains("a copy of the same file (identical content)"),
+        "{err}"
+    );
     fails(
         &["fit", s(&toml), "--out", s(&d.path().join("f"))],
         &["dataset.toml", "'exp1' and 'exp2'"],
@@ -458,7 +513,13 @@ fn order_zero_is_refused_everywhere() {
     for args in [
         vec!["fit", s(&toml), "--order", "0"],
         vec!["diagnose", s(&toml), "--order", "0"],
-        vec!["whiten", s(&ds.join("exp1.parquet")), "--model-psd", "--order", "0"],
+        vec![
+            "whiten",
+            s(&ds.join("exp1.parquet")),
+            "--model-psd",
+            "--order",
+            "0",
+        ],
     ] {
         let out = d.path().join("o");
         let mut a = args.clone();
@@ -504,7 +565,10 @@ fn unknown_keys_are_refused_everywhere() {
         "name = \"x\"\nstretch_s = 1000.0\ngap_s = 0.0\nstart_s = 0.0\nduration_s = 10800.0\ncolour = \"red\"\n[[experiments]]\nname = \"e1\"\ninputs = [[], []]\n",
     )
     .unwrap();
-    fails(&["design", "evaluate", s(&design)], &["design.toml", "colour"]);
+    fails(
+        &["design", "evaluate", s(&design)],
+        &["design.toml", "colour"],
+    );
     // [expected_features].
     let model = model_with(
         d.path(),
@@ -512,7 +576,14 @@ fn unknown_keys_are_refused_everywhere() {
         "\n[expected_features]\nT33 = 1.0\n",
     );
     fails(
-        &["model", "transfer", "--model", s(&model), "--out", s(&d.path().join("t.parquet"))],
+        &[
+            "model",
+            "transfer",
+            "--model",
+            s(&model),
+            "--out",
+            s(&d.path().join("t.parquet")),
+        ],
         &["model.toml", "T33"],
     );
 }
@@ -526,14 +597,20 @@ fn model_checks_cycles_above_nyquist_and_non_positive_constraints() {
         "cycles = [1, 2, 4, 8, 16, 32, 64]",
         "cycles = [1, 2, 4, 8, 16, 32, 720]",
     );
-    let err = freefall::setup::Setup::load(Some(&path)).unwrap_err().to_string();
+    let err = freefall::setup::Setup::load(Some(&path))
+        .unwrap_err()
+        .to_string();
     assert!(
         err.contains("injections.standard.cycles[6]")
-            && err.contains("720 cycles in 1200 s is 0.6 Hz, at or above the analysis Nyquist frequency 0.5 Hz"),
+            && err.contains(
+                "720 cycles in 1200 s is 0.6 Hz, at or above the analysis Nyquist frequency 0.5 Hz"
+            ),
         "{err}"
     );
     let model = model_with(d.path(), "o_max_m = ", "o_max_m = -1.0 # was ");
-    let err = freefall::setup::Setup::load(Some(&model)).unwrap_err().to_string();
+    let err = freefall::setup::Setup::load(Some(&model))
+        .unwrap_err()
+        .to_string();
     assert!(
         err.contains("constraints.o_max_m") && err.contains("must be a finite limit > 0, got -1"),
         "{err}"
@@ -558,8 +635,17 @@ fn zero_injections_name_the_parameters_without_information() {
         write_run(&path, &Run::new(run.t0, run.dt, cols).unwrap()).unwrap();
     }
     fails(
-        &["fit", s(&ds.join("dataset.toml")), "--out", s(&d.path().join("f"))],
-        &["singular matrix", "no information on w1_sq, w12_sq", "injections that are zero?"],
+        &[
+            "fit",
+            s(&ds.join("dataset.toml")),
+            "--out",
+            s(&d.path().join("f")),
+        ],
+        &[
+            "singular matrix",
+            "no information on w1_sq, w12_sq",
+            "injections that are zero?",
+        ],
     );
 }
 
@@ -575,7 +661,11 @@ fn one_experiment_names_the_parameter_it_cannot_see() {
     std::fs::write(&toml, format!("{}{}", &text[..start], &text[end..])).unwrap();
     fails(
         &["fit", s(&toml), "--out", s(&d.path().join("f"))],
-        &["singular matrix", "no information on dt12", "one experiment where two are needed"],
+        &[
+            "singular matrix",
+            "no information on dt12",
+            "one experiment where two are needed",
+        ],
     );
 }
 
@@ -592,8 +682,14 @@ fn the_singular_explanation_names_the_weak_direction() {
     // Opposite signs on b and c (the largest component first, positive), nothing on a.
     assert!(direction.starts_with("direction +0.71 "), "{e}");
     assert!(direction.contains("-0.71 "), "{e}");
-    assert!(direction.contains(" b ") && direction.contains(" c ") && !direction.contains(" a "), "{e}");
-    assert!(e.contains("the same file under two experiment names"), "{e}");
+    assert!(
+        direction.contains(" b ") && direction.contains(" c ") && !direction.contains(" a "),
+        "{e}"
+    );
+    assert!(
+        e.contains("the same file under two experiment names"),
+        "{e}"
+    );
     let mut z = m.clone();
     z[(0, 0)] = 0.0;
     assert!(explain_singular("F", &z, &names).contains("no information on a"));
@@ -614,7 +710,15 @@ fn a_truncated_resume_chunk_names_the_chunk_to_remove() {
     .unwrap();
     let out = d.path().join("out");
     let mut child = bin()
-        .args(["campaign", "run", s(&camp), "--threads", "1", "--out", s(&out)])
+        .args([
+            "campaign",
+            "run",
+            s(&camp),
+            "--threads",
+            "1",
+            "--out",
+            s(&out),
+        ])
         .stderr(std::process::Stdio::null())
         .spawn()
         .unwrap();
@@ -650,7 +754,11 @@ fn empty_truncated_and_csv_as_parquet_files_are_one_line_errors() {
     let d = tmp();
     let good = std::fs::read(shared_dataset().join("exp1.parquet")).unwrap();
     let cases: Vec<(&str, Vec<u8>, &[&str])> = vec![
-        ("empty.parquet", Vec::new(), &["empty.parquet", "not a valid Parquet file"]),
+        (
+            "empty.parquet",
+            Vec::new(),
+            &["empty.parquet", "not a valid Parquet file"],
+        ),
         (
             "truncated.parquet",
             good[..good.len() / 2].to_vec(),
@@ -661,12 +769,12 @@ fn empty_truncated_and_csv_as_parquet_files_are_one_line_errors() {
             b"t,oi1,oi12,o1,o12\n0,0,0,0,0\n1,0,0,0,0\n".to_vec(),
             &["csv.parquet", "not a valid Parquet file"],
         ),
-        ("empty.csv", Vec::new(), &["empty.csv", "line 1", "empty file"]),
         (
-            "binary.csv",
-            good[..200].to_vec(),
-            &["binary.csv"],
+            "empty.csv",
+            Vec::new(),
+            &["empty.csv", "line 1", "empty file"],
         ),
+        ("binary.csv", good[..200].to_vec(), &["binary.csv"]),
     ];
     for (name, bytes, needles) in cases {
         let path = d.path().join(name);
@@ -723,7 +831,9 @@ fn csv_with_pandas_index_and_other_delimiters_reads_the_same_run() {
         assert_eq!(run.columns, reference.columns, "{name}");
         assert_eq!((run.t0, run.dt), (reference.t0, reference.dt), "{name}");
         assert_eq!(
-            notes.iter().any(|n| n.contains("index pandas' to_csv writes")),
+            notes
+                .iter()
+                .any(|n| n.contains("index pandas' to_csv writes")),
             index,
             "{name}: {notes:?}"
         );
@@ -737,7 +847,10 @@ fn csv_with_pandas_index_and_other_delimiters_reads_the_same_run() {
 
 #[test]
 fn csv_written_by_pandas_reads_like_parquet() {
-    if common::skip_without_python("csv_written_by_pandas_reads_like_parquet", &["pandas", "pyarrow"]) {
+    if common::skip_without_python(
+        "csv_written_by_pandas_reads_like_parquet",
+        &["pandas", "pyarrow"],
+    ) {
         return;
     }
     let d = tmp();
@@ -754,14 +867,21 @@ fn csv_written_by_pandas_reads_like_parquet() {
         b = s(&d.path().join("semicolon.csv")),
         c = s(&d.path().join("tab.csv")),
     );
-    let o = Command::new("python3").args(["-c", &script]).output().unwrap();
+    let o = Command::new("python3")
+        .args(["-c", &script])
+        .output()
+        .unwrap();
     assert!(o.status.success(), "{}", stderr(&o));
     for name in ["default.csv", "semicolon.csv", "tab.csv"] {
         let (run, notes) = freefall::io::read_run_noted(d.path().join(name)).unwrap();
         assert_eq!(run.len(), reference.len(), "{name}");
         assert_eq!(run.dt, reference.dt, "{name}");
         for c in ["oi1", "oi12", "o1", "o12"] {
-            assert_eq!(run.column(c).unwrap(), reference.column(c).unwrap(), "{name} {c}");
+            assert_eq!(
+                run.column(c).unwrap(),
+                reference.column(c).unwrap(),
+                "{name} {c}"
+            );
         }
         assert_eq!(
             notes.iter().any(|n| n.contains("index")),
@@ -785,7 +905,12 @@ mod fuzz {
             let n = 64;
             let cols = ["oi1", "oi12", "o1", "o12"]
                 .iter()
-                .map(|c| (c.to_string(), (0..n).map(|i| (i as f64).cos() * 1e-9).collect()))
+                .map(|c| {
+                    (
+                        c.to_string(),
+                        (0..n).map(|i| (i as f64).cos() * 1e-9).collect(),
+                    )
+                })
                 .collect();
             write_run(&path, &Run::new(0.0, 1.0, cols).unwrap()).unwrap();
             std::fs::read(&path).unwrap()

@@ -384,7 +384,8 @@ pub fn run(
     let runner = Runner::new(&loaded.setup, c, loaded.scenarios.clone(), &loaded.designs)?;
     let layout = runner.layout.clone();
     let mut agg = Aggregates::new(layout.clone());
-    let (mut next, mut fit_seconds) = replay_chunks(loaded, &runner, &partial, start, end, &mut agg)?;
+    let (mut next, mut fit_seconds) =
+        replay_chunks(loaded, &runner, &partial, start, end, &mut agg)?;
     let resumed = next - start;
     let total = end - start;
     let (f, x) = agg.counts();

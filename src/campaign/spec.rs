@@ -220,10 +220,7 @@ impl Campaign {
         let model = match spec.model.as_deref() {
             None | Some("embedded") => None,
             Some("") => {
-                return Err(cx.bad(
-                    "model",
-                    "empty path (omit the key for the embedded model)",
-                ))
+                return Err(cx.bad("model", "empty path (omit the key for the embedded model)"))
             }
             Some(m) => Some(cx.resolve(m)),
         };
@@ -274,7 +271,11 @@ impl Checker<'_> {
         if p.is_absolute() {
             p
         } else {
-            self.file.parent().map(Path::to_path_buf).unwrap_or_default().join(p)
+            self.file
+                .parent()
+                .map(Path::to_path_buf)
+                .unwrap_or_default()
+                .join(p)
         }
     }
 

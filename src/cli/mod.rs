@@ -161,7 +161,9 @@ pub fn run() -> i32 {
     if let Some(bytes) = budget {
         crate::config::set_memory_budget(bytes);
     }
-    if let Err(e) = refuse_output_over_input(&cli.command).and_then(|()| refuse_overwrite(&cli.command)) {
+    if let Err(e) =
+        refuse_output_over_input(&cli.command).and_then(|()| refuse_overwrite(&cli.command))
+    {
         eprintln!("error: {}", one_line(&e));
         return 1;
     }

@@ -248,7 +248,7 @@ impl JacobianCache {
                     FitError::Singular(explain_singular(
                         "Fisher information at a cached Jacobian point",
                         &information,
-                        &lik.engine.model().parameter_names(),
+                        lik.engine.model().parameter_names(),
                     ))
                 })?;
                 let sigma = (0..p.len()).map(|k| cov[(k, k)].sqrt()).collect();
@@ -610,7 +610,7 @@ pub fn fit<M: ClosedLoopModel<N>, const N: usize>(
         FitError::Singular(explain_singular(
             "Fisher information at the estimate",
             &info,
-            &model.parameter_names(),
+            model.parameter_names(),
         ))
     })?;
     let scale = match est {

@@ -628,7 +628,12 @@ pub fn read_csv_noted(path: impl AsRef<Path>) -> Result<(Table, Vec<String>), Io
 }
 
 /// Column names of a CSV header line (quotes removed, trimmed).
-fn csv_header(path: &Path, header: &str, delimiter: u8, line: usize) -> Result<Vec<String>, IoError> {
+fn csv_header(
+    path: &Path,
+    header: &str,
+    delimiter: u8,
+    line: usize,
+) -> Result<Vec<String>, IoError> {
     let format = arrow_csv::reader::Format::default()
         .with_header(true)
         .with_delimiter(delimiter);
@@ -663,7 +668,9 @@ fn csv_values(
         message,
     };
     let fields: Vec<arrow::datatypes::Field> = (0..names.len())
-        .map(|j| arrow::datatypes::Field::new(format!("c{j}"), arrow::datatypes::DataType::Utf8, true))
+        .map(|j| {
+            arrow::datatypes::Field::new(format!("c{j}"), arrow::datatypes::DataType::Utf8, true)
+        })
         .collect();
     let schema = std::sync::Arc::new(arrow::datatypes::Schema::new(fields));
     let reader = arrow_csv::ReaderBuilder::new(schema)
@@ -676,13 +683,22 @@ fn csv_values(
     let mut row = 0usize;
     for batch in reader {
         let batch = batch.map_err(|e| csv_record_error(path, line_of, names.len(), &e))?;
-        for (j, column) in batch.columns().iter().enumerate().skip(usize::from(skip_index)) {
+        for (j, column) in batch
+            .columns()
+            .iter()
+            .enumerate()
+            .skip(usize::from(skip_index))
+        {
             let strings = column
                 .as_any()
                 .downcast_ref::<StringArray>()
                 .ok_or_else(|| csv_err(line_of[0], "columns are not read as text".into()))?;
             for i in 0..strings.len() {
-                let field = if strings.is_null(i) { "" } else { strings.value(i).trim() };
+                let field = if strings.is_null(i) {
+                    ""
+                } else {
+                    strings.value(i).trim()
+                };
                 let r = row + i;
                 let value = field.parse::<f64>().map_err(|_| {
                     csv_err(
@@ -708,7 +724,12 @@ fn csv_values(
 
 /// An `arrow-csv` error on the body as a one-line error naming the file's line and data row
 /// (its "incorrect number of fields for line N, expected E got G" counts the kept lines).
-fn csv_record_error(path: &Path, line_of: &[usize], width: usize, e: &arrow::error::ArrowError) -> IoError {
+fn csv_record_error(
+    path: &Path,
+    line_of: &[usize],
+    width: usize,
+    e: &arrow::error::ArrowError,
+) -> IoError {
     let text = e.to_string();
     let parsed = text
         .split_once("for line ")

@@ -451,7 +451,11 @@ impl ModelSpec {
                     "cycles, oi1_amplitude and oi12_amplitude must have the same non-zero length",
                 ));
             }
-            if !(inj.stretch_s.is_finite() && inj.stretch_s > 0.0 && inj.gap_s.is_finite() && inj.gap_s >= 0.0) {
+            if !(inj.stretch_s.is_finite()
+                && inj.stretch_s > 0.0
+                && inj.gap_s.is_finite()
+                && inj.gap_s >= 0.0)
+            {
                 return Err(self.bad(&key, "stretch_s must be > 0 and gap_s >= 0"));
             }
             for (k, c) in inj.cycles.iter().enumerate() {
@@ -466,9 +470,15 @@ impl ModelSpec {
                     ));
                 }
             }
-            for (which, amps) in [("oi1_amplitude", &inj.oi1_amplitude), ("oi12_amplitude", &inj.oi12_amplitude)] {
+            for (which, amps) in [
+                ("oi1_amplitude", &inj.oi1_amplitude),
+                ("oi12_amplitude", &inj.oi12_amplitude),
+            ] {
                 if let Some((k, a)) = amps.iter().enumerate().find(|(_, a)| !a.is_finite()) {
-                    return Err(self.bad(&format!("{key}.{which}[{k}]"), format!("must be finite, got {a}")));
+                    return Err(self.bad(
+                        &format!("{key}.{which}[{k}]"),
+                        format!("must be finite, got {a}"),
+                    ));
                 }
             }
         }
@@ -481,7 +491,10 @@ impl ModelSpec {
         for (k, v) in [
             ("constraints.o_max_m", c.o_max_m),
             ("constraints.thruster_force_max_n", c.thruster_force_max_n),
-            ("constraints.suspension_force_max_n", c.suspension_force_max_n),
+            (
+                "constraints.suspension_force_max_n",
+                c.suspension_force_max_n,
+            ),
             ("constraints.f_max_hz", c.f_max_hz),
         ] {
             if !(v.is_finite() && v > 0.0) {

@@ -92,5 +92,8 @@ pub fn weakest_direction(m: &DMatrix<f64>) -> Option<(f64, Vec<f64>)> {
             .partial_cmp(&eig.eigenvalues[b])
             .unwrap_or(std::cmp::Ordering::Equal)
     })?;
-    Some((eig.eigenvalues[k], eig.eigenvectors.column(k).iter().copied().collect()))
+    Some((
+        eig.eigenvalues[k],
+        eig.eigenvectors.column(k).iter().copied().collect(),
+    ))
 }
