@@ -100,7 +100,7 @@ pub fn fits_in_memory(
         value,
         bytes.is_finite() && bytes <= budget,
         format!(
-            "smaller: {what} would need an estimated {} ({bytes:.3e} bytes), more than the {} of memory available",
+            "smaller: {what} would need an estimated {} ({bytes:.3e} bytes), more than the memory budget of {} (half the available memory; FREEFALL_MEMORY_BUDGET sets it)",
             fmt_bytes(bytes),
             fmt_bytes(budget)
         ),

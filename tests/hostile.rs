@@ -259,7 +259,7 @@ fn huge_whitening_orders_are_refused_with_the_estimated_bytes() {
             "--out",
             s(&d.path().join("w.parquet")),
         ],
-        &["order = 20000", "12.8 GB", "4.0 GB of memory available"],
+        &["order = 20000", "12.8 GB", "memory budget of 4.0 GB"],
     );
     // From a noise run too short for the order: refused by length, before any allocation.
     fails_within(
@@ -323,7 +323,7 @@ fn huge_durations_are_refused_with_the_estimated_bytes() {
             "long.toml",
             "duration_s = 10000000",
             "10.0 GB",
-            "4.0 GB of memory available",
+            "memory budget of 4.0 GB",
         ],
     );
 }

@@ -978,7 +978,6 @@ fn markdown(setup: &Setup, v: &Validation, s: &[Summary], cfg: &ValidationConfig
     let np = names.len();
     let idx = |n: &str| names.iter().position(|x| x == n);
     let tgt: Vec<usize> = v.study.target.indices.clone();
-    let find = |id: &str| v.runs.iter().position(|r| r.id == id);
     let mut m = String::new();
     let _ = writeln!(
         m,
@@ -1062,6 +1061,40 @@ fn markdown(setup: &Setup, v: &Validation, s: &[Summary], cfg: &ValidationConfig
                 .join(" | ")
         );
     }
+    markdown_criteria(&mut m, v);
+    // Correlations.
+    let _ = writeln!(m, "\n## Parameter correlations (mean fit correlation)\n");
+    let _ = writeln!(
+        m,
+        "| correlation | {} |",
+        cols.iter()
+            .map(|&k| v.runs[k].id.replace("/separate", ""))
+            .collect::<Vec<_>>()
+            .join(" | ")
+    );
+    let _ = writeln!(m, "|---|{}", "---|".repeat(cols.len()));
+    for (a, b) in CORR_PAIRS {
+        let (Some(i), Some(j)) = (idx(a), idx(b)) else {
+            continue;
+        };
+        let _ = writeln!(
+            m,
+            "| Corr[{a}, {b}] | {} |",
+            cols.iter()
+                .map(|&k| format!("{:.2}", s[k].corr[i * np + j]))
+                .collect::<Vec<_>>()
+                .join(" | ")
+        );
+    }
+    markdown_exp3(&mut m, setup, v, s);
+    m
+}
+
+/// validation.md: the criterion values with their certificates, and the input frequencies of
+/// the standard design against the T-information optimum.
+fn markdown_criteria(m: &mut String, v: &Validation) {
+    use std::fmt::Write;
+    let find = |id: &str| v.runs.iter().position(|r| r.id == id);
     // Criterion values and certificates.
     let _ = writeln!(m, "\n## Criteria (at the truth) and certificates\n");
     let _ = writeln!(m, "| design | log10 det I | min eig I | tr I | log10 det C | max eig C | tr C | efficiency >= | max dir. derivative |");
@@ -1116,30 +1149,16 @@ fn markdown(setup: &Setup, v: &Validation, s: &[Summary], cfg: &ValidationConfig
             let _ = writeln!(m, "| {} |", cells.join(" | "));
         }
     }
-    // Correlations.
-    let _ = writeln!(m, "\n## Parameter correlations (mean fit correlation)\n");
-    let _ = writeln!(
-        m,
-        "| correlation | {} |",
-        cols.iter()
-            .map(|&k| v.runs[k].id.replace("/separate", ""))
-            .collect::<Vec<_>>()
-            .join(" | ")
-    );
-    let _ = writeln!(m, "|---|{}", "---|".repeat(cols.len()));
-    for (a, b) in CORR_PAIRS {
-        let (Some(i), Some(j)) = (idx(a), idx(b)) else {
-            continue;
-        };
-        let _ = writeln!(
-            m,
-            "| Corr[{a}, {b}] | {} |",
-            cols.iter()
-                .map(|&k| format!("{:.2}", s[k].corr[i * np + j]))
-                .collect::<Vec<_>>()
-                .join(" | ")
-        );
-    }
+}
+
+/// validation.md: Exp. 3 (simultaneous injection) against Exp. 1 & 2.
+fn markdown_exp3(m: &mut String, setup: &Setup, v: &Validation, s: &[Summary]) {
+    use std::fmt::Write;
+    let names = setup.parameter_names();
+    let np = names.len();
+    let idx = |n: &str| names.iter().position(|x| x == n);
+    let tgt: Vec<usize> = v.study.target.indices.clone();
+    let find = |id: &str| v.runs.iter().position(|r| r.id == id);
     // Exp. 3.
     let e3: Vec<usize> = (0..v.runs.len())
         .filter(|&k| v.runs[k].id.ends_with("simultaneous"))
@@ -1185,5 +1204,4 @@ fn markdown(setup: &Setup, v: &Validation, s: &[Summary], cfg: &ValidationConfig
             );
         }
     }
-    m
 }
