@@ -359,6 +359,8 @@ fn too_many_threads_are_clamped_to_the_machine_with_a_note() {
     let m: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("manifest.json")).unwrap()).unwrap();
     assert_eq!(m["threads"], cores as u64, "{m}");
+    // The control for the chi2-excess rule below: fits of the model's own scenario pass it.
+    assert_eq!(m["failed"], 0, "{m}");
     assert!(t.elapsed() < Duration::from_secs(120));
 }
 
@@ -380,6 +382,46 @@ fn chi2_far_above_its_noise_reference_is_flagged() {
     // No usable reference counts as 1; NaN is always flagged.
     assert!(chi2_excess_over(2.5, 20_000, f64::NAN).is_some());
     assert!(chi2_excess_over(f64::NAN, 20_000, 1.0).is_some());
+}
+
+#[test]
+fn a_campaign_counts_fits_far_above_their_noise_reference_as_failed() {
+    // A truth the fit cannot reach: dt1 = -3 s, below the physical bound dt1 >= 0. The fit
+    // stops at the bound (chi2_tolerance) with chi2/nu ~ 1.5e3 against a noise-only ~1.
+    let d = tmp();
+    let camp = d.path().join("c.toml");
+    let p = "w1_sq = -1.3e-6, w12_sq = -0.7e-6, s21 = 0.9e-4, a_df = 1.0, a_sus = 1.0";
+    std::fs::write(
+        &camp,
+        format!(
+            "name = \"x\"\nseed = 1\nrealizations = 4\n[[scenario]]\nname = \"bounded\"\n\
+             true = {{ {p}, dt1 = -3.0, dt12 = 0.05 }}\nguess = {{ {p}, dt1 = 0.06, dt12 = 0.05 }}\n"
+        ),
+    )
+    .unwrap();
+    let out = d.path().join("out");
+    ok(&["campaign", "run", s(&camp), "--out", s(&out)]);
+    let m: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("manifest.json")).unwrap()).unwrap();
+    assert_eq!(
+        (m["fits"].as_u64(), m["failed"].as_u64()),
+        (Some(4), Some(4)),
+        "{m}"
+    );
+    let rows = freefall::io::read_parquet(out.join("realizations.parquet")).unwrap();
+    let chi2 = rows.f64_column("chi2_reduced").unwrap();
+    let noise = rows.f64_column("noise_chi2_reduced").unwrap();
+    for (i, t) in rows.str_column("termination").unwrap().iter().enumerate() {
+        assert!(t.ends_with("+chi2_excess"), "{t}");
+        assert!(chi2[i] > 100.0 * noise[i], "{} vs {}", chi2[i], noise[i]);
+    }
+    assert!(rows.bool_column("converged").unwrap().iter().all(|c| !c));
+    let summary = freefall::io::read_parquet(out.join("summary.parquet")).unwrap();
+    assert!(summary
+        .i64_column("failed")
+        .unwrap()
+        .iter()
+        .all(|&f| f == 4));
 }
 
 // --- 4. Overwrite policy --------------------------------------------------------------------
