@@ -250,26 +250,37 @@ fn check_keys(path: &Path, raw: &toml::Table) -> Result<(), IoError> {
 /// Refuses one file under two experiment names: the same path after resolving links and `..`,
 /// or the same content (a copy). Counted twice, it would shrink every sigma by sqrt(2).
 fn check_distinct_files(path: &Path, files: &[(String, PathBuf)]) -> Result<(), IoError> {
-    let mut seen: Vec<(&str, PathBuf, String)> = Vec::with_capacity(files.len());
+    let duplicate = |other: &str, name: &str, how: &str, file: &Path| {
+        IoError::invalid(
+            path,
+            format!(
+                "experiments '{other}' and '{name}' are {how} ({}): one experiment counted \
+                 twice would shrink every sigma by sqrt(2)",
+                file.display()
+            ),
+        )
+    };
+    // (name, canonical path, length); contents are hashed only for files of equal length.
+    let mut seen: Vec<(&str, PathBuf, u64)> = Vec::with_capacity(files.len());
     for (name, file) in files {
         let canonical = file.canonicalize().map_err(|e| IoError::read(file, e))?;
-        let hash = super::atomic::file_sha256(file)?;
-        if let Some((other, _, _)) = seen.iter().find(|(_, c, h)| *c == canonical || *h == hash) {
-            let how = if seen.iter().any(|(_, c, _)| *c == canonical) {
-                "the same file"
-            } else {
-                "a copy of the same file (identical content)"
-            };
-            return Err(IoError::invalid(
-                path,
-                format!(
-                    "experiments '{other}' and '{name}' are {how} ({}): one experiment counted \
-                     twice would shrink every sigma by sqrt(2)",
-                    file.display()
-                ),
-            ));
+        let len = std::fs::metadata(&canonical)
+            .map_err(|e| IoError::read(file, e))?
+            .len();
+        if let Some((other, _, _)) = seen.iter().find(|(_, c, _)| *c == canonical) {
+            return Err(duplicate(other, name, "the same file", file));
         }
-        seen.push((name, canonical, hash));
+        for (other, c, l) in &seen {
+            if *l == len && super::atomic::file_sha256(c)? == super::atomic::file_sha256(file)? {
+                return Err(duplicate(
+                    other,
+                    name,
+                    "a copy of the same file (identical content)",
+                    file,
+                ));
+            }
+        }
+        seen.push((name, canonical, len));
     }
     Ok(())
 }
