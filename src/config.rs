@@ -7,7 +7,7 @@
 pub struct OutOfRange {
     pub option: &'static str,
     pub value: String,
-    pub expected: &'static str,
+    pub expected: String,
 }
 
 /// `v` must lie in the open interval (0, 1) (a probability such as a significance level).
@@ -49,7 +49,7 @@ fn check(
     option: &'static str,
     v: impl std::fmt::Display,
     ok: bool,
-    expected: &'static str,
+    expected: impl Into<String>,
 ) -> Result<(), OutOfRange> {
     if ok {
         Ok(())
@@ -57,7 +57,57 @@ fn check(
         Err(OutOfRange {
             option,
             value: v.to_string(),
-            expected,
+            expected: expected.into(),
         })
     }
+}
+
+/// Memory a single allocation plan may use when nothing told the library the machine's size:
+/// 8 GiB. The command line sets the machine's available memory with [`set_memory_budget`].
+pub const DEFAULT_MEMORY_BUDGET: u64 = 8 << 30;
+
+static MEMORY_BUDGET: std::sync::atomic::AtomicU64 =
+    std::sync::atomic::AtomicU64::new(DEFAULT_MEMORY_BUDGET);
+
+/// Sets the memory the size checks compare their estimates with (bytes; the CLI passes the
+/// machine's available memory). The numeric core reads it, it never asks the system itself.
+pub fn set_memory_budget(bytes: u64) {
+    MEMORY_BUDGET.store(bytes.max(1), std::sync::atomic::Ordering::Relaxed);
+}
+
+/// The memory the size checks allow (see [`set_memory_budget`]).
+pub fn memory_budget() -> u64 {
+    MEMORY_BUDGET.load(std::sync::atomic::Ordering::Relaxed)
+}
+
+/// A byte count for messages: "12.8 GB".
+pub fn fmt_bytes(bytes: f64) -> String {
+    match bytes {
+        b if b >= 1e12 => format!("{:.1} TB", b / 1e12),
+        b if b >= 1e9 => format!("{:.1} GB", b / 1e9),
+        b if b >= 1e6 => format!("{:.1} MB", b / 1e6),
+        b => format!("{:.0} kB", b / 1e3),
+    }
+}
+
+/// Checked before a large allocation: `option = value` makes `what` need an estimated `bytes`
+/// (f64, so that an absurd size cannot overflow); Err, naming the option, the value and the
+/// estimate, when that exceeds the memory budget.
+pub fn fits_in_memory(
+    option: &'static str,
+    value: impl std::fmt::Display,
+    bytes: f64,
+    what: &str,
+) -> Result<(), OutOfRange> {
+    let budget = memory_budget() as f64;
+    check(
+        option,
+        value,
+        bytes.is_finite() && bytes <= budget,
+        format!(
+            "smaller: {what} would need an estimated {} ({bytes:.3e} bytes), more than the memory budget of {} (half the available memory; FREEFALL_MEMORY_BUDGET sets it)",
+            fmt_bytes(bytes),
+            fmt_bytes(budget)
+        ),
+    )
 }

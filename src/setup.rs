@@ -38,9 +38,17 @@ pub enum Error {
     Io(#[from] crate::io::IoError),
     #[error(transparent)]
     TimeDomain(#[from] TimeDomainError),
+    #[error(transparent)]
+    Config(#[from] crate::config::OutOfRange),
     #[error("{0}")]
     Other(String),
 }
+
+/// Peak bytes a simulation holds per sample of one run at the simulation rate: the oversampled
+/// complex noise spectra and series of two channels, the zero-padded template spectra and the
+/// run's columns. Measured 340: `simulate --noise-duration 8e5` (8e6 samples at 10 Hz) peaks at
+/// 2.75 GB, `2e5` at 0.71 GB.
+pub const SIMULATION_BYTES_PER_SAMPLE: f64 = 400.0;
 
 /// A loaded model file with its closed-loop model and noise model.
 #[derive(Debug, Clone)]
@@ -103,7 +111,9 @@ impl Setup {
 
     /// A named injection design of the model file (e.g. "standard").
     pub fn design(&self, name: &str) -> Result<Design, Error> {
-        Ok(Design::from_spec(name, self.spec.injection(name)?)?)
+        let design = Design::from_spec(name, self.spec.injection(name)?)?;
+        self.check_simulation_size(&design, "duration_s")?;
+        Ok(design)
     }
 
     /// Whitening filter from the model's noise PSD at `p`, for series of `n` samples.
@@ -128,6 +138,27 @@ impl Setup {
         GlitchConfig::new(&g, n)
     }
 
+    /// Checked before a simulator of `design` is built: the longest run's samples at the
+    /// simulation rate times [`SIMULATION_BYTES_PER_SAMPLE`] must fit in memory. `option` names
+    /// what set the duration (a design's `duration_s`, `--noise-duration`).
+    pub fn check_simulation_size(
+        &self,
+        design: &Design,
+        option: &'static str,
+    ) -> Result<(), Error> {
+        let samples = design.duration_s / self.simulation_dt();
+        crate::config::fits_in_memory(
+            option,
+            design.duration_s,
+            samples * SIMULATION_BYTES_PER_SAMPLE,
+            &format!(
+                "simulating {:.3e} s of design '{}' ({samples:.3e} samples at {} Hz)",
+                design.duration_s, design.name, self.spec.sampling.simulate_hz
+            ),
+        )?;
+        Ok(())
+    }
+
     /// A simulator of `design` at parameters `truth`, directly at the analysis rate. The noise
     /// has the model PSD sampled at the analysis rate, i.e. the data an ideal anti-alias
     /// decimator would produce (the 10 Hz path with a real filter is `sim::decimated`).
@@ -137,6 +168,7 @@ impl Setup {
         truth: &[f64],
         glitch: Option<&GlitchSpec>,
     ) -> Result<Simulator<2>, Error> {
+        self.check_simulation_size(design, "duration_s")?;
         let dt = self.analysis_dt();
         let glitches = glitch.map(|g| self.analysis_glitches(g, design.samples(dt)));
         Ok(Simulator::new(
@@ -158,6 +190,7 @@ impl Setup {
         truth: &[f64],
         glitch: Option<&GlitchSpec>,
     ) -> Result<DecimatedSimulator<2>, Error> {
+        self.check_simulation_size(design, "duration_s")?;
         Ok(DecimatedSimulator::new(
             &self.model,
             design,
@@ -185,6 +218,7 @@ impl Setup {
         if glitch.is_some() {
             return Err(TimeDomainError::Glitches.into());
         }
+        self.check_simulation_size(design, "duration_s")?;
         Ok(TimeDomainSimulator::new(
             &self.model,
             &self.noise,

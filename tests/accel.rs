@@ -394,7 +394,9 @@ fn cli_writes_the_documented_tables() {
             model[k]
         );
     }
-    let a = args("300:100");
+    // --force: the folder holds the tables above (a non-empty --out is refused first).
+    let mut a = args("300:100");
+    a.push("--force".into());
     let o = run(&a.iter().map(String::as_str).collect::<Vec<_>>());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(

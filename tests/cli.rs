@@ -504,6 +504,8 @@ fn guess_files_and_estimators() {
     let json: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("fit.json")).unwrap()).unwrap();
     assert_eq!(json["estimator"], "log");
+    // The bad guesses below go to a fresh --out (a non-empty one is refused first).
+    let out = d.path().join("fit2");
     std::fs::write(&guess, "w1_sq = -1.3e-6\nzeta = 1.0\n").unwrap();
     fails(
         &[

@@ -955,7 +955,8 @@ fn dataset_mismatched_dt_names_files_and_dts() {
         &[
             ("noise.parquet", sample_run(30, 0.5, 0.0)),
             ("exp1.parquet", sample_run(30, 1.0, 0.0)),
-            ("exp2.parquet", sample_run(30, 1.0, 0.0)),
+            // Another phase: two identical files are refused as one file counted twice.
+            ("exp2.parquet", sample_run(30, 1.0, 1.0)),
         ],
         TWO_EXPERIMENTS,
     );

@@ -81,17 +81,20 @@ fn slurm_scripts_have_the_array_resume_and_dependent_merge() {
     }
     let merge = std::fs::read_to_string(out.join("merge.sbatch")).unwrap();
     assert!(
-        merge.contains("campaign merge") && merge.contains("seq 0 2") && merge.contains("/merged'"),
+        merge.contains("campaign merge")
+            && merge.contains("seq 0 2")
+            && merge.contains("--force --out")
+            && merge.contains("/merged'"),
         "{merge}"
     );
     let submit = std::fs::read_to_string(out.join("submit.sh")).unwrap();
     assert!(submit.contains("--dependency=afterok:"), "{submit}");
-    // Bad options are one-line errors.
+    // Bad options are one-line errors (into a fresh --out: a non-empty one is refused first).
     let o = Command::new(BIN)
         .args(["campaign", "slurm"])
         .arg(&f)
         .args(["--shards", "7", "--out"])
-        .arg(&out)
+        .arg(tmp.path().join("sl2"))
         .output()
         .unwrap();
     assert!(!o.status.success());

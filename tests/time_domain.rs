@@ -213,10 +213,12 @@ fn cli_simulates_with_the_time_domain_engine_and_initial_conditions() {
         assert!(!o.status.success() && err.contains(needle), "{arg}: {err}");
         assert!(!err.contains("panicked"));
     }
+    // --force: the folder holds the dataset above (a non-empty --out is refused first).
     let o = freefall(&[
         "simulate",
         "--initial",
         "o1=1",
+        "--force",
         "--out",
         out.to_str().unwrap(),
     ]);

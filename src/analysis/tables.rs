@@ -193,6 +193,7 @@ impl FitSummary {
         poly_degree: usize,
         provenance: BTreeMap<String, String>,
     ) -> Self {
+        let excess = crate::fit::chi2_excess_warning(res.chi2_reduced, res.nu);
         FitSummary {
             chi2: res.chi2,
             nu: res.nu,
@@ -202,10 +203,9 @@ impl FitSummary {
             evaluations: res.evaluations,
             jacobian_evaluations: res.jacobian_evaluations,
             termination: res.termination.as_str(),
-            converged: res.termination.converged(),
-            warnings: crate::fit::chi2_excess_warning(res.chi2_reduced, res.nu)
-                .into_iter()
-                .collect(),
+            // A fit far above its noise reference describes nothing, whatever stopped it.
+            converged: res.termination.converged() && excess.is_none(),
+            warnings: excess.into_iter().collect(),
             seconds: res.seconds,
             estimator: estimator.to_string(),
             whitening,

@@ -371,102 +371,21 @@ pub fn run(
     );
     let (start, end) = opts.shard.range(c.realizations);
     let out = &opts.out;
-    let manifest_path = out.join(MANIFEST);
     let partial = out.join(PARTIAL);
-    let state = State {
-        config_hash: loaded.config_hash.clone(),
-        shard: opts.shard,
-        range_start: start,
-        range_end: end,
-    };
     // Held until this function returns (the file is closed on drop, releasing the lock).
     let _lock = lock_out(out)?;
-
-    if manifest_path.exists() {
-        let m: Manifest = read_json(&manifest_path)?;
-        if !opts.resume {
-            return Err(store_err(out, "already holds a finished campaign (manifest.json); use --resume to check it, or another --out"));
-        }
-        if m.config_hash != loaded.config_hash || m.shard != opts.shard {
-            return Err(store_err(
-                &manifest_path,
-                format!(
-                    "holds a different run (config hash {}, shard {}), not this one (config hash {}, shard {})",
-                    short(&m.config_hash),
-                    m.shard,
-                    short(&loaded.config_hash),
-                    opts.shard
-                ),
-            ));
-        }
+    if let Some(manifest) = check_out_state(loaded, opts, start, end)? {
         return Ok(RunReport {
-            manifest: m,
+            manifest,
             already_complete: true,
         });
     }
-    let state_path = partial.join(STATE);
-    if partial.exists() {
-        if !opts.resume {
-            return Err(store_err(out, "holds an interrupted run (.partial); continue it with --resume, or use another --out"));
-        }
-        let old: State = read_json(&state_path)?;
-        if old != state {
-            return Err(store_err(
-                &state_path,
-                format!(
-                    "the interrupted run is a different campaign or shard (config hash {}, shard {}); this is config hash {}, shard {}",
-                    short(&old.config_hash),
-                    old.shard,
-                    short(&loaded.config_hash),
-                    opts.shard
-                ),
-            ));
-        }
-    } else {
-        io::ensure_dir(&partial)?;
-        write_json_atomic(&state_path, &state)?;
-    }
-
-    let pool = {
-        let mut b = rayon::ThreadPoolBuilder::new();
-        if let Some(t) = opts.threads {
-            b = b.num_threads(t.max(1));
-        }
-        b.build()
-            .map_err(|e| store_err(out, format!("cannot start worker threads: {e}")))?
-    };
+    let pool = worker_pool(out, opts.threads)?;
     let runner = Runner::new(&loaded.setup, c, loaded.scenarios.clone(), &loaded.designs)?;
     let layout = runner.layout.clone();
     let mut agg = Aggregates::new(layout.clone());
-    let mut fit_seconds = 0.0;
-
-    // Replay the finished chunks in order.
-    let mut next = start;
-    for (a, b, path) in list_chunks(&partial, &loaded.config_hash)? {
-        if a != next || b <= a || b > end {
-            return Err(store_err(&path, format!("chunk does not continue the run at realization {next}; remove .partial to start over")));
-        }
-        let table = read_parquet(&path)?;
-        // The name carries the config hash; the rows carry the seed (a renamed foreign chunk).
-        if let Some(seed) = table.u64_column("seed")?.iter().find(|s| **s != c.seed) {
-            return Err(store_err(
-                &path,
-                format!(
-                    "chunk of another campaign (seed {seed}), this run has seed {}; remove it (or .partial) to start over",
-                    c.seed
-                ),
-            ));
-        }
-        let rows = layout.rows_from_table(&table)?;
-        if rows.len() as u64 != (b - a) * runner.rows_per_realization() as u64 {
-            return Err(store_err(&path, "chunk has the wrong number of rows"));
-        }
-        for r in &rows {
-            agg.add(r);
-            fit_seconds += r.seconds;
-        }
-        next = b;
-    }
+    let (mut next, mut fit_seconds) =
+        replay_chunks(loaded, &runner, &partial, start, end, &mut agg)?;
     let resumed = next - start;
     let total = end - start;
     let (f, x) = agg.counts();
@@ -478,28 +397,26 @@ pub fn run(
     });
 
     let batch = c.batch as u64;
-    {
-        while next < end {
-            let stop = (next + batch).min(end);
-            let rows = pool.install(|| runner.run_range(next, stop));
-            let table = layout.rows_table(&rows, c.seed)?.with_meta_all(&meta);
-            write_parquet(
-                chunk_path(&partial, next, stop, &loaded.config_hash),
-                &table,
-            )?;
-            for r in &rows {
-                agg.add(r);
-                fit_seconds += r.seconds;
-            }
-            next = stop;
-            let (f, x) = agg.counts();
-            progress(Progress {
-                done: next - start,
-                total,
-                fits: f,
-                failed: x,
-            });
+    while next < end {
+        let stop = (next + batch).min(end);
+        let rows = pool.install(|| runner.run_range(next, stop));
+        let table = layout.rows_table(&rows, c.seed)?.with_meta_all(&meta);
+        write_parquet(
+            chunk_path(&partial, next, stop, &loaded.config_hash),
+            &table,
+        )?;
+        for r in &rows {
+            agg.add(r);
+            fit_seconds += r.seconds;
         }
+        next = stop;
+        let (f, x) = agg.counts();
+        progress(Progress {
+            done: next - start,
+            total,
+            fits: f,
+            failed: x,
+        });
     }
     let threads = pool.current_num_threads();
 
@@ -519,7 +436,7 @@ pub fn run(
             app.append(&layout.rows_table(&[], c.seed)?.with_meta_all(&meta))?;
         }
         for (_, _, path) in chunks {
-            app.append(&read_parquet(&path)?)?;
+            app.append(&read_chunk(&path)?)?;
         }
         app.finish()?;
     }
@@ -555,12 +472,146 @@ pub fn run(
         resumed_realizations: resumed,
         merged_from: Vec::new(),
     };
-    write_json_atomic(&manifest_path, &manifest)?;
+    write_json_atomic(out.join(MANIFEST), &manifest)?;
     std::fs::remove_dir_all(&partial).map_err(|e| IoError::write(&partial, e))?;
     Ok(RunReport {
         manifest,
         already_complete: false,
     })
+}
+
+/// What `opts.out` already holds, checked under the lock: a finished run of this campaign and
+/// shard (returned with `--resume`), an interrupted one (continued with `--resume`), nothing
+/// (the run's state file is written), or another run (refused, naming the hashes).
+fn check_out_state(
+    loaded: &Loaded,
+    opts: &RunOptions,
+    start: u64,
+    end: u64,
+) -> Result<Option<Manifest>, CampaignError> {
+    let out = &opts.out;
+    let manifest_path = out.join(MANIFEST);
+    let partial = out.join(PARTIAL);
+    let state = State {
+        config_hash: loaded.config_hash.clone(),
+        shard: opts.shard,
+        range_start: start,
+        range_end: end,
+    };
+    if manifest_path.exists() {
+        let m: Manifest = read_json(&manifest_path)?;
+        if !opts.resume {
+            return Err(store_err(out, "already holds a finished campaign (manifest.json); use --resume to check it, or another --out"));
+        }
+        if m.config_hash != loaded.config_hash || m.shard != opts.shard {
+            return Err(store_err(
+                &manifest_path,
+                format!(
+                    "holds a different run (config hash {}, shard {}), not this one (config hash {}, shard {})",
+                    short(&m.config_hash),
+                    m.shard,
+                    short(&loaded.config_hash),
+                    opts.shard
+                ),
+            ));
+        }
+        return Ok(Some(m));
+    }
+    let state_path = partial.join(STATE);
+    if partial.exists() {
+        if !opts.resume {
+            return Err(store_err(out, "holds an interrupted run (.partial); continue it with --resume, or use another --out"));
+        }
+        let old: State = read_json(&state_path)?;
+        if old != state {
+            return Err(store_err(
+                &state_path,
+                format!(
+                    "the interrupted run is a different campaign or shard (config hash {}, shard {}); this is config hash {}, shard {}",
+                    short(&old.config_hash),
+                    old.shard,
+                    short(&loaded.config_hash),
+                    opts.shard
+                ),
+            ));
+        }
+    } else {
+        io::ensure_dir(&partial)?;
+        write_json_atomic(&state_path, &state)?;
+    }
+    Ok(None)
+}
+
+/// The worker pool: `threads` workers, at most the machine's cores (more only add switching:
+/// 10000 threads made a 0.5 s run take 44 s); default rayon's.
+fn worker_pool(out: &Path, threads: Option<usize>) -> Result<rayon::ThreadPool, CampaignError> {
+    let mut b = rayon::ThreadPoolBuilder::new();
+    if let Some(t) = threads {
+        b = b.num_threads(t.clamp(1, max_threads()));
+    }
+    b.build()
+        .map_err(|e| store_err(out, format!("cannot start worker threads: {e}")))
+}
+
+/// The most worker threads a run uses: the machine's available parallelism.
+pub fn max_threads() -> usize {
+    std::thread::available_parallelism().map_or(1, |n| n.get())
+}
+
+/// A finished chunk, with a hint to remove it when it cannot be read (a truncated copy, a full
+/// disk): resuming recomputes a removed chunk.
+fn read_chunk(path: &Path) -> Result<Table, CampaignError> {
+    read_parquet(path).map_err(|e| {
+        store_err(
+            path,
+            format!(
+                "damaged chunk ({e}); remove '{}' and rerun with --resume to recompute it",
+                path.display()
+            ),
+        )
+    })
+}
+
+/// Replay the finished chunks of `.partial` in order into `agg`: returns the next realization
+/// to run and the fit seconds replayed. Refuses a chunk that does not continue the run, is of
+/// another campaign (seed) or has the wrong size, naming it.
+fn replay_chunks(
+    loaded: &Loaded,
+    runner: &Runner,
+    partial: &Path,
+    start: u64,
+    end: u64,
+    agg: &mut Aggregates,
+) -> Result<(u64, f64), CampaignError> {
+    let c = &loaded.campaign;
+    let mut next = start;
+    let mut fit_seconds = 0.0;
+    for (a, b, path) in list_chunks(partial, &loaded.config_hash)? {
+        if a != next || b <= a || b > end {
+            return Err(store_err(&path, format!("chunk does not continue the run at realization {next}; remove .partial to start over")));
+        }
+        let table = read_chunk(&path)?;
+        // The name carries the config hash; the rows carry the seed (a renamed foreign chunk).
+        if let Some(seed) = table.u64_column("seed")?.iter().find(|s| **s != c.seed) {
+            return Err(store_err(
+                &path,
+                format!(
+                    "chunk of another campaign (seed {seed}), this run has seed {}; remove it (or .partial) to start over",
+                    c.seed
+                ),
+            ));
+        }
+        let rows = runner.layout.rows_from_table(&table)?;
+        if rows.len() as u64 != (b - a) * runner.rows_per_realization() as u64 {
+            return Err(store_err(&path, "chunk has the wrong number of rows"));
+        }
+        for r in &rows {
+            agg.add(r);
+            fit_seconds += r.seconds;
+        }
+        next = b;
+    }
+    Ok((next, fit_seconds))
 }
 
 fn write_aggregates(

@@ -36,7 +36,7 @@ pub mod tables;
 
 use std::path::PathBuf;
 
-pub use io_store::{load, merge, run, Loaded, Manifest, RunOptions, RunReport, Shard};
+pub use io_store::{load, max_threads, merge, run, Loaded, Manifest, RunOptions, RunReport, Shard};
 pub use runner::Runner;
 pub use spec::{Campaign, DesignSource, Outputs, ScenarioSource};
 pub use stats::Aggregates;

@@ -314,8 +314,14 @@ impl<'s> Runner<'s> {
                         design: d,
                         estimator: e,
                         realization: r,
-                        converged: res.termination.converged(),
-                        termination: res.termination.as_str().to_string(),
+                        // A fit far above its noise reference describes nothing: failed.
+                        converged: res.termination.converged()
+                            && !chi2_excess(&res, noise_chi2_reduced),
+                        termination: if chi2_excess(&res, noise_chi2_reduced) {
+                            format!("{}+chi2_excess", res.termination.as_str())
+                        } else {
+                            res.termination.as_str().to_string()
+                        },
                         iterations: res.iterations as u64,
                         chi2: res.chi2,
                         nu: res.nu as u64,
@@ -353,4 +359,10 @@ impl<'s> Runner<'s> {
             .flatten()
             .collect()
     }
+}
+
+/// Whether a fit's chi^2/nu lies far above its noise reference (see
+/// [`crate::fit::chi2_excess_over`]); such a fit counts as failed.
+fn chi2_excess(res: &crate::fit::FitResult, noise_chi2_reduced: f64) -> bool {
+    crate::fit::chi2_excess_over(res.chi2_reduced, res.nu, noise_chi2_reduced).is_some()
 }

@@ -132,8 +132,9 @@ pub fn write(o: &SlurmOptions) -> Result<Written, CampaignError> {
         n - 1,
         q(&parts)
     );
+    // --force: a requeued merge job replaces its own earlier (possibly partial) output.
     merge += &format!(
-        "exec {} campaign merge \"${{parts[@]}}\" --out {}\n",
+        "exec {} campaign merge \"${{parts[@]}}\" --force --out {}\n",
         q(&bin),
         q(&merged)
     );

@@ -201,197 +201,247 @@ pub struct Campaign {
 
 impl Campaign {
     /// Parse and validate the text of the campaign file `file` (relative paths in it are resolved
-    /// against `file`'s directory).
+    /// against `file`'s directory): one named step per section.
     pub fn from_toml_str(text: &str, file: &Path) -> Result<Campaign, CampaignError> {
         let spec: FileSpec =
             toml::from_str(text).map_err(|e| crate::io::atomic::toml_error(file, text, &e))?;
-        let bad = |key: &str, reason: String| CampaignError::Invalid {
-            file: file.to_path_buf(),
-            key: key.to_string(),
-            reason,
-        };
-        let base = file.parent().map(Path::to_path_buf).unwrap_or_default();
-        let resolve = |p: &str| {
-            let p = PathBuf::from(p);
-            if p.is_absolute() {
-                p
-            } else {
-                base.join(p)
-            }
-        };
+        let cx = Checker { file };
         let name = spec.name.clone().unwrap_or_else(|| {
             file.file_stem()
                 .map(|s| s.to_string_lossy().into_owned())
                 .unwrap_or_else(|| "campaign".into())
         });
         if name.trim().is_empty() {
-            return Err(bad("name", "must not be empty".into()));
+            return Err(cx.bad("name", "must not be empty"));
         }
         if spec.realizations == 0 {
-            return Err(bad("realizations", "must be at least 1".into()));
+            return Err(cx.bad("realizations", "must be at least 1"));
         }
         let model = match spec.model.as_deref() {
             None | Some("embedded") => None,
             Some("") => {
-                return Err(bad(
-                    "model",
-                    "empty path (omit the key for the embedded model)".into(),
-                ))
+                return Err(cx.bad("model", "empty path (omit the key for the embedded model)"))
             }
-            Some(m) => Some(resolve(m)),
+            Some(m) => Some(cx.resolve(m)),
         };
-        let est_names = spec
-            .estimators
-            .clone()
-            .unwrap_or_else(|| vec!["squared".into()]);
-        if est_names.is_empty() {
-            return Err(bad("estimators", "must name at least one estimator".into()));
+        let batch = spec.batch.unwrap_or(DEFAULT_BATCH);
+        if batch == 0 {
+            return Err(cx.bad("batch", "must be at least 1"));
+        }
+        Ok(Campaign {
+            file: file.to_path_buf(),
+            name,
+            description: spec.description.unwrap_or_default(),
+            model,
+            seed: spec.seed,
+            realizations: spec.realizations,
+            estimators: cx.estimators(spec.estimators.as_deref())?,
+            outputs: cx.outputs(spec.outputs.as_deref())?,
+            batch,
+            scenarios: cx.scenarios(spec.scenarios)?,
+            designs: cx.designs(spec.designs)?,
+            fit: cx.fit(&spec.fit)?,
+        })
+    }
+
+    /// Number of (scenario, design, estimator) groups.
+    pub fn groups(&self) -> usize {
+        self.scenarios.len() * self.designs.len() * self.estimators.len()
+    }
+}
+
+/// The validation steps of [`Campaign::from_toml_str`], each for one section of the file; errors
+/// name the file and the key.
+struct Checker<'a> {
+    file: &'a Path,
+}
+
+impl Checker<'_> {
+    fn bad(&self, key: &str, reason: impl Into<String>) -> CampaignError {
+        CampaignError::Invalid {
+            file: self.file.to_path_buf(),
+            key: key.to_string(),
+            reason: reason.into(),
+        }
+    }
+
+    /// A path in the file, resolved against the file's directory.
+    fn resolve(&self, p: &str) -> PathBuf {
+        let p = PathBuf::from(p);
+        if p.is_absolute() {
+            p
+        } else {
+            self.file
+                .parent()
+                .map(Path::to_path_buf)
+                .unwrap_or_default()
+                .join(p)
+        }
+    }
+
+    /// `estimators = [...]`: known names, none twice; default squared.
+    fn estimators(&self, names: Option<&[String]>) -> Result<Vec<Estimator>, CampaignError> {
+        let default = ["squared".to_string()];
+        let names = names.unwrap_or(&default);
+        if names.is_empty() {
+            return Err(self.bad("estimators", "must name at least one estimator"));
         }
         let mut estimators = Vec::new();
-        for (i, e) in est_names.iter().enumerate() {
+        for (i, e) in names.iter().enumerate() {
             let est: Estimator = e
                 .parse()
-                .map_err(|m: String| bad(&format!("estimators[{i}]"), m))?;
+                .map_err(|m: String| self.bad(&format!("estimators[{i}]"), m))?;
             if estimators.contains(&est) {
-                return Err(bad(
+                return Err(self.bad(
                     &format!("estimators[{i}]"),
                     format!("'{e}' is listed twice"),
                 ));
             }
             estimators.push(est);
         }
-        let outputs = match &spec.outputs {
-            None => Outputs::ALL,
-            Some(list) => {
-                let mut o = Outputs {
-                    realizations: false,
-                    summary: false,
-                    correlation: false,
-                    chi2: false,
-                };
-                for (i, name) in list.iter().enumerate() {
-                    let flag = match name.as_str() {
-                        "realizations" => &mut o.realizations,
-                        "summary" => &mut o.summary,
-                        "correlation" => &mut o.correlation,
-                        "chi2" => &mut o.chi2,
-                        other => {
-                            return Err(bad(
-                                &format!("outputs[{i}]"),
-                                format!(
-                                    "unknown table '{other}' (expected one of {})",
-                                    OUTPUT_NAMES.join(", ")
-                                ),
-                            ))
-                        }
-                    };
-                    *flag = true;
-                }
-                if list.is_empty() {
-                    return Err(bad("outputs", "must name at least one table".into()));
-                }
-                o
-            }
+        Ok(estimators)
+    }
+
+    /// `outputs = [...]`: table names; default all.
+    fn outputs(&self, list: Option<&[String]>) -> Result<Outputs, CampaignError> {
+        let Some(list) = list else {
+            return Ok(Outputs::ALL);
         };
-        let batch = spec.batch.unwrap_or(DEFAULT_BATCH);
-        if batch == 0 {
-            return Err(bad("batch", "must be at least 1".into()));
+        if list.is_empty() {
+            return Err(self.bad("outputs", "must name at least one table"));
         }
-        if spec.scenarios.is_empty() {
-            return Err(bad(
-                "scenario",
-                "at least one [[scenario]] is required".into(),
-            ));
+        let mut o = Outputs {
+            realizations: false,
+            summary: false,
+            correlation: false,
+            chi2: false,
+        };
+        for (i, name) in list.iter().enumerate() {
+            let flag = match name.as_str() {
+                "realizations" => &mut o.realizations,
+                "summary" => &mut o.summary,
+                "correlation" => &mut o.correlation,
+                "chi2" => &mut o.chi2,
+                other => {
+                    return Err(self.bad(
+                        &format!("outputs[{i}]"),
+                        format!(
+                            "unknown table '{other}' (expected one of {})",
+                            OUTPUT_NAMES.join(", ")
+                        ),
+                    ))
+                }
+            };
+            *flag = true;
+        }
+        Ok(o)
+    }
+
+    /// `[[scenario]]` entries: unique names, model scenarios or inline ones.
+    fn scenarios(&self, entries: Vec<ScenarioEntry>) -> Result<Vec<ScenarioDef>, CampaignError> {
+        if entries.is_empty() {
+            return Err(self.bad("scenario", "at least one [[scenario]] is required"));
         }
         let mut scenarios: Vec<ScenarioDef> = Vec::new();
-        for (i, s) in spec.scenarios.into_iter().enumerate() {
+        for (i, s) in entries.into_iter().enumerate() {
             let key = format!("scenario[{i}]");
-            check_name(&s.name).map_err(|r| bad(&format!("{key}.name"), r))?;
+            check_name(&s.name).map_err(|r| self.bad(&format!("{key}.name"), r))?;
             if scenarios.iter().any(|o| o.name == s.name) {
-                return Err(bad(
+                return Err(self.bad(
                     &format!("{key}.name"),
                     format!("scenario '{}' is listed twice", s.name),
                 ));
             }
-            let source = match (s.truth, s.guess) {
-                (None, None) => {
-                    if s.glitch.is_some() {
-                        return Err(bad(
-                            &format!("{key}.glitch"),
-                            "only inline scenarios (with true and guess) take a glitch".into(),
-                        ));
-                    }
-                    ScenarioSource::Model
-                }
-                (Some(truth), Some(guess)) => {
-                    for (which, set) in [("true", &truth), ("guess", &guess)] {
-                        for (k, v) in set {
-                            if !v.is_finite() {
-                                return Err(bad(
-                                    &format!("{key}.{which}.{k}"),
-                                    format!("must be finite, got {v}"),
-                                ));
-                            }
-                        }
-                    }
-                    if let Some(g) = &s.glitch {
-                        let ok = (0.0..=1.0).contains(&g.fraction)
-                            && g.f0_hz[0] <= g.f0_hz[1]
-                            && g.tau_s[0] > 0.0
-                            && g.tau_s[0] <= g.tau_s[1]
-                            && g.amplitude_sigma[0] <= g.amplitude_sigma[1];
-                        if !ok {
-                            return Err(bad(
-                                &format!("{key}.glitch"),
-                                "ranges must be [lo, hi] with lo <= hi, tau > 0 and fraction in [0, 1]".into(),
-                            ));
-                        }
-                    }
-                    ScenarioSource::Inline {
-                        truth,
-                        guess,
-                        glitch: s.glitch,
-                    }
-                }
-                (Some(_), None) => {
-                    return Err(bad(
-                        &format!("{key}.guess"),
-                        "an inline scenario needs both 'true' and 'guess'".into(),
-                    ))
-                }
-                (None, Some(_)) => {
-                    return Err(bad(
-                        &format!("{key}.true"),
-                        "an inline scenario needs both 'true' and 'guess'".into(),
-                    ))
-                }
-            };
+            let source = self.scenario_source(&key, s.truth, s.guess, s.glitch)?;
             scenarios.push(ScenarioDef {
                 name: s.name,
                 source,
             });
         }
+        Ok(scenarios)
+    }
+
+    /// A scenario from the model file (no `true`/`guess`) or given inline (both, finite).
+    fn scenario_source(
+        &self,
+        key: &str,
+        truth: Option<BTreeMap<String, f64>>,
+        guess: Option<BTreeMap<String, f64>>,
+        glitch: Option<GlitchSpec>,
+    ) -> Result<ScenarioSource, CampaignError> {
+        let (truth, guess) = match (truth, guess) {
+            (None, None) if glitch.is_some() => {
+                return Err(self.bad(
+                    &format!("{key}.glitch"),
+                    "only inline scenarios (with true and guess) take a glitch",
+                ))
+            }
+            (None, None) => return Ok(ScenarioSource::Model),
+            (Some(t), Some(g)) => (t, g),
+            (Some(_), None) => {
+                return Err(self.bad(
+                    &format!("{key}.guess"),
+                    "an inline scenario needs both 'true' and 'guess'",
+                ))
+            }
+            (None, Some(_)) => {
+                return Err(self.bad(
+                    &format!("{key}.true"),
+                    "an inline scenario needs both 'true' and 'guess'",
+                ))
+            }
+        };
+        for (which, set) in [("true", &truth), ("guess", &guess)] {
+            for (k, v) in set {
+                if !v.is_finite() {
+                    return Err(self.bad(
+                        &format!("{key}.{which}.{k}"),
+                        format!("must be finite, got {v}"),
+                    ));
+                }
+            }
+        }
+        if let Some(g) = &glitch {
+            let ok = (0.0..=1.0).contains(&g.fraction)
+                && g.f0_hz[0] <= g.f0_hz[1]
+                && g.tau_s[0] > 0.0
+                && g.tau_s[0] <= g.tau_s[1]
+                && g.amplitude_sigma[0] <= g.amplitude_sigma[1];
+            if !ok {
+                return Err(self.bad(
+                    &format!("{key}.glitch"),
+                    "ranges must be [lo, hi] with lo <= hi, tau > 0 and fraction in [0, 1]",
+                ));
+            }
+        }
+        Ok(ScenarioSource::Inline {
+            truth,
+            guess,
+            glitch,
+        })
+    }
+
+    /// `[[design]]` entries: unique names, a file or a model injection; default the standard
+    /// design.
+    fn designs(&self, entries: Vec<DesignEntry>) -> Result<Vec<DesignDef>, CampaignError> {
         let mut designs: Vec<DesignDef> = Vec::new();
-        for (i, d) in spec.designs.into_iter().enumerate() {
+        for (i, d) in entries.into_iter().enumerate() {
             let key = format!("design[{i}]");
-            check_name(&d.name).map_err(|r| bad(&format!("{key}.name"), r))?;
+            check_name(&d.name).map_err(|r| self.bad(&format!("{key}.name"), r))?;
             if designs.iter().any(|o| o.name == d.name) {
-                return Err(bad(
+                return Err(self.bad(
                     &format!("{key}.name"),
                     format!("design '{}' is listed twice", d.name),
                 ));
             }
             let source = match (d.file, d.injection) {
                 (Some(_), Some(_)) => {
-                    return Err(bad(
-                        &key,
-                        "give either 'file' or 'injection', not both".into(),
-                    ))
+                    return Err(self.bad(&key, "give either 'file' or 'injection', not both"))
                 }
                 (Some(f), None) if f.is_empty() => {
-                    return Err(bad(&format!("{key}.file"), "empty path".into()))
+                    return Err(self.bad(&format!("{key}.file"), "empty path"))
                 }
-                (Some(f), None) => DesignSource::File(resolve(&f)),
+                (Some(f), None) => DesignSource::File(self.resolve(&f)),
                 (None, Some(inj)) => DesignSource::Injection(inj),
                 (None, None) => DesignSource::Injection(d.name.clone()),
             };
@@ -406,67 +456,54 @@ impl Campaign {
                 source: DesignSource::Injection("standard".into()),
             });
         }
-        let whiten_at = match spec.fit.whiten_at.as_deref() {
+        Ok(designs)
+    }
+
+    /// `[fit]`: whitening, iteration and nuisance settings with their ranges.
+    fn fit(&self, fit: &FitEntry) -> Result<FitOptions, CampaignError> {
+        let whiten_at = match fit.whiten_at.as_deref() {
             None | Some("truth") => WhitenAt::Truth,
             Some("guess") => WhitenAt::Guess,
             Some(other) => {
-                return Err(bad(
+                return Err(self.bad(
                     "fit.whiten_at",
                     format!("'{other}' (expected \"truth\" or \"guess\")"),
                 ))
             }
         };
-        let cached_jacobian = match spec.fit.jacobian.as_deref() {
+        let cached_jacobian = match fit.jacobian.as_deref() {
             None | Some("cached") => true,
             Some("exact") => false,
             Some(other) => {
-                return Err(bad(
+                return Err(self.bad(
                     "fit.jacobian",
                     format!("'{other}' (expected \"cached\" or \"exact\")"),
                 ))
             }
         };
-        let max_iterations = spec.fit.max_iterations.unwrap_or(100);
+        let max_iterations = fit.max_iterations.unwrap_or(100);
         if max_iterations == 0 {
-            return Err(bad("fit.max_iterations", "must be at least 1".into()));
+            return Err(self.bad("fit.max_iterations", "must be at least 1"));
         }
-        let whitening_order = spec.fit.whitening_order.unwrap_or(DEFAULT_WHITENING_ORDER);
+        let whitening_order = fit.whitening_order.unwrap_or(DEFAULT_WHITENING_ORDER);
         if whitening_order == 0 {
-            return Err(bad("fit.whitening_order", "must be at least 1".into()));
+            return Err(self.bad("fit.whitening_order", "must be at least 1"));
         }
-        let poly_degree = spec.fit.poly_degree.unwrap_or(DEFAULT_POLY_DEGREE);
+        let poly_degree = fit.poly_degree.unwrap_or(DEFAULT_POLY_DEGREE);
         if poly_degree > 10 {
-            return Err(bad(
+            return Err(self.bad(
                 "fit.poly_degree",
                 format!("{poly_degree} is too large (at most 10)"),
             ));
         }
-        Ok(Campaign {
-            file: file.to_path_buf(),
-            name,
-            description: spec.description.unwrap_or_default(),
-            model,
-            seed: spec.seed,
-            realizations: spec.realizations,
-            estimators,
-            outputs,
-            batch,
-            scenarios,
-            designs,
-            fit: FitOptions {
-                whitening_order,
-                poly_degree,
-                max_iterations,
-                whiten_at,
-                noise_chi2: spec.fit.noise_chi2.unwrap_or(true),
-                cached_jacobian,
-            },
+        Ok(FitOptions {
+            whitening_order,
+            poly_degree,
+            max_iterations,
+            whiten_at,
+            noise_chi2: fit.noise_chi2.unwrap_or(true),
+            cached_jacobian,
         })
-    }
-
-    /// Number of (scenario, design, estimator) groups.
-    pub fn groups(&self) -> usize {
-        self.scenarios.len() * self.designs.len() * self.estimators.len()
     }
 }
 

@@ -141,9 +141,6 @@ pub struct FitArgs {
     /// Output directory (created): estimates.parquet, correlation.parquet, fit.json, residuals.parquet.
     #[arg(long)]
     pub out: PathBuf,
-    /// Fit readouts whose level fails the units check (see `freefall::units`).
-    #[arg(long)]
-    pub force: bool,
     /// Hold a parameter fixed (repeatable): NAME at its starting value, or NAME=VALUE. It is
     /// not fitted, not counted in nu, and its sigma is 0.
     #[arg(long, value_name = "NAME[=VALUE]")]
@@ -167,7 +164,7 @@ pub fn fit(a: FitArgs) -> Result<()> {
     let mut cfg = constraints.apply(FitConfig::new(&setup.model));
     check_stability(&setup.model, &guess, Some(&setup.spec.nominal()))
         .context("the starting point")?;
-    if !a.force {
+    if !super::force() {
         crate::units::check_dataset(&setup, &guess, &ds)?;
     }
     let (whitener, source) = dataset_whitener(
@@ -226,6 +223,14 @@ pub fn fit(a: FitArgs) -> Result<()> {
     info!("wrote {}", a.out.display());
     for w in &summary.warnings {
         eprintln!("warning: {w}");
+    }
+    if res.termination.converged() && !summary.warnings.is_empty() {
+        bail!(
+            "the fit did not converge: {} but chi2/nu = {:.4e} (see the warning; are the \
+             readouts in metres?)",
+            summary.termination,
+            res.chi2_reduced
+        );
     }
     if !summary.converged {
         bail!("the fit did not converge: {}", summary.termination);

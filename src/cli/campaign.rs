@@ -132,6 +132,13 @@ fn run_campaign(a: RunArgs) -> Result<()> {
         resume: a.resume,
         threads: a.threads,
     };
+    if let Some(t) = a.threads.filter(|&t| t > campaign::max_threads()) {
+        info!(
+            "note: --threads {t} is more than the machine's {} cores; using {}",
+            campaign::max_threads(),
+            campaign::max_threads()
+        );
+    }
     crate::io::ensure_dir(&a.out)?;
     let show = !super::quiet() && std::io::stderr().is_terminal();
     let bar = if show {

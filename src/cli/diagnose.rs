@@ -28,9 +28,6 @@ pub struct DiagnoseArgs {
     /// Starting point: a scenario name or a parameter TOML (default: nominal).
     #[arg(long)]
     pub guess: Option<String>,
-    /// Analyse readouts whose level fails the units check (see `freefall::units`).
-    #[arg(long)]
-    pub force: bool,
     /// Whitening filter order (lags).
     #[arg(long, default_value_t = DEFAULT_WHITENING_ORDER)]
     pub order: usize,
@@ -115,7 +112,7 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
     let mut guess = resolve_guess(&setup, a.guess.as_deref())?;
     let constraints =
         parse_constraints(&names, &a.fix, &a.prior, &mut guess).map_err(anyhow::Error::msg)?;
-    if !a.force {
+    if !super::force() {
         crate::units::check_dataset(&setup, &guess, &ds)?;
     }
     let truth = truth_from_meta(&ds, &names);

@@ -55,6 +55,10 @@ pub struct Cli {
     /// No progress bars, notes or "wrote" lines on stderr (results, warnings and errors stay).
     #[arg(short, long, global = true)]
     pub quiet: bool,
+    /// Write over an existing output (a file, or a non-empty --out folder: a previous result,
+    /// a finished campaign); in fit and diagnose also analyse readouts that fail the units check.
+    #[arg(long, global = true)]
+    pub force: bool,
     #[command(subcommand)]
     pub command: Command,
 }
@@ -113,6 +117,14 @@ pub fn quiet() -> bool {
     QUIET.load(std::sync::atomic::Ordering::Relaxed)
 }
 
+/// Set by the global `--force`.
+static FORCE: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
+
+/// Whether the global `--force` was given.
+pub fn force() -> bool {
+    FORCE.load(std::sync::atomic::Ordering::Relaxed)
+}
+
 /// Set once a write to stdout failed: nothing more is printed.
 static STDOUT_CLOSED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
 
@@ -137,7 +149,21 @@ pub fn write_stdout(args: std::fmt::Arguments<'_>) {
 pub fn run() -> i32 {
     let cli = Cli::parse();
     QUIET.store(cli.quiet, std::sync::atomic::Ordering::Relaxed);
-    if let Err(e) = refuse_output_over_input(&cli.command) {
+    FORCE.store(cli.force, std::sync::atomic::Ordering::Relaxed);
+    // The size checks allow half the available memory (the rest is the process's other data
+    // and the machine's other users); FREEFALL_MEMORY_BUDGET (bytes) sets it instead.
+    let budget = std::env::var("FREEFALL_MEMORY_BUDGET")
+        .ok()
+        .and_then(|v| v.trim().parse::<f64>().ok())
+        .filter(|b| b.is_finite() && *b > 0.0)
+        .map(|b| b as u64)
+        .or_else(|| crate::io::available_memory().map(|b| b / 2));
+    if let Some(bytes) = budget {
+        crate::config::set_memory_budget(bytes);
+    }
+    if let Err(e) =
+        refuse_output_over_input(&cli.command).and_then(|()| refuse_overwrite(&cli.command))
+    {
         eprintln!("error: {}", one_line(&e));
         return 1;
     }
@@ -216,6 +242,11 @@ fn command_paths(cmd: &Command) -> (Vec<Named<'_>>, Vec<Named<'_>>) {
                 guess(&a.guess),
             ],
             vec![("--out", &a.out)],
+        ),
+        // `--simulate-into DATASET` writes a dataset folder and nothing else.
+        Command::Diagnose(a) if a.simulate_into => (
+            vec![model(&a.model), guess(&a.guess)],
+            a.dataset.iter().map(|p| ("DATASET", p.as_path())).collect(),
         ),
         Command::Diagnose(a) => (
             vec![
@@ -313,6 +344,23 @@ impl Drop for Working {
             pb.finish_and_clear();
         }
     }
+}
+
+/// The one overwrite policy of every command ([`crate::io::check_output`]): an existing output
+/// file or a non-empty output folder is refused unless `--force`. `campaign run` checks its own
+/// folder when it is a campaign's (it continues one with `--resume` and never overwrites a
+/// finished one); any other non-empty folder is refused here like everywhere else.
+fn refuse_overwrite(cmd: &Command) -> Result<()> {
+    if let Command::Campaign(campaign::CampaignCmd::Run(a)) = cmd {
+        if a.resume || a.out.join("manifest.json").exists() || a.out.join(".partial").exists() {
+            return Ok(());
+        }
+    }
+    let (_, outputs) = command_paths(cmd);
+    for (flag, out) in outputs {
+        crate::io::check_output(out, flag, force())?;
+    }
+    Ok(())
 }
 
 /// The error chain on one line.

@@ -105,6 +105,7 @@ pub fn run(a: SimulateArgs) -> Result<()> {
         }],
         ..design.clone()
     };
+    setup.check_simulation_size(&noise_design, "--noise-duration")?;
     let default_rate = if a.effects.is_empty() {
         Rate::Decimated
     } else {

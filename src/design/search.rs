@@ -203,7 +203,10 @@ pub fn direct_search(
     let mut best = value(&x);
     let mut evals = 1;
     let mut step = (m_max as f64 / 4.0).max(1.0);
-    while step >= 0.5 {
+    // Iteration limit: every pass either improves (on a finite lattice of designs) or halves
+    // the step; the cap only guards against a criterion that keeps creeping up by rounding.
+    let max_evals = 1000 * (x.len() + 1) * (m_max + 1);
+    while step >= 0.5 && evals < max_evals {
         let mut improved = false;
         for k in 0..x.len() {
             for dir in [1.0, -1.0] {

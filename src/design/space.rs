@@ -189,6 +189,10 @@ fn dmat_from_flat(np: usize, v: &[f64]) -> DMatrix<f64> {
     DMatrix::from_row_slice(np, np, v)
 }
 
+/// Peak bytes a design space holds per analysis-rate sample of an experiment (the candidate
+/// responses and spectra): measured 800 (`design evaluate` of a 1e6 s design peaks at 0.80 GB).
+pub const DESIGN_BYTES_PER_SAMPLE: f64 = 1000.0;
+
 impl DesignSpace {
     /// Build the space for `timing` at parameters `p` (the current estimates).
     pub fn new(setup: &Setup, p: &[f64], timing: Timing) -> Result<DesignSpace, DesignError> {
@@ -212,6 +216,16 @@ impl DesignSpace {
                 timing.slots, timing.stretch_s, timing.gap_s, timing.start_s, timing.duration_s
             )));
         }
+        // Size check before the experiment's spectra are allocated (at the analysis rate, as the
+        // design information is computed): `duration_s = 1e7` used to take 8 GB.
+        let samples = timing.duration_s * setup.spec.sampling.analyse_hz;
+        crate::config::fits_in_memory(
+            "duration_s",
+            timing.duration_s,
+            samples * DESIGN_BYTES_PER_SAMPLE,
+            &format!("the design's spectra over {samples:.3e} samples"),
+        )
+        .map_err(|e| bad(e.to_string()))?;
         for (k, v) in [
             ("o_max_m", cons.o_max_m),
             ("thruster_force_max_n", cons.thruster_force_max_n),

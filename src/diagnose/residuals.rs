@@ -131,6 +131,10 @@ pub fn periodogram(x: &[f64], dt: f64) -> (Vec<f64>, Vec<f64>) {
 
 /// Band edges: three per decade from the lowest resolved frequency to Nyquist.
 pub fn band_edges(f_lo: f64, f_nyq: f64) -> Vec<f64> {
+    // Finiteness guard: the loop below stops on reaching f_nyq, which NaN never is.
+    if !(f_lo.is_finite() && f_nyq.is_finite() && f_lo > 0.0 && f_nyq > f_lo) {
+        return vec![f_lo, f_nyq];
+    }
     let mut edges = vec![f_lo];
     let mut k = (3.0 * f_lo.log10()).floor() as i32 + 1;
     loop {

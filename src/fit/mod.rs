@@ -98,14 +98,29 @@ pub const CHI2_EXCESS_SIGMAS: f64 = 10.0;
 /// first rule alone would flag the small misfits of an approximate whitening filter at large nu
 /// (nu = 40000 gives sqrt(2/nu) = 0.007), the second alone would pass anything at small nu.
 pub fn chi2_excess_warning(chi2_reduced: f64, nu: usize) -> Option<String> {
-    let sd = (2.0 / nu.max(1) as f64).sqrt();
-    let threshold = (1.0 + CHI2_EXCESS_SIGMAS * sd).max(2.0);
+    chi2_excess_over(chi2_reduced, nu, 1.0)
+}
+
+/// [`chi2_excess_warning`] against a noise reference: the chi^2/nu the same whitening gives on
+/// a noise-only run (a campaign's `noise_chi2_reduced`), which is what chi^2/nu of a good fit
+/// scatters around when the noise model is itself off. A reference that is not finite and
+/// positive counts as 1. The fit is flagged when chi^2/nu exceeds the reference by more than
+/// [`CHI2_EXCESS_SIGMAS`] standard deviations and by more than a factor 2.
+pub fn chi2_excess_over(chi2_reduced: f64, nu: usize, reference: f64) -> Option<String> {
+    let reference = if reference.is_finite() && reference > 0.0 {
+        reference
+    } else {
+        1.0
+    };
+    let sd = reference * (2.0 / nu.max(1) as f64).sqrt();
+    let threshold = (reference + CHI2_EXCESS_SIGMAS * sd).max(2.0 * reference);
     if chi2_reduced.is_nan() || chi2_reduced > threshold {
         Some(format!(
-            "chi2/nu = {chi2_reduced:.4e} exceeds 1 by {:.1e} standard deviations of chi2/nu \
-             (nu = {nu}, flagged above {threshold:.3}): the model and noise do not describe the \
-             data (readouts in the wrong unit, or a guess far from the minimum?)",
-            (chi2_reduced - 1.0) / sd
+            "chi2/nu = {chi2_reduced:.4e} exceeds its noise reference {reference:.4} by {:.1e} \
+             standard deviations of chi2/nu (nu = {nu}, flagged above {threshold:.3}): the model \
+             and noise do not describe the data (readouts in the wrong unit, or a guess far from \
+             the minimum?)",
+            (chi2_reduced - reference) / sd
         ))
     } else {
         None
@@ -322,7 +337,11 @@ impl JacobianCache {
                 let (templates, j) = lik.templates_and_jacobian(p);
                 let information = gram(&j);
                 let cov = invert_spd(&information).ok_or_else(|| {
-                    FitError::Singular("Fisher information at a cached Jacobian point".into())
+                    FitError::Singular(explain_singular(
+                        "Fisher information at a cached Jacobian point",
+                        &information,
+                        lik.engine.model().parameter_names(),
+                    ))
                 })?;
                 let sigma = (0..p.len()).map(|k| cov[(k, k)].sqrt()).collect();
                 Ok(CachedJacobian {
@@ -484,6 +503,57 @@ fn at_minimum(a: &DMatrix<f64>, g: &DVector<f64>, f: f64, ftol: f64) -> bool {
     damped_solve(a, g, 0.0).is_some_and(|d| g.dot(&d) <= ftol * f)
 }
 
+/// Why an information matrix cannot be inverted, in one line: which parameters carry no
+/// information at all, or else the least constrained direction (the eigenvector of the smallest
+/// eigenvalue of the equilibrated matrix, its largest components first) and the usual causes.
+pub fn explain_singular(stage: &str, info: &DMatrix<f64>, names: &[String]) -> String {
+    let causes = "likely causes: injections that are zero, one experiment where the parameters \
+                  need two, the same file under two experiment names, or a guess far out of range";
+    if let Some(k) = (0..info.nrows()).find(|&k| !info[(k, k)].is_finite()) {
+        return format!(
+            "{stage}: the information of {} is not finite (the model overflows at this point: \
+             a guess or data far out of range?)",
+            names.get(k).map_or("a parameter", String::as_str)
+        );
+    }
+    let none: Vec<&str> = (0..info.nrows())
+        .filter(|&k| info[(k, k)] <= 0.0)
+        .filter_map(|k| names.get(k).map(String::as_str))
+        .collect();
+    if !none.is_empty() {
+        return format!(
+            "{stage}: the data carry no information on {} (zero templates: no experiment excites \
+             it; one experiment where two are needed, or injections that are zero?)",
+            none.join(", ")
+        );
+    }
+    match crate::numerics::linalg::weakest_direction(info) {
+        Some((lambda, v)) => {
+            let mut parts: Vec<(f64, &str)> = v
+                .iter()
+                .zip(names)
+                .map(|(c, n)| (*c, n.as_str()))
+                .filter(|(c, _)| c.abs() >= 0.2)
+                .collect();
+            parts.sort_by(|a, b| b.0.abs().total_cmp(&a.0.abs()));
+            // An eigenvector's sign is arbitrary: show the largest component positive.
+            if parts.first().is_some_and(|(c, _)| *c < 0.0) {
+                parts.iter_mut().for_each(|(c, _)| *c = -*c);
+            }
+            let direction = parts
+                .iter()
+                .map(|(c, n)| format!("{c:+.2} {n}"))
+                .collect::<Vec<_>>()
+                .join(" ");
+            format!(
+                "{stage}: the data do not constrain the direction {direction} (equilibrated \
+                 parameters; smallest eigenvalue {lambda:.1e} of 1); {causes}"
+            )
+        }
+        None => format!("{stage}: not positive definite; {causes}"),
+    }
+}
+
 fn invert_spd(a: &DMatrix<f64>) -> Option<DMatrix<f64>> {
     let n = a.nrows();
     let d: Vec<f64> = (0..n).map(|k| a[(k, k)].sqrt()).collect();
@@ -641,9 +711,11 @@ pub fn fit<M: ClosedLoopModel<N>, const N: usize>(
     };
     let (info, _) = cfg.constrain(info, DVector::zeros(np), &p);
     let mut base = invert_spd(&info).ok_or_else(|| {
-        FitError::Singular(
-            "Fisher information at the estimate (a parameter the data cannot constrain?)".into(),
-        )
+        FitError::Singular(explain_singular(
+            "Fisher information at the estimate",
+            &info,
+            model.parameter_names(),
+        ))
     })?;
     for k in (0..np).filter(|&k| cfg.fixed[k]) {
         base[(k, k)] = 0.0;

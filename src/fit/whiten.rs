@@ -29,6 +29,19 @@ use crate::model::closed_loop::CMat;
 /// Frequency grid of `from_psd`, in multiples of the data length.
 pub const PSD_RESOLUTION: usize = 4;
 
+/// Checked before the normal equations of a VAR(`order`) are allocated: the dense
+/// `(N order)^2` matrix (factored in place).
+fn normal_matrix_fits<const N: usize>(order: usize) -> Result<(), FitError> {
+    let dim = (N * order) as f64;
+    crate::config::fits_in_memory(
+        "order",
+        order,
+        8.0 * dim * dim,
+        &format!("the whitening filter's {dim} x {dim} normal matrix"),
+    )?;
+    Ok(())
+}
+
 /// A causal whitening FIR `w_t = sum_j B_j x_{t-j}` for `N` channels.
 #[derive(Debug, Clone)]
 pub struct Whitener<const N: usize> {
@@ -56,6 +69,7 @@ impl<const N: usize> Whitener<N> {
             )));
         }
         let dim = N * order;
+        normal_matrix_fits::<N>(order)?;
         // G[(j,c),(k,d)] = E[x_{t-1-j,c} x_{t-1-k,d}] = R(k-j)[c,d]; H[(j,c), o] = R(j+1)[o,c].
         let lag = |l: isize| -> SMatrix<f64, N, N> {
             if l >= 0 {
@@ -135,6 +149,7 @@ impl<const N: usize> Whitener<N> {
                 need,
             });
         }
+        normal_matrix_fits::<N>(order)?;
         let x: Vec<Vec<f64>> = series.iter().map(|s| detrend_linear(s)).collect();
         type M<const N: usize> = SMatrix<f64, N, N>;
         let outer = |a: usize, b: usize| M::<N>::from_fn(|c, d| x[c][a] * x[d][b]);
@@ -217,7 +232,15 @@ impl<const N: usize> Whitener<N> {
                 need: order + 1,
             });
         }
+        normal_matrix_fits::<N>(order)?;
         let len = (PSD_RESOLUTION * n_data.max(order + 1)).next_power_of_two();
+        // The autocovariance grid: N x N complex spectra of `len` bins and their transforms.
+        crate::config::fits_in_memory(
+            "order",
+            order,
+            3.0 * 16.0 * (N * N) as f64 * len as f64,
+            &format!("the model-PSD autocovariance grid of {len} bins"),
+        )?;
         Self::from_autocovariance(&psd_autocovariance::<N>(psd, dt, len, order), order)
     }
 

@@ -185,6 +185,67 @@ pub fn ensure_dir(dir: impl AsRef<Path>) -> Result<(), IoError> {
     fs::create_dir_all(dir).map_err(|e| IoError::write(dir, e))
 }
 
+/// The overwrite policy every command shares for its outputs: an `--out` that does not exist
+/// yet, or an empty directory, is fine; an existing file or a non-empty directory (a previous
+/// result, a finished campaign, a dataset) is refused unless `force`. `flag` names the option
+/// in the error (`--out`). The error names up to three of the entries found, so that the user
+/// sees what would be overwritten.
+pub fn check_output(path: &Path, flag: &str, force: bool) -> Result<(), IoError> {
+    if force {
+        return Ok(());
+    }
+    let meta = match fs::symlink_metadata(path) {
+        Ok(m) => m,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
+        Err(e) => return Err(IoError::read(path, e)),
+    };
+    let what = if meta.is_dir() {
+        let mut names: Vec<String> = fs::read_dir(path)
+            .map_err(|e| IoError::read(path, e))?
+            .filter_map(|e| e.ok())
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .collect();
+        if names.is_empty() {
+            return Ok(());
+        }
+        // The telling entries first: a campaign's manifest, a dataset's TOML; hidden ones last.
+        names.sort_by_key(|n| {
+            (
+                n != "manifest.json" && n != "dataset.toml",
+                n.starts_with('.'),
+                n.clone(),
+            )
+        });
+        let kind = if names.iter().any(|n| n == "manifest.json") {
+            "a finished campaign"
+        } else {
+            "a non-empty directory"
+        };
+        let shown: Vec<String> = names.iter().take(3).map(|n| format!("'{n}'")).collect();
+        let more = if names.len() > 3 {
+            format!(" and {} more", names.len() - 3)
+        } else {
+            String::new()
+        };
+        format!("is {kind} (holds {}{more})", shown.join(", "))
+    } else {
+        "is an existing file".to_string()
+    };
+    Err(IoError::invalid(
+        path,
+        format!("{flag} {what}; give --force to write over it, or choose another {flag}"),
+    ))
+}
+
+/// The machine's available memory in bytes (`MemAvailable` of `/proc/meminfo`), None where it
+/// cannot be read (not Linux). The size checks of the library compare their estimates with it.
+pub fn available_memory() -> Option<u64> {
+    let text = fs::read_to_string("/proc/meminfo").ok()?;
+    let line = text.lines().find(|l| l.starts_with("MemAvailable:"))?;
+    let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    kb.checked_mul(1024)
+}
+
 /// Reads a whole UTF-8 text file.
 pub fn read_text(path: impl AsRef<Path>) -> Result<String, IoError> {
     let path = path.as_ref();

@@ -275,6 +275,44 @@ fn check_keys(path: &Path, raw: &toml::Table) -> Result<(), IoError> {
     Ok(())
 }
 
+/// Refuses one file under two experiment names: the same path after resolving links and `..`,
+/// or the same content (a copy). Counted twice, it would shrink every sigma by sqrt(2).
+fn check_distinct_files(path: &Path, files: &[(String, PathBuf)]) -> Result<(), IoError> {
+    let duplicate = |other: &str, name: &str, how: &str, file: &Path| {
+        IoError::invalid(
+            path,
+            format!(
+                "experiments '{other}' and '{name}' are {how} ({}): one experiment counted \
+                 twice would shrink every sigma by sqrt(2)",
+                file.display()
+            ),
+        )
+    };
+    // (name, canonical path, length); contents are hashed only for files of equal length.
+    let mut seen: Vec<(&str, PathBuf, u64)> = Vec::with_capacity(files.len());
+    for (name, file) in files {
+        let canonical = file.canonicalize().map_err(|e| IoError::read(file, e))?;
+        let len = std::fs::metadata(&canonical)
+            .map_err(|e| IoError::read(file, e))?
+            .len();
+        if let Some((other, _, _)) = seen.iter().find(|(_, c, _)| *c == canonical) {
+            return Err(duplicate(other, name, "the same file", file));
+        }
+        for (other, c, l) in &seen {
+            if *l == len && super::atomic::file_sha256(c)? == super::atomic::file_sha256(file)? {
+                return Err(duplicate(
+                    other,
+                    name,
+                    "a copy of the same file (identical content)",
+                    file,
+                ));
+            }
+        }
+        seen.push((name, canonical, len));
+    }
+    Ok(())
+}
+
 /// Reads a dataset TOML file and loads and validates all its runs (see the module docs).
 pub fn read_dataset(path: impl AsRef<Path>) -> Result<Dataset, IoError> {
     let path = path.as_ref();
@@ -305,10 +343,17 @@ pub fn read_dataset(path: impl AsRef<Path>) -> Result<Dataset, IoError> {
         Some(file) => Some(read(resolve(file, "the noise run")?)?),
         None => None,
     };
-    let mut experiments = Vec::with_capacity(spec.experiment.len());
+    let mut files = Vec::with_capacity(spec.experiment.len());
     for entry in &spec.experiment {
-        let file = resolve(&entry.file, &format!("experiment '{}'", entry.name))?;
-        experiments.push((entry.name.clone(), read(file)?));
+        files.push((
+            entry.name.clone(),
+            resolve(&entry.file, &format!("experiment '{}'", entry.name))?,
+        ));
+    }
+    check_distinct_files(path, &files)?;
+    let mut experiments = Vec::with_capacity(files.len());
+    for (name, file) in files {
+        experiments.push((name, read(file)?));
     }
     check_consistency(path, noise.as_ref(), &experiments)?;
     Ok(Dataset {

@@ -12,9 +12,10 @@
 //!   Each step is first compared with the median step so that the error points at the row where
 //!   the sampling breaks.
 //!
-//! The CSV dialect is minimal: comma separated, one header line of column names (optionally
-//! double-quoted), numbers as Rust/C `f64` literals; blank lines and lines starting with `#` are
-//! ignored.
+//! CSV is read through `arrow-csv`: one header line of column names (optionally double-quoted),
+//! the delimiter sniffed from the header (`,`, `;` or tab), numbers as Rust/C `f64` literals;
+//! blank lines and lines starting with `#` are ignored. A first column without a name (pandas'
+//! default `to_csv` index) is ignored with a note.
 
 use std::fmt::{self, Write as _};
 use std::io::{BufWriter, Write};
@@ -374,16 +375,23 @@ pub fn read_run_noted(path: impl AsRef<Path>) -> Result<(Run, Vec<String>), IoEr
     let path = path.as_ref();
     let mut required = vec![TIME_COLUMN];
     required.extend(REQUIRED);
-    let (mut table, report) = match format_of(path)? {
-        Format::Parquet => read_parquet_tolerant(path, &required)?,
-        Format::Csv => (read_csv(path)?, ReadReport::default()),
+    let (mut table, report, mut notes) = match format_of(path)? {
+        Format::Parquet => {
+            let (table, report) = read_parquet_tolerant(path, &required)?;
+            (table, report, Vec::new())
+        }
+        Format::Csv => {
+            let (table, notes) = read_csv_noted(path)?;
+            (table, ReadReport::default(), notes)
+        }
     };
     let label = path.display();
-    let mut notes: Vec<String> = report
-        .skipped
-        .iter()
-        .map(|(c, why)| format!("{label}: column '{c}' ignored ({why})"))
-        .collect();
+    notes.extend(
+        report
+            .skipped
+            .iter()
+            .map(|(c, why)| format!("{label}: column '{c}' ignored ({why})")),
+    );
     for c in report
         .float32
         .iter()
@@ -525,6 +533,44 @@ fn write_csv(path: &Path, t0: f64, dt: f64, columns: &[(String, Vec<f64>)]) -> R
 /// Reads a CSV file with a header line into a table of `float64` columns (see the module docs
 /// for the dialect). Parse errors give the line, the column and the text that failed.
 pub fn read_csv(path: impl AsRef<Path>) -> Result<Table, IoError> {
+    read_csv_noted(path).map(|(table, _)| table)
+}
+
+/// Delimiters [`read_csv`] recognises, by their count in the header line.
+const CSV_DELIMITERS: [u8; 3] = [b',', b';', b'\t'];
+
+/// The delimiter of a CSV header line: the candidate of [`CSV_DELIMITERS`] occurring most often
+/// outside double quotes (a comma when none occurs: a single column).
+fn sniff_delimiter(header: &str) -> u8 {
+    let mut counts = [0usize; CSV_DELIMITERS.len()];
+    let mut quoted = false;
+    for b in header.bytes() {
+        if b == b'"' {
+            quoted = !quoted;
+        } else if !quoted {
+            if let Some(k) = CSV_DELIMITERS.iter().position(|d| *d == b) {
+                counts[k] += 1;
+            }
+        }
+    }
+    let best = (0..counts.len()).max_by_key(|&k| (counts[k], usize::MAX - k));
+    match best {
+        Some(k) if counts[k] > 0 => CSV_DELIMITERS[k],
+        _ => b',',
+    }
+}
+
+/// Whether a header name is the unnamed index column pandas' `to_csv` writes first (an empty
+/// name; `Unnamed: 0` after a round trip through `read_csv`).
+fn is_index_name(name: &str) -> bool {
+    name.is_empty() || name == "Unnamed: 0"
+}
+
+/// [`read_csv`], plus notes (the index column left out). The file goes through `arrow-csv` (RFC
+/// 4180 quoting) with the delimiter sniffed from the header (`,` `;` or tab); a byte-order mark,
+/// blank lines and lines starting with `#` are dropped first, keeping each line's number for the
+/// errors. Every field is parsed as an `f64` (surrounding spaces allowed).
+pub fn read_csv_noted(path: impl AsRef<Path>) -> Result<(Table, Vec<String>), IoError> {
     let path = path.as_ref();
     let text = super::atomic::read_text(path)?;
     let text = text.strip_prefix('\u{feff}').unwrap_or(&text);
@@ -533,82 +579,172 @@ pub fn read_csv(path: impl AsRef<Path>) -> Result<Table, IoError> {
         line,
         message,
     };
-    let mut lines = text
+    // Kept lines and their 1-based line numbers in the file.
+    let (line_of, kept): (Vec<usize>, Vec<&str>) = text
         .lines()
         .enumerate()
-        .map(|(i, l)| (i + 1, l.trim()))
-        .filter(|(_, l)| !l.is_empty() && !l.starts_with('#'));
-
-    let Some((header_line, header)) = lines.next() else {
+        .map(|(i, l)| (i + 1, l.trim_end_matches('\r')))
+        .filter(|(_, l)| !l.trim().is_empty() && !l.trim_start().starts_with('#'))
+        .unzip();
+    let Some(header) = kept.first() else {
         return Err(csv_err(1, "empty file, expected a header line".to_string()));
     };
-    let names: Vec<String> = header
-        .split(',')
-        .map(|s| {
-            let s = s.trim();
-            s.strip_prefix('"')
-                .and_then(|s| s.strip_suffix('"'))
-                .unwrap_or(s)
-                .to_string()
-        })
-        .collect();
-    for (j, name) in names.iter().enumerate() {
+    let delimiter = sniff_delimiter(header);
+    let names = csv_header(path, header, delimiter, line_of[0])?;
+    let mut notes = Vec::new();
+    let index = is_index_name(&names[0]) && names.len() > 1;
+    if index {
+        notes.push(format!(
+            "{}: first column (unnamed) ignored: the row index pandas' to_csv writes",
+            path.display()
+        ));
+    }
+    for (j, name) in names.iter().enumerate().skip(usize::from(index)) {
         if name.is_empty() {
             return Err(csv_err(
-                header_line,
+                line_of[0],
                 format!("empty column name in header (field {})", j + 1),
             ));
         }
-        if names[..j].contains(name) {
+        if names[usize::from(index)..j].contains(name) {
             return Err(IoError::DuplicateColumn {
                 path: path.to_path_buf(),
                 column: name.clone(),
             });
         }
     }
-
-    let mut values: Vec<Vec<f64>> = vec![Vec::new(); names.len()];
-    for (row, (line_no, line)) in lines.enumerate() {
-        let mut fields = 0;
-        for (j, field) in line.split(',').enumerate() {
-            fields += 1;
-            if j >= names.len() {
-                continue;
-            }
-            let field = field.trim();
-            let value = field.parse::<f64>().map_err(|_| {
-                csv_err(
-                    line_no,
-                    format!(
-                        "row {row}, column '{}': cannot parse {} as a number",
-                        names[j],
-                        if field.is_empty() {
-                            "an empty field".to_string()
-                        } else {
-                            format!("'{field}'")
-                        }
-                    ),
-                )
-            })?;
-            values[j].push(value);
-        }
-        if fields != names.len() {
-            return Err(csv_err(
-                line_no,
-                format!(
-                    "row {row} has {fields} fields, the header has {}",
-                    names.len()
-                ),
-            ));
-        }
-    }
-    Ok(Table {
+    let values = csv_values(path, &kept.join("\n"), &line_of, &names, delimiter, index)?;
+    let table = Table {
         columns: names
             .into_iter()
             .zip(values)
+            .skip(usize::from(index))
             .map(|(n, v)| (n, Column::F64(v)))
             .collect(),
         source: Some(path.to_path_buf()),
         ..Table::default()
-    })
+    };
+    Ok((table, notes))
+}
+
+/// Column names of a CSV header line (quotes removed, trimmed).
+fn csv_header(
+    path: &Path,
+    header: &str,
+    delimiter: u8,
+    line: usize,
+) -> Result<Vec<String>, IoError> {
+    let format = arrow_csv::reader::Format::default()
+        .with_header(true)
+        .with_delimiter(delimiter);
+    let (schema, _) = format
+        .infer_schema(std::io::Cursor::new(header.as_bytes()), Some(0))
+        .map_err(|e| IoError::Csv {
+            path: path.to_path_buf(),
+            line,
+            message: format!("cannot read the header: {e}"),
+        })?;
+    Ok(schema
+        .fields()
+        .iter()
+        .map(|f| f.name().trim().trim_matches('"').trim().to_string())
+        .collect())
+}
+
+/// The values of every column of the CSV body `text` (header first), as f64; `line_of` gives
+/// each line's number in the file. The index column (`skip_index`) is read but not parsed.
+fn csv_values(
+    path: &Path,
+    text: &str,
+    line_of: &[usize],
+    names: &[String],
+    delimiter: u8,
+    skip_index: bool,
+) -> Result<Vec<Vec<f64>>, IoError> {
+    use arrow::array::{Array, StringArray};
+    let csv_err = |line: usize, message: String| IoError::Csv {
+        path: path.to_path_buf(),
+        line,
+        message,
+    };
+    let fields: Vec<arrow::datatypes::Field> = (0..names.len())
+        .map(|j| {
+            arrow::datatypes::Field::new(format!("c{j}"), arrow::datatypes::DataType::Utf8, true)
+        })
+        .collect();
+    let schema = std::sync::Arc::new(arrow::datatypes::Schema::new(fields));
+    let reader = arrow_csv::ReaderBuilder::new(schema)
+        .with_header(true)
+        .with_delimiter(delimiter)
+        .with_batch_size(1 << 16)
+        .build(std::io::Cursor::new(text.as_bytes()))
+        .map_err(|e| csv_err(line_of[0], e.to_string()))?;
+    let mut values: Vec<Vec<f64>> = vec![Vec::new(); names.len()];
+    let mut row = 0usize;
+    for batch in reader {
+        let batch = batch.map_err(|e| csv_record_error(path, line_of, names.len(), &e))?;
+        for (j, column) in batch
+            .columns()
+            .iter()
+            .enumerate()
+            .skip(usize::from(skip_index))
+        {
+            let strings = column
+                .as_any()
+                .downcast_ref::<StringArray>()
+                .ok_or_else(|| csv_err(line_of[0], "columns are not read as text".into()))?;
+            for i in 0..strings.len() {
+                let field = if strings.is_null(i) {
+                    ""
+                } else {
+                    strings.value(i).trim()
+                };
+                let r = row + i;
+                let value = field.parse::<f64>().map_err(|_| {
+                    csv_err(
+                        line_of.get(r + 1).copied().unwrap_or(0),
+                        format!(
+                            "row {r}, column '{}': cannot parse {} as a number",
+                            names[j],
+                            if field.is_empty() {
+                                "an empty field".to_string()
+                            } else {
+                                format!("'{field}'")
+                            }
+                        ),
+                    )
+                })?;
+                values[j].push(value);
+            }
+        }
+        row += batch.num_rows();
+    }
+    Ok(values)
+}
+
+/// An `arrow-csv` error on the body as a one-line error naming the file's line and data row
+/// (its "incorrect number of fields for line N, expected E got G" counts the kept lines).
+fn csv_record_error(
+    path: &Path,
+    line_of: &[usize],
+    width: usize,
+    e: &arrow::error::ArrowError,
+) -> IoError {
+    let text = e.to_string();
+    let parsed = text
+        .split_once("for line ")
+        .and_then(|(_, rest)| rest.split_once(", expected "))
+        .and_then(|(line, rest)| Some((line.parse::<usize>().ok()?, rest.split_once(" got ")?.1)));
+    match parsed {
+        Some((kept, got)) if kept >= 2 => IoError::Csv {
+            path: path.to_path_buf(),
+            line: line_of.get(kept - 1).copied().unwrap_or(kept),
+            message: format!("row {} has {got} fields, the header has {width}", kept - 2),
+        },
+        _ => IoError::Csv {
+            path: path.to_path_buf(),
+            line: line_of.first().copied().unwrap_or(1),
+            message: text,
+        },
+    }
 }

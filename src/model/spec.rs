@@ -151,6 +151,7 @@ pub struct ScenarioSpec {
 }
 
 #[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct Feature {
     pub peak: f64,
     pub peak_hz: f64,
@@ -166,6 +167,7 @@ pub struct FeatureTolerance {
 }
 
 #[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct ExpectedFeatures {
     #[serde(rename = "T11")]
     pub t11: Option<Feature>,
@@ -333,23 +335,16 @@ impl ModelSpec {
                 _ => {}
             }
         }
-        for (name, inj) in &self.injections {
-            let key = format!("injections.{name}");
-            let n = inj.cycles.len();
-            if n == 0 || inj.oi1_amplitude.len() != n || inj.oi12_amplitude.len() != n {
-                return Err(self.bad(
-                    &key,
-                    "cycles, oi1_amplitude and oi12_amplitude must have the same non-zero length",
-                ));
-            }
-            if !(inj.stretch_s > 0.0 && inj.gap_s >= 0.0) {
-                return Err(self.bad(&key, "stretch_s must be > 0 and gap_s >= 0"));
-            }
-        }
         let s = &self.sampling;
-        if !(s.simulate_hz > 0.0 && s.analyse_hz > 0.0) {
+        if !(s.simulate_hz.is_finite()
+            && s.analyse_hz.is_finite()
+            && s.simulate_hz > 0.0
+            && s.analyse_hz > 0.0)
+        {
             return Err(self.bad("sampling", "rates must be positive"));
         }
+        self.validate_injections()?;
+        self.validate_constraints()?;
         let ratio = s.simulate_hz / s.analyse_hz;
         if (ratio - ratio.round()).abs() > 1e-9 || ratio < 1.0 {
             return Err(self.bad(
@@ -475,6 +470,72 @@ impl ModelSpec {
     /// Control interval `h = 1 / simulate_hz` of the digital loop.
     pub fn control_dt(&self) -> f64 {
         1.0 / self.sampling.simulate_hz
+    }
+
+    /// Injection tables: matching lengths, positive timing, and every stretch's frequency
+    /// `cycles / stretch_s` below the analysis Nyquist frequency (a sine above it aliases).
+    fn validate_injections(&self) -> Result<(), ModelError> {
+        let nyquist = 0.5 * self.sampling.analyse_hz;
+        for (name, inj) in &self.injections {
+            let key = format!("injections.{name}");
+            let n = inj.cycles.len();
+            if n == 0 || inj.oi1_amplitude.len() != n || inj.oi12_amplitude.len() != n {
+                return Err(self.bad(
+                    &key,
+                    "cycles, oi1_amplitude and oi12_amplitude must have the same non-zero length",
+                ));
+            }
+            if !(inj.stretch_s.is_finite()
+                && inj.stretch_s > 0.0
+                && inj.gap_s.is_finite()
+                && inj.gap_s >= 0.0)
+            {
+                return Err(self.bad(&key, "stretch_s must be > 0 and gap_s >= 0"));
+            }
+            for (k, c) in inj.cycles.iter().enumerate() {
+                let f = f64::from(*c) / inj.stretch_s;
+                if f >= nyquist {
+                    return Err(self.bad(
+                        &format!("{key}.cycles[{k}]"),
+                        format!(
+                            "{c} cycles in {} s is {f} Hz, at or above the analysis Nyquist frequency {nyquist} Hz",
+                            inj.stretch_s
+                        ),
+                    ));
+                }
+            }
+            for (which, amps) in [
+                ("oi1_amplitude", &inj.oi1_amplitude),
+                ("oi12_amplitude", &inj.oi12_amplitude),
+            ] {
+                if let Some((k, a)) = amps.iter().enumerate().find(|(_, a)| !a.is_finite()) {
+                    return Err(self.bad(
+                        &format!("{key}.{which}[{k}]"),
+                        format!("must be finite, got {a}"),
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Design constraints are limits: each must be finite and > 0.
+    fn validate_constraints(&self) -> Result<(), ModelError> {
+        let c = &self.constraints;
+        for (k, v) in [
+            ("constraints.o_max_m", c.o_max_m),
+            ("constraints.thruster_force_max_n", c.thruster_force_max_n),
+            (
+                "constraints.suspension_force_max_n",
+                c.suspension_force_max_n,
+            ),
+            ("constraints.f_max_hz", c.f_max_hz),
+        ] {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(self.bad(k, format!("must be a finite limit > 0, got {v}")));
+            }
+        }
+        Ok(())
     }
 
     fn validate_control_loop(&self) -> Result<(), ModelError> {

@@ -76,3 +76,24 @@ pub fn spd_inverse(m: &DMatrix<f64>) -> Option<DMatrix<f64>> {
     let out = DMatrix::from_fn(n, n, |i, j| inv[(i, j)] * d[i] * d[j]);
     out.iter().all(|v| v.is_finite()).then_some(out)
 }
+
+/// The least constrained direction of a symmetric positive semi-definite `m` (an information
+/// matrix), in equilibrated coordinates so that the parameters' units do not matter: the
+/// smallest eigenvalue of `D^-1/2 M D^-1/2` and its unit eigenvector. None when `m` has a
+/// non-finite entry or the (bounded) eigenvalue iteration does not converge.
+pub fn weakest_direction(m: &DMatrix<f64>) -> Option<(f64, Vec<f64>)> {
+    if m.iter().any(|v| !v.is_finite()) || m.nrows() == 0 {
+        return None;
+    }
+    let (eq, _) = equilibrate(m);
+    let eig = nalgebra::SymmetricEigen::try_new(eq, f64::EPSILON, 1000 * m.nrows())?;
+    let k = (0..eig.eigenvalues.len()).min_by(|&a, &b| {
+        eig.eigenvalues[a]
+            .partial_cmp(&eig.eigenvalues[b])
+            .unwrap_or(std::cmp::Ordering::Equal)
+    })?;
+    Some((
+        eig.eigenvalues[k],
+        eig.eigenvectors.column(k).iter().copied().collect(),
+    ))
+}

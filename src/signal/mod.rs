@@ -12,6 +12,7 @@ pub const DEFAULT_DURATION_S: f64 = 10_800.0;
 
 /// One injection stretch on one guidance input.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct Stretch {
     pub f_hz: f64,
     pub amplitude: f64,
@@ -19,6 +20,7 @@ pub struct Stretch {
 
 /// One experiment: a stretch sequence per guidance input (`None` = that input stays at zero).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct Experiment {
     pub name: String,
     /// Indexed by input channel (0 = oi1, 1 = oi12 for LPF-x); stretch `n` occupies slot `n`.
@@ -27,6 +29,7 @@ pub struct Experiment {
 
 /// Timing shared by all experiments of a design, plus the experiments.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct Design {
     pub name: String,
     pub stretch_s: f64,
