@@ -475,7 +475,7 @@ pub fn residual_table<M: crate::model::ClosedLoopModel<2>>(
         (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
     for (e, name) in data.names.iter().enumerate() {
         for (c, cname) in ["o1", "o12"].iter().enumerate() {
-            for i in 0..data.len() {
+            for i in 0..data.len_of(e) {
                 exp.push(name.clone());
                 ch.push(cname.to_string());
                 t.push(t0.get(e).copied().unwrap_or(0.0) + i as f64 * data.dt);

@@ -635,6 +635,7 @@ impl DesignSpace {
                 Experiment {
                     name: en.to_string(),
                     inputs,
+                    duration_s: None,
                 }
             })
             .collect();
@@ -707,6 +708,7 @@ impl CandidateSet {
                 Experiment {
                     name: g.experiment.clone(),
                     inputs,
+                    duration_s: None,
                 }
             })
             .collect();

@@ -267,7 +267,7 @@ pub fn validate(setup: &Setup, cfg: &ValidationConfig) -> Result<Validation, Des
                             2,
                             0.0,
                             setup.analysis_dt(),
-                            design.samples(setup.analysis_dt()),
+                            design.samples_of(e, setup.analysis_dt()),
                         )
                     })
                     .collect::<Vec<_>>(),

@@ -249,7 +249,8 @@ impl<'a> DiagnosisProblem<'a> {
     ) -> Result<Self, DiagnoseError> {
         cfg.validate()?;
         check_data(data, obs)?;
-        let order = whitening_order(data.len(), cfg.order, obs)?;
+        // The shortest experiment sets the order: every experiment drops its own start-up.
+        let order = whitening_order(data.min_len(), cfg.order, obs)?;
         let whitening = whitening(setup, data, noise, guess, cfg, order, obs)?;
         let planned = Likelihood::new(
             &setup.model,
@@ -545,7 +546,12 @@ impl DiagnosisProblem<'_> {
                 }
                 if *n_nl > 0 {
                     let s: Vec<f64> = (0..*n_nl).map(|q| step[(j + q, 0)]).collect();
-                    a.step_nonlinear(&s, data.len(), data.dt);
+                    // A line or glitch is bounded by its own experiment's duration.
+                    let n = a
+                        .experiment()
+                        .filter(|&e| e < data.outputs.len())
+                        .map_or(data.len(), |e| data.len_of(e));
+                    a.step_nonlinear(&s, n, data.dt);
                     j += n_nl;
                 }
             }

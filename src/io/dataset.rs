@@ -16,8 +16,16 @@
 //!
 //! Run paths are relative to the directory of the TOML file. [`read_dataset`] rejects unknown keys
 //! (naming the key), duplicate or empty experiment names, and loads and validates every run
-//! ([`read_run`]); all runs must share the sampling interval and all experiments must have the same
-//! length (the noise run may be longer or shorter). [`write_dataset`] writes `dataset.toml` and one
+//! ([`read_run`]); all runs must share the sampling interval. Experiments may differ in length:
+//! each is whitened and fitted on its own.
+//!
+//! Gaps: a run whose time column has gaps (whole missing samples) is split into its contiguous
+//! segments ([`super::run::read_run_segments`]), and each segment becomes an experiment of its
+//! own named `NAME.segK` (K from 1, in time order), with its absolute times (`t0`) and the place
+//! it came from ([`Run::segment`]); the fit treats them as independent experiments, each
+//! whitened with its own start-up dropped. A noise run with gaps contributes its longest
+//! segment. Every split is a note. [`Dataset::check_lengths`] refuses, naming the file, the row
+//! and the time of the gap, a segment too short for the analysis. [`write_dataset`] writes `dataset.toml` and one
 //! Parquet file per run into a directory, each file atomically, the TOML last.
 
 use std::path::{Path, PathBuf};
@@ -25,7 +33,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use super::atomic::{ensure_dir, parent_dir, read_text, toml_error, write_toml_atomic};
-use super::run::{read_run_noted, write_run, Run, TIME_TOLERANCE};
+use super::run::{read_run_segments, write_run, Run, TIME_TOLERANCE};
 use super::{in_memory, IoError};
 
 /// File name of the dataset description written by [`write_dataset`].
@@ -126,8 +134,35 @@ impl Dataset {
             .or(self.noise.as_ref().map(|r| r.dt))
     }
 
+    /// Refuses an experiment shorter than `min` samples that is a segment of a run with gaps,
+    /// with one line naming the file, the segment's first row, the gap and `what` needs the
+    /// samples (e.g. "a whitening filter of order 300"). Whole runs are left to the analysis's
+    /// own length check.
+    pub fn check_lengths(&self, min: usize, what: &str) -> Result<(), IoError> {
+        for (name, run) in &self.experiments {
+            let Some(seg) = &run.segment else { continue };
+            if run.len() >= min {
+                continue;
+            }
+            let gap = seg.gap().map_or(String::new(), |g| format!(" next to {g}"));
+            return Err(IoError::invalid(
+                &run.label(),
+                format!(
+                    "segment {} of {} (experiment '{name}', rows {} to {}, t = {} s){gap} has {}                      samples, too short for {what} (needs at least {min}): drop those rows or                      fill the gap",
+                    seg.index + 1,
+                    seg.count,
+                    seg.first_row,
+                    seg.first_row + run.len() - 1,
+                    super::fmt_short(run.t0),
+                    run.len(),
+                ),
+            ));
+        }
+        Ok(())
+    }
+
     /// Checks every run and the consistency of the set: at least one run, unique non-empty
-    /// experiment names, a common dt, equal experiment lengths.
+    /// experiment names, a common dt.
     pub fn validate(&self) -> Result<(), IoError> {
         if let Some(noise) = &self.noise {
             noise.validate()?;
@@ -199,19 +234,6 @@ fn check_consistency(
             });
         }
     }
-    if let Some((_, first)) = experiments.first() {
-        for (name, run) in &experiments[1..] {
-            if run.len() != first.len() {
-                return Err(IoError::LengthMismatch {
-                    path: path.to_path_buf(),
-                    first: runs[0].0.clone(),
-                    first_len: first.len(),
-                    second: run_label(run, Some(name)),
-                    second_len: run.len(),
-                });
-            }
-        }
-    }
     Ok(())
 }
 
@@ -268,19 +290,44 @@ pub fn read_dataset(path: impl AsRef<Path>) -> Result<Dataset, IoError> {
         }
     };
     let mut notes = Vec::new();
-    let mut read = |file: PathBuf| -> Result<Run, IoError> {
-        let (run, n) = read_run_noted(file)?;
+    let read = |file: PathBuf, notes: &mut Vec<String>| -> Result<Vec<Run>, IoError> {
+        let (runs, n) = read_run_segments(file)?;
         notes.extend(n);
-        Ok(run)
+        Ok(runs)
     };
     let noise = match &spec.noise {
-        Some(file) => Some(read(resolve(file, "the noise run")?)?),
+        Some(file) => {
+            let segments = read(resolve(file, "the noise run")?, &mut notes)?;
+            if segments.len() > 1 {
+                notes.push(split_note(&segments, "the noise run uses its longest segment"));
+            }
+            // The longest segment (the first of equal ones).
+            segments
+                .into_iter()
+                .rev()
+                .max_by_key(|r| r.len())
+        }
         None => None,
     };
     let mut experiments = Vec::with_capacity(spec.experiment.len());
     for entry in &spec.experiment {
         let file = resolve(&entry.file, &format!("experiment '{}'", entry.name))?;
-        experiments.push((entry.name.clone(), read(file)?));
+        let segments = read(file, &mut notes)?;
+        if segments.len() == 1 {
+            experiments.extend(segments.into_iter().map(|r| (entry.name.clone(), r)));
+            continue;
+        }
+        let names: Vec<String> = (1..=segments.len())
+            .map(|k| format!("{}.seg{k}", entry.name))
+            .collect();
+        notes.push(split_note(
+            &segments,
+            &format!(
+                "fitted as experiments {}, each whitened on its own",
+                names.join(", ")
+            ),
+        ));
+        experiments.extend(names.into_iter().zip(segments));
     }
     check_consistency(path, noise.as_ref(), &experiments)?;
     Ok(Dataset {
@@ -290,6 +337,31 @@ pub fn read_dataset(path: impl AsRef<Path>) -> Result<Dataset, IoError> {
         meta: spec.meta,
         notes,
     })
+}
+
+/// `exp1.parquet: 1 gap (rows 0-4999, 5100-10799 kept; 100 samples missing at t = 4999 s to
+/// 5100 s): <what>`.
+fn split_note(segments: &[Run], what: &str) -> String {
+    let label = segments[0].label();
+    let rows: Vec<String> = segments
+        .iter()
+        .map(|r| {
+            let first = r.segment.as_ref().map_or(0, |s| s.first_row);
+            format!("{first}-{}", first + r.len() - 1)
+        })
+        .collect();
+    let gaps: Vec<String> = segments
+        .iter()
+        .filter_map(|r| r.segment.as_ref().and_then(|s| s.gap_after))
+        .map(|g| g.to_string())
+        .collect();
+    format!(
+        "{}: {} gap(s) ({}); split into segments of rows {}: {what}",
+        label.display(),
+        gaps.len(),
+        gaps.join(", "),
+        rows.join(", ")
+    )
 }
 
 /// Checks that an experiment name can be used as a file stem.
