@@ -928,7 +928,8 @@ fn dataset_toml_syntax_and_type_errors_give_the_line() {
 }
 
 #[test]
-fn dataset_different_lengths_name_files_and_lengths() {
+fn dataset_experiments_of_different_lengths_are_read() {
+    // Experiments of different lengths are fitted each on its own length: the reader keeps them.
     let (_d, path) = dataset_dir(
         &[
             ("noise.parquet", sample_run(50, 1.0, 0.0)),
@@ -937,16 +938,9 @@ fn dataset_different_lengths_name_files_and_lengths() {
         ],
         TWO_EXPERIMENTS,
     );
-    let err = read_dataset(&path).unwrap_err();
-    assert!(matches!(err, IoError::LengthMismatch { .. }));
-    assert_contains(
-        &err.to_string(),
-        &[
-            "dataset.toml",
-            "exp1.parquet' has 30 rows",
-            "exp2.parquet' has 31 rows",
-        ],
-    );
+    let ds = read_dataset(&path).unwrap();
+    assert_eq!(ds.experiment("exp1").unwrap().len(), 30);
+    assert_eq!(ds.experiment("exp2").unwrap().len(), 31);
 }
 
 #[test]

@@ -327,6 +327,11 @@ pub fn fit(a: FitArgs) -> Result<()> {
         info!("note: {n}");
     }
     let data = experiment_data(&ds)?;
+    // A segment of a run with gaps too short for the filter: one line naming file, row and gap.
+    ds.check_lengths(
+        crate::fit::problem::min_length(a.order, a.poly_degree, setup.parameter_names().len()),
+        &format!("a whitening filter of order {}", a.order),
+    )?;
     let guess = resolve_guess(&setup, a.guess.as_deref())?;
     check_stability(&setup.model, &guess, Some(&setup.spec.nominal()))
         .context("the starting point")?;

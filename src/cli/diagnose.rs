@@ -145,6 +145,10 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
     }
     let data = experiment_data(&ds)?;
     let names = setup.parameter_names();
+    ds.check_lengths(
+        crate::fit::problem::min_length(a.order, a.poly_degree, names.len()),
+        &format!("a whitening filter of order {}", a.order),
+    )?;
     let guess = resolve_guess(&setup, a.guess.as_deref())?;
     if !a.force {
         crate::units::check_dataset(&setup, &guess, &ds)?;

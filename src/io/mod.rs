@@ -6,7 +6,8 @@
 //!   (readouts) and optional extra columns (`y1`, `phi1`, ...), read into a validated [`Run`]
 //!   (project reference README, "Measured-data files");
 //! - datasets ([`dataset`]): a TOML file naming an optional noise run and the experiment runs, read
-//!   into a validated [`Dataset`] whose runs share the sampling interval;
+//!   into a validated [`Dataset`] whose runs share the sampling interval (experiments may differ
+//!   in length; a run with gaps becomes one experiment per contiguous segment);
 //! - columnar output tables ([`table`]): [`Table`], Parquet read/write and the streaming
 //!   [`ParquetAppender`];
 //! - atomic writes ([`atomic`]): every output is written to a temporary file in the destination
@@ -177,17 +178,6 @@ pub enum IoError {
         second: PathBuf,
         second_dt: f64,
     },
-    /// Experiments of a dataset have different lengths.
-    #[error("{}: experiments have different lengths: '{}' has {first_len} rows, '{}' has {second_len} rows",
-        path.display(), first.display(), second.display())]
-    LengthMismatch {
-        /// The dataset file.
-        path: PathBuf,
-        first: PathBuf,
-        first_len: usize,
-        second: PathBuf,
-        second_len: usize,
-    },
     /// Two experiments of a dataset share a name.
     #[error("{}: duplicate experiment name '{name}'", path.display())]
     DuplicateExperiment { path: PathBuf, name: String },
@@ -217,7 +207,6 @@ impl IoError {
             | IoError::NonUniformTime { path, .. }
             | IoError::TooShort { path, .. }
             | IoError::DtMismatch { path, .. }
-            | IoError::LengthMismatch { path, .. }
             | IoError::DuplicateExperiment { path, .. }
             | IoError::Invalid { path, .. } => path,
         }

@@ -16,6 +16,7 @@ pub const DEFAULT_DURATION_S: f64 = 10_800.0;
 
 /// One injection stretch on one guidance input.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct Stretch {
     pub f_hz: f64,
     pub amplitude: f64,
@@ -35,6 +36,7 @@ pub struct Experiment {
 
 /// Timing shared by all experiments of a design, plus the experiments.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
 pub struct Design {
     pub name: String,
     pub stretch_s: f64,
