@@ -7,8 +7,10 @@
 /// Series per experiment, per channel: `out[e][c][t]`.
 pub type Series = Vec<Vec<Vec<f64>>>;
 
-/// Inputs and outputs of each experiment: `inputs[e][c]`, `outputs[e][c]`, all series of one
-/// experiment of its length `n_e`. `inputs` may be empty (a noise-only set).
+/// Inputs and outputs of each experiment: `inputs[e][c]`, `outputs[e][c]`, the outputs of one
+/// experiment of its length `n_e`. The inputs may be longer: their first `l_e` samples are a
+/// lead-in, guidance known before the first output sample (the earlier segments of a run with
+/// gaps), whose response the templates carry. `inputs` may be empty (a noise-only set).
 #[derive(Debug, Clone)]
 pub struct ExperimentData {
     pub names: Vec<String>,
@@ -39,6 +41,24 @@ impl ExperimentData {
     /// Length of experiment `e`.
     pub fn len_of(&self, e: usize) -> usize {
         self.outputs[e].first().map_or(0, |c| c.len())
+    }
+
+    /// Lead-in `l_e` of experiment `e`: input samples before its first output sample.
+    pub fn lead(&self, e: usize) -> usize {
+        let inputs = self
+            .inputs
+            .get(e)
+            .and_then(|x| x.first())
+            .map_or(0, |c| c.len());
+        inputs.saturating_sub(self.len_of(e))
+    }
+
+    /// The inputs of experiment `e` over its outputs' samples (without the lead-in).
+    pub fn inputs_of(&self, e: usize) -> Vec<&[f64]> {
+        let l = self.lead(e);
+        self.inputs
+            .get(e)
+            .map_or(Vec::new(), |x| x.iter().map(|c| &c[l..]).collect())
     }
 
     /// True when the experiments differ in length.

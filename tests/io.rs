@@ -1019,7 +1019,8 @@ fn write_dataset_validates_before_writing() {
         noise: None,
         experiments: vec![
             ("a".into(), sample_run(10, 1.0, 0.0)),
-            ("b".into(), sample_run(11, 1.0, 0.0)),
+            // Experiments may differ in length, not in sampling interval.
+            ("b".into(), sample_run(11, 0.5, 0.0)),
         ],
         meta: toml::Table::new(),
         notes: Vec::new(),
@@ -1029,8 +1030,8 @@ fn write_dataset_validates_before_writing() {
         &err.to_string(),
         &[
             "dataset.toml",
-            "<experiment a>' has 10 rows",
-            "<experiment b>' has 11 rows",
+            "<experiment a>' has dt=1 s",
+            "<experiment b>' has dt=0.5 s",
         ],
     );
     assert!(!out.exists());

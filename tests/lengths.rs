@@ -207,6 +207,16 @@ fn write_csv(path: &Path, cols: &[(String, Vec<f64>)]) {
     std::fs::write(path, text).unwrap();
 }
 
+/// chi^2/nu and nu of a fit's `fit.json`.
+fn chi2(out: &Path) -> (f64, f64) {
+    let j: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("fit.json")).unwrap()).unwrap();
+    (
+        j["chi2_reduced"].as_f64().unwrap(),
+        j["nu"].as_f64().unwrap(),
+    )
+}
+
 fn estimates(out: &Path) -> (Vec<f64>, Vec<f64>) {
     let t = read_parquet(out.join("estimates.parquet")).unwrap();
     (
@@ -220,7 +230,8 @@ fn a_gap_splits_a_run_into_segments_fitted_jointly() {
     // Oracle: the same data without the gap. Removing 100 samples in the middle of Exp. 2 and
     // the second segment's 300-sample whitening start-up loses ~4 % of that experiment's
     // samples, so the estimates move by a fraction of a sigma (sqrt(0.04) ~ 0.2 of Exp. 2's
-    // share), never by more than half a sigma.
+    // share), never by more than half a sigma; and chi^2/nu of a model that describes both
+    // segments stays within 2 of its standard deviations sqrt(2/nu) of the full fit's.
     let tmp = tempfile::tempdir().unwrap();
     let full = simulated(&tmp.path().join("full"));
     let out_full = tmp.path().join("fit_full");
@@ -232,11 +243,12 @@ fn a_gap_splits_a_run_into_segments_fitted_jointly() {
     let names = Setup::embedded().parameter_names();
     let (a, sa) = estimates(&out_full);
     let mut gapped = PathBuf::new();
-    // Rows 5400..5500 fall in the pause after Exp. 2's third stretch; rows 6000..6100 inside its
-    // fourth stretch (16 cycles): the second segment's template then starts from rest while the
-    // loop was still responding to the injection before the gap; the dropped start-up and the
-    // whitening (which suppresses the low-frequency transient) must keep that below the
-    // tolerance too.
+    // Rows 5400..5500 fall in the pause after Exp. 2's third stretch: the second segment's
+    // templates carry the response to the first segment's guidance (without it chi^2/nu was
+    // 1.039 against 1.0027 for the full data, 5 standard deviations). Rows 6000..6100 fall
+    // inside its fourth stretch (8 cycles), where the guidance in the gap is unknown: the second
+    // segment then starts from rest (zero-filling the gap gave chi^2/nu = 1.026).
+    let (chi2_full, _) = chi2(&out_full);
     for (from, to) in [(5400, 5500), (6000, 6100)] {
         gapped = tmp.path().join(format!("gapped_{from}"));
         std::fs::create_dir_all(&gapped).unwrap();
@@ -265,6 +277,12 @@ fn a_gap_splits_a_run_into_segments_fitted_jointly() {
         let o = run_bin(&["fit", s(&gapped.join("dataset.toml")), "--out", s(&out_gap)]);
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
         let (b, sb) = estimates(&out_gap);
+        let (chi2_gap, nu) = chi2(&out_gap);
+        eprintln!("gap {from}..{to}: chi2/nu {chi2_gap:.4} (full data {chi2_full:.4})");
+        assert!(
+            (chi2_gap - chi2_full).abs() < 2.0 * (2.0 / nu).sqrt(),
+            "gap {from}..{to}: chi2/nu {chi2_gap} against {chi2_full} without the gap"
+        );
         for k in 0..a.len() {
             let shift = (b[k] - a[k]) / sa[k];
             eprintln!(
@@ -315,4 +333,76 @@ fn a_gap_splits_a_run_into_segments_fitted_jointly() {
     ] {
         assert!(err.contains(needle), "error lacks '{needle}': {err}");
     }
+}
+
+#[test]
+fn design_evaluate_puts_each_experiment_on_its_own_duration() {
+    // Oracle: the Fisher information with each experiment on its own T_e (reference README),
+    // which differs from the same stretches in two 3 h experiments.
+    let setup = Setup::embedded();
+    let sc = setup.spec.scenario("monte_carlo").unwrap();
+    let design = unequal_design(&setup);
+    let tmp = tempfile::tempdir().unwrap();
+    let file = tmp.path().join("unequal.toml");
+    std::fs::write(&file, design_toml(&design)).unwrap();
+    let out = tmp.path().join("eval.parquet");
+    let o = run_bin(&[
+        "design",
+        "evaluate",
+        s(&file),
+        "--allow-violations",
+        "--out",
+        s(&out),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let t = read_parquet(&out).unwrap();
+    let full = t.f64_column("sigma_full").unwrap();
+    let fisher = fisher_sigma(&setup, &design, &sc.truth);
+    let mut long = design.clone();
+    long.experiments[1].duration_s = None;
+    let fisher_long = fisher_sigma(&setup, &long, &sc.truth);
+    let mut differs = false;
+    for k in 0..full.len() {
+        assert!(
+            (full[k] / fisher[k] - 1.0).abs() < 1e-9,
+            "parameter {k}: {} vs {}",
+            full[k],
+            fisher[k]
+        );
+        differs |= (fisher_long[k] / fisher[k] - 1.0).abs() > 1e-3;
+    }
+    assert!(differs, "the 1.5 h experiment's duration made no difference");
+}
+
+#[test]
+fn diagnose_takes_experiments_of_different_lengths() {
+    // Oracle: data drawn from the model itself (3 h and 1.5 h experiments) hold nothing the
+    // model lacks: no effect is claimed (the false-claim rate is alpha, README), chi^2/nu ~ 1,
+    // and every residual series has its experiment's own length.
+    use freefall::diagnose::{diagnose, DiagnoseConfig};
+    let setup = Setup::embedded();
+    let sc = setup.spec.scenario("monte_carlo").unwrap();
+    let sim = setup
+        .simulator(&unequal_design(&setup), &sc.truth, None)
+        .unwrap();
+    let data = sim.draw(&mut stream(31, 0));
+    let noise = sim.noise_series(&mut stream(31, 1));
+    let cfg = DiagnoseConfig {
+        whiten_from_model: true,
+        ..Default::default()
+    };
+    let d = diagnose(&setup, &data, Some(&noise), &sc.guess, Some(&sc.truth), &cfg).unwrap();
+    assert!(
+        d.effects_added.is_empty(),
+        "claimed {:?}",
+        d.effects_added.iter().map(|a| &a.name).collect::<Vec<_>>()
+    );
+    let (w, raw) = &d.residuals_after;
+    assert_eq!(raw[0][0].len(), 10_800);
+    assert_eq!(raw[1][1].len(), 5_400);
+    assert_eq!(w[1][0].len(), 5_400 - d.order);
+    let n: usize = w.iter().flatten().map(|c| c.len()).sum();
+    let chi2: f64 = w.iter().flatten().flatten().map(|v| v * v).sum();
+    let r = chi2 / n as f64;
+    assert!((r - 1.0).abs() < 0.05, "whitened residual variance {r}");
 }

@@ -199,13 +199,14 @@ pub struct FitArgs {
 /// The experiments of a dataset as fit input.
 pub fn experiment_data(ds: &Dataset) -> Result<ExperimentData> {
     let dt = ds.dt().context("dataset has no runs")?;
+    let (inputs, notes) = ds.inputs_with_lead_in();
+    for n in notes {
+        info!("note: {n}");
+    }
     Ok(ExperimentData {
         names: ds.experiments.iter().map(|(n, _)| n.clone()).collect(),
-        inputs: ds
-            .experiments
-            .iter()
-            .map(|(_, r)| r.inputs().iter().map(|c| c.to_vec()).collect())
-            .collect(),
+        // A segment of a run with gaps carries the earlier segments' guidance as lead-in.
+        inputs,
         outputs: ds.experiments.iter().map(|(_, r)| outputs_of(r)).collect(),
         dt,
     })
@@ -350,7 +351,14 @@ pub fn fit(a: FitArgs) -> Result<()> {
     if ds.noise.is_none() && a.whitening == WhiteningSource::Auto {
         info!("note: whitening from the {source}");
     }
-    let lik = Likelihood::new(&setup.model, &data.inputs, data.dt, whitener, a.poly_degree)
+    let lik = Likelihood::with_lengths(
+        &setup.model,
+        &data.inputs,
+        &data.lengths(),
+        data.dt,
+        whitener,
+        a.poly_degree,
+    )
         .with_context(|| a.dataset.display().to_string())?;
     let problem = lik.problem(&data)?;
     let mut cfg = FitConfig::new(&setup.parameter_names());

@@ -252,9 +252,10 @@ impl<'a> DiagnosisProblem<'a> {
         // The shortest experiment sets the order: every experiment drops its own start-up.
         let order = whitening_order(data.min_len(), cfg.order, obs)?;
         let whitening = whitening(setup, data, noise, guess, cfg, order, obs)?;
-        let planned = Likelihood::new(
+        let planned = Likelihood::with_lengths(
             &setup.model,
             &data.inputs,
+            &data.lengths(),
             data.dt,
             whitening.filter.clone(),
             cfg.poly_degree,
@@ -379,6 +380,11 @@ impl<'a> DiagnosisProblem<'a> {
         let noise_ref = self.whitening.noise_ref.as_ref();
         let inputs = model.input_names();
         let mut channels = Vec::new();
+        // Inputs over each experiment's own samples (without a lead-in), aligned with its
+        // residuals.
+        let aligned: Vec<Vec<Vec<f64>>> = (0..data.names.len())
+            .map(|e| data.inputs_of(e).into_iter().map(<[f64]>::to_vec).collect())
+            .collect();
         for (e, en) in data.names.iter().enumerate() {
             for ch in Channel::ALL {
                 let c = ch.index();
@@ -389,7 +395,7 @@ impl<'a> DiagnosisProblem<'a> {
                     whitened: &res.residuals_w[e][c],
                     offset: self.order,
                     raw: &raw[e][c],
-                    inputs: &data.inputs[e],
+                    inputs: &aligned[e],
                     input_names: inputs,
                     dt: data.dt,
                     alpha: self.cfg.alpha,

@@ -95,8 +95,22 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> Likelihood<'m, M, N> {
             .iter()
             .map(|e| e.first().map_or(0, |c| c.len()))
             .collect();
+        Self::with_lengths(model, inputs, &lens, dt, whitener, poly_degree)
+    }
+
+    /// The same for experiments of `lens[e]` output samples whose inputs may start earlier (a
+    /// lead-in, see [`TemplateEngine::with_lengths`]): what [`ExperimentData`] holds.
+    pub fn with_lengths(
+        model: &'m M,
+        inputs: &[Vec<Vec<f64>>],
+        lens: &[usize],
+        dt: f64,
+        whitener: Whitener<N>,
+        poly_degree: usize,
+    ) -> Result<Self, FitError> {
+        let lens = lens.to_vec();
         check_length(&lens, whitener.order(), poly_degree, model.n_params())?;
-        let engine = TemplateEngine::new(model, inputs, dt);
+        let engine = TemplateEngine::with_lengths(model, inputs, &lens, dt);
         let response = engine
             .padded_lens()
             .into_iter()
@@ -302,7 +316,8 @@ impl<M: ClosedLoopModel<N>, const N: usize> Problem<'_, '_, M, N> {
         (subtract(&self.data_w, &t), d)
     }
 
-    /// Raw (unwhitened) residuals `o_exp - o_s(p)` of the full series.
+    /// Raw (unwhitened) residuals `o_exp - o_s(p)` of the full series (each experiment's
+    /// outputs, after its lead-in).
     pub fn raw_residuals(&self, data: &ExperimentData, p: &[f64]) -> Series {
         let t = self.lik.engine.templates(p, None);
         subtract(&data.outputs, &t)

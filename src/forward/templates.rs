@@ -6,9 +6,12 @@
 //! then costs one model evaluation per bin and one inverse FFT per output series.
 //!
 //! Every experiment keeps its own length `n_e` and is transformed on its own padded grid of
-//! `m_e = fast_len(2 n_e)` points, `f_k = k / (m_e dt)`. Experiments of equal length share one
-//! grid (plans and model points are prepared once per distinct `m_e`, in order of first
-//! appearance), so a set of equal-length experiments costs what it always did.
+//! `m_e = fast_len(2 (l_e + n_e))` points, `f_k = k / (m_e dt)`, where `l_e` is the experiment's
+//! lead-in: input samples known before its first output sample (the earlier segments of a run
+//! with gaps), so that its templates carry the loop's response to them instead of starting from
+//! rest. The templates are the samples `l_e..l_e + n_e` of the response. Experiments of equal
+//! padded length share one grid (plans and model points are prepared once per distinct `m_e`,
+//! in order of first appearance), so a set of equal-length experiments costs what it always did.
 //!
 //! An optional per-bin left filter `W(f)` (an `N x N` matrix, e.g. a whitening filter's
 //! frequency response) is applied before the inverse FFT, so filtered templates and filtered
@@ -46,6 +49,8 @@ pub struct TemplateEngine<'m, M: ClosedLoopModel<N>, const N: usize> {
     model: &'m M,
     /// Length `n_e` of every experiment.
     lens: Vec<usize>,
+    /// Lead-in `l_e` of every experiment (input samples before its first output sample).
+    leads: Vec<usize>,
     /// Grid of every experiment (index into `grids`).
     grid_of: Vec<usize>,
     grids: Vec<Grid<M::Point>>,
@@ -66,7 +71,9 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
     }
 
     /// The same for experiments of lengths `lens[e]` whose inputs may be absent (`inputs[e]`
-    /// missing or empty: no injection).
+    /// missing or empty: no injection) or longer than `lens[e]`: the first
+    /// `inputs[e][c].len() - lens[e]` samples are then the experiment's lead-in (see the module
+    /// docs).
     pub fn with_lengths(
         model: &'m M,
         inputs: &[Vec<Vec<f64>>],
@@ -76,8 +83,19 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
         let mut planner = RealFftPlanner::<f64>::new();
         let mut grids: Vec<Grid<M::Point>> = Vec::new();
         let mut grid_of = Vec::with_capacity(lens.len());
-        for &n in lens {
-            let m = fast_len(2 * n.max(1));
+        let leads: Vec<usize> = lens
+            .iter()
+            .enumerate()
+            .map(|(e, &n)| {
+                let len = inputs
+                    .get(e)
+                    .and_then(|x| x.first())
+                    .map_or(0, |c| c.len());
+                len.saturating_sub(n)
+            })
+            .collect();
+        for (&n, &lead) in lens.iter().zip(&leads) {
+            let m = fast_len(2 * (lead + n).max(1));
             let g = match grids.iter().position(|g| g.m == m) {
                 Some(g) => g,
                 None => {
@@ -111,7 +129,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
                             return None;
                         }
                         let mut buf = vec![0.0; grid.m];
-                        let len = x.len().min(n);
+                        let len = x.len().min(leads[e] + n);
                         buf[..len].copy_from_slice(&x[..len]);
                         let mut spec = grid.fwd.make_output_vec();
                         grid.fwd
@@ -125,6 +143,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
         TemplateEngine {
             model,
             lens: lens.to_vec(),
+            leads,
             grid_of,
             grids,
             dt,
@@ -142,6 +161,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
         TemplateEngine {
             model,
             lens: self.lens.clone(),
+            leads: self.leads.clone(),
             grid_of: self.grid_of.clone(),
             grids: self.grids.clone(),
             dt: self.dt,
@@ -171,6 +191,11 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
     /// Length of experiment `e`.
     pub fn len_of(&self, e: usize) -> usize {
         self.lens[e]
+    }
+
+    /// Lead-in of experiment `e` (input samples before its first output sample).
+    pub fn lead_of(&self, e: usize) -> usize {
+        self.leads[e]
     }
 
     pub fn dt(&self) -> f64 {
@@ -242,8 +267,14 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
         out
     }
 
-    /// Inverse transform of a spectrum on experiment `e`'s grid, cut back to its length.
-    fn inverse(&self, e: usize, mut spec: Vec<Complex64>, scratch: &mut [f64]) -> Vec<f64> {
+    /// Inverse transform of a spectrum on experiment `e`'s grid, samples `from..from + n_e`.
+    fn inverse(
+        &self,
+        e: usize,
+        mut spec: Vec<Complex64>,
+        scratch: &mut [f64],
+        from: usize,
+    ) -> Vec<f64> {
         let g = &self.grids[self.grid_of[e]];
         // realfft requires real DC and Nyquist bins for a real output.
         spec[0].im = 0.0;
@@ -255,7 +286,10 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
             .process(&mut spec, &mut scratch[..g.m])
             .expect("FFT sizes match");
         let norm = 1.0 / g.m as f64;
-        scratch[..self.lens[e]].iter().map(|v| v * norm).collect()
+        scratch[from..from + self.lens[e]]
+            .iter()
+            .map(|v| v * norm)
+            .collect()
     }
 
     /// A real scratch buffer as long as the longest grid.
@@ -285,7 +319,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
                 let spec: Vec<Complex64> = (0..specs[0].len())
                     .map(|k| (0..N).map(|i| filter[k][(o, i)] * specs[i][k]).sum())
                     .collect();
-                self.inverse(e, spec, &mut scratch)
+                self.inverse(e, spec, &mut scratch, 0)
             })
             .collect()
     }
@@ -321,7 +355,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
             .enumerate()
             .map(|(e, exp)| {
                 exp.into_iter()
-                    .map(|s| self.inverse(e, s, &mut scratch))
+                    .map(|s| self.inverse(e, s, &mut scratch, self.leads[e]))
                     .collect()
             })
             .collect()
@@ -440,7 +474,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
             }
             for e in 0..ne {
                 let grid = &self.grids[self.grid_of[e]];
-                let (nb, m, n) = (grid.nbins(), grid.m, self.lens[e]);
+                let (nb, m, n, lead) = (grid.nbins(), grid.m, self.lens[e], self.leads[e]);
                 let norm = 1.0 / m as f64;
                 let from = from.min(n);
                 for o in 0..N {
@@ -455,7 +489,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
                     grid.inv
                         .process_with_scratch(spec, &mut out[..m], sc)
                         .expect("FFT sizes match");
-                    sink(e, o, &out[from..n], norm);
+                    sink(e, o, &out[lead + from..lead + n], norm);
                 }
             }
         })
@@ -505,7 +539,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
                 .enumerate()
                 .map(|(e, exp)| {
                     exp.into_iter()
-                        .map(|x| self.inverse(e, x, &mut scratch))
+                        .map(|x| self.inverse(e, x, &mut scratch, self.leads[e]))
                         .collect()
                 })
                 .collect()

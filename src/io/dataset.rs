@@ -134,6 +134,70 @@ impl Dataset {
             .or(self.noise.as_ref().map(|r| r.dt))
     }
 
+    /// Every experiment's guidance inputs (oi1, oi12); a segment of a run with gaps is preceded
+    /// by a lead-in: the inputs of the run's earlier segments at their times, zero in the gaps,
+    /// so that the model sees the loop's response to what was injected before the segment (the
+    /// loop's slowest modes relax over hours, far beyond the whitening start-up). The guidance
+    /// in a gap is not recorded; it is taken as zero only where the recorded guidance is zero
+    /// on both sides of the gap (an injection pause, where designs put their null Dirichlet
+    /// boundaries). A gap across a running injection ends the lead-in: the segment after it
+    /// starts from rest, with a note (the second value) naming the gap.
+    pub fn inputs_with_lead_in(&self) -> (Vec<Vec<Vec<f64>>>, Vec<String>) {
+        let mut notes = Vec::new();
+        let quiet = |a: &Run, b: &Run| {
+            a.inputs().iter().all(|x| x.last() == Some(&0.0))
+                && b.inputs().iter().all(|x| x.first() == Some(&0.0))
+        };
+        let inputs = self
+            .experiments
+            .iter()
+            .enumerate()
+            .map(|(i, (name, run))| {
+                let own = || run.inputs().iter().map(|c| c.to_vec()).collect();
+                let Some(seg) = run.segment.as_ref().filter(|s| s.index > 0 && s.index <= i)
+                else {
+                    return own();
+                };
+                let earlier = &self.experiments[i - seg.index..i];
+                let same_file = earlier.iter().enumerate().all(|(k, (_, r))| {
+                    r.path == run.path && r.segment.as_ref().is_some_and(|s| s.index == k)
+                });
+                if !same_file {
+                    return own();
+                }
+                // Walk back over gaps in injection pauses.
+                let mut first = i;
+                while first > i - seg.index && quiet(&self.experiments[first - 1].1, &self.experiments[first].1) {
+                    first -= 1;
+                }
+                if first == i {
+                    if let Some(g) = &seg.gap_before {
+                        notes.push(format!(
+                            "{}: the guidance is not zero at {g}: the injection may have run \
+                             through it, so '{name}' starts from rest (no lead-in)",
+                            run.label().display()
+                        ));
+                    }
+                    return own();
+                }
+                let chain: Vec<&Run> = self.experiments[first..=i].iter().map(|(_, r)| r).collect();
+                let start = chain[0].t0;
+                let at = |t0: f64| ((t0 - start) / run.dt).round().max(0.0) as usize;
+                let total = at(run.t0) + run.len();
+                let mut out = vec![vec![0.0; total]; 2];
+                for r in chain {
+                    let from = at(r.t0);
+                    for (o, x) in out.iter_mut().zip(r.inputs()) {
+                        let end = (from + x.len()).min(total);
+                        o[from..end].copy_from_slice(&x[..end - from]);
+                    }
+                }
+                out
+            })
+            .collect();
+        (inputs, notes)
+    }
+
     /// Refuses an experiment shorter than `min` samples that is a segment of a run with gaps,
     /// with one line naming the file, the segment's first row, the gap and `what` needs the
     /// samples (e.g. "a whitening filter of order 300"). Whole runs are left to the analysis's
