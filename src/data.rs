@@ -61,11 +61,6 @@ impl ExperimentData {
             .map_or(Vec::new(), |x| x.iter().map(|c| &c[l..]).collect())
     }
 
-    /// True when the experiments differ in length.
-    pub fn ragged(&self) -> bool {
-        self.min_len() != self.len()
-    }
-
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }

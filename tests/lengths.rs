@@ -11,7 +11,9 @@ use std::process::Command;
 use freefall::campaign::io_store::Progress;
 use freefall::campaign::{self, RunOptions, Shard};
 use freefall::fit::{fit, FitConfig, Likelihood};
-use freefall::io::{read_dataset, read_parquet, read_parquet_nulls_as_nan, read_run, write_run, Run};
+use freefall::io::{
+    read_dataset, read_parquet, read_parquet_nulls_as_nan, read_run, write_run, Run,
+};
 use freefall::setup::{design_fisher, Setup, DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 use freefall::signal::{Design, Stretch};
 use freefall::sim::rng::stream;
@@ -26,13 +28,18 @@ fn unequal_design(setup: &Setup) -> Design {
     d.name = "unequal".into();
     let f = |c: f64| c / d.stretch_s;
     d.experiments[1].inputs[1] = Some(
-        [(1.0, 0.80e-6), (4.0, 0.19e-6), (16.0, 0.096e-6), (64.0, 0.46e-6)]
-            .iter()
-            .map(|&(c, amplitude)| Stretch {
-                f_hz: f(c),
-                amplitude,
-            })
-            .collect(),
+        [
+            (1.0, 0.80e-6),
+            (4.0, 0.19e-6),
+            (16.0, 0.096e-6),
+            (64.0, 0.46e-6),
+        ]
+        .iter()
+        .map(|&(c, amplitude)| Stretch {
+            f_hz: f(c),
+            amplitude,
+        })
+        .collect(),
     );
     d.experiments[1].duration_s = Some(5400.0);
     d.validate().unwrap();
@@ -162,7 +169,8 @@ fn a_design_file_with_an_unknown_experiment_key_is_refused() {
     // Oracle: the schema: a misspelt per-experiment key must not silently fall back to the
     // design's duration.
     let setup = Setup::embedded();
-    let text = design_toml(&unequal_design(&setup)).replace("duration_s = 5400.0", "duraton_s = 5400.0");
+    let text =
+        design_toml(&unequal_design(&setup)).replace("duration_s = 5400.0", "duraton_s = 5400.0");
     let err = toml::from_str::<Design>(&text).unwrap_err().to_string();
     assert!(err.contains("duraton_s"), "{err}");
 }
@@ -178,7 +186,13 @@ fn s(p: &Path) -> &str {
 /// A simulated dataset (analysis rate, seed 5) in `dir`.
 fn simulated(dir: &Path) -> PathBuf {
     let o = run_bin(&[
-        "simulate", "--rate", "analysis", "--seed", "5", "--out", s(dir),
+        "simulate",
+        "--rate",
+        "analysis",
+        "--seed",
+        "5",
+        "--out",
+        s(dir),
     ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     dir.join("dataset.toml")
@@ -197,7 +211,11 @@ fn without_rows(run: &Run, from: usize, to: usize) -> Vec<(String, Vec<f64>)> {
 
 /// Write columns (with `t`) as a CSV run file.
 fn write_csv(path: &Path, cols: &[(String, Vec<f64>)]) {
-    let mut text = cols.iter().map(|(n, _)| n.as_str()).collect::<Vec<_>>().join(",");
+    let mut text = cols
+        .iter()
+        .map(|(n, _)| n.as_str())
+        .collect::<Vec<_>>()
+        .join(",");
     text.push('\n');
     for i in 0..cols[0].1.len() {
         let row: Vec<String> = cols.iter().map(|(_, c)| format!("{:?}", c[i])).collect();
@@ -273,6 +291,21 @@ fn a_gap_splits_a_run_into_segments_fitted_jointly() {
             read.notes
         );
 
+        // A lead-in through the pause, none across the running injection (with a note).
+        let (inputs, notes) = read.inputs_with_lead_in();
+        if from == 5400 {
+            assert_eq!(inputs[2][1].len(), 10_800, "lead-in from the run's start");
+            assert!(notes.is_empty(), "{notes:?}");
+        } else {
+            assert_eq!(inputs[2][1].len(), 10_800 - to, "no lead-in");
+            assert!(
+                notes.iter().any(|n| n.contains("row 6000")
+                    && n.contains("t = 5999 s to 6100 s")
+                    && n.contains("from rest")),
+                "{notes:?}"
+            );
+        }
+
         let out_gap = tmp.path().join(format!("fit_gap_{from}"));
         let o = run_bin(&["fit", s(&gapped.join("dataset.toml")), "--out", s(&out_gap)]);
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
@@ -313,7 +346,10 @@ fn a_gap_splits_a_run_into_segments_fitted_jointly() {
     for f in ["exp1.parquet", "noise.parquet", "dataset.toml"] {
         std::fs::copy(gapped.join(f), short.join(f)).unwrap();
     }
-    write_csv(&short.join("exp2.csv"), &without_rows(&exp2, 10_500, 10_600));
+    write_csv(
+        &short.join("exp2.csv"),
+        &without_rows(&exp2, 10_500, 10_600),
+    );
     let o = run_bin(&[
         "fit",
         "--quiet",
@@ -323,7 +359,11 @@ fn a_gap_splits_a_run_into_segments_fitted_jointly() {
     ]);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success());
-    assert_eq!(err.trim().lines().count(), 1, "one-line error expected: {err}");
+    assert_eq!(
+        err.trim().lines().count(),
+        1,
+        "one-line error expected: {err}"
+    );
     for needle in [
         "exp2.csv",
         "row 10500",
@@ -371,7 +411,10 @@ fn design_evaluate_puts_each_experiment_on_its_own_duration() {
         );
         differs |= (fisher_long[k] / fisher[k] - 1.0).abs() > 1e-3;
     }
-    assert!(differs, "the 1.5 h experiment's duration made no difference");
+    assert!(
+        differs,
+        "the 1.5 h experiment's duration made no difference"
+    );
 }
 
 #[test]
@@ -391,7 +434,15 @@ fn diagnose_takes_experiments_of_different_lengths() {
         whiten_from_model: true,
         ..Default::default()
     };
-    let d = diagnose(&setup, &data, Some(&noise), &sc.guess, Some(&sc.truth), &cfg).unwrap();
+    let d = diagnose(
+        &setup,
+        &data,
+        Some(&noise),
+        &sc.guess,
+        Some(&sc.truth),
+        &cfg,
+    )
+    .unwrap();
     assert!(
         d.effects_added.is_empty(),
         "claimed {:?}",

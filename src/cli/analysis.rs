@@ -359,7 +359,7 @@ pub fn fit(a: FitArgs) -> Result<()> {
         whitener,
         a.poly_degree,
     )
-        .with_context(|| a.dataset.display().to_string())?;
+    .with_context(|| a.dataset.display().to_string())?;
     let problem = lik.problem(&data)?;
     let mut cfg = FitConfig::new(&setup.parameter_names());
     cfg.estimator = a.estimator;

@@ -44,7 +44,10 @@ fn check_length(lens: &[usize], p: usize, poly_degree: usize, np: usize) -> Resu
     let need = min_length(p, poly_degree, np);
     let what = |e: usize| {
         if lens.len() > 1 {
-            format!("experiment {} series for a whitening filter of order {p}", e + 1)
+            format!(
+                "experiment {} series for a whitening filter of order {p}",
+                e + 1
+            )
         } else {
             format!("experiment series for a whitening filter of order {p}")
         }

@@ -74,12 +74,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
     /// missing or empty: no injection) or longer than `lens[e]`: the first
     /// `inputs[e][c].len() - lens[e]` samples are then the experiment's lead-in (see the module
     /// docs).
-    pub fn with_lengths(
-        model: &'m M,
-        inputs: &[Vec<Vec<f64>>],
-        lens: &[usize],
-        dt: f64,
-    ) -> Self {
+    pub fn with_lengths(model: &'m M, inputs: &[Vec<Vec<f64>>], lens: &[usize], dt: f64) -> Self {
         let mut planner = RealFftPlanner::<f64>::new();
         let mut grids: Vec<Grid<M::Point>> = Vec::new();
         let mut grid_of = Vec::with_capacity(lens.len());
@@ -87,10 +82,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
             .iter()
             .enumerate()
             .map(|(e, &n)| {
-                let len = inputs
-                    .get(e)
-                    .and_then(|x| x.first())
-                    .map_or(0, |c| c.len());
+                let len = inputs.get(e).and_then(|x| x.first()).map_or(0, |c| c.len());
                 len.saturating_sub(n)
             })
             .collect();

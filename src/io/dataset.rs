@@ -138,15 +138,26 @@ impl Dataset {
     /// by a lead-in: the inputs of the run's earlier segments at their times, zero in the gaps,
     /// so that the model sees the loop's response to what was injected before the segment (the
     /// loop's slowest modes relax over hours, far beyond the whitening start-up). The guidance
-    /// in a gap is not recorded; it is taken as zero only where the recorded guidance is zero
-    /// on both sides of the gap (an injection pause, where designs put their null Dirichlet
-    /// boundaries). A gap across a running injection ends the lead-in: the segment after it
-    /// starts from rest, with a note (the second value) naming the gap.
+    /// in a gap is not recorded; it is taken as zero only where the recorded guidance reaches
+    /// zero at both edges of the gap (zero, or within one sample's change of zero: an injection
+    /// pause, where designs put their null Dirichlet boundaries). A gap across a running
+    /// injection ends the lead-in: the segment after it starts from rest, with a note (the
+    /// second value) naming the gap; zero-filling it instead would put a step into the modelled
+    /// guidance that the loop never saw.
     pub fn inputs_with_lead_in(&self) -> (Vec<Vec<Vec<f64>>>, Vec<String>) {
         let mut notes = Vec::new();
+        // The guidance reaches zero at an edge sample `x` (next to the gap) whose neighbour is
+        // `y` when it is zero or within about one sample's change of zero (a sine ending at the
+        // next sample has `|x| = |x - y| (1 + O(step^2))`; 1.5 leaves room for that).
+        let at_rest = |x: f64, y: f64| x == 0.0 || x.abs() <= 1.5 * (x - y).abs();
         let quiet = |a: &Run, b: &Run| {
-            a.inputs().iter().all(|x| x.last() == Some(&0.0))
-                && b.inputs().iter().all(|x| x.first() == Some(&0.0))
+            a.inputs().iter().all(|x| match x {
+                [.., y, x] => at_rest(*x, *y),
+                _ => false,
+            }) && b.inputs().iter().all(|x| match x {
+                [x, y, ..] => at_rest(*x, *y),
+                _ => false,
+            })
         };
         let inputs = self
             .experiments
@@ -154,8 +165,7 @@ impl Dataset {
             .enumerate()
             .map(|(i, (name, run))| {
                 let own = || run.inputs().iter().map(|c| c.to_vec()).collect();
-                let Some(seg) = run.segment.as_ref().filter(|s| s.index > 0 && s.index <= i)
-                else {
+                let Some(seg) = run.segment.as_ref().filter(|s| s.index > 0 && s.index <= i) else {
                     return own();
                 };
                 let earlier = &self.experiments[i - seg.index..i];
@@ -167,13 +177,15 @@ impl Dataset {
                 }
                 // Walk back over gaps in injection pauses.
                 let mut first = i;
-                while first > i - seg.index && quiet(&self.experiments[first - 1].1, &self.experiments[first].1) {
+                while first > i - seg.index
+                    && quiet(&self.experiments[first - 1].1, &self.experiments[first].1)
+                {
                     first -= 1;
                 }
                 if first == i {
                     if let Some(g) = &seg.gap_before {
                         notes.push(format!(
-                            "{}: the guidance is not zero at {g}: the injection may have run \
+                            "{}: the guidance does not reach zero at {g}: the injection ran \
                              through it, so '{name}' starts from rest (no lead-in)",
                             run.label().display()
                         ));
@@ -363,13 +375,13 @@ pub fn read_dataset(path: impl AsRef<Path>) -> Result<Dataset, IoError> {
         Some(file) => {
             let segments = read(resolve(file, "the noise run")?, &mut notes)?;
             if segments.len() > 1 {
-                notes.push(split_note(&segments, "the noise run uses its longest segment"));
+                notes.push(split_note(
+                    &segments,
+                    "the noise run uses its longest segment",
+                ));
             }
             // The longest segment (the first of equal ones).
-            segments
-                .into_iter()
-                .rev()
-                .max_by_key(|r| r.len())
+            segments.into_iter().rev().max_by_key(|r| r.len())
         }
         None => None,
     };

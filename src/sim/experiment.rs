@@ -1,5 +1,7 @@
 //! Simulated experiments at the analysis rate: `o_exp = o_s(p_true) + o_n`, with templates from
-//! the zero-padded FFT engine and noise from the closed-loop cross-PSD.
+//! the zero-padded FFT engine and noise from the closed-loop cross-PSD. Each experiment has its
+//! own time grid (start and length, e.g. a design's per-experiment `duration_s`, or a segment of
+//! a run at its absolute times), and the noise generators are prepared once per length.
 
 use rand::Rng;
 
