@@ -464,8 +464,8 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
                     }
                 }
             }
-            for e in 0..ne {
-                let grid = &self.grids[self.grid_of[e]];
+            for (e, &g) in self.grid_of.iter().enumerate() {
+                let grid = &self.grids[g];
                 let (nb, m, n, lead) = (grid.nbins(), grid.m, self.lens[e], self.leads[e]);
                 let norm = 1.0 / m as f64;
                 let from = from.min(n);

@@ -521,9 +521,12 @@ pub fn read_run_segments(path: impl AsRef<Path>) -> Result<(Vec<Run>, Vec<String
     Ok((segments_from_columns(path, columns)?, notes))
 }
 
+/// Named columns of a run file.
+type Columns = Vec<(String, Vec<f64>)>;
+
 /// The columns of a run file as `f64` (the time column converted to seconds), and the notes
 /// of what was read leniently.
-fn read_columns_noted(path: &Path) -> Result<(Vec<(String, Vec<f64>)>, Vec<String>), IoError> {
+fn read_columns_noted(path: &Path) -> Result<(Columns, Vec<String>), IoError> {
     let mut required = vec![TIME_COLUMN];
     required.extend(REQUIRED);
     let (mut table, report) = match format_of(path)? {
