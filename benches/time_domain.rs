@@ -52,6 +52,7 @@ fn bench(c: &mut Criterion) {
         experiments: vec![Experiment {
             name: "noise".into(),
             inputs: vec![None, None],
+            duration_s: None,
         }],
         ..setup.design("standard").unwrap()
     };

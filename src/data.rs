@@ -1,11 +1,16 @@
 //! The data types every layer shares: series per experiment and channel, and a set of
-//! identification experiments (guidance inputs and readout outputs) on one time grid
-//! (thesis sec. 4.3: `o_exp = o_s + o_n`, with inputs `o_i`).
+//! identification experiments (guidance inputs and readout outputs) sampled at one rate
+//! (thesis sec. 4.3: `o_exp = o_s + o_n`, with inputs `o_i`). Each experiment has its own length:
+//! the joint likelihood (thesis sec. 4.4) is a sum over experiments, so experiments of different
+//! durations, or the contiguous segments of a run with gaps, are fitted together as they are.
 
 /// Series per experiment, per channel: `out[e][c][t]`.
 pub type Series = Vec<Vec<Vec<f64>>>;
 
-/// Inputs and outputs of each experiment: `inputs[e][c]`, `outputs[e][c]`, all of length n.
+/// Inputs and outputs of each experiment: `inputs[e][c]`, `outputs[e][c]`, the outputs of one
+/// experiment of its length `n_e`. The inputs may be longer: their first `l_e` samples are a
+/// lead-in, guidance known before the first output sample (the earlier segments of a run with
+/// gaps), whose response the templates carry. `inputs` may be empty (a noise-only set).
 #[derive(Debug, Clone)]
 pub struct ExperimentData {
     pub names: Vec<String>,
@@ -15,11 +20,45 @@ pub struct ExperimentData {
 }
 
 impl ExperimentData {
+    /// Length of the longest experiment (of every experiment when they are equal).
     pub fn len(&self) -> usize {
+        self.lengths().into_iter().max().unwrap_or(0)
+    }
+
+    /// Length of the shortest experiment.
+    pub fn min_len(&self) -> usize {
+        self.lengths().into_iter().min().unwrap_or(0)
+    }
+
+    /// Length `n_e` of every experiment.
+    pub fn lengths(&self) -> Vec<usize> {
         self.outputs
-            .first()
-            .and_then(|e| e.first())
-            .map_or(0, |c| c.len())
+            .iter()
+            .map(|e| e.first().map_or(0, |c| c.len()))
+            .collect()
+    }
+
+    /// Length of experiment `e`.
+    pub fn len_of(&self, e: usize) -> usize {
+        self.outputs[e].first().map_or(0, |c| c.len())
+    }
+
+    /// Lead-in `l_e` of experiment `e`: input samples before its first output sample.
+    pub fn lead(&self, e: usize) -> usize {
+        let inputs = self
+            .inputs
+            .get(e)
+            .and_then(|x| x.first())
+            .map_or(0, |c| c.len());
+        inputs.saturating_sub(self.len_of(e))
+    }
+
+    /// The inputs of experiment `e` over its outputs' samples (without the lead-in).
+    pub fn inputs_of(&self, e: usize) -> Vec<&[f64]> {
+        let l = self.lead(e);
+        self.inputs
+            .get(e)
+            .map_or(Vec::new(), |x| x.iter().map(|c| &c[l..]).collect())
     }
 
     pub fn is_empty(&self) -> bool {

@@ -236,9 +236,11 @@ impl Setup {
 /// parameters `p` under the model noise PSD at `p`.
 pub fn design_fisher(setup: &Setup, design: &Design, p: &[f64]) -> nalgebra::DMatrix<f64> {
     let dt = setup.analysis_dt();
-    let n = design.samples(dt);
-    let inputs: Vec<Vec<Vec<f64>>> = (0..design.experiments.len())
-        .map(|e| design.sample(e, 2, 0.0, dt, n))
+    let inputs: Vec<Vec<Vec<f64>>> = design
+        .lengths(dt)
+        .into_iter()
+        .enumerate()
+        .map(|(e, n)| design.sample(e, 2, 0.0, dt, n))
         .collect();
     let spectra = InputSpectra::<2>::from_series(&inputs, dt);
     fisher_information(&setup.model, &spectra, p, setup.psd(p))

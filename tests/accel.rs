@@ -435,6 +435,7 @@ fn calibrated_delta_suppresses_the_start_up_transient() {
         experiments: vec![freefall::signal::Experiment {
             name: "noise".into(),
             inputs: vec![None, None],
+            duration_s: None,
         }],
         ..design
     };

@@ -431,7 +431,8 @@ fn bad_datasets_name_the_file_row_and_column() {
         &["fit", s(&ds.join("dataset.toml")), "--out", s(&out)],
         &["exp1.csv", "o1"],
     );
-    // Runs of different lengths.
+    // Runs of different lengths are no error: each experiment is fitted on its own length
+    // (tests/lengths.rs checks the estimates).
     let ds = dataset(&d.path().join("e"));
     rewrite(&ds.join("exp2.parquet"), |c, t| {
         t.truncate(5000);
@@ -439,10 +440,7 @@ fn bad_datasets_name_the_file_row_and_column() {
             v.truncate(5000);
         }
     });
-    fails(
-        &["fit", s(&ds.join("dataset.toml")), "--out", s(&out)],
-        &["exp2.csv", "5000"],
-    );
+    ok(&["fit", s(&ds.join("dataset.toml")), "--out", s(&out)]);
     // Runs shorter than the whitening filter needs.
     let short = d.path().join("short");
     std::fs::create_dir_all(&short).unwrap();

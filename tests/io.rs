@@ -928,7 +928,8 @@ fn dataset_toml_syntax_and_type_errors_give_the_line() {
 }
 
 #[test]
-fn dataset_different_lengths_name_files_and_lengths() {
+fn dataset_experiments_of_different_lengths_are_read() {
+    // Experiments of different lengths are fitted each on its own length: the reader keeps them.
     let (_d, path) = dataset_dir(
         &[
             ("noise.parquet", sample_run(50, 1.0, 0.0)),
@@ -937,16 +938,9 @@ fn dataset_different_lengths_name_files_and_lengths() {
         ],
         TWO_EXPERIMENTS,
     );
-    let err = read_dataset(&path).unwrap_err();
-    assert!(matches!(err, IoError::LengthMismatch { .. }));
-    assert_contains(
-        &err.to_string(),
-        &[
-            "dataset.toml",
-            "exp1.parquet' has 30 rows",
-            "exp2.parquet' has 31 rows",
-        ],
-    );
+    let ds = read_dataset(&path).unwrap();
+    assert_eq!(ds.experiment("exp1").unwrap().len(), 30);
+    assert_eq!(ds.experiment("exp2").unwrap().len(), 31);
 }
 
 #[test]
@@ -1026,7 +1020,8 @@ fn write_dataset_validates_before_writing() {
         noise: None,
         experiments: vec![
             ("a".into(), sample_run(10, 1.0, 0.0)),
-            ("b".into(), sample_run(11, 1.0, 0.0)),
+            // Experiments may differ in length, not in sampling interval.
+            ("b".into(), sample_run(11, 0.5, 0.0)),
         ],
         meta: toml::Table::new(),
         notes: Vec::new(),
@@ -1036,8 +1031,8 @@ fn write_dataset_validates_before_writing() {
         &err.to_string(),
         &[
             "dataset.toml",
-            "<experiment a>' has 10 rows",
-            "<experiment b>' has 11 rows",
+            "<experiment a>' has dt=1 s",
+            "<experiment b>' has dt=0.5 s",
         ],
     );
     assert!(!out.exists());

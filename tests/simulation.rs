@@ -138,6 +138,7 @@ fn decimation_keeps_the_psd_below_0p4_hz() {
     design.experiments = vec![Experiment {
         name: "noise".into(),
         inputs: vec![None, None],
+        duration_s: None,
     }];
     let sim =
         DecimatedSimulator::<2>::new(&setup.model, &design, &p, setup.psd(&p), 0.1, 10, 2, None)
@@ -168,6 +169,7 @@ fn single_stretch(f_hz: f64, amplitude: f64, input: usize) -> Design {
         experiments: vec![Experiment {
             name: "e".into(),
             inputs,
+            duration_s: None,
         }],
     }
 }
@@ -272,6 +274,7 @@ fn decimated_series_have_no_edge_transient() {
     design.experiments = vec![Experiment {
         name: "noise".into(),
         inputs: vec![None, None],
+        duration_s: None,
     }];
     let sim =
         DecimatedSimulator::<2>::new(&setup.model, &design, &p, setup.psd(&p), 0.1, 10, 2, None)

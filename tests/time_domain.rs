@@ -123,6 +123,7 @@ fn noise_design(setup: &Setup, duration_s: f64) -> Design {
         experiments: vec![Experiment {
             name: "noise".into(),
             inputs: vec![None, None],
+            duration_s: None,
         }],
         ..setup.design("standard").unwrap()
     }

@@ -50,19 +50,19 @@ pub fn outputs_of(run: &Run) -> Vec<Vec<f64>> {
     run.outputs().iter().map(|c| c.to_vec()).collect()
 }
 
-/// The experiments of a dataset as fit input.
-pub fn experiment_data(ds: &Dataset) -> Result<ExperimentData> {
+/// The experiments of a dataset as fit input, with notes on how the segments of runs with gaps
+/// were joined (a segment carries the earlier segments' guidance as lead-in when the gap lies
+/// in an injection pause).
+pub fn experiment_data(ds: &Dataset) -> Result<(ExperimentData, Vec<String>)> {
     let dt = ds.dt().ok_or(AnalysisError::NoRuns)?;
-    Ok(ExperimentData {
+    let (inputs, notes) = ds.inputs_with_lead_in();
+    let data = ExperimentData {
         names: ds.experiments.iter().map(|(n, _)| n.clone()).collect(),
-        inputs: ds
-            .experiments
-            .iter()
-            .map(|(_, r)| r.inputs().iter().map(|c| c.to_vec()).collect())
-            .collect(),
+        inputs,
         outputs: ds.experiments.iter().map(|(_, r)| outputs_of(r)).collect(),
         dt,
-    })
+    };
+    Ok((data, notes))
 }
 
 /// The starting point `--guess`: a scenario name (its guess), a TOML file of

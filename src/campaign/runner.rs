@@ -262,7 +262,7 @@ impl<'s> Runner<'s> {
                 let data = cell.sim.draw(&mut rng);
                 let noise_w = self.noise_chi2.then(|| {
                     let outputs = (0..data.outputs.len())
-                        .map(|_| cell.sim.noise_series(&mut rng))
+                        .map(|e| cell.sim.noise_series_of(e, &mut rng))
                         .collect();
                     let noise = ExperimentData {
                         names: data.names.clone(),

@@ -157,7 +157,15 @@ pub fn fit(a: FitArgs) -> Result<()> {
     for n in &ds.notes {
         info!("note: {n}");
     }
-    let data = experiment_data(&ds)?;
+    let (data, notes) = experiment_data(&ds)?;
+    for n in notes {
+        info!("note: {n}");
+    }
+    // A segment of a run with gaps too short for the filter: one line naming file, row and gap.
+    ds.check_lengths(
+        crate::fit::problem::min_length(a.order, a.poly_degree, setup.parameter_names().len()),
+        &format!("a whitening filter of order {}", a.order),
+    )?;
     let mut guess = resolve_guess(&setup, a.guess.as_deref())?;
     let constraints = parse_constraints(&setup.parameter_names(), &a.fix, &a.prior, &mut guess)
         .map_err(anyhow::Error::msg)?;
@@ -179,8 +187,15 @@ pub fn fit(a: FitArgs) -> Result<()> {
     if ds.noise.is_none() && a.whitening == Whitening::Auto {
         info!("note: whitening from the {source}");
     }
-    let lik = Likelihood::new(&setup.model, &data.inputs, data.dt, whitener, a.poly_degree)
-        .with_context(|| a.dataset.display().to_string())?;
+    let lik = Likelihood::with_lengths(
+        &setup.model,
+        &data.inputs,
+        &data.lengths(),
+        data.dt,
+        whitener,
+        a.poly_degree,
+    )
+    .with_context(|| a.dataset.display().to_string())?;
     let problem = lik.problem(&data)?;
     cfg.estimator = a.estimator;
     let working = super::Working::new("fitting");

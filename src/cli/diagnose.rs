@@ -107,8 +107,15 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
     for n in &ds.notes {
         info!("note: {n}");
     }
-    let data = experiment_data(&ds)?;
+    let (data, notes) = experiment_data(&ds)?;
+    for n in notes {
+        info!("note: {n}");
+    }
     let names = setup.parameter_names();
+    ds.check_lengths(
+        crate::fit::problem::min_length(a.order, a.poly_degree, names.len()),
+        &format!("a whitening filter of order {}", a.order),
+    )?;
     let mut guess = resolve_guess(&setup, a.guess.as_deref())?;
     let constraints =
         parse_constraints(&names, &a.fix, &a.prior, &mut guess).map_err(anyhow::Error::msg)?;

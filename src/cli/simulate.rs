@@ -102,6 +102,7 @@ pub fn run(a: SimulateArgs) -> Result<()> {
         experiments: vec![crate::signal::Experiment {
             name: "noise".into(),
             inputs: vec![None, None],
+            duration_s: None,
         }],
         ..design.clone()
     };

@@ -236,7 +236,7 @@ fn push_signals(
     let mut rng = crate::sim::rng::stream(seed, 0);
     let data = sim.draw(&mut rng);
     for (e, name) in data.names.iter().enumerate() {
-        for k in 0..data.len() {
+        for k in 0..data.len_of(e) {
             rows.id.push(id.into());
             rows.exp.push(name.clone());
             rows.t.push(k as f64 * data.dt);

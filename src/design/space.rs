@@ -649,6 +649,7 @@ impl DesignSpace {
                 Experiment {
                     name: en.to_string(),
                     inputs,
+                    duration_s: None,
                 }
             })
             .collect();
@@ -721,6 +722,7 @@ impl CandidateSet {
                 Experiment {
                     name: g.experiment.clone(),
                     inputs,
+                    duration_s: None,
                 }
             })
             .collect();

@@ -215,6 +215,16 @@ impl Additive {
     /// Apply a Gauss-Newton step to the non-linear parameters, bounded to keep the linearisation
     /// valid: a quarter periodogram bin for a line frequency, the width (at least one sample)
     /// for a glitch time, a factor of two for its width (kept between 0.05 samples and T/4).
+    /// The experiment a line or glitch sits in (`None`: a drift, which acts on every one).
+    pub fn experiment(&self) -> Option<usize> {
+        match self {
+            Additive::Line { experiment, .. } | Additive::Glitch { experiment, .. } => {
+                Some(*experiment)
+            }
+            Additive::Drift { .. } => None,
+        }
+    }
+
     pub fn step_nonlinear(&mut self, step: &[f64], n: usize, dt: f64) {
         let clamp = |x: f64, m: f64| if x.is_finite() { x.clamp(-m, m) } else { 0.0 };
         match self {
@@ -282,7 +292,7 @@ impl Additive {
     }
 
     /// Raw (unwhitened) readout columns, one per amplitude, at full parameters `p` of `model`
-    /// (`lik` prepared for it), full length n of every experiment and channel.
+    /// (`lik` prepared for it), full length n_e of every experiment and channel.
     pub fn columns(
         &self,
         model: &Extended,
@@ -290,9 +300,7 @@ impl Additive {
         data: &ExperimentData,
         p: &[f64],
     ) -> Vec<Series> {
-        let n = data.len();
-        let n_exp = data.outputs.len();
-        let zeros = || vec![vec![vec![0.0; n]; 2]; n_exp];
+        let zeros = || zero_series(data);
         match self {
             Additive::Line {
                 experiment,
@@ -302,7 +310,7 @@ impl Additive {
             } => {
                 let w = 2.0 * std::f64::consts::PI * f_hz * data.dt;
                 let (mut s, mut c) = (zeros(), zeros());
-                for i in 0..n {
+                for i in 0..data.len_of(*experiment) {
                     s[*experiment][*channel][i] = (w * i as f64).sin();
                     c[*experiment][*channel][i] = (w * i as f64).cos();
                 }
@@ -315,9 +323,10 @@ impl Additive {
             } => {
                 let (_, d) = lik.engine.templates_and_derivatives(p, None);
                 let mut col = d.into_iter().nth(*parameter).unwrap_or_else(zeros);
-                let t_half = 0.5 * n as f64;
                 for exp in &mut col {
                     for ch in exp.iter_mut() {
+                        let n = ch.len();
+                        let t_half = 0.5 * n as f64;
                         for (i, v) in ch.iter_mut().enumerate() {
                             let u = (i as f64 - t_half) / n as f64;
                             *v *= if *quadratic { u * u - 1.0 / 12.0 } else { u };
@@ -338,8 +347,7 @@ impl Additive {
         p: &[f64],
         part: Part,
     ) -> Series {
-        let n = data.len();
-        let mut col = vec![vec![vec![0.0; n]; 2]; data.outputs.len()];
+        let mut col = zero_series(data);
         if let Additive::Glitch {
             experiment,
             entry,
@@ -348,9 +356,10 @@ impl Additive {
             ..
         } = self
         {
+            let e = (*experiment).min(data.outputs.len().saturating_sub(1));
             let grid = Grid {
-                n,
-                m: lik.engine.padded_len(),
+                n: data.len_of(e),
+                m: lik.engine.padded_len_of(e),
                 dt: data.dt,
             };
             let h = glitch::entry_response(model, p, &grid, *entry);
@@ -372,8 +381,6 @@ impl Additive {
         p: &[f64],
         amps: &[f64],
     ) -> Vec<Series> {
-        let n = data.len();
-        let n_exp = data.outputs.len();
         match self {
             Additive::Line {
                 experiment,
@@ -381,7 +388,7 @@ impl Additive {
                 f_hz,
                 ..
             } => {
-                let mut d = vec![vec![vec![0.0; n]; 2]; n_exp];
+                let mut d = zero_series(data);
                 let w = 2.0 * std::f64::consts::PI * f_hz * data.dt;
                 let (a, b) = (amps[0], amps[1]);
                 for (i, v) in d[*experiment][*channel].iter_mut().enumerate() {
@@ -401,6 +408,14 @@ impl Additive {
                 .collect(),
         }
     }
+}
+
+/// Zero series of the shape of `data`'s outputs (every experiment of its own length).
+fn zero_series(data: &ExperimentData) -> Series {
+    data.lengths()
+        .into_iter()
+        .map(|n| vec![vec![0.0; n]; 2])
+        .collect()
 }
 
 /// Whitened, cut and projected version of raw readout series `s` (as the data and templates).

@@ -249,11 +249,13 @@ impl<'a> DiagnosisProblem<'a> {
     ) -> Result<Self, DiagnoseError> {
         cfg.validate()?;
         check_data(data, obs)?;
-        let order = whitening_order(data.len(), cfg.order, obs)?;
+        // The shortest experiment sets the order: every experiment drops its own start-up.
+        let order = whitening_order(data.min_len(), cfg.order, obs)?;
         let whitening = whitening(setup, data, noise, guess, cfg, order, obs)?;
-        let planned = Likelihood::new(
+        let planned = Likelihood::with_lengths(
             &setup.model,
             &data.inputs,
+            &data.lengths(),
             data.dt,
             whitening.filter.clone(),
             cfg.poly_degree,
@@ -374,6 +376,11 @@ impl<'a> DiagnosisProblem<'a> {
         let noise_ref = self.whitening.noise_ref.as_ref();
         let inputs = model.input_names();
         let mut channels = Vec::new();
+        // Inputs over each experiment's own samples (without a lead-in), aligned with its
+        // residuals.
+        let aligned: Vec<Vec<Vec<f64>>> = (0..data.names.len())
+            .map(|e| data.inputs_of(e).into_iter().map(<[f64]>::to_vec).collect())
+            .collect();
         for (e, en) in data.names.iter().enumerate() {
             for ch in Channel::ALL {
                 let c = ch.index();
@@ -384,7 +391,7 @@ impl<'a> DiagnosisProblem<'a> {
                     whitened: &res.residuals_w[e][c],
                     offset: self.order,
                     raw: &raw[e][c],
-                    inputs: &data.inputs[e],
+                    inputs: &aligned[e],
                     input_names: inputs,
                     dt: data.dt,
                     alpha: self.cfg.alpha,
@@ -541,7 +548,12 @@ impl DiagnosisProblem<'_> {
                 }
                 if *n_nl > 0 {
                     let s: Vec<f64> = (0..*n_nl).map(|q| step[(j + q, 0)]).collect();
-                    a.step_nonlinear(&s, data.len(), data.dt);
+                    // A line or glitch is bounded by its own experiment's duration.
+                    let n = a
+                        .experiment()
+                        .filter(|&e| e < data.outputs.len())
+                        .map_or(data.len(), |e| data.len_of(e));
+                    a.step_nonlinear(&s, n, data.dt);
                     j += n_nl;
                 }
             }

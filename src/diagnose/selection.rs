@@ -861,12 +861,6 @@ fn glitch_candidates(
     let data = problem.data;
     let lik = problem.likelihood(model)?;
     let w = problem.filter();
-    let grid = glitch::Grid {
-        n: data.len(),
-        m: lik.engine.padded_len(),
-        dt: data.dt,
-    };
-    let wr = w.response_on_grid(grid.m);
     // Robust variance of the whitened residual (median of r^2 over that of chi^2(1)), so that
     // the ranking is not set by the glitch itself.
     let mut sq: Vec<f64> = fit
@@ -887,16 +881,53 @@ fn glitch_candidates(
         .noise_w
         .as_deref()
         .map(|r| (r, problem.whitening.fpe));
-    let s = glitch::scan(
-        model,
-        &fit.estimate,
-        &grid,
-        &wr,
-        w.order(),
-        &fit.residuals_w,
-        scale,
-        noise,
-    );
+    // One scan per experiment length (its own padded grid); the others are left out of it.
+    let lens = data.lengths();
+    let mut distinct: Vec<usize> = Vec::new();
+    for &n in &lens {
+        if !distinct.contains(&n) {
+            distinct.push(n);
+        }
+    }
+    let mut s = glitch::Scan {
+        peaks: Vec::new(),
+        trials: 0.0,
+    };
+    for n in distinct {
+        let first = lens.iter().position(|&l| l == n).unwrap_or(0);
+        let grid = glitch::Grid {
+            n,
+            m: lik.engine.padded_len_of(first),
+            dt: data.dt,
+        };
+        let wr = w.response_on_grid(grid.m);
+        let res: Vec<Vec<Vec<f64>>> = fit
+            .residuals_w
+            .iter()
+            .zip(&lens)
+            .map(|(r, &l)| if l == n { r.clone() } else { Vec::new() })
+            .collect();
+        let part = glitch::scan(
+            model,
+            &fit.estimate,
+            &grid,
+            &wr,
+            w.order(),
+            &res,
+            scale,
+            noise,
+        );
+        let share = lens.iter().filter(|&&l| l == n).count() as f64 / lens.len().max(1) as f64;
+        s.trials += part.trials * share;
+        for pk in part.peaks {
+            match s.peaks.iter_mut().find(|q| q.entry == pk.entry) {
+                Some(q) if q.z2 >= pk.z2 => {}
+                Some(q) => *q = pk,
+                None => s.peaks.push(pk),
+            }
+        }
+    }
+    s.trials = s.trials.max(1.0);
     Ok(s.peaks
         .into_iter()
         .map(|pk| Additive::Glitch {

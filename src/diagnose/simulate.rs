@@ -110,9 +110,10 @@ fn simulate_drifts_glitched(
     };
     let (mut data, noise) = at(-1.0)?;
     let (plus, _) = at(1.0)?;
-    let n = data.len().max(1) as f64;
     for (oe, pe) in data.outputs.iter_mut().zip(&plus.outputs) {
         for (oc, pc) in oe.iter_mut().zip(pe) {
+            // Each experiment drifts over its own duration.
+            let n = oc.len().max(1) as f64;
             for (i, (o, q)) in oc.iter_mut().zip(pc).enumerate() {
                 *o += (q - *o) * i as f64 / n;
             }
@@ -152,9 +153,9 @@ pub fn simulate_with_drift_paths(
     let (mut data, noise) = at(-0.5)?;
     let (mid, _) = at(0.0)?;
     let (end, _) = at(0.5)?;
-    let n = data.len().max(1) as f64;
     for ((oe, me), ee) in data.outputs.iter_mut().zip(&mid.outputs).zip(&end.outputs) {
         for ((oc, mc), ec) in oe.iter_mut().zip(me).zip(ee) {
+            let n = oc.len().max(1) as f64;
             for (i, ((o, m), e)) in oc.iter_mut().zip(mc).zip(ec).enumerate() {
                 // Lagrange interpolation through the nodes u = -1/2, 0, 1/2.
                 let u = i as f64 / n - 0.5;

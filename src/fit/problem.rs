@@ -7,13 +7,16 @@
 //! `r_w = P (W o_exp - W o_s(p))`, where `W o_s(p) = IFFT[W(f) T(f, p) o_i(f)]` (zero-padded) and
 //! `P` projects out a polynomial of degree `poly_degree` per (experiment, channel), the nuisance
 //! terms that absorb the residual red component of the whitening. Then
-//! `chi^2 = sum rho(r_w)` and `nu = N_exp N_o (n - p - poly_degree - 1) - N_p`.
+//! `chi^2 = sum rho(r_w)` and `nu = N_o sum_e (n_e - p - poly_degree - 1) - N_p`: every
+//! experiment e keeps its own length `n_e`, its own padded FFT grid and its own nuisance basis,
+//! and drops its own filter start-up (the thesis's joint likelihood is a sum over experiments,
+//! so nothing ties their lengths together).
 
 use super::whiten::{poly_basis, project_out, Whitener};
 use super::FitError;
 pub use crate::data::ExperimentData;
 use crate::data::Series;
-use crate::forward::TemplateEngine;
+use crate::forward::{GridFilter, TemplateEngine};
 use crate::model::closed_loop::{CMat, ClosedLoopModel};
 
 /// The parts of the likelihood that depend only on the inputs and the whitening filter: the
@@ -22,39 +25,68 @@ use crate::model::closed_loop::{CMat, ClosedLoopModel};
 pub struct Likelihood<'m, M: ClosedLoopModel<N>, const N: usize> {
     pub engine: TemplateEngine<'m, M, N>,
     pub whitener: Whitener<N>,
-    response: Vec<CMat<N>>,
-    basis: Vec<Vec<f64>>,
+    /// The whitening response on each of the engine's padded grids.
+    response: Vec<Vec<CMat<N>>>,
+    /// The nuisance basis of each experiment over its valid samples.
+    basis: Vec<Vec<Vec<f64>>>,
     pub poly_degree: usize,
+}
+
+/// Fewest samples an experiment may have: a whitening filter of order `p`, the nuisance
+/// polynomial of degree `poly_degree` and `np` parameters leave two spare degrees of freedom.
+pub fn min_length(p: usize, poly_degree: usize, np: usize) -> usize {
+    p + poly_degree + 2 + np
 }
 
 /// Series of `n` samples leave enough after a whitening filter of order `p`, the nuisance
 /// polynomial and `np` parameters (two spare degrees of freedom).
-fn check_length(n: usize, p: usize, poly_degree: usize, np: usize) -> Result<(), FitError> {
-    let need = p + poly_degree + 2 + np;
-    if n < need {
-        return Err(FitError::TooShort {
-            what: format!("experiment series for a whitening filter of order {p}"),
-            len: n,
+fn check_length(lens: &[usize], p: usize, poly_degree: usize, np: usize) -> Result<(), FitError> {
+    let need = min_length(p, poly_degree, np);
+    let what = |e: usize| {
+        if lens.len() > 1 {
+            format!(
+                "experiment {} series for a whitening filter of order {p}",
+                e + 1
+            )
+        } else {
+            format!("experiment series for a whitening filter of order {p}")
+        }
+    };
+    match lens.iter().position(|&n| n < need) {
+        Some(e) => Err(FitError::TooShort {
+            what: what(e),
+            len: lens[e],
             need,
-        });
+        }),
+        None if lens.is_empty() => Err(FitError::TooShort {
+            what: what(0),
+            len: 0,
+            need,
+        }),
+        None => Ok(()),
     }
-    Ok(())
 }
 
 impl<M: ClosedLoopModel<N>, const N: usize> Likelihood<'_, M, N> {
-    /// The whitening filter's response on the template engine's padded grid.
-    pub fn response(&self) -> &[CMat<N>] {
+    /// The whitening filter's response on each of the template engine's padded grids.
+    pub fn response(&self) -> &GridFilter<N> {
         &self.response
     }
 
-    /// The nuisance polynomial basis over the valid samples.
-    pub fn basis(&self) -> &[Vec<f64>] {
-        &self.basis
+    /// The nuisance polynomial basis of experiment `e` over its valid samples.
+    pub fn basis(&self, e: usize) -> &[Vec<f64>] {
+        &self.basis[e]
+    }
+
+    /// Valid (whitened, cut) samples of experiment `e`.
+    pub fn valid_len(&self, e: usize) -> usize {
+        self.engine.len_of(e) - self.order()
     }
 }
 
 impl<'m, M: ClosedLoopModel<N>, const N: usize> Likelihood<'m, M, N> {
-    /// `inputs[e][c]`: every experiment's guidance series (length n, spacing dt).
+    /// `inputs[e][c]`: every experiment's guidance series (spacing dt), each experiment of its
+    /// own length.
     pub fn new(
         model: &'m M,
         inputs: &[Vec<Vec<f64>>],
@@ -62,14 +94,40 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> Likelihood<'m, M, N> {
         whitener: Whitener<N>,
         poly_degree: usize,
     ) -> Result<Self, FitError> {
-        let n = inputs
-            .first()
-            .and_then(|e| e.first())
-            .map_or(0, |c| c.len());
-        check_length(n, whitener.order(), poly_degree, model.n_params())?;
-        let engine = TemplateEngine::new(model, inputs, dt);
-        let response = whitener.response_on_grid(engine.padded_len());
-        let basis = poly_basis(n - whitener.order(), poly_degree);
+        let lens: Vec<usize> = inputs
+            .iter()
+            .map(|e| e.first().map_or(0, |c| c.len()))
+            .collect();
+        Self::with_lengths(model, inputs, &lens, dt, whitener, poly_degree)
+    }
+
+    /// The same for experiments of `lens[e]` output samples whose inputs may start earlier (a
+    /// lead-in, see [`TemplateEngine::with_lengths`]): what [`ExperimentData`] holds.
+    pub fn with_lengths(
+        model: &'m M,
+        inputs: &[Vec<Vec<f64>>],
+        lens: &[usize],
+        dt: f64,
+        whitener: Whitener<N>,
+        poly_degree: usize,
+    ) -> Result<Self, FitError> {
+        let lens = lens.to_vec();
+        check_length(&lens, whitener.order(), poly_degree, model.n_params())?;
+        let engine = TemplateEngine::with_lengths(model, inputs, &lens, dt);
+        let response = engine
+            .padded_lens()
+            .into_iter()
+            .map(|m| whitener.response_on_grid(m))
+            .collect();
+        // One basis per distinct length, shared by the experiments of that length.
+        let mut basis: Vec<Vec<Vec<f64>>> = Vec::with_capacity(lens.len());
+        for (e, &n) in lens.iter().enumerate() {
+            let b = match lens[..e].iter().position(|&l| l == n) {
+                Some(f) => basis[f].clone(),
+                None => poly_basis(n - whitener.order(), poly_degree),
+            };
+            basis.push(b);
+        }
         Ok(Likelihood {
             engine,
             whitener,
@@ -86,7 +144,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> Likelihood<'m, M, N> {
         model: &'n M2,
     ) -> Result<Likelihood<'n, M2, N>, FitError> {
         check_length(
-            self.engine.len(),
+            self.engine.lens(),
             self.order(),
             self.poly_degree,
             model.n_params(),
@@ -104,18 +162,19 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> Likelihood<'m, M, N> {
         self.whitener.order()
     }
 
-    /// Whiten, cut and project series `s[e][c]` of full length n.
+    /// Cut and project whitened series `s[e][c]` of full length n_e.
     fn whiten_cut(&self, s: Series) -> Series {
         s.into_iter()
-            .map(|exp| exp.into_iter().map(|c| self.cut(c)).collect())
+            .enumerate()
+            .map(|(e, exp)| exp.into_iter().map(|c| self.cut(e, c)).collect())
             .collect()
     }
 
-    /// Drop the filter's start-up samples of a whitened series and project out the nuisance
-    /// polynomial.
-    pub fn cut(&self, mut c: Vec<f64>) -> Vec<f64> {
+    /// Drop the filter's start-up samples of a whitened series of experiment `e` and project
+    /// out its nuisance polynomial.
+    pub fn cut(&self, e: usize, mut c: Vec<f64>) -> Vec<f64> {
         c.drain(..self.order());
-        project_out(&mut c, &self.basis);
+        project_out(&mut c, &self.basis[e]);
         c
     }
 
@@ -141,31 +200,35 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> Likelihood<'m, M, N> {
         let mut t = self
             .engine
             .templates_cut(p, Some(&self.response), self.order());
-        for c in t.iter_mut().flatten() {
-            project_out(c, &self.basis);
+        for (e, exp) in t.iter_mut().enumerate() {
+            for c in exp {
+                project_out(c, &self.basis[e]);
+            }
         }
         t
     }
 
     /// Whitened, cut and projected outputs of one data set.
     pub fn problem<'a>(&'a self, data: &ExperimentData) -> Result<Problem<'a, 'm, M, N>, FitError> {
-        if data.outputs.len() != self.engine.n_experiments() || data.len() != self.engine.len() {
+        if data.outputs.len() != self.engine.n_experiments() || data.lengths() != self.engine.lens()
+        {
             return Err(FitError::Input(format!(
-                "data has {} experiments of {} samples, the likelihood was prepared for {} of {}",
+                "data has {} experiments of {:?} samples, the likelihood was prepared for {} of {:?}",
                 data.outputs.len(),
-                data.len(),
+                data.lengths(),
                 self.engine.n_experiments(),
-                self.engine.len()
+                self.engine.lens()
             )));
         }
         let data_w = data
             .outputs
             .iter()
-            .map(|exp| {
+            .enumerate()
+            .map(|(e, exp)| {
                 self.engine
-                    .filter_series(exp, &self.response)
+                    .filter_series(e, exp, &self.response)
                     .into_iter()
-                    .map(|c| self.cut(c))
+                    .map(|c| self.cut(e, c))
                     .collect()
             })
             .collect();
@@ -180,14 +243,17 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> Likelihood<'m, M, N> {
         &'a self,
         data_w: Series,
     ) -> Result<Problem<'a, 'm, M, N>, FitError> {
-        let len = self.engine.len() - self.order();
+        let lens: Vec<usize> = (0..self.engine.n_experiments())
+            .map(|e| self.valid_len(e))
+            .collect();
         if data_w.len() != self.engine.n_experiments()
             || data_w
                 .iter()
-                .any(|e| e.len() != N || e.iter().any(|c| c.len() != len))
+                .zip(&lens)
+                .any(|(e, &len)| e.len() != N || e.iter().any(|c| c.len() != len))
         {
             return Err(FitError::Input(format!(
-                "whitened data must have {} experiments of {N} channels of {len} samples",
+                "whitened data must have {} experiments of {N} channels of {lens:?} samples",
                 self.engine.n_experiments()
             )));
         }
@@ -205,8 +271,10 @@ pub struct Problem<'a, 'm, M: ClosedLoopModel<N>, const N: usize> {
 impl<M: ClosedLoopModel<N>, const N: usize> Problem<'_, '_, M, N> {
     /// Degrees of freedom `nu` for `n_params` fitted parameters.
     pub fn nu(&self, n_params: usize) -> usize {
-        let per = self.lik.engine.len() - self.lik.order() - self.lik.basis.len();
-        (self.data_w.len() * N * per).saturating_sub(n_params)
+        let total: usize = (0..self.data_w.len())
+            .map(|e| self.lik.valid_len(e) - self.lik.basis[e].len())
+            .sum();
+        (N * total).saturating_sub(n_params)
     }
 
     /// Whitened residuals `r[e][i]` at `p`.
@@ -227,7 +295,7 @@ impl<M: ClosedLoopModel<N>, const N: usize> Problem<'_, '_, M, N> {
                     .zip(t)
                     .map(|(d, v)| d - v * norm)
                     .collect();
-                project_out(&mut rc, &self.lik.basis);
+                project_out(&mut rc, &self.lik.basis[e]);
                 r[e].push(rc);
             },
         );
@@ -251,7 +319,8 @@ impl<M: ClosedLoopModel<N>, const N: usize> Problem<'_, '_, M, N> {
         (subtract(&self.data_w, &t), d)
     }
 
-    /// Raw (unwhitened) residuals `o_exp - o_s(p)` of the full series.
+    /// Raw (unwhitened) residuals `o_exp - o_s(p)` of the full series (each experiment's
+    /// outputs, after its lead-in).
     pub fn raw_residuals(&self, data: &ExperimentData, p: &[f64]) -> Series {
         let t = self.lik.engine.templates(p, None);
         subtract(&data.outputs, &t)

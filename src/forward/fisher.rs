@@ -1,7 +1,9 @@
 //! Frequency-domain Fisher information (thesis eq. "info_matrix", conventions of
 //! `reference/README.md`):
 //! `I_ij = sum_e sum_k (4 / T) Re[(dT/dp_i o_i)^H S_n^-1 (dT/dp_j o_i)]` over the positive
-//! frequency bins of each experiment, with `X(f_k) = dt * FFT(x)_k` and `T = N dt`.
+//! frequency bins of each experiment, with `X(f_k) = dt * FFT(x)_k` and `T = N dt`. Each
+//! experiment is transformed on its own length: `T`, and with it the bins `f_k = k / T`, are the
+//! experiment's own (experiments of equal length share one grid).
 //! This is the design-side information; the fit's own covariance comes from the whitened
 //! time-domain Jacobian, and the two must agree (a test).
 
@@ -11,23 +13,28 @@ use realfft::RealFftPlanner;
 
 use crate::model::closed_loop::{transfer_with_derivatives, CMat, ClosedLoopModel};
 
-/// Spectra `X_e,c(f_k) = dt FFT(x)` of every experiment's inputs, on the positive bins.
+/// Spectra `X_e,c(f_k) = dt FFT(x)` of every experiment's inputs, each on the positive bins
+/// `f_k = k / (n_e dt)` of its own length `n_e`.
 pub struct InputSpectra<const N: usize> {
-    pub f: Vec<f64>,
     pub spectra: Vec<[Vec<Complex64>; N]>,
-    pub duration: f64,
+    /// Length `n_e` of every experiment.
+    pub lens: Vec<usize>,
+    pub dt: f64,
 }
 
 impl<const N: usize> InputSpectra<N> {
-    /// From time series `inputs[e][c]`, all of length n, spacing dt.
+    /// From time series `inputs[e][c]` (each experiment of its own length), spacing dt.
     pub fn from_series(inputs: &[Vec<Vec<f64>>], dt: f64) -> Self {
-        let n = inputs[0][0].len();
+        let lens: Vec<usize> = inputs
+            .iter()
+            .map(|exp| exp.first().map_or(0, |c| c.len()))
+            .collect();
         let mut planner = RealFftPlanner::<f64>::new();
-        let fft = planner.plan_fft_forward(n);
-        let nb = n / 2 + 1;
         let spectra = inputs
             .iter()
-            .map(|exp| {
+            .zip(&lens)
+            .map(|(exp, &n)| {
+                let fft = planner.plan_fft_forward(n);
                 std::array::from_fn(|c| {
                     let mut buf = exp.get(c).cloned().unwrap_or_else(|| vec![0.0; n]);
                     let mut spec = fft.make_output_vec();
@@ -36,11 +43,18 @@ impl<const N: usize> InputSpectra<N> {
                 })
             })
             .collect();
-        InputSpectra {
-            f: (0..nb).map(|k| k as f64 / (n as f64 * dt)).collect(),
-            spectra,
-            duration: n as f64 * dt,
+        InputSpectra { spectra, lens, dt }
+    }
+
+    /// The distinct lengths, in order of first appearance.
+    fn distinct_lens(&self) -> Vec<usize> {
+        let mut out: Vec<usize> = Vec::new();
+        for &n in &self.lens {
+            if !out.contains(&n) {
+                out.push(n);
+            }
         }
+        out
     }
 }
 
@@ -54,12 +68,43 @@ pub fn fisher_information<M: ClosedLoopModel<N>, const N: usize>(
 ) -> DMatrix<f64> {
     let np = model.n_params();
     let mut info = DMatrix::<f64>::zeros(np, np);
-    let mut d = vec![CMat::<N>::zeros(); np];
-    let scale = 4.0 / inputs.duration;
-    let mut col = vec![[Complex64::new(0.0, 0.0); N]; np];
-    for (k, &f) in inputs.f.iter().enumerate().skip(1) {
-        let active = inputs
+    for n in inputs.distinct_lens() {
+        let group: Vec<&[Vec<Complex64>; N]> = inputs
             .spectra
+            .iter()
+            .zip(&inputs.lens)
+            .filter(|(_, &l)| l == n)
+            .map(|(s, _)| s)
+            .collect();
+        add_group_information(model, &group, n, inputs.dt, p, &psd, &mut info);
+    }
+    for a in 0..np {
+        for b in 0..a {
+            info[(b, a)] = info[(a, b)];
+        }
+    }
+    info
+}
+
+/// The lower triangle of the information of the experiments `spectra` of length `n`, added to
+/// `info`.
+fn add_group_information<M: ClosedLoopModel<N>, const N: usize>(
+    model: &M,
+    spectra: &[&[Vec<Complex64>; N]],
+    n: usize,
+    dt: f64,
+    p: &[f64],
+    psd: &impl Fn(f64) -> CMat<N>,
+    info: &mut DMatrix<f64>,
+) {
+    let np = model.n_params();
+    let mut d = vec![CMat::<N>::zeros(); np];
+    let duration = n as f64 * dt;
+    let scale = 4.0 / duration;
+    let mut col = vec![[Complex64::new(0.0, 0.0); N]; np];
+    for k in 1..n / 2 + 1 {
+        let f = k as f64 / duration;
+        let active = spectra
             .iter()
             .any(|s| s.iter().any(|x| x[k].norm_sqr() > 0.0));
         if !active {
@@ -71,7 +116,7 @@ pub fn fisher_information<M: ClosedLoopModel<N>, const N: usize>(
             Some(s) => s,
             None => continue,
         };
-        for exp in &inputs.spectra {
+        for exp in spectra {
             for (q, dq) in d.iter().enumerate() {
                 for i in 0..N {
                     let mut acc = Complex64::new(0.0, 0.0);
@@ -99,10 +144,4 @@ pub fn fisher_information<M: ClosedLoopModel<N>, const N: usize>(
             }
         }
     }
-    for a in 0..np {
-        for b in 0..a {
-            info[(b, a)] = info[(a, b)];
-        }
-    }
-    info
 }

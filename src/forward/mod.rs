@@ -7,4 +7,4 @@
 pub mod fisher;
 pub mod templates;
 
-pub use templates::TemplateEngine;
+pub use templates::{GridFilter, TemplateEngine};

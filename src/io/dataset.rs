@@ -16,8 +16,16 @@
 //!
 //! Run paths are relative to the directory of the TOML file. [`read_dataset`] rejects unknown keys
 //! (naming the key), duplicate or empty experiment names, and loads and validates every run
-//! ([`read_run`]); all runs must share the sampling interval and all experiments must have the same
-//! length (the noise run may be longer or shorter). [`write_dataset`] writes `dataset.toml` and one
+//! ([`read_run`]); all runs must share the sampling interval. Experiments may differ in length:
+//! each is whitened and fitted on its own.
+//!
+//! Gaps: a run whose time column has gaps (whole missing samples) is split into its contiguous
+//! segments ([`super::run::read_run_segments`]), and each segment becomes an experiment of its
+//! own named `NAME.segK` (K from 1, in time order), with its absolute times (`t0`) and the place
+//! it came from ([`Run::segment`]); the fit treats them as independent experiments, each
+//! whitened with its own start-up dropped. A noise run with gaps contributes its longest
+//! segment. Every split is a note. [`Dataset::check_lengths`] refuses, naming the file, the row
+//! and the time of the gap, a segment too short for the analysis. [`write_dataset`] writes `dataset.toml` and one
 //! Parquet file per run into a directory, each file atomically, the TOML last.
 
 use std::path::{Path, PathBuf};
@@ -25,7 +33,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use super::atomic::{ensure_dir, parent_dir, read_text, toml_error, write_toml_atomic};
-use super::run::{read_run_noted, write_run, Run, TIME_TOLERANCE};
+use super::run::{read_run_segments, write_run, Run, TIME_TOLERANCE};
 use super::{in_memory, IoError};
 
 /// File name of the dataset description written by [`write_dataset`].
@@ -154,8 +162,111 @@ impl Dataset {
             .or(self.noise.as_ref().map(|r| r.dt))
     }
 
+    /// Every experiment's guidance inputs (oi1, oi12); a segment of a run with gaps is preceded
+    /// by a lead-in: the inputs of the run's earlier segments at their times, zero in the gaps,
+    /// so that the model sees the loop's response to what was injected before the segment (the
+    /// loop's slowest modes relax over hours, far beyond the whitening start-up). The guidance
+    /// in a gap is not recorded; it is taken as zero only where the recorded guidance reaches
+    /// zero at both edges of the gap (zero, or within one sample's change of zero: an injection
+    /// pause, where designs put their null Dirichlet boundaries). A gap across a running
+    /// injection ends the lead-in: the segment after it starts from rest, with a note (the
+    /// second value) naming the gap; zero-filling it instead would put a step into the modelled
+    /// guidance that the loop never saw.
+    pub fn inputs_with_lead_in(&self) -> (Vec<Vec<Vec<f64>>>, Vec<String>) {
+        let mut notes = Vec::new();
+        // The guidance reaches zero at an edge sample `x` (next to the gap) whose neighbour is
+        // `y` when it is zero or within about one sample's change of zero (a sine ending at the
+        // next sample has `|x| = |x - y| (1 + O(step^2))`; 1.5 leaves room for that).
+        let at_rest = |x: f64, y: f64| x == 0.0 || x.abs() <= 1.5 * (x - y).abs();
+        let quiet = |a: &Run, b: &Run| {
+            a.inputs().iter().all(|x| match x {
+                [.., y, x] => at_rest(*x, *y),
+                _ => false,
+            }) && b.inputs().iter().all(|x| match x {
+                [x, y, ..] => at_rest(*x, *y),
+                _ => false,
+            })
+        };
+        let inputs = self
+            .experiments
+            .iter()
+            .enumerate()
+            .map(|(i, (name, run))| {
+                let own = || run.inputs().iter().map(|c| c.to_vec()).collect();
+                let Some(seg) = run.segment.as_ref().filter(|s| s.index > 0 && s.index <= i) else {
+                    return own();
+                };
+                let earlier = &self.experiments[i - seg.index..i];
+                let same_file = earlier.iter().enumerate().all(|(k, (_, r))| {
+                    r.path == run.path && r.segment.as_ref().is_some_and(|s| s.index == k)
+                });
+                if !same_file {
+                    return own();
+                }
+                // Walk back over gaps in injection pauses.
+                let mut first = i;
+                while first > i - seg.index
+                    && quiet(&self.experiments[first - 1].1, &self.experiments[first].1)
+                {
+                    first -= 1;
+                }
+                if first == i {
+                    if let Some(g) = &seg.gap_before {
+                        notes.push(format!(
+                            "{}: the guidance does not reach zero at {g}: the injection ran \
+                             through it, so '{name}' starts from rest (no lead-in)",
+                            run.label().display()
+                        ));
+                    }
+                    return own();
+                }
+                let chain: Vec<&Run> = self.experiments[first..=i].iter().map(|(_, r)| r).collect();
+                let start = chain[0].t0;
+                let at = |t0: f64| ((t0 - start) / run.dt).round().max(0.0) as usize;
+                let total = at(run.t0) + run.len();
+                let mut out = vec![vec![0.0; total]; 2];
+                for r in chain {
+                    let from = at(r.t0);
+                    for (o, x) in out.iter_mut().zip(r.inputs()) {
+                        let end = (from + x.len()).min(total);
+                        o[from..end].copy_from_slice(&x[..end - from]);
+                    }
+                }
+                out
+            })
+            .collect();
+        (inputs, notes)
+    }
+
+    /// Refuses an experiment shorter than `min` samples that is a segment of a run with gaps,
+    /// with one line naming the file, the segment's first row, the gap and `what` needs the
+    /// samples (e.g. "a whitening filter of order 300"). Whole runs are left to the analysis's
+    /// own length check.
+    pub fn check_lengths(&self, min: usize, what: &str) -> Result<(), IoError> {
+        for (name, run) in &self.experiments {
+            let Some(seg) = &run.segment else { continue };
+            if run.len() >= min {
+                continue;
+            }
+            let gap = seg.gap().map_or(String::new(), |g| format!(" next to {g}"));
+            return Err(IoError::invalid(
+                &run.label(),
+                format!(
+                    "segment {} of {} (experiment '{name}', rows {} to {}, t = {} s){gap} has {}                      samples, too short for {what} (needs at least {min}): drop those rows or                      fill the gap",
+                    seg.index + 1,
+                    seg.count,
+                    seg.first_row,
+                    seg.first_row + run.len() - 1,
+                    super::fmt_short(run.t0),
+                    run.len(),
+                ),
+            ));
+        }
+        Ok(())
+    }
+
     /// Checks every run and the consistency of the set: at least one run, unique non-empty
-    /// experiment names, a common dt, equal experiment lengths.
+    /// experiment names, a common dt.
     pub fn validate(&self) -> Result<(), IoError> {
         if let Some(noise) = &self.noise {
             noise.validate()?;
@@ -225,19 +336,6 @@ fn check_consistency(
                 second: label.clone(),
                 second_dt: run.dt,
             });
-        }
-    }
-    if let Some((_, first)) = experiments.first() {
-        for (name, run) in &experiments[1..] {
-            if run.len() != first.len() {
-                return Err(IoError::LengthMismatch {
-                    path: path.to_path_buf(),
-                    first: runs[0].0.clone(),
-                    first_len: first.len(),
-                    second: run_label(run, Some(name)),
-                    second_len: run.len(),
-                });
-            }
         }
     }
     Ok(())
@@ -334,13 +432,23 @@ pub fn read_dataset(path: impl AsRef<Path>) -> Result<Dataset, IoError> {
         }
     };
     let mut notes = Vec::new();
-    let mut read = |file: PathBuf| -> Result<Run, IoError> {
-        let (run, n) = read_run_noted(file)?;
+    let read = |file: PathBuf, notes: &mut Vec<String>| -> Result<Vec<Run>, IoError> {
+        let (runs, n) = read_run_segments(file)?;
         notes.extend(n);
-        Ok(run)
+        Ok(runs)
     };
     let noise = match &spec.noise {
-        Some(file) => Some(read(resolve(file, "the noise run")?)?),
+        Some(file) => {
+            let segments = read(resolve(file, "the noise run")?, &mut notes)?;
+            if segments.len() > 1 {
+                notes.push(split_note(
+                    &segments,
+                    "the noise run uses its longest segment",
+                ));
+            }
+            // The longest segment (the first of equal ones).
+            segments.into_iter().rev().max_by_key(|r| r.len())
+        }
         None => None,
     };
     let mut files = Vec::with_capacity(spec.experiment.len());
@@ -353,7 +461,22 @@ pub fn read_dataset(path: impl AsRef<Path>) -> Result<Dataset, IoError> {
     check_distinct_files(path, &files)?;
     let mut experiments = Vec::with_capacity(files.len());
     for (name, file) in files {
-        experiments.push((name, read(file)?));
+        let segments = read(file, &mut notes)?;
+        if segments.len() == 1 {
+            experiments.extend(segments.into_iter().map(|r| (name.clone(), r)));
+            continue;
+        }
+        let names: Vec<String> = (1..=segments.len())
+            .map(|k| format!("{name}.seg{k}"))
+            .collect();
+        notes.push(split_note(
+            &segments,
+            &format!(
+                "fitted as experiments {}, each whitened on its own",
+                names.join(", ")
+            ),
+        ));
+        experiments.extend(names.into_iter().zip(segments));
     }
     check_consistency(path, noise.as_ref(), &experiments)?;
     Ok(Dataset {
@@ -363,6 +486,31 @@ pub fn read_dataset(path: impl AsRef<Path>) -> Result<Dataset, IoError> {
         meta: spec.meta,
         notes,
     })
+}
+
+/// `exp1.parquet: 1 gap (rows 0-4999, 5100-10799 kept; 100 samples missing at t = 4999 s to
+/// 5100 s): <what>`.
+fn split_note(segments: &[Run], what: &str) -> String {
+    let label = segments[0].label();
+    let rows: Vec<String> = segments
+        .iter()
+        .map(|r| {
+            let first = r.segment.as_ref().map_or(0, |s| s.first_row);
+            format!("{first}-{}", first + r.len() - 1)
+        })
+        .collect();
+    let gaps: Vec<String> = segments
+        .iter()
+        .filter_map(|r| r.segment.as_ref().and_then(|s| s.gap_after))
+        .map(|g| g.to_string())
+        .collect();
+    format!(
+        "{}: {} gap(s) ({}); split into segments of rows {}: {what}",
+        label.display(),
+        gaps.len(),
+        gaps.join(", "),
+        rows.join(", ")
+    )
 }
 
 /// Checks that an experiment name can be used as a file stem.

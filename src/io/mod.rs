@@ -6,7 +6,8 @@
 //!   (readouts) and optional extra columns (`y1`, `phi1`, ...), read into a validated [`Run`]
 //!   (project reference README, "Measured-data files");
 //! - datasets ([`dataset`]): a TOML file naming an optional noise run and the experiment runs, read
-//!   into a validated [`Dataset`] whose runs share the sampling interval;
+//!   into a validated [`Dataset`] whose runs share the sampling interval (experiments may differ
+//!   in length; a run with gaps becomes one experiment per contiguous segment);
 //! - columnar output tables ([`table`]): [`Table`], Parquet read/write and the streaming
 //!   [`ParquetAppender`];
 //! - atomic writes ([`atomic`]): every output is written to a temporary file in the destination
@@ -36,8 +37,8 @@ pub use atomic::{
 pub use dataset::{read_dataset, write_dataset, Dataset, DATASET_FILE_NAME};
 pub use provenance::Provenance;
 pub use run::{
-    read_csv, read_csv_noted, read_run, read_run_noted, write_run, Run, INPUT_COLUMNS, MIN_ROWS,
-    OUTPUT_COLUMNS, TIME_COLUMN, TIME_TOLERANCE,
+    read_csv, read_csv_noted, read_run, read_run_noted, read_run_segments, write_run, Gap, Run,
+    Segment, INPUT_COLUMNS, MIN_ROWS, OUTPUT_COLUMNS, TIME_COLUMN, TIME_TOLERANCE,
 };
 pub use table::{
     read_parquet, read_parquet_nulls_as_nan, write_parquet, Column, ParquetAppender, Table,
@@ -177,17 +178,6 @@ pub enum IoError {
         second: PathBuf,
         second_dt: f64,
     },
-    /// Experiments of a dataset have different lengths.
-    #[error("{}: experiments have different lengths: '{}' has {first_len} rows, '{}' has {second_len} rows",
-        path.display(), first.display(), second.display())]
-    LengthMismatch {
-        /// The dataset file.
-        path: PathBuf,
-        first: PathBuf,
-        first_len: usize,
-        second: PathBuf,
-        second_len: usize,
-    },
     /// Two experiments of a dataset share a name.
     #[error("{}: duplicate experiment name '{name}'", path.display())]
     DuplicateExperiment { path: PathBuf, name: String },
@@ -217,7 +207,6 @@ impl IoError {
             | IoError::NonUniformTime { path, .. }
             | IoError::TooShort { path, .. }
             | IoError::DtMismatch { path, .. }
-            | IoError::LengthMismatch { path, .. }
             | IoError::DuplicateExperiment { path, .. }
             | IoError::Invalid { path, .. } => path,
         }

@@ -12,6 +12,11 @@
 //!   Each step is first compared with the median step so that the error points at the row where
 //!   the sampling breaks.
 //!
+//! [`read_run_segments`] (what datasets use) accepts gaps: a step of `t` that is a whole number
+//! `k >= 2` of sampling intervals (within the tolerance above) marks `k - 1` missing samples,
+//! and the run is split there into contiguous segments, each a uniformly sampled [`Run`] that
+//! records where it came from ([`Segment`]). Any other irregular step is still an error.
+//!
 //! CSV is read through `arrow-csv`: one header line of column names (optionally double-quoted),
 //! the delimiter sniffed from the header (`,`, `;` or tab), numbers as Rust/C `f64` literals;
 //! blank lines and lines starting with `#` are ignored. A first column without a name (pandas'
@@ -53,6 +58,49 @@ pub struct Run {
     /// Sampling interval [s].
     pub dt: f64,
     pub columns: Vec<(String, Vec<f64>)>,
+    /// Where this run sits in its file when the file has gaps (`None`: the whole file).
+    pub segment: Option<Segment>,
+}
+
+/// A contiguous segment of a run file with gaps: which one, from which row, and the gaps
+/// around it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Segment {
+    /// 0-based index among the file's segments, and their number.
+    pub index: usize,
+    pub count: usize,
+    /// 0-based data row of the segment's first sample in the file.
+    pub first_row: usize,
+    pub gap_before: Option<Gap>,
+    pub gap_after: Option<Gap>,
+}
+
+/// Missing samples in a time column: the last time before and the first after, and the data row
+/// of the first sample after it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Gap {
+    pub row: usize,
+    pub t_before: f64,
+    pub t_after: f64,
+}
+
+impl std::fmt::Display for Gap {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(
+            f,
+            "the gap at row {} (t = {} s to {} s)",
+            self.row,
+            super::fmt_short(self.t_before),
+            super::fmt_short(self.t_after)
+        )
+    }
+}
+
+impl Segment {
+    /// The gap that bounds this segment (the one before it, else the one after it).
+    pub fn gap(&self) -> Option<&Gap> {
+        self.gap_before.as_ref().or(self.gap_after.as_ref())
+    }
 }
 
 impl Run {
@@ -64,6 +112,7 @@ impl Run {
             t0,
             dt,
             columns: order_columns(columns),
+            segment: None,
         };
         run.validate()?;
         Ok(run)
@@ -264,17 +313,10 @@ fn check_finite(path: &Path, name: &str, values: &[f64]) -> Result<(), IoError> 
 }
 
 /// Checks that `t` (finite, at least 2 samples) strictly increases and is uniform; returns
-/// (t0, dt).
-fn check_time(path: &Path, t: &[f64]) -> Result<(f64, f64), IoError> {
+/// (t0, dt). Rows in errors are counted from `first_row` (a segment's place in its file).
+fn check_time(path: &Path, t: &[f64], first_row: usize) -> Result<(f64, f64), IoError> {
     let n = t.len();
-    if let Some(i) = (1..n).find(|&i| t[i] <= t[i - 1]) {
-        return Err(IoError::TimeNotIncreasing {
-            path: path.to_path_buf(),
-            row: i,
-            previous: t[i - 1],
-            found: t[i],
-        });
-    }
+    check_increasing(path, t, first_row)?;
     let t0 = t[0];
     let dt = (t[n - 1] - t0) / (n - 1) as f64;
     // Rounding of the stored time stamps themselves: a few ulps of the largest |t|.
@@ -291,7 +333,7 @@ fn check_time(path: &Path, t: &[f64]) -> Result<(f64, f64), IoError> {
         if (t[i] - expected).abs() > 4.0 * (TIME_TOLERANCE * median + slack) {
             return Err(IoError::NonUniformTime {
                 path: path.to_path_buf(),
-                row: i,
+                row: first_row + i,
                 expected,
                 found: t[i],
                 dt: median,
@@ -304,7 +346,7 @@ fn check_time(path: &Path, t: &[f64]) -> Result<(f64, f64), IoError> {
         if (ti - expected).abs() > tol {
             return Err(IoError::NonUniformTime {
                 path: path.to_path_buf(),
-                row: i,
+                row: first_row + i,
                 expected,
                 found: ti,
                 dt,
@@ -312,6 +354,38 @@ fn check_time(path: &Path, t: &[f64]) -> Result<(f64, f64), IoError> {
         }
     }
     Ok((t0, dt))
+}
+
+fn check_increasing(path: &Path, t: &[f64], first_row: usize) -> Result<(), IoError> {
+    match (1..t.len()).find(|&i| t[i] <= t[i - 1]) {
+        Some(i) => Err(IoError::TimeNotIncreasing {
+            path: path.to_path_buf(),
+            row: first_row + i,
+            previous: t[i - 1],
+            found: t[i],
+        }),
+        None => Ok(()),
+    }
+}
+
+/// Rows `i` of a strictly increasing `t` that follow a gap: a step within the tolerance of the
+/// uniformity check of a whole number `k >= 2` of median steps (`k - 1` missing samples).
+fn find_gaps(t: &[f64]) -> Vec<usize> {
+    let n = t.len();
+    if n < 3 {
+        return Vec::new();
+    }
+    let mut steps: Vec<f64> = t.windows(2).map(|w| w[1] - w[0]).collect();
+    let mid = steps.len() / 2;
+    let (_, &mut median, _) = steps.select_nth_unstable_by(mid, f64::total_cmp);
+    let slack = 4.0 * f64::EPSILON * t[0].abs().max(t[n - 1].abs());
+    (1..n)
+        .filter(|&i| {
+            let step = t[i] - t[i - 1];
+            let k = (step / median).round();
+            k >= 2.0 && (step - k * median).abs() <= 4.0 * (TIME_TOLERANCE * k * median + slack)
+        })
+        .collect()
 }
 
 /// Builds a validated run from the columns of a file (including `t`).
@@ -326,13 +400,76 @@ fn run_from_columns(path: &Path, mut columns: Vec<(String, Vec<f64>)>) -> Result
     // Check everything (lengths, finiteness) with `t` in its file position, then take it out.
     check_columns(path, &columns)?;
     let (_, t) = columns.remove(ti);
-    let (t0, dt) = check_time(path, &t)?;
+    let (t0, dt) = check_time(path, &t, 0)?;
     Ok(Run {
         path: Some(path.to_path_buf()),
         t0,
         dt,
         columns: order_columns(columns),
+        segment: None,
     })
+}
+
+/// Validated runs from the columns of a file (including `t`), one per contiguous segment
+/// between gaps (see the module docs).
+fn segments_from_columns(
+    path: &Path,
+    mut columns: Vec<(String, Vec<f64>)>,
+) -> Result<Vec<Run>, IoError> {
+    let Some(ti) = columns.iter().position(|(n, _)| n == TIME_COLUMN) else {
+        return run_from_columns(path, columns).map(|r| vec![r]);
+    };
+    check_columns(path, &columns)?;
+    check_increasing(path, &columns[ti].1, 0)?;
+    let gaps = find_gaps(&columns[ti].1);
+    if gaps.is_empty() {
+        return run_from_columns(path, columns).map(|r| vec![r]);
+    }
+    let (_, t) = columns.remove(ti);
+    let columns = order_columns(columns);
+    let gap_at = |row: usize| Gap {
+        row,
+        t_before: t[row - 1],
+        t_after: t[row],
+    };
+    let mut bounds = vec![0];
+    bounds.extend(&gaps);
+    bounds.push(t.len());
+    let count = bounds.len() - 1;
+    let mut runs = Vec::with_capacity(count);
+    for (index, w) in bounds.windows(2).enumerate() {
+        let (a, b) = (w[0], w[1]);
+        let segment = Segment {
+            index,
+            count,
+            first_row: a,
+            gap_before: (index > 0).then(|| gap_at(a)),
+            gap_after: (index + 1 < count).then(|| gap_at(b)),
+        };
+        if b - a < MIN_ROWS {
+            return Err(IoError::invalid(
+                path,
+                format!(
+                    "the segment at row {a} (t = {} s) next to {} has {} row(s), at least                      {MIN_ROWS} are needed (drop it from the file)",
+                    super::fmt_short(t[a]),
+                    segment.gap().expect("a split run has gaps"),
+                    b - a
+                ),
+            ));
+        }
+        let (t0, dt) = check_time(path, &t[a..b], a)?;
+        runs.push(Run {
+            path: Some(path.to_path_buf()),
+            t0,
+            dt,
+            columns: columns
+                .iter()
+                .map(|(n, c)| (n.clone(), c[a..b].to_vec()))
+                .collect(),
+            segment: Some(segment),
+        });
+    }
+    Ok(runs)
 }
 
 enum Format {
@@ -373,6 +510,24 @@ pub const INTEGER_TIME_STEP_LIMIT: i64 = 1000;
 /// the first sample, float32 readouts, numeric columns the model does not use.
 pub fn read_run_noted(path: impl AsRef<Path>) -> Result<(Run, Vec<String>), IoError> {
     let path = path.as_ref();
+    let (columns, notes) = read_columns_noted(path)?;
+    Ok((run_from_columns(path, columns)?, notes))
+}
+
+/// [`read_run_noted`] for a file whose time column may have gaps: one run per contiguous
+/// segment (see the module docs), in time order.
+pub fn read_run_segments(path: impl AsRef<Path>) -> Result<(Vec<Run>, Vec<String>), IoError> {
+    let path = path.as_ref();
+    let (columns, notes) = read_columns_noted(path)?;
+    Ok((segments_from_columns(path, columns)?, notes))
+}
+
+/// Named columns of a run file.
+type Columns = Vec<(String, Vec<f64>)>;
+
+/// The columns of a run file as `f64` (the time column converted to seconds), and the notes
+/// of what was read leniently.
+fn read_columns_noted(path: &Path) -> Result<(Columns, Vec<String>), IoError> {
     let mut required = vec![TIME_COLUMN];
     required.extend(REQUIRED);
     let (mut table, report, mut notes) = match format_of(path)? {
@@ -451,7 +606,7 @@ pub fn read_run_noted(path: impl AsRef<Path>) -> Result<(Run, Vec<String>), IoEr
         })?;
         columns.push((name.clone(), values));
     }
-    Ok((run_from_columns(path, columns)?, notes))
+    Ok((columns, notes))
 }
 
 /// Refuses an integer `t` column whose step says it is not in seconds.

@@ -2,6 +2,10 @@
 //! `o_i(t) = sum_n a_n sin(2 pi f_n (t - t'_n)) theta(t - t'_n) theta(t''_n - t)`, with
 //! `t'_n = t0 + (n-1)(dt + gap)` and `t''_n = t'_n + dt`. Each sine starts and ends at zero
 //! (integer cycles, null Dirichlet boundaries); gaps let the system relax.
+//!
+//! The design's `duration_s` is every experiment's duration unless an experiment sets its own
+//! (`duration_s` in its `[[experiments]]` table): experiments of different lengths are analysed
+//! each on its own length.
 
 use serde::{Deserialize, Serialize};
 
@@ -25,6 +29,9 @@ pub struct Experiment {
     pub name: String,
     /// Indexed by input channel (0 = oi1, 1 = oi12 for LPF-x); stretch `n` occupies slot `n`.
     pub inputs: Vec<Option<Vec<Stretch>>>,
+    /// This experiment's duration [s]; `None`: the design's `duration_s`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub duration_s: Option<f64>,
 }
 
 /// Timing shared by all experiments of a design, plus the experiments.
@@ -71,10 +78,12 @@ impl Design {
                 Experiment {
                     name: "exp1".into(),
                     inputs: vec![Some(make(&spec.oi1_amplitude)), None],
+                    duration_s: None,
                 },
                 Experiment {
                     name: "exp2".into(),
                     inputs: vec![None, Some(make(&spec.oi12_amplitude))],
+                    duration_s: None,
                 },
             ],
         };
@@ -99,17 +108,26 @@ impl Design {
         if self.experiments.is_empty() {
             return Err(bad("no experiments".into()));
         }
-        for e in &self.experiments {
+        for (i, e) in self.experiments.iter().enumerate() {
+            if let Some(d) = e.duration_s {
+                if !(d.is_finite() && d > 0.0) {
+                    return Err(bad(format!(
+                        "experiment '{}': duration_s = {d} must be finite and > 0",
+                        e.name
+                    )));
+                }
+            }
+            let duration = self.duration_of(i);
             for (c, input) in e.inputs.iter().enumerate() {
                 let Some(stretches) = input else { continue };
                 let end = self.start_s + stretches.len() as f64 * (self.stretch_s + self.gap_s)
                     - self.gap_s;
-                if end > self.duration_s + 1e-9 {
+                if end > duration + 1e-9 {
                     return Err(bad(format!(
                         "experiment '{}' input {c}: {} stretches end at {end} s, after the experiment's {} s",
                         e.name,
                         stretches.len(),
-                        self.duration_s
+                        duration
                     )));
                 }
                 for (n, s) in stretches.iter().enumerate() {
@@ -176,8 +194,32 @@ impl Design {
             .collect()
     }
 
-    /// Number of samples of one experiment at sampling interval `dt`.
+    /// Number of samples of an experiment of the design's `duration_s` at sampling interval
+    /// `dt` (of the longest experiment when some set their own duration).
     pub fn samples(&self, dt: f64) -> usize {
-        (self.duration_s / dt).round() as usize
+        (0..self.experiments.len())
+            .map(|e| self.samples_of(e, dt))
+            .max()
+            .unwrap_or_else(|| (self.duration_s / dt).round() as usize)
+    }
+
+    /// Duration of experiment `e` [s]: its own `duration_s`, else the design's.
+    pub fn duration_of(&self, e: usize) -> f64 {
+        self.experiments
+            .get(e)
+            .and_then(|x| x.duration_s)
+            .unwrap_or(self.duration_s)
+    }
+
+    /// Number of samples of experiment `e` at sampling interval `dt`.
+    pub fn samples_of(&self, e: usize, dt: f64) -> usize {
+        (self.duration_of(e) / dt).round() as usize
+    }
+
+    /// Number of samples of every experiment at sampling interval `dt`.
+    pub fn lengths(&self, dt: f64) -> Vec<usize> {
+        (0..self.experiments.len())
+            .map(|e| self.samples_of(e, dt))
+            .collect()
     }
 }

@@ -2,7 +2,10 @@
 //! simulation rate (10 Hz) and decimated with an anti-alias FIR to the analysis rate (1 Hz).
 //! Every column, injections included, goes through the same filter, as a real down-link would.
 //! The 10 Hz grid extends beyond the analysed span by the filter's half-length on each side, so
-//! every kept sample is fully supported (no edge transients).
+//! every kept sample is fully supported (no edge transients). Experiments of different
+//! durations are simulated on the longest experiment's grid and each is cut to its own length:
+//! the loop is causal and the injections of a shorter experiment end before its end, so its
+//! first samples are the run it would have been on its own.
 
 use rand::Rng;
 
@@ -68,6 +71,8 @@ pub struct DecimatedSimulator<const N: usize> {
     pub n_out: usize,
     pub dt_out: f64,
     grid: DecimationGrid,
+    /// Output samples of every experiment (`n_out` is the longest).
+    lens: Vec<usize>,
 }
 
 impl<const N: usize> DecimatedSimulator<N> {
@@ -92,6 +97,7 @@ impl<const N: usize> DecimatedSimulator<N> {
             decimator: grid.decimator.clone(),
             n_out: grid.n_out,
             dt_out: grid.dt_out,
+            lens: design.lengths(grid.dt_out),
             grid,
         })
     }
@@ -109,18 +115,25 @@ impl<const N: usize> DecimatedSimulator<N> {
     /// One realization of every experiment at the analysis rate.
     pub fn draw<R: Rng + ?Sized>(&self, rng: &mut R) -> ExperimentData {
         let d = self.sim.draw(rng);
+        let cut = |series: &[Vec<Vec<f64>>]| -> Vec<Vec<Vec<f64>>> {
+            series
+                .iter()
+                .zip(&self.lens)
+                .map(|(e, &n)| {
+                    e.iter()
+                        .map(|c| {
+                            let mut x = self.decimate(c);
+                            x.truncate(n);
+                            x
+                        })
+                        .collect()
+                })
+                .collect()
+        };
         ExperimentData {
             names: d.names,
-            inputs: d
-                .inputs
-                .iter()
-                .map(|e| e.iter().map(|c| self.decimate(c)).collect())
-                .collect(),
-            outputs: d
-                .outputs
-                .iter()
-                .map(|e| e.iter().map(|c| self.decimate(c)).collect())
-                .collect(),
+            inputs: cut(&d.inputs),
+            outputs: cut(&d.outputs),
             dt: self.dt_out,
         }
     }

@@ -398,6 +398,9 @@ pub struct TimeDomainSimulator {
     inputs: Vec<Vec<Vec<f64>>>,
     noise: ColoredNoise<NOISE_CHANNELS>,
     initial: Option<InitialConditions>,
+    /// Telemetry samples of every experiment: experiments of different durations run on the
+    /// longest one's grid and are cut to their own length (the loop is causal).
+    lens: Vec<usize>,
 }
 
 impl TimeDomainSimulator {
@@ -438,6 +441,7 @@ impl TimeDomainSimulator {
             .collect();
         let noise = ColoredNoise::new(|f| input_csd(noise, f), n, h, oversample)?;
         Ok(TimeDomainSimulator {
+            lens: design.lengths(grid.dt_out),
             grid,
             names: design.experiments.iter().map(|e| e.name.clone()).collect(),
             digital,
@@ -478,10 +482,24 @@ impl TimeDomainSimulator {
     }
 
     fn data(&self, outputs: Vec<Vec<Vec<f64>>>) -> ExperimentData {
+        let cut = |series: Vec<Vec<Vec<f64>>>| -> Vec<Vec<Vec<f64>>> {
+            series
+                .into_iter()
+                .zip(&self.lens)
+                .map(|(e, &n)| {
+                    e.into_iter()
+                        .map(|mut c| {
+                            c.truncate(n);
+                            c
+                        })
+                        .collect()
+                })
+                .collect()
+        };
         ExperimentData {
             names: self.names.clone(),
-            inputs: self.inputs.clone(),
-            outputs,
+            inputs: cut(self.inputs.clone()),
+            outputs: cut(outputs),
             dt: self.grid.dt_out,
         }
     }

@@ -13,14 +13,17 @@ use crate::model::closed_loop::ClosedLoopModel;
 use crate::noise::{ColoredNoise, GlitchConfig};
 
 /// Realizations of a [`Simulator`] delivered whitened, cut and projected (see the module
-/// doc). Built once per campaign cell; `Sync`.
+/// doc). Built once per campaign cell; `Sync`. Experiments of different lengths each have their
+/// own filtered noise generator and nuisance basis.
 pub struct WhitenedSimulator<const N: usize> {
     /// Whitened, cut and projected noise-free responses `W o_s` per experiment.
     pub signal_w: Series,
-    noise: ColoredNoise<N>,
-    glitches: Option<GlitchConfig>,
+    /// One filtered generator per distinct experiment length (the simulator's order).
+    noises: Vec<(ColoredNoise<N>, Option<GlitchConfig>)>,
+    /// Per experiment: its generator and its nuisance basis.
+    noise_of: Vec<usize>,
+    basis: Vec<Vec<Vec<f64>>>,
     order: usize,
-    basis: Vec<Vec<f64>>,
 }
 
 impl<const N: usize> WhitenedSimulator<N> {
@@ -37,7 +40,7 @@ impl<const N: usize> WhitenedSimulator<N> {
         sim: &Simulator<N>,
     ) -> Result<Self, FitError> {
         let p = lik.order();
-        if sim.n != lik.engine.len()
+        if sim.lengths() != lik.engine.lens()
             || sim.signal.len() != lik.engine.n_experiments()
             || (sim.dt - lik.engine.dt()).abs() > 1e-12 * sim.dt
         {
@@ -45,39 +48,55 @@ impl<const N: usize> WhitenedSimulator<N> {
                 "the simulator does not match the likelihood's experiments".into(),
             ));
         }
-        if sim.noise.offset() < p || sim.noise.driving_len() <= p {
-            return Err(FitError::Input(format!(
-                "noise window offset {} is shorter than the whitening filter ({p} lags)",
-                sim.noise.offset()
-            )));
+        let mut noises = Vec::with_capacity(sim.noises.len());
+        for s in &sim.noises {
+            if s.noise.offset() < p || s.noise.driving_len() <= p {
+                return Err(FitError::Input(format!(
+                    "noise window offset {} is shorter than the whitening filter ({p} lags)",
+                    s.noise.offset()
+                )));
+            }
+            let response = lik.whitener.response_on_grid(s.noise.driving_len());
+            noises.push((s.noise.filtered(&response), s.glitches.clone()));
         }
-        let response = lik.whitener.response_on_grid(sim.noise.driving_len());
+        let lens = sim.lengths();
+        let noise_of = lens
+            .iter()
+            .map(|&n| {
+                sim.noises
+                    .iter()
+                    .position(|s| s.noise.len() == n)
+                    .expect("every length has a generator")
+            })
+            .collect();
         let signal_w = sim
             .signal
             .iter()
-            .map(|exp| {
+            .enumerate()
+            .map(|(e, exp)| {
                 lik.engine
-                    .filter_series(exp, lik.response())
+                    .filter_series(e, exp, lik.response())
                     .into_iter()
-                    .map(|c| lik.cut(c))
+                    .map(|c| lik.cut(e, c))
                     .collect()
             })
             .collect();
         Ok(WhitenedSimulator {
             signal_w,
-            noise: sim.noise.filtered(&response),
-            glitches: sim.glitches.clone(),
+            noises,
+            noise_of,
+            basis: (0..lens.len()).map(|e| lik.basis(e).to_vec()).collect(),
             order: p,
-            basis: lik.basis().to_vec(),
         })
     }
 
-    /// One noise series (N channels) whitened, cut and projected; the random numbers of
-    /// `Simulator::noise_series`.
-    pub fn noise_series<R: rand::Rng + ?Sized>(&self, rng: &mut R) -> Vec<Vec<f64>> {
-        let mut x = noise_series(&self.noise, self.glitches.as_ref(), self.order, rng);
+    /// One noise series (N channels) of experiment `e`'s length whitened, cut and projected;
+    /// the random numbers of `Simulator::noise_series_of`.
+    pub fn noise_series_of<R: rand::Rng + ?Sized>(&self, e: usize, rng: &mut R) -> Vec<Vec<f64>> {
+        let (noise, glitches) = &self.noises[self.noise_of[e]];
+        let mut x = noise_series(noise, glitches.as_ref(), self.order, rng);
         for c in x.iter_mut() {
-            project_out(c, &self.basis);
+            project_out(c, &self.basis[e]);
         }
         x
     }
@@ -87,8 +106,9 @@ impl<const N: usize> WhitenedSimulator<N> {
     pub fn draw<R: rand::Rng + ?Sized>(&self, rng: &mut R) -> Series {
         self.signal_w
             .iter()
-            .map(|sig| {
-                let mut noise = self.noise_series(rng);
+            .enumerate()
+            .map(|(e, sig)| {
+                let mut noise = self.noise_series_of(e, rng);
                 for (nc, sc) in noise.iter_mut().zip(sig) {
                     nc.iter_mut().zip(sc).for_each(|(a, b)| *a += b);
                 }
@@ -100,7 +120,7 @@ impl<const N: usize> WhitenedSimulator<N> {
     /// A noise-only run of every experiment (no injections), whitened, cut and projected.
     pub fn draw_noise<R: rand::Rng + ?Sized>(&self, rng: &mut R) -> Series {
         (0..self.signal_w.len())
-            .map(|_| self.noise_series(rng))
+            .map(|e| self.noise_series_of(e, rng))
             .collect()
     }
 }
