@@ -567,3 +567,64 @@ fn resume_refuses_a_chunk_of_another_campaign() {
         }
     }
 }
+
+#[test]
+fn fit_fixed_and_prior_keys_reach_every_fit() {
+    // Oracle: the documented [fit] keys. `fixed = ["dt1"]` holds dt1 at the scenario's guess
+    // (every row's dt1 estimate equals it, sigma 0, nu one higher than without); a prior on s21
+    // as wide as its fit sigma (the free run's) shrinks that sigma by 1/sqrt(2) within 5 %; an
+    // unknown parameter is an error naming the key.
+    let dir = tempfile::tempdir().unwrap();
+    let setup = freefall::setup::Setup::embedded();
+    let sc = setup.spec.scenario("monte_carlo").unwrap();
+    let names = setup.parameter_names();
+    let (k_dt1, k_s21) = (
+        names.iter().position(|n| n == "dt1").unwrap(),
+        names.iter().position(|n| n == "s21").unwrap(),
+    );
+    let rows_of = |name: &str, extra: &str| {
+        let text = small(3, 3, "") + extra;
+        let file = write_campaign(dir.path(), &format!("{name}.toml"), &text);
+        let out = dir.path().join(name);
+        run_lib(&file, &out, Shard::WHOLE, 2);
+        freefall::io::read_parquet(out.join("realizations.parquet")).unwrap()
+    };
+    let plain = rows_of("plain", "");
+    let col = |t: &Table, c: &str| t.f64_column(c).unwrap().to_vec();
+    // The prior's width: the free fits' mean s21 sigma.
+    let width = col(&plain, "s21_sigma").iter().sum::<f64>() / 3.0;
+    let held = rows_of("held", "[fit]\nfixed = [\"dt1\"]\n");
+    let tied = rows_of("tied", &format!("[fit.prior]\ns21 = [9e-5, {width:e}]\n"));
+    let nu = |t: &Table| t.count_column("nu").unwrap();
+    for (a, b) in nu(&plain).iter().zip(nu(&held)) {
+        assert_eq!(b, a + 1);
+    }
+    for (x, s) in col(&held, "dt1").iter().zip(col(&held, "dt1_sigma")) {
+        assert_eq!((*x, s), (sc.guess[k_dt1], 0.0));
+    }
+    let ratio: f64 = col(&tied, "s21_sigma")
+        .iter()
+        .zip(col(&plain, "s21_sigma"))
+        .map(|(a, b)| a / b)
+        .sum::<f64>()
+        / 3.0;
+    assert!(
+        (ratio * 2f64.sqrt() - 1.0).abs() < 0.05,
+        "s21 sigma ratio {ratio} (k = {k_s21})"
+    );
+    let text = small(2, 2, "") + "[fit]\nfixed = [\"nope\"]\n";
+    let file = write_campaign(dir.path(), "bad.toml", &text);
+    let loaded = campaign::load(Some(&file)).unwrap();
+    let opts = RunOptions {
+        out: dir.path().join("bad"),
+        shard: Shard::WHOLE,
+        resume: false,
+        threads: Some(1),
+    };
+    std::fs::create_dir_all(&opts.out).unwrap();
+    let err = campaign::run(&loaded, &opts, &mut |_: Progress| {})
+        .err()
+        .expect("refused")
+        .to_string();
+    assert!(err.contains("fit.fixed") && err.contains("nope"), "{err}");
+}

@@ -440,7 +440,9 @@ fn bad_datasets_name_the_file_row_and_column() {
             v.truncate(5000);
         }
     });
-    ok(&["fit", s(&ds.join("dataset.toml")), "--out", s(&out)]);
+    // (Its own --out: the bad-input cases below reuse `out`, which must stay empty.)
+    let unequal = d.path().join("fit-unequal");
+    ok(&["fit", s(&ds.join("dataset.toml")), "--out", s(&unequal)]);
     // Runs shorter than the whitening filter needs.
     let short = d.path().join("short");
     std::fs::create_dir_all(&short).unwrap();

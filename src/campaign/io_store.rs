@@ -15,7 +15,6 @@ use std::path::{Path, PathBuf};
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
 use serde::{Deserialize, Serialize};
-use sha2::{Digest, Sha256};
 
 use super::runner::{resolve_scenarios, Runner};
 use super::spec::{Campaign, DesignSource};
@@ -51,14 +50,7 @@ pub struct Loaded {
     pub config_hash: String,
 }
 
-fn sha256_hex(parts: &[&[u8]]) -> String {
-    let mut h = Sha256::new();
-    for p in parts {
-        h.update((p.len() as u64).to_le_bytes());
-        h.update(p);
-    }
-    h.finalize().iter().map(|b| format!("{b:02x}")).collect()
-}
+use crate::numerics::digest::sha256_parts_hex as sha256_hex;
 
 /// Load the campaign file at `path` (`None`: the embedded quick campaign).
 pub fn load(path: Option<&Path>) -> Result<Loaded, CampaignError> {

@@ -136,6 +136,39 @@ pub fn resolve_scenarios(
         .collect()
 }
 
+/// `[fit] fixed` and `[fit.prior]` by parameter index; an unknown name is an error naming the
+/// key.
+fn fit_constraints(
+    campaign: &Campaign,
+    names: &[String],
+) -> Result<crate::fit::Constraints, CampaignError> {
+    let index = |key: String, n: &str| {
+        names
+            .iter()
+            .position(|x| x == n)
+            .ok_or_else(|| CampaignError::Invalid {
+                file: campaign.file.clone(),
+                key,
+                reason: format!("unknown parameter '{n}' (expected {})", names.join(", ")),
+            })
+    };
+    let mut c = crate::fit::Constraints::default();
+    for n in &campaign.fit.fixed {
+        c.fixed.push(index("fit.fixed".into(), n)?);
+    }
+    for (n, [mean, sigma]) in &campaign.fit.priors {
+        let k = index(format!("fit.prior.{n}"), n)?;
+        c.priors.push((
+            k,
+            crate::fit::Prior {
+                mean: *mean,
+                sigma: *sigma,
+            },
+        ));
+    }
+    Ok(c)
+}
+
 impl<'s> Runner<'s> {
     /// Prepare every (scenario, design) cell. `designs` are in campaign order, named as there.
     pub fn new(
@@ -151,6 +184,7 @@ impl<'s> Runner<'s> {
                 source: Box::new(e),
             }
         };
+        let constraints = fit_constraints(campaign, &names)?;
         let mut cells = Vec::new();
         for (i, sc) in scenarios.iter().enumerate() {
             for (which, p) in [("true", &sc.truth), ("guess", &sc.guess)] {
@@ -185,7 +219,7 @@ impl<'s> Runner<'s> {
                     campaign.fit.poly_degree,
                 )
                 .map_err(|e| ctx(label.clone())(e.into()))?;
-                let mut base = FitConfig::new(&setup.model);
+                let mut base = constraints.apply(FitConfig::new(&setup.model));
                 base.max_iterations = campaign.fit.max_iterations;
                 if campaign.fit.cached_jacobian {
                     base.jacobian = cell_jacobians(setup, &sim, &lik, sc, campaign.seed, &base)

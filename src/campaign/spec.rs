@@ -33,6 +33,10 @@
 //! jacobian = "cached"           # "cached": Jacobians per cell at the guess and at realization
 //!                               # 0's estimate, reused within 5 sigma (fit::JacobianCache);
 //!                               # "exact": evaluated at every accepted step
+//! fixed = ["dt1"]               # held at the scenario's guess: not fitted, not in nu, sigma 0
+//!
+//! [fit.prior]                   # Gaussian priors [mean, sigma] (added to the objective and
+//! s21 = [0.9e-4, 2e-5]          # to the information)
 //! ```
 
 use std::collections::BTreeMap;
@@ -97,6 +101,8 @@ struct FitEntry {
     whiten_at: Option<String>,
     noise_chi2: Option<bool>,
     jacobian: Option<String>,
+    fixed: Option<Vec<String>>,
+    prior: Option<BTreeMap<String, [f64; 2]>>,
 }
 
 /// Where a scenario's parameter sets come from.
@@ -178,6 +184,10 @@ pub struct FitOptions {
     /// Reuse Jacobians cached per cell (`fit::JacobianPolicy::Cached`) or evaluate them at
     /// every step.
     pub cached_jacobian: bool,
+    /// Parameters held at the scenario's guess in every fit (`fixed = ["w1_sq"]`).
+    pub fixed: Vec<String>,
+    /// Gaussian priors `[mean, sigma]` by parameter (`[fit.prior] s21 = [1e-4, 2e-5]`).
+    pub priors: BTreeMap<String, [f64; 2]>,
 }
 
 /// A validated campaign file.
@@ -496,6 +506,17 @@ impl Checker<'_> {
                 format!("{poly_degree} is too large (at most 10)"),
             ));
         }
+        let priors = fit.prior.clone().unwrap_or_default();
+        for (name, [mean, sigma]) in &priors {
+            if !(mean.is_finite() && sigma.is_finite() && *sigma > 0.0) {
+                return Err(self.bad(
+                    &format!("fit.prior.{name}"),
+                    format!(
+                        "[{mean}, {sigma}]: expected [mean, sigma] with sigma > 0, both finite"
+                    ),
+                ));
+            }
+        }
         Ok(FitOptions {
             whitening_order,
             poly_degree,
@@ -503,6 +524,8 @@ impl Checker<'_> {
             whiten_at,
             noise_chi2: fit.noise_chi2.unwrap_or(true),
             cached_jacobian,
+            fixed: fit.fixed.clone().unwrap_or_default(),
+            priors,
         })
     }
 }

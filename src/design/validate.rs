@@ -274,6 +274,8 @@ pub fn monte_carlo(
             whiten_at: WhitenAt::Guess,
             noise_chi2: false,
             cached_jacobian: true,
+            fixed: Vec::new(),
+            priors: Default::default(),
         },
     };
     let scenario = Scenario {

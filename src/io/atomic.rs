@@ -287,14 +287,8 @@ pub fn file_sha256(path: impl AsRef<Path>) -> Result<String, IoError> {
     Ok(hex(&hasher.finalize()))
 }
 
-/// Hex SHA-256 digest of `bytes`.
-pub fn sha256_hex(bytes: &[u8]) -> String {
-    hex(&Sha256::digest(bytes))
-}
-
-fn hex(digest: &[u8]) -> String {
-    digest.iter().map(|b| format!("{b:02x}")).collect()
-}
+use crate::numerics::digest::hex;
+pub use crate::numerics::digest::sha256_hex;
 
 /// A one-line [`IoError::Toml`] with the 1-based line and column of the error's span.
 pub(crate) fn toml_error(path: &Path, text: &str, err: &toml::de::Error) -> IoError {

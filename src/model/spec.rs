@@ -222,7 +222,7 @@ impl ModelSpec {
             span: e.span().map(|s| line_of(text, s.start)),
         })?;
         spec.origin = origin.to_string();
-        spec.sha256 = crate::io::sha256_hex(text.as_bytes());
+        spec.sha256 = crate::numerics::digest::sha256_hex(text.as_bytes());
         spec.validate()?;
         Ok(spec)
     }

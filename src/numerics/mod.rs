@@ -3,6 +3,7 @@
 //! statistics and distribution tails (`stats`). Every other layer may use them; they use
 //! nothing of the crate.
 
+pub mod digest;
 pub mod fft;
 pub mod linalg;
 pub mod stats;
