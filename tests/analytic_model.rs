@@ -229,8 +229,8 @@ fn fits_scatter_as_the_closed_form_fisher_sigmas() {
         };
         let res = fit(&model, &lik.problem(&data).unwrap(), &start, &cfg).unwrap();
         assert!(res.termination.converged(), "{:?}", res.termination);
-        for k in 0..2 {
-            est[k].push(res.estimate[k]);
+        for (e, x) in est.iter_mut().zip(&res.estimate) {
+            e.push(*x);
         }
     }
     for k in 0..2 {

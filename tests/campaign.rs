@@ -622,9 +622,9 @@ fn fit_fixed_and_prior_keys_reach_every_fit() {
         threads: Some(1),
     };
     std::fs::create_dir_all(&opts.out).unwrap();
-    let err = campaign::run(&loaded, &opts, &mut |_: Progress| {})
-        .err()
-        .expect("refused")
-        .to_string();
+    let Err(err) = campaign::run(&loaded, &opts, &mut |_: Progress| {}) else {
+        panic!("an unknown fixed parameter was accepted")
+    };
+    let err = err.to_string();
     assert!(err.contains("fit.fixed") && err.contains("nope"), "{err}");
 }

@@ -497,7 +497,10 @@ fn parameter_ranges_come_from_the_model_file() {
     let dir = tempfile::tempdir().unwrap();
     let path = dir.path().join("model.toml");
     std::fs::write(&path, text).unwrap();
-    let err = Setup::load(Some(&path)).err().expect("refused").to_string();
+    let Err(err) = Setup::load(Some(&path)) else {
+        panic!("a range without the nominal value was accepted")
+    };
+    let err = err.to_string();
     assert!(
         err.contains("parameter.dt1") && err.contains("nominal"),
         "{err}"

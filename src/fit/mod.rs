@@ -581,6 +581,31 @@ fn robust_scale(est: Estimator, r: &Series) -> f64 {
     psi2 / (dpsi * dpsi)
 }
 
+/// The information at the estimate `p` with the priors added and the fixed parameters taken
+/// out, and the covariance `scale * info^-1` (zero rows and columns for fixed parameters); an
+/// error naming the unconstrained direction when the information is singular.
+fn covariance<M: ClosedLoopModel<N>, const N: usize>(
+    model: &M,
+    cfg: &FitConfig,
+    info: DMatrix<f64>,
+    p: &[f64],
+    scale: f64,
+) -> Result<(DMatrix<f64>, DMatrix<f64>), FitError> {
+    let np = p.len();
+    let (info, _) = cfg.constrain(info, DVector::zeros(np), p);
+    let mut base = invert_spd(&info).ok_or_else(|| {
+        FitError::Singular(explain_singular(
+            "Fisher information at the estimate",
+            &info,
+            model.parameter_names(),
+        ))
+    })?;
+    for k in (0..np).filter(|&k| cfg.fixed[k]) {
+        base[(k, k)] = 0.0;
+    }
+    Ok((info, base * scale))
+}
+
 /// Fit the model to the prepared problem from `guess`.
 pub fn fit<M: ClosedLoopModel<N>, const N: usize>(
     model: &M,
@@ -709,22 +734,11 @@ pub fn fit<M: ClosedLoopModel<N>, const N: usize>(
         Some(a) => a.clone(),
         None => gram(&j),
     };
-    let (info, _) = cfg.constrain(info, DVector::zeros(np), &p);
-    let mut base = invert_spd(&info).ok_or_else(|| {
-        FitError::Singular(explain_singular(
-            "Fisher information at the estimate",
-            &info,
-            model.parameter_names(),
-        ))
-    })?;
-    for k in (0..np).filter(|&k| cfg.fixed[k]) {
-        base[(k, k)] = 0.0;
-    }
     let scale = match est {
         Estimator::Squared => chi2_reduced,
         _ => robust_scale(est, &r),
     };
-    let covariance = base * scale;
+    let (info, covariance) = covariance(model, cfg, info, &p, scale)?;
     let sigma: Vec<f64> = (0..np).map(|k| covariance[(k, k)].sqrt()).collect();
     let correlation = DMatrix::from_fn(np, np, |a, b| covariance[(a, b)] / (sigma[a] * sigma[b]));
     Ok(FitResult {

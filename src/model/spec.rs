@@ -271,42 +271,8 @@ impl ModelSpec {
                 ));
             }
         }
+        self.validate_parameters()?;
         let names: Vec<&str> = self.parameters.iter().map(|p| p.name.as_str()).collect();
-        if names != LPF_X_PARAMETERS {
-            return Err(self.bad(
-                "parameter",
-                format!("the LPF-x model needs parameters {LPF_X_PARAMETERS:?} in this order, got {names:?}"),
-            ));
-        }
-        for p in &self.parameters {
-            if !p.nominal.is_finite() {
-                return Err(self.bad(&format!("parameter.{}.nominal", p.name), "must be finite"));
-            }
-            if let Some(w) = p.prior_sigma.filter(|w| !(w.is_finite() && *w > 0.0)) {
-                return Err(self.bad(
-                    &format!("parameter.{}.prior_sigma", p.name),
-                    format!("{w} must be finite and > 0"),
-                ));
-            }
-            for (key, v) in [("lower", p.lower), ("upper", p.upper)] {
-                if let Some(v) = v.filter(|v| !v.is_finite()) {
-                    return Err(self.bad(
-                        &format!("parameter.{}.{key}", p.name),
-                        format!("{v} must be finite (leave the key out for no bound)"),
-                    ));
-                }
-            }
-            let (lo, hi) = p.bounds();
-            if !(lo < hi && (lo..=hi).contains(&p.nominal)) {
-                return Err(self.bad(
-                    &format!("parameter.{}", p.name),
-                    format!(
-                        "the range [{lo}, {hi}] must be non-empty and hold the nominal value {}",
-                        p.nominal
-                    ),
-                ));
-            }
-        }
         for (name, src) in &self.noise {
             let key = format!("noise.{name}");
             if !["f_sc", "f_1", "f_2", "o_1", "o_12"].contains(&src.enters.as_str()) {
@@ -474,6 +440,48 @@ impl ModelSpec {
 
     /// Injection tables: matching lengths, positive timing, and every stretch's frequency
     /// `cycles / stretch_s` below the analysis Nyquist frequency (a sine above it aliases).
+    /// `[[parameter]]`: the LPF-x names in order, finite nominals, positive prior widths, and
+    /// finite ranges that hold the nominal value.
+    fn validate_parameters(&self) -> Result<(), ModelError> {
+        let names: Vec<&str> = self.parameters.iter().map(|p| p.name.as_str()).collect();
+        if names != LPF_X_PARAMETERS {
+            return Err(self.bad(
+                "parameter",
+                format!("the LPF-x model needs parameters {LPF_X_PARAMETERS:?} in this order, got {names:?}"),
+            ));
+        }
+        for p in &self.parameters {
+            if !p.nominal.is_finite() {
+                return Err(self.bad(&format!("parameter.{}.nominal", p.name), "must be finite"));
+            }
+            if let Some(w) = p.prior_sigma.filter(|w| !(w.is_finite() && *w > 0.0)) {
+                return Err(self.bad(
+                    &format!("parameter.{}.prior_sigma", p.name),
+                    format!("{w} must be finite and > 0"),
+                ));
+            }
+            for (key, v) in [("lower", p.lower), ("upper", p.upper)] {
+                if let Some(v) = v.filter(|v| !v.is_finite()) {
+                    return Err(self.bad(
+                        &format!("parameter.{}.{key}", p.name),
+                        format!("{v} must be finite (leave the key out for no bound)"),
+                    ));
+                }
+            }
+            let (lo, hi) = p.bounds();
+            if !(lo < hi && (lo..=hi).contains(&p.nominal)) {
+                return Err(self.bad(
+                    &format!("parameter.{}", p.name),
+                    format!(
+                        "the range [{lo}, {hi}] must be non-empty and hold the nominal value {}",
+                        p.nominal
+                    ),
+                ));
+            }
+        }
+        Ok(())
+    }
+
     fn validate_injections(&self) -> Result<(), ModelError> {
         let nyquist = 0.5 * self.sampling.analyse_hz;
         for (name, inj) in &self.injections {
