@@ -139,7 +139,9 @@ pub fn run(a: AccelArgs) -> Result<()> {
         || a.input.display().to_string(),
         |p| p.display().to_string(),
     );
+    let working = super::Working::new("converting to acceleration");
     let r = analyse(&setup.model, &setup.noise, &p, &p_noise, &run, &req).context(label)?;
+    drop(working);
     ensure_dir(&a.out)
         .with_context(|| format!("cannot create output directory '{}'", a.out.display()))?;
     write_parquet(a.out.join("accel.parquet"), &r.series)?;

@@ -128,6 +128,7 @@ pub fn run(a: SimulateArgs) -> Result<()> {
     let glitch = sc.glitch.as_ref();
     let effects =
         EffectSet::parse(&a.effects, &setup.parameter_names()).map_err(anyhow::Error::msg)?;
+    let working = super::Working::new("simulating");
     let (data, noise) = match (a.engine, rate) {
         _ if !effects.is_empty() => simulate_effect_set(
             &setup,
@@ -154,6 +155,7 @@ pub fn run(a: SimulateArgs) -> Result<()> {
             draw_all(|r| sim.draw(r), |r| nsim.noise_series(r), a.seed)
         }
     };
+    drop(working);
     let mut meta = simulation_meta(&setup, &a, &sc, rate);
     if !effects.is_empty() {
         meta.insert("effects".into(), toml::Value::Table(effects.meta));
