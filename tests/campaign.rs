@@ -628,3 +628,98 @@ fn fit_fixed_and_prior_keys_reach_every_fit() {
     let err = err.to_string();
     assert!(err.contains("fit.fixed") && err.contains("nope"), "{err}");
 }
+
+#[test]
+fn accel_bias_per_realization_follows_the_delta_method() {
+    // Oracle: first-order propagation (the delta method). The bias b(p) = S_g12(p) / S_g12(truth)
+    // - 1 of the model's readout noise converted with the fitted parameters p scatters over the
+    // realizations with sd sqrt(g^T C g), g = db/dp by central differences through the library's
+    // own projection (accel::projection) and C the fits' mean covariance: within the statistics
+    // of 100 values (1 +- 4/sqrt(200)). accel.parquet's mean is the rows' mean, and a sharded
+    // run merged gives the same accel table as the whole run (the columns survive the round
+    // trip through realizations.parquet).
+    use freefall::accel::{projection, DeltaEstimator, Response, Stencil};
+    let dir = tempfile::tempdir().unwrap();
+    let n = 100u64;
+    let bands = [[3e-4, 5e-4], [4e-2, 6e-2]];
+    let text = small(n, 25, "") + "[accel]\nbands_hz = [[3e-4, 5e-4], [4e-2, 6e-2]]\n";
+    let file = write_campaign(dir.path(), "accel.toml", &text);
+    let whole = dir.path().join("whole");
+    run_lib(&file, &whole, Shard::WHOLE, 2);
+    let rows = read_parquet(whole.join("realizations.parquet")).unwrap();
+    let acc = read_parquet(whole.join("accel.parquet")).unwrap();
+    let setup = freefall::setup::Setup::embedded();
+    let truth = setup.spec.scenario("monte_carlo").unwrap().truth;
+    let names = setup.parameter_names();
+    let np = names.len();
+    // The fits' mean covariance from the sigma and correlation columns.
+    let col = |c: &str| rows.f64_column(c).unwrap().to_vec();
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+    let sig: Vec<f64> = names
+        .iter()
+        .map(|p| mean(&col(&format!("{p}_sigma"))))
+        .collect();
+    let mut cov = nalgebra::DMatrix::<f64>::from_diagonal(&nalgebra::DVector::from_iterator(
+        np,
+        sig.iter().map(|s| s * s),
+    ));
+    for i in 0..np {
+        for j in i + 1..np {
+            let r = mean(&col(&format!("corr_{}__{}", names[i], names[j])));
+            cov[(i, j)] = r * sig[i] * sig[j];
+            cov[(j, i)] = cov[(i, j)];
+        }
+    }
+    let dt = 1.0 / setup.spec.sampling.analyse_hz;
+    let level = |p: &[f64], band: [f64; 2]| {
+        let f: Vec<f64> = (0..16)
+            .map(|i| band[0] * (band[1] / band[0]).powf(i as f64 / 15.0))
+            .collect();
+        let est = DeltaEstimator::new(&setup.model, p, dt, Stencil::default()).unwrap();
+        let s = projection(
+            &est,
+            &setup.model,
+            &setup.noise,
+            &truth,
+            &f,
+            Response::Estimator,
+        );
+        s.iter().map(|r| r[1]).sum::<f64>() / f.len() as f64
+    };
+    let columns = ["accel_bias_0.0003_0.0005hz", "accel_bias_0.04_0.06hz"];
+    let acc_mean = acc.f64_column("mean_bias").unwrap();
+    for (b, band) in bands.iter().enumerate() {
+        let base = level(&truth, *band);
+        let g: Vec<f64> = (0..np)
+            .map(|k| {
+                let h = 1e-3 * sig[k];
+                let (mut up, mut down) = (truth.clone(), truth.clone());
+                up[k] += h;
+                down[k] -= h;
+                (level(&up, *band) - level(&down, *band)) / (2.0 * h * base)
+            })
+            .collect();
+        let g = nalgebra::DVector::from_vec(g);
+        let predicted = (g.transpose() * &cov * &g)[(0, 0)].sqrt();
+        let v = col(columns[b]);
+        let m = mean(&v);
+        let sd = (v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (v.len() - 1) as f64).sqrt();
+        eprintln!("band {band:?}: sd {sd:.3e}, delta method {predicted:.3e}, mean {m:.3e}");
+        assert!(
+            (sd / predicted - 1.0).abs() < 4.0 / (2.0 * n as f64).sqrt(),
+            "band {band:?}: sd {sd:e} vs {predicted:e}"
+        );
+        assert!((acc_mean[b] - m).abs() <= 1e-12 * m.abs().max(1e-300));
+    }
+    let parts: Vec<PathBuf> = (0..2)
+        .map(|k| {
+            let p = dir.path().join(format!("part{k}"));
+            run_lib(&file, &p, Shard { index: k, count: 2 }, 1);
+            p
+        })
+        .collect();
+    let merged = dir.path().join("merged");
+    merge(&parts, &merged).unwrap();
+    let a = read_parquet(merged.join("accel.parquet")).unwrap();
+    assert_same(&acc, &a, "accel.parquet merged");
+}

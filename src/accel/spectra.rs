@@ -55,7 +55,9 @@ pub enum Response {
 }
 
 impl<M: ClosedLoopModel<N>, const N: usize> DeltaEstimator<'_, M, N> {
-    fn delta(&self, f: f64, which: Response) -> CMat<N> {
+    /// The readouts-to-acceleration response at `f`: the estimator's own, or the model's
+    /// continuous `Delta(f)`.
+    pub fn delta(&self, f: f64, which: Response) -> CMat<N> {
         match which {
             Response::Estimator => self.response(f),
             Response::Continuous => self.continuous(f),

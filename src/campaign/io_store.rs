@@ -631,6 +631,12 @@ fn write_aggregates(
             &agg.chi2_table()?.with_meta_all(meta),
         )?;
     }
+    if !agg.layout.accel_bands.is_empty() {
+        write_parquet(
+            out.join("accel.parquet"),
+            &agg.accel_table()?.with_meta_all(meta),
+        )?;
+    }
     Ok(())
 }
 

@@ -37,6 +37,87 @@ struct Cell<'s> {
     wsim: Option<WhitenedSimulator<2>>,
     /// Fit configuration per estimator (they differ by estimator and by the cell's Jacobians).
     configs: Vec<FitConfig>,
+    /// The acceleration-noise reference of `[accel]` bands, if recorded.
+    accel: Option<AccelReference>,
+}
+
+/// Points per `[accel]` band (log-spaced) at which S_g12 is averaged.
+const ACCEL_BAND_POINTS: usize = 16;
+
+/// Per band: the frequency grid, the model's readout noise cross-PSD at the cell's truth on it,
+/// and S_g12 of that noise converted with the true parameters (thesis sec. 4.6).
+struct AccelReference {
+    dt: f64,
+    grids: Vec<Vec<f64>>,
+    csd: Vec<Vec<crate::model::CMat<2>>>,
+    level_true: Vec<f64>,
+}
+
+impl AccelReference {
+    fn new(
+        setup: &Setup,
+        truth: &[f64],
+        bands: &[[f64; 2]],
+        dt: f64,
+    ) -> Result<Self, crate::accel::AccelError> {
+        let grids: Vec<Vec<f64>> = bands
+            .iter()
+            .map(|&[lo, hi]| {
+                (0..ACCEL_BAND_POINTS)
+                    .map(|i| lo * (hi / lo).powf(i as f64 / (ACCEL_BAND_POINTS - 1) as f64))
+                    .collect()
+            })
+            .collect();
+        let csd = grids
+            .iter()
+            .map(|g| {
+                g.iter()
+                    .map(|&f| setup.noise.readout_csd(&setup.model, f, truth))
+                    .collect()
+            })
+            .collect();
+        let mut r = AccelReference {
+            dt,
+            grids,
+            csd,
+            level_true: Vec::new(),
+        };
+        r.level_true = r.levels(setup, truth)?;
+        Ok(r)
+    }
+
+    /// Mean S_g12 per band of the readout noise converted with parameters `p`.
+    fn levels(&self, setup: &Setup, p: &[f64]) -> Result<Vec<f64>, crate::accel::AccelError> {
+        use crate::accel::{DeltaEstimator, Response, Stencil};
+        let est = DeltaEstimator::new(&setup.model, p, self.dt, Stencil::default())?;
+        Ok(self
+            .grids
+            .iter()
+            .zip(&self.csd)
+            .map(|(g, c)| {
+                g.iter()
+                    .zip(c)
+                    .map(|(&f, s)| {
+                        let d = est.delta(f, Response::Estimator);
+                        (d * s * d.adjoint())[(1, 1)].re
+                    })
+                    .sum::<f64>()
+                    / g.len() as f64
+            })
+            .collect())
+    }
+
+    /// `S_g12(p) / S_g12(truth) - 1` per band; NaN where `p` cannot be converted.
+    fn bias(&self, setup: &Setup, p: &[f64]) -> Vec<f64> {
+        match self.levels(setup, p) {
+            Ok(l) => l
+                .iter()
+                .zip(&self.level_true)
+                .map(|(a, b)| a / b - 1.0)
+                .collect(),
+            Err(_) => vec![f64::NAN; self.level_true.len()],
+        }
+    }
 }
 
 /// Jacobians of a cell at its guess and at the (exact, squared-estimator) estimate of its
@@ -185,6 +266,22 @@ impl<'s> Runner<'s> {
             }
         };
         let constraints = fit_constraints(campaign, &names)?;
+        let nyquist = 0.5 * setup.spec.sampling.analyse_hz;
+        if let Some((k, b)) = campaign
+            .accel_bands
+            .iter()
+            .enumerate()
+            .find(|(_, b)| b[1] > nyquist)
+        {
+            return Err(CampaignError::Invalid {
+                file: campaign.file.clone(),
+                key: format!("accel.bands_hz[{k}]"),
+                reason: format!(
+                    "[{}, {}] Hz reaches above the analysis Nyquist frequency {nyquist} Hz",
+                    b[0], b[1]
+                ),
+            });
+        }
         let mut cells = Vec::new();
         for (i, sc) in scenarios.iter().enumerate() {
             for (which, p) in [("true", &sc.truth), ("guess", &sc.guess)] {
@@ -235,11 +332,24 @@ impl<'s> Runner<'s> {
                     })
                     .collect();
                 let wsim = WhitenedSimulator::new(&lik, &sim).ok();
+                let accel = if campaign.accel_bands.is_empty() {
+                    None
+                } else {
+                    Some(
+                        AccelReference::new(setup, &sc.truth, &campaign.accel_bands, sim.dt)
+                            .map_err(|e| CampaignError::Invalid {
+                                file: campaign.file.clone(),
+                                key: "accel.bands_hz".into(),
+                                reason: format!("scenario '{}': {e}", sc.name),
+                            })?,
+                    )
+                };
                 cells.push(Cell {
                     sim,
                     lik,
                     wsim,
                     configs,
+                    accel,
                 });
             }
         }
@@ -255,6 +365,7 @@ impl<'s> Runner<'s> {
                 .collect(),
             designs: designs.iter().map(|d| d.name.clone()).collect(),
             estimators: campaign.estimators.iter().map(|e| e.to_string()).collect(),
+            accel_bands: campaign.accel_bands.clone(),
         };
         Ok(Runner {
             setup,
@@ -279,6 +390,7 @@ impl<'s> Runner<'s> {
         let sc = &self.scenarios[s];
         let np = sc.truth.len();
         let npairs = np * (np - 1) / 2;
+        let n_bands = cell.accel.as_ref().map_or(0, |a| a.level_true.len());
         let mut rng = stream(self.seed, r);
         // Data first (every experiment), then the noise-only run, from the same stream.
         let (problem, noise_w) = match &cell.wsim {
@@ -335,6 +447,7 @@ impl<'s> Runner<'s> {
                     estimate: vec![f64::NAN; np],
                     sigma: vec![f64::NAN; np],
                     correlation: vec![f64::NAN; npairs],
+                    accel_bias: vec![f64::NAN; n_bands],
                 };
                 let problem = match &problem {
                     Ok(p) => p,
@@ -368,6 +481,10 @@ impl<'s> Runner<'s> {
                             .flat_map(|i| (i + 1..np).map(move |j| (i, j)))
                             .map(|(i, j)| res.correlation[(i, j)])
                             .collect(),
+                        accel_bias: cell
+                            .accel
+                            .as_ref()
+                            .map_or_else(Vec::new, |a| a.bias(self.setup, &res.estimate)),
                         estimate: res.estimate,
                     },
                 }

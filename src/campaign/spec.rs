@@ -37,6 +37,10 @@
 //!
 //! [fit.prior]                   # Gaussian priors [mean, sigma] (added to the objective and
 //! s21 = [0.9e-4, 2e-5]          # to the information)
+//!
+//! [accel]                       # optional: per realization, the bias of the acceleration-noise
+//! bands_hz = [[3e-4, 5e-4], [4e-2, 6e-2]]  # level S_g12 in each band when the fitted instead
+//!                               # of the true parameters convert the readouts (accel.parquet)
 //! ```
 
 use std::collections::BTreeMap;
@@ -72,6 +76,15 @@ struct FileSpec {
     designs: Vec<DesignEntry>,
     #[serde(default)]
     fit: FitEntry,
+    #[serde(default)]
+    accel: Option<AccelEntry>,
+}
+
+/// `[accel]`: the acceleration-noise statistics per realization.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct AccelEntry {
+    bands_hz: Vec<[f64; 2]>,
 }
 
 #[derive(Debug, Deserialize)]
@@ -207,6 +220,10 @@ pub struct Campaign {
     pub scenarios: Vec<ScenarioDef>,
     pub designs: Vec<DesignDef>,
     pub fit: FitOptions,
+    /// `[accel] bands_hz`: frequency bands `[lo, hi]` (Hz) in which each realization records
+    /// the bias of the acceleration-noise level S_g12 estimated with the fitted instead of the
+    /// true parameters (thesis sec. 4.6). Empty: not recorded.
+    pub accel_bands: Vec<[f64; 2]>,
 }
 
 impl Campaign {
@@ -251,6 +268,7 @@ impl Campaign {
             scenarios: cx.scenarios(spec.scenarios)?,
             designs: cx.designs(spec.designs)?,
             fit: cx.fit(&spec.fit)?,
+            accel_bands: cx.accel(spec.accel.as_ref())?,
         })
     }
 
@@ -467,6 +485,26 @@ impl Checker<'_> {
             });
         }
         Ok(designs)
+    }
+
+    /// `[accel] bands_hz`: each band `0 < lo < hi`, finite (the Nyquist limit is checked when
+    /// the model is known).
+    fn accel(&self, accel: Option<&AccelEntry>) -> Result<Vec<[f64; 2]>, CampaignError> {
+        let Some(a) = accel else {
+            return Ok(Vec::new());
+        };
+        if a.bands_hz.is_empty() {
+            return Err(self.bad("accel.bands_hz", "give at least one band [lo, hi]"));
+        }
+        for (k, &[lo, hi]) in a.bands_hz.iter().enumerate() {
+            if !(lo.is_finite() && hi.is_finite() && lo > 0.0 && hi > lo) {
+                return Err(self.bad(
+                    &format!("accel.bands_hz[{k}]"),
+                    format!("[{lo}, {hi}]: expected 0 < lo < hi (Hz)"),
+                ));
+            }
+        }
+        Ok(a.bands_hz.clone())
     }
 
     /// `[fit]`: whitening, iteration and nuisance settings with their ranges.

@@ -32,6 +32,10 @@ pub struct Row {
     pub sigma: Vec<f64>,
     /// Fit correlation coefficients of the pairs `i < j` ([`Layout::pairs`] order).
     pub correlation: Vec<f64>,
+    /// Per band of [`Layout::accel_bands`]: `S_g12(fitted) / S_g12(true) - 1` of the model's
+    /// readout noise converted with the fitted instead of the true parameters (NaN if the fit
+    /// failed; empty when not recorded).
+    pub accel_bias: Vec<f64>,
 }
 
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
@@ -110,6 +114,10 @@ pub struct Layout {
     pub scenarios: Vec<ScenarioLabel>,
     pub designs: Vec<String>,
     pub estimators: Vec<String>,
+    /// Bands `[lo, hi]` (Hz) of the acceleration-noise bias columns (empty in manifests written
+    /// before they existed, or when not recorded).
+    #[serde(default)]
+    pub accel_bands: Vec<[f64; 2]>,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -165,6 +173,8 @@ pub(super) struct Group {
     pub(super) fisher_corr: Vec<Moments>,
     pub(super) chi2: Moments,
     pub(super) noise_chi2: Moments,
+    /// Per acceleration band: the bias of S_g12 (converged fits).
+    pub(super) accel: Vec<Moments>,
 }
 
 /// Read-only statistics of one group; the parameter statistics hold converged fits only.
@@ -206,6 +216,7 @@ impl Aggregates {
             fisher_corr: vec![Moments::default(); pairs.len()],
             chi2: Moments::default(),
             noise_chi2: Moments::default(),
+            accel: vec![Moments::default(); layout.accel_bands.len()],
         };
         Aggregates {
             groups: vec![g; layout.groups()],
@@ -265,6 +276,11 @@ impl Aggregates {
         g.chi2.push(row.chi2_reduced);
         if row.noise_chi2_reduced.is_finite() {
             g.noise_chi2.push(row.noise_chi2_reduced);
+        }
+        for (m, &b) in g.accel.iter_mut().zip(&row.accel_bias) {
+            if b.is_finite() {
+                m.push(b);
+            }
         }
     }
 }

@@ -102,7 +102,22 @@ impl Layout {
                 rows.iter().map(|r| r.correlation[c]).collect::<Vec<f64>>(),
             )?;
         }
+        for (b, name) in self.accel_columns().into_iter().enumerate() {
+            t.push_column(
+                name.clone(),
+                rows.iter().map(|r| r.accel_bias[b]).collect::<Vec<f64>>(),
+            )?;
+            t = t.with_unit(name, "1");
+        }
         Ok(t.with_units(self.row_units()))
+    }
+
+    /// Column names of the acceleration-noise bias per band, e.g. `accel_bias_0.0003_0.0005hz`.
+    pub fn accel_columns(&self) -> Vec<String> {
+        self.accel_bands
+            .iter()
+            .map(|[lo, hi]| format!("accel_bias_{lo}_{hi}hz"))
+            .collect()
     }
 
     /// Rows back from a `realizations` table written by [`Layout::rows_table`]; labels must be
@@ -156,6 +171,11 @@ impl Layout {
             .iter()
             .map(|c| t.f64_column(c))
             .collect::<Result<_, _>>()?;
+        let accel: Vec<&[f64]> = self
+            .accel_columns()
+            .iter()
+            .map(|c| t.f64_column(c))
+            .collect::<Result<_, _>>()?;
         let mut rows = Vec::with_capacity(t.num_rows());
         for i in 0..t.num_rows() {
             rows.push(Row {
@@ -175,6 +195,7 @@ impl Layout {
                 estimate: est.iter().map(|c| c[i]).collect(),
                 sigma: sig.iter().map(|c| c[i]).collect(),
                 correlation: corr.iter().map(|c| c[i]).collect(),
+                accel_bias: accel.iter().map(|c| c[i]).collect(),
             });
         }
         Ok(rows)
@@ -256,6 +277,53 @@ impl Aggregates {
             "truth, mean, bias, sd, mean_sigma and sd_of_sigma are in the row's unit; the other \
              statistics are dimensionless",
         ))
+    }
+
+    /// `accel`: one row per scenario x design x estimator x band: the bias of the acceleration
+    /// noise level S_g12 when the fitted instead of the true parameters convert the readouts
+    /// (`S_g12(fitted) / S_g12(true) - 1` of the model's noise, thesis sec. 4.6) over the
+    /// converged fits: its mean, sd, and the mean in standard errors.
+    pub fn accel_table(&self) -> Result<Table, IoError> {
+        let l = &self.layout;
+        let (mut sc, mut de, mut es) = (Vec::new(), Vec::new(), Vec::new());
+        let (mut lo, mut hi, mut n, mut mean, mut sd) =
+            (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        for (gi, g) in self.groups.iter().enumerate() {
+            let (s, d, e) = l.group_labels(gi);
+            for (b, m) in g.accel.iter().enumerate() {
+                sc.push(l.scenarios[s].name.clone());
+                de.push(l.designs[d].clone());
+                es.push(l.estimators[e].clone());
+                lo.push(l.accel_bands[b][0]);
+                hi.push(l.accel_bands[b][1]);
+                n.push(m.n);
+                mean.push(if m.n > 0 { m.mean } else { f64::NAN });
+                sd.push(m.sd());
+            }
+        }
+        let z: Vec<f64> = mean
+            .iter()
+            .zip(&sd)
+            .zip(&n)
+            .map(|((m, s), &k)| m / (s / (k as f64).sqrt()))
+            .collect();
+        Ok(Table::new()
+            .with_str("scenario", sc)?
+            .with_str("design", de)?
+            .with_str("estimator", es)?
+            .with_f64("band_lo", lo)?
+            .with_f64("band_hi", hi)?
+            .with_counts("n", &n)?
+            .with_f64("mean_bias", mean)?
+            .with_f64("sd_bias", sd)?
+            .with_f64("mean_bias_in_se", z)?
+            .with_units([
+                ("band_lo", "Hz"),
+                ("band_hi", "Hz"),
+                ("mean_bias", "1"),
+                ("sd_bias", "1"),
+                ("mean_bias_in_se", "1"),
+            ]))
     }
 
     /// `correlation`: one row per scenario x design x estimator x parameter pair (i < j).

@@ -277,6 +277,7 @@ pub fn monte_carlo(
             fixed: Vec::new(),
             priors: Default::default(),
         },
+        accel_bands: Vec::new(),
     };
     let scenario = Scenario {
         name: "validation".into(),
