@@ -63,6 +63,14 @@ impl<M: ClosedLoopModel<N>, const N: usize> DeltaEstimator<'_, M, N> {
             Response::Continuous => self.continuous(f),
         }
     }
+
+    /// Diagonal of `Delta S_o Delta^H` at `f` for a readout cross-PSD `s_o` given at `f` (one
+    /// point of [`projection`], for callers that keep `S_o` across parameter vectors).
+    pub fn project(&self, f: f64, s_o: &CMat<N>, which: Response) -> [f64; N] {
+        let d = self.delta(f, which);
+        let s = d * s_o * d.adjoint();
+        std::array::from_fn(|i| s[(i, i)].re)
+    }
 }
 
 /// Diagonal of `Delta S_o(p_noise) Delta^H` at each `f > 0`: the acceleration PSD of each
@@ -78,11 +86,7 @@ pub fn projection<M: ClosedLoopModel<N>, const N: usize>(
     which: Response,
 ) -> Vec<[f64; N]> {
     f.iter()
-        .map(|&fk| {
-            let d = est.delta(fk, which);
-            let s = d * noise.readout_csd(model, fk, p_noise) * d.adjoint();
-            std::array::from_fn(|i| s[(i, i)].re)
-        })
+        .map(|&fk| est.project(fk, &noise.readout_csd(model, fk, p_noise), which))
         .collect()
 }
 

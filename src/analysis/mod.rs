@@ -40,6 +40,8 @@ pub enum AnalysisError {
     #[error(transparent)]
     Io(#[from] IoError),
     #[error(transparent)]
+    Spectral(#[from] crate::spectral::SpectralError),
+    #[error(transparent)]
     Setup(#[from] crate::setup::Error),
 }
 

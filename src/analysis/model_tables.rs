@@ -64,13 +64,7 @@ pub fn noise_table(setup: &Setup, p: &[f64], f: &[f64]) -> Result<Table, IoError
         .with_f64("s22", s.iter().map(|m| m[(1, 1)].re).collect())?
         .with_f64("s12_re", s.iter().map(|m| m[(0, 1)].re).collect())?
         .with_f64("s12_im", s.iter().map(|m| m[(0, 1)].im).collect())?
-        .with_units([
-            ("f", "Hz"),
-            ("s11", "m^2/Hz"),
-            ("s22", "m^2/Hz"),
-            ("s12_re", "m^2/Hz"),
-            ("s12_im", "m^2/Hz"),
-        ]))
+        .with_units(super::tables::CSD_UNITS))
 }
 
 /// Fisher errors of a design at `p`: the table parameter, value, sigma, unit; the correlation

@@ -11,33 +11,33 @@ use crate::io::{IoError, Run, Table};
 use crate::numerics::stats::moments;
 use crate::spectral::{welch_csd, CrossSpectrum, WelchConfig};
 
+/// Units of a readout cross-spectrum table (`psd`, `model noise`).
+pub const CSD_UNITS: [(&str, &str); 5] = [
+    ("f", "Hz"),
+    ("s11", "m^2/Hz"),
+    ("s22", "m^2/Hz"),
+    ("s12_re", "m^2/Hz"),
+    ("s12_im", "m^2/Hz"),
+];
+
 /// Readout channel names, in series order.
 pub const CHANNELS: [&str; 2] = ["o1", "o12"];
 
 /// One-sided Welch cross-spectrum of a run's readouts (thesis settings): f, s11, s22, s12_re,
 /// s12_im, coherence.
-pub fn psd_table(run: &Run) -> Result<(Table, CrossSpectrum), crate::spectral::SpectralError> {
+pub fn psd_table(run: &Run) -> Result<(Table, CrossSpectrum), super::AnalysisError> {
     let [o1, o12] = run.outputs();
     let cs = welch_csd(&[o1, o12], run.dt, &WelchConfig::default())?;
     let s12 = cs.csd(0, 1);
-    let table = (|| -> Result<Table, IoError> {
-        Ok(Table::new()
-            .with_f64("f", cs.f.clone())?
-            .with_f64("s11", cs.psd(0))?
-            .with_f64("s22", cs.psd(1))?
-            .with_f64("s12_re", s12.iter().map(|z| z.re).collect())?
-            .with_f64("s12_im", s12.iter().map(|z| z.im).collect())?
-            .with_f64("coherence", cs.coherence(0, 1))?
-            .with_units([
-                ("f", "Hz"),
-                ("s11", "m^2/Hz"),
-                ("s22", "m^2/Hz"),
-                ("s12_re", "m^2/Hz"),
-                ("s12_im", "m^2/Hz"),
-                ("coherence", "1"),
-            ]))
-    })()
-    .expect("columns of equal length");
+    let table = Table::new()
+        .with_f64("f", cs.f.clone())?
+        .with_f64("s11", cs.psd(0))?
+        .with_f64("s22", cs.psd(1))?
+        .with_f64("s12_re", s12.iter().map(|z| z.re).collect())?
+        .with_f64("s12_im", s12.iter().map(|z| z.im).collect())?
+        .with_f64("coherence", cs.coherence(0, 1))?
+        .with_units(CSD_UNITS)
+        .with_unit("coherence", "1");
     Ok((table, cs))
 }
 

@@ -97,10 +97,7 @@ impl AccelReference {
             .map(|(g, c)| {
                 g.iter()
                     .zip(c)
-                    .map(|(&f, s)| {
-                        let d = est.delta(f, Response::Estimator);
-                        (d * s * d.adjoint())[(1, 1)].re
-                    })
+                    .map(|(&f, s)| est.project(f, s, Response::Estimator)[1])
                     .sum::<f64>()
                     / g.len() as f64
             })

@@ -581,6 +581,53 @@ fn robust_scale(est: Estimator, r: &Series) -> f64 {
     psi2 / (dpsi * dpsi)
 }
 
+/// Damping factors tried per iteration before the step is given up (each a factor 10 up).
+const DAMPING_TRIES: usize = 12;
+/// Smallest damping factor: below it the step is plain Gauss-Newton to rounding.
+const MIN_DAMPING: f64 = 1e-12;
+
+/// One Levenberg-Marquardt iteration's search: solve the damped normal equations `(a, g)` from
+/// `p`, clamp to the bounds, reject unstable or non-finite trials, and accept the first trial
+/// that lowers the objective `f` (data plus priors), raising `lambda` tenfold after each
+/// failure and lowering it tenfold on success. `None` when no trial lowered the objective.
+#[allow(clippy::too_many_arguments)]
+fn damped_step<M: ClosedLoopModel<N>, const N: usize>(
+    model: &M,
+    problem: &Problem<'_, '_, M, N>,
+    cfg: &FitConfig,
+    (a, g): (&DMatrix<f64>, &DVector<f64>),
+    p: &[f64],
+    f: f64,
+    lambda: &mut f64,
+    nfev: &mut usize,
+) -> Option<(Vec<f64>, f64, Series)> {
+    for _ in 0..DAMPING_TRIES {
+        let Some(step) = damped_solve(a, g, *lambda) else {
+            *lambda *= 10.0;
+            continue;
+        };
+        let trial: Vec<f64> = p
+            .iter()
+            .zip(step.iter())
+            .zip(&cfg.bounds)
+            .map(|((x, d), b)| (x + d).clamp(b.lo, b.hi))
+            .collect();
+        if trial.iter().any(|v| !v.is_finite()) || check_stability(model, &trial, None).is_err() {
+            *lambda *= 10.0;
+            continue;
+        }
+        let rt = problem.residuals(&trial);
+        *nfev += 1;
+        let ft = objective(cfg.estimator, &rt) + cfg.prior_chi2(&trial);
+        if ft.is_finite() && ft < f {
+            *lambda = (*lambda / 10.0).max(MIN_DAMPING);
+            return Some((trial, ft, rt));
+        }
+        *lambda *= 10.0;
+    }
+    None
+}
+
 /// The information at the estimate `p` with the priors added and the fixed parameters taken
 /// out, and the covariance `scale * info^-1` (zero rows and columns for fixed parameters); an
 /// error naming the unconstrained direction when the information is singular.
@@ -616,14 +663,20 @@ pub fn fit<M: ClosedLoopModel<N>, const N: usize>(
     cfg.validate()?;
     let start = Instant::now();
     let np = model.n_params();
+    if cfg.fixed.len() != np || cfg.priors.len() != np || cfg.bounds.len() != np {
+        return Err(FitError::Input(format!(
+            "the fit settings hold {} bounds, {} fixed flags and {} priors for {np} parameters",
+            cfg.bounds.len(),
+            cfg.fixed.len(),
+            cfg.priors.len()
+        )));
+    }
     let est = cfg.estimator;
-    let clamp = |p: &mut [f64]| {
-        for (v, b) in p.iter_mut().zip(&cfg.bounds) {
-            *v = v.clamp(b.lo, b.hi);
-        }
-    };
-    let mut p = guess.to_vec();
-    clamp(&mut p);
+    let mut p: Vec<f64> = guess
+        .iter()
+        .zip(&cfg.bounds)
+        .map(|(v, b)| v.clamp(b.lo, b.hi))
+        .collect();
     check_stability(model, &p, None)?;
     let cache = match &cfg.jacobian {
         JacobianPolicy::Exact => None,
@@ -647,14 +700,6 @@ pub fn fit<M: ClosedLoopModel<N>, const N: usize>(
             let (r, j) = problem.residuals_and_jacobian(p);
             (r, Cow::Owned(j), None)
         };
-    if cfg.fixed.len() != np || cfg.priors.len() != np || cfg.bounds.len() != np {
-        return Err(FitError::Singular(format!(
-            "the fit settings hold {} bounds, {} fixed flags and {} priors for {np} parameters",
-            cfg.bounds.len(),
-            cfg.fixed.len(),
-            cfg.priors.len()
-        )));
-    }
     let (mut r, mut j, mut known) = jac_at(&p, None);
     let mut f = objective(est, &r) + cfg.prior_chi2(&p);
     let chi2_start = f;
@@ -672,30 +717,8 @@ pub fn fit<M: ClosedLoopModel<N>, const N: usize>(
                 Some(c) => (0..np).map(|k| c[(k, k)].sqrt()).collect(),
                 None => vec![0.0; np],
             };
-            let mut accepted = None;
-            for _ in 0..12 {
-                let Some(step) = damped_solve(&a, &g, lambda) else {
-                    lambda *= 10.0;
-                    continue;
-                };
-                let mut trial: Vec<f64> = p.iter().zip(step.iter()).map(|(x, d)| x + d).collect();
-                clamp(&mut trial);
-                if trial.iter().any(|v| !v.is_finite())
-                    || check_stability(model, &trial, None).is_err()
-                {
-                    lambda *= 10.0;
-                    continue;
-                }
-                let rt = problem.residuals(&trial);
-                nfev += 1;
-                let ft = objective(est, &rt) + cfg.prior_chi2(&trial);
-                if ft.is_finite() && ft < f {
-                    accepted = Some((trial, ft, rt));
-                    lambda = (lambda / 10.0).max(1e-12);
-                    break;
-                }
-                lambda *= 10.0;
-            }
+            let accepted =
+                damped_step(model, problem, cfg, (&a, &g), &p, f, &mut lambda, &mut nfev);
             let Some((trial, ft, rt)) = accepted else {
                 termination = if it > 1 || at_minimum(&a, &g, f, cfg.ftol) {
                     Termination::NoImprovement
