@@ -11,7 +11,7 @@ use crate::noise::{GlitchConfig, NoiseError, NoiseModel};
 use crate::signal::{Design, SignalError};
 use crate::sim::decimated::DecimatedSimulator;
 use crate::sim::time_domain::{
-    InitialConditions, LoopConfig, TimeDomainError, TimeDomainSimulator,
+    InitialConditions, LoopConfig, PlantEffects, TimeDomainError, TimeDomainSimulator,
 };
 use crate::sim::Simulator;
 
@@ -215,6 +215,25 @@ impl Setup {
         glitch: Option<&GlitchSpec>,
         initial: Option<InitialConditions>,
     ) -> Result<TimeDomainSimulator, Error> {
+        self.time_domain_simulator_with_effects(
+            design,
+            truth,
+            glitch,
+            initial,
+            &PlantEffects::default(),
+        )
+    }
+
+    /// [`Self::time_domain_simulator`] with the library's operator effects `effects` in the
+    /// plant (`sim::time_domain::PlantEffects`).
+    pub fn time_domain_simulator_with_effects(
+        &self,
+        design: &Design,
+        truth: &[f64],
+        glitch: Option<&GlitchSpec>,
+        initial: Option<InitialConditions>,
+        effects: &PlantEffects,
+    ) -> Result<TimeDomainSimulator, Error> {
         if glitch.is_some() {
             return Err(TimeDomainError::Glitches.into());
         }
@@ -228,6 +247,7 @@ impl Setup {
             truth,
             initial,
             NOISE_OVERSAMPLE,
+            effects,
         )?)
     }
 }
