@@ -127,6 +127,25 @@ impl Setup {
         Ok(Whitener::from_psd(self.psd(p), dt, order, n)?)
     }
 
+    /// The whitening filter of data decimated by `decimator` (the time-domain engine's
+    /// telemetry): the model's readout PSD at `p` times the FIR's `|H(f)|^2`, which shapes the
+    /// noise (and, cancelling, the injections) near the analysis Nyquist frequency.
+    pub fn whitener_through_decimator(
+        &self,
+        p: &[f64],
+        n: usize,
+        dt: f64,
+        order: usize,
+        decimator: &crate::spectral::Decimator,
+    ) -> Result<Whitener<2>, Error> {
+        let psd = self.psd(p);
+        let through = |f: f64| {
+            let h = decimator.frequency_response(f);
+            psd(f) * num_complex::Complex64::new(h * h, 0.0)
+        };
+        Ok(Whitener::from_psd(through, dt, order, n)?)
+    }
+
     /// The glitches of `g` for a simulation directly at the analysis rate over `n` samples.
     /// Glitch amplitudes are in units of the white driving sequence at the simulation rate; at
     /// the analysis rate the same physical glitch is sqrt(simulate_hz / analyse_hz) times larger

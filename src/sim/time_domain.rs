@@ -701,6 +701,25 @@ impl TimeDomainSimulator {
         self.data(outputs)
     }
 
+    /// The guidance telemetry (`oi`, decimated) of every experiment, cut to its length: the
+    /// `inputs` of every [`Self::draw`].
+    pub fn telemetry_inputs(&self) -> Vec<Vec<Vec<f64>>> {
+        self.data(vec![Vec::new(); self.names.len()]).inputs
+    }
+
+    /// One noise-only run per experiment (no guidance), each cut to its experiment's length,
+    /// drawn in experiment order: the noise-only counterpart of [`Self::draw`].
+    pub fn noise_runs<R: Rng + ?Sized>(&self, rng: &mut R) -> Vec<Vec<Vec<f64>>> {
+        self.lens
+            .iter()
+            .map(|&n| {
+                let mut run = self.noise_run(rng);
+                run.iter_mut().for_each(|c| c.truncate(n));
+                run
+            })
+            .collect()
+    }
+
     /// A noise-only run (no guidance, same initial conditions) at the analysis rate.
     pub fn noise_run<R: Rng + ?Sized>(&self, rng: &mut R) -> Vec<Vec<f64>> {
         let noise = self.noise.generate(rng);
