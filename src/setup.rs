@@ -210,13 +210,12 @@ impl Setup {
         glitch: Option<&GlitchSpec>,
     ) -> Result<DecimatedSimulator<2>, Error> {
         self.check_simulation_size(design, "duration_s")?;
-        Ok(DecimatedSimulator::new(
+        Ok(DecimatedSimulator::with_decimator(
             &self.model,
             design,
             truth,
             self.psd(truth),
-            self.simulation_dt(),
-            self.spec.decimation(),
+            self.spec.decimator()?,
             NOISE_OVERSAMPLE,
             glitch,
         )?)
@@ -261,7 +260,7 @@ impl Setup {
             &self.model,
             &self.noise,
             &LoopConfig::from_spec(&self.spec),
-            self.spec.decimation(),
+            self.spec.decimator()?,
             design,
             truth,
             initial,

@@ -581,13 +581,14 @@ pub struct TimeDomainSimulator {
 }
 
 impl TimeDomainSimulator {
-    /// A simulator of `design` at `truth`, output decimated by `factor` from the control rate.
+    /// A simulator of `design` at `truth`, output decimated from the control rate by
+    /// `decimator` (whose input rate is the control rate).
     #[allow(clippy::too_many_arguments)]
     pub fn new(
         model: &LpfX,
         noise: &NoiseModel<2>,
         cfg: &LoopConfig,
-        factor: usize,
+        decimator: crate::spectral::Decimator,
         design: &Design,
         truth: &[f64],
         initial: Option<InitialConditions>,
@@ -596,7 +597,7 @@ impl TimeDomainSimulator {
     ) -> Result<Self, TimeDomainError> {
         let digital = DigitalLoop::with_effects(model, truth, cfg, effects);
         digital.check_stable(model_names(model), truth)?;
-        let grid = DecimationGrid::new(design, cfg.dt, factor)?;
+        let grid = DecimationGrid::with_decimator(design, decimator);
         let (h, t0, n) = (cfg.dt, grid.t0, grid.n_sim);
         let delays = [truth[DT1], truth[DT12]];
         let guidance = (0..design.experiments.len())
