@@ -2,6 +2,7 @@
 //! noise model, designs, simulators and whitening filters. Shared by the CLI, campaigns,
 //! design and diagnosis so that every job builds them the same way.
 
+use crate::fit::telemetry_psd::{folded, NullFloor};
 use crate::fit::{FitError, Whitener};
 use crate::forward::fisher::{fisher_information, InputSpectra};
 use crate::model::closed_loop::CMat;
@@ -128,8 +129,9 @@ impl Setup {
     }
 
     /// The whitening filter of data decimated by `decimator` (the time-domain engine's
-    /// telemetry): the model's readout PSD at `p` times the FIR's `|H(f)|^2`, which shapes the
-    /// noise (and, cancelling, the injections) near the analysis Nyquist frequency.
+    /// telemetry): the model's readout PSD at `p` at the simulation rate, filtered by the FIR
+    /// and folded onto the analysis band (`fit::telemetry_psd`), with a white floor if the
+    /// FIR leaves a null there (returned, for the report's note).
     pub fn whitener_through_decimator(
         &self,
         p: &[f64],
@@ -137,13 +139,15 @@ impl Setup {
         dt: f64,
         order: usize,
         decimator: &crate::spectral::Decimator,
-    ) -> Result<Whitener<2>, Error> {
-        let psd = self.psd(p);
-        let through = |f: f64| {
-            let h = decimator.frequency_response(f);
-            psd(f) * num_complex::Complex64::new(h * h, 0.0)
-        };
-        Ok(Whitener::from_psd(through, dt, order, n)?)
+    ) -> Result<(Whitener<2>, Option<NullFloor>), Error> {
+        let psd = folded(self.psd(p), decimator);
+        Ok(match NullFloor::detect(&psd, dt) {
+            Some(floor) => (
+                Whitener::from_psd(floor.apply(psd), dt, order, n)?,
+                Some(floor),
+            ),
+            None => (Whitener::from_psd(psd, dt, order, n)?, None),
+        })
     }
 
     /// The glitches of `g` for a simulation directly at the analysis rate over `n` samples.

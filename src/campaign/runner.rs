@@ -219,6 +219,8 @@ pub struct Runner<'s> {
     noise_chi2: bool,
     cells: Vec<Cell<'s>>,
     pub layout: Layout,
+    /// How cells were prepared, when it departs from the plain path (a whitening floor).
+    pub notes: Vec<String>,
 }
 
 /// The scenarios of a campaign in model parameter order; inline sets are checked here (unknown
@@ -341,7 +343,7 @@ impl<'s> Runner<'s> {
             });
         }
         check_engine_model(setup, campaign)?;
-        let mut cells = Vec::new();
+        let (mut cells, mut notes) = (Vec::new(), Vec::new());
         for (i, sc) in scenarios.iter().enumerate() {
             for (which, p) in [("true", &sc.truth), ("guess", &sc.guess)] {
                 check_stability(&setup.model, p, None).map_err(|e| CampaignError::Invalid {
@@ -357,7 +359,9 @@ impl<'s> Runner<'s> {
                     sc.name,
                     d.name
                 );
-                cells.push(build_cell(setup, campaign, &constraints, sc, d, &label)?);
+                let (cell, note) = build_cell(setup, campaign, &constraints, sc, d, &label)?;
+                notes.extend(note.map(|n| format!("{label}: {n}")));
+                cells.push(cell);
             }
         }
         let layout = Layout {
@@ -383,6 +387,7 @@ impl<'s> Runner<'s> {
             noise_chi2: campaign.fit.noise_chi2,
             cells,
             layout,
+            notes,
         })
     }
 
@@ -513,8 +518,9 @@ fn check_engine_model(setup: &Setup, campaign: &Campaign) -> Result<(), Campaign
 
 /// One (scenario, design) cell: the data source of the campaign's engine, the likelihood with
 /// the whitening filter of the noise PSD at `[fit] whiten_at` (for time-domain data, the
-/// model PSD seen through the anti-alias FIR), the fit configurations and the `[accel]`
-/// reference. `label` names the cell in errors.
+/// model PSD folded through the anti-alias FIR, `fit::telemetry_psd`), the fit configurations
+/// and the `[accel]` reference; and a note when the whitening needed a floor. `label` names
+/// the cell in errors.
 fn build_cell<'s>(
     setup: &'s Setup,
     campaign: &Campaign,
@@ -522,7 +528,7 @@ fn build_cell<'s>(
     sc: &Scenario,
     d: &Design,
     label: &str,
-) -> Result<Cell<'s>, CampaignError> {
+) -> Result<(Cell<'s>, Option<String>), CampaignError> {
     let ctx = |e: crate::setup::Error| CampaignError::Setup {
         context: label.to_string(),
         source: Box::new(e),
@@ -532,6 +538,7 @@ fn build_cell<'s>(
         WhitenAt::Guess => &sc.guess,
     };
     let order = campaign.fit.whitening_order;
+    let mut note = None;
     let (source, inputs, dt, whitener) = match campaign.fit.engine {
         Engine::FrequencyDomain => {
             let sim = setup
@@ -553,9 +560,10 @@ fn build_cell<'s>(
                 inputs.iter().map(|e| e[0].len()).max().unwrap_or(0),
                 td.grid.dt_out,
             );
-            let whitener = setup
+            let (whitener, floor) = setup
                 .whitener_through_decimator(p_w, n, dt, order, &td.grid.decimator)
                 .map_err(ctx)?;
+            note = floor.map(|f| f.note());
             (Source::Time(Box::new(td)), inputs, dt, whitener)
         }
     };
@@ -602,12 +610,13 @@ fn build_cell<'s>(
             })?,
         )
     };
-    Ok(Cell {
+    let cell = Cell {
         source,
         lik,
         configs,
         accel,
-    })
+    };
+    Ok((cell, note))
 }
 
 /// Whether a fit's chi^2/nu lies far above its noise reference (see
