@@ -133,9 +133,18 @@ pub fn dataset_whitener(
     source: Whitening,
 ) -> Result<(Whitener<2>, String)> {
     let from_model = |why: &str| -> Result<(Whitener<2>, String)> {
+        if !decimated_telemetry(ds) {
+            return Ok((
+                setup.whitener_from_model(p, n, dt, order)?,
+                format!("model noise PSD{why}"),
+            ));
+        }
+        let decimator = setup.spec.decimator().map_err(crate::setup::Error::from)?;
+        let (w, floor) = setup.whitener_through_decimator(p, n, dt, order, &decimator)?;
+        let floor = floor.map_or(String::new(), |f| format!("; {}", f.note()));
         Ok((
-            setup.whitener_from_model(p, n, dt, order)?,
-            format!("model noise PSD{why}"),
+            w,
+            format!("model noise PSD folded through the anti-alias FIR{why}{floor}"),
         ))
     };
     match (source, &ds.noise) {
@@ -156,6 +165,13 @@ pub fn dataset_whitener(
             Ok((w, format!("noise run {label}")))
         }
     }
+}
+
+/// Whether a dataset's telemetry went through the model's anti-alias FIR: simulated with
+/// `[meta] rate = "decimated"` (either engine). Its model noise PSD is then the folded one
+/// (`fit::telemetry_psd`).
+pub fn decimated_telemetry(ds: &Dataset) -> bool {
+    ds.meta.get("rate").and_then(|v| v.as_str()) == Some("decimated")
 }
 
 /// `[meta.truth]` of a simulated dataset, if it gives every parameter (integers are read as

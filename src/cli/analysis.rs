@@ -8,9 +8,9 @@ use clap::Args;
 
 use super::{ensure_parent, ModelOpt};
 use crate::analysis::{
-    correlation_table, dataset_whitener, estimates_table, experiment_data, outputs_of,
-    parse_constraints, psd_table, residual_table, resolve_guess, truth_from_meta, whitened_table,
-    FitSummary, Whitening,
+    correlation_table, dataset_whitener, decimated_telemetry, estimates_table, experiment_data,
+    outputs_of, parse_constraints, psd_table, residual_table, resolve_guess, truth_from_meta,
+    whitened_table, FitSummary, Whitening,
 };
 use crate::fit::{fit as run_fit, Estimator, FitConfig, Likelihood, Whitener};
 use crate::io::{read_dataset, read_run, write_json_atomic, write_parquet, Provenance};
@@ -184,7 +184,8 @@ pub fn fit(a: FitArgs) -> Result<()> {
         a.order,
         a.whitening,
     )?;
-    if ds.noise.is_none() && a.whitening == Whitening::Auto {
+    let through_fir = source.starts_with("model") && decimated_telemetry(&ds);
+    if (ds.noise.is_none() && a.whitening == Whitening::Auto) || through_fir {
         info!("note: whitening from the {source}");
     }
     let lik = Likelihood::with_lengths(

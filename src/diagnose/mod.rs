@@ -120,6 +120,9 @@ pub struct DiagnoseConfig {
     /// Whiten with the model noise PSD at the starting point even when a noise run is given
     /// (the noise run then only serves as the reference of the band and time tests).
     pub whiten_from_model: bool,
+    /// The data went through the model's anti-alias FIR (a decimated simulation): whitening
+    /// from the model then uses the folded telemetry PSD (`fit::telemetry_psd`).
+    pub decimated_telemetry: bool,
     /// Propose every detected narrow line as a `line` candidate (not only coherent ones).
     pub lines: bool,
     /// Propose `drift` candidates of the parameters in [`additive::DRIFT_PARAMETERS`].
@@ -146,6 +149,7 @@ impl Default for DiagnoseConfig {
             effects: library(),
             degeneracy: 0.95,
             whiten_from_model: false,
+            decimated_telemetry: false,
             lines: false,
             drifts: true,
             glitches: true,

@@ -174,6 +174,29 @@ fn noise_run_filter(
     Ok(None)
 }
 
+/// The whitening filter of the model noise PSD at `guess`: folded through the anti-alias FIR
+/// for decimated telemetry, with a note when a Nyquist null needed a white floor.
+fn model_whitener(
+    setup: &Setup,
+    data: &ExperimentData,
+    guess: &[f64],
+    cfg: &DiagnoseConfig,
+    order: usize,
+    obs: &mut dyn Observer,
+) -> Result<crate::fit::Whitener<2>, DiagnoseError> {
+    if !cfg.decimated_telemetry {
+        return Ok(setup.whitener_from_model(guess, data.len(), data.dt, order)?);
+    }
+    let decimator = setup.spec.decimator().map_err(crate::setup::Error::from)?;
+    let (w, floor) =
+        setup.whitener_through_decimator(guess, data.len(), data.dt, order, &decimator)?;
+    obs.note("whitening from the model noise PSD folded through the anti-alias FIR (decimated telemetry)");
+    if let Some(f) = floor {
+        obs.note(&f.note());
+    }
+    Ok(w)
+}
+
 /// Choose the whitening filter: the noise run when it is usable and not overridden, else the
 /// model noise PSD at `guess`. With a filter fitted on the noise run, that run's whitened level
 /// is an in-sample estimate, scaled by Akaike's final-prediction-error factor `(T + m) / (T - m)`,
@@ -191,7 +214,7 @@ fn whitening<'a>(
     let (filter, source) = match noise_run_filter(noise, cfg.whiten_from_model, order, obs)? {
         Some(w) => (w, WhiteningSource::NoiseRun),
         None => (
-            setup.whitener_from_model(guess, data.len(), data.dt, order)?,
+            model_whitener(setup, data, guess, cfg, order, obs)?,
             WhiteningSource::ModelPsd,
         ),
     };
