@@ -93,7 +93,8 @@ fn chi2_sigmas(chi2_reduced: f64, nu: f64) -> f64 {
 fn fit_and_diagnose_work_on_time_domain_data_through_a_nyquist_null() {
     // Oracle: the chi^2 distribution. A clean time-domain dataset (standard design, 12 h noise
     // run) decimated by the CIC-like FIR, whitened from its noise run and fitted with the
-    // sampled-data model, leaves chi2/nu within 3 standard deviations of 1 in fit and diagnose.
+    // sampled-data model, leaves chi2/nu within 3 standard deviations of 1 in fit and diagnose;
+    // so does the fit whitened with the model PSD, which needs the floor.
     let dir = tempfile::tempdir().unwrap();
     let model = write_model(dir.path(), &cic_table());
     let (model, data) = (model.to_str().unwrap(), dir.path().join("td"));
@@ -131,6 +132,35 @@ fn fit_and_diagnose_work_on_time_domain_data_through_a_nyquist_null() {
         chi2_sigmas(c, nu) < CHI2_SIGMAS,
         "fit chi2/nu = {c}, nu = {nu}"
     );
+    // The model-PSD whitening of decimated telemetry: folded through the FIR, floored at the
+    // null, and said so.
+    let fit_model = dir.path().join("fit-model");
+    let o = freefall(&[
+        "fit",
+        ds.to_str().unwrap(),
+        "--model",
+        model,
+        "--whitening",
+        "model",
+        "--out",
+        fit_model.to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(err.contains("whitening regularised"), "no note: {err}");
+    let fit: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(fit_model.join("fit.json")).unwrap())
+            .unwrap();
+    let (c, nu) = (
+        fit["chi2_reduced"].as_f64().unwrap(),
+        fit["nu"].as_f64().unwrap(),
+    );
+    eprintln!("fit --whitening model: chi2/nu = {c} (nu = {nu})");
+    assert!(
+        chi2_sigmas(c, nu) < CHI2_SIGMAS,
+        "fit --whitening model chi2/nu = {c}"
+    );
+    assert!(fit["whitening"].as_str().unwrap().contains("white floor"));
     let dg = dir.path().join("dg");
     let o = freefall(&[
         "diagnose",
