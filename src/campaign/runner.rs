@@ -38,8 +38,8 @@ enum Source {
     /// whitened (`wsim`; `None` if the noise window is too close to the start of its generator
     /// for the whitening filter; then `sim.draw` is whitened).
     Frequency {
-        sim: Simulator<2>,
-        wsim: Option<WhitenedSimulator<2>>,
+        sim: Box<Simulator<2>>,
+        wsim: Option<Box<WhitenedSimulator<2>>>,
     },
     /// The digital loop in the time domain, decimated to the analysis rate.
     Time(Box<TimeDomainSimulator>),
@@ -548,7 +548,10 @@ fn build_cell<'s>(
                 .whitener_from_model(p_w, sim.n, sim.dt, order)
                 .map_err(ctx)?;
             let (inputs, dt) = (sim.inputs.clone(), sim.dt);
-            let source = Source::Frequency { sim, wsim: None };
+            let source = Source::Frequency {
+                sim: Box::new(sim),
+                wsim: None,
+            };
             (source, inputs, dt, whitener)
         }
         Engine::TimeDomain => {
@@ -577,7 +580,7 @@ fn build_cell<'s>(
     .map_err(|e| ctx(e.into()))?;
     let source = match source {
         Source::Frequency { sim, .. } => {
-            let wsim = WhitenedSimulator::new(&lik, &sim).ok();
+            let wsim = WhitenedSimulator::new(&lik, &sim).ok().map(Box::new);
             Source::Frequency { sim, wsim }
         }
         time => time,
