@@ -143,6 +143,7 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
         max_effects: a.max_effects,
         max_glitches: a.max_glitches,
         whiten_from_model: a.model_psd,
+        decimated_telemetry: crate::analysis::decimated_telemetry(&ds),
         lines: a.lines,
         glitches: !a.no_glitches,
         constraints,
