@@ -11,6 +11,12 @@
 //! grid, from the very random numbers `Simulator::draw` would use. The noise-only run costs one
 //! noise draw per experiment and a sum of squares. Every fit starts from the cell's guess, where
 //! the cached Jacobian also holds the whitened templates, so the first residuals are free.
+//!
+//! With `[fit] engine = "time-domain"` a cell draws each realization through the digital loop
+//! (`sim::time_domain`) from the same stream instead, whitens it like measured data, and builds
+//! its likelihood on the decimated guidance telemetry, with the whitening filter of the model
+//! PSD folded through the anti-alias FIR (`fit::telemetry_psd`). The model must then be the
+//! sampled-data one.
 
 use rayon::prelude::*;
 
