@@ -2,14 +2,18 @@
 //! the closed-form free response of a first-order lag over one held step (the exact ZOH
 //! discretisation); the reference model's own operators for effects that equal a change of a
 //! model constant (gravity gradient = gamma_x shifted); the loop without effects for zero
-//! values; and the CLI's documented one-line errors.
+//! values; the continuous closed loop with the library's lag (`model::effects`), which the
+//! digital loop with the lag must approach to the order of its hold; and the CLI's documented
+//! one-line errors.
 
 use std::process::Command;
 
-use freefall::model::effects::{by_name, library};
+use freefall::model::effects::{by_name, library, Extended};
 use freefall::model::lpf_x::A_DF;
+use freefall::model::{transfer, ClosedLoopModel};
 use freefall::setup::Setup;
 use freefall::sim::time_domain::{DigitalLoop, LoopConfig, PlantEffects};
+use num_complex::Complex64;
 
 /// Index of the drag-free lag state in `DigitalLoop::state` when it is the only lag: after
 /// the four plant states x1, x12, v1, v12.
@@ -175,5 +179,78 @@ fn cli_simulates_effects_in_the_time_domain_and_refuses_the_others_in_one_line()
             err.contains(needle) && err.contains("time-domain engine"),
             "{spec}: {err}"
         );
+    }
+}
+
+/// Standard-design stretch [s] and cycles per stretch (thesis Table "standard input signals").
+const STRETCH_S: f64 = 1200.0;
+const STANDARD_CYCLES: [f64; 7] = [1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0];
+/// Closed-loop time constants waited before measuring a steady state (exp(-30) ~ 1e-13).
+const SETTLE_TIME_CONSTANTS: f64 = 30.0;
+
+/// Steady-state response `[T_1c, T_2c] e^{-i w dt_c}` of the readouts to a unit sine on
+/// guidance `c` at `f`, projected over the last stretch (as in tests/time_domain.rs).
+fn measured_response(lp: &DigitalLoop, f: f64, c: usize, delay: f64) -> [Complex64; 2] {
+    let h = lp.dt;
+    let zmax = lp
+        .poles()
+        .unwrap()
+        .iter()
+        .map(|z| z.norm())
+        .fold(0.0, f64::max);
+    let tau = -h / zmax.ln();
+    let settle = (SETTLE_TIME_CONSTANTS * tau / STRETCH_S).ceil() * STRETCH_S;
+    let n = ((settle + STRETCH_S) / h).round() as usize;
+    let nw = (STRETCH_S / h).round() as usize;
+    let w = 2.0 * std::f64::consts::PI * f;
+    let g: Vec<f64> = (0..n).map(|k| (w * (k as f64 * h - delay)).sin()).collect();
+    let zero = vec![0.0; n];
+    let guidance: [&[f64]; 2] = if c == 0 { [&g, &zero] } else { [&zero, &g] };
+    let mut run = lp.clone();
+    let o = run.run(guidance, [&zero, &zero], [&zero, &zero]);
+    std::array::from_fn(|r| {
+        let acc: Complex64 = (n - nw..n)
+            .map(|k| o[r][k] * Complex64::new(0.0, -w * k as f64 * h).exp())
+            .sum();
+        acc * Complex64::new(0.0, 2.0 / nw as f64)
+    })
+}
+
+#[test]
+fn lagged_loop_approaches_the_continuous_loop_with_the_library_lag() {
+    // Oracle: the continuous T_{oi->o} of the reference model extended by the library's
+    // actuation_lag_df (L(s) = 1 / (1 + s tau) on the drag-free column of A C). The digital
+    // loop with the lag differs from it only by the hold and Tustin, O(w h), as without the lag
+    // (tests/time_domain.rs); the test allows 2 w h at the seven standard frequencies. A wrong
+    // sign, gain or time constant of the lag is an O(1) error where w tau ~ 1 (0.4 Hz^-1 here).
+    let setup = Setup::embedded();
+    let p = setup.spec.scenario("monte_carlo").unwrap().truth;
+    let cfg = LoopConfig::from_spec(&setup.spec);
+    let tau = 0.4;
+    let lag = effects(&[("actuation_lag_df", tau)]);
+    let fx = PlantEffects::from_library(&setup.model, &lag).unwrap();
+    let lp = DigitalLoop::with_effects(&setup.model, &p, &cfg, &fx);
+    let ext = Extended::new(setup.model.clone(), vec![lag[0].0.clone()]);
+    let mut pe = p.clone();
+    pe.push(tau);
+    for cycles in STANDARD_CYCLES {
+        let f = cycles / STRETCH_S;
+        let wh = 2.0 * std::f64::consts::PI * f * cfg.dt;
+        let t = transfer(&ext, &ext.prepare(f), &pe).oi_o;
+        for c in 0..2 {
+            let got = measured_response(&lp, f, c, p[5 + c]);
+            for r in 0..2 {
+                let want = t[(r, c)];
+                let rel = (got[r] - want).norm() / want.norm();
+                assert!(
+                    rel < 2.0 * wh,
+                    "f = {f} Hz, T{}{}: lagged digital {:.6e}, continuous {:.6e}, rel {rel:.2e}",
+                    r + 1,
+                    c + 1,
+                    got[r],
+                    want
+                );
+            }
+        }
     }
 }
