@@ -20,13 +20,15 @@ use crate::sim::time_domain::{InitialConditions, PlantEffects};
 pub enum Rate {
     /// Simulate at the model's simulate_hz and decimate with the anti-alias FIR (thesis).
     Decimated,
-    /// Simulate directly at analyse_hz (ideal anti-alias decimation; what campaigns use).
+    /// Simulate directly at analyse_hz (ideal anti-alias decimation; what frequency-domain
+    /// campaigns use).
     Analysis,
 }
 
 #[derive(Debug, Clone, Copy, ValueEnum, PartialEq, Eq)]
 pub enum Engine {
-    /// Templates plus coloured noise of the continuous loop's PSD (fast; campaigns use it).
+    /// Templates plus coloured noise of the continuous loop's PSD (fast; the campaigns'
+    /// default).
     FrequencyDomain,
     /// The digital loop stepped at simulate_hz (plant integrated exactly, discrete
     /// controllers, held commands), decimated with the anti-alias FIR.
