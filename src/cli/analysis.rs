@@ -81,7 +81,7 @@ pub fn whiten(a: WhitenArgs) -> Result<()> {
     let (whitener, source) = match (&a.noise, a.model_psd) {
         (Some(path), _) => {
             let noise = read_run(path)?;
-            if (noise.dt - run.dt).abs() > 1e-9 * run.dt {
+            if !crate::numerics::tol::same_time(noise.dt, run.dt) {
                 bail!("{}: sampling interval {} s differs from {}'s {} s", path.display(), noise.dt, a.run.display(), run.dt);
             }
             let w = Whitener::<2>::from_series(&outputs_of(&noise), a.order).with_context(|| path.display().to_string())?;

@@ -128,7 +128,7 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
         .as_ref()
         .map(|r| r.outputs().iter().map(|c| c.to_vec()).collect());
     if let Some(nr) = &ds.noise {
-        if (nr.dt - data.dt).abs() > 1e-9 * data.dt {
+        if !crate::numerics::tol::same_time(nr.dt, data.dt) {
             bail!(
                 "the noise run's sampling interval {} s differs from the experiments' {} s",
                 nr.dt,

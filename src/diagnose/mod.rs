@@ -139,12 +139,12 @@ impl Default for DiagnoseConfig {
         DiagnoseConfig {
             order: DEFAULT_WHITENING_ORDER,
             poly_degree: DEFAULT_POLY_DEGREE,
-            alpha: 0.01,
+            alpha: 0.01, // 1 % family-wise false-claim rate
             max_effects: 3,
             max_glitches: 3,
             confirm_top: 3,
             effects: library(),
-            degeneracy: 0.95,
+            degeneracy: 0.95, // |correlation| above which two effects are one
             whiten_from_model: false,
             lines: false,
             drifts: true,

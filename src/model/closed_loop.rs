@@ -85,10 +85,12 @@ pub trait ClosedLoopModel<const N: usize>: Send + Sync {
 
     fn instability(&self, p: &[f64]) -> Result<Option<Instability>, RootsError> {
         let poles = self.poles(p)?;
+        // Poles with Re >= -1e-14 |largest pole| are on the imaginary axis to the accuracy of
+        // the polynomial's roots (relative 1e-14); the 1e-12 floor keeps an all-zero set sane.
         let scale = poles.iter().fold(1e-12_f64, |m, z| m.max(z.norm()));
         let rhp: Vec<Complex64> = poles
             .into_iter()
-            .filter(|z| z.re >= -1e-14 * scale)
+            .filter(|z| z.re >= -1e-14 * scale) // see above
             .collect();
         let Some(pole) = rhp.iter().copied().max_by(|a, b| a.re.total_cmp(&b.re)) else {
             return Ok(None);

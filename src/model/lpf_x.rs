@@ -161,6 +161,8 @@ impl Phasor {
     #[inline(always)]
     fn at(&mut self, k: usize, s: Complex64, ds: Option<Complex64>) -> Complex64 {
         match ds {
+            // Recurrence exp(-s dt) *= exp(-ds dt), recomputed exactly every 256 points so
+            // the accumulated rounding stays below 256 eps.
             Some(ds) if !k.is_multiple_of(256) => {
                 if k == 2 || self.step == Complex64::new(1.0, 0.0) {
                     self.step = (-ds * self.dt).exp();
@@ -202,7 +204,7 @@ impl LpfX {
         let uniform = points.len() > 3 && {
             let d1 = points[2].s - points[1].s;
             let d2 = points[points.len() - 1].s - points[points.len() - 2].s;
-            (d1 - d2).norm() <= 1e-9 * d1.norm()
+            (d1 - d2).norm() <= crate::numerics::tol::SAME_TIME * d1.norm()
         };
         let Some(d) = d_out else {
             // Templates only: T = Delta^-1 M with M = [[m11, mt m22], [0, m22]], so
