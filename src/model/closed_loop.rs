@@ -107,6 +107,15 @@ pub trait ClosedLoopModel<const N: usize>: Send + Sync {
 
     /// Physical range `(lower, upper)` of each parameter, which a fit never leaves. Default:
     /// unbounded.
+    /// The advance `tau` of the inverse plant's inertia, `s^2 -> s^2 (1 + tau s + ...)`: zero
+    /// for a continuous plant; half the control interval for a plant driven through a
+    /// zero-order hold (the held force acts half a step late on average). The acceleration
+    /// estimator applies it as a local stencil rather than through an FFT multiplier, where
+    /// its jump at the telemetry's Nyquist frequency would ring.
+    fn inertia_advance(&self) -> f64 {
+        0.0
+    }
+
     fn parameter_bounds(&self) -> Vec<(f64, f64)> {
         vec![(f64::NEG_INFINITY, f64::INFINITY); self.n_params()]
     }

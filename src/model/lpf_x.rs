@@ -486,6 +486,13 @@ impl ClosedLoopModel<2> for LpfX {
         self.derivative_with(pt, p, k, self.held_plant(p).as_ref())
     }
 
+    /// Half the control interval for a digital model: `D_d = (Q (z-1)^2 + 2 z K) / (z + 1)`
+    /// expands as `s^2 (1 + s h / 2 + (s h)^2 / 12) + K (1 + s h / 2 + ...)` (module
+    /// `sampled`); zero for the continuous loop.
+    fn inertia_advance(&self) -> f64 {
+        self.digital.as_ref().map_or(0.0, |dl| 0.5 * dl.h)
+    }
+
     /// For a digital model, the poles in `z` mapped to `s = ln(z) / h`.
     fn poles(&self, p: &[f64]) -> Result<Vec<Complex64>, RootsError> {
         match (&self.digital, self.digital_characteristic_polynomial(p)) {
