@@ -2,6 +2,7 @@
 //! noise model, designs, simulators and whitening filters. Shared by the CLI, campaigns,
 //! design and diagnosis so that every job builds them the same way.
 
+use crate::fit::telemetry_psd::{folded, NullFloor};
 use crate::fit::{FitError, Whitener};
 use crate::forward::fisher::{fisher_information, InputSpectra};
 use crate::model::closed_loop::CMat;
@@ -11,7 +12,7 @@ use crate::noise::{GlitchConfig, NoiseError, NoiseModel};
 use crate::signal::{Design, SignalError};
 use crate::sim::decimated::DecimatedSimulator;
 use crate::sim::time_domain::{
-    InitialConditions, LoopConfig, TimeDomainError, TimeDomainSimulator,
+    InitialConditions, LoopConfig, PlantEffects, TimeDomainError, TimeDomainSimulator,
 };
 use crate::sim::Simulator;
 
@@ -127,6 +128,28 @@ impl Setup {
         Ok(Whitener::from_psd(self.psd(p), dt, order, n)?)
     }
 
+    /// The whitening filter of data decimated by `decimator` (the time-domain engine's
+    /// telemetry): the model's readout PSD at `p` at the simulation rate, filtered by the FIR
+    /// and folded onto the analysis band (`fit::telemetry_psd`), with a white floor if the
+    /// FIR leaves a null there (returned, for the report's note).
+    pub fn whitener_through_decimator(
+        &self,
+        p: &[f64],
+        n: usize,
+        dt: f64,
+        order: usize,
+        decimator: &crate::spectral::Decimator,
+    ) -> Result<(Whitener<2>, Option<NullFloor>), Error> {
+        let psd = folded(self.psd(p), decimator);
+        Ok(match NullFloor::detect(&psd, dt) {
+            Some(floor) => (
+                Whitener::from_psd(floor.apply(psd), dt, order, n)?,
+                Some(floor),
+            ),
+            None => (Whitener::from_psd(psd, dt, order, n)?, None),
+        })
+    }
+
     /// The glitches of `g` for a simulation directly at the analysis rate over `n` samples.
     /// Glitch amplitudes are in units of the white driving sequence at the simulation rate; at
     /// the analysis rate the same physical glitch is sqrt(simulate_hz / analyse_hz) times larger
@@ -191,13 +214,12 @@ impl Setup {
         glitch: Option<&GlitchSpec>,
     ) -> Result<DecimatedSimulator<2>, Error> {
         self.check_simulation_size(design, "duration_s")?;
-        Ok(DecimatedSimulator::new(
+        Ok(DecimatedSimulator::with_decimator(
             &self.model,
             design,
             truth,
             self.psd(truth),
-            self.simulation_dt(),
-            self.spec.decimation(),
+            self.spec.decimator()?,
             NOISE_OVERSAMPLE,
             glitch,
         )?)
@@ -215,6 +237,25 @@ impl Setup {
         glitch: Option<&GlitchSpec>,
         initial: Option<InitialConditions>,
     ) -> Result<TimeDomainSimulator, Error> {
+        self.time_domain_simulator_with_effects(
+            design,
+            truth,
+            glitch,
+            initial,
+            &PlantEffects::default(),
+        )
+    }
+
+    /// [`Self::time_domain_simulator`] with the library's operator effects `effects` in the
+    /// plant (`sim::time_domain::PlantEffects`).
+    pub fn time_domain_simulator_with_effects(
+        &self,
+        design: &Design,
+        truth: &[f64],
+        glitch: Option<&GlitchSpec>,
+        initial: Option<InitialConditions>,
+        effects: &PlantEffects,
+    ) -> Result<TimeDomainSimulator, Error> {
         if glitch.is_some() {
             return Err(TimeDomainError::Glitches.into());
         }
@@ -223,11 +264,12 @@ impl Setup {
             &self.model,
             &self.noise,
             &LoopConfig::from_spec(&self.spec),
-            self.spec.decimation(),
+            self.spec.decimator()?,
             design,
             truth,
             initial,
             NOISE_OVERSAMPLE,
+            effects,
         )?)
     }
 }

@@ -235,6 +235,8 @@ pub struct Progress {
 pub struct RunReport {
     pub manifest: Manifest,
     pub already_complete: bool,
+    /// Notes on how cells were prepared (e.g. a whitening floor), one line each.
+    pub notes: Vec<String>,
 }
 
 fn store_err(path: &Path, reason: impl Into<String>) -> CampaignError {
@@ -370,6 +372,7 @@ pub fn run(
         return Ok(RunReport {
             manifest,
             already_complete: true,
+            notes: Vec::new(),
         });
     }
     let pool = worker_pool(out, opts.threads)?;
@@ -469,6 +472,7 @@ pub fn run(
     Ok(RunReport {
         manifest,
         already_complete: false,
+        notes: runner.notes.clone(),
     })
 }
 

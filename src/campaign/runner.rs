@@ -26,19 +26,86 @@ use crate::model::{check_stability, LpfX};
 use crate::setup::Setup;
 use crate::signal::Design;
 use crate::sim::rng::stream;
+use crate::sim::time_domain::TimeDomainSimulator;
 use crate::sim::Simulator;
 use crate::sim::WhitenedSimulator;
 
+use super::spec::Engine;
+
+/// Where a cell's data come from (`[fit] engine`).
+enum Source {
+    /// The frequency-domain simulator at the analysis rate, with realizations delivered
+    /// whitened (`wsim`; `None` if the noise window is too close to the start of its generator
+    /// for the whitening filter; then `sim.draw` is whitened).
+    Frequency {
+        sim: Simulator<2>,
+        wsim: Option<WhitenedSimulator<2>>,
+    },
+    /// The digital loop in the time domain, decimated to the analysis rate.
+    Time(Box<TimeDomainSimulator>),
+}
+
+impl Source {
+    /// The experiments of one realization (what `run_job` fits), from `rng`.
+    fn draw(&self, rng: &mut rand_xoshiro::Xoshiro256PlusPlus) -> ExperimentData {
+        match self {
+            Source::Frequency { sim, .. } => sim.draw(rng),
+            Source::Time(td) => td.draw(rng),
+        }
+    }
+}
+
 struct Cell<'s> {
-    sim: Simulator<2>,
+    source: Source,
     lik: Likelihood<'s, LpfX, 2>,
-    /// `sim` with realizations delivered whitened (`None` if the noise window is too close to
-    /// the start of its generator for the whitening filter; then `sim.draw` is whitened).
-    wsim: Option<WhitenedSimulator<2>>,
     /// Fit configuration per estimator (they differ by estimator and by the cell's Jacobians).
     configs: Vec<FitConfig>,
     /// The acceleration-noise reference of `[accel]` bands, if recorded.
     accel: Option<AccelReference>,
+}
+
+/// A realization's whitened problem, and, if asked, the noise-only run's `(nu, whitened
+/// series)`, or the errors of either.
+type Drawn<'a, 's> = (
+    Result<crate::fit::Problem<'a, 's, LpfX, 2>, crate::fit::FitError>,
+    Option<Result<(usize, crate::data::Series), crate::fit::FitError>>,
+);
+
+impl<'s> Cell<'s> {
+    /// Draw one realization from `rng`: the data first (every experiment), then, if
+    /// `noise_chi2`, a noise-only run per experiment from the same stream.
+    fn draw<'a>(
+        &'a self,
+        rng: &mut rand_xoshiro::Xoshiro256PlusPlus,
+        noise_chi2: bool,
+    ) -> Drawn<'a, 's> {
+        let lik = &self.lik;
+        if let Source::Frequency { wsim: Some(ws), .. } = &self.source {
+            let data_w = ws.draw(rng);
+            let noise_w = noise_chi2.then(|| {
+                lik.problem_whitened(ws.draw_noise(rng))
+                    .map(|p| (p.nu(0), p.data_w))
+            });
+            return (lik.problem_whitened(data_w), noise_w);
+        }
+        let data = self.source.draw(rng);
+        let noise_w = noise_chi2.then(|| {
+            let outputs = match &self.source {
+                Source::Frequency { sim, .. } => (0..data.outputs.len())
+                    .map(|e| sim.noise_series_of(e, rng))
+                    .collect(),
+                Source::Time(td) => td.noise_runs(rng),
+            };
+            let noise = ExperimentData {
+                names: data.names.clone(),
+                inputs: Vec::new(),
+                outputs,
+                dt: data.dt,
+            };
+            lik.problem(&noise).map(|p| (p.nu(0), p.data_w))
+        });
+        (lik.problem(&data), noise_w)
+    }
 }
 
 /// Points per `[accel]` band (log-spaced) at which S_g12 is averaged.
@@ -123,7 +190,7 @@ impl AccelReference {
 /// fitted, the cache holds the guess only.
 fn cell_jacobians(
     setup: &Setup,
-    sim: &Simulator<2>,
+    sim: &Source,
     lik: &Likelihood<'_, LpfX, 2>,
     sc: &Scenario,
     seed: u64,
@@ -152,6 +219,8 @@ pub struct Runner<'s> {
     noise_chi2: bool,
     cells: Vec<Cell<'s>>,
     pub layout: Layout,
+    /// How cells were prepared, when it departs from the plain path (a whitening floor).
+    pub notes: Vec<String>,
 }
 
 /// The scenarios of a campaign in model parameter order; inline sets are checked here (unknown
@@ -256,12 +325,6 @@ impl<'s> Runner<'s> {
         designs: &[Design],
     ) -> Result<Self, CampaignError> {
         let names = setup.parameter_names();
-        let ctx = |what: String| {
-            move |e: crate::setup::Error| CampaignError::Setup {
-                context: what.clone(),
-                source: Box::new(e),
-            }
-        };
         let constraints = fit_constraints(campaign, &names)?;
         let nyquist = 0.5 * setup.spec.sampling.analyse_hz;
         if let Some((k, b)) = campaign
@@ -279,7 +342,8 @@ impl<'s> Runner<'s> {
                 ),
             });
         }
-        let mut cells = Vec::new();
+        check_engine_model(setup, campaign)?;
+        let (mut cells, mut notes) = (Vec::new(), Vec::new());
         for (i, sc) in scenarios.iter().enumerate() {
             for (which, p) in [("true", &sc.truth), ("guess", &sc.guess)] {
                 check_stability(&setup.model, p, None).map_err(|e| CampaignError::Invalid {
@@ -295,59 +359,9 @@ impl<'s> Runner<'s> {
                     sc.name,
                     d.name
                 );
-                let sim = setup
-                    .simulator(d, &sc.truth, sc.glitch.as_ref())
-                    .map_err(ctx(label.clone()))?;
-                let p_w = match campaign.fit.whiten_at {
-                    WhitenAt::Truth => &sc.truth,
-                    WhitenAt::Guess => &sc.guess,
-                };
-                let whitener = setup
-                    .whitener_from_model(p_w, sim.n, sim.dt, campaign.fit.whitening_order)
-                    .map_err(ctx(label.clone()))?;
-                let lik = Likelihood::new(
-                    &setup.model,
-                    &sim.inputs,
-                    sim.dt,
-                    whitener,
-                    campaign.fit.poly_degree,
-                )
-                .map_err(|e| ctx(label.clone())(e.into()))?;
-                let mut base = constraints.apply(FitConfig::new(&setup.model));
-                base.max_iterations = campaign.fit.max_iterations;
-                if campaign.fit.cached_jacobian {
-                    base.jacobian = cell_jacobians(setup, &sim, &lik, sc, campaign.seed, &base)
-                        .map_err(|e| ctx(label.clone())(e.into()))?;
-                }
-                let configs = campaign
-                    .estimators
-                    .iter()
-                    .map(|&e| {
-                        let mut c = base.clone();
-                        c.estimator = e;
-                        c
-                    })
-                    .collect();
-                let wsim = WhitenedSimulator::new(&lik, &sim).ok();
-                let accel = if campaign.accel_bands.is_empty() {
-                    None
-                } else {
-                    Some(
-                        AccelReference::new(setup, &sc.truth, &campaign.accel_bands, sim.dt)
-                            .map_err(|e| CampaignError::Invalid {
-                                file: campaign.file.clone(),
-                                key: "accel.bands_hz".into(),
-                                reason: format!("scenario '{}': {e}", sc.name),
-                            })?,
-                    )
-                };
-                cells.push(Cell {
-                    sim,
-                    lik,
-                    wsim,
-                    configs,
-                    accel,
-                });
+                let (cell, note) = build_cell(setup, campaign, &constraints, sc, d, &label)?;
+                notes.extend(note.map(|n| format!("{label}: {n}")));
+                cells.push(cell);
             }
         }
         let layout = Layout {
@@ -373,6 +387,7 @@ impl<'s> Runner<'s> {
             noise_chi2: campaign.fit.noise_chi2,
             cells,
             layout,
+            notes,
         })
     }
 
@@ -389,35 +404,7 @@ impl<'s> Runner<'s> {
         let npairs = np * (np - 1) / 2;
         let n_bands = cell.accel.as_ref().map_or(0, |a| a.level_true.len());
         let mut rng = stream(self.seed, r);
-        // Data first (every experiment), then the noise-only run, from the same stream.
-        let (problem, noise_w) = match &cell.wsim {
-            Some(ws) => {
-                let data_w = ws.draw(&mut rng);
-                let noise_w = self.noise_chi2.then(|| {
-                    let noise_w = ws.draw_noise(&mut rng);
-                    cell.lik
-                        .problem_whitened(noise_w)
-                        .map(|p| (p.nu(0), p.data_w))
-                });
-                (cell.lik.problem_whitened(data_w), noise_w)
-            }
-            None => {
-                let data = cell.sim.draw(&mut rng);
-                let noise_w = self.noise_chi2.then(|| {
-                    let outputs = (0..data.outputs.len())
-                        .map(|e| cell.sim.noise_series_of(e, &mut rng))
-                        .collect();
-                    let noise = ExperimentData {
-                        names: data.names.clone(),
-                        inputs: Vec::new(),
-                        outputs,
-                        dt: data.dt,
-                    };
-                    cell.lik.problem(&noise).map(|p| (p.nu(0), p.data_w))
-                });
-                (cell.lik.problem(&data), noise_w)
-            }
-        };
+        let (problem, noise_w) = cell.draw(&mut rng, self.noise_chi2);
         self.estimators
             .iter()
             .zip(&cell.configs)
@@ -507,6 +494,129 @@ impl<'s> Runner<'s> {
             .flatten()
             .collect()
     }
+}
+
+/// The time-domain engine's data come from a digital loop: fitted with the continuous model
+/// they give biased guidance delays and drag-free gain (the hold's half-sample delay; README
+/// "Time-domain simulation of the digital loop"), so the campaign's model must be digital.
+fn check_engine_model(setup: &Setup, campaign: &Campaign) -> Result<(), CampaignError> {
+    use crate::model::spec::LoopKind;
+    if campaign.fit.engine == Engine::TimeDomain
+        && setup.spec.control_loop.kind != LoopKind::Digital
+    {
+        return Err(CampaignError::Invalid {
+            file: campaign.file.clone(),
+            key: "fit.engine".into(),
+            reason: format!(
+                "\"time-domain\" needs a sampled-data model: the model '{}' is continuous; give `model =` a model file with [control_loop] kind = \"digital\" (e.g. campaigns/lpf_x_digital.toml)",
+                setup.spec.origin
+            ),
+        });
+    }
+    Ok(())
+}
+
+/// One (scenario, design) cell: the data source of the campaign's engine, the likelihood with
+/// the whitening filter of the noise PSD at `[fit] whiten_at` (for time-domain data, the
+/// model PSD folded through the anti-alias FIR, `fit::telemetry_psd`), the fit configurations
+/// and the `[accel]` reference; and a note when the whitening needed a floor. `label` names
+/// the cell in errors.
+fn build_cell<'s>(
+    setup: &'s Setup,
+    campaign: &Campaign,
+    constraints: &crate::fit::Constraints,
+    sc: &Scenario,
+    d: &Design,
+    label: &str,
+) -> Result<(Cell<'s>, Option<String>), CampaignError> {
+    let ctx = |e: crate::setup::Error| CampaignError::Setup {
+        context: label.to_string(),
+        source: Box::new(e),
+    };
+    let p_w = match campaign.fit.whiten_at {
+        WhitenAt::Truth => &sc.truth,
+        WhitenAt::Guess => &sc.guess,
+    };
+    let order = campaign.fit.whitening_order;
+    let mut note = None;
+    let (source, inputs, dt, whitener) = match campaign.fit.engine {
+        Engine::FrequencyDomain => {
+            let sim = setup
+                .simulator(d, &sc.truth, sc.glitch.as_ref())
+                .map_err(ctx)?;
+            let whitener = setup
+                .whitener_from_model(p_w, sim.n, sim.dt, order)
+                .map_err(ctx)?;
+            let (inputs, dt) = (sim.inputs.clone(), sim.dt);
+            let source = Source::Frequency { sim, wsim: None };
+            (source, inputs, dt, whitener)
+        }
+        Engine::TimeDomain => {
+            let td = setup
+                .time_domain_simulator(d, &sc.truth, sc.glitch.as_ref(), None)
+                .map_err(ctx)?;
+            let inputs = td.telemetry_inputs();
+            let (n, dt) = (
+                inputs.iter().map(|e| e[0].len()).max().unwrap_or(0),
+                td.grid.dt_out,
+            );
+            let (whitener, floor) = setup
+                .whitener_through_decimator(p_w, n, dt, order, &td.grid.decimator)
+                .map_err(ctx)?;
+            note = floor.map(|f| f.note());
+            (Source::Time(Box::new(td)), inputs, dt, whitener)
+        }
+    };
+    let lik = Likelihood::new(
+        &setup.model,
+        &inputs,
+        dt,
+        whitener,
+        campaign.fit.poly_degree,
+    )
+    .map_err(|e| ctx(e.into()))?;
+    let source = match source {
+        Source::Frequency { sim, .. } => {
+            let wsim = WhitenedSimulator::new(&lik, &sim).ok();
+            Source::Frequency { sim, wsim }
+        }
+        time => time,
+    };
+    let mut base = constraints.apply(FitConfig::new(&setup.model));
+    base.max_iterations = campaign.fit.max_iterations;
+    if campaign.fit.cached_jacobian {
+        base.jacobian = cell_jacobians(setup, &source, &lik, sc, campaign.seed, &base)
+            .map_err(|e| ctx(e.into()))?;
+    }
+    let configs = campaign
+        .estimators
+        .iter()
+        .map(|&e| {
+            let mut c = base.clone();
+            c.estimator = e;
+            c
+        })
+        .collect();
+    let accel = if campaign.accel_bands.is_empty() {
+        None
+    } else {
+        Some(
+            AccelReference::new(setup, &sc.truth, &campaign.accel_bands, dt).map_err(|e| {
+                CampaignError::Invalid {
+                    file: campaign.file.clone(),
+                    key: "accel.bands_hz".into(),
+                    reason: format!("scenario '{}': {e}", sc.name),
+                }
+            })?,
+        )
+    };
+    let cell = Cell {
+        source,
+        lik,
+        configs,
+        accel,
+    };
+    Ok((cell, note))
 }
 
 /// Whether a fit's chi^2/nu lies far above its noise reference (see

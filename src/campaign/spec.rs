@@ -34,6 +34,11 @@
 //!                               # 0's estimate, reused within 5 sigma (fit::JacobianCache);
 //!                               # "exact": evaluated at every accepted step
 //! fixed = ["dt1"]               # held at the scenario's guess: not fitted, not in nu, sigma 0
+//! engine = "frequency-domain"   # data simulator: "frequency-domain" (default; templates plus
+//!                               # coloured noise at the analysis rate) or "time-domain" (the
+//!                               # digital loop stepped at simulate_hz and decimated by the
+//!                               # anti-alias FIR; needs a model with [control_loop] kind =
+//!                               # "digital", see `model` above)
 //!
 //! [fit.prior]                   # Gaussian priors [mean, sigma] (added to the objective and
 //! s21 = [0.9e-4, 2e-5]          # to the information)
@@ -116,6 +121,28 @@ struct FitEntry {
     jacobian: Option<String>,
     fixed: Option<Vec<String>>,
     prior: Option<BTreeMap<String, [f64; 2]>>,
+    engine: Option<String>,
+}
+
+/// The simulator that draws a campaign's data (`[fit] engine`). One per campaign: it goes with
+/// the campaign's model (the time-domain engine's data need the sampled-data model), which is
+/// campaign-wide too.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Engine {
+    /// Templates plus coloured noise of the model's PSD at the analysis rate (fast).
+    FrequencyDomain,
+    /// The digital loop stepped at simulate_hz, decimated by the anti-alias FIR
+    /// (`sim::time_domain`).
+    TimeDomain,
+}
+
+impl Engine {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Engine::FrequencyDomain => "frequency-domain",
+            Engine::TimeDomain => "time-domain",
+        }
+    }
 }
 
 /// Where a scenario's parameter sets come from.
@@ -201,6 +228,8 @@ pub struct FitOptions {
     pub fixed: Vec<String>,
     /// Gaussian priors `[mean, sigma]` by parameter (`[fit.prior] s21 = [1e-4, 2e-5]`).
     pub priors: BTreeMap<String, [f64; 2]>,
+    /// The data simulator (`engine = "time-domain"`).
+    pub engine: Engine,
 }
 
 /// A validated campaign file.
@@ -529,6 +558,16 @@ impl Checker<'_> {
                 ))
             }
         };
+        let engine = match fit.engine.as_deref() {
+            None | Some("frequency-domain") => Engine::FrequencyDomain,
+            Some("time-domain") => Engine::TimeDomain,
+            Some(other) => {
+                return Err(self.bad(
+                    "fit.engine",
+                    format!("'{other}' (expected \"frequency-domain\" or \"time-domain\")"),
+                ))
+            }
+        };
         let max_iterations = fit
             .max_iterations
             .unwrap_or(crate::fit::DEFAULT_MAX_ITERATIONS);
@@ -566,6 +605,7 @@ impl Checker<'_> {
             cached_jacobian,
             fixed: fit.fixed.clone().unwrap_or_default(),
             priors,
+            engine,
         })
     }
 }

@@ -168,6 +168,9 @@ fn run_campaign(a: RunArgs) -> Result<()> {
     if let Some(pb) = bar {
         pb.finish_and_clear();
     }
+    for n in &report.notes {
+        info!("note: {n}");
+    }
     let m = &report.manifest;
     if report.already_complete {
         eprintln!(

@@ -7,13 +7,14 @@ use clap::{Args, ValueEnum};
 
 use super::ModelOpt;
 use crate::data::ExperimentData;
-use crate::diagnose::inject::EffectSet;
+use crate::diagnose::inject::{apply, EffectSet, Injected};
 use crate::diagnose::simulate_effect_set;
 use crate::io::{write_dataset, Dataset};
 use crate::model::check_stability;
+use crate::model::effects::Extended;
 use crate::setup::Setup;
 use crate::sim::rng::stream;
-use crate::sim::time_domain::InitialConditions;
+use crate::sim::time_domain::{InitialConditions, PlantEffects};
 
 #[derive(Debug, Clone, Copy, ValueEnum, PartialEq, Eq)]
 pub enum Rate {
@@ -70,7 +71,9 @@ pub struct SimulateArgs {
     #[arg(long)]
     pub noise_duration: Option<f64>,
     /// An effect the nominal model lacks, switched on in the truth (repeatable; simulated at
-    /// the analysis rate with the frequency-domain engine). Forms:
+    /// the analysis rate with the frequency-domain engine; the time-domain engine simulates
+    /// the library's operator effects in its plant, except loss angles, and lines, but not
+    /// drifts or glitches). Forms:
     /// `EFFECT=VALUE` for a library effect (`freefall diagnose --list-effects`), e.g.
     /// loss_angle_tm2=0.01;
     /// `drift_PARAMETER=D[,d2=D2]` drifts a base parameter by D over each run, linearly, plus
@@ -107,7 +110,7 @@ pub fn run(a: SimulateArgs) -> Result<()> {
         ..design.clone()
     };
     setup.check_simulation_size(&noise_design, "--noise-duration")?;
-    let default_rate = if a.effects.is_empty() {
+    let default_rate = if a.effects.is_empty() || a.engine == Engine::TimeDomain {
         Rate::Decimated
     } else {
         Rate::Analysis
@@ -122,14 +125,17 @@ pub fn run(a: SimulateArgs) -> Result<()> {
     if a.engine == Engine::FrequencyDomain && a.initial.is_some() {
         bail!("--initial needs --engine time-domain");
     }
-    if !a.effects.is_empty() && (a.engine, rate) != (Engine::FrequencyDomain, Rate::Analysis) {
-        bail!("--effect simulates with the frequency-domain engine at the analysis rate (--rate analysis)");
+    if !a.effects.is_empty() && (a.engine, rate) == (Engine::FrequencyDomain, Rate::Decimated) {
+        bail!("--effect with the frequency-domain engine simulates at the analysis rate (--rate analysis); --engine time-domain simulates effects at simulate_hz");
     }
     let glitch = sc.glitch.as_ref();
     let effects =
         EffectSet::parse(&a.effects, &setup.parameter_names()).map_err(anyhow::Error::msg)?;
     let working = super::Working::new("simulating");
     let (data, noise) = match (a.engine, rate) {
+        (Engine::TimeDomain, _) if !effects.is_empty() => {
+            time_domain_effects(&setup, (&design, &noise_design), &sc, &effects, &a)?
+        }
         _ if !effects.is_empty() => simulate_effect_set(
             &setup,
             &design,
@@ -169,6 +175,51 @@ pub fn run(a: SimulateArgs) -> Result<()> {
         1.0 / data.dt
     );
     Ok(())
+}
+
+/// The time-domain engine with `--effect`: the library's operator effects in the plant
+/// ([`PlantEffects`]), lines added to the experiments' readouts. Drifts and glitches are refused
+/// naming the spec (the frequency-domain engine has them).
+fn time_domain_effects(
+    setup: &Setup,
+    (design, noise_design): (&crate::signal::Design, &crate::signal::Design),
+    sc: &crate::model::spec::Scenario,
+    effects: &EffectSet,
+    a: &SimulateArgs,
+) -> Result<(ExperimentData, Vec<Vec<f64>>)> {
+    let (truth, glitch) = (&sc.truth, sc.glitch.as_ref());
+    let refused = |what: &str| {
+        let spec = a
+            .effects
+            .iter()
+            .find(|s| s.starts_with(what))
+            .map_or(what, String::as_str);
+        anyhow::anyhow!(
+            "--effect '{spec}': the time-domain engine does not simulate {what} effects; use --engine frequency-domain"
+        )
+    };
+    if !effects.drifts.is_empty() {
+        return Err(refused("drift_"));
+    }
+    if effects
+        .injected
+        .iter()
+        .any(|i| matches!(i, Injected::Glitch { .. }))
+    {
+        return Err(refused("glitch_"));
+    }
+    let fx = PlantEffects::from_library(&setup.model, &effects.effects)?;
+    let sim = setup.time_domain_simulator_with_effects(design, truth, glitch, a.initial, &fx)?;
+    let nsim =
+        setup.time_domain_simulator_with_effects(noise_design, truth, glitch, a.initial, &fx)?;
+    let (mut data, noise) = draw_all(|r| sim.draw(r), |r| nsim.noise_run(r), a.seed);
+    if !effects.injected.is_empty() {
+        // Only lines remain: additive in the readouts, no model needed beyond the base.
+        let model = Extended::new(setup.model.clone(), Vec::new());
+        apply(&model, truth, &mut data, &effects.injected)
+            .map_err(|e| anyhow::anyhow!("--effect: {e}"))?;
+    }
+    Ok((data, noise))
 }
 
 /// All experiments from stream (seed, 0), the noise run from stream (seed, 1).

@@ -276,6 +276,7 @@ pub fn monte_carlo(
             cached_jacobian: true,
             fixed: Vec::new(),
             priors: Default::default(),
+            engine: crate::campaign::spec::Engine::FrequencyDomain,
         },
         accel_bands: Vec::new(),
     };

@@ -14,6 +14,7 @@
 
 pub mod estimator;
 pub mod problem;
+pub mod telemetry_psd;
 pub mod whiten;
 
 use std::borrow::Cow;

@@ -198,6 +198,9 @@ pub struct ModelSpec {
     /// How the control loop runs (optional table; default: continuous model, Tustin, no delay).
     #[serde(default)]
     pub control_loop: ControlLoopSpec,
+    /// The telemetry's anti-alias FIR (optional table; default: the Kaiser design).
+    #[serde(default)]
+    pub anti_alias: AntiAliasSpec,
     /// Where the spec came from, for error messages ("embedded lpf_x.toml" or a path).
     #[serde(skip)]
     pub origin: String,
@@ -319,6 +322,7 @@ impl ModelSpec {
             ));
         }
         self.validate_control_loop()?;
+        self.decimator()?;
         for (name, sc) in &self.scenarios {
             for (which, set) in [("true", &sc.truth), ("guess", &sc.guess)] {
                 for k in set.keys() {
@@ -403,6 +407,41 @@ impl ModelSpec {
     pub fn decimation(&self) -> usize {
         (self.sampling.simulate_hz / self.sampling.analyse_hz).round() as usize
     }
+
+    /// The telemetry's anti-alias decimator (`[anti_alias]`); errors name the key.
+    pub fn decimator(&self) -> Result<crate::spectral::Decimator, ModelError> {
+        use crate::spectral::Decimator;
+        let (factor, fs) = (self.decimation(), self.sampling.simulate_hz);
+        let d = match &self.anti_alias.taps {
+            Some(taps) => Decimator::from_taps(factor, fs, taps)
+                .map_err(|r| self.bad("anti_alias.taps", r))?,
+            None => Decimator::new(factor, fs).map_err(|e| self.bad("sampling", e.to_string()))?,
+        };
+        Ok(if self.anti_alias.nyquist_null {
+            d.with_nyquist_null()
+        } else {
+            d
+        })
+    }
+}
+
+/// `[anti_alias]`: the FIR that decimates telemetry from `sampling.simulate_hz` to
+/// `sampling.analyse_hz` (the decimated frequency-domain path and the time-domain engine).
+/// Default: the Kaiser design of `spectral::decimate` (passband 0.4, stopband 0.5 of the
+/// analysis rate, 85 dB).
+///
+/// ```toml
+/// [anti_alias]
+/// taps = [0.25, 0.5, 0.25]   # optional: the telemetry's own FIR at simulate_hz (odd length,
+///                            # symmetric, sum 1); replaces the Kaiser design
+/// nyquist_null = true        # optional: cascade a double zero at the analysis Nyquist frequency
+/// ```
+#[derive(Debug, Clone, Default, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct AntiAliasSpec {
+    pub taps: Option<Vec<f64>>,
+    #[serde(default)]
+    pub nyquist_null: bool,
 }
 
 /// Which frequency response the model uses: the thesis's continuous loop, or the sampled-data

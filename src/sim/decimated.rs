@@ -32,15 +32,22 @@ pub struct DecimationGrid {
 }
 
 impl DecimationGrid {
+    /// The grid of the default (Kaiser) anti-alias decimator by `factor`.
     pub fn new(design: &Design, dt_sim: f64, factor: usize) -> Result<Self, NoiseError> {
         let decimator = Decimator::new(factor, 1.0 / dt_sim)
             .map_err(|e| NoiseError::Decimation(e.to_string()))?;
+        Ok(Self::with_decimator(design, decimator))
+    }
+
+    /// The grid of `decimator` (the model file's `[anti_alias]`, `ModelSpec::decimator`).
+    pub fn with_decimator(design: &Design, decimator: Decimator) -> Self {
+        let (factor, dt_sim) = (decimator.factor(), 1.0 / decimator.fs_in());
         let dt_out = dt_sim * factor as f64;
         let n_out = design.samples(dt_out);
         // `edge_samples` counts output samples whose filter reaches past an end of the series;
         // one more on each side keeps every kept sample's support inside the simulated grid.
         let margin_out = decimator.edge_samples() + 1;
-        Ok(DecimationGrid {
+        DecimationGrid {
             decimator,
             dt_sim,
             n_sim: (n_out + 2 * margin_out) * factor,
@@ -48,7 +55,7 @@ impl DecimationGrid {
             n_out,
             dt_out,
             first: margin_out,
-        })
+        }
     }
 
     /// The kept outputs of decimating a series on this grid.
@@ -76,6 +83,7 @@ pub struct DecimatedSimulator<const N: usize> {
 }
 
 impl<const N: usize> DecimatedSimulator<N> {
+    /// With the default (Kaiser) anti-alias decimator by `factor` from `dt_sim`.
     #[allow(clippy::too_many_arguments)]
     pub fn new<M: ClosedLoopModel<N>>(
         model: &M,
@@ -87,7 +95,24 @@ impl<const N: usize> DecimatedSimulator<N> {
         oversample: usize,
         glitch: Option<&crate::model::spec::GlitchSpec>,
     ) -> Result<Self, NoiseError> {
-        let grid = DecimationGrid::new(design, dt_sim, factor)?;
+        let decimator = Decimator::new(factor, 1.0 / dt_sim)
+            .map_err(|e| NoiseError::Decimation(e.to_string()))?;
+        Self::with_decimator(model, design, truth, psd, decimator, oversample, glitch)
+    }
+
+    /// With `decimator` (the model file's `[anti_alias]`), whose input rate is the simulation
+    /// rate.
+    pub fn with_decimator<M: ClosedLoopModel<N>>(
+        model: &M,
+        design: &Design,
+        truth: &[f64],
+        psd: impl Fn(f64) -> CMat<N>,
+        decimator: Decimator,
+        oversample: usize,
+        glitch: Option<&crate::model::spec::GlitchSpec>,
+    ) -> Result<Self, NoiseError> {
+        let dt_sim = 1.0 / decimator.fs_in();
+        let grid = DecimationGrid::with_decimator(design, decimator);
         let glitches = glitch.map(|g| GlitchConfig::new(g, grid.n_out));
         let sim = Simulator::on_grid(
             model, design, truth, psd, dt_sim, grid.t0, grid.n_sim, oversample, glitches,

@@ -28,8 +28,22 @@
 //! is decimated to the analysis rate by the model's anti-alias FIR on a grid with margins, so
 //! every kept sample is fully supported ([`DecimationGrid`]).
 //!
-//! Not simulated here: the effect library's extensions and glitches (the frequency-domain
-//! simulators have them).
+//! Effects ([`PlantEffects`]): the library's operator effects are changes of this plant, so
+//! they are simulated exactly like the reference loop:
+//! - gravity gradient: `K += dgamma [[0, 1], [0, -2]]`; damping of TM k: a velocity term
+//!   `gamma M_k q'` in the equation of motion (thesis sec. 4.1.1);
+//! - sensing gains and sensing cross-talk: `S += dS` in the sampled readouts (thesis sec. 3.5);
+//! - actuation cross-talk: a fraction of a bare command acts on the other coordinate (thesis
+//!   sec. 3.4);
+//! - actuation lag of the drag-free or suspension force, `L(s) = 1 / (1 + s tau)` on the
+//!   actuator's column of `A C`: a lag state `y` with `tau y' = w - y` joins the plant and carries
+//!   that column. The held-input matrix exponential then discretises lag and plant together
+//!   exactly (the ZOH discretisation: over a step with the command held at `w_k`,
+//!   `y_(k+1) = e^(-h/tau) y_k + (1 - e^(-h/tau)) w_k`, and the plant sees the continuous `y`).
+//!
+//! A loss angle (a frequency-independent imaginary stiffness) has no causal time-domain
+//! realisation and is refused naming it; so are glitches (the frequency-domain simulators have
+//! them).
 
 use nalgebra::{DMatrix, Schur};
 use num_complex::Complex64;
@@ -38,6 +52,7 @@ use rand::Rng;
 use crate::data::ExperimentData;
 use crate::model::closed_loop::{CMat, NoiseEntry};
 use crate::model::discrete::{held_input, Df2t, DiscreteTf, Discretisation};
+use crate::model::effects::{stiffness_map, Category, Effect};
 use crate::model::lpf_x::{A_DF, A_SUS, DT1, DT12, S21};
 use crate::model::{LpfX, ModelSpec};
 use crate::noise::{shapes, ColoredNoise, NoiseError, NoiseModel};
@@ -46,6 +61,8 @@ use crate::sim::decimated::DecimationGrid;
 
 /// Plant states: positions x1, x12 and velocities v1, v12.
 const NX: usize = 4;
+/// Plant states with the actuator lags: then the lagged drag-free and suspension commands.
+const NZ: usize = NX + 2;
 /// Entry points of the coloured input noise: force rows x1, x12, then readouts o1, o12.
 const NOISE_CHANNELS: usize = 4;
 /// Iterations allowed to the Schur decomposition of the loop's transition matrix, per state
@@ -68,6 +85,80 @@ pub enum TimeDomainError {
     Eigenvalues { dim: usize },
     #[error("the scenario asks for glitches, which the time-domain engine does not simulate; use the frequency-domain engine")]
     Glitches,
+    #[error("effect '{name}' cannot be simulated by the time-domain engine: {reason}; use the frequency-domain engine")]
+    Effect { name: String, reason: String },
+}
+
+/// The library's operator effects as changes of the time-domain plant (module doc, "Effects").
+/// All zero: the reference loop.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct PlantEffects {
+    /// Added to the stiffness `K` [s^-2] (gravity gradient).
+    pub dk: [[f64; 2]; 2],
+    /// Velocity-proportional force per unit mass [s^-1]: `q'' += -damping q'` (damping).
+    pub damping: [[f64; 2]; 2],
+    /// Added to the sensing matrix `S` (sensing gains, sensing cross-talk).
+    pub ds: [[f64; 2]; 2],
+    /// Added to the actuation of the bare commands `(u_df, u_sus)`, rows x1, x12 (actuation
+    /// cross-talk).
+    pub dac: [[f64; 2]; 2],
+    /// First-order lag time constants of the drag-free and suspension actuation [s]; 0: none.
+    pub lag: [f64; 2],
+}
+
+impl PlantEffects {
+    /// The plant changes of library effects at their values (one value per effect parameter).
+    /// Every effect of the library either maps here or is refused naming it: a loss angle is a
+    /// frequency-independent imaginary stiffness, which no causal time-domain plant has.
+    pub fn from_library(
+        model: &LpfX,
+        effects: &[(std::sync::Arc<dyn Effect>, Vec<f64>)],
+    ) -> Result<PlantEffects, TimeDomainError> {
+        let mut fx = PlantEffects::default();
+        for (e, theta) in effects {
+            let name = e.name();
+            let v = theta[0];
+            let refuse = |reason: &str| TimeDomainError::Effect {
+                name: name.clone(),
+                reason: reason.into(),
+            };
+            match name.as_str() {
+                "gravity_gradient" => {
+                    // dD = dgamma [[0, 1], [0, -2]] (effects::gravity_gradient).
+                    fx.dk[0][1] += v;
+                    fx.dk[1][1] -= 2.0 * v;
+                }
+                "damping_tm1" | "damping_tm2" => {
+                    let m = stiffness_map(model, name == "damping_tm2");
+                    for (i, row) in fx.damping.iter_mut().enumerate() {
+                        for (j, d) in row.iter_mut().enumerate() {
+                            *d += v * m[(i, j)].re;
+                        }
+                    }
+                }
+                "sensing_gain_o1" => fx.ds[0][0] += v,
+                "sensing_gain_o12" => fx.ds[1][1] += v,
+                "sensing_crosstalk_o12_o1" => fx.ds[0][1] += v,
+                "actuation_crosstalk_df_x12" => fx.dac[1][0] += v,
+                "actuation_crosstalk_sus_x1" => fx.dac[0][1] += v,
+                "actuation_lag_df" | "actuation_lag_sus" => {
+                    if v.is_nan() || v < 0.0 {
+                        return Err(refuse(&format!(
+                            "tau = {v} s: a lag's time constant must be >= 0"
+                        )));
+                    }
+                    fx.lag[usize::from(name == "actuation_lag_sus")] = v;
+                }
+                _ if e.category() == Category::LossAngle => {
+                    return Err(refuse(
+                        "a loss angle is a frequency-independent imaginary stiffness, which has no causal time-domain realisation",
+                    ))
+                }
+                _ => return Err(refuse("it has no time-domain realisation yet")),
+            }
+        }
+        Ok(fx)
+    }
 }
 
 /// How the digital loop runs (model file `[control_loop]` and `sampling.simulate_hz`).
@@ -141,81 +232,151 @@ impl std::str::FromStr for InitialConditions {
 type Mat<const R: usize, const C: usize> = [[f64; C]; R];
 
 fn to_array<const R: usize, const C: usize>(m: &DMatrix<f64>) -> Mat<R, C> {
-    std::array::from_fn(|i| std::array::from_fn(|j| m[(i, j)]))
+    std::array::from_fn(|i| {
+        std::array::from_fn(|j| {
+            if i < m.nrows() && j < m.ncols() {
+                m[(i, j)]
+            } else {
+                0.0
+            }
+        })
+    })
+}
+
+/// The loop's continuous plant at one parameter set, effects included: `z' = A z + B_f f + B_u w`
+/// with `w = -(u_df, u_sus)` the bare commands (see the module doc).
+struct Plant {
+    a: DMatrix<f64>,
+    b_force: DMatrix<f64>,
+    b_cmd: DMatrix<f64>,
+    /// The sensing matrix `S`.
+    s: [[f64; 2]; 2],
+    /// Plant states that exist: the four of `q`, `q'` and the active lag states.
+    active: Vec<usize>,
+}
+
+impl Plant {
+    fn new(model: &LpfX, p: &[f64], fx: &PlantEffects) -> Plant {
+        let k = model.stiffness(p);
+        let mut a = DMatrix::<f64>::zeros(NZ, NZ);
+        a[(0, 2)] = 1.0;
+        a[(1, 3)] = 1.0;
+        for i in 0..2 {
+            for j in 0..2 {
+                a[(2 + i, j)] = -(k[i][j] + fx.dk[i][j]);
+                a[(2 + i, 2 + j)] = -fx.damping[i][j];
+            }
+        }
+        let mut b_force = DMatrix::<f64>::zeros(NZ, 2);
+        b_force[(2, 0)] = 1.0;
+        b_force[(3, 1)] = 1.0;
+        // Actuation of the bare commands (u_df, u_sus): the gains' columns of `A C`.
+        let gains = [[p[A_DF], model.mt * p[A_SUS]], [0.0, p[A_SUS]]];
+        let mut b_cmd = DMatrix::<f64>::zeros(NZ, 2);
+        let mut active = vec![0, 1, 2, 3];
+        for j in 0..2 {
+            let tau = fx.lag[j];
+            for i in 0..2 {
+                b_cmd[(2 + i, j)] = fx.dac[i][j];
+                if tau > 0.0 {
+                    // The lag state y_j (`tau y' = w_j - y`) carries the actuator's column.
+                    a[(2 + i, NX + j)] = gains[i][j];
+                } else {
+                    b_cmd[(2 + i, j)] += gains[i][j];
+                }
+            }
+            if tau > 0.0 {
+                a[(NX + j, NX + j)] = -1.0 / tau;
+                b_cmd[(NX + j, j)] = 1.0 / tau;
+                active.push(NX + j);
+            }
+        }
+        let s = [
+            [1.0 + fx.ds[0][0], fx.ds[0][1]],
+            [p[S21] + fx.ds[1][0], 1.0 + fx.ds[1][1]],
+        ];
+        Plant {
+            a,
+            b_force,
+            b_cmd,
+            s,
+            active,
+        }
+    }
 }
 
 /// The digital LPF-x loop at one parameter set, with its state (see the module doc).
 #[derive(Debug, Clone)]
 pub struct DigitalLoop {
     pub dt: f64,
-    phi: Mat<NX, NX>,
-    gam_force: Mat<NX, 2>,
-    gam_now: Mat<NX, 2>,
-    gam_prev: Mat<NX, 2>,
+    phi: Mat<NZ, NZ>,
+    gam_force: Mat<NZ, 2>,
+    gam_now: Mat<NZ, 2>,
+    gam_prev: Mat<NZ, 2>,
     delayed: bool,
+    /// Whether an actuator lag is simulated (the step then carries the lag states).
+    lagged: bool,
+    /// Indices of the plant states that exist (positions, velocities, active lags).
+    active: Vec<usize>,
     c_df: Df2t,
     c_sus: Df2t,
-    a_df: f64,
-    a_sus: f64,
-    mt: f64,
-    s21: f64,
-    x: [f64; NX],
+    s: [[f64; 2]; 2],
+    x: [f64; NZ],
     w_prev: [f64; 2],
 }
 
 impl DigitalLoop {
     /// The loop of `model` at parameters `p`, at rest.
     pub fn new(model: &LpfX, p: &[f64], cfg: &LoopConfig) -> Self {
-        let k = model.stiffness(p);
-        let mut a = DMatrix::<f64>::zeros(NX, NX);
-        a[(0, 2)] = 1.0;
-        a[(1, 3)] = 1.0;
-        for i in 0..2 {
-            for j in 0..2 {
-                a[(2 + i, j)] = -k[i][j];
-            }
-        }
-        let mut b = DMatrix::<f64>::zeros(NX, 2);
-        b[(2, 0)] = 1.0;
-        b[(3, 1)] = 1.0;
+        Self::with_effects(model, p, cfg, &PlantEffects::default())
+    }
+
+    /// The loop of `model` at parameters `p` with the operator effects `fx`, at rest.
+    pub fn with_effects(model: &LpfX, p: &[f64], cfg: &LoopConfig, fx: &PlantEffects) -> Self {
+        let plant = Plant::new(model, p, fx);
+        let (a, b) = (&plant.a, &plant.b_cmd);
         let (h, tau) = (cfg.dt, cfg.computation_delay_s);
-        let (phi, gam) = held_input(&a, &b, h);
+        let (phi, gam_force) = held_input(a, &plant.b_force, h);
         let (gam_now, gam_prev) = if tau > 0.0 {
-            let (phi_rest, gam_rest) = held_input(&a, &b, h - tau);
-            let (_, gam_tau) = held_input(&a, &b, tau);
+            let (phi_rest, gam_rest) = held_input(a, b, h - tau);
+            let (_, gam_tau) = held_input(a, b, tau);
             (gam_rest, phi_rest * gam_tau)
         } else {
-            (gam.clone(), DMatrix::zeros(NX, 2))
+            (held_input(a, b, h).1, DMatrix::zeros(NZ, 2))
         };
         let law = |c| Df2t::new(&DiscreteTf::from_zpk(c, h, cfg.discretisation));
         DigitalLoop {
             dt: h,
             phi: to_array(&phi),
-            gam_force: to_array(&gam),
+            gam_force: to_array(&gam_force),
             gam_now: to_array(&gam_now),
             gam_prev: to_array(&gam_prev),
             delayed: tau > 0.0,
+            lagged: plant.active.len() > NX,
+            active: plant.active,
             c_df: law(&model.c_df),
             c_sus: law(&model.c_sus),
-            a_df: p[A_DF],
-            a_sus: p[A_SUS],
-            mt: model.mt,
-            s21: p[S21],
-            x: [0.0; NX],
+            s: plant.s,
+            x: [0.0; NZ],
             w_prev: [0.0; 2],
         }
     }
 
-    /// Put the plant at `ic` (sensed coordinates, `q = S^-1 o`), controllers and held commands
-    /// at zero.
+    /// Put the plant at `ic` (sensed coordinates, `q = S^-1 o`), controllers, lags and held
+    /// commands at zero.
     pub fn reset(&mut self, ic: Option<&InitialConditions>) {
         let ic = ic.copied().unwrap_or_default();
-        self.x = [
-            ic.o1,
-            ic.o12 - self.s21 * ic.o1,
-            ic.v1,
-            ic.v12 - self.s21 * ic.v1,
-        ];
+        let s = self.s;
+        let det = s[0][0] * s[1][1] - s[0][1] * s[1][0];
+        let inv = |a: f64, b: f64| {
+            [
+                (s[1][1] * a - s[0][1] * b) / det,
+                (s[0][0] * b - s[1][0] * a) / det,
+            ]
+        };
+        let (q, v) = (inv(ic.o1, ic.o12), inv(ic.v1, ic.v12));
+        self.x = [0.0; NZ];
+        self.x[..NX].copy_from_slice(&[q[0], q[1], v[0], v[1]]);
         self.w_prev = [0.0; 2];
         self.c_df.state_mut().fill(0.0);
         self.c_sus.state_mut().fill(0.0);
@@ -225,32 +386,42 @@ impl DigitalLoop {
     /// (rows x1, x12) and readout noise `n`; returns the sampled readouts.
     #[inline(always)]
     pub fn step(&mut self, g: [f64; 2], f: [f64; 2], n: [f64; 2]) -> [f64; 2] {
+        if self.lagged {
+            self.step_n::<NZ>(g, f, n)
+        } else {
+            self.step_n::<NX>(g, f, n)
+        }
+    }
+
+    /// [`Self::step`] over the first `M` plant states (`NX` without lags: the lag states
+    /// stay zero; `NZ` with them).
+    #[inline(always)]
+    fn step_n<const M: usize>(&mut self, g: [f64; 2], f: [f64; 2], n: [f64; 2]) -> [f64; 2] {
         let x = self.x;
-        let o = [x[0] + n[0], self.s21 * x[0] + x[1] + n[1]];
-        let u_df = self.c_df.step(o[0] - g[0]);
-        let u_sus = self.c_sus.step(o[1] - g[1]);
-        let w = [
-            -(self.a_df * u_df + self.mt * self.a_sus * u_sus),
-            -self.a_sus * u_sus,
+        let s = &self.s;
+        let o = [
+            s[0][0] * x[0] + s[0][1] * x[1] + n[0],
+            s[1][0] * x[0] + s[1][1] * x[1] + n[1],
         ];
+        let w = [-self.c_df.step(o[0] - g[0]), -self.c_sus.step(o[1] - g[1])];
         let wp = self.w_prev;
-        for i in 0..NX {
+        for i in 0..M {
             let (p, gf, gn, gp) = (
                 &self.phi[i],
                 &self.gam_force[i],
                 &self.gam_now[i],
                 &self.gam_prev[i],
             );
-            self.x[i] = p[0] * x[0]
-                + p[1] * x[1]
-                + p[2] * x[2]
-                + p[3] * x[3]
-                + gf[0] * f[0]
+            let mut acc = gf[0] * f[0]
                 + gf[1] * f[1]
                 + gn[0] * w[0]
                 + gn[1] * w[1]
                 + gp[0] * wp[0]
                 + gp[1] * wp[1];
+            for j in 0..M {
+                acc += p[j] * x[j];
+            }
+            self.x[i] = acc;
         }
         self.w_prev = w;
         o
@@ -285,15 +456,18 @@ impl DigitalLoop {
         out
     }
 
-    /// Dimension of the loop's state: plant, both controllers, and the held commands when
-    /// there is a computation delay.
+    /// Dimension of the loop's state: plant (with its active lag states), both controllers,
+    /// and the held commands when there is a computation delay.
     pub fn state_dim(&self) -> usize {
-        NX + self.c_df.order() + self.c_sus.order() + if self.delayed { 2 } else { 0 }
+        self.active.len()
+            + self.c_df.order()
+            + self.c_sus.order()
+            + if self.delayed { 2 } else { 0 }
     }
 
     /// The loop's state as one vector (order of [`Self::state_dim`]).
     pub fn state(&self) -> Vec<f64> {
-        let mut v = self.x.to_vec();
+        let mut v: Vec<f64> = self.active.iter().map(|&i| self.x[i]).collect();
         v.extend_from_slice(self.c_df.state());
         v.extend_from_slice(self.c_sus.state());
         if self.delayed {
@@ -303,14 +477,17 @@ impl DigitalLoop {
     }
 
     pub fn set_state(&mut self, v: &[f64]) {
-        let (nd, ns) = (self.c_df.order(), self.c_sus.order());
-        self.x.copy_from_slice(&v[..NX]);
-        self.c_df.state_mut().copy_from_slice(&v[NX..NX + nd]);
+        let (np, nd, ns) = (self.active.len(), self.c_df.order(), self.c_sus.order());
+        self.x = [0.0; NZ];
+        for (k, &i) in self.active.iter().enumerate() {
+            self.x[i] = v[k];
+        }
+        self.c_df.state_mut().copy_from_slice(&v[np..np + nd]);
         self.c_sus
             .state_mut()
-            .copy_from_slice(&v[NX + nd..NX + nd + ns]);
+            .copy_from_slice(&v[np + nd..np + nd + ns]);
         if self.delayed {
-            self.w_prev.copy_from_slice(&v[NX + nd + ns..]);
+            self.w_prev.copy_from_slice(&v[np + nd + ns..]);
         } else {
             self.w_prev = [0.0; 2];
         }
@@ -404,21 +581,23 @@ pub struct TimeDomainSimulator {
 }
 
 impl TimeDomainSimulator {
-    /// A simulator of `design` at `truth`, output decimated by `factor` from the control rate.
+    /// A simulator of `design` at `truth`, output decimated from the control rate by
+    /// `decimator` (whose input rate is the control rate).
     #[allow(clippy::too_many_arguments)]
     pub fn new(
         model: &LpfX,
         noise: &NoiseModel<2>,
         cfg: &LoopConfig,
-        factor: usize,
+        decimator: crate::spectral::Decimator,
         design: &Design,
         truth: &[f64],
         initial: Option<InitialConditions>,
         oversample: usize,
+        effects: &PlantEffects,
     ) -> Result<Self, TimeDomainError> {
-        let digital = DigitalLoop::new(model, truth, cfg);
+        let digital = DigitalLoop::with_effects(model, truth, cfg, effects);
         digital.check_stable(model_names(model), truth)?;
-        let grid = DecimationGrid::new(design, cfg.dt, factor)?;
+        let grid = DecimationGrid::with_decimator(design, decimator);
         let (h, t0, n) = (cfg.dt, grid.t0, grid.n_sim);
         let delays = [truth[DT1], truth[DT12]];
         let guidance = (0..design.experiments.len())
@@ -521,6 +700,25 @@ impl TimeDomainSimulator {
             .map(|e| self.telemetry(Some(e), None))
             .collect();
         self.data(outputs)
+    }
+
+    /// The guidance telemetry (`oi`, decimated) of every experiment, cut to its length: the
+    /// `inputs` of every [`Self::draw`].
+    pub fn telemetry_inputs(&self) -> Vec<Vec<Vec<f64>>> {
+        self.data(vec![Vec::new(); self.names.len()]).inputs
+    }
+
+    /// One noise-only run per experiment (no guidance), each cut to its experiment's length,
+    /// drawn in experiment order: the noise-only counterpart of [`Self::draw`].
+    pub fn noise_runs<R: Rng + ?Sized>(&self, rng: &mut R) -> Vec<Vec<Vec<f64>>> {
+        self.lens
+            .iter()
+            .map(|&n| {
+                let mut run = self.noise_run(rng);
+                run.iter_mut().for_each(|c| c.truncate(n));
+                run
+            })
+            .collect()
     }
 
     /// A noise-only run (no guidance, same initial conditions) at the analysis rate.

@@ -25,6 +25,10 @@ pub const PASSBAND_FRACTION: f64 = 0.4;
 /// Stopband edge as a fraction of the output sampling frequency (the output Nyquist frequency).
 pub const STOPBAND_FRACTION: f64 = 0.5;
 
+/// Relative tolerance of a given FIR's symmetry (linear phase) and unit DC gain
+/// ([`Decimator::from_taps`]): a few hundred roundings of 1e-16 in the taps as written.
+pub const TAPS_TOLERANCE: f64 = 1e-9;
+
 /// Linear-phase FIR anti-alias filter followed by down-sampling by an integer factor.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Decimator {
@@ -116,6 +120,59 @@ impl Decimator {
             taps,
             half,
         })
+    }
+
+    /// Decimator by `factor` with the given filter `taps` at `fs_in` (a telemetry system's own
+    /// FIR) instead of the Kaiser design: odd length (integer group delay), symmetric (linear
+    /// phase) and unit DC gain, each within [`TAPS_TOLERANCE`]; the error says which is not.
+    pub fn from_taps(factor: usize, fs_in: f64, taps: &[f64]) -> Result<Decimator, String> {
+        let mut d = Decimator::new(factor, fs_in).map_err(|e| e.to_string())?;
+        let n = taps.len();
+        if n % 2 == 0 {
+            return Err(format!(
+                "{n} taps: need an odd number (an integer group delay)"
+            ));
+        }
+        if let Some(k) = taps.iter().position(|t| !t.is_finite()) {
+            return Err(format!("tap {k} is {}: taps must be finite", taps[k]));
+        }
+        let scale = taps.iter().map(|t| t.abs()).fold(0.0, f64::max);
+        if let Some(k) =
+            (0..n / 2).find(|&k| (taps[k] - taps[n - 1 - k]).abs() > TAPS_TOLERANCE * scale)
+        {
+            return Err(format!(
+                "taps {k} and {} differ ({} vs {}): the filter must be symmetric (linear phase)",
+                n - 1 - k,
+                taps[k],
+                taps[n - 1 - k]
+            ));
+        }
+        let dc: f64 = taps.iter().sum();
+        if (dc - 1.0).abs() > TAPS_TOLERANCE {
+            return Err(format!("the taps sum to {dc}: the DC gain must be 1"));
+        }
+        d.taps = taps.to_vec();
+        d.half = n / 2;
+        Ok(d)
+    }
+
+    /// This filter cascaded with a double zero at the output Nyquist frequency `fs_out / 2`:
+    /// the 3-tap notch `[1, -2 cos w0, 1] / (2 - 2 cos w0)`, `w0 = pi / factor` (radians per
+    /// input sample), symmetric with unit DC gain, so the cascade stays linear-phase with an
+    /// integer group delay. Its amplitude `(cos w - cos w0) / (1 - cos w0)` vanishes at
+    /// Nyquist as `(f - fs_out / 2)^2`: telemetry filters with a null at Nyquist.
+    pub fn with_nyquist_null(mut self) -> Decimator {
+        let c = (std::f64::consts::PI / self.factor as f64).cos();
+        let notch = [1.0, -2.0 * c, 1.0].map(|v| v / (2.0 - 2.0 * c));
+        let mut taps = vec![0.0; self.taps.len() + 2];
+        for (i, a) in self.taps.iter().enumerate() {
+            for (j, b) in notch.iter().enumerate() {
+                taps[i + j] += a * b;
+            }
+        }
+        self.half = taps.len() / 2;
+        self.taps = taps;
+        self
     }
 
     /// Decimation factor.

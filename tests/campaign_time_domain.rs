@@ -1,0 +1,217 @@
+//! Campaigns on time-domain data (`[fit] engine = "time-domain"`): the Monte Carlo scatter of
+//! fits with the sampled-data model against their Fisher errors, the determinism contract
+//! across threads, batches and shards, and the key's one-line errors.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use freefall::campaign::io_store::Progress;
+use freefall::campaign::{self, merge, RunOptions, Shard};
+use freefall::io::{read_parquet, Column, Table};
+
+/// The done-when band of the time-domain campaign: MC sd / mean Fisher sigma within 10 %.
+const SD_OVER_SIGMA_TOLERANCE: f64 = 0.10;
+/// The done-when bound on the bias: 3 standard errors of the mean.
+const BIAS_STANDARD_ERRORS: f64 = 3.0;
+
+fn run_lib(file: &Path, out: &Path, shard: Shard, threads: usize) -> campaign::Manifest {
+    let loaded = campaign::load(Some(file)).unwrap();
+    let opts = RunOptions {
+        out: out.to_path_buf(),
+        shard,
+        resume: false,
+        threads: Some(threads),
+    };
+    std::fs::create_dir_all(out).unwrap();
+    campaign::run(&loaded, &opts, &mut |_: Progress| {})
+        .unwrap()
+        .manifest
+}
+
+/// A small time-domain campaign of `n` realizations in `dir`, with the shipped digital model.
+fn small(dir: &Path, name: &str, n: u64, batch: usize) -> PathBuf {
+    let model = std::fs::canonicalize("campaigns/models/lpf_x_digital.toml").unwrap();
+    let text = format!(
+        "name = \"td\"\nmodel = {model:?}\nseed = 11\nrealizations = {n}\nbatch = {batch}\n\
+         [[scenario]]\nname = \"monte_carlo\"\n[fit]\nengine = \"time-domain\"\n"
+    );
+    let p = dir.join(name);
+    std::fs::write(&p, text).unwrap();
+    p
+}
+
+/// Bitwise equality of two tables but the wall-time column `seconds`.
+fn assert_same(a: &Table, b: &Table, what: &str) {
+    assert_eq!(a.names(), b.names(), "{what}: columns");
+    assert_eq!(a.num_rows(), b.num_rows(), "{what}: rows");
+    for ((name, ca), (_, cb)) in a.columns.iter().zip(&b.columns) {
+        if name == "seconds" {
+            continue;
+        }
+        match (ca, cb) {
+            (Column::F64(x), Column::F64(y)) => {
+                for (i, (u, v)) in x.iter().zip(y).enumerate() {
+                    assert_eq!(u.to_bits(), v.to_bits(), "{what}: {name} row {i}");
+                }
+            }
+            _ => assert_eq!(ca, cb, "{what}: column {name}"),
+        }
+    }
+}
+
+fn assert_same_dirs(a: &Path, b: &Path) {
+    for t in ["realizations", "summary", "correlation", "chi2"] {
+        let f = format!("{t}.parquet");
+        assert_same(
+            &read_parquet(a.join(&f)).unwrap(),
+            &read_parquet(b.join(&f)).unwrap(),
+            &f,
+        );
+    }
+}
+
+#[test]
+fn time_domain_campaign_is_deterministic_across_threads_batches_and_shards() {
+    // Oracle: the campaign's stream contract (realization i draws only from stream(seed, i),
+    // here through the time-domain simulator): identical tables for any thread count, batch
+    // size and shard layout.
+    let tmp = tempfile::tempdir().unwrap();
+    let a = small(tmp.path(), "a.toml", 3, 2);
+    let b = small(tmp.path(), "b.toml", 3, 1);
+    let (ta, tb) = (tmp.path().join("a"), tmp.path().join("b"));
+    let m = run_lib(&a, &ta, Shard::WHOLE, 1);
+    assert_eq!(m.realizations, 3);
+    run_lib(&b, &tb, Shard::WHOLE, 2);
+    assert_same_dirs(&ta, &tb);
+    let parts: Vec<PathBuf> = (0..2).map(|k| tmp.path().join(format!("p{k}"))).collect();
+    for (k, p) in parts.iter().enumerate() {
+        let index = k as u64;
+        run_lib(&a, p, Shard { index, count: 2 }, 1);
+    }
+    let merged = tmp.path().join("merged");
+    merge(&parts, &merged).unwrap();
+    assert_same_dirs(&ta, &merged);
+}
+
+#[test]
+fn engine_key_is_validated_in_one_line() {
+    // Oracle: the schema (campaign/spec.rs): a bad engine names the file, the key and the
+    // valid values; the time-domain engine with the continuous (embedded) model is refused,
+    // naming the key and the model kind it needs.
+    let tmp = tempfile::tempdir().unwrap();
+    let base = "name = \"x\"\nseed = 1\nrealizations = 2\n[[scenario]]\nname = \"monte_carlo\"\n";
+    for (engine, needles) in [
+        (
+            "bogus",
+            [
+                "fit.engine",
+                "'bogus' (expected \"frequency-domain\" or \"time-domain\")",
+            ],
+        ),
+        ("time-domain", ["fit.engine", "kind = \"digital\""]),
+    ] {
+        let p = tmp.path().join(format!("{engine}.toml"));
+        std::fs::write(&p, format!("{base}[fit]\nengine = \"{engine}\"\n")).unwrap();
+        let err = match campaign::load(Some(&p)) {
+            Err(e) => e.to_string(),
+            Ok(loaded) => {
+                let out = tmp.path().join(format!("out-{engine}"));
+                std::fs::create_dir_all(&out).unwrap();
+                let opts = RunOptions {
+                    out,
+                    shard: Shard::WHOLE,
+                    resume: false,
+                    threads: Some(1),
+                };
+                campaign::run(&loaded, &opts, &mut |_: Progress| {})
+                    .err()
+                    .expect("refused")
+                    .to_string()
+            }
+        };
+        assert_eq!(err.lines().count(), 1, "{err}");
+        for n in needles {
+            assert!(
+                err.contains(n) && err.contains(&*p.to_string_lossy()),
+                "{err}"
+            );
+        }
+    }
+}
+
+#[test]
+fn shipped_digital_model_is_the_embedded_model_made_digital() {
+    // Oracle: README "The sampled-data model": the digital model is the embedded lpf_x.toml
+    // with `[control_loop] kind = "digital"` appended; anything else would let the shipped
+    // time-domain campaign drift from the embedded model.
+    let shipped = std::fs::read_to_string("campaigns/models/lpf_x_digital.toml").unwrap();
+    let embedded = std::fs::read_to_string("src/model/lpf_x.toml").unwrap();
+    let tail = shipped
+        .strip_prefix(&embedded)
+        .expect("starts with lpf_x.toml");
+    let extra: toml::Table = toml::from_str(tail).unwrap();
+    assert_eq!(extra.len(), 1);
+    assert_eq!(extra["control_loop"]["kind"].as_str(), Some("digital"));
+}
+
+#[test]
+fn time_domain_campaign_scatter_matches_fisher() {
+    // Oracle: Fisher errors. 200 time-domain realizations (campaigns/time_domain.toml: digital
+    // loop at 10 Hz decimated to 1 Hz, fitted with the sampled-data model) must scatter as the
+    // fits' mean Fisher sigma says, within 10 % for every parameter, and be unbiased within 3
+    // standard errors of the mean. With 200 realizations the sd itself is known to
+    // 1/sqrt(2 * 199) = 5 %, so the 10 % band is two of its standard errors; the seed is fixed
+    // and the figures are in README "Campaigns".
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("td");
+    let start = Instant::now();
+    let m = run_lib(
+        Path::new("campaigns/time_domain.toml"),
+        &out,
+        Shard::WHOLE,
+        2,
+    );
+    eprintln!(
+        "time-domain campaign: {:.1} s",
+        start.elapsed().as_secs_f64()
+    );
+    assert_eq!((m.realizations, m.fits), (200, 200));
+    let r = read_parquet(out.join("realizations.parquet")).unwrap();
+    let failed = r
+        .column("converged")
+        .map(|c| match c {
+            Column::Bool(v) => v.iter().filter(|b| !**b).count(),
+            _ => panic!("converged is boolean"),
+        })
+        .unwrap();
+    assert_eq!(failed, 0, "failed fits");
+    let s = read_parquet(out.join("summary.parquet")).unwrap();
+    let (ratio, bias, p) = (
+        s.f64_column("sd_over_sigma").unwrap(),
+        s.f64_column("bias_in_sigma").unwrap(),
+        s.str_column("parameter").unwrap(),
+    );
+    assert_eq!(s.num_rows(), 7);
+    for i in 0..s.num_rows() {
+        eprintln!("{}: sd/sigma {:.3}, bias {:.2} SE", p[i], ratio[i], bias[i]);
+    }
+    for i in 0..s.num_rows() {
+        assert!(
+            (ratio[i] - 1.0).abs() < SD_OVER_SIGMA_TOLERANCE,
+            "{}: sd/sigma = {}",
+            p[i],
+            ratio[i]
+        );
+        assert!(
+            bias[i].abs() < BIAS_STANDARD_ERRORS,
+            "{}: bias = {} standard errors",
+            p[i],
+            bias[i]
+        );
+    }
+    let c = read_parquet(out.join("chi2.parquet")).unwrap();
+    let stat = c.str_column("statistic").unwrap();
+    for (k, v) in stat.iter().zip(c.f64_column("mean").unwrap()) {
+        eprintln!("chi2/nu {k}: mean {v:.4}");
+    }
+}

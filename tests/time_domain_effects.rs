@@ -1,0 +1,179 @@
+//! The effect library in the time-domain engine (`sim::time_domain::PlantEffects`). Oracles:
+//! the closed-form free response of a first-order lag over one held step (the exact ZOH
+//! discretisation); the reference model's own operators for effects that equal a change of a
+//! model constant (gravity gradient = gamma_x shifted); the loop without effects for zero
+//! values; and the CLI's documented one-line errors.
+
+use std::process::Command;
+
+use freefall::model::effects::{by_name, library};
+use freefall::model::lpf_x::A_DF;
+use freefall::setup::Setup;
+use freefall::sim::time_domain::{DigitalLoop, LoopConfig, PlantEffects};
+
+/// Index of the drag-free lag state in `DigitalLoop::state` when it is the only lag: after
+/// the four plant states x1, x12, v1, v12.
+const LAG_DF_STATE: usize = 4;
+
+fn effects(
+    list: &[(&str, f64)],
+) -> Vec<(
+    std::sync::Arc<dyn freefall::model::effects::Effect>,
+    Vec<f64>,
+)> {
+    list.iter()
+        .map(|(n, v)| (by_name(n).expect("library effect"), vec![*v]))
+        .collect()
+}
+
+#[test]
+fn drag_free_lag_is_the_exact_zoh_discretisation_of_a_first_order_lag() {
+    // Oracle (closed form): with every loop state zero but the lag state y = 1, the
+    // controllers see no error and command nothing, so over one step h the lag decays freely,
+    // y(h) = e^(-h/tau), and pushes x1 with acceleration a_df y(t): v1(h) = a_df tau (1 -
+    // e^(-h/tau)), x1(h) = a_df tau (h - tau (1 - e^(-h/tau))). The stiffness (|K| h^2 ~ 1e-8)
+    // is the only thing the closed form leaves out, so 1e-6 relative is a strict bound.
+    let setup = Setup::embedded();
+    let p = setup.spec.scenario("monte_carlo").unwrap().truth;
+    let cfg = LoopConfig::from_spec(&setup.spec);
+    let tau = 0.4;
+    let fx =
+        PlantEffects::from_library(&setup.model, &effects(&[("actuation_lag_df", tau)])).unwrap();
+    assert_eq!(fx.lag, [tau, 0.0]);
+    let mut lp = DigitalLoop::with_effects(&setup.model, &p, &cfg, &fx);
+    let base = DigitalLoop::new(&setup.model, &p, &cfg);
+    assert_eq!(lp.state_dim(), base.state_dim() + 1, "one lag state");
+    let mut z = vec![0.0; lp.state_dim()];
+    z[LAG_DF_STATE] = 1.0;
+    lp.set_state(&z);
+    lp.step([0.0; 2], [0.0; 2], [0.0; 2]);
+    let s = lp.state();
+    let (h, a) = (cfg.dt, p[A_DF]);
+    let decay = (-h / tau).exp();
+    let want = [
+        (0, a * tau * (h - tau * (1.0 - decay))),
+        (2, a * tau * (1.0 - decay)),
+        (LAG_DF_STATE, decay),
+    ];
+    for (i, w) in want {
+        assert!(
+            ((s[i] - w) / w).abs() < 1e-6,
+            "state {i}: {} vs closed form {w}",
+            s[i]
+        );
+    }
+    // The lagged loop is stable (the 0.4 s thruster lag) and has one more pole.
+    lp.check_stable(&setup.parameter_names(), &p).unwrap();
+    assert_eq!(lp.poles().unwrap().len(), base.poles().unwrap().len() + 1);
+}
+
+#[test]
+fn zero_effects_are_the_reference_loop_and_gravity_gradient_is_gamma_x_shifted() {
+    // Oracle: the reference model's stiffness, in which gamma_x is a constant
+    // (reference/README.md: D12 = gamma_x + ..., D22 = ... - 2 gamma_x). Every library effect
+    // that the engine simulates at value zero leaves the one-step transition matrix of the
+    // loop exactly as without effects; a gravity-gradient change dgamma gives the loop of a
+    // model whose gamma_x is larger by dgamma, to rounding.
+    let setup = Setup::embedded();
+    let p = setup.spec.scenario("monte_carlo").unwrap().truth;
+    let cfg = LoopConfig::from_spec(&setup.spec);
+    let reference = DigitalLoop::new(&setup.model, &p, &cfg).transition_matrix();
+    for e in library() {
+        let Ok(fx) = PlantEffects::from_library(&setup.model, &[(e.clone(), vec![0.0])]) else {
+            continue;
+        };
+        let m = DigitalLoop::with_effects(&setup.model, &p, &cfg, &fx).transition_matrix();
+        assert_eq!(m, reference, "{} = 0", e.name());
+    }
+    let dgamma = 2e-8;
+    let fx = PlantEffects::from_library(&setup.model, &effects(&[("gravity_gradient", dgamma)]))
+        .unwrap();
+    let with_effect = DigitalLoop::with_effects(&setup.model, &p, &cfg, &fx).transition_matrix();
+    let mut shifted = setup.model.clone();
+    shifted.gamma_x += dgamma;
+    let with_constant = DigitalLoop::new(&shifted, &p, &cfg).transition_matrix();
+    let scale = with_constant.amax();
+    assert!(
+        (&with_effect - &with_constant).amax() < 1e-12 * scale,
+        "gravity gradient differs from gamma_x + dgamma"
+    );
+    assert!((&with_effect - &reference).amax() > 0.0, "the effect acts");
+}
+
+#[test]
+fn every_library_effect_is_simulated_or_refused_by_name() {
+    // Oracle: the engine's documented coverage: every operator effect but the loss angles
+    // (frequency-independent imaginary stiffness, not causal) is simulated; a loss angle is
+    // an error naming the effect and the engine.
+    let setup = Setup::embedded();
+    for e in library() {
+        let name = e.name();
+        let r = PlantEffects::from_library(&setup.model, &[(e.clone(), e.typical())]);
+        if name.starts_with("loss_angle") {
+            let msg = r.unwrap_err().to_string();
+            assert!(
+                msg.contains(&name) && msg.contains("time-domain engine"),
+                "{msg}"
+            );
+            assert_eq!(msg.lines().count(), 1);
+        } else {
+            assert!(r.is_ok(), "{name}: {:?}", r.err());
+        }
+    }
+}
+
+fn freefall(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_freefall"))
+        .args(args)
+        .output()
+        .expect("binary runs")
+}
+
+#[test]
+fn cli_simulates_effects_in_the_time_domain_and_refuses_the_others_in_one_line() {
+    // Oracle: the documented --effect behaviour of `simulate --engine time-domain`: library
+    // operator effects are recorded in the dataset's [meta.effects]; loss angles, drifts and
+    // glitches end in one line naming the effect and the engine.
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("lag");
+    let o = freefall(&[
+        "simulate",
+        "--engine",
+        "time-domain",
+        "--effect",
+        "actuation_lag_df=0.4",
+        "--noise-duration",
+        "3600",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let meta: toml::Table =
+        toml::from_str(&std::fs::read_to_string(out.join("dataset.toml")).unwrap()).unwrap();
+    let meta = meta["meta"].as_table().unwrap();
+    assert_eq!(meta["engine"].as_str(), Some("time-domain"));
+    assert_eq!(meta["effects"]["actuation_lag_df"].as_float(), Some(0.4));
+    for (spec, needle) in [
+        ("loss_angle_tm2=0.01", "effect 'loss_angle_tm2'"),
+        ("drift_a_df=1e-3", "drift_a_df=1e-3"),
+        ("glitch_tm2=3e-12,t0=4000", "glitch_tm2=3e-12,t0=4000"),
+    ] {
+        let bad = dir.path().join("bad");
+        let o = freefall(&[
+            "simulate",
+            "--engine",
+            "time-domain",
+            "--effect",
+            spec,
+            "--out",
+            bad.to_str().unwrap(),
+        ]);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success(), "{spec} was accepted");
+        assert_eq!(err.trim().lines().count(), 1, "{err}");
+        assert!(
+            err.contains(needle) && err.contains("time-domain engine"),
+            "{spec}: {err}"
+        );
+    }
+}
