@@ -14,6 +14,7 @@
 
 pub mod estimator;
 pub mod problem;
+pub mod transient;
 pub mod whiten;
 
 use std::borrow::Cow;

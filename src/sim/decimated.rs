@@ -33,10 +33,14 @@ pub struct DecimationGrid {
 
 impl DecimationGrid {
     pub fn new(design: &Design, dt_sim: f64, factor: usize) -> Result<Self, NoiseError> {
+        Self::for_samples(design.samples(dt_sim * factor as f64), dt_sim, factor)
+    }
+
+    /// The grid behind `n_out` kept output samples (the same margins as [`Self::new`]).
+    pub fn for_samples(n_out: usize, dt_sim: f64, factor: usize) -> Result<Self, NoiseError> {
         let decimator = Decimator::new(factor, 1.0 / dt_sim)
             .map_err(|e| NoiseError::Decimation(e.to_string()))?;
         let dt_out = dt_sim * factor as f64;
-        let n_out = design.samples(dt_out);
         // `edge_samples` counts output samples whose filter reaches past an end of the series;
         // one more on each side keeps every kept sample's support inside the simulated grid.
         let margin_out = decimator.edge_samples() + 1;
