@@ -56,6 +56,7 @@ pub mod selection;
 mod simulate;
 pub mod tables;
 pub mod tension;
+mod transient;
 
 use std::sync::Arc;
 
@@ -127,6 +128,9 @@ pub struct DiagnoseConfig {
     /// Scan the residual for glitches ([`glitch`]) every round and propose the best of each
     /// entry point as a `glitch` candidate.
     pub glitches: bool,
+    /// Test the noise run and the experiments for start-up transients (thesis sec. 3.2, 4.7;
+    /// [`transient`]) and fit them where significant.
+    pub transients: bool,
     /// Base parameters held fixed and Gaussian priors, in every fit of the diagnosis (effect
     /// parameters stay free). The score tests keep every base parameter as a nuisance, which
     /// only costs them power. A prior here also replaces the model file's in the prior-tension
@@ -149,6 +153,7 @@ impl Default for DiagnoseConfig {
             lines: false,
             drifts: true,
             glitches: true,
+            transients: true,
             constraints: crate::fit::Constraints::default(),
         }
     }
@@ -292,6 +297,9 @@ pub struct Diagnosis {
     pub truth: Option<Vec<f64>>,
     /// Present when the final residual is heavy-tailed (an `outliers` entry).
     pub robust: Option<RobustCheck>,
+    /// Significant start-up transients (noise run, experiments) with their fitted initial
+    /// conditions at each run's first sample.
+    pub transients: Vec<crate::analysis::transient::TransientReport>,
     /// The acceleration noise (S_g12) through Delta before and after (`science`); `None` when
     /// no run is long enough for the estimate.
     pub acceleration: Option<science::AccelChange>,
@@ -387,8 +395,27 @@ pub fn diagnose_observed(
     let start = std::time::Instant::now();
     let mut notes = Notes::default();
     let mut both = observer::Both(&mut notes, obs);
-    let problem = DiagnosisProblem::plan(setup, data, noise, guess, cfg, &mut both)?;
-    let fit0 = problem.fit_plain(&problem.nominal, guess)?;
+    let mut transients = Vec::new();
+    let cleaned = match noise.filter(|_| cfg.transients) {
+        Some(nz) => {
+            let (c, report) = transient::clean_noise(setup, nz, guess, data.dt, cfg, &mut both);
+            transients.extend(report);
+            c
+        }
+        None => None,
+    };
+    let noise = cleaned.as_deref().or(noise);
+    let mut problem = DiagnosisProblem::plan(setup, data, noise, guess, cfg, &mut both)?;
+    let mut fit0 = problem.fit_plain(&problem.nominal, guess)?;
+    if cfg.transients {
+        if let Some((refit, reports)) =
+            transient::test_experiments(&mut problem, data, &fit0, &mut both)?
+        {
+            fit0 = refit;
+            transients.extend(reports);
+        }
+    }
+    let problem = problem;
     if !fit0.fit.termination.converged() {
         both.note(&format!(
             "the nominal fit stopped without converging ({})",
@@ -421,6 +448,7 @@ pub fn diagnose_observed(
         oi,
     );
     d.notes = notes.0;
+    d.transients = transients;
     d.truth = truth.map(|t| t.to_vec());
     d.seconds = start.elapsed().as_secs_f64();
     Ok(d)
@@ -477,6 +505,7 @@ fn finish(
         residuals_after: (state.fit.fit.residuals_w, state.fit.raw),
         truth: None,
         robust,
+        transients: Vec::new(),
         acceleration: None,
         seconds: 0.0,
     }

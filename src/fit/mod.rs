@@ -15,6 +15,7 @@
 pub mod estimator;
 pub mod problem;
 pub mod telemetry_psd;
+pub mod transient;
 pub mod whiten;
 
 use std::borrow::Cow;
