@@ -129,7 +129,8 @@ pub struct DiagnoseConfig {
     /// entry point as a `glitch` candidate.
     pub glitches: bool,
     /// Test the noise run and the experiments for start-up transients (thesis sec. 3.2, 4.7;
-    /// [`transient`]) and fit them where significant.
+    /// [`transient`]) and fit them where significant. Digital models only: the free responses
+    /// are the digital loop's.
     pub transients: bool,
     /// Base parameters held fixed and Gaussian priors, in every fit of the diagnosis (effect
     /// parameters stay free). The score tests keep every base parameter as a nuisance, which
@@ -392,11 +393,16 @@ pub fn diagnose_observed(
     cfg: &DiagnoseConfig,
     obs: &mut dyn Observer,
 ) -> Result<Diagnosis, DiagnoseError> {
+    // Every setting is checked before any work (the transient tests below use alpha).
+    cfg.validate()?;
     let start = std::time::Instant::now();
     let mut notes = Notes::default();
     let mut both = observer::Both(&mut notes, obs);
     let mut transients = Vec::new();
-    let cleaned = match noise.filter(|_| cfg.transients) {
+    // The free-response basis is the digital loop's (`sim::transient`): the continuous model,
+    // kept for the thesis comparisons, has no start-up transient columns.
+    let with_transients = cfg.transients && setup.model.digital.is_some();
+    let cleaned = match noise.filter(|_| with_transients) {
         Some(nz) => {
             let (c, report) = transient::clean_noise(setup, nz, guess, data.dt, cfg, &mut both);
             transients.extend(report);
@@ -407,7 +413,7 @@ pub fn diagnose_observed(
     let noise = cleaned.as_deref().or(noise);
     let mut problem = DiagnosisProblem::plan(setup, data, noise, guess, cfg, &mut both)?;
     let mut fit0 = problem.fit_plain(&problem.nominal, guess)?;
-    if cfg.transients {
+    if with_transients {
         if let Some((refit, reports)) =
             transient::test_experiments(&mut problem, data, &fit0, &mut both)?
         {
