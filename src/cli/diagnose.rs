@@ -63,6 +63,10 @@ pub struct DiagnoseArgs {
     /// readout); they then show up as unexplained time-window excess.
     #[arg(long)]
     pub no_glitches: bool,
+    /// Test the noise run and the experiments for start-up transients (free responses of the
+    /// digital loop to initial conditions; digital models only) and fit them where significant.
+    #[arg(long)]
+    pub transient: bool,
     /// Print the effect library and exit.
     #[arg(long)]
     pub list_effects: bool,
@@ -145,6 +149,7 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
         whiten_from_model: a.model_psd,
         lines: a.lines,
         glitches: !a.no_glitches,
+        transients: a.transient,
         constraints,
         ..Default::default()
     };

@@ -130,7 +130,8 @@ pub struct DiagnoseConfig {
     pub glitches: bool,
     /// Test the noise run and the experiments for start-up transients (thesis sec. 3.2, 4.7;
     /// [`transient`]) and fit them where significant. Digital models only: the free responses
-    /// are the digital loop's.
+    /// are the digital loop's. Off by default: on a steady-state time-domain run the noise-run
+    /// test still claims a transient (tests/transient.rs, ignored until understood).
     pub transients: bool,
     /// Base parameters held fixed and Gaussian priors, in every fit of the diagnosis (effect
     /// parameters stay free). The score tests keep every base parameter as a nuisance, which
@@ -154,7 +155,7 @@ impl Default for DiagnoseConfig {
             lines: false,
             drifts: true,
             glitches: true,
-            transients: true,
+            transients: false,
             constraints: crate::fit::Constraints::default(),
         }
     }
