@@ -124,8 +124,8 @@ fn engine_key_is_validated_in_one_line() {
                     threads: Some(1),
                 };
                 campaign::run(&loaded, &opts, &mut |_: Progress| {})
-                    .err()
-                    .expect("refused")
+                    .map(|_| ())
+                    .expect_err("refused")
                     .to_string()
             }
         };

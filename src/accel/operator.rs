@@ -27,8 +27,8 @@
 //! `h = 0.1 s`), a kernel decaying only as `(-1)^k / k`, and the jump of the zero-padded series
 //! at its first sample would ring through a whole start-up transient.
 //!
-//! So the estimator applies `Delta_h(f) = Delta(f) + (H(f) - s^2 + tau (H_3(f) - s^3)) S0^-1
-//! + J (trap(f) - 1 / s)`, which [`DeltaEstimator::response`] returns for the model projection;
+//! So the estimator applies
+//! `Delta_h(f) = Delta(f) + (H(f) - s^2 + tau (H_3(f) - s^3)) S0^-1 + J (trap(f) - 1 / s)`, which [`DeltaEstimator::response`] returns for the model projection;
 //! it equals `Delta(f)` up to `(w dt)^2 / 3` relative in the inertia (3 % at 50 mHz for a 1 Hz
 //! run with the default stencil).
 //!

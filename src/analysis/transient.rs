@@ -48,6 +48,9 @@ pub enum TransientError {
 
 type Result<T> = std::result::Result<T, TransientError>;
 
+/// `cols[e][k][c]`: experiment `e`, initial condition `k`, readout `c`, over the samples.
+pub type ExperimentColumns = Vec<Vec<Vec<Vec<f64>>>>;
+
 /// The free response of a run of `n` telemetry samples at base parameters `p`.
 pub fn run_response(setup: &Setup, p: &[f64], n: usize) -> Result<FreeResponse> {
     Ok(free_response(
@@ -65,7 +68,7 @@ pub fn experiment_columns(
     setup: &Setup,
     p: &[f64],
     data: &ExperimentData,
-) -> Result<(Vec<Vec<Vec<Vec<f64>>>>, Vec<FreeResponse>)> {
+) -> Result<(ExperimentColumns, Vec<FreeResponse>)> {
     let mut cols = Vec::with_capacity(data.outputs.len());
     let mut maps = Vec::with_capacity(data.outputs.len());
     for e in 0..data.outputs.len() {

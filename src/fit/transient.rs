@@ -26,6 +26,9 @@ use super::whiten::{poly_basis, project_out, Whitener};
 use super::FitError;
 use crate::numerics::linalg::dot;
 
+/// `cols[k][c]`: column `k`, channel `c`, over the samples.
+pub type RunColumns = Vec<Vec<Vec<f64>>>;
+
 /// A column whose whitened norm falls below this fraction of its norm before the
 /// Gram-Schmidt step is a combination of the others (or of the polynomial): the initial
 /// conditions are then not separately identifiable.
@@ -48,7 +51,7 @@ fn joint_dot(a: &[Vec<f64>], b: &[Vec<f64>]) -> f64 {
 fn orthonormalise(
     mut cols: Vec<Vec<Vec<f64>>>,
     what: &str,
-) -> Result<(Vec<Vec<Vec<f64>>>, DMatrix<f64>), FitError> {
+) -> Result<(RunColumns, DMatrix<f64>), FitError> {
     let nk = cols.len();
     let mut r = DMatrix::<f64>::zeros(nk, nk);
     let mut q: Vec<Vec<Vec<f64>>> = Vec::with_capacity(nk);
@@ -64,7 +67,8 @@ fn orthonormalise(
             }
         }
         let norm = joint_dot(&v, &v).sqrt();
-        if !(norm > DEGENERATE_FRACTION * norm0) {
+        // NaN norms count as degenerate too.
+        if norm.partial_cmp(&(DEGENERATE_FRACTION * norm0)) != Some(std::cmp::Ordering::Greater) {
             return Err(FitError::Singular(format!(
                 "{what}: transient column {k} is a combination of the others after whitening \
                  (norm {norm:.3e} of {norm0:.3e}); the initial conditions are not identifiable"

@@ -128,7 +128,7 @@ impl Decimator {
     pub fn from_taps(factor: usize, fs_in: f64, taps: &[f64]) -> Result<Decimator, String> {
         let mut d = Decimator::new(factor, fs_in).map_err(|e| e.to_string())?;
         let n = taps.len();
-        if n % 2 == 0 {
+        if n.is_multiple_of(2) {
             return Err(format!(
                 "{n} taps: need an odd number (an integer group delay)"
             ));
