@@ -83,6 +83,7 @@ pub fn memory_budget() -> u64 {
 /// A byte count for messages: "12.8 GB".
 pub fn fmt_bytes(bytes: f64) -> String {
     match bytes {
+        // Decimal (SI) byte units.
         b if b >= 1e12 => format!("{:.1} TB", b / 1e12),
         b if b >= 1e9 => format!("{:.1} GB", b / 1e9),
         b if b >= 1e6 => format!("{:.1} MB", b / 1e6),

@@ -39,6 +39,7 @@ pub struct UnitsError {
 /// What a factor most likely means, e.g. ": is it in picometres?".
 fn hint(factor: f64) -> String {
     let decade = factor.log10();
+    // Decimal exponent of the factor -> the unit it suggests the data are in.
     let prefixes = [
         (3.0, "millimetres"),
         (6.0, "micrometres"),

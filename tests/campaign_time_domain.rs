@@ -123,10 +123,10 @@ fn engine_key_is_validated_in_one_line() {
                     resume: false,
                     threads: Some(1),
                 };
-                match campaign::run(&loaded, &opts, &mut |_: Progress| {}) {
-                    Ok(_) => panic!("{engine}: accepted"),
-                    Err(e) => e.to_string(),
-                }
+                campaign::run(&loaded, &opts, &mut |_: Progress| {})
+                    .map(|_| ())
+                    .expect_err("refused")
+                    .to_string()
             }
         };
         assert_eq!(err.lines().count(), 1, "{err}");

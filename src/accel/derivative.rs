@@ -62,6 +62,7 @@ impl Stencil {
     /// Coefficients `(a, b, c)` of `x_{n +- 2}`, `x_{n +- 1}` and `x_n` (before `1 / dt^2`).
     pub fn taps(&self) -> (f64, f64, f64) {
         let a = self.a;
+        // Stencil weights: exact on quadratics for any a (derivation in the module doc).
         (a, 1.0 - 4.0 * a, 6.0 * a - 2.0)
     }
 

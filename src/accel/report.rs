@@ -147,7 +147,7 @@ impl AccelReport {
                 "f = {:.3e} Hz: sqrt(S_g12) = {:.3e} m s^-2 Hz^-1/2 ({:.0} % band [{:.3e}, {:.3e}]), largest budget term: {top}",
                 psd.f[k],
                 psd.psd[1][k].sqrt(),
-                100.0 * psd.level,
+                100.0 * psd.level, // in %
                 (psd.lo * psd.psd[1][k]).sqrt(),
                 (psd.hi * psd.psd[1][k]).sqrt()
             );

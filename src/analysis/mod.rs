@@ -7,6 +7,7 @@
 
 pub mod model_tables;
 pub mod tables;
+pub mod transient;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};

@@ -181,6 +181,9 @@ pub struct FitSummary {
     pub priors: BTreeMap<String, [f64; 2]>,
     /// Version, model and dataset hashes (the same keys as the tables' metadata).
     pub provenance: BTreeMap<String, String>,
+    /// Fitted start-up transients (`--transient`): noise run and experiments.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub transients: Vec<super::transient::TransientReport>,
 }
 
 impl FitSummary {
@@ -214,6 +217,7 @@ impl FitSummary {
             fixed: Vec::new(),
             priors: BTreeMap::new(),
             provenance,
+            transients: Vec::new(),
         }
     }
 

@@ -463,7 +463,7 @@ pub fn run(
         finished_unix: now_unix(),
         wall_seconds: wall,
         fit_seconds,
-        realizations_per_second: (total - resumed) as f64 / wall.max(1e-9),
+        realizations_per_second: (total - resumed) as f64 / wall.max(1e-9), // 1 ns: no division by zero
         resumed_realizations: resumed,
         merged_from: Vec::new(),
     };

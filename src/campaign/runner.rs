@@ -39,6 +39,8 @@ use crate::sim::WhitenedSimulator;
 use super::spec::Engine;
 
 /// Where a cell's data come from (`[fit] engine`).
+// One per campaign cell, built once: the variants' size difference costs nothing.
+#[allow(clippy::large_enum_variant)]
 enum Source {
     /// The frequency-domain simulator at the analysis rate, with realizations delivered
     /// whitened (`wsim`; `None` if the noise window is too close to the start of its generator

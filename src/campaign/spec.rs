@@ -568,7 +568,9 @@ impl Checker<'_> {
                 ))
             }
         };
-        let max_iterations = fit.max_iterations.unwrap_or(100);
+        let max_iterations = fit
+            .max_iterations
+            .unwrap_or(crate::fit::DEFAULT_MAX_ITERATIONS);
         if max_iterations == 0 {
             return Err(self.bad("fit.max_iterations", "must be at least 1"));
         }

@@ -57,6 +57,7 @@ impl Moments {
         let dn2 = dn * dn;
         let term1 = delta * dn * n1;
         self.mean += dn;
+        // Pebay's (2008) one-pass update of the third and fourth central-moment sums.
         self.m4 += term1 * dn2 * (n * n - 3.0 * n + 3.0) + 6.0 * dn2 * self.m2 - 4.0 * dn * self.m3;
         self.m3 += term1 * dn * (n - 2.0) - 3.0 * dn * self.m2;
         self.m2 += term1;
@@ -75,6 +76,7 @@ impl Moments {
         if self.n < 3 || self.m2 <= 0.0 {
             return f64::NAN;
         }
+        // g1 = m3 / m2^(3/2), with the sums m_k = n * central moment.
         (self.n as f64).sqrt() * self.m3 / self.m2.powf(1.5)
     }
 
@@ -94,6 +96,7 @@ impl Moments {
         if !(g1.is_finite() && g2.is_finite()) {
             return f64::NAN;
         }
+        // Jarque-Bera: n/6 (g1^2 + g2^2/4), chi^2 with 2 dof under normality.
         let jb = self.n as f64 / 6.0 * (g1 * g1 + g2 * g2 / 4.0);
         (-jb / 2.0).exp()
     }

@@ -7,6 +7,7 @@ use anyhow::{bail, Context, Result};
 use clap::Args;
 
 use super::{ensure_parent, ModelOpt};
+use crate::analysis::transient::{clean_noise_run, fit_with_transients};
 use crate::analysis::{
     correlation_table, dataset_whitener, decimated_telemetry, estimates_table, experiment_data,
     outputs_of, parse_constraints, psd_table, residual_table, resolve_guess, truth_from_meta,
@@ -16,6 +17,10 @@ use crate::fit::{fit as run_fit, Estimator, FitConfig, Likelihood, Whitener};
 use crate::io::{read_dataset, read_run, write_json_atomic, write_parquet, Provenance};
 use crate::model::check_stability;
 use crate::setup::{Setup, DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
+
+/// False-alarm probability at which `fit --transient` calls a run's transient significant (the
+/// diagnosis' default `alpha`).
+const TRANSIENT_ALPHA: f64 = 0.01;
 
 #[derive(Debug, Args)]
 pub struct PsdArgs {
@@ -81,7 +86,7 @@ pub fn whiten(a: WhitenArgs) -> Result<()> {
     let (whitener, source) = match (&a.noise, a.model_psd) {
         (Some(path), _) => {
             let noise = read_run(path)?;
-            if (noise.dt - run.dt).abs() > 1e-9 * run.dt {
+            if !crate::numerics::tol::same_time(noise.dt, run.dt) {
                 bail!("{}: sampling interval {} s differs from {}'s {} s", path.display(), noise.dt, a.run.display(), run.dt);
             }
             let w = Whitener::<2>::from_series(&outputs_of(&noise), a.order).with_context(|| path.display().to_string())?;
@@ -149,6 +154,13 @@ pub struct FitArgs {
     /// objective and 1 / SIGMA^2 to the information.
     #[arg(long, value_name = "NAME=MEAN,SIGMA")]
     pub prior: Vec<String>,
+    /// Fit start-up transients (thesis sec. 3.2, 4.7): the closed loop's free responses to
+    /// initial positions and velocities are fitted nuisance columns of every experiment, and
+    /// the noise run's fitted free response is removed before its whitening filter is
+    /// estimated. For runs that start away from equilibrium (no burn-in); off by default,
+    /// since a steady-state run only loses four degrees of freedom per run to them.
+    #[arg(long)]
+    pub transient: bool,
 }
 
 pub fn fit(a: FitArgs) -> Result<()> {
@@ -175,20 +187,44 @@ pub fn fit(a: FitArgs) -> Result<()> {
     if !super::force() {
         crate::units::check_dataset(&setup, &guess, &ds)?;
     }
-    let (whitener, source) = dataset_whitener(
-        &setup,
-        &ds,
-        &guess,
-        data.len(),
-        data.dt,
-        a.order,
-        a.whitening,
-    )?;
+    let mut transients = Vec::new();
+    let cleaned = match (&ds.noise, a.transient && a.whitening != Whitening::Model) {
+        (Some(noise), true) => {
+            let (t, report) = clean_noise_run(
+                &setup,
+                &guess,
+                &outputs_of(noise),
+                data.dt,
+                a.order,
+                a.poly_degree,
+                TRANSIENT_ALPHA,
+            )?;
+            transients.push(report);
+            Some(t.cleaned)
+        }
+        _ => None,
+    };
+    let (whitener, source) = match &cleaned {
+        Some(c) => (
+            Whitener::<2>::from_series(c, a.order)
+                .context("the noise run less its fitted start-up transient")?,
+            "noise run less its fitted start-up transient".to_string(),
+        ),
+        None => dataset_whitener(
+            &setup,
+            &ds,
+            &guess,
+            data.len(),
+            data.dt,
+            a.order,
+            a.whitening,
+        )?,
+    };
     let through_fir = source.starts_with("model") && decimated_telemetry(&ds);
     if (ds.noise.is_none() && a.whitening == Whitening::Auto) || through_fir {
         info!("note: whitening from the {source}");
     }
-    let lik = Likelihood::with_lengths(
+    let mut lik = Likelihood::with_lengths(
         &setup.model,
         &data.inputs,
         &data.lengths(),
@@ -197,10 +233,17 @@ pub fn fit(a: FitArgs) -> Result<()> {
         a.poly_degree,
     )
     .with_context(|| a.dataset.display().to_string())?;
-    let problem = lik.problem(&data)?;
     cfg.estimator = a.estimator;
     let working = super::Working::new("fitting");
-    let res = run_fit(&setup.model, &problem, &guess, &cfg)?;
+    let res = if a.transient {
+        let (res, reports) =
+            fit_with_transients(&setup, &mut lik, &data, &guess, &cfg, TRANSIENT_ALPHA)?;
+        transients.extend(reports);
+        res
+    } else {
+        run_fit(&setup.model, &lik.problem(&data)?, &guess, &cfg)?
+    };
+    let problem = lik.problem(&data)?;
     drop(working);
     let names = setup.parameter_names();
     std::fs::create_dir_all(&a.out)
@@ -233,9 +276,16 @@ pub fn fit(a: FitArgs) -> Result<()> {
     )?;
     let summary = FitSummary::new(&res, a.estimator, source, a.order, a.poly_degree, prov.meta)
         .with_constraints(&names, &cfg);
+    let summary = FitSummary {
+        transients,
+        ..summary
+    };
     write_json_atomic(a.out.join("fit.json"), &summary)?;
     let truth = truth_from_meta(&ds, &names);
     out!("{}", summary.text(&names, &res, &guess, truth.as_deref()));
+    for t in &summary.transients {
+        out!("transient {}", t.text());
+    }
     info!("wrote {}", a.out.display());
     for w in &summary.warnings {
         eprintln!("warning: {w}");

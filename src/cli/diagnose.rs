@@ -63,6 +63,10 @@ pub struct DiagnoseArgs {
     /// readout); they then show up as unexplained time-window excess.
     #[arg(long)]
     pub no_glitches: bool,
+    /// Test the noise run and the experiments for start-up transients (free responses of the
+    /// digital loop to initial conditions; digital models only) and fit them where significant.
+    #[arg(long)]
+    pub transient: bool,
     /// Print the effect library and exit.
     #[arg(long)]
     pub list_effects: bool,
@@ -128,7 +132,7 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
         .as_ref()
         .map(|r| r.outputs().iter().map(|c| c.to_vec()).collect());
     if let Some(nr) = &ds.noise {
-        if (nr.dt - data.dt).abs() > 1e-9 * data.dt {
+        if !crate::numerics::tol::same_time(nr.dt, data.dt) {
             bail!(
                 "the noise run's sampling interval {} s differs from the experiments' {} s",
                 nr.dt,
@@ -146,6 +150,7 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
         decimated_telemetry: crate::analysis::decimated_telemetry(&ds),
         lines: a.lines,
         glitches: !a.no_glitches,
+        transients: a.transient,
         constraints,
         ..Default::default()
     };

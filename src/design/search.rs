@@ -26,6 +26,7 @@ use nalgebra::DMatrix;
 use super::criteria::{Criterion, Evaluation, Kind, Target};
 use super::space::{CandidateSet, ExactDesign};
 use super::DesignError;
+use crate::numerics::tol::STRICT_IMPROVEMENT;
 
 /// Search settings.
 #[derive(Debug, Clone)]
@@ -43,6 +44,8 @@ impl OptimizeConfig {
     pub fn new(criterion: Criterion) -> Self {
         OptimizeConfig {
             criterion,
+            // The multiplicative algorithm converges linearly; 3000 steps reach the 1e-5
+            // efficiency gap on the candidate sets here, which the exchange sweeps then polish.
             multiplicative_iterations: 3000,
             tol: 1e-5,
             max_sweeps: 50,
@@ -130,7 +133,7 @@ pub fn exchange(
                     }
                     let v = phi_flat(np, &trial, target, c);
                     evals += 1;
-                    if v > best.0 * (1.0 + 1e-12) && v > 0.0 {
+                    if v > best.0 * (1.0 + STRICT_IMPROVEMENT) && v > 0.0 {
                         best = (v, j);
                     }
                 }
@@ -211,10 +214,11 @@ pub fn direct_search(
         for k in 0..x.len() {
             for dir in [1.0, -1.0] {
                 let mut y = x.clone();
+                // Continuous harmonic numbers that round into 1..=m_max.
                 y[k] = (y[k] + dir * step).clamp(0.5, m_max as f64 + 0.49);
                 let v = value(&y);
                 evals += 1;
-                if v > best * (1.0 + 1e-12) {
+                if v > best * (1.0 + STRICT_IMPROVEMENT) {
                     best = v;
                     x = y;
                     improved = true;
@@ -541,6 +545,7 @@ fn round(set: &CandidateSet, counts: &[Vec<f64>]) -> ExactDesign {
             let total: f64 = cs.iter().sum();
             let w: Vec<f64> = cs
                 .iter()
+                // Weights below 1 % are the multiplicative algorithm's not-yet-zero tail.
                 .map(|n| if n / total >= 0.01 { n / total } else { 0.0 })
                 .collect();
             let sw: f64 = w.iter().sum();

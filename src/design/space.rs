@@ -20,6 +20,7 @@ use realfft::RealFftPlanner;
 
 use super::DesignError;
 use crate::model::{transfer, transfer_with_derivatives, CMat, ClosedLoopModel};
+use crate::numerics::tol::{same_time, SAME_TIME};
 use crate::setup::Setup;
 use crate::signal::{Design, Experiment, Stretch};
 
@@ -210,7 +211,7 @@ impl DesignSpace {
         }
         let end =
             timing.start_s + timing.slots as f64 * (timing.stretch_s + timing.gap_s) - timing.gap_s;
-        if end > timing.duration_s + 1e-9 {
+        if end > timing.duration_s && !same_time(end, timing.duration_s) {
             return Err(bad(format!(
                 "{} stretches of {} s with {} s gaps from {} s end at {end} s, after the experiment's duration_s = {} s",
                 timing.slots, timing.stretch_s, timing.gap_s, timing.start_s, timing.duration_s
@@ -242,7 +243,7 @@ impl DesignSpace {
         let dt = setup.analysis_dt();
         let nyquist = 0.5 / dt;
         let f_max_hz = cons.f_max_hz.min(nyquist);
-        let m_max = (f_max_hz * timing.stretch_s + 1e-9).floor() as usize;
+        let m_max = (f_max_hz * timing.stretch_s * (1.0 + SAME_TIME)).floor() as usize;
         if m_max == 0 {
             return Err(bad(format!(
                 "no frequency on the grid: f_max_hz = {} Hz is below one cycle per stretch of {} s",
@@ -440,10 +441,9 @@ impl DesignSpace {
     fn check_grid(&self, design: &Design) -> Result<(), DesignError> {
         design.validate()?;
         let t = &self.timing;
-        let same = |a: f64, b: f64| (a - b).abs() <= 1e-9 * a.abs().max(1.0);
-        if !(same(design.stretch_s, t.stretch_s)
-            && same(design.gap_s, t.gap_s)
-            && same(design.start_s, t.start_s))
+        if !(same_time(design.stretch_s, t.stretch_s)
+            && same_time(design.gap_s, t.gap_s)
+            && same_time(design.start_s, t.start_s))
         {
             return Err(DesignError::Invalid {
                 design: design.name.clone(),
@@ -453,7 +453,7 @@ impl DesignSpace {
                 ),
             });
         }
-        if !same(design.duration_s, t.duration_s) {
+        if !same_time(design.duration_s, t.duration_s) {
             return Err(DesignError::Invalid {
                 design: design.name.clone(),
                 reason: format!(
@@ -547,6 +547,7 @@ impl DesignSpace {
                         })
                         .sum();
                     let ratio = resp / self.bounds[r.index()];
+                    // A bound is violated beyond the 1e-6 rounding of the scaled amplitudes.
                     if ratio > 1.0 + 1e-6 && worst.is_none_or(|w| ratio > w.0) {
                         worst = Some((ratio, r, resp));
                     }

@@ -129,7 +129,7 @@ impl Additive {
             } => format!(
                 "line_{experiment_name}_{}_{:.2}mhz",
                 ["o1", "o12"][(*channel).min(1)],
-                f_hz * 1e3
+                f_hz * 1e3 // mHz
             ),
             Additive::Drift {
                 parameter_name,
@@ -158,7 +158,7 @@ impl Additive {
             } => format!(
                 "{experiment_name} {} at {:.4} mHz",
                 ["o1", "o12"][(*channel).min(1)],
-                f_hz * 1e3
+                f_hz * 1e3 // mHz
             ),
             Additive::Drift {
                 parameter_name,
@@ -231,6 +231,8 @@ impl Additive {
             Additive::Line { f_hz, .. } => {
                 if let Some(d) = step.first() {
                     let bin = 1.0 / (n as f64 * dt);
+                    // Trust region of a quarter bin per step (the line's phase is only
+                    // linear in f within a fraction of a bin); kept inside (DC, Nyquist).
                     *f_hz = (*f_hz + clamp(*d, 0.25 * bin)).clamp(bin, 0.5 / dt - bin);
                 }
             }
@@ -239,6 +241,7 @@ impl Additive {
                 if let [d0, d1] = step {
                     *t0 = (*t0 + clamp(*d0, tau.max(dt))).clamp(0.0, n as f64 * dt);
                     let t = *tau + clamp(*d1, 0.5 * *tau);
+                    // Width between 1/20 sample (a delta at this rate) and a quarter run.
                     *tau = t.clamp(0.05 * dt, 0.25 * n as f64 * dt);
                 }
             }
@@ -329,6 +332,7 @@ impl Additive {
                         let t_half = 0.5 * n as f64;
                         for (i, v) in ch.iter_mut().enumerate() {
                             let u = (i as f64 - t_half) / n as f64;
+                            // u in [-1/2, 1/2): u^2 - 1/12 is the zero-mean quadratic.
                             *v *= if *quadratic { u * u - 1.0 / 12.0 } else { u };
                         }
                     }
@@ -468,6 +472,7 @@ pub fn refine_frequency(r: &[f64], dt: f64, f0: f64) -> f64 {
         }
         s * s + c * c
     };
+    // A 1/40-bin grid over f0 +- one bin: the line's peak to 1.3 % of a bin.
     (0..=80)
         .map(|k| f0 + bin * (k as f64 / 40.0 - 1.0))
         .filter(|f| *f > 0.0)

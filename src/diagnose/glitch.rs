@@ -29,6 +29,7 @@ use realfft::RealFftPlanner;
 
 use crate::model::closed_loop::{transfer, CMat, ClosedLoopModel, NoiseEntry};
 use crate::model::effects::Extended;
+use crate::numerics::tol::DC_BIN_FRACTION;
 
 /// Where a glitch enters the loop.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -108,7 +109,13 @@ impl Grid {
     fn freqs(&self) -> Vec<f64> {
         let df = 1.0 / (self.m as f64 * self.dt);
         (0..=self.m / 2)
-            .map(|k| if k == 0 { 1e-6 * df } else { k as f64 * df })
+            .map(|k| {
+                if k == 0 {
+                    DC_BIN_FRACTION * df
+                } else {
+                    k as f64 * df
+                }
+            })
             .collect()
     }
 }
@@ -171,7 +178,7 @@ pub fn synthesize(
     part: Part,
 ) -> [Vec<f64>; 2] {
     let freqs = grid.freqs();
-    let tau = tau.max(1e-9);
+    let tau = tau.max(1e-9); // 1 ns: a delta pulse at any telemetry rate
     let norm = if entry.is_force() {
         1.0 / grid.dt
     } else {

@@ -308,6 +308,14 @@ impl<'a> DiagnosisProblem<'a> {
         &self.whitening.filter
     }
 
+    /// Profile the start-up transient columns `raw[e][k][c]` out of every later fit.
+    pub(crate) fn set_transient(
+        &mut self,
+        raw: &[Vec<Vec<Vec<f64>>>],
+    ) -> Result<(), DiagnoseError> {
+        Ok(self.planned.set_transient(raw)?)
+    }
+
     /// The planned likelihood for `model` (no re-planning).
     pub fn likelihood<'m>(
         &self,

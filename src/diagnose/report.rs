@@ -176,6 +176,13 @@ impl Diagnosis {
                 "s_g12_before": a.before.iter().map(|v| num(*v)).collect::<Vec<_>>(),
                 "s_g12_after": a.after.iter().map(|v| num(*v)).collect::<Vec<_>>(),
             })),
+            "transient": self.transients.iter().map(|t| json!({
+                "run": t.run,
+                "initial_conditions": t.initial_conditions.iter().map(|c| json!({"name": c.name, "unit": c.unit, "value": num(c.value), "sigma": num(c.sigma)})).collect::<Vec<_>>(),
+                "loop_start_s": num(t.loop_start_s),
+                "wald_statistic": num(t.statistic),
+                "p_value": num(t.p_value),
+            })).collect::<Vec<_>>(),
             "seconds": num(self.seconds),
         })
     }
@@ -185,6 +192,7 @@ impl Diagnosis {
         let mut s = String::new();
         self.md_header(&mut s, title);
         self.md_added(&mut s);
+        self.md_transients(&mut s);
         self.md_parameters(&mut s);
         self.md_prior_tension(&mut s);
         self.md_acceleration(&mut s);
@@ -199,6 +207,34 @@ impl Diagnosis {
 }
 
 impl Diagnosis {
+    /// Significant start-up transients with their initial conditions at the first sample.
+    fn md_transients(&self, s: &mut String) {
+        if self.transients.is_empty() {
+            return;
+        }
+        let _ = writeln!(s, "## Start-up transient
+
+The closed loop's free response to initial conditions (thesis sec. 3.2, 4.7), fitted as a nuisance; initial conditions at each run's first telemetry sample.
+
+| run | o1 [m] | o12 [m] | v1 [m/s] | v12 [m/s] | Wald | p |\n|---|---|---|---|---|---|---|");
+        for t in &self.transients {
+            let ics: Vec<String> = t
+                .initial_conditions
+                .iter()
+                .map(|c| format!("{} +- {:.2e}", with_sigma(c.value, c.sigma), c.sigma))
+                .collect();
+            let _ = writeln!(
+                s,
+                "| {} | {} | {:.3e} | {:.2e} |",
+                t.run,
+                ics.join(" | "),
+                t.statistic,
+                t.p_value
+            );
+        }
+        let _ = writeln!(s);
+    }
+
     /// The science product before and after (`science`).
     fn md_acceleration(&self, s: &mut String) {
         let Some(a) = &self.acceleration else {

@@ -139,9 +139,11 @@ pub fn band_edges(f_lo: f64, f_nyq: f64) -> Vec<f64> {
     let mut k = (3.0 * f_lo.log10()).floor() as i32 + 1;
     loop {
         let e = 10f64.powf(k as f64 / 3.0);
+        // A third-decade edge within 0.1 % of Nyquist would leave an empty last band.
         if e >= f_nyq * 0.999 {
             break;
         }
+        // Merge a first band narrower than half a third-decade (10^(1/3) = 2.15) into the next.
         if e > f_lo * 1.5 {
             edges.push(e);
         }
@@ -207,6 +209,8 @@ pub struct NoiseReference {
 /// `1 + 2 L / N`.
 pub fn variance_inflation(x: &[f64]) -> f64 {
     let n = x.len();
+    // Lags up to N/8 (the Bartlett estimate's variance grows as L/N) and at most 2000 s-scale
+    // lags at 1 Hz: the whitened residual's correlation has died out well before.
     let lags = (n / 8).min(2000);
     if lags < 2 {
         return 1.0;
@@ -311,6 +315,7 @@ pub fn analyse_channel(inp: &ChannelInput<'_>, noise: Option<&NoiseReference>) -
     let m = mean(r);
     let m2 = r.iter().map(|v| (v - m).powi(2)).sum::<f64>() / n.max(1) as f64;
     let m4 = r.iter().map(|v| (v - m).powi(4)).sum::<f64>() / n.max(1) as f64;
+    // Outliers: beyond 5 sigma of the noise run's level (p = 5.7e-7 per Gaussian sample).
     let cut = 5.0
         * noise
             .map_or(1.0, |nr| nr.var[inp.channel_index])
@@ -343,6 +348,7 @@ pub fn analyse_channel(inp: &ChannelInput<'_>, noise: Option<&NoiseReference>) -
         } else {
             f64::NAN
         },
+        // Standard error of the excess kurtosis of n Gaussian samples: sqrt(24 / n).
         kurtosis_err: (24.0 / n.max(1) as f64).sqrt(),
         outliers: out_idx.len(),
         outliers_expected: n as f64 * OUTLIER_PROBABILITY,
@@ -429,6 +435,8 @@ fn line_tests(inp: &ChannelInput<'_>, f: &[f64], z: &[f64]) -> Vec<LineReport> {
                 let hi = (k + half + 1).min(z.len());
                 let mut w: Vec<f64> = z[lo..hi].to_vec();
                 w.sort_by(f64::total_cmp);
+                // Median of exponential ordinates / ln 2 is their mean; floored at the
+                // smallest normal f64 order so an all-zero window cannot divide by zero.
                 (w[w.len() / 2] / std::f64::consts::LN_2).max(1e-300)
             })
             .collect();
@@ -446,6 +454,7 @@ fn line_tests(inp: &ChannelInput<'_>, f: &[f64], z: &[f64]) -> Vec<LineReport> {
             // 1/nu = 1/nu_median + 1/nu_filter. Without this, a 15% error of the reference
             // multiplies the tail at the thresholds used here by ten or more.
             let m = ((k + half + 1).min(z.len()) - k.saturating_sub(half)) as f64;
+            // 0.96 m: the equivalent chi^2 dof of a running median of m exponentials.
             let nu = 1.0 / (1.0 / (0.96 * m) + inp.whitening_dof.map_or(0.0, |w| 1.0 / w));
             let tail = (-(nu / 2.0) * (2.0 * power / nu).ln_1p()).exp();
             let p_value = (-(total * (-tail).ln_1p()).exp_m1()).clamp(0.0, 1.0);
@@ -454,6 +463,7 @@ fn line_tests(inp: &ChannelInput<'_>, f: &[f64], z: &[f64]) -> Vec<LineReport> {
             }
             if lines
                 .iter()
+                // Within 3.5 bins of a reported line: its own leakage, not a second line.
                 .any(|l: &LineReport| (l.f_hz - f[k]).abs() < 3.5 * f[0])
             {
                 continue;
@@ -490,6 +500,8 @@ fn time_tests(
         .map_or(1.0, |nr| nr.vif[inp.channel_index])
         .max(variance_inflation(r));
     let ref_dof = noise.map(|nr| nr.n as f64 / vif);
+    // 20 s windows around stretch edges: the closed loop's fastest time constants settle in
+    // a few seconds, so an edge transient lives inside them.
     stretch_windows(inp.inputs, inp.raw.len(), (20.0 / dt).ceil() as usize)
         .into_iter()
         .filter_map(|(a, b)| {
@@ -548,6 +560,8 @@ fn coherence_tests(inp: &ChannelInput<'_>) -> Vec<CoherenceReport> {
         let coh = cs.coherence(0, 1);
         let (mut best, mut fb) = (0.0, f64::NAN);
         for k in 1..cs.f.len() {
+            // Only bins where the injection carries power (1e-3 of its peak): elsewhere the
+            // coherence is that of noise with noise.
             if pin[k] > 1e-3 * pmax && coh[k].is_finite() && coh[k] > best {
                 best = coh[k];
                 fb = cs.f[k];
@@ -586,6 +600,7 @@ pub fn spectrum_curve(
     if f.is_empty() {
         return out;
     }
+    // Twelve bands per decade.
     let step = 10f64.powf(1.0 / 12.0);
     let mut i = 0;
     while i < f.len() {
@@ -597,6 +612,7 @@ pub fn spectrum_curve(
         let seg = &z[i..j];
         let k = seg.len() as f64;
         let fm = (f[i] * f[j - 1]).sqrt();
+        // The 90 % band of a mean of k periodogram ordinates: chi^2_{2k} / 2k quantiles.
         let (lo, hi) = match ChiSquared::new(2.0 * k) {
             Ok(d) => (
                 d.inverse_cdf(0.05) / (2.0 * k),

@@ -146,6 +146,7 @@ pub fn simulate_with_drift_paths(
             let v = p.get_mut(k).ok_or_else(|| {
                 DiagnoseError::Input(format!("drift of parameter {k}: no such parameter"))
             })?;
+            // u in [-1/2, 1/2]: u^2 - 1/12 is the zero-mean quadratic drift.
             *v += d * u + d2 * (u * u - 1.0 / 12.0);
         }
         simulate_glitched(setup, design, &p, effects, glitch, seed)

@@ -15,6 +15,7 @@
 pub mod estimator;
 pub mod problem;
 pub mod telemetry_psd;
+pub mod transient;
 pub mod whiten;
 
 use std::borrow::Cow;
@@ -534,6 +535,7 @@ pub fn explain_singular(stage: &str, info: &DMatrix<f64>, names: &[String]) -> S
                 .iter()
                 .zip(names)
                 .map(|(c, n)| (*c, n.as_str()))
+                // Name the parameters that carry at least 20 % of the direction.
                 .filter(|(c, _)| c.abs() >= 0.2)
                 .collect();
             parts.sort_by(|a, b| b.0.abs().total_cmp(&a.0.abs()));
@@ -574,6 +576,7 @@ fn robust_scale(est: Estimator, r: &Series) -> f64 {
     let dpsi = match est {
         // d/dr E[sign(r)] = 2 f(0), with a box-kernel density estimate at zero.
         Estimator::Absolute => {
+            // Box half-width 0.2 (unit-variance residuals): the density at zero to ~1 %.
             let h = 0.2;
             2.0 * all().filter(|v| v.abs() < h).count() as f64 / (2.0 * h * m)
         }
@@ -704,6 +707,7 @@ pub fn fit<M: ClosedLoopModel<N>, const N: usize>(
     let (mut r, mut j, mut known) = jac_at(&p, None);
     let mut f = objective(est, &r) + cfg.prior_chi2(&p);
     let chi2_start = f;
+    // Marquardt's customary starting damping: close to Gauss-Newton on a good guess.
     let mut lambda = 1e-3;
     let mut termination = Termination::MaxIterations;
     let mut iterations = 0;

@@ -11,7 +11,16 @@
 //! experiment e keeps its own length `n_e`, its own padded FFT grid and its own nuisance basis,
 //! and drops its own filter start-up (the thesis's joint likelihood is a sum over experiments,
 //! so nothing ties their lengths together).
+//!
+//! Optionally the closed loop's free responses to initial conditions (start-up transients,
+//! thesis sec. 3.2) are a second nuisance, profiled out the same way after the polynomial
+//! ([`super::transient`]): `nu` then loses one degree of freedom per column and experiment.
 
+use std::sync::Arc;
+
+use nalgebra::{DMatrix, DVector};
+
+use super::transient::TransientBasis;
 use super::whiten::{poly_basis, project_out, Whitener};
 use super::FitError;
 pub use crate::data::ExperimentData;
@@ -30,6 +39,9 @@ pub struct Likelihood<'m, M: ClosedLoopModel<N>, const N: usize> {
     /// The nuisance basis of each experiment over its valid samples.
     basis: Vec<Vec<Vec<f64>>>,
     pub poly_degree: usize,
+    /// Whitened start-up transient columns, profiled out after the polynomial (none: steady
+    /// state).
+    transient: Option<Arc<TransientBasis>>,
 }
 
 /// Fewest samples an experiment may have: a whitening filter of order `p`, the nuisance
@@ -134,6 +146,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> Likelihood<'m, M, N> {
             response,
             basis,
             poly_degree,
+            transient: None,
         })
     }
 
@@ -155,6 +168,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> Likelihood<'m, M, N> {
             response: self.response.clone(),
             basis: self.basis.clone(),
             poly_degree: self.poly_degree,
+            transient: self.transient.clone(),
         })
     }
 
@@ -162,12 +176,69 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> Likelihood<'m, M, N> {
         self.whitener.order()
     }
 
-    /// Cut and project whitened series `s[e][c]` of full length n_e.
+    /// Cut and project whitened series `s[e][c]` of full length n_e (polynomial, then the
+    /// transient columns).
     fn whiten_cut(&self, s: Series) -> Series {
+        let mut s = self.whiten_cut_poly(s);
+        self.project_transient(&mut s);
+        s
+    }
+
+    /// Cut whitened series and project out the polynomial only.
+    fn whiten_cut_poly(&self, s: Series) -> Series {
         s.into_iter()
             .enumerate()
             .map(|(e, exp)| exp.into_iter().map(|c| self.cut(e, c)).collect())
             .collect()
+    }
+
+    /// Project the transient columns (if any) out of whitened, cut series `s[e][c]`.
+    fn project_transient(&self, s: &mut Series) {
+        if let Some(t) = &self.transient {
+            for (e, exp) in s.iter_mut().enumerate() {
+                t.project(e, exp);
+            }
+        }
+    }
+
+    /// Fit start-up transients: `raw[e][k][c]` is the free response of experiment e's readout
+    /// c to initial condition k over its `n_e` samples (see [`super::transient`]). They are
+    /// whitened with this likelihood's filter and profiled out from then on.
+    pub fn set_transient(&mut self, raw: &[Vec<Vec<Vec<f64>>>]) -> Result<(), FitError> {
+        if raw.len() != self.engine.n_experiments() {
+            return Err(FitError::Input(format!(
+                "transient columns for {} experiments, the likelihood has {}",
+                raw.len(),
+                self.engine.n_experiments()
+            )));
+        }
+        let cols = raw
+            .iter()
+            .enumerate()
+            .map(|(e, ks)| {
+                ks.iter()
+                    .map(|k| {
+                        self.engine
+                            .filter_series(e, k, &self.response)
+                            .into_iter()
+                            .map(|c| self.cut(e, c))
+                            .collect()
+                    })
+                    .collect()
+            })
+            .collect();
+        self.transient = Some(Arc::new(TransientBasis::from_whitened(cols)?));
+        Ok(())
+    }
+
+    /// Back to steady state: no transient columns.
+    pub fn clear_transient(&mut self) {
+        self.transient = None;
+    }
+
+    /// The whitened transient columns, when they are fitted.
+    pub fn transient(&self) -> Option<&TransientBasis> {
+        self.transient.as_deref()
     }
 
     /// Drop the filter's start-up samples of a whitened series of experiment `e` and project
@@ -205,6 +276,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> Likelihood<'m, M, N> {
                 project_out(c, &self.basis[e]);
             }
         }
+        self.project_transient(&mut t);
         t
     }
 
@@ -232,7 +304,26 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> Likelihood<'m, M, N> {
                     .collect()
             })
             .collect();
-        Ok(Problem { lik: self, data_w })
+        Ok(self.bind(data_w))
+    }
+
+    /// Bind whitened, cut, polynomial-projected data: keep their transient coordinates, then
+    /// project the transient columns out.
+    fn bind<'a>(&'a self, mut data_w: Series) -> Problem<'a, 'm, M, N> {
+        let transient_u = match &self.transient {
+            Some(t) => data_w
+                .iter()
+                .enumerate()
+                .map(|(e, exp)| t.coordinates(e, exp))
+                .collect(),
+            None => Vec::new(),
+        };
+        self.project_transient(&mut data_w);
+        Problem {
+            lik: self,
+            data_w,
+            transient_u,
+        }
     }
 }
 
@@ -257,7 +348,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> Likelihood<'m, M, N> {
                 self.engine.n_experiments()
             )));
         }
-        Ok(Problem { lik: self, data_w })
+        Ok(self.bind(data_w))
     }
 }
 
@@ -266,6 +357,9 @@ pub struct Problem<'a, 'm, M: ClosedLoopModel<N>, const N: usize> {
     pub lik: &'a Likelihood<'m, M, N>,
     /// Whitened, projected data `d[e][i]` over the valid samples.
     pub data_w: Series,
+    /// The data's coordinates `Q_e^T d` on the transient columns before they were projected
+    /// out (empty without transient columns).
+    transient_u: Vec<DVector<f64>>,
 }
 
 impl<M: ClosedLoopModel<N>, const N: usize> Problem<'_, '_, M, N> {
@@ -274,7 +368,11 @@ impl<M: ClosedLoopModel<N>, const N: usize> Problem<'_, '_, M, N> {
         let total: usize = (0..self.data_w.len())
             .map(|e| self.lik.valid_len(e) - self.lik.basis[e].len())
             .sum();
-        (N * total).saturating_sub(n_params)
+        let transient: usize = self
+            .lik
+            .transient()
+            .map_or(0, |t| (0..self.data_w.len()).map(|e| t.count(e)).sum());
+        (N * total).saturating_sub(n_params + transient)
     }
 
     /// Whitened residuals `r[e][i]` at `p`.
@@ -299,7 +397,39 @@ impl<M: ClosedLoopModel<N>, const N: usize> Problem<'_, '_, M, N> {
                 r[e].push(rc);
             },
         );
+        self.lik.project_transient(&mut r);
         r
+    }
+
+    /// The fitted transient of every experiment at the estimate `p`, with `cov_p` the
+    /// parameters' covariance and `scale` the residual level (chi^2/nu): per experiment the
+    /// coefficients of its columns and their covariance (see [`super::transient`]). Empty
+    /// without transient columns.
+    pub fn transient_estimates(
+        &self,
+        p: &[f64],
+        cov_p: &DMatrix<f64>,
+        scale: f64,
+    ) -> Vec<(DVector<f64>, DMatrix<f64>)> {
+        let Some(tb) = self.lik.transient() else {
+            return Vec::new();
+        };
+        let (t, d) = self
+            .lik
+            .engine
+            .templates_and_derivatives(p, Some(&self.lik.response));
+        let t = self.lik.whiten_cut_poly(t);
+        let d: Vec<Series> = d.into_iter().map(|s| self.lik.whiten_cut_poly(s)).collect();
+        (0..self.data_w.len())
+            .map(|e| {
+                let u = &self.transient_u[e] - tb.coordinates(e, &t[e]);
+                let j: Vec<&[Vec<f64>]> = d.iter().map(|s| &s[e][..]).collect();
+                let g = tb.loadings(e, &j);
+                let n = tb.count(e);
+                let cov_u = DMatrix::identity(n, n) * scale + &g * cov_p * g.transpose();
+                tb.coefficients(e, &u, &cov_u)
+            })
+            .collect()
     }
 
     /// Whitened residuals `d - t` against whitened, cut and projected templates `t[e][i]`

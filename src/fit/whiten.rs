@@ -36,7 +36,7 @@ fn normal_matrix_fits<const N: usize>(order: usize) -> Result<(), FitError> {
     crate::config::fits_in_memory(
         "order",
         order,
-        8.0 * dim * dim,
+        8.0 * dim * dim, // f64 entries
         &format!("the whitening filter's {dim} x {dim} normal matrix"),
     )?;
     Ok(())
@@ -238,6 +238,7 @@ impl<const N: usize> Whitener<N> {
         crate::config::fits_in_memory(
             "order",
             order,
+            // Three complex (16-byte) N x N grids of len bins.
             3.0 * 16.0 * (N * N) as f64 * len as f64,
             &format!("the model-PSD autocovariance grid of {len} bins"),
         )?;

@@ -26,6 +26,7 @@ use realfft::{ComplexToReal, RealFftPlanner, RealToComplex};
 use crate::data::Series;
 use crate::model::closed_loop::{CMat, ClosedLoopModel};
 use crate::numerics::fft::fast_len;
+use crate::numerics::tol::DC_BIN_FRACTION;
 
 /// A per-bin filter for every grid of an engine: `filter[g][k]` on grid `g`'s bin `k`.
 pub type GridFilter<const N: usize> = [Vec<CMat<N>>];
@@ -96,7 +97,13 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
                     // The DC bin is evaluated just above zero: controllers with an integrator
                     // are singular at s = 0, while the closed loop has a finite limit there.
                     let points = (0..nbins)
-                        .map(|k| model.prepare(if k == 0 { 1e-6 * df } else { k as f64 * df }))
+                        .map(|k| {
+                            model.prepare(if k == 0 {
+                                DC_BIN_FRACTION * df
+                            } else {
+                                k as f64 * df
+                            })
+                        })
                         .collect();
                     grids.push(Grid {
                         m,

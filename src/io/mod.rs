@@ -288,7 +288,7 @@ fn fmt_expected_found(expected: f64, found: f64, dt: f64) -> String {
     };
     let digits = (3.0 + decimals_for(dt))
         .max(1.0 + decimals_for((found - expected).abs()))
-        .clamp(3.0, 17.0) as usize;
+        .clamp(3.0, 17.0) as usize; // 17: all an f64 has
     format!(
         "expected t={expected:.digits$}, found {found:.digits$} (dt={} s)",
         fmt_short(dt)
@@ -301,6 +301,7 @@ pub(crate) fn fmt_short(x: f64) -> String {
     if x == 0.0 || !x.is_finite() {
         return format!("{x}");
     }
+    // Nine significant digits, at most 30 decimals.
     let decimals = (8.0 - x.abs().log10().floor()).clamp(0.0, 30.0) as usize;
     let s = format!("{x:.decimals$}");
     if s.contains('.') {

@@ -562,7 +562,7 @@ fn read_columns_noted(path: &Path) -> Result<(Columns, Vec<String>), IoError> {
             if let Column::I64(ns) = col {
                 // Differences in integer nanoseconds first: exact, then to seconds.
                 let start = ns.first().copied().unwrap_or(0);
-                *col = Column::F64(ns.iter().map(|&x| (x - start) as f64 * 1e-9).collect());
+                *col = Column::F64(ns.iter().map(|&x| (x - start) as f64 * 1e-9).collect()); // ns -> s
                 notes.push(format!(
                     "{label}: 't' holds timestamps; times are seconds from the first sample \
                      ({:.3} s after the Unix epoch)",

@@ -85,10 +85,12 @@ pub trait ClosedLoopModel<const N: usize>: Send + Sync {
 
     fn instability(&self, p: &[f64]) -> Result<Option<Instability>, RootsError> {
         let poles = self.poles(p)?;
+        // Poles with Re >= -1e-14 |largest pole| are on the imaginary axis to the accuracy of
+        // the polynomial's roots (relative 1e-14); the 1e-12 floor keeps an all-zero set sane.
         let scale = poles.iter().fold(1e-12_f64, |m, z| m.max(z.norm()));
         let rhp: Vec<Complex64> = poles
             .into_iter()
-            .filter(|z| z.re >= -1e-14 * scale)
+            .filter(|z| z.re >= -1e-14 * scale) // see above
             .collect();
         let Some(pole) = rhp.iter().copied().max_by(|a, b| a.re.total_cmp(&b.re)) else {
             return Ok(None);
@@ -105,6 +107,15 @@ pub trait ClosedLoopModel<const N: usize>: Send + Sync {
 
     /// Physical range `(lower, upper)` of each parameter, which a fit never leaves. Default:
     /// unbounded.
+    /// The advance `tau` of the inverse plant's inertia, `s^2 -> s^2 (1 + tau s + ...)`: zero
+    /// for a continuous plant; half the control interval for a plant driven through a
+    /// zero-order hold (the held force acts half a step late on average). The acceleration
+    /// estimator applies it as a local stencil rather than through an FFT multiplier, where
+    /// its jump at the telemetry's Nyquist frequency would ring.
+    fn inertia_advance(&self) -> f64 {
+        0.0
+    }
+
     fn parameter_bounds(&self) -> Vec<(f64, f64)> {
         vec![(f64::NEG_INFINITY, f64::INFINITY); self.n_params()]
     }

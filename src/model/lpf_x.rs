@@ -161,6 +161,8 @@ impl Phasor {
     #[inline(always)]
     fn at(&mut self, k: usize, s: Complex64, ds: Option<Complex64>) -> Complex64 {
         match ds {
+            // Recurrence exp(-s dt) *= exp(-ds dt), recomputed exactly every 256 points so
+            // the accumulated rounding stays below 256 eps.
             Some(ds) if !k.is_multiple_of(256) => {
                 if k == 2 || self.step == Complex64::new(1.0, 0.0) {
                     self.step = (-ds * self.dt).exp();
@@ -202,7 +204,7 @@ impl LpfX {
         let uniform = points.len() > 3 && {
             let d1 = points[2].s - points[1].s;
             let d2 = points[points.len() - 1].s - points[points.len() - 2].s;
-            (d1 - d2).norm() <= 1e-9 * d1.norm()
+            (d1 - d2).norm() <= crate::numerics::tol::SAME_TIME * d1.norm()
         };
         let Some(d) = d_out else {
             // Templates only: T = Delta^-1 M with M = [[m11, mt m22], [0, m22]], so
@@ -482,6 +484,13 @@ impl ClosedLoopModel<2> for LpfX {
 
     fn derivative(&self, pt: &LpfPoint, p: &[f64], k: usize) -> OperatorDerivative<2> {
         self.derivative_with(pt, p, k, self.held_plant(p).as_ref())
+    }
+
+    /// Half the control interval for a digital model: `D_d = (Q (z-1)^2 + 2 z K) / (z + 1)`
+    /// expands as `s^2 (1 + s h / 2 + (s h)^2 / 12) + K (1 + s h / 2 + ...)` (module
+    /// `sampled`); zero for the continuous loop.
+    fn inertia_advance(&self) -> f64 {
+        self.digital.as_ref().map_or(0.0, |dl| 0.5 * dl.h)
     }
 
     /// For a digital model, the poles in `z` mapped to `s = ln(z) / h`.

@@ -75,6 +75,8 @@ impl Poly {
     fn trimmed(&self) -> Vec<f64> {
         let max = self.0.iter().fold(0.0_f64, |m, c| m.max(c.abs()));
         let mut c = self.0.clone();
+        // A leading coefficient below 1e-18 of the largest is the cancellation of O(eps^1)
+        // terms in the coefficient algebra, not a degree (1e-300: absolute floor).
         while c.len() > 1
             && c.last()
                 .is_some_and(|x| x.abs() <= 1e-300_f64.max(max * 1e-18))

@@ -86,6 +86,7 @@ fn trig_series(k: &Dual, t: f64, m: u32) -> Dual {
             *d += dp * coef;
         }
         let term = (pow * coef).norm();
+        // Stop when a term is below 1 % of the rounding of the sum: adding more cannot change it.
         if n > 0 && term <= f64::EPSILON * 1e-2 * out.v.norm() {
             break;
         }

@@ -315,7 +315,7 @@ impl ModelSpec {
         self.validate_injections()?;
         self.validate_constraints()?;
         let ratio = s.simulate_hz / s.analyse_hz;
-        if (ratio - ratio.round()).abs() > 1e-9 || ratio < 1.0 {
+        if !crate::numerics::tol::same_time(ratio, ratio.round()) || ratio < 1.0 {
             return Err(self.bad(
                 "sampling",
                 format!("simulate_hz / analyse_hz must be a positive integer, got {ratio}"),

@@ -26,6 +26,7 @@ impl Glitch {
 
     /// Add this glitch to `series` sampled at `t = t_start + i dt` (only within +-5 tau).
     pub fn add_to(&self, series: &mut [f64], t_start: f64, dt: f64) {
+        // Beyond +-5 tau the pulse is below 1e-5 of its peak (Gaussian: 4e-6).
         let lo = ((self.t0 - 5.0 * self.tau - t_start) / dt).floor().max(0.0) as usize;
         let hi = (((self.t0 + 5.0 * self.tau - t_start) / dt).ceil().max(0.0) as usize)
             .min(series.len());

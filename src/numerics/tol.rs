@@ -22,3 +22,21 @@ pub const KS_SERIES_TERM: f64 = 1e-12;
 /// the DC bin is evaluated at this fraction of the bin spacing, where the closed loop has
 /// reached its finite limit to within `1e-6` relative (the loop gain rises as `1/f^2`).
 pub const DC_BIN_FRACTION: f64 = 1e-6;
+
+/// Relative tolerance at which two times, durations, sampling intervals or their ratios,
+/// computed along different paths or read back from decimal text, are the same number: text
+/// keeps 15-17 significant digits and a few arithmetic steps cost a few more, so agreement to
+/// `1e-9` is equality, while a real mismatch (one sample in a day at 1 Hz is `1e-5`) is far
+/// above it.
+pub const SAME_TIME: f64 = 1e-9;
+
+/// `a` and `b` agree to [`SAME_TIME`] relative to the larger of `|a|` and 1 (an absolute
+/// `SAME_TIME` near zero).
+pub fn same_time(a: f64, b: f64) -> bool {
+    (a - b).abs() <= SAME_TIME * a.abs().max(b.abs()).max(1.0)
+}
+
+/// Relative slack of an optimiser's "strictly better" test: improvements below it are the
+/// rounding of a criterion summed over many terms (`sqrt(n) eps` for `n <= 1e6`), not a
+/// better point, and accepting them could cycle between equal designs.
+pub const STRICT_IMPROVEMENT: f64 = 1e-12;

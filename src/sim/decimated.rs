@@ -34,16 +34,26 @@ pub struct DecimationGrid {
 impl DecimationGrid {
     /// The grid of the default (Kaiser) anti-alias decimator by `factor`.
     pub fn new(design: &Design, dt_sim: f64, factor: usize) -> Result<Self, NoiseError> {
+        Self::for_samples(design.samples(dt_sim * factor as f64), dt_sim, factor)
+    }
+
+    /// The grid behind `n_out` kept output samples (the same margins as [`Self::new`]).
+    pub fn for_samples(n_out: usize, dt_sim: f64, factor: usize) -> Result<Self, NoiseError> {
         let decimator = Decimator::new(factor, 1.0 / dt_sim)
             .map_err(|e| NoiseError::Decimation(e.to_string()))?;
-        Ok(Self::with_decimator(design, decimator))
+        Ok(Self::with_decimator_samples(n_out, decimator))
     }
 
     /// The grid of `decimator` (the model file's `[anti_alias]`, `ModelSpec::decimator`).
     pub fn with_decimator(design: &Design, decimator: Decimator) -> Self {
+        let dt_out = decimator.factor() as f64 / decimator.fs_in();
+        Self::with_decimator_samples(design.samples(dt_out), decimator)
+    }
+
+    /// The grid of `decimator` behind `n_out` kept output samples.
+    pub fn with_decimator_samples(n_out: usize, decimator: Decimator) -> Self {
         let (factor, dt_sim) = (decimator.factor(), 1.0 / decimator.fs_in());
         let dt_out = dt_sim * factor as f64;
-        let n_out = design.samples(dt_out);
         // `edge_samples` counts output samples whose filter reaches past an end of the series;
         // one more on each side keeps every kept sample's support inside the simulated grid.
         let margin_out = decimator.edge_samples() + 1;

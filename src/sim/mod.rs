@@ -7,6 +7,7 @@ pub mod decimated;
 pub mod experiment;
 pub mod rng;
 pub mod time_domain;
+pub mod transient;
 pub mod whitened;
 
 pub use crate::data::Series;

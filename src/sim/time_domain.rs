@@ -456,6 +456,18 @@ impl DigitalLoop {
         out
     }
 
+    /// The plant's state in sensed coordinates `(o1, o12, v1, v12)` (readout positions and
+    /// rates without readout noise), the inverse of [`Self::reset`]'s map.
+    pub fn sensed_state(&self) -> [f64; NX] {
+        let (x, s) = (self.x, self.s);
+        [
+            s[0][0] * x[0] + s[0][1] * x[1],
+            s[1][0] * x[0] + s[1][1] * x[1],
+            s[0][0] * x[2] + s[0][1] * x[3],
+            s[1][0] * x[2] + s[1][1] * x[3],
+        ]
+    }
+
     /// Dimension of the loop's state: plant (with its active lag states), both controllers,
     /// and the held commands when there is a computation delay.
     pub fn state_dim(&self) -> usize {

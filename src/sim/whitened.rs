@@ -42,7 +42,7 @@ impl<const N: usize> WhitenedSimulator<N> {
         let p = lik.order();
         if sim.lengths() != lik.engine.lens()
             || sim.signal.len() != lik.engine.n_experiments()
-            || (sim.dt - lik.engine.dt()).abs() > 1e-12 * sim.dt
+            || !crate::numerics::tol::same_time(sim.dt, lik.engine.dt())
         {
             return Err(FitError::Input(
                 "the simulator does not match the likelihood's experiments".into(),

@@ -46,6 +46,7 @@ fn bessel_i0(x: f64) -> f64 {
     let mut sum = 1.0;
     let mut k = 1.0;
     while term > 1e-17 * sum {
+        // below the last bit of the sum
         term *= q / (k * k);
         sum += term;
         k += 1.0;
@@ -56,7 +57,7 @@ fn bessel_i0(x: f64) -> f64 {
 /// Kaiser-window low-pass of cut-off `fc` (cycles per sample) with transition width `width`
 /// (cycles per sample) and attenuation `atten_db`; odd length, unit DC gain.
 fn kaiser_lowpass(fc: f64, width: f64, atten_db: f64) -> Vec<f64> {
-    // Kaiser (1974) length and shape formulas.
+    // Kaiser (1974) length and shape formulas (his empirical coefficients).
     let order = ((atten_db - 7.95) / (2.285 * 2.0 * std::f64::consts::PI * width)).ceil() as usize;
     let order = order + order % 2; // even order -> odd length -> integer group delay
     let beta = if atten_db > 50.0 {

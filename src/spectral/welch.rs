@@ -60,7 +60,7 @@ impl Default for WelchConfig {
     fn default() -> Self {
         WelchConfig {
             segments: 16,
-            overlap: 0.66,
+            overlap: 0.66, // near-optimal overlap of the Hann window (Harris 1978)
             detrend: Detrend::Mean,
         }
     }
@@ -318,6 +318,7 @@ pub(crate) fn chi2_quantile(dist: &ChiSquared, p: f64) -> Option<f64> {
         } else {
             hi = mid;
         }
+        // A band narrower than the rounding of its edges (a few eps) is empty.
         if hi - lo <= 1e-15 * hi {
             break;
         }
@@ -359,6 +360,7 @@ fn detrend_in_place(seg: &mut [f64], how: Detrend) {
             // sum t^2 = n (n^2 - 1) / 12, so slope and intercept decouple.
             let c = (n as f64 - 1.0) / 2.0;
             let mean = seg.iter().sum::<f64>() / n as f64;
+            // sum (t - mean)^2 over t = 0..n-1: n (n^2 - 1) / 12.
             let stt = n as f64 * ((n * n) as f64 - 1.0) / 12.0;
             let slope = if stt > 0.0 {
                 seg.iter()

@@ -56,6 +56,8 @@ impl Effect for ActuationCrosstalk {
     }
     fn typical(&self) -> Vec<f64> {
         match self {
+            // Thruster leakage into x12 at the 1e-6 level; the suspension's electrostatic
+            // actuation into x1 at 1 %, the level of its calibration uncertainty.
             ActuationCrosstalk::DragFreeOnX12 => vec![1e-6],
             ActuationCrosstalk::SuspensionOnX1 => vec![1e-2],
         }

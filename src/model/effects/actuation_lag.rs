@@ -63,7 +63,7 @@ impl Effect for ActuationLag {
         }
     }
     fn typical(&self) -> Vec<f64> {
-        vec![0.1]
+        vec![0.1] // s: a thruster or actuator response of the order of a control step
     }
     /// A time constant is not negative (a negative one would be a lead, not a lag).
     fn lower_bounds(&self) -> Vec<Option<f64>> {

@@ -29,7 +29,7 @@ impl Effect for Damping {
         vec![format!("gamma_{}", self.tm.label())]
     }
     fn typical(&self) -> Vec<f64> {
-        vec![1e-6]
+        vec![1e-6] // s^-1: gas damping at LPF's residual pressure
     }
     /// Damping dissipates: gamma >= 0 (a negative one would feed the TM energy).
     fn lower_bounds(&self) -> Vec<Option<f64>> {

@@ -23,7 +23,7 @@ impl Effect for GravityGradient {
         vec!["dgamma_x".into()]
     }
     fn typical(&self) -> Vec<f64> {
-        vec![2e-8]
+        vec![2e-8] // s^-2: a few percent of the TM stiffness |w^2| ~ 1e-6
     }
     fn perturb(
         &self,

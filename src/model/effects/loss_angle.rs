@@ -57,7 +57,7 @@ impl Effect for LossAngle {
         vec![format!("phi_{}", self.tm.label())]
     }
     fn typical(&self) -> Vec<f64> {
-        vec![0.02]
+        vec![0.02] // rad: a few percent, the anelastic loss of gold-coated TMs
     }
     /// Anelastic loss dissipates: phi >= 0 (thesis sec. 4.1.1).
     fn lower_bounds(&self) -> Vec<Option<f64>> {

@@ -90,7 +90,8 @@ pub trait Effect: Send + Sync + std::fmt::Debug {
     fn acts_on(&self) -> String;
     /// Names of its parameters (unique across the library).
     fn parameter_names(&self) -> Vec<String>;
-    /// A physically sized value of each parameter (used to scale reports and tests).
+    /// A physically sized value of each parameter (used to scale reports and tests): the
+    /// order of magnitude expected for the effect on an LPF-like instrument.
     fn typical(&self) -> Vec<f64>;
     /// The physical lower bound of each parameter (None: unbounded). The nested value zero is
     /// always feasible; a bound at zero makes the diagnosis's tests of the effect one-sided and

@@ -22,7 +22,7 @@ impl Effect for SensingCrosstalk {
         vec!["s12".into()]
     }
     fn typical(&self) -> Vec<f64> {
-        vec![1e-4]
+        vec![1e-4] // the interferometer's cross-coupling, thesis sec. 3.4
     }
     fn perturb(
         &self,

@@ -35,7 +35,7 @@ impl Effect for SensingGain {
         vec![format!("eps_{}", self.label())]
     }
     fn typical(&self) -> Vec<f64> {
-        vec![1e-3]
+        vec![1e-3] // a 0.1 % calibration error
     }
     fn perturb(
         &self,

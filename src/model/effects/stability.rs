@@ -141,6 +141,8 @@ pub(super) fn locate(model: &Extended, p: &[f64]) -> Option<Complex64> {
         }
         seeds.push(z);
     }
+    // Seeds on a log grid over eight decades from 1e-6 of the largest pole: a pole that an
+    // effect adds is found wherever it lies relative to the loop's own time scales.
     let scale = base_poles.iter().fold(1e-6_f64, |m, z| m.max(z.norm()));
     for i in 0..=40 {
         let x = scale * 1e-6 * 10f64.powf(i as f64 * 8.0 / 40.0);
@@ -159,6 +161,7 @@ pub(super) fn locate(model: &Extended, p: &[f64]) -> Option<Complex64> {
 /// unless it converges.
 fn newton(f: &dyn Fn(Complex64) -> Complex64, mut z: Complex64) -> Option<Complex64> {
     for _ in 0..60 {
+        // Central-difference step ~ eps^(1/3) relative: truncation and rounding balance.
         let h = 1e-7 * z.norm().max(1e-9);
         let fz = f(z);
         let d = (f(z + h) - f(z - h)) / (2.0 * h);

@@ -1,0 +1,111 @@
+//! Start-up transients in a diagnosis (thesis sec. 3.2 and 4.7; the columns, fit and report are
+//! `analysis::transient`'s). Two decisions, each at the diagnosis' `alpha`:
+//!
+//! 1. The noise run: its free response is fitted under the model noise PSD at the starting
+//!    point; when the Wald test of its four initial conditions is significant, the fitted
+//!    response is removed before the whitening filter is estimated (a transient there inflates
+//!    the filter's low-frequency level, and every error with it).
+//! 2. The experiments: the nominal model is refitted with every experiment's free response
+//!    profiled out; the drop in chi^2, scaled by the refit's chi^2/nu when above one, is
+//!    tested against the diagnosis' likelihood-ratio tail with four degrees of freedom per
+//!    experiment ([`DiagnosisProblem::tail`]). When significant, the columns stay in every
+//!    later fit of the diagnosis and the transients are reported.
+
+use super::observer::Observer;
+use super::problem::{DiagnosisProblem, LinearFit};
+use super::{DiagnoseConfig, DiagnoseError};
+use crate::analysis::transient::{
+    clean_noise_run, experiment_columns, fit_with_transients, TransientReport,
+};
+use crate::data::ExperimentData;
+use crate::fit::FitConfig;
+use crate::model::ClosedLoopModel;
+use crate::setup::Setup;
+
+/// The noise run less its fitted free response when that is significant (else `None`), and
+/// the report when significant. A failed fit is a note and leaves the run as it is.
+pub(crate) fn clean_noise(
+    setup: &Setup,
+    noise: &[Vec<f64>],
+    guess: &[f64],
+    dt: f64,
+    cfg: &DiagnoseConfig,
+    obs: &mut dyn Observer,
+) -> (Option<Vec<Vec<f64>>>, Option<TransientReport>) {
+    let nb = setup.model.n_params();
+    match clean_noise_run(
+        setup,
+        &guess[..nb],
+        noise,
+        dt,
+        cfg.order,
+        cfg.poly_degree,
+        cfg.alpha,
+    ) {
+        Ok((t, report)) if report.significant => {
+            obs.note(&format!(
+                "the noise run starts with a transient (p = {:.2e}): its fitted free response is removed before the whitening filter is estimated",
+                report.p_value
+            ));
+            (Some(t.cleaned), Some(report))
+        }
+        Ok(_) => (None, None),
+        Err(e) => {
+            obs.note(&format!(
+                "the noise run's start-up transient could not be fitted ({e}); the run is used as it is"
+            ));
+            (None, None)
+        }
+    }
+}
+
+/// Test the experiments' start-up transients against the nominal fit `fit0`. When significant,
+/// `problem` keeps the columns (at the transient fit's estimate), and the nominal fit with
+/// them and the reports are returned.
+pub(crate) fn test_experiments(
+    problem: &mut DiagnosisProblem<'_>,
+    data: &ExperimentData,
+    fit0: &LinearFit,
+    obs: &mut dyn Observer,
+) -> Result<Option<(LinearFit, Vec<TransientReport>)>, DiagnoseError> {
+    let cfg = problem.cfg;
+    let (res, reports) = {
+        let mut lik = problem.likelihood(&problem.nominal)?;
+        let fcfg = cfg.constraints.apply(FitConfig::new(&problem.nominal));
+        match fit_with_transients(
+            problem.setup,
+            &mut lik,
+            data,
+            &fit0.fit.estimate,
+            &fcfg,
+            cfg.alpha,
+        ) {
+            Ok(x) => x,
+            Err(e) => {
+                obs.note(&format!(
+                    "the experiments' start-up transients could not be fitted ({e}); none is assumed"
+                ));
+                return Ok(None);
+            }
+        }
+    };
+    let dim = 4 * data.outputs.len();
+    let drop = (fit0.fit.chi2 - res.chi2).max(0.0);
+    let stat = drop / res.chi2_reduced.max(1.0);
+    let p = problem.tail(dim, stat, false);
+    if p >= cfg.alpha {
+        obs.note(&format!(
+            "no start-up transient in the experiments (chi^2 drop {drop:.3e} for {dim} initial conditions, p = {p:.2e})"
+        ));
+        return Ok(None);
+    }
+    obs.note(&format!(
+        "the experiments start with transients (chi^2 drop {drop:.3e} for {dim} initial conditions, p = {p:.2e}): their free responses are fitted in every later fit"
+    ));
+    let nb = problem.setup.model.n_params();
+    let (cols, _) = experiment_columns(problem.setup, &res.estimate[..nb], data)
+        .map_err(|e| DiagnoseError::Numerical(e.to_string()))?;
+    problem.set_transient(&cols)?;
+    let refit = problem.fit_plain(&problem.nominal, &res.estimate)?;
+    Ok(Some((refit, reports)))
+}
