@@ -55,7 +55,8 @@ fn noise_design(setup: &Setup, duration_s: f64) -> Design {
     }
 }
 
-/// Experiments of the standard design and a noise run, from `initial` (none: at rest).
+/// Experiments of the standard design and a noise run, from `initial` (none: the loop starts
+/// at rest, as `freefall simulate` without `--initial` makes it).
 fn simulate(
     setup: &Setup,
     truth: &[f64],

@@ -63,6 +63,11 @@ pub struct DiagnoseArgs {
     /// readout); they then show up as unexplained time-window excess.
     #[arg(long)]
     pub no_glitches: bool,
+    /// Do not test for start-up transients (the closed loop's free response to initial
+    /// conditions, thesis sec. 3.2, 4.7); by default they are fitted and reported when
+    /// significant, in the noise run and in the experiments.
+    #[arg(long)]
+    pub no_transients: bool,
     /// Print the effect library and exit.
     #[arg(long)]
     pub list_effects: bool,
@@ -145,6 +150,7 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
         whiten_from_model: a.model_psd,
         lines: a.lines,
         glitches: !a.no_glitches,
+        transients: !a.no_transients,
         constraints,
         ..Default::default()
     };

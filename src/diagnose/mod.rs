@@ -395,27 +395,13 @@ pub fn diagnose_observed(
     let start = std::time::Instant::now();
     let mut notes = Notes::default();
     let mut both = observer::Both(&mut notes, obs);
-    let mut transients = Vec::new();
     let cleaned = match noise.filter(|_| cfg.transients) {
-        Some(nz) => {
-            let (c, report) = transient::clean_noise(setup, nz, guess, data.dt, cfg, &mut both);
-            transients.extend(report);
-            c
-        }
+        Some(nz) => transient::clean_noise(setup, nz, guess, data.dt, cfg, &mut both),
         None => None,
     };
-    let noise = cleaned.as_deref().or(noise);
-    let mut problem = DiagnosisProblem::plan(setup, data, noise, guess, cfg, &mut both)?;
-    let mut fit0 = problem.fit_plain(&problem.nominal, guess)?;
-    if cfg.transients {
-        if let Some((refit, reports)) =
-            transient::test_experiments(&mut problem, data, &fit0, &mut both)?
-        {
-            fit0 = refit;
-            transients.extend(reports);
-        }
-    }
-    let problem = problem;
+    let (problem, fit0, transients) =
+        transient::plan_and_fit(setup, data, noise, cleaned.as_ref(), guess, cfg, &mut both)?;
+    let noise = problem.noise;
     if !fit0.fit.termination.converged() {
         both.note(&format!(
             "the nominal fit stopped without converging ({})",

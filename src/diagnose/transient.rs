@@ -1,15 +1,16 @@
 //! Start-up transients in a diagnosis (thesis sec. 3.2 and 4.7; the columns, fit and report are
 //! `analysis::transient`'s). Two decisions, each at the diagnosis' `alpha`:
 //!
-//! 1. The noise run: its free response is fitted under the model noise PSD at the starting
-//!    point; when the Wald test of its four initial conditions is significant, the fitted
+//! 1. The noise run: its free response is fitted under the model's filter, removed, and fitted
+//!    again under the filter of the run less it (see `analysis::transient`); when the Wald test of its four initial conditions is significant, the fitted
 //!    response is removed before the whitening filter is estimated (a transient there inflates
 //!    the filter's low-frequency level, and every error with it).
 //! 2. The experiments: the nominal model is refitted with every experiment's free response
 //!    profiled out; the drop in chi^2, scaled by the refit's chi^2/nu when above one, is
 //!    tested against the diagnosis' likelihood-ratio tail with four degrees of freedom per
 //!    experiment ([`DiagnosisProblem::tail`]). When significant, the columns stay in every
-//!    later fit of the diagnosis and the transients are reported.
+//!    later fit of the diagnosis and the transients are reported, the noise run's with them.
+//!    When not, nothing is claimed and the diagnosis runs on the noise run as recorded.
 
 use super::observer::Observer;
 use super::problem::{DiagnosisProblem, LinearFit};
@@ -22,8 +23,8 @@ use crate::fit::FitConfig;
 use crate::model::ClosedLoopModel;
 use crate::setup::Setup;
 
-/// The noise run less its fitted free response when that is significant (else `None`), and
-/// the report when significant. A failed fit is a note and leaves the run as it is.
+/// The noise run less its fitted free response, with the report, when that fit is
+/// significant on its own (else `None`). A failed fit is a note and leaves the run as it is.
 pub(crate) fn clean_noise(
     setup: &Setup,
     noise: &[Vec<f64>],
@@ -31,7 +32,7 @@ pub(crate) fn clean_noise(
     dt: f64,
     cfg: &DiagnoseConfig,
     obs: &mut dyn Observer,
-) -> (Option<Vec<Vec<f64>>>, Option<TransientReport>) {
+) -> Option<(Vec<Vec<f64>>, TransientReport)> {
     let nb = setup.model.n_params();
     match clean_noise_run(
         setup,
@@ -42,20 +43,64 @@ pub(crate) fn clean_noise(
         cfg.poly_degree,
         cfg.alpha,
     ) {
-        Ok((t, report)) if report.significant => {
-            obs.note(&format!(
-                "the noise run starts with a transient (p = {:.2e}): its fitted free response is removed before the whitening filter is estimated",
-                report.p_value
-            ));
-            (Some(t.cleaned), Some(report))
-        }
-        Ok(_) => (None, None),
+        Ok((t, report)) if report.significant => Some((t.cleaned, report)),
+        Ok(_) => None,
         Err(e) => {
             obs.note(&format!(
                 "the noise run's start-up transient could not be fitted ({e}); the run is used as it is"
             ));
-            (None, None)
+            None
         }
+    }
+}
+
+/// Plan the diagnosis and fit the nominal model, with the start-up transients where the tests
+/// find them: the noise run `cleaned` of its fitted free response (when that was significant
+/// on its own, [`clean_noise`]) whitens the experiments, and the experiments' transients are
+/// tested. The noise run's transient is claimed only with the experiments' (the runs of a
+/// dataset start alike; on a steady-state run the noise run's calibrated test alone gave
+/// p = 1e-3, see the README); otherwise the diagnosis is planned again on the noise run as
+/// recorded, exactly as without transients.
+pub(crate) fn plan_and_fit<'a>(
+    setup: &'a Setup,
+    data: &'a ExperimentData,
+    noise: Option<&'a [Vec<f64>]>,
+    cleaned: Option<&'a (Vec<Vec<f64>>, TransientReport)>,
+    guess: &[f64],
+    cfg: &'a DiagnoseConfig,
+    obs: &mut dyn Observer,
+) -> Result<(DiagnosisProblem<'a>, LinearFit, Vec<TransientReport>), DiagnoseError> {
+    let first_noise = cleaned.map(|(c, _)| &c[..]).or(noise);
+    let mut problem = DiagnosisProblem::plan(setup, data, first_noise, guess, cfg, obs)?;
+    let fit0 = problem.fit_plain(&problem.nominal, guess)?;
+    if !cfg.transients {
+        return Ok((problem, fit0, Vec::new()));
+    }
+    match test_experiments(&mut problem, data, &fit0, obs)? {
+        Some((refit, reports)) => {
+            let mut all = Vec::new();
+            if let Some((_, r)) = cleaned {
+                obs.note(&format!(
+                    "the noise run starts with a transient too (p = {:.2e}): its fitted free response was removed before the whitening filter was estimated",
+                    r.p_value
+                ));
+                all.push(r.clone());
+            }
+            all.extend(reports);
+            Ok((problem, refit, all))
+        }
+        None => match cleaned {
+            Some((_, r)) => {
+                obs.note(&format!(
+                    "the noise run's start alone looks like a transient (p = {:.2e}), the experiments' does not: no transient is claimed, and the noise run is used as recorded",
+                    r.p_value
+                ));
+                let problem = DiagnosisProblem::plan(setup, data, noise, guess, cfg, obs)?;
+                let fit0 = problem.fit_plain(&problem.nominal, guess)?;
+                Ok((problem, fit0, Vec::new()))
+            }
+            None => Ok((problem, fit0, Vec::new())),
+        },
     }
 }
 

@@ -132,23 +132,52 @@ impl TransientBasis {
     }
 }
 
+/// Copies of the columns started later in a noise run, whose statistics calibrate the start's
+/// (see [`fit_noise_run`]).
+pub const NULL_SHIFTS: usize = 8;
+
 /// The free response fitted to a noise-only run, in the domain of a whitening filter.
 #[derive(Debug, Clone)]
 pub struct NoiseRunTransient {
     /// Fitted coefficients (initial conditions at the loop start, the columns' units).
     pub coefficients: DVector<f64>,
+    /// Their covariance, scaled by the calibration `kappa` (when above one).
     pub covariance: DMatrix<f64>,
-    /// Wald statistic `c^T Cov(c)^-1 c`, chi^2 with as many degrees of freedom as columns when
-    /// the run has no transient.
-    pub wald: f64,
+    /// Mean statistic per column of the later-started copies (1 for white residuals).
+    pub kappa: f64,
+    /// Degrees of freedom of that calibration (columns x copies).
+    pub null_dof: usize,
     /// The run less the fitted free response.
     pub cleaned: Vec<Vec<f64>>,
 }
 
+/// Whitened columns started at data sample `s` (zero before), over the valid samples of a
+/// run of `n`, from the full causal responses `full[k][c]` (length `n`), polynomial-projected.
+fn shifted(full: &[Vec<Vec<f64>>], s: usize, p: usize, basis: &[Vec<f64>]) -> Vec<Vec<Vec<f64>>> {
+    full.iter()
+        .map(|k| {
+            k.iter()
+                .map(|c| {
+                    let n = c.len();
+                    let mut v: Vec<f64> = (p..n).map(|t| if t >= s { c[t - s] } else { 0.0 }).collect();
+                    project_out(&mut v, basis);
+                    v
+                })
+                .collect()
+        })
+        .collect()
+}
+
 /// Fit the free-response columns `cols[k][c]` to a noise-only run `noise[c]`, whitened by
-/// `w` (e.g. the model noise PSD's filter, independent of the run's own spectrum), with the
-/// polynomial of degree `poly_degree` as a nuisance; the noise level is the whitened
-/// residual's. Returns the coefficients and the run with the fitted response removed.
+/// `w`, with the polynomial of degree `poly_degree` as a nuisance.
+///
+/// A filter that is not the run's own (the model's) leaves colour in the whitened run at the
+/// columns' low frequencies, so `|Q^T d|^2 / s` is not chi^2 even without a transient. It is
+/// calibrated on the run itself: the same columns started at [`NULL_SHIFTS`] later times
+/// (evenly over the run, where a start-up transient has died out; a causal filter whitens a
+/// delayed column into the delayed whitened column) give statistics with the start's null
+/// distribution, and their mean per column `kappa` scales the covariance. The start's
+/// `c^T Cov(c)^-1 c / k` is then F(k, k NULL_SHIFTS) without a transient.
 pub fn fit_noise_run<const N: usize>(
     w: &Whitener<N>,
     noise: &[Vec<f64>],
@@ -156,30 +185,48 @@ pub fn fit_noise_run<const N: usize>(
     poly_degree: usize,
 ) -> Result<NoiseRunTransient, FitError> {
     let n = noise.first().map_or(0, |c| c.len());
-    if n <= w.order() + poly_degree + 1 + cols.len() {
+    let p = w.order();
+    if n <= p + poly_degree + 1 + cols.len() {
         return Err(FitError::TooShort {
             what: "noise run for fitting its start-up transient".into(),
             len: n,
-            need: w.order() + poly_degree + 2 + cols.len(),
+            need: p + poly_degree + 2 + cols.len(),
         });
     }
-    let basis = poly_basis(n - w.order(), poly_degree);
-    let white = |x: &[Vec<f64>]| -> Vec<Vec<f64>> {
-        let mut y = w.apply(x);
-        y.iter_mut().for_each(|c| project_out(c, &basis));
-        y
-    };
-    let d = white(noise);
-    let b: Vec<Vec<Vec<f64>>> = cols.iter().map(|c| white(c)).collect();
-    let t = TransientBasis::from_whitened(vec![b])?;
+    let basis = poly_basis(n - p, poly_degree);
+    let mut d = w.apply(noise);
+    d.iter_mut().for_each(|c| project_out(c, &basis));
+    // Full causal responses (the filter's start-up included): zeros before the run.
+    let full: Vec<Vec<Vec<f64>>> = cols
+        .iter()
+        .map(|k| {
+            let padded: Vec<Vec<f64>> = k
+                .iter()
+                .map(|x| {
+                    let mut v = vec![0.0; p];
+                    v.extend_from_slice(x);
+                    v
+                })
+                .collect();
+            w.apply(&padded)
+        })
+        .collect();
+    let t = TransientBasis::from_whitened(vec![shifted(&full, 0, p, &basis)])?;
     let u = t.coordinates(0, &d);
     let mut rest = d;
     t.project(0, &mut rest);
-    let dof = (N * (n - w.order())).saturating_sub(basis.len() * N + cols.len());
+    let dof = (N * (n - p)).saturating_sub(basis.len() * N + cols.len());
     let scale = joint_dot(&rest, &rest) / dof.max(1) as f64;
-    let cov_u = DMatrix::identity(cols.len(), cols.len()) * scale;
+    let mut null = 0.0;
+    for j in 1..=NULL_SHIFTS {
+        let s = p + j * (n - p) / (NULL_SHIFTS + 1);
+        let tj = TransientBasis::from_whitened(vec![shifted(&full, s, p, &basis)])?;
+        null += tj.coordinates(0, &rest).norm_squared() / scale;
+    }
+    let null_dof = cols.len() * NULL_SHIFTS;
+    let kappa = null / null_dof as f64;
+    let cov_u = DMatrix::identity(cols.len(), cols.len()) * scale * kappa.max(1.0);
     let (c, cov) = t.coefficients(0, &u, &cov_u);
-    let wald = u.norm_squared() / scale;
     let cleaned = noise
         .iter()
         .enumerate()
@@ -193,7 +240,8 @@ pub fn fit_noise_run<const N: usize>(
     Ok(NoiseRunTransient {
         coefficients: c,
         covariance: cov,
-        wald,
+        kappa,
+        null_dof,
         cleaned,
     })
 }
