@@ -80,7 +80,12 @@ fn simulate(
 
 /// The simulator's loop from `ic` stepped `k0` control samples without inputs: the sensed
 /// state at the first telemetry sample.
-fn state_at_first_sample(setup: &Setup, truth: &[f64], ic: &InitialConditions, k0: usize) -> [f64; 4] {
+fn state_at_first_sample(
+    setup: &Setup,
+    truth: &[f64],
+    ic: &InitialConditions,
+    k0: usize,
+) -> [f64; 4] {
     let mut lp = DigitalLoop::new(&setup.model, truth, &LoopConfig::from_spec(&setup.spec));
     lp.reset(Some(ic));
     for _ in 0..k0 {
@@ -106,7 +111,11 @@ fn thesis_start_is_reported_and_leaves_estimates_and_errors_as_in_steady_state()
     let (ss, _) = run_diagnosis(&setup, None);
     let (ic, k0) = run_diagnosis(&setup, Some(THESIS_START));
     // Steady-state control: no transient claimed.
-    assert!(ss.transients.is_empty(), "steady state: {:?}", ss.transients);
+    assert!(
+        ss.transients.is_empty(),
+        "steady state: {:?}",
+        ss.transients
+    );
     // Every run of the transient dataset (noise run, exp1, exp2) reports its start.
     let runs: Vec<&str> = ic.transients.iter().map(|t| t.run.as_str()).collect();
     assert_eq!(runs, ["noise run", "exp1", "exp2"], "{:?}", ic.notes);
@@ -118,7 +127,12 @@ fn thesis_start_is_reported_and_leaves_estimates_and_errors_as_in_steady_state()
                 "{} {}: {:.5e} +- {:.3e} {} (truth {want:.5e}, pull {pull:.2})",
                 t.run, c.name, c.value, c.sigma, c.unit
             );
-            assert!(pull.abs() < PULL_LIMIT, "{} {}: pull {pull:.2}", t.run, c.name);
+            assert!(
+                pull.abs() < PULL_LIMIT,
+                "{} {}: pull {pull:.2}",
+                t.run,
+                c.name
+            );
         }
     }
     for (k, name) in names.iter().enumerate() {

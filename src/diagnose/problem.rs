@@ -286,7 +286,10 @@ impl<'a> DiagnosisProblem<'a> {
     }
 
     /// Profile the start-up transient columns `raw[e][k][c]` out of every later fit.
-    pub(crate) fn set_transient(&mut self, raw: &[Vec<Vec<Vec<f64>>>]) -> Result<(), DiagnoseError> {
+    pub(crate) fn set_transient(
+        &mut self,
+        raw: &[Vec<Vec<Vec<f64>>>],
+    ) -> Result<(), DiagnoseError> {
         Ok(self.planned.set_transient(raw)?)
     }
 

@@ -159,7 +159,9 @@ fn shifted(full: &[Vec<Vec<f64>>], s: usize, p: usize, basis: &[Vec<f64>]) -> Ve
             k.iter()
                 .map(|c| {
                     let n = c.len();
-                    let mut v: Vec<f64> = (p..n).map(|t| if t >= s { c[t - s] } else { 0.0 }).collect();
+                    let mut v: Vec<f64> = (p..n)
+                        .map(|t| if t >= s { c[t - s] } else { 0.0 })
+                        .collect();
                     project_out(&mut v, basis);
                     v
                 })

@@ -289,12 +289,7 @@ impl DigitalLoop {
     /// rates without readout noise), the inverse of [`Self::reset`]'s map.
     pub fn sensed_state(&self) -> [f64; NX] {
         let x = self.x;
-        [
-            x[0],
-            self.s21 * x[0] + x[1],
-            x[2],
-            self.s21 * x[2] + x[3],
-        ]
+        [x[0], self.s21 * x[0] + x[1], x[2], self.s21 * x[2] + x[3]]
     }
 
     /// Dimension of the loop's state: plant, both controllers, and the held commands when

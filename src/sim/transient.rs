@@ -72,10 +72,11 @@ pub fn free_response(
     for k in 0..IC_NAMES.len() {
         let mut lp = base.clone();
         lp.reset(Some(&unit(k)));
-        let head = lp.run([&z[0][..k0], &z[1][..k0]], [&z[0][..k0], &z[1][..k0]], [
-            &z[0][..k0],
-            &z[1][..k0],
-        ]);
+        let head = lp.run(
+            [&z[0][..k0], &z[1][..k0]],
+            [&z[0][..k0], &z[1][..k0]],
+            [&z[0][..k0], &z[1][..k0]],
+        );
         let state = lp.sensed_state();
         for (i, row) in to_t0.iter_mut().enumerate() {
             row[k] = state[i];
