@@ -395,6 +395,8 @@ pub fn diagnose_observed(
     let start = std::time::Instant::now();
     let mut notes = Notes::default();
     let mut both = observer::Both(&mut notes, obs);
+    // Settings first: the noise run's transient fit below reads them.
+    cfg.validate()?;
     let cleaned = match noise.filter(|_| cfg.transients) {
         Some(nz) => transient::clean_noise(setup, nz, guess, data.dt, cfg, &mut both),
         None => None,
