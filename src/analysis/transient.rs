@@ -28,7 +28,7 @@ use nalgebra::{DMatrix, DVector};
 use serde::Serialize;
 
 use crate::data::ExperimentData;
-use crate::fit::transient::{fit_noise_run, NoiseRunTransient};
+use crate::fit::transient::{fit_noise_run, Columns, NoiseRunTransient};
 use crate::fit::{fit, FitConfig, FitError, FitResult, Likelihood};
 use crate::model::ClosedLoopModel;
 use crate::numerics::stats::{chi2_sf, f_sf};
@@ -72,7 +72,7 @@ pub fn experiment_columns(
     setup: &Setup,
     p: &[f64],
     data: &ExperimentData,
-) -> Result<(Vec<Vec<Vec<Vec<f64>>>>, Vec<FreeResponse>)> {
+) -> Result<(Vec<Columns>, Vec<FreeResponse>)> {
     let mut cols = Vec::with_capacity(data.outputs.len());
     let mut maps = Vec::with_capacity(data.outputs.len());
     for e in 0..data.outputs.len() {

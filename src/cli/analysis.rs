@@ -283,7 +283,7 @@ pub fn fit(a: FitArgs) -> Result<()> {
     let truth = truth_from_meta(&ds, &names);
     out!("{}", summary.text(&names, &res, &guess, truth.as_deref()));
     for t in &summary.transients {
-        out!("transient {}", t.text());
+        outln!("transient {}", t.text());
     }
     info!("wrote {}", a.out.display());
     for w in &summary.warnings {

@@ -31,6 +31,9 @@ use crate::numerics::linalg::dot;
 /// conditions are then not separately identifiable.
 const DEGENERATE_FRACTION: f64 = 1e-9;
 
+/// The columns of one run, `[k][c][t]`: column k, channel c, sample t.
+pub type Columns = Vec<Vec<Vec<f64>>>;
+
 /// The whitened, orthonormalised transient columns of every experiment.
 #[derive(Debug, Clone)]
 pub struct TransientBasis {
@@ -48,7 +51,7 @@ fn joint_dot(a: &[Vec<f64>], b: &[Vec<f64>]) -> f64 {
 fn orthonormalise(
     mut cols: Vec<Vec<Vec<f64>>>,
     what: &str,
-) -> Result<(Vec<Vec<Vec<f64>>>, DMatrix<f64>), FitError> {
+) -> Result<(Columns, DMatrix<f64>), FitError> {
     let nk = cols.len();
     let mut r = DMatrix::<f64>::zeros(nk, nk);
     let mut q: Vec<Vec<Vec<f64>>> = Vec::with_capacity(nk);
@@ -64,7 +67,7 @@ fn orthonormalise(
             }
         }
         let norm = joint_dot(&v, &v).sqrt();
-        if !(norm > DEGENERATE_FRACTION * norm0) {
+        if norm.is_nan() || norm <= DEGENERATE_FRACTION * norm0 {
             return Err(FitError::Singular(format!(
                 "{what}: transient column {k} is a combination of the others after whitening \
                  (norm {norm:.3e} of {norm0:.3e}); the initial conditions are not identifiable"
