@@ -151,3 +151,92 @@ fn thesis_start_is_reported_and_leaves_estimates_and_errors_as_in_steady_state()
     assert_eq!(json["transient"].as_array().map(Vec::len), Some(3));
     assert_eq!(json["transient"][1]["initial_conditions"][3]["name"], "v12");
 }
+
+fn freefall(args: &[&str]) -> std::process::Output {
+    std::process::Command::new(env!("CARGO_BIN_EXE_freefall"))
+        .args(args)
+        .output()
+        .expect("binary runs")
+}
+
+/// Noise run of the CLI case: the shortest a whitening filter of order 300 accepts (10 x 2
+/// channels x 300 lags) with margin.
+const CLI_NOISE_RUN_S: &str = "7200";
+
+#[test]
+fn cli_fit_transient_writes_every_runs_initial_conditions() {
+    // Oracle: the documented flag (`fit --transient`) writes `transients` to fit.json, one entry
+    // per run (noise run, then the experiments) with o1, o12, v1, v12 in m and m/s; without
+    // the flag the key is absent.
+    let dir = tempfile::tempdir().unwrap();
+    let p = |n: &str| dir.path().join(n).to_str().unwrap().to_string();
+    let model = p("digital.toml");
+    let text =
+        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/src/model/lpf_x.toml"))
+            .unwrap();
+    std::fs::write(
+        &model,
+        format!("{text}\n[control_loop]\nkind = \"digital\"\n"),
+    )
+    .unwrap();
+    for (initial, out) in [(true, p("td")), (false, p("td_ss"))] {
+        let mut args = vec![
+            "simulate",
+            "--engine",
+            "time-domain",
+            "--noise-duration",
+            CLI_NOISE_RUN_S,
+            "--out",
+            out.as_str(),
+        ];
+        if initial {
+            args.extend(["--initial", "o1=2.4e-7,o12=3.6e-7,v1=-5e-10,v12=-4e-12"]);
+        }
+        let sim = freefall(&args);
+        assert!(
+            sim.status.success(),
+            "{}",
+            String::from_utf8_lossy(&sim.stderr)
+        );
+    }
+    // Without --transient the run from initial conditions is not fitted: its 2-hour noise run,
+    // dominated by the transient, makes the whitening filter singular (measured); the control
+    // is the run without initial conditions.
+    for (flag, ds, out) in [
+        (true, p("td/dataset.toml"), p("fit_t")),
+        (false, p("td_ss/dataset.toml"), p("fit_plain")),
+    ] {
+        let mut args = vec![
+            "fit",
+            ds.as_str(),
+            "--model",
+            model.as_str(),
+            "--out",
+            out.as_str(),
+        ];
+        if flag {
+            args.push("--transient");
+        }
+        let o = freefall(&args);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let json: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(format!("{out}/fit.json")).unwrap())
+                .unwrap();
+        if !flag {
+            assert!(json.get("transients").is_none());
+            continue;
+        }
+        let runs: Vec<&str> = json["transients"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|t| t["run"].as_str().unwrap())
+            .collect();
+        assert_eq!(runs, ["noise run", "exp1", "exp2"]);
+        let ics = &json["transients"][1]["initial_conditions"];
+        let names: Vec<&str> = (0..4).map(|i| ics[i]["name"].as_str().unwrap()).collect();
+        assert_eq!(names, ["o1", "o12", "v1", "v12"]);
+        assert_eq!(ics[3]["unit"], "m/s");
+        assert!(json["transients"][1]["significant"].as_bool().unwrap());
+    }
+}
