@@ -240,3 +240,62 @@ fn cli_fit_transient_writes_every_runs_initial_conditions() {
         assert!(json["transients"][1]["significant"].as_bool().unwrap());
     }
 }
+
+/// Relative agreement required of two noise-free computations of the same linear loop (rounding
+/// over ~1e5 control steps).
+const EXACT: f64 = 1e-9;
+
+#[test]
+fn free_response_columns_are_the_simulators_transient() {
+    // Oracle: the time-domain simulator itself. Its noise-free telemetry from the thesis's
+    // start minus that from rest is the start's free response, so it must equal the
+    // combination of the unit columns with the start's values as coefficients (linearity);
+    // and the columns' map to the first sample must equal the simulator's loop stepped there.
+    let setup = digital_setup();
+    let truth = setup.spec.scenario("monte_carlo").unwrap().truth;
+    let design = setup.design("standard").unwrap();
+    let at = |ic| {
+        setup
+            .time_domain_simulator(&design, &truth, None, ic)
+            .unwrap()
+            .noise_free()
+    };
+    let (from_ic, at_rest) = (at(Some(THESIS_START)), at(None));
+    let n = from_ic.len_of(0);
+    let fr = freefall::analysis::transient::run_response(&setup, &truth, n).unwrap();
+    let c = [
+        THESIS_START.o1,
+        THESIS_START.o12,
+        THESIS_START.v1,
+        THESIS_START.v12,
+    ];
+    for ch in 0..2 {
+        let diff: Vec<f64> = (0..n)
+            .map(|t| from_ic.outputs[0][ch][t] - at_rest.outputs[0][ch][t])
+            .collect();
+        let scale = diff.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        let worst = (0..n)
+            .map(|t| (diff[t] - (0..4).map(|k| c[k] * fr.cols[k][ch][t]).sum::<f64>()).abs())
+            .fold(0.0, f64::max);
+        assert!(
+            worst < EXACT * scale,
+            "channel {ch}: {worst:.3e} of {scale:.3e}"
+        );
+    }
+    let sim = setup
+        .time_domain_simulator(&design, &truth, None, Some(THESIS_START))
+        .unwrap();
+    let x0 = state_at_first_sample(
+        &setup,
+        &truth,
+        &THESIS_START,
+        sim.grid.first * setup.spec.decimation(),
+    );
+    for (i, want) in x0.iter().enumerate() {
+        let got: f64 = (0..4).map(|k| fr.to_t0[i][k] * c[k]).sum();
+        assert!(
+            (got - want).abs() <= EXACT * want.abs(),
+            "state {i}: {got:e} vs {want:e}"
+        );
+    }
+}
