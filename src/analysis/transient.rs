@@ -14,10 +14,10 @@
 //! predict it (the free response obeys the loop's own recursion), and the whitened transient
 //! all but vanishes (measured: the thesis's start then gave p = 8e-3, against a Wald
 //! statistic of 9e5 under the model's filter). So the columns are fitted under the model
-//! noise PSD's filter at `p`, which knows nothing of the transient, with the statistic
-//! calibrated on later-started copies of the columns (`fit::transient::fit_noise_run`:
-//! uncalibrated, a steady-state run gave p = 9e-8 from the residual colour of a model
-//! spectrum that is not the run's). The run less the fitted response is what the whitening
+//! noise PSD's filter at `p`, which knows nothing of the transient, with their covariance
+//! estimated from later-started copies of the columns (`fit::transient::fit_noise_run`:
+//! with `s I`, a steady-state run gave p = 9e-8, and the o12 start scattered 4.6 times its
+//! sigma over 9 seeds, from the residual colour of a model spectrum that is not the run's). The run less the fitted response is what the whitening
 //! filter of the experiments is estimated from.
 //!
 //! Reported initial conditions: `x(0) = L c` with the map `L` of `sim::transient`, covariance
@@ -108,7 +108,8 @@ pub struct TransientReport {
     /// telemetry sample [s].
     pub loop_start_s: f64,
     /// Wald statistic of the four coefficients and its tail probability (chi^2 with 4 degrees of
-    /// freedom; for a noise run, F(4, null_dof) of the calibrated statistic over 4).
+    /// freedom; for a noise run, Hotelling's T^2 with the covariance estimated from later-started
+    /// copies of the columns, see `fit::transient::fit_noise_run`).
     pub statistic: f64,
     pub p_value: f64,
     pub significant: bool,
@@ -133,7 +134,8 @@ impl TransientReport {
             .map_or(f64::INFINITY, |ch| c.dot(&ch.solve(c)));
         let k = c.len() as f64;
         let p_value = match null_dof {
-            Some(d) => f_sf(k, d, statistic / k),
+            // Hotelling's T^2 with a covariance estimated from `j` copies.
+            Some(j) => f_sf(k, j - k + 1.0, statistic * (j - k + 1.0) / (k * j)),
             None => chi2_sf(k, statistic),
         };
         TransientReport {

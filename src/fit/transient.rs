@@ -137,18 +137,19 @@ impl TransientBasis {
 
 /// Copies of the columns started later in a noise run, whose statistics calibrate the start's
 /// (see [`fit_noise_run`]).
-pub const NULL_SHIFTS: usize = 8;
+pub const NULL_SHIFTS: usize = 16;
 
 /// The free response fitted to a noise-only run, in the domain of a whitening filter.
 #[derive(Debug, Clone)]
 pub struct NoiseRunTransient {
     /// Fitted coefficients (initial conditions at the loop start, the columns' units).
     pub coefficients: DVector<f64>,
-    /// Their covariance, scaled by the calibration `kappa` (when above one).
+    /// Their covariance, from the later-started copies' scatter.
     pub covariance: DMatrix<f64>,
-    /// Mean statistic per column of the later-started copies (1 for white residuals).
+    /// Mean square of the copies' coordinates per column, in units of the whitened
+    /// residual's variance (1 for white residuals).
     pub kappa: f64,
-    /// Degrees of freedom of that calibration (columns x copies).
+    /// Number of copies the covariance is estimated from.
     pub null_dof: usize,
     /// The run less the fitted free response.
     pub cleaned: Vec<Vec<f64>>,
@@ -177,12 +178,14 @@ fn shifted(full: &[Vec<Vec<f64>>], s: usize, p: usize, basis: &[Vec<f64>]) -> Ve
 /// `w`, with the polynomial of degree `poly_degree` as a nuisance.
 ///
 /// A filter that is not the run's own (the model's) leaves colour in the whitened run at the
-/// columns' low frequencies, so `|Q^T d|^2 / s` is not chi^2 even without a transient. It is
-/// calibrated on the run itself: the same columns started at [`NULL_SHIFTS`] later times
-/// (evenly over the run, where a start-up transient has died out; a causal filter whitens a
-/// delayed column into the delayed whitened column) give statistics with the start's null
-/// distribution, and their mean per column `kappa` scales the covariance. The start's
-/// `c^T Cov(c)^-1 c / k` is then F(k, k NULL_SHIFTS) without a transient.
+/// columns' low frequencies, so `Q^T d` does not have covariance `s I` even without a
+/// transient, and the colour differs between columns (o12's are slower than o1's). The
+/// covariance is estimated on the run itself: the same columns started at [`NULL_SHIFTS`]
+/// later times (evenly over the run, where a start-up transient has died out; a causal filter
+/// whitens a delayed column into the delayed whitened column) give coordinates `u_j` with the
+/// start's null distribution, and `Cov(u) = mean_j u_j u_j^T`. The start's
+/// `T^2 = c^T Cov(c)^-1 c` is then Hotelling's: `T^2 (J - k + 1) / (k J)` is F(k, J - k + 1)
+/// for `k` columns and `J` copies without a transient.
 pub fn fit_noise_run<const N: usize>(
     w: &Whitener<N>,
     noise: &[Vec<f64>],
@@ -222,15 +225,16 @@ pub fn fit_noise_run<const N: usize>(
     t.project(0, &mut rest);
     let dof = (N * (n - p)).saturating_sub(basis.len() * N + cols.len());
     let scale = joint_dot(&rest, &rest) / dof.max(1) as f64;
-    let mut null = 0.0;
+    let k = cols.len();
+    let mut cov_u = DMatrix::<f64>::zeros(k, k);
     for j in 1..=NULL_SHIFTS {
         let s = p + j * (n - p) / (NULL_SHIFTS + 1);
         let tj = TransientBasis::from_whitened(vec![shifted(&full, s, p, &basis)])?;
-        null += tj.coordinates(0, &rest).norm_squared() / scale;
+        let uj = tj.coordinates(0, &rest);
+        cov_u += &uj * uj.transpose() / NULL_SHIFTS as f64;
     }
-    let null_dof = cols.len() * NULL_SHIFTS;
-    let kappa = null / null_dof as f64;
-    let cov_u = DMatrix::identity(cols.len(), cols.len()) * scale * kappa.max(1.0);
+    let null_dof = NULL_SHIFTS;
+    let kappa = cov_u.trace() / (k as f64 * scale);
     let (c, cov) = t.coefficients(0, &u, &cov_u);
     let cleaned = noise
         .iter()
