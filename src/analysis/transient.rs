@@ -16,8 +16,8 @@
 //! statistic of 9e5 under the model's filter). So the columns are fitted under the model
 //! noise PSD's filter at `p`, which knows nothing of the transient, with their covariance
 //! estimated from later-started copies of the columns (`fit::transient::fit_noise_run`:
-//! with `s I`, a steady-state run gave p = 9e-8, and the o12 start scattered 4.6 times its
-//! sigma over 9 seeds, from the residual colour of a model spectrum that is not the run's). The run less the fitted response is what the whitening
+//! with `s I`, a run without initial conditions gave p = 9e-8, from the residual colour of a
+//! model spectrum that is not the run's). The run less the fitted response is what the whitening
 //! filter of the experiments is estimated from.
 //!
 //! Reported initial conditions: `x(0) = L c` with the map `L` of `sim::transient`, covariance
