@@ -9,9 +9,16 @@
 //! the steady state; the columns at the converged estimate remove the transient to the
 //! accuracy of the estimate (thesis eq. "transients suppression": `delta f = delta Delta o_t`).
 //!
-//! A noise-only run is whitened with the model noise PSD's filter at the starting point (not
-//! with its own, which the transient would inflate), the columns are fitted there, and the
-//! fitted response is subtracted before the run's own whitening filter is estimated.
+//! A noise-only run cannot be whitened by its own filter to find its transient: a
+//! prediction-error filter fitted on a run dominated by the loop's free response learns to
+//! predict it (the free response obeys the loop's own recursion), and the whitened transient
+//! all but vanishes (measured: the thesis's start then gave p = 8e-3, against a Wald
+//! statistic of 9e5 under the model's filter). So the columns are fitted under the model
+//! noise PSD's filter at `p`, which knows nothing of the transient, with their covariance
+//! estimated from later-started copies of the columns (`fit::transient::fit_noise_run`:
+//! with `s I`, a run without initial conditions gave p = 9e-8, from the residual colour of a
+//! model spectrum that is not the run's). The run less the fitted response is what the whitening
+//! filter of the experiments is estimated from.
 //!
 //! Reported initial conditions: `x(0) = L c` with the map `L` of `sim::transient`, covariance
 //! `L Cov(c) L^T`; the Wald statistic `c^T Cov(c)^-1 c` is chi^2 with 4 degrees of freedom for
@@ -21,10 +28,10 @@ use nalgebra::{DMatrix, DVector};
 use serde::Serialize;
 
 use crate::data::ExperimentData;
-use crate::fit::transient::{fit_noise_run, NoiseRunTransient};
+use crate::fit::transient::{fit_noise_run, Columns, NoiseRunTransient};
 use crate::fit::{fit, FitConfig, FitError, FitResult, Likelihood};
 use crate::model::ClosedLoopModel;
-use crate::numerics::stats::chi2_sf;
+use crate::numerics::stats::{chi2_sf, f_sf};
 use crate::setup::Setup;
 use crate::sim::time_domain::LoopConfig;
 use crate::sim::transient::{free_response, FreeResponse, IC_NAMES, IC_UNITS};
@@ -48,9 +55,6 @@ pub enum TransientError {
 
 type Result<T> = std::result::Result<T, TransientError>;
 
-/// `cols[e][k][c]`: experiment `e`, initial condition `k`, readout `c`, over the samples.
-pub type ExperimentColumns = Vec<Vec<Vec<Vec<f64>>>>;
-
 /// The free response of a run of `n` telemetry samples at base parameters `p`.
 pub fn run_response(setup: &Setup, p: &[f64], n: usize) -> Result<FreeResponse> {
     Ok(free_response(
@@ -68,7 +72,7 @@ pub fn experiment_columns(
     setup: &Setup,
     p: &[f64],
     data: &ExperimentData,
-) -> Result<(ExperimentColumns, Vec<FreeResponse>)> {
+) -> Result<(Vec<Columns>, Vec<FreeResponse>)> {
     let mut cols = Vec::with_capacity(data.outputs.len());
     let mut maps = Vec::with_capacity(data.outputs.len());
     for e in 0..data.outputs.len() {
@@ -103,7 +107,9 @@ pub struct TransientReport {
     /// Where the loop was started with the controllers at rest, relative to the first
     /// telemetry sample [s].
     pub loop_start_s: f64,
-    /// Wald statistic of the four coefficients and its tail probability (chi^2, 4 dof).
+    /// Wald statistic of the four coefficients and its tail probability (chi^2 with 4 degrees of
+    /// freedom; for a noise run, Hotelling's T^2 with the covariance estimated from later-started
+    /// copies of the columns, see `fit::transient::fit_noise_run`).
     pub statistic: f64,
     pub p_value: f64,
     pub significant: bool,
@@ -117,6 +123,7 @@ impl TransientReport {
         c: &DVector<f64>,
         cov: &DMatrix<f64>,
         alpha: f64,
+        null_dof: Option<f64>,
     ) -> Self {
         let l = DMatrix::from_fn(4, 4, |i, k| fr.to_t0[i][k]);
         let x = &l * c;
@@ -125,7 +132,12 @@ impl TransientReport {
             .clone()
             .cholesky()
             .map_or(f64::INFINITY, |ch| c.dot(&ch.solve(c)));
-        let p_value = chi2_sf(c.len() as f64, statistic);
+        let k = c.len() as f64;
+        let p_value = match null_dof {
+            // Hotelling's T^2 with a covariance estimated from `j` copies.
+            Some(j) => f_sf(k, j - k + 1.0, statistic * (j - k + 1.0) / (k * j)),
+            None => chi2_sf(k, statistic),
+        };
         TransientReport {
             run: run.to_string(),
             initial_conditions: (0..4)
@@ -160,8 +172,8 @@ impl TransientReport {
     }
 }
 
-/// The noise run's free response fitted under the model noise PSD at `p` and removed:
-/// the cleaned run and the report.
+/// The noise run's free response at base parameters `p` fitted and removed (see the module
+/// docs): the fit under the cleaned run's own filter, with the cleaned run, and the report.
 pub fn clean_noise_run(
     setup: &Setup,
     p: &[f64],
@@ -172,10 +184,17 @@ pub fn clean_noise_run(
     alpha: f64,
 ) -> Result<(NoiseRunTransient, TransientReport)> {
     let n = noise.first().map_or(0, |c| c.len());
-    let w = setup.whitener_from_model(p, n, dt, order)?;
     let fr = run_response(setup, p, n)?;
-    let t = fit_noise_run(&w, noise, &fr.cols, poly_degree)?;
-    let report = TransientReport::new("noise run", &fr, &t.coefficients, &t.covariance, alpha);
+    let model = setup.whitener_from_model(p, n, dt, order)?;
+    let t = fit_noise_run(&model, noise, &fr.cols, poly_degree)?;
+    let report = TransientReport::new(
+        "noise run",
+        &fr,
+        &t.coefficients,
+        &t.covariance,
+        alpha,
+        Some(t.null_dof as f64),
+    );
     Ok((t, report))
 }
 
@@ -214,7 +233,7 @@ pub fn fit_with_transients<M: ClosedLoopModel<2>>(
                 .iter()
                 .zip(&maps)
                 .zip(&data.names)
-                .map(|(((c, cov), fr), name)| TransientReport::new(name, fr, c, cov, alpha))
+                .map(|(((c, cov), fr), name)| TransientReport::new(name, fr, c, cov, alpha, None))
                 .collect();
             return Ok((res, reports));
         }

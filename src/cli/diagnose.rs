@@ -63,10 +63,11 @@ pub struct DiagnoseArgs {
     /// readout); they then show up as unexplained time-window excess.
     #[arg(long)]
     pub no_glitches: bool,
-    /// Test the noise run and the experiments for start-up transients (free responses of the
-    /// digital loop to initial conditions; digital models only) and fit them where significant.
+    /// Do not test for start-up transients (the closed loop's free response to initial
+    /// conditions, thesis sec. 3.2, 4.7); by default they are fitted and reported when
+    /// significant, in the noise run and in the experiments.
     #[arg(long)]
-    pub transient: bool,
+    pub no_transients: bool,
     /// Print the effect library and exit.
     #[arg(long)]
     pub list_effects: bool,
@@ -150,7 +151,7 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
         decimated_telemetry: crate::analysis::decimated_telemetry(&ds),
         lines: a.lines,
         glitches: !a.no_glitches,
-        transients: a.transient,
+        transients: !a.no_transients,
         constraints,
         ..Default::default()
     };

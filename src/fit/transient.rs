@@ -26,13 +26,13 @@ use super::whiten::{poly_basis, project_out, Whitener};
 use super::FitError;
 use crate::numerics::linalg::dot;
 
-/// `cols[k][c]`: column `k`, channel `c`, over the samples.
-pub type RunColumns = Vec<Vec<Vec<f64>>>;
-
 /// A column whose whitened norm falls below this fraction of its norm before the
 /// Gram-Schmidt step is a combination of the others (or of the polynomial): the initial
 /// conditions are then not separately identifiable.
 const DEGENERATE_FRACTION: f64 = 1e-9;
+
+/// The columns of one run, `[k][c][t]`: column k, channel c, sample t.
+pub type Columns = Vec<Vec<Vec<f64>>>;
 
 /// The whitened, orthonormalised transient columns of every experiment.
 #[derive(Debug, Clone)]
@@ -51,7 +51,7 @@ fn joint_dot(a: &[Vec<f64>], b: &[Vec<f64>]) -> f64 {
 fn orthonormalise(
     mut cols: Vec<Vec<Vec<f64>>>,
     what: &str,
-) -> Result<(RunColumns, DMatrix<f64>), FitError> {
+) -> Result<(Columns, DMatrix<f64>), FitError> {
     let nk = cols.len();
     let mut r = DMatrix::<f64>::zeros(nk, nk);
     let mut q: Vec<Vec<Vec<f64>>> = Vec::with_capacity(nk);
@@ -67,8 +67,7 @@ fn orthonormalise(
             }
         }
         let norm = joint_dot(&v, &v).sqrt();
-        // NaN norms count as degenerate too.
-        if norm.partial_cmp(&(DEGENERATE_FRACTION * norm0)) != Some(std::cmp::Ordering::Greater) {
+        if norm.is_nan() || norm <= DEGENERATE_FRACTION * norm0 {
             return Err(FitError::Singular(format!(
                 "{what}: transient column {k} is a combination of the others after whitening \
                  (norm {norm:.3e} of {norm0:.3e}); the initial conditions are not identifiable"
@@ -136,23 +135,57 @@ impl TransientBasis {
     }
 }
 
+/// Copies of the columns started later in a noise run, whose statistics calibrate the start's
+/// (see [`fit_noise_run`]).
+pub const NULL_SHIFTS: usize = 16;
+
 /// The free response fitted to a noise-only run, in the domain of a whitening filter.
 #[derive(Debug, Clone)]
 pub struct NoiseRunTransient {
     /// Fitted coefficients (initial conditions at the loop start, the columns' units).
     pub coefficients: DVector<f64>,
+    /// Their covariance, from the later-started copies' scatter.
     pub covariance: DMatrix<f64>,
-    /// Wald statistic `c^T Cov(c)^-1 c`, chi^2 with as many degrees of freedom as columns when
-    /// the run has no transient.
-    pub wald: f64,
+    /// Mean square of the copies' coordinates per column, in units of the whitened
+    /// residual's variance (1 for white residuals).
+    pub kappa: f64,
+    /// Number of copies the covariance is estimated from.
+    pub null_dof: usize,
     /// The run less the fitted free response.
     pub cleaned: Vec<Vec<f64>>,
 }
 
+/// Whitened columns started at data sample `s` (zero before), over the valid samples of a
+/// run of `n`, from the full causal responses `full[k][c]` (length `n`), polynomial-projected.
+fn shifted(full: &[Vec<Vec<f64>>], s: usize, p: usize, basis: &[Vec<f64>]) -> Vec<Vec<Vec<f64>>> {
+    full.iter()
+        .map(|k| {
+            k.iter()
+                .map(|c| {
+                    let n = c.len();
+                    let mut v: Vec<f64> = (p..n)
+                        .map(|t| if t >= s { c[t - s] } else { 0.0 })
+                        .collect();
+                    project_out(&mut v, basis);
+                    v
+                })
+                .collect()
+        })
+        .collect()
+}
+
 /// Fit the free-response columns `cols[k][c]` to a noise-only run `noise[c]`, whitened by
-/// `w` (e.g. the model noise PSD's filter, independent of the run's own spectrum), with the
-/// polynomial of degree `poly_degree` as a nuisance; the noise level is the whitened
-/// residual's. Returns the coefficients and the run with the fitted response removed.
+/// `w`, with the polynomial of degree `poly_degree` as a nuisance.
+///
+/// A filter that is not the run's own (the model's) leaves colour in the whitened run at the
+/// columns' low frequencies, so `Q^T d` does not have covariance `s I` even without a
+/// transient, and the colour differs between columns (o12's are slower than o1's). The
+/// covariance is estimated on the run itself: the same columns started at [`NULL_SHIFTS`]
+/// later times (evenly over the run, where a start-up transient has died out; a causal filter
+/// whitens a delayed column into the delayed whitened column) give coordinates `u_j` with the
+/// start's null distribution, and `Cov(u) = mean_j u_j u_j^T`. The start's
+/// `T^2 = c^T Cov(c)^-1 c` is then Hotelling's: `T^2 (J - k + 1) / (k J)` is F(k, J - k + 1)
+/// for `k` columns and `J` copies without a transient.
 pub fn fit_noise_run<const N: usize>(
     w: &Whitener<N>,
     noise: &[Vec<f64>],
@@ -160,30 +193,49 @@ pub fn fit_noise_run<const N: usize>(
     poly_degree: usize,
 ) -> Result<NoiseRunTransient, FitError> {
     let n = noise.first().map_or(0, |c| c.len());
-    if n <= w.order() + poly_degree + 1 + cols.len() {
+    let p = w.order();
+    if n <= p + poly_degree + 1 + cols.len() {
         return Err(FitError::TooShort {
             what: "noise run for fitting its start-up transient".into(),
             len: n,
-            need: w.order() + poly_degree + 2 + cols.len(),
+            need: p + poly_degree + 2 + cols.len(),
         });
     }
-    let basis = poly_basis(n - w.order(), poly_degree);
-    let white = |x: &[Vec<f64>]| -> Vec<Vec<f64>> {
-        let mut y = w.apply(x);
-        y.iter_mut().for_each(|c| project_out(c, &basis));
-        y
-    };
-    let d = white(noise);
-    let b: Vec<Vec<Vec<f64>>> = cols.iter().map(|c| white(c)).collect();
-    let t = TransientBasis::from_whitened(vec![b])?;
+    let basis = poly_basis(n - p, poly_degree);
+    let mut d = w.apply(noise);
+    d.iter_mut().for_each(|c| project_out(c, &basis));
+    // Full causal responses (the filter's start-up included): zeros before the run.
+    let full: Vec<Vec<Vec<f64>>> = cols
+        .iter()
+        .map(|k| {
+            let padded: Vec<Vec<f64>> = k
+                .iter()
+                .map(|x| {
+                    let mut v = vec![0.0; p];
+                    v.extend_from_slice(x);
+                    v
+                })
+                .collect();
+            w.apply(&padded)
+        })
+        .collect();
+    let t = TransientBasis::from_whitened(vec![shifted(&full, 0, p, &basis)])?;
     let u = t.coordinates(0, &d);
     let mut rest = d;
     t.project(0, &mut rest);
-    let dof = (N * (n - w.order())).saturating_sub(basis.len() * N + cols.len());
+    let dof = (N * (n - p)).saturating_sub(basis.len() * N + cols.len());
     let scale = joint_dot(&rest, &rest) / dof.max(1) as f64;
-    let cov_u = DMatrix::identity(cols.len(), cols.len()) * scale;
+    let k = cols.len();
+    let mut cov_u = DMatrix::<f64>::zeros(k, k);
+    for j in 1..=NULL_SHIFTS {
+        let s = p + j * (n - p) / (NULL_SHIFTS + 1);
+        let tj = TransientBasis::from_whitened(vec![shifted(&full, s, p, &basis)])?;
+        let uj = tj.coordinates(0, &rest);
+        cov_u += &uj * uj.transpose() / NULL_SHIFTS as f64;
+    }
+    let null_dof = NULL_SHIFTS;
+    let kappa = cov_u.trace() / (k as f64 * scale);
     let (c, cov) = t.coefficients(0, &u, &cov_u);
-    let wald = u.norm_squared() / scale;
     let cleaned = noise
         .iter()
         .enumerate()
@@ -197,7 +249,8 @@ pub fn fit_noise_run<const N: usize>(
     Ok(NoiseRunTransient {
         coefficients: c,
         covariance: cov,
-        wald,
+        kappa,
+        null_dof,
         cleaned,
     })
 }
