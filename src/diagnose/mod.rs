@@ -398,8 +398,6 @@ pub fn diagnose_observed(
     cfg: &DiagnoseConfig,
     obs: &mut dyn Observer,
 ) -> Result<Diagnosis, DiagnoseError> {
-    // Every setting is checked before any work (the transient tests below use alpha).
-    cfg.validate()?;
     let start = std::time::Instant::now();
     let mut notes = Notes::default();
     let mut both = observer::Both(&mut notes, obs);

@@ -34,14 +34,9 @@ pub struct DecimationGrid {
 impl DecimationGrid {
     /// The grid of the default (Kaiser) anti-alias decimator by `factor`.
     pub fn new(design: &Design, dt_sim: f64, factor: usize) -> Result<Self, NoiseError> {
-        Self::for_samples(design.samples(dt_sim * factor as f64), dt_sim, factor)
-    }
-
-    /// The grid behind `n_out` kept output samples (the same margins as [`Self::new`]).
-    pub fn for_samples(n_out: usize, dt_sim: f64, factor: usize) -> Result<Self, NoiseError> {
         let decimator = Decimator::new(factor, 1.0 / dt_sim)
             .map_err(|e| NoiseError::Decimation(e.to_string()))?;
-        Ok(Self::with_decimator_samples(n_out, decimator))
+        Ok(Self::with_decimator(design, decimator))
     }
 
     /// The grid of `decimator` (the model file's `[anti_alias]`, `ModelSpec::decimator`).
