@@ -13,6 +13,9 @@ use freefall::sim::rng::stream;
 use freefall::spectral::WelchConfig;
 use num_complex::Complex64;
 
+mod common;
+use common::loops::digital_setup;
+
 /// Analysis sampling interval of the reference model (1 Hz).
 const DT: f64 = 1.0;
 /// Six days at 1 Hz (thesis sec. 4.6: "a very long noise run, ~6 days").
@@ -73,13 +76,6 @@ fn time_domain_estimate_follows_the_frequency_response() {
     for setup in [Setup::embedded(), digital_setup()] {
         follows_the_frequency_response(&setup);
     }
-}
-
-/// The embedded model with its digital (sampled-data) loop.
-fn digital_setup() -> Setup {
-    let mut spec = freefall::model::ModelSpec::embedded();
-    spec.control_loop.kind = freefall::model::spec::LoopKind::Digital;
-    Setup::new(spec).unwrap()
 }
 
 fn follows_the_frequency_response(setup: &Setup) {
@@ -444,15 +440,7 @@ fn calibrated_delta_suppresses_the_start_up_transient() {
     let setup = Setup::embedded();
     let sc = setup.spec.scenario("under_performing").unwrap();
     let design = setup.design("standard").unwrap();
-    let quiet = freefall::signal::Design {
-        duration_s: 40_000.0,
-        experiments: vec![freefall::signal::Experiment {
-            name: "noise".into(),
-            inputs: vec![None, None],
-            duration_s: None,
-        }],
-        ..design
-    };
+    let quiet = design.noise_only(40_000.0);
     let initial: InitialConditions = "o1=2.4e-7,o12=3.6e-7,v1=-5e-10,v12=-4e-12".parse().unwrap();
     let sim = setup
         .time_domain_simulator(&quiet, &sc.truth, None, Some(initial))
@@ -502,15 +490,7 @@ fn digital_delta_cancels_the_free_response_of_the_digital_loop() {
     use freefall::sim::time_domain::InitialConditions;
     let setup = digital_setup();
     let sc = setup.spec.scenario("under_performing").unwrap();
-    let quiet = freefall::signal::Design {
-        duration_s: 8_000.0,
-        experiments: vec![freefall::signal::Experiment {
-            name: "quiet".into(),
-            inputs: vec![None, None],
-            duration_s: None,
-        }],
-        ..setup.design("standard").unwrap()
-    };
+    let quiet = setup.design("standard").unwrap().noise_only(8_000.0);
     let initial: InitialConditions = "o1=2.4e-7,o12=3.6e-7,v1=-5e-10,v12=-4e-12".parse().unwrap();
     let sim = setup
         .time_domain_simulator(&quiet, &sc.truth, None, Some(initial))

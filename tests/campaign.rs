@@ -7,7 +7,10 @@ use std::time::{Duration, Instant};
 
 use freefall::campaign::io_store::Progress;
 use freefall::campaign::{self, merge, RunOptions, Shard};
-use freefall::io::{read_parquet, Column, Table};
+use freefall::io::{read_parquet, Table};
+
+mod common;
+use common::tables::{assert_same, assert_same_dirs};
 
 const BIN: &str = env!("CARGO_BIN_EXE_freefall");
 
@@ -39,39 +42,6 @@ fn run_lib(file: &Path, out: &Path, shard: Shard, threads: usize) -> campaign::M
 }
 
 /// Bitwise equality of two tables, ignoring the wall-time column `seconds` (the only column that
-/// legitimately differs between runs).
-fn assert_same(a: &Table, b: &Table, what: &str) {
-    assert_eq!(a.names(), b.names(), "{what}: columns");
-    assert_eq!(a.num_rows(), b.num_rows(), "{what}: rows");
-    for ((name, ca), (_, cb)) in a.columns.iter().zip(&b.columns) {
-        if name == "seconds" {
-            continue;
-        }
-        match (ca, cb) {
-            (Column::F64(x), Column::F64(y)) => {
-                for (i, (u, v)) in x.iter().zip(y).enumerate() {
-                    assert_eq!(
-                        u.to_bits(),
-                        v.to_bits(),
-                        "{what}: column {name} row {i}: {u} vs {v}"
-                    );
-                }
-            }
-            _ => assert_eq!(ca, cb, "{what}: column {name}"),
-        }
-    }
-}
-
-fn assert_same_dirs(a: &Path, b: &Path) {
-    for t in ["realizations", "summary", "correlation", "chi2"] {
-        let f = format!("{t}.parquet");
-        assert_same(
-            &read_parquet(a.join(&f)).unwrap(),
-            &read_parquet(b.join(&f)).unwrap(),
-            &f,
-        );
-    }
-}
 
 // Oracle: the documented stream contract (realization i draws only from stream(seed, i)) implies
 // identical tables for any thread count and batch size.

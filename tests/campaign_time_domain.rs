@@ -7,7 +7,10 @@ use std::time::Instant;
 
 use freefall::campaign::io_store::Progress;
 use freefall::campaign::{self, merge, RunOptions, Shard};
-use freefall::io::{read_parquet, Column, Table};
+use freefall::io::{read_parquet, Column};
+
+mod common;
+use common::tables::assert_same_dirs;
 
 /// The done-when band of the time-domain campaign: MC sd / mean Fisher sigma within 10 %.
 const SD_OVER_SIGMA_TOLERANCE: f64 = 0.10;
@@ -38,36 +41,6 @@ fn small(dir: &Path, name: &str, n: u64, batch: usize) -> PathBuf {
     let p = dir.join(name);
     std::fs::write(&p, text).unwrap();
     p
-}
-
-/// Bitwise equality of two tables but the wall-time column `seconds`.
-fn assert_same(a: &Table, b: &Table, what: &str) {
-    assert_eq!(a.names(), b.names(), "{what}: columns");
-    assert_eq!(a.num_rows(), b.num_rows(), "{what}: rows");
-    for ((name, ca), (_, cb)) in a.columns.iter().zip(&b.columns) {
-        if name == "seconds" {
-            continue;
-        }
-        match (ca, cb) {
-            (Column::F64(x), Column::F64(y)) => {
-                for (i, (u, v)) in x.iter().zip(y).enumerate() {
-                    assert_eq!(u.to_bits(), v.to_bits(), "{what}: {name} row {i}");
-                }
-            }
-            _ => assert_eq!(ca, cb, "{what}: column {name}"),
-        }
-    }
-}
-
-fn assert_same_dirs(a: &Path, b: &Path) {
-    for t in ["realizations", "summary", "correlation", "chi2"] {
-        let f = format!("{t}.parquet");
-        assert_same(
-            &read_parquet(a.join(&f)).unwrap(),
-            &read_parquet(b.join(&f)).unwrap(),
-            &f,
-        );
-    }
 }
 
 #[test]

@@ -133,13 +133,7 @@ fn decimation_keeps_the_psd_below_0p4_hz() {
     // Oracle: the model PSD at 10 Hz times the decimator's |H(f)|^2, at the 1 Hz output.
     let setup = Setup::embedded();
     let p = setup.spec.scenario("monte_carlo").unwrap().truth;
-    let mut design = setup.design("standard").unwrap();
-    design.duration_s = 80_000.0;
-    design.experiments = vec![Experiment {
-        name: "noise".into(),
-        inputs: vec![None, None],
-        duration_s: None,
-    }];
+    let design = setup.design("standard").unwrap().noise_only(80_000.0);
     let sim =
         DecimatedSimulator::<2>::new(&setup.model, &design, &p, setup.psd(&p), 0.1, 10, 2, None)
             .unwrap();
@@ -269,13 +263,7 @@ fn decimated_series_have_no_edge_transient() {
     // than at 0.4 Hz).
     let setup = Setup::embedded();
     let p = setup.spec.scenario("monte_carlo").unwrap().truth;
-    let mut design = setup.design("standard").unwrap();
-    design.duration_s = 400.0;
-    design.experiments = vec![Experiment {
-        name: "noise".into(),
-        inputs: vec![None, None],
-        duration_s: None,
-    }];
+    let design = setup.design("standard").unwrap().noise_only(400.0);
     let sim =
         DecimatedSimulator::<2>::new(&setup.model, &design, &p, setup.psd(&p), 0.1, 10, 2, None)
             .unwrap();

@@ -16,49 +16,14 @@ use freefall::model::discrete::Discretisation;
 use freefall::model::spec::LoopKind;
 use freefall::model::{transfer, transfer_with_derivatives, CMat, ClosedLoopModel, ModelSpec};
 use freefall::setup::Setup;
-use freefall::signal::{Design, Experiment};
+use freefall::signal::Design;
 use freefall::sim::rng::stream;
 use freefall::sim::time_domain::{DigitalLoop, InitialConditions, LoopConfig};
 use freefall::spectral::{welch_csd, WelchConfig};
 use num_complex::Complex64;
 
-/// Standard-design stretch length [s]: the design frequencies are `cycles / STRETCH_S`.
-const STRETCH_S: f64 = 1200.0;
-/// Cycles per stretch of the standard design (thesis Table "standard input signals").
-const STANDARD_CYCLES: [f64; 7] = [1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0];
-/// Closed-loop time constants waited before measuring a steady state: the start-up transient
-/// is then below exp(-30) ~ 1e-13 of its initial size.
-const SETTLE_TIME_CONSTANTS: f64 = 30.0;
-
-/// Steady-state complex response `[T_1c, T_2c] e^{-i w dt_c}` of the readouts to a unit sine
-/// on guidance input `c` at frequency `f` (a divisor of 1/STRETCH_S), measured by projecting
-/// the last stretch of the 10 Hz readouts on `e^{i w t}` (exact over whole cycles).
-fn measured_response(lp: &DigitalLoop, f: f64, c: usize, delay: f64) -> [Complex64; 2] {
-    let h = lp.dt;
-    let zmax = lp
-        .poles()
-        .unwrap()
-        .iter()
-        .map(|z| z.norm())
-        .fold(0.0, f64::max);
-    let tau = -h / zmax.ln();
-    let settle = (SETTLE_TIME_CONSTANTS * tau / STRETCH_S).ceil() * STRETCH_S;
-    let n = ((settle + STRETCH_S) / h).round() as usize;
-    let nw = (STRETCH_S / h).round() as usize;
-    let w = 2.0 * std::f64::consts::PI * f;
-    let g: Vec<f64> = (0..n).map(|k| (w * (k as f64 * h - delay)).sin()).collect();
-    let zero = vec![0.0; n];
-    let guidance: [&[f64]; 2] = if c == 0 { [&g, &zero] } else { [&zero, &g] };
-    let mut run = lp.clone();
-    let o = run.run(guidance, [&zero, &zero], [&zero, &zero]);
-    std::array::from_fn(|r| {
-        let acc: Complex64 = (n - nw..n)
-            .map(|k| o[r][k] * Complex64::new(0.0, -w * k as f64 * h).exp())
-            .sum();
-        // sin(w t) = Im e^{i w t}: the projection gives T / (2 i) per unit amplitude.
-        acc * Complex64::new(0.0, 2.0 / nw as f64)
-    })
-}
+mod common;
+use common::loops::{measured_response, STANDARD_CYCLES, STRETCH_S};
 
 #[test]
 fn sine_responses_approach_the_continuous_loop_to_the_order_of_the_hold() {
@@ -118,15 +83,7 @@ fn band_ratio(
 
 /// A design without injections lasting `duration_s` (a noise-only run).
 fn noise_design(setup: &Setup, duration_s: f64) -> Design {
-    Design {
-        duration_s,
-        experiments: vec![Experiment {
-            name: "noise".into(),
-            inputs: vec![None, None],
-            duration_s: None,
-        }],
-        ..setup.design("standard").unwrap()
-    }
+    setup.design("standard").unwrap().noise_only(duration_s)
 }
 
 #[test]

@@ -13,7 +13,9 @@ use freefall::model::lpf_x::A_DF;
 use freefall::model::{transfer, ClosedLoopModel};
 use freefall::setup::Setup;
 use freefall::sim::time_domain::{DigitalLoop, LoopConfig, PlantEffects};
-use num_complex::Complex64;
+
+mod common;
+use common::loops::{measured_response, STANDARD_CYCLES, STRETCH_S};
 
 /// Index of the drag-free lag state in `DigitalLoop::state` when it is the only lag: after
 /// the four plant states x1, x12, v1, v12.
@@ -180,40 +182,6 @@ fn cli_simulates_effects_in_the_time_domain_and_refuses_the_others_in_one_line()
             "{spec}: {err}"
         );
     }
-}
-
-/// Standard-design stretch [s] and cycles per stretch (thesis Table "standard input signals").
-const STRETCH_S: f64 = 1200.0;
-const STANDARD_CYCLES: [f64; 7] = [1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0];
-/// Closed-loop time constants waited before measuring a steady state (exp(-30) ~ 1e-13).
-const SETTLE_TIME_CONSTANTS: f64 = 30.0;
-
-/// Steady-state response `[T_1c, T_2c] e^{-i w dt_c}` of the readouts to a unit sine on
-/// guidance `c` at `f`, projected over the last stretch (as in tests/time_domain.rs).
-fn measured_response(lp: &DigitalLoop, f: f64, c: usize, delay: f64) -> [Complex64; 2] {
-    let h = lp.dt;
-    let zmax = lp
-        .poles()
-        .unwrap()
-        .iter()
-        .map(|z| z.norm())
-        .fold(0.0, f64::max);
-    let tau = -h / zmax.ln();
-    let settle = (SETTLE_TIME_CONSTANTS * tau / STRETCH_S).ceil() * STRETCH_S;
-    let n = ((settle + STRETCH_S) / h).round() as usize;
-    let nw = (STRETCH_S / h).round() as usize;
-    let w = 2.0 * std::f64::consts::PI * f;
-    let g: Vec<f64> = (0..n).map(|k| (w * (k as f64 * h - delay)).sin()).collect();
-    let zero = vec![0.0; n];
-    let guidance: [&[f64]; 2] = if c == 0 { [&g, &zero] } else { [&zero, &g] };
-    let mut run = lp.clone();
-    let o = run.run(guidance, [&zero, &zero], [&zero, &zero]);
-    std::array::from_fn(|r| {
-        let acc: Complex64 = (n - nw..n)
-            .map(|k| o[r][k] * Complex64::new(0.0, -w * k as f64 * h).exp())
-            .sum();
-        acc * Complex64::new(0.0, 2.0 / nw as f64)
-    })
 }
 
 #[test]

@@ -11,12 +11,13 @@
 
 use freefall::diagnose::{diagnose, DiagnoseConfig, Diagnosis};
 use freefall::fit::ExperimentData;
-use freefall::model::spec::LoopKind;
-use freefall::model::ModelSpec;
 use freefall::setup::Setup;
-use freefall::signal::{Design, Experiment};
+use freefall::signal::Design;
 use freefall::sim::rng::stream;
 use freefall::sim::time_domain::{DigitalLoop, InitialConditions, LoopConfig};
+
+mod common;
+use common::loops::digital_setup;
 
 /// The thesis's sec. 4.7 start: positions 0.24 um (o1) and 0.36 um (o12), rates -500 pm/s and
 /// -4 pm/s.
@@ -36,23 +37,9 @@ const PULL_LIMIT: f64 = 3.0;
 /// Allowed relative change of a parameter's sigma against the steady-state run's.
 const SIGMA_TOLERANCE: f64 = 0.2;
 
-fn digital_setup() -> Setup {
-    let mut spec = ModelSpec::embedded();
-    spec.control_loop.kind = LoopKind::Digital;
-    Setup::new(spec).unwrap()
-}
-
 /// A design without injections lasting `duration_s` (a noise-only run).
 fn noise_design(setup: &Setup, duration_s: f64) -> Design {
-    Design {
-        duration_s,
-        experiments: vec![Experiment {
-            name: "noise".into(),
-            inputs: vec![None, None],
-            duration_s: None,
-        }],
-        ..setup.design("standard").unwrap()
-    }
+    setup.design("standard").unwrap().noise_only(duration_s)
 }
 
 /// Experiments of the standard design and a noise run, from `initial` (none: the loop starts

@@ -102,15 +102,7 @@ pub fn run(a: SimulateArgs) -> Result<()> {
     if !(noise_duration.is_finite() && noise_duration > 0.0) {
         bail!("--noise-duration must be a positive number of seconds, got {noise_duration}");
     }
-    let noise_design = crate::signal::Design {
-        duration_s: noise_duration,
-        experiments: vec![crate::signal::Experiment {
-            name: "noise".into(),
-            inputs: vec![None, None],
-            duration_s: None,
-        }],
-        ..design.clone()
-    };
+    let noise_design = design.noise_only(noise_duration);
     setup.check_simulation_size(&noise_design, "--noise-duration")?;
     let default_rate = if a.effects.is_empty() || a.engine == Engine::TimeDomain {
         Rate::Decimated

@@ -54,6 +54,20 @@ pub enum SignalError {
 }
 
 impl Design {
+    /// A noise-only run of `duration_s` with this design's timing: one experiment, `noise`, no
+    /// injections.
+    pub fn noise_only(&self, duration_s: f64) -> Design {
+        Design {
+            duration_s,
+            experiments: vec![Experiment {
+                name: "noise".into(),
+                inputs: vec![None; self.experiments.first().map_or(2, |e| e.inputs.len())],
+                duration_s: None,
+            }],
+            ..self.clone()
+        }
+    }
+
     /// The two single-input experiments of a model-file injection table (Exp. 1 on oi1,
     /// Exp. 2 on oi12; thesis Table "standard input signals").
     pub fn from_spec(name: &str, spec: &InjectionSpec) -> Result<Self, SignalError> {

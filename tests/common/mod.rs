@@ -1,7 +1,11 @@
-//! Helpers shared by the integration tests that call Python (pyarrow, pandas, polars, DuckDB:
+//! Helpers shared by the integration tests: fixtures of the digital loop (`loops`), bitwise
+//! table comparison (`tables`), and, for the tests that call Python (pyarrow, pandas, polars, DuckDB:
 //! all in scripts/requirements.txt, which CI installs).
 
 #![allow(dead_code)]
+
+pub mod loops;
+pub mod tables;
 
 use std::process::Command;
 
