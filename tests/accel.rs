@@ -484,7 +484,7 @@ fn calibrated_delta_suppresses_the_start_up_transient() {
 /// applied as a stencil (`ClosedLoopModel::inertia_advance`), its FFT multiplier's jump at
 /// Nyquist left an alternating tail: g12 rms 4.2e-11 m s^-2 over 1000-4000 s, 16 times the
 /// rms of the noise-only estimate (2.6e-12, broadband readout noise through s^2); measured
-/// after: 2.0e-15 (the continuous model's Delta on the same data: 6.7e-17).
+/// after: 5.6e-16 (guess: 2.9e-13), printed by this test.
 #[test]
 fn digital_delta_cancels_the_free_response_of_the_digital_loop() {
     use freefall::sim::time_domain::InitialConditions;
