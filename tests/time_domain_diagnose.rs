@@ -95,3 +95,46 @@ fn thruster_lag_in_time_domain_data_is_found() {
     assert!(d.unexplained.is_empty(), "unexplained: {:?}", d.unexplained);
     assert_consistent(&setup, &d);
 }
+
+#[test]
+fn cli_loop_digital_finds_the_lag_in_time_domain_data() {
+    // Oracle: the library test above; the CLI path (`simulate --engine time-domain --effect`,
+    // then `diagnose --loop digital` on the written Parquet dataset) must reach the same claim.
+    let tmp = tempfile::tempdir().unwrap();
+    let out = tmp.path().join("td_lag");
+    let run = |args: &[&str]| {
+        let o = std::process::Command::new(env!("CARGO_BIN_EXE_freefall"))
+            .args(args)
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    };
+    let out_s = out.to_str().unwrap();
+    run(
+        &["-q", "simulate", "--engine", "time-domain", "--seed", "5"]
+            .into_iter()
+            .chain(["--effect", "actuation_lag_df=0.4", "--out", out_s])
+            .collect::<Vec<_>>(),
+    );
+    let diag = tmp.path().join("diag");
+    let dataset = out.join("dataset.toml");
+    run(&[
+        "-q",
+        "diagnose",
+        dataset.to_str().unwrap(),
+        "--loop",
+        "digital",
+        "--no-plots",
+        "--out",
+        diag.to_str().unwrap(),
+    ]);
+    let text = std::fs::read_to_string(diag.join("report.json")).unwrap();
+    let json: serde_json::Value = serde_json::from_str(&text).unwrap();
+    let added: Vec<&str> = json["effects_added"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|e| e["name"].as_str().unwrap())
+        .collect();
+    assert_eq!(added, ["actuation_lag_df"]);
+}

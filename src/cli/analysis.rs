@@ -197,7 +197,7 @@ pub fn fit(a: FitArgs) -> Result<()> {
     for n in &ds.notes {
         info!("note: {n}");
     }
-    let (data, notes) = experiment_data(&ds)?;
+    let (data, notes) = experiment_data(&setup, &ds)?;
     for n in notes {
         info!("note: {n}");
     }

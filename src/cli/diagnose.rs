@@ -112,7 +112,7 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
     for n in &ds.notes {
         info!("note: {n}");
     }
-    let (data, notes) = experiment_data(&ds)?;
+    let (data, notes) = experiment_data(&setup, &ds)?;
     for n in notes {
         info!("note: {n}");
     }
