@@ -81,6 +81,12 @@ fn declared_design_models_the_stretch_edges_that_1_hz_columns_miss() {
         eprintln!("{sub}: chi2/nu {:.4}", d.after.chi2_reduced);
         chi2.push(d.after.chi2_reduced);
         if sub == "plain" {
+            // Named at the input: every sharp edge of exp1 oi1 and exp2 oi12 (7 stretches, a
+            // start and an end each).
+            for col in ["exp1 oi1", "exp2 oi12"] {
+                let note = notes.iter().find(|n| n.starts_with(col)).expect(col);
+                assert!(note.contains("14 sharp stretch edges"), "{note}");
+            }
             continue;
         }
         assert!(notes
@@ -100,6 +106,22 @@ fn declared_design_models_the_stretch_edges_that_1_hz_columns_miss() {
             d.after.chi2_reduced
         );
     }
+    // Control: the simulator's own filtered guidance columns have no sharp edges.
+    let dir = tmp.path().join("filtered");
+    let design = setup.design("standard").unwrap();
+    let data = setup
+        .time_domain_simulator(&design, &truth, None, None)
+        .unwrap()
+        .noise_free();
+    let quiet = data.outputs[0].clone();
+    write_dataset(
+        &dir,
+        &Dataset::simulated(&data, &quiet, toml::Table::new()).unwrap(),
+    )
+    .unwrap();
+    let ds = read_dataset(dir.join("dataset.toml")).unwrap();
+    let (_, notes) = experiment_data(&setup, &ds).unwrap();
+    assert!(notes.iter().all(|n| !n.contains("sharp")), "{notes:?}");
     // The "before": the same data without the declaration do not fit.
     assert!(
         chi2[0] > 10.0,

@@ -73,7 +73,7 @@ pub fn apply_declared_design(
     inputs: &mut [Vec<Vec<f64>>],
 ) -> Result<Vec<String>, AnalysisError> {
     let Some(design) = declared_design(setup, ds)? else {
-        return Ok(Vec::new());
+        return Ok(point_sampled_edges(ds));
     };
     let start_s = ds.injections.as_ref().map_or(0.0, |i| i.start_s);
     let decimator = setup.spec.decimator().map_err(crate::setup::Error::from)?;
@@ -177,4 +177,60 @@ fn stretch_edges(design: &Design, e: usize, first: f64, dt: f64, n: usize) -> Ve
                 .collect()
         })
         .collect()
+}
+
+/// A stretch edge of a point-sampled column: the column leaves (or returns to) exact zero with
+/// a first step at least this fraction of the slope just inside the stretch. A sampled sine
+/// starting at a sample gives `x_1 = A sin(w dt)` against a next step `A (sin 2w dt - sin w dt)`,
+/// a ratio of about 1; an anti-alias-filtered edge rises from ringing orders of magnitude below
+/// its slope.
+const EDGE_STEP_RATIO: f64 = 0.5;
+
+/// Without a declared design: the guidance columns whose stretch edges are sharp, as a column
+/// that recorded the commanded guidance without the anti-alias filter has them, one note per
+/// column naming the edges. The readouts are filtered telemetry of the loop's response to the
+/// full guidance; such a column lacks the edges' content above the telemetry Nyquist frequency,
+/// and so do the templates built from it. Data that `simulate --rate analysis` made
+/// (`meta.rate = "analysis"`) are exempt: their readouts respond to the same 1 Hz samples.
+fn point_sampled_edges(ds: &Dataset) -> Vec<String> {
+    let mut notes = Vec::new();
+    if ds.meta.get("rate").and_then(|v| v.as_str()) == Some("analysis") {
+        return notes;
+    }
+    for (name, run) in &ds.experiments {
+        for (c, x) in run.inputs().iter().enumerate() {
+            let sharp = |k: usize, dir: isize| {
+                // `k`: the first non-zero sample after (dir = 1) or before (dir = -1) rest.
+                let at = |j: isize| x.get((k as isize + dir * j) as usize).copied();
+                match (at(0), at(1), at(2)) {
+                    (Some(a), Some(b), Some(c2)) => {
+                        a != 0.0 && a.abs() >= EDGE_STEP_RATIO * (c2 - b).abs()
+                    }
+                    _ => false,
+                }
+            };
+            let times: Vec<f64> = (1..x.len().saturating_sub(1))
+                .filter(|&k| {
+                    (x[k - 1] == 0.0 && sharp(k, 1)) || (x[k + 1] == 0.0 && k >= 2 && sharp(k, -1))
+                })
+                .map(|k| run.t0 + k as f64 * run.dt)
+                .collect();
+            if times.is_empty() {
+                continue;
+            }
+            let shown: Vec<String> = times.iter().take(4).map(|t| format!("{t}")).collect();
+            let more = if times.len() > 4 { ", ..." } else { "" };
+            notes.push(format!(
+                "{name} {}: the guidance column has {} sharp stretch edges (t = {}{more} s): \
+                 it looks point-sampled, while the readouts are filtered telemetry of the loop's \
+                 response to the guidance at its true rate; the edges' content above the \
+                 telemetry Nyquist frequency is missing from the templates (stretch-edge \
+                 transients, not glitches) unless dataset.toml declares the design ([injections])",
+                ["oi1", "oi12"][c],
+                times.len(),
+                shown.join(", ")
+            ));
+        }
+    }
+    notes
 }
