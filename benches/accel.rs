@@ -12,7 +12,7 @@ use freefall::spectral::WelchConfig;
 const SIX_DAYS: usize = 6 * 86_400;
 
 fn bench(c: &mut Criterion) {
-    let setup = Setup::embedded();
+    let setup = Setup::embedded_continuous(); // README figures: the thesis's loop
     let sc = setup.spec.scenario("under_performing").unwrap();
     let dt = setup.analysis_dt();
     let o = ColoredNoise::new(setup.psd(&sc.truth), SIX_DAYS, dt, NOISE_OVERSAMPLE)

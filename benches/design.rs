@@ -13,7 +13,7 @@ use freefall::setup::Setup;
 use std::hint::black_box;
 
 fn bench(c: &mut Bench) {
-    let setup = Setup::embedded();
+    let setup = Setup::embedded_continuous(); // README figures: the thesis's loop
     let p = setup.spec.scenario("monte_carlo").unwrap().truth;
     let names = setup.parameter_names();
     let study = freefall::design::validate::Study::new(

@@ -15,7 +15,7 @@ use freefall::sim::WhitenedSimulator;
 use std::hint::black_box;
 
 fn bench(c: &mut Criterion) {
-    let setup = Setup::embedded();
+    let setup = Setup::embedded_continuous(); // README figures: the thesis's loop
     let sc = setup.spec.scenario("monte_carlo").unwrap();
     let design = setup.design("standard").unwrap();
     let sim = setup.simulator(&design, &sc.truth, None).unwrap();

@@ -11,7 +11,7 @@ use freefall::sim::rng::stream;
 use std::hint::black_box;
 
 fn bench(c: &mut Criterion) {
-    let setup = Setup::embedded();
+    let setup = Setup::embedded_continuous(); // README figures: the thesis's loop
     let p = setup.spec.scenario("monte_carlo").unwrap().truth;
     let n = 10_800;
     let m = freefall::numerics::fft::fast_len(2 * n);

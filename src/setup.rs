@@ -94,9 +94,7 @@ impl Setup {
 
     /// The embedded model with the thesis's continuous loop (its tables' comparisons).
     pub fn embedded_continuous() -> Self {
-        Self::embedded()
-            .with_loop(crate::model::spec::LoopKind::Continuous)
-            .expect("embedded model is valid")
+        Self::new(ModelSpec::embedded_continuous()).expect("embedded model is valid")
     }
 
     pub fn parameter_names(&self) -> Vec<String> {

@@ -73,7 +73,7 @@ fn stencil_is_exact_on_quadratics_and_has_its_response_on_sines() {
 /// loop and for the digital one, whose held plant adds the third-derivative stencil.
 #[test]
 fn time_domain_estimate_follows_the_frequency_response() {
-    for setup in [Setup::embedded(), digital_setup()] {
+    for setup in [Setup::embedded_continuous(), digital_setup()] {
         follows_the_frequency_response(&setup);
     }
 }
@@ -142,7 +142,7 @@ fn follows_the_frequency_response(setup: &Setup) {
 #[test]
 fn guidance_injections_leave_no_acceleration_at_the_true_parameters() {
     use freefall::forward::TemplateEngine;
-    let setup = Setup::embedded();
+    let setup = Setup::embedded_continuous(); // the thesis's loop
     let p = setup.spec.scenario("under_performing").unwrap().truth;
     let design = setup.design("standard").unwrap();
     let n = design.samples(DT);
@@ -226,7 +226,7 @@ fn compare(
 /// uncorrelated, their contributions add) within 1 % (in fact to round-off).
 #[test]
 fn estimate_psd_matches_the_model_projection_and_the_budget_sums_to_it() {
-    let setup = Setup::embedded();
+    let setup = Setup::embedded_continuous(); // the thesis's loop
     let sc = setup.spec.scenario("under_performing").unwrap();
     // Two days: 16 Welch segments of ~34 000 s resolve 0.1 mHz.
     let n = 2 * 86_400;
@@ -302,7 +302,7 @@ fn asd_ratio(f: &[f64], a: &[f64], b: &[f64], band: (f64, f64)) -> f64 {
 ///   true-parameter estimate at every frequency above 0.1 mHz.
 #[test]
 fn identification_removes_the_excess_of_the_under_performing_scenario() {
-    let setup = Setup::embedded();
+    let setup = Setup::embedded_continuous(); // the thesis's loop
     let sc = setup.spec.scenario("under_performing").unwrap();
     let o = noise_run(&setup, &sc.truth, SIX_DAYS, 11);
     let spectra = |p: &[f64]| {
@@ -437,7 +437,7 @@ fn band_mean(f: &[f64], psd: &[f64], band: (f64, f64)) -> f64 {
 #[test]
 fn calibrated_delta_suppresses_the_start_up_transient() {
     use freefall::sim::time_domain::InitialConditions;
-    let setup = Setup::embedded();
+    let setup = Setup::embedded_continuous(); // the thesis's loop
     let sc = setup.spec.scenario("under_performing").unwrap();
     let design = setup.design("standard").unwrap();
     let quiet = design.noise_only(40_000.0);

@@ -17,7 +17,7 @@ mod tol {
 }
 
 fn setup_and_truth() -> (Setup, Vec<f64>) {
-    let setup = Setup::embedded();
+    let setup = Setup::embedded_continuous();
     let p = setup.spec.scenario("monte_carlo").unwrap().truth;
     (setup, p)
 }

@@ -9,8 +9,10 @@ use freefall::model::{transfer, transfer_with_derivatives, ClosedLoopModel, LpfX
 /// the smallest derivatives at 0.3 mHz; a wrong derivative is off by O(1).
 const FD_REL_TOL: f64 = 1e-3;
 
+/// The thesis's continuous loop: the stability oracles below are its exact characteristic
+/// polynomial (the digital loop's are in tests/time_domain_effects.rs).
 fn setup() -> (LpfX, Vec<f64>) {
-    let spec = ModelSpec::embedded();
+    let spec = ModelSpec::embedded_continuous();
     (
         LpfX::from_spec(&spec),
         spec.scenario("monte_carlo").unwrap().truth,

@@ -25,7 +25,7 @@ fn sd(v: &[f64]) -> f64 {
 #[test]
 fn standard_design_fisher_errors_are_within_2p5_of_the_thesis() {
     // Oracle: thesis Table "Monte Carlo validation", mean expected st.dev. (reference README).
-    let setup = Setup::embedded();
+    let setup = Setup::embedded_continuous();
     let p = setup.spec.scenario("monte_carlo").unwrap().truth;
     let info = design_fisher(&setup, &setup.design("standard").unwrap(), &p);
     let cov = info.try_inverse().unwrap();
@@ -47,7 +47,7 @@ struct Bench {
 
 impl Bench {
     fn new(scenario: &str) -> Self {
-        let setup = Setup::embedded();
+        let setup = Setup::embedded_continuous();
         let sc = setup.spec.scenario(scenario).unwrap();
         Bench {
             truth: sc.truth,

@@ -29,9 +29,9 @@ fn cic_taps() -> Vec<f64> {
     h
 }
 
-/// The embedded model made digital, with `anti_alias` as its `[anti_alias]` table body.
+/// The embedded (digital) model, with `anti_alias` as its `[anti_alias]` table body.
 fn model_text(anti_alias: &str) -> String {
-    format!("{EMBEDDED}\n[control_loop]\nkind = \"digital\"\n\n[anti_alias]\n{anti_alias}\n")
+    format!("{EMBEDDED}\n[anti_alias]\n{anti_alias}\n")
 }
 
 fn write_model(dir: &Path, anti_alias: &str) -> std::path::PathBuf {

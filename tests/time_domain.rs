@@ -32,7 +32,7 @@ fn sine_responses_approach_the_continuous_loop_to_the_order_of_the_hold() {
     // every element must be O(w h); measured it is below w h at all seven standard
     // frequencies, and the test allows 2 w h. A wrong sign, gain, delay or coupling in the
     // time-domain loop would show up as an O(1) error at the lowest frequencies.
-    let setup = Setup::embedded();
+    let setup = Setup::embedded_continuous();
     let p = setup.spec.scenario("monte_carlo").unwrap().truth;
     let cfg = LoopConfig::from_spec(&setup.spec);
     let lp = DigitalLoop::new(&setup.model, &p, &cfg);
@@ -94,7 +94,7 @@ fn noise_run_matches_the_model_cross_psd_where_the_loops_agree() {
     // ~2 w h < 2.5e-2 at the top (test above), well inside the band-mean error of a few per cent.
     // Checked: both auto-PSDs and the real part of the cross-PSD (normalised by the model
     // autos, so its error is that of a coherence).
-    let setup = Setup::embedded();
+    let setup = Setup::embedded_continuous();
     let p = setup.spec.scenario("monte_carlo").unwrap().truth;
     let sim = setup
         .time_domain_simulator(&noise_design(&setup, 6.0 * 3600.0), &p, None, None)
@@ -401,7 +401,7 @@ fn control_loop_keys_parse_and_are_validated() {
     // delay of a whole control interval is a one-line error naming the key.
     let text = format!(
         "{}\n[control_loop]\nkind = \"digital\"\ndiscretisation = \"matched\"\ncomputation_delay_s = 0.02\n",
-        freefall::model::spec::EMBEDDED_LPF_X
+        common::loops::embedded_text_without_loop()
     );
     let spec = ModelSpec::from_toml_str(&text, "d.toml").unwrap();
     assert_eq!(spec.control_loop.kind, LoopKind::Digital);

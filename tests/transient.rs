@@ -172,11 +172,8 @@ fn cli_fit_transient_writes_every_runs_initial_conditions() {
     let text =
         std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/src/model/lpf_x.toml"))
             .unwrap();
-    std::fs::write(
-        &model,
-        format!("{text}\n[control_loop]\nkind = \"digital\"\n"),
-    )
-    .unwrap();
+    // The embedded model, which is digital, as a file.
+    std::fs::write(&model, text).unwrap();
     for (initial, out) in [(true, p("td")), (false, p("td_ss"))] {
         let mut args = vec![
             "simulate",

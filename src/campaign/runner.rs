@@ -516,7 +516,7 @@ fn check_engine_model(setup: &Setup, campaign: &Campaign) -> Result<(), Campaign
             file: campaign.file.clone(),
             key: "fit.engine".into(),
             reason: format!(
-                "\"time-domain\" needs a sampled-data model: the model '{}' is continuous; give `model =` a model file with [control_loop] kind = \"digital\" (e.g. campaigns/lpf_x_digital.toml)",
+                "\"time-domain\" needs a sampled-data model: the model '{}' is continuous; give `model =` a model file with [control_loop] kind = \"digital\" (the embedded model is one; campaigns/models/lpf_x_continuous.toml is not)",
                 setup.spec.origin
             ),
         });

@@ -213,9 +213,17 @@ pub struct ModelSpec {
 pub const LPF_X_PARAMETERS: [&str; 7] = ["w1_sq", "w12_sq", "s21", "a_df", "a_sus", "dt1", "dt12"];
 
 impl ModelSpec {
+    /// The embedded model file: the spacecraft's digital loop.
     pub fn embedded() -> Self {
         Self::from_toml_str(EMBEDDED_LPF_X, "embedded lpf_x.toml")
             .expect("the embedded model file is valid (checked by tests)")
+    }
+
+    /// The embedded model with the thesis's continuous loop, which its tables use.
+    pub fn embedded_continuous() -> Self {
+        let mut spec = Self::embedded();
+        spec.control_loop.kind = LoopKind::Continuous;
+        spec
     }
 
     pub fn from_toml_str(text: &str, origin: &str) -> Result<Self, ModelError> {

@@ -15,6 +15,15 @@ pub const STANDARD_CYCLES: [f64; 7] = [1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0];
 /// is then below exp(-30) ~ 1e-13 of its initial size.
 pub const SETTLE_TIME_CONSTANTS: f64 = 30.0;
 
+/// The embedded model file's text without its `[control_loop]` table (the file's last), for
+/// tests that append their own.
+pub fn embedded_text_without_loop() -> &'static str {
+    let text = freefall::model::spec::EMBEDDED_LPF_X;
+    &text[..text
+        .find("\n[control_loop]")
+        .expect("lpf_x.toml has [control_loop]")]
+}
+
 /// The embedded model with its digital (sampled-data) loop.
 pub fn digital_setup() -> Setup {
     let mut spec = ModelSpec::embedded();
