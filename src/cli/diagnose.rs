@@ -14,6 +14,7 @@ use crate::diagnose::tables::Timeline;
 use crate::diagnose::{diagnose_observed, DiagnoseConfig, Observer};
 use crate::io::{read_dataset, write_text_atomic};
 use crate::setup::{DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
+use crate::sim::job::{Engine, Rate, SimulateJob};
 
 #[derive(Debug, Args)]
 pub struct DiagnoseArgs {
@@ -237,16 +238,15 @@ fn simulate(a: &DiagnoseArgs, setup: &crate::setup::Setup, dir: &Path) -> Result
          use `freefall simulate --effect ... --rate analysis --out DIR`"
     );
     let design = setup.design(&a.design)?;
-    super::simulate::run(super::simulate::SimulateArgs {
-        model: a.model.clone(),
+    let job = SimulateJob {
         scenario: a.scenario.clone(),
         design: a.design.clone(),
         seed: a.seed,
-        rate: Some(super::simulate::Rate::Analysis),
-        engine: super::simulate::Engine::FrequencyDomain,
+        rate: Some(Rate::Analysis),
+        engine: Engine::FrequencyDomain,
         initial: None,
         noise_duration: Some(design.duration_s),
         effects: a.effects.clone(),
-        out: dir.to_path_buf(),
-    })
+    };
+    super::simulate::simulate_into(setup, &job, dir)
 }

@@ -5,6 +5,7 @@
 
 pub mod decimated;
 pub mod experiment;
+pub mod job;
 pub mod rng;
 pub mod time_domain;
 pub mod transient;
