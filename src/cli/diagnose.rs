@@ -14,7 +14,8 @@ use crate::diagnose::tables::Timeline;
 use crate::diagnose::{diagnose_observed, DiagnoseConfig, Observer};
 use crate::io::{read_dataset, write_text_atomic};
 use crate::setup::{DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
-use crate::sim::job::{Engine, Rate, SimulateJob};
+use crate::sim::job::{Rate, SimulateJob};
+use crate::sim::Engine;
 
 #[derive(Debug, Args)]
 pub struct DiagnoseArgs {

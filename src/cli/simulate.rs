@@ -8,8 +8,9 @@ use clap::Args;
 use super::ModelOpt;
 use crate::io::{write_dataset, Dataset};
 use crate::setup::Setup;
-use crate::sim::job::{Engine, Rate, SimulateJob};
+use crate::sim::job::{Rate, SimulateJob};
 use crate::sim::time_domain::InitialConditions;
+use crate::sim::Engine;
 
 #[derive(Debug, Args)]
 pub struct SimulateArgs {

@@ -14,6 +14,7 @@ use crate::setup::{Error as SetupError, Setup};
 use crate::signal::Design;
 use crate::sim::rng::stream;
 use crate::sim::time_domain::{InitialConditions, PlantEffects, TimeDomainError};
+use crate::sim::Engine;
 
 /// The default noise-only run lasts this many experiment durations (the thesis characterises
 /// noise on runs of 12 to 28 hours, longer than the 3-hour experiments).
@@ -35,27 +36,6 @@ impl Rate {
         match self {
             Rate::Decimated => "decimated",
             Rate::Analysis => "analysis",
-        }
-    }
-}
-
-/// The simulation engine.
-#[derive(Debug, Clone, Copy, clap::ValueEnum, PartialEq, Eq)]
-pub enum Engine {
-    /// Templates plus coloured noise of the continuous loop's PSD (fast; the campaigns'
-    /// default).
-    FrequencyDomain,
-    /// The digital loop stepped at simulate_hz (plant integrated exactly, discrete
-    /// controllers, held commands), decimated with the anti-alias FIR.
-    TimeDomain,
-}
-
-impl Engine {
-    /// The name in the dataset's `[meta]`.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Engine::FrequencyDomain => "frequency-domain",
-            Engine::TimeDomain => "time-domain",
         }
     }
 }
