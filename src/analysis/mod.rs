@@ -5,6 +5,7 @@
 //! and lays the results out as tables ([`tables`]). Measured and simulated data take the same
 //! path; nothing here prints.
 
+pub mod job;
 pub mod model_tables;
 pub mod tables;
 pub mod transient;

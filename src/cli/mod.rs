@@ -333,6 +333,14 @@ impl Working {
         pb.enable_steady_tick(std::time::Duration::from_millis(SPINNER_TICK_MS));
         Working(Some(pb))
     }
+
+    /// Prints `note: {text}` (unless `--quiet`) without breaking the spinner's line.
+    pub fn note(&self, text: &str) {
+        match &self.0 {
+            Some(pb) => pb.suspend(|| info!("note: {text}")),
+            None => info!("note: {text}"),
+        }
+    }
 }
 
 /// Spinner redraw interval (fast enough to look alive, slow enough to cost nothing).

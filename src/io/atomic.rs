@@ -185,6 +185,25 @@ pub fn ensure_dir(dir: impl AsRef<Path>) -> Result<(), IoError> {
     fs::create_dir_all(dir).map_err(|e| IoError::write(dir, e))
 }
 
+/// Creates the directory the output file `path` goes in, if it names one.
+pub fn ensure_parent(path: &Path) -> Result<(), IoError> {
+    match path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        Some(dir) => ensure_dir(dir).map_err(|e| IoError::ParentDir {
+            path: path.to_path_buf(),
+            source: Box::new(e),
+        }),
+        None => Ok(()),
+    }
+}
+
+/// Creates a command's output directory `dir` and its parents if needed.
+pub fn create_output_dir(dir: &Path) -> Result<(), IoError> {
+    fs::create_dir_all(dir).map_err(|source| IoError::OutputDir {
+        path: dir.to_path_buf(),
+        source,
+    })
+}
+
 /// The overwrite policy every command shares for its outputs: an `--out` that does not exist
 /// yet, or an empty directory, is fine; an existing file or a non-empty directory (a previous
 /// result, a finished campaign, a dataset) is refused unless `force`. `flag` names the option

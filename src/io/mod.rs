@@ -30,9 +30,9 @@ pub mod table;
 use std::path::{Path, PathBuf};
 
 pub use atomic::{
-    available_memory, check_output, ensure_dir, file_sha256, read_json, read_text, read_toml,
-    sha256_hex, write_bytes_atomic, write_json_atomic, write_text_atomic, write_toml_atomic,
-    AtomicFile,
+    available_memory, check_output, create_output_dir, ensure_dir, ensure_parent, file_sha256,
+    read_json, read_text, read_toml, sha256_hex, write_bytes_atomic, write_json_atomic,
+    write_text_atomic, write_toml_atomic, AtomicFile,
 };
 pub use dataset::{read_dataset, write_dataset, Dataset, DATASET_FILE_NAME};
 pub use provenance::Provenance;
@@ -184,6 +184,21 @@ pub enum IoError {
     /// Any other invalid content; the message says what and where.
     #[error("{}: {message}", path.display())]
     Invalid { path: PathBuf, message: String },
+    /// The directory an output file goes in could not be created.
+    #[error("cannot create directory for '{}'", path.display())]
+    ParentDir {
+        /// The output file.
+        path: PathBuf,
+        #[source]
+        source: Box<IoError>,
+    },
+    /// A command's output directory could not be created.
+    #[error("cannot create output directory '{}'", path.display())]
+    OutputDir {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
 }
 
 impl IoError {
@@ -208,7 +223,9 @@ impl IoError {
             | IoError::TooShort { path, .. }
             | IoError::DtMismatch { path, .. }
             | IoError::DuplicateExperiment { path, .. }
-            | IoError::Invalid { path, .. } => path,
+            | IoError::Invalid { path, .. }
+            | IoError::ParentDir { path, .. }
+            | IoError::OutputDir { path, .. } => path,
         }
     }
 
