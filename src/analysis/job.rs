@@ -61,6 +61,8 @@ pub enum JobError {
     Units(#[from] UnitsError),
     #[error(transparent)]
     Transient(#[from] TransientError),
+    #[error(transparent)]
+    Config(#[from] crate::config::OutOfRange),
 }
 
 /// Wraps an error in `context` (what was being done, or the file), keeping it as the source.

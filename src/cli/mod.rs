@@ -389,39 +389,3 @@ pub fn ensure_parent(path: &std::path::Path) -> Result<()> {
     }
     Ok(())
 }
-
-/// Run a plot script with python3 on the output directory `out`: FREEFALL_PLOT_SCRIPT if set,
-/// else `embedded` written to `out/.{name}` for the run and removed after. Shared by the
-/// commands that draw their figures (`diagnose`, `accel`).
-pub fn run_plot_script(out: &Path, embedded: &str, name: &str) -> Result<()> {
-    let custom = std::env::var_os("FREEFALL_PLOT_SCRIPT").map(PathBuf::from);
-    let script = match &custom {
-        Some(p) if !p.exists() => anyhow::bail!("plot script {} not found", p.display()),
-        Some(p) => p.clone(),
-        None => {
-            let p = out.join(format!(".{name}"));
-            std::fs::write(&p, embedded)
-                .with_context(|| format!("cannot write {}", p.display()))?;
-            p
-        }
-    };
-    let o = std::process::Command::new("python3")
-        .arg(&script)
-        .arg(out)
-        .output();
-    if custom.is_none() {
-        let _ = std::fs::remove_file(&script);
-    }
-    let o = o.context("python3 not available")?;
-    if !o.status.success() {
-        let err = String::from_utf8_lossy(&o.stderr);
-        let last = err.lines().last().unwrap_or("").to_string();
-        let hint = if last.contains("ModuleNotFoundError") {
-            " (install the plotting packages: python3 -m pip install numpy pyarrow matplotlib)"
-        } else {
-            ""
-        };
-        anyhow::bail!("the plot script failed: {last}{hint}");
-    }
-    Ok(())
-}

@@ -46,6 +46,7 @@ pub mod additive;
 pub mod excess;
 pub mod glitch;
 pub mod inject;
+pub mod job;
 pub mod observer;
 pub mod problem;
 pub mod redesign;

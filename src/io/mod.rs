@@ -12,7 +12,8 @@
 //!   [`ParquetAppender`];
 //! - atomic writes ([`atomic`]): every output is written to a temporary file in the destination
 //!   directory, flushed to disk and renamed into place, so a reader never sees a half-written file
-//!   and a failed write leaves nothing behind.
+//!   and a failed write leaves nothing behind;
+//! - figures ([`plot`]): a Python script run on a command's output folder.
 //!
 //! # Errors
 //! Every failure is an [`IoError`] whose message is one line naming the file and, where it applies,
@@ -23,6 +24,7 @@
 
 pub mod atomic;
 pub mod dataset;
+pub mod plot;
 pub mod provenance;
 pub mod run;
 pub mod table;
