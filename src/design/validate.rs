@@ -36,6 +36,17 @@ pub struct Study {
 }
 
 impl Study {
+    /// The study at a scenario's truth, with the standard design's number of stretches.
+    pub fn at_scenario(
+        setup: &Setup,
+        scenario: &str,
+        scaling: Scaling,
+        parameters: Option<&[String]>,
+    ) -> Result<Study, DesignError> {
+        let p = setup.spec.scenario(scenario)?.truth;
+        Study::new(setup, &p, scaling, parameters, None)
+    }
+
     /// Space with the standard design's timing and `slots` stretches per experiment (default:
     /// as many as the standard design has), target `parameters` (default: the non-delay ones).
     pub fn new(
