@@ -40,7 +40,7 @@ pub mod simulate;
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, Result};
+use anyhow::Result;
 use clap::{Args, Parser, Subcommand};
 
 use crate::setup::Setup;
@@ -150,15 +150,7 @@ pub fn run() -> i32 {
     let cli = Cli::parse();
     QUIET.store(cli.quiet, std::sync::atomic::Ordering::Relaxed);
     FORCE.store(cli.force, std::sync::atomic::Ordering::Relaxed);
-    // The size checks allow half the available memory (the rest is the process's other data
-    // and the machine's other users); FREEFALL_MEMORY_BUDGET (bytes) sets it instead.
-    let budget = std::env::var("FREEFALL_MEMORY_BUDGET")
-        .ok()
-        .and_then(|v| v.trim().parse::<f64>().ok())
-        .filter(|b| b.is_finite() && *b > 0.0)
-        .map(|b| b as u64)
-        .or_else(|| crate::io::available_memory().map(|b| b / 2));
-    if let Some(bytes) = budget {
+    if let Some(bytes) = crate::io::memory_budget_from_env() {
         crate::config::set_memory_budget(bytes);
     }
     if let Err(e) =
@@ -294,25 +286,10 @@ fn command_paths(cmd: &Command) -> (Vec<Named<'_>>, Vec<Named<'_>>) {
     (inputs.into_iter().flatten().collect(), outputs)
 }
 
-/// Err when an output path is one of the command's input files (`psd run.parquet --out
-/// run.parquet` would replace its input): same file after resolving links and `..`.
+/// Err when an output path is one of the command's input files.
 fn refuse_output_over_input(cmd: &Command) -> Result<()> {
     let (inputs, outputs) = command_paths(cmd);
-    for (oflag, out) in &outputs {
-        let Ok(o) = out.canonicalize() else {
-            continue; // not there yet: cannot be an existing input
-        };
-        for (iflag, input) in &inputs {
-            if input.canonicalize().is_ok_and(|i| i == o) {
-                anyhow::bail!(
-                    "{oflag} '{}' is the input {iflag} '{}': writing it would replace the input; choose another output path",
-                    out.display(),
-                    input.display()
-                );
-            }
-        }
-    }
-    Ok(())
+    Ok(crate::io::check_output_not_input(&inputs, &outputs)?)
 }
 
 /// A spinner with `msg` and the elapsed time on stderr while a command works (hidden under
@@ -379,13 +356,4 @@ pub fn one_line(e: &anyhow::Error) -> String {
         .collect::<Vec<_>>()
         .join(": ");
     text.split_whitespace().collect::<Vec<_>>().join(" ")
-}
-
-/// Create the parent directory of an output file, with a clear error.
-pub fn ensure_parent(path: &std::path::Path) -> Result<()> {
-    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        crate::io::ensure_dir(dir)
-            .with_context(|| format!("cannot create directory for '{}'", path.display()))?;
-    }
-    Ok(())
 }

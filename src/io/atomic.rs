@@ -265,6 +265,42 @@ pub fn available_memory() -> Option<u64> {
     kb.checked_mul(1024)
 }
 
+/// The memory budget of the size checks (bytes): FREEFALL_MEMORY_BUDGET when it is a positive
+/// number, else half the available memory (the rest is the process's other data and the
+/// machine's other users); None when neither is known.
+pub fn memory_budget_from_env() -> Option<u64> {
+    std::env::var("FREEFALL_MEMORY_BUDGET")
+        .ok()
+        .and_then(|v| v.trim().parse::<f64>().ok())
+        .filter(|b| b.is_finite() && *b > 0.0)
+        .map(|b| b as u64)
+        .or_else(|| available_memory().map(|b| b / 2))
+}
+
+/// Err when one of the `outputs` is one of the `inputs` (`psd run.parquet --out run.parquet`
+/// would replace its input): the same file after resolving links and `..`. Each path comes
+/// with the flag or argument that named it.
+pub fn check_output_not_input(
+    inputs: &[(&str, &Path)],
+    outputs: &[(&str, &Path)],
+) -> Result<(), IoError> {
+    for (oflag, out) in outputs {
+        let Ok(o) = out.canonicalize() else {
+            continue; // not there yet: cannot be an existing input
+        };
+        for (iflag, input) in inputs {
+            if input.canonicalize().is_ok_and(|i| i == o) {
+                return Err(IoError::OutputIsInput {
+                    output: format!("{oflag} '{}'", out.display()),
+                    input: format!("{iflag} '{}'", input.display()),
+                    path: o,
+                });
+            }
+        }
+    }
+    Ok(())
+}
+
 /// Reads a whole UTF-8 text file.
 pub fn read_text(path: impl AsRef<Path>) -> Result<String, IoError> {
     let path = path.as_ref();

@@ -32,9 +32,10 @@ pub mod table;
 use std::path::{Path, PathBuf};
 
 pub use atomic::{
-    available_memory, check_output, create_output_dir, ensure_dir, ensure_parent, file_sha256,
-    read_json, read_text, read_toml, sha256_hex, write_bytes_atomic, write_json_atomic,
-    write_text_atomic, write_toml_atomic, AtomicFile,
+    available_memory, check_output, check_output_not_input, create_output_dir, ensure_dir,
+    ensure_parent, file_sha256, memory_budget_from_env, read_json, read_text, read_toml,
+    sha256_hex, write_bytes_atomic, write_json_atomic, write_text_atomic, write_toml_atomic,
+    AtomicFile,
 };
 pub use dataset::{read_dataset, write_dataset, Dataset, DATASET_FILE_NAME};
 pub use provenance::Provenance;
@@ -194,6 +195,14 @@ pub enum IoError {
         #[source]
         source: Box<IoError>,
     },
+    /// An output path is one of the command's input files (`output` and `input` name the
+    /// flags and the paths as given; `path` is the file).
+    #[error("{output} is the input {input}: writing it would replace the input; choose another output path")]
+    OutputIsInput {
+        output: String,
+        input: String,
+        path: PathBuf,
+    },
     /// A command's output directory could not be created.
     #[error("cannot create output directory '{}'", path.display())]
     OutputDir {
@@ -227,7 +236,8 @@ impl IoError {
             | IoError::DuplicateExperiment { path, .. }
             | IoError::Invalid { path, .. }
             | IoError::ParentDir { path, .. }
-            | IoError::OutputDir { path, .. } => path,
+            | IoError::OutputDir { path, .. }
+            | IoError::OutputIsInput { path, .. } => path,
         }
     }
 
