@@ -204,6 +204,48 @@ pub struct Manifest {
     pub merged_from: Vec<String>,
 }
 
+impl Manifest {
+    /// One line on a run or shard written to `out`: range, resumed part, fits, time, speed.
+    pub fn run_summary(&self, out: &Path) -> String {
+        format!(
+            "campaign '{}' shard {}: realizations {}..{} ({} resumed), {} fits, {} failed, {:.1} s on {} threads ({:.2} realizations/s); wrote {}",
+            self.campaign,
+            self.shard,
+            self.range_start,
+            self.range_end,
+            self.resumed_realizations,
+            self.fits,
+            self.failed,
+            self.wall_seconds,
+            self.threads,
+            self.realizations_per_second,
+            out.display()
+        )
+    }
+
+    /// One line on a run found already complete in `out`.
+    pub fn complete_summary(&self, out: &Path) -> String {
+        format!(
+            "{}: already complete ({} fits, {} failed)",
+            out.display(),
+            self.fits,
+            self.failed
+        )
+    }
+
+    /// One line on a merge into `out`.
+    pub fn merge_summary(&self, out: &Path) -> String {
+        format!(
+            "merged {} parts: {} realizations, {} fits ({} failed) into {}",
+            self.merged_from.len(),
+            self.realizations,
+            self.fits,
+            self.failed,
+            out.display()
+        )
+    }
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 struct State {
     config_hash: String,

@@ -75,40 +75,65 @@ pub fn whiten(a: WhitenArgs) -> Result<()> {
     Ok(())
 }
 
+/// The starting point, the whitening filter's order, the nuisance polynomial and the
+/// constraints of a fit (`fit`, and every fit of `diagnose`).
+#[derive(Debug, Args)]
+pub struct FitOpts {
+    /// Starting point: a scenario name (its guess) or a TOML file of `parameter = value`
+    /// (default: the model's nominal parameters).
+    #[arg(long)]
+    pub guess: Option<String>,
+    /// Whitening filter order (lags).
+    #[arg(long, default_value_t = DEFAULT_WHITENING_ORDER)]
+    pub order: usize,
+    /// Degree of the whitened-domain polynomial nuisance per experiment and channel.
+    #[arg(long, default_value_t = DEFAULT_POLY_DEGREE)]
+    pub poly_degree: usize,
+    /// Hold a parameter fixed (repeatable; in `diagnose`, a base parameter in every fit): NAME
+    /// at its starting value, or NAME=VALUE. It is not fitted, not counted in nu, and its
+    /// sigma is 0.
+    #[arg(long, value_name = "NAME[=VALUE]")]
+    pub fix: Vec<String>,
+    /// A Gaussian prior on a parameter (repeatable; in `diagnose`, a base parameter in every
+    /// fit, and it replaces the model file's prior in the prior-tension report): it adds
+    /// ((p - MEAN) / SIGMA)^2 to the objective and 1 / SIGMA^2 to the information.
+    #[arg(long, value_name = "NAME=MEAN,SIGMA")]
+    pub prior: Vec<String>,
+}
+
+impl FitOpts {
+    /// The library's settings of the dataset fit; readouts that fail the units check are
+    /// refused unless `--force`.
+    pub fn dataset_fit(self) -> DatasetFit {
+        DatasetFit {
+            guess: self.guess,
+            order: self.order,
+            poly_degree: self.poly_degree,
+            fix: self.fix,
+            prior: self.prior,
+            check_units: !super::force(),
+        }
+    }
+}
+
 #[derive(Debug, Args)]
 pub struct FitArgs {
     /// Dataset TOML (noise run + experiments in the measured-data format).
     pub dataset: PathBuf,
     #[command(flatten)]
     pub model: ModelOpt,
-    /// Starting point: a scenario name (its guess) or a TOML file of `parameter = value`
-    /// (default: the model's nominal parameters).
-    #[arg(long)]
-    pub guess: Option<String>,
+    #[command(flatten)]
+    pub fit: FitOpts,
     /// Estimator (thesis eq. "L-estimates").
-    #[arg(long, default_value = "squared")]
+    #[arg(long, value_enum, default_value_t = Estimator::Squared)]
     pub estimator: Estimator,
-    /// Whitening filter order (lags).
-    #[arg(long, default_value_t = DEFAULT_WHITENING_ORDER)]
-    pub order: usize,
     /// Where the whitening filter comes from: the dataset's noise run if it has one (auto),
     /// the noise run, or the model's noise PSD at the guess.
     #[arg(long, value_enum, default_value_t = Whitening::Auto)]
     pub whitening: Whitening,
-    /// Degree of the whitened-domain polynomial nuisance per experiment and channel.
-    #[arg(long, default_value_t = DEFAULT_POLY_DEGREE)]
-    pub poly_degree: usize,
     /// Output directory (created): estimates.parquet, correlation.parquet, fit.json, residuals.parquet.
     #[arg(long)]
     pub out: PathBuf,
-    /// Hold a parameter fixed (repeatable): NAME at its starting value, or NAME=VALUE. It is
-    /// not fitted, not counted in nu, and its sigma is 0.
-    #[arg(long, value_name = "NAME[=VALUE]")]
-    pub fix: Vec<String>,
-    /// A Gaussian prior on a parameter (repeatable): it adds ((p - MEAN) / SIGMA)^2 to the
-    /// objective and 1 / SIGMA^2 to the information.
-    #[arg(long, value_name = "NAME=MEAN,SIGMA")]
-    pub prior: Vec<String>,
     /// Fit start-up transients (thesis sec. 3.2, 4.7): the closed loop's free responses to
     /// initial positions and velocities are fitted nuisance columns of every experiment, and
     /// the noise run's fitted free response is removed before its whitening filter is
@@ -121,14 +146,7 @@ pub struct FitArgs {
 pub fn fit(a: FitArgs) -> Result<()> {
     let setup = a.model.setup()?;
     let job = FitJob {
-        dataset: DatasetFit {
-            guess: a.guess,
-            order: a.order,
-            poly_degree: a.poly_degree,
-            fix: a.fix,
-            prior: a.prior,
-            check_units: !super::force(),
-        },
+        dataset: a.fit.dataset_fit(),
         estimator: a.estimator,
         whitening: a.whitening,
         transient: a.transient,

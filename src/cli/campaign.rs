@@ -83,14 +83,7 @@ pub fn run(c: CampaignCmd) -> Result<()> {
         CampaignCmd::Run(a) => run_campaign(a),
         CampaignCmd::Merge(a) => {
             let m = campaign::merge(&a.parts, &a.out)?;
-            eprintln!(
-                "merged {} parts: {} realizations, {} fits ({} failed) into {}",
-                m.merged_from.len(),
-                m.realizations,
-                m.fits,
-                m.failed,
-                a.out.display()
-            );
+            eprintln!("{}", m.merge_summary(&a.out));
             Ok(())
         }
         CampaignCmd::Slurm(a) => {
@@ -102,10 +95,7 @@ pub fn run(c: CampaignCmd) -> Result<()> {
                 time: a.time,
                 mem: a.mem,
                 cpus_per_task: a.cpus_per_task,
-                binary: match a.binary {
-                    Some(b) => b,
-                    None => std::env::current_exe()?,
-                },
+                binary: a.binary.map_or_else(std::env::current_exe, Ok)?,
             };
             let written = slurm::write(&opts)?;
             outln!(
@@ -173,29 +163,9 @@ fn run_campaign(a: RunArgs) -> Result<()> {
     }
     let m = &report.manifest;
     if report.already_complete {
-        eprintln!(
-            "{}: already complete ({} fits, {} failed)",
-            a.out.display(),
-            m.fits,
-            m.failed
-        );
+        eprintln!("{}", m.complete_summary(&a.out));
         return Ok(());
     }
-    if !super::quiet() {
-        eprintln!(
-            "campaign '{}' shard {}: realizations {}..{} ({} resumed), {} fits, {} failed, {:.1} s on {} threads ({:.2} realizations/s); wrote {}",
-            m.campaign,
-            m.shard,
-            m.range_start,
-            m.range_end,
-            m.resumed_realizations,
-            m.fits,
-            m.failed,
-            m.wall_seconds,
-            m.threads,
-            m.realizations_per_second,
-            a.out.display()
-        );
-    }
+    info!("{}", m.run_summary(&a.out));
     Ok(())
 }

@@ -8,10 +8,9 @@ use std::path::{Path, PathBuf};
 use anyhow::{bail, Result};
 use clap::Args;
 
+use super::analysis::FitOpts;
 use super::ModelOpt;
-use crate::analysis::job::DatasetFit;
 use crate::diagnose::job::DiagnoseJob;
-use crate::setup::{DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 use crate::sim::job::{Rate, SimulateJob};
 use crate::sim::Engine;
 
@@ -25,23 +24,8 @@ pub struct DiagnoseArgs {
     /// time_chi2.parquet and PNG plots (when python3 with matplotlib is available).
     #[arg(long, default_value = "diagnosis")]
     pub out: PathBuf,
-    /// Starting point: a scenario name or a parameter TOML (default: nominal).
-    #[arg(long)]
-    pub guess: Option<String>,
-    /// Whitening filter order (lags).
-    #[arg(long, default_value_t = DEFAULT_WHITENING_ORDER)]
-    pub order: usize,
-    /// Degree of the whitened-domain polynomial nuisance per experiment and channel.
-    #[arg(long, default_value_t = DEFAULT_POLY_DEGREE)]
-    pub poly_degree: usize,
-    /// Hold a base parameter fixed in every fit (repeatable): NAME at its starting value, or
-    /// NAME=VALUE.
-    #[arg(long, value_name = "NAME[=VALUE]")]
-    pub fix: Vec<String>,
-    /// A Gaussian prior on a base parameter in every fit (repeatable); it also replaces the
-    /// model file's prior in the prior-tension report.
-    #[arg(long, value_name = "NAME=MEAN,SIGMA")]
-    pub prior: Vec<String>,
+    #[command(flatten)]
+    pub fit: FitOpts,
     /// Family-wise false-alarm probability of each decision (Bonferroni over candidates).
     #[arg(long, default_value_t = 0.01)]
     pub alpha: f64,
@@ -109,14 +93,7 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
         return simulate(&a, &setup, &dataset);
     }
     let job = DiagnoseJob {
-        dataset: DatasetFit {
-            guess: a.guess,
-            order: a.order,
-            poly_degree: a.poly_degree,
-            fix: a.fix,
-            prior: a.prior,
-            check_units: !super::force(),
-        },
+        dataset: a.fit.dataset_fit(),
         alpha: a.alpha,
         max_effects: a.max_effects,
         max_glitches: a.max_glitches,

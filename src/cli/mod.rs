@@ -231,20 +231,20 @@ fn command_paths(cmd: &Command) -> (Vec<Named<'_>>, Vec<Named<'_>>) {
             vec![
                 Some(("DATASET", &a.dataset)),
                 model(&a.model),
-                guess(&a.guess),
+                guess(&a.fit.guess),
             ],
             vec![("--out", &a.out)],
         ),
         // `--simulate-into DATASET` writes a dataset folder and nothing else.
         Command::Diagnose(a) if a.simulate_into => (
-            vec![model(&a.model), guess(&a.guess)],
+            vec![model(&a.model), guess(&a.fit.guess)],
             a.dataset.iter().map(|p| ("DATASET", p.as_path())).collect(),
         ),
         Command::Diagnose(a) => (
             vec![
                 a.dataset.as_deref().map(|p| ("DATASET", p)),
                 model(&a.model),
-                guess(&a.guess),
+                guess(&a.fit.guess),
             ],
             vec![("--out", &a.out)],
         ),
