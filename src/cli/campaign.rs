@@ -41,7 +41,7 @@ pub struct RunArgs {
 #[derive(Debug, Args)]
 pub struct MergeArgs {
     /// Part directories written by `campaign run --shard K/N`.
-    #[arg(required = true)]
+    #[arg(required = true, value_name = "PART")]
     pub parts: Vec<PathBuf>,
     /// Output directory of the merged tables.
     #[arg(long)]

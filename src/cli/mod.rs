@@ -41,7 +41,7 @@ pub mod simulate;
 use std::path::{Path, PathBuf};
 
 use anyhow::Result;
-use clap::{Args, Parser, Subcommand};
+use clap::{ArgMatches, Args, FromArgMatches, Parser, Subcommand};
 
 use crate::setup::Setup;
 
@@ -147,15 +147,19 @@ pub fn write_stdout(args: std::fmt::Arguments<'_>) {
 
 /// Run the CLI; returns the process exit code.
 pub fn run() -> i32 {
-    let cli = Cli::parse();
+    let command = <Cli as clap::CommandFactory>::command();
+    let matches = command.clone().get_matches();
+    let cli = Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());
     QUIET.store(cli.quiet, std::sync::atomic::Ordering::Relaxed);
     FORCE.store(cli.force, std::sync::atomic::Ordering::Relaxed);
     if let Some(bytes) = crate::io::memory_budget_from_env() {
         crate::config::set_memory_budget(bytes);
     }
-    if let Err(e) =
-        refuse_output_over_input(&cli.command).and_then(|()| refuse_overwrite(&cli.command))
-    {
+    let (inputs, outputs) = command_paths(&command, &matches);
+    let refused = crate::io::check_output_not_input(&inputs, &outputs)
+        .map_err(anyhow::Error::from)
+        .and_then(|()| refuse_overwrite(&cli.command, &outputs));
+    if let Err(e) = refused {
         eprintln!("error: {}", one_line(&e));
         return 1;
     }
@@ -196,100 +200,45 @@ pub fn run() -> i32 {
     }
 }
 
-/// A command-line path and the flag or argument that named it.
-type Named<'a> = (&'static str, &'a Path);
+/// A command-line path and the flag (`--out`) or argument (`RUN`) that named it.
+type Named<'a> = (String, &'a Path);
 
-/// Possibly absent inputs, and the outputs.
-type InputsOutputs<'a> = (Vec<Option<Named<'a>>>, Vec<Named<'a>>);
-
-/// The files a command reads and the paths it writes.
-fn command_paths(cmd: &Command) -> (Vec<Named<'_>>, Vec<Named<'_>>) {
-    fn model(m: &ModelOpt) -> Option<Named<'_>> {
-        m.model.as_deref().map(|p| ("--model", p))
+/// The files a command reads and the paths it writes, read off its parsed arguments: `--out`
+/// (or, with `diagnose --simulate-into`, the DATASET folder) is written; every other path
+/// argument, and `--guess` (a scenario name or a file), is read.
+fn command_paths<'a>(cmd: &clap::Command, m: &'a ArgMatches) -> (Vec<Named<'a>>, Vec<Named<'a>>) {
+    let (mut cmd, mut m) = (cmd, m);
+    while let Some((name, sub)) = m.subcommand() {
+        match cmd.find_subcommand(name) {
+            Some(c) => (cmd, m) = (c, sub),
+            None => break,
+        }
     }
-    fn guess(g: &Option<String>) -> Option<Named<'_>> {
-        g.as_deref().map(|g| ("--guess", Path::new(g)))
+    let simulate_into = m.try_get_one::<bool>("simulate_into").ok().flatten() == Some(&true);
+    let (mut inputs, mut outputs) = (Vec::new(), Vec::new());
+    for arg in cmd.get_arguments() {
+        let id = arg.get_id().as_str();
+        let label = match (arg.get_long(), arg.get_value_names()) {
+            (Some(long), _) => format!("--{long}"),
+            (None, Some([name, ..])) => name.to_string(),
+            (None, _) => id.to_uppercase(),
+        };
+        let paths: Vec<&Path> = match m.try_get_many::<PathBuf>(id) {
+            Ok(Some(v)) => v.map(PathBuf::as_path).collect(),
+            _ if id == "guess" => {
+                let guess = m.try_get_one::<String>(id).ok().flatten();
+                guess.map(Path::new).into_iter().collect()
+            }
+            _ => continue,
+        };
+        let list = match (simulate_into, id) {
+            (true, "out") => continue,
+            (true, "dataset") | (false, "out") => &mut outputs,
+            _ => &mut inputs,
+        };
+        list.extend(paths.into_iter().map(|p| (label.clone(), p)));
     }
-    let (inputs, outputs): InputsOutputs<'_> = match cmd {
-        Command::Model(model::ModelCmd::Transfer(a) | model::ModelCmd::Noise(a)) => {
-            (vec![model(&a.model)], vec![("--out", &a.out)])
-        }
-        Command::Model(model::ModelCmd::Fisher(a)) => {
-            (vec![model(&a.model)], vec![("--out", &a.out)])
-        }
-        Command::Simulate(a) => (vec![model(&a.model)], vec![("--out", &a.out)]),
-        Command::Psd(a) => (vec![Some(("RUN", &a.run))], vec![("--out", &a.out)]),
-        Command::Whiten(a) => (
-            vec![
-                Some(("RUN", &a.run)),
-                a.noise.as_deref().map(|p| ("--noise", p)),
-                model(&a.model),
-            ],
-            vec![("--out", &a.out)],
-        ),
-        Command::Fit(a) => (
-            vec![
-                Some(("DATASET", &a.dataset)),
-                model(&a.model),
-                guess(&a.fit.guess),
-            ],
-            vec![("--out", &a.out)],
-        ),
-        // `--simulate-into DATASET` writes a dataset folder and nothing else.
-        Command::Diagnose(a) if a.simulate_into => (
-            vec![model(&a.model), guess(&a.fit.guess)],
-            a.dataset.iter().map(|p| ("DATASET", p.as_path())).collect(),
-        ),
-        Command::Diagnose(a) => (
-            vec![
-                a.dataset.as_deref().map(|p| ("DATASET", p)),
-                model(&a.model),
-                guess(&a.fit.guess),
-            ],
-            vec![("--out", &a.out)],
-        ),
-        Command::Accel(a) => (
-            vec![
-                Some(("INPUT", &a.input)),
-                a.params.as_deref().map(|p| ("--params", p)),
-                model(&a.model),
-            ],
-            vec![("--out", &a.out)],
-        ),
-        Command::Campaign(campaign::CampaignCmd::Run(a)) => (
-            vec![a.file.as_deref().map(|p| ("FILE", p))],
-            vec![("--out", &a.out)],
-        ),
-        Command::Campaign(campaign::CampaignCmd::Merge(a)) => (
-            a.parts
-                .iter()
-                .map(|p| Some(("PART", p.as_path())))
-                .collect(),
-            vec![("--out", &a.out)],
-        ),
-        Command::Campaign(campaign::CampaignCmd::Slurm(a)) => {
-            (vec![Some(("FILE", &a.file))], vec![("--out", &a.out)])
-        }
-        Command::Design(design::DesignCmd::Optimize(a)) => {
-            (vec![model(&a.study.model)], vec![("--out", &a.out)])
-        }
-        Command::Design(design::DesignCmd::Evaluate(a)) => (
-            vec![Some(("DESIGN", &a.design)), model(&a.study.model)],
-            a.out.iter().map(|p| ("--out", p.as_path())).collect(),
-        ),
-        Command::Completions { .. } | Command::Man => (Vec::new(), Vec::new()),
-        Command::Design(design::DesignCmd::Validate(a)) => (
-            vec![Some(("CAMPAIGN", &a.campaign)), model(&a.model)],
-            a.out.iter().map(|p| ("--out", p.as_path())).collect(),
-        ),
-    };
-    (inputs.into_iter().flatten().collect(), outputs)
-}
-
-/// Err when an output path is one of the command's input files.
-fn refuse_output_over_input(cmd: &Command) -> Result<()> {
-    let (inputs, outputs) = command_paths(cmd);
-    Ok(crate::io::check_output_not_input(&inputs, &outputs)?)
+    (inputs, outputs)
 }
 
 /// A spinner with `msg` and the elapsed time on stderr while a command works (hidden under
@@ -335,13 +284,12 @@ impl Drop for Working {
 /// file or a non-empty output folder is refused unless `--force`. `campaign run` checks its own
 /// folder when it is a campaign's (it continues one with `--resume` and never overwrites a
 /// finished one); any other non-empty folder is refused here like everywhere else.
-fn refuse_overwrite(cmd: &Command) -> Result<()> {
+fn refuse_overwrite(cmd: &Command, outputs: &[Named<'_>]) -> Result<()> {
     if let Command::Campaign(campaign::CampaignCmd::Run(a)) = cmd {
         if a.resume || a.out.join("manifest.json").exists() || a.out.join(".partial").exists() {
             return Ok(());
         }
     }
-    let (_, outputs) = command_paths(cmd);
     for (flag, out) in outputs {
         crate::io::check_output(out, flag, force())?;
     }

@@ -281,8 +281,8 @@ pub fn memory_budget_from_env() -> Option<u64> {
 /// would replace its input): the same file after resolving links and `..`. Each path comes
 /// with the flag or argument that named it.
 pub fn check_output_not_input(
-    inputs: &[(&str, &Path)],
-    outputs: &[(&str, &Path)],
+    inputs: &[(String, &Path)],
+    outputs: &[(String, &Path)],
 ) -> Result<(), IoError> {
     for (oflag, out) in outputs {
         let Ok(o) = out.canonicalize() else {
