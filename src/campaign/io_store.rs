@@ -596,6 +596,17 @@ pub fn max_threads() -> usize {
     std::thread::available_parallelism().map_or(1, |n| n.get())
 }
 
+impl RunOptions {
+    /// A note when the options ask for more worker threads than the machine has cores.
+    pub fn threads_note(&self) -> Option<String> {
+        let max = max_threads();
+        let t = self.threads.filter(|&t| t > max)?;
+        Some(format!(
+            "--threads {t} is more than the machine's {max} cores; using {max}"
+        ))
+    }
+}
+
 /// A finished chunk, with a hint to remove it when it cannot be read (a truncated copy, a full
 /// disk): resuming recomputes a removed chunk.
 fn read_chunk(path: &Path) -> Result<Table, CampaignError> {

@@ -66,9 +66,9 @@ pub fn run(a: AccelArgs) -> Result<()> {
         level: a.level,
         plots: !a.no_plots,
     };
-    let working = super::Working::new("converting to acceleration");
-    let text = job.run(&setup, &a.input, &a.out, &mut |n| working.note(n))?;
-    drop(working);
+    let text = super::working("converting to acceleration", |notes| {
+        job.run(&setup, &a.input, &a.out, notes)
+    })?;
     out!("{text}");
     info!("wrote {}", a.out.display());
     Ok(())

@@ -23,13 +23,7 @@ pub struct PsdArgs {
 
 pub fn psd(a: PsdArgs) -> Result<()> {
     let cs = psd_job(&a.run, &a.out)?;
-    info!(
-        "wrote {} ({} bins, {} segments, {:.1} equivalent degrees of freedom)",
-        a.out.display(),
-        cs.f.len(),
-        cs.segments,
-        cs.dof()
-    );
+    info!("wrote {} ({})", a.out.display(), cs.describe());
     Ok(())
 }
 
@@ -151,9 +145,9 @@ pub fn fit(a: FitArgs) -> Result<()> {
         whitening: a.whitening,
         transient: a.transient,
     };
-    let working = super::Working::new("fitting");
-    let fitted = job.run(&setup, &a.dataset, &a.out, &mut |n| working.note(n))?;
-    drop(working);
+    let fitted = super::working("fitting", |notes| {
+        job.run(&setup, &a.dataset, &a.out, notes)
+    })?;
     out!("{}", fitted.text);
     for t in &fitted.summary.transients {
         outln!("transient {}", t.text());

@@ -122,12 +122,8 @@ fn run_campaign(a: RunArgs) -> Result<()> {
         resume: a.resume,
         threads: a.threads,
     };
-    if let Some(t) = a.threads.filter(|&t| t > campaign::max_threads()) {
-        info!(
-            "note: --threads {t} is more than the machine's {} cores; using {}",
-            campaign::max_threads(),
-            campaign::max_threads()
-        );
+    if let Some(n) = opts.threads_note() {
+        info!("note: {n}");
     }
     crate::io::ensure_dir(&a.out)?;
     let show = !super::quiet() && std::io::stderr().is_terminal();

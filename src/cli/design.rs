@@ -111,9 +111,9 @@ fn optimize(a: OptimizeArgs) -> Result<()> {
     let st = study(&setup, &a.study)?;
     ensure_dir(&a.out)?;
     let crits = a.criterion.criteria(a.on);
-    let working = super::Working::new("optimising");
-    let report = write_optimization(&setup, &st, a.layout, &crits, &a.out)?;
-    drop(working);
+    let report = super::working("optimising", |_| {
+        write_optimization(&setup, &st, a.layout, &crits, &a.out)
+    })?;
     // Printed only once every file is written.
     out!("{report}");
     info!(
@@ -148,9 +148,7 @@ fn validate(a: ValidateArgs) -> Result<()> {
         2 + cfg.criteria.len() + cfg.simultaneous_criteria.len(),
         cfg.realizations
     );
-    let working = super::Working::new("validating");
-    let v = run_validation(&setup, &cfg)?;
-    drop(working);
+    let v = super::working("validating", |_| run_validation(&setup, &cfg))?;
     let md = write_validation(&setup, &v, &cfg, &out)?;
     out!("{md}");
     info!(

@@ -103,9 +103,9 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
         transients: !a.no_transients,
         plots: !a.no_plots,
     };
-    let working = super::Working::new("diagnosing");
-    let d = job.run(&setup, &dataset, &a.out, &mut |n| working.note(n))?;
-    drop(working);
+    let d = super::working("diagnosing", |notes| {
+        job.run(&setup, &dataset, &a.out, notes)
+    })?;
     outln!("{}", d.summary_line());
     info!("wrote {}", a.out.display());
     Ok(())

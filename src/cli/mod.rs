@@ -172,23 +172,8 @@ pub fn run() -> i32 {
         Command::Campaign(c) => campaign::run(c),
         Command::Design(c) => design::run(c),
         Command::Diagnose(a) => diagnose::run(a),
-        Command::Completions { shell } => {
-            let mut out = Vec::new();
-            clap_complete::generate(
-                shell,
-                &mut <Cli as clap::CommandFactory>::command(),
-                "freefall",
-                &mut out,
-            );
-            write_stdout(format_args!("{}", String::from_utf8_lossy(&out)));
-            Ok(())
-        }
-        Command::Man => (|| {
-            let mut out = Vec::new();
-            clap_mangen::Man::new(<Cli as clap::CommandFactory>::command()).render(&mut out)?;
-            write_stdout(format_args!("{}", String::from_utf8_lossy(&out)));
-            Ok(())
-        })(),
+        Command::Completions { shell } => generated(command, Some(shell)),
+        Command::Man => generated(command, None),
         Command::Accel(a) => accel::run(a),
     };
     match res {
@@ -198,6 +183,17 @@ pub fn run() -> i32 {
             1
         }
     }
+}
+
+/// Prints the completion script for `shell`, or without one the man page, of `command`.
+fn generated(mut command: clap::Command, shell: Option<clap_complete::Shell>) -> Result<()> {
+    let mut out = Vec::new();
+    match shell {
+        Some(shell) => clap_complete::generate(shell, &mut command, "freefall", &mut out),
+        None => clap_mangen::Man::new(command).render(&mut out)?,
+    }
+    out!("{}", String::from_utf8_lossy(&out));
+    Ok(())
 }
 
 /// A command-line path and the flag (`--out`) or argument (`RUN`) that named it.
@@ -267,6 +263,12 @@ impl Working {
             None => info!("note: {text}"),
         }
     }
+}
+
+/// Runs `job` under a [`Working`] spinner with `msg`, handing it a printer of its notes.
+pub fn working<T>(msg: &str, job: impl FnOnce(crate::analysis::job::Notes<'_>) -> T) -> T {
+    let w = Working::new(msg);
+    job(&mut |n| w.note(n))
 }
 
 /// Spinner redraw interval (fast enough to look alive, slow enough to cost nothing).

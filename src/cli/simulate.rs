@@ -84,16 +84,9 @@ pub fn run(a: SimulateArgs) -> Result<()> {
 
 /// Runs `job` and writes its dataset to `out`.
 pub fn simulate_into(setup: &Setup, job: &SimulateJob, out: &Path) -> Result<()> {
-    let working = super::Working::new("simulating");
-    let s = job.run(setup)?;
-    drop(working);
+    let s = super::working("simulating", |_| job.run(setup))?;
+    let what = s.describe();
     let path = write_dataset(out, &Dataset::simulated(&s.data, &s.noise, s.meta)?)?;
-    info!(
-        "wrote {} ({} experiments of {} samples at {} Hz, plus a noise run)",
-        path.display(),
-        s.data.names.len(),
-        s.data.len(),
-        1.0 / s.data.dt
-    );
+    info!("wrote {} ({what})", path.display());
     Ok(())
 }

@@ -102,6 +102,18 @@ pub struct Simulated {
     pub meta: toml::Table,
 }
 
+impl Simulated {
+    /// The dataset's size in words: experiments, samples, rate, and the noise run.
+    pub fn describe(&self) -> String {
+        format!(
+            "{} experiments of {} samples at {} Hz, plus a noise run",
+            self.data.names.len(),
+            self.data.len(),
+            1.0 / self.data.dt
+        )
+    }
+}
+
 /// The experiments and the noise-only run's readouts.
 type Runs = (ExperimentData, Vec<Vec<f64>>);
 
