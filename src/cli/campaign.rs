@@ -1,7 +1,6 @@
 //! `freefall campaign run|merge|slurm`: Monte Carlo campaigns from a campaign file (see
 //! `campaign::spec` for the schema), with shards, resume and SLURM job arrays.
 
-use std::io::IsTerminal;
 use std::path::PathBuf;
 
 use anyhow::Result;
@@ -126,34 +125,12 @@ fn run_campaign(a: RunArgs) -> Result<()> {
         info!("note: {n}");
     }
     crate::io::ensure_dir(&a.out)?;
-    let show = !super::quiet() && std::io::stderr().is_terminal();
-    let bar = if show {
-        let pb = indicatif::ProgressBar::new(0);
-        pb.set_style(
-            indicatif::ProgressStyle::with_template(
-                "{bar:40} {pos}/{len} realizations  {per_sec}  ETA {eta}  {msg}",
-            )
-            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
-        );
-        Some(pb)
-    } else {
-        None
-    };
-    let mut progress = |p: Progress| {
-        if let Some(pb) = &bar {
-            if pb.length() != Some(p.total) {
-                pb.set_length(p.total);
-                pb.set_position(p.done);
-                pb.reset_eta();
-            }
-            pb.set_position(p.done);
-            pb.set_message(format!("{} fits, {} failed", p.fits, p.failed));
-        }
-    };
-    let report = campaign::run(&loaded, &opts, &mut progress)?;
-    if let Some(pb) = bar {
-        pb.finish_and_clear();
-    }
+    let bar = super::Working::bar("{bar:40} {pos}/{len} realizations  {per_sec}  ETA {eta}  {msg}");
+    let report = campaign::run(&loaded, &opts, &mut |p: Progress| {
+        let msg = format!("{} fits, {} failed", p.fits, p.failed);
+        bar.progress(p.done, p.total, msg)
+    })?;
+    drop(bar);
     for n in &report.notes {
         info!("note: {n}");
     }

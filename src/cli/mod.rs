@@ -237,23 +237,49 @@ fn command_paths<'a>(cmd: &clap::Command, m: &'a ArgMatches) -> (Vec<Named<'a>>,
     (inputs, outputs)
 }
 
-/// A spinner with `msg` and the elapsed time on stderr while a command works (hidden under
-/// `--quiet` or when stderr is not a terminal); cleared when dropped.
+/// A spinner or a progress bar on stderr while a command works (hidden under `--quiet` or when
+/// stderr is not a terminal); cleared when dropped.
 pub struct Working(Option<indicatif::ProgressBar>);
 
 impl Working {
+    /// A spinner with `msg` and the elapsed time.
     pub fn new(msg: &str) -> Working {
+        let spinner = indicatif::ProgressBar::new_spinner();
+        let w = Working::shown(spinner, "{spinner} {msg} {elapsed}");
+        if let Some(pb) = &w.0 {
+            pb.set_message(msg.to_string());
+            pb.enable_steady_tick(std::time::Duration::from_millis(SPINNER_TICK_MS));
+        }
+        w
+    }
+
+    /// A progress bar drawn with `template`; [`Working::progress`] sets its length.
+    pub fn bar(template: &str) -> Working {
+        Working::shown(indicatif::ProgressBar::new(0), template)
+    }
+
+    fn shown(pb: indicatif::ProgressBar, template: &str) -> Working {
         use std::io::IsTerminal;
         if quiet() || !std::io::stderr().is_terminal() {
             return Working(None);
         }
-        let pb = indicatif::ProgressBar::new_spinner();
-        if let Ok(style) = indicatif::ProgressStyle::with_template("{spinner} {msg} {elapsed}") {
+        if let Ok(style) = indicatif::ProgressStyle::with_template(template) {
             pb.set_style(style);
         }
-        pb.set_message(msg.to_string());
-        pb.enable_steady_tick(std::time::Duration::from_millis(SPINNER_TICK_MS));
         Working(Some(pb))
+    }
+
+    /// Moves the bar to `done` of `total` with `msg`; a new total restarts its rate estimate.
+    pub fn progress(&self, done: u64, total: u64, msg: String) {
+        if let Some(pb) = &self.0 {
+            if pb.length() != Some(total) {
+                pb.set_length(total);
+                pb.set_position(done);
+                pb.reset_eta();
+            }
+            pb.set_position(done);
+            pb.set_message(msg);
+        }
     }
 
     /// Prints `note: {text}` (unless `--quiet`) without breaking the spinner's line.
