@@ -6,11 +6,12 @@ use anyhow::Result;
 use clap::Args;
 
 use super::ModelOpt;
+use crate::diagnose::simulate_job::SimulateJob;
 use crate::io::{write_dataset, Dataset};
 use crate::setup::Setup;
-use crate::sim::job::{Rate, SimulateJob};
 use crate::sim::time_domain::InitialConditions;
 use crate::sim::Engine;
+use crate::sim::Rate;
 
 #[derive(Debug, Args)]
 pub struct SimulateArgs {

@@ -55,6 +55,7 @@ pub mod residuals;
 pub mod science;
 pub mod selection;
 mod simulate;
+pub mod simulate_job;
 pub mod tables;
 pub mod tension;
 mod transient;

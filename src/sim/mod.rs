@@ -5,7 +5,6 @@
 
 pub mod decimated;
 pub mod experiment;
-pub mod job;
 pub mod rng;
 pub mod time_domain;
 pub mod transient;
@@ -33,6 +32,26 @@ impl Engine {
         match self {
             Engine::FrequencyDomain => "frequency-domain",
             Engine::TimeDomain => "time-domain",
+        }
+    }
+}
+
+/// The simulation path of a dataset.
+#[derive(Debug, Clone, Copy, clap::ValueEnum, PartialEq, Eq)]
+pub enum Rate {
+    /// Simulate at the model's simulate_hz and decimate with the anti-alias FIR (thesis).
+    Decimated,
+    /// Simulate directly at analyse_hz (ideal anti-alias decimation; what frequency-domain
+    /// campaigns use).
+    Analysis,
+}
+
+impl Rate {
+    /// The name in the dataset's `[meta]`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Rate::Decimated => "decimated",
+            Rate::Analysis => "analysis",
         }
     }
 }

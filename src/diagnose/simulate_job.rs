@@ -2,11 +2,13 @@
 //! and a noise-only run, drawn at a scenario's truth by one of the engines (frequency-domain
 //! templates plus coloured noise, or the digital loop stepped in time), optionally with effects
 //! the nominal model lacks switched on in the truth, and the `[meta]` that records how.
-//! The caller writes it (`io::write_dataset`); nothing here touches the file system.
+//! It sits with the diagnosis because the effects are the diagnosis' library ([`super::inject`],
+//! [`super::simulate`]). The caller writes it (`io::write_dataset`); nothing here touches the
+//! file system.
 
+use super::inject::{apply, EffectSet, Injected};
+use super::{simulate_effect_set, DiagnoseError};
 use crate::data::ExperimentData;
-use crate::diagnose::inject::{apply, EffectSet, Injected};
-use crate::diagnose::{simulate_effect_set, DiagnoseError};
 use crate::model::effects::Extended;
 use crate::model::spec::Scenario;
 use crate::model::{check_stability, ModelError};
@@ -14,31 +16,11 @@ use crate::setup::{Error as SetupError, Setup};
 use crate::signal::Design;
 use crate::sim::rng::stream;
 use crate::sim::time_domain::{InitialConditions, PlantEffects, TimeDomainError};
-use crate::sim::Engine;
+use crate::sim::{Engine, Rate};
 
 /// The default noise-only run lasts this many experiment durations (the thesis characterises
 /// noise on runs of 12 to 28 hours, longer than the 3-hour experiments).
 pub const NOISE_DURATIONS: f64 = 4.0;
-
-/// The simulation path.
-#[derive(Debug, Clone, Copy, clap::ValueEnum, PartialEq, Eq)]
-pub enum Rate {
-    /// Simulate at the model's simulate_hz and decimate with the anti-alias FIR (thesis).
-    Decimated,
-    /// Simulate directly at analyse_hz (ideal anti-alias decimation; what frequency-domain
-    /// campaigns use).
-    Analysis,
-}
-
-impl Rate {
-    /// The name in the dataset's `[meta]`.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Rate::Decimated => "decimated",
-            Rate::Analysis => "analysis",
-        }
-    }
-}
 
 /// Errors of a simulation job; each names the option at fault.
 #[derive(Debug, thiserror::Error)]
