@@ -25,8 +25,6 @@ pub const NOISE_DURATIONS: f64 = 4.0;
 /// Errors of a simulation job; each names the option at fault.
 #[derive(Debug, thiserror::Error)]
 pub enum SimulateError {
-    #[error("--noise-duration must be a positive number of seconds, got {0}")]
-    NoiseDuration(f64),
     #[error(
         "--rate analysis is for the frequency-domain engine; the time-domain engine steps \
          the loop at simulate_hz and decimates"
@@ -44,6 +42,8 @@ pub enum SimulateError {
     /// A line effect that cannot be added to the readouts.
     #[error("--effect: {0}")]
     Inject(String),
+    #[error(transparent)]
+    Config(#[from] crate::config::OutOfRange),
     #[error(transparent)]
     Setup(#[from] SetupError),
     #[error(transparent)]
@@ -119,9 +119,7 @@ impl SimulateJob {
         let noise_duration = self
             .noise_duration
             .unwrap_or(NOISE_DURATIONS * design.duration_s);
-        if !(noise_duration.is_finite() && noise_duration > 0.0) {
-            return Err(SimulateError::NoiseDuration(noise_duration));
-        }
+        crate::config::positive("--noise-duration", noise_duration)?;
         let noise_design = design.noise_only(noise_duration);
         setup.check_simulation_size(&noise_design, "--noise-duration")?;
         let rate = self.resolved_rate();
