@@ -249,7 +249,8 @@ pub struct FitJob {
 #[derive(Debug)]
 pub struct FitOutcome {
     pub summary: FitSummary,
-    /// The chi^2 line and one line per parameter (with truth and pull when the dataset has it).
+    /// The chi^2 line, one line per parameter (with truth and pull when the dataset has it)
+    /// and one per fitted start-up transient.
     pub text: String,
     /// Whether the optimiser stopped by a convergence test (the summary's `converged` also
     /// asks for a chi^2 near its noise reference).
@@ -340,8 +341,12 @@ impl FitJob {
         };
         write_fit(setup, &prep, &lik, &res, &summary, out)?;
         let truth = truth_from_meta(ds, &names);
+        let mut text = summary.text(&names, &res, guess, truth.as_deref());
+        for t in &summary.transients {
+            text.push_str(&format!("transient {}\n", t.text()));
+        }
         Ok(FitOutcome {
-            text: summary.text(&names, &res, guess, truth.as_deref()),
+            text,
             summary,
             terminated: res.termination.converged(),
         })

@@ -149,9 +149,6 @@ pub fn fit(a: FitArgs) -> Result<()> {
         job.run(&setup, &a.dataset, &a.out, notes)
     })?;
     out!("{}", fitted.text);
-    for t in &fitted.summary.transients {
-        outln!("transient {}", t.text());
-    }
     info!("wrote {}", a.out.display());
     for w in &fitted.summary.warnings {
         eprintln!("warning: {w}");
