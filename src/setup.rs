@@ -82,6 +82,23 @@ impl Setup {
         }
     }
 
+    /// The same model with its loop `kind` (continuous or digital) instead of the file's.
+    pub fn with_loop(self, kind: crate::model::spec::LoopKind) -> Result<Self, Error> {
+        if self.spec.control_loop.kind == kind {
+            return Ok(self);
+        }
+        let mut spec = self.spec;
+        spec.control_loop.kind = kind;
+        Self::new(spec)
+    }
+
+    /// The embedded model with the thesis's continuous loop (its tables' comparisons).
+    pub fn embedded_continuous() -> Self {
+        Self::embedded()
+            .with_loop(crate::model::spec::LoopKind::Continuous)
+            .expect("embedded model is valid")
+    }
+
     pub fn parameter_names(&self) -> Vec<String> {
         self.spec.parameter_names()
     }

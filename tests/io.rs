@@ -879,7 +879,7 @@ fn dataset_unknown_keys_are_named() {
         &err.to_string(),
         &[
             "dataset.toml: unknown key 'experimnt'",
-            "noise, experiment, meta",
+            "noise, experiment, injections, meta",
         ],
     );
 
@@ -1024,6 +1024,7 @@ fn write_dataset_validates_before_writing() {
             ("b".into(), sample_run(11, 0.5, 0.0)),
         ],
         meta: toml::Table::new(),
+        injections: None,
         notes: Vec::new(),
     };
     let err = write_dataset(&out, &ds).unwrap_err();

@@ -94,8 +94,6 @@ pub struct WhitenJob {
     pub noise: Option<PathBuf>,
     /// Build the whitening filter from the model's noise PSD instead.
     pub model_psd: bool,
-    /// Model file of the noise PSD (default: the embedded one).
-    pub model: Option<PathBuf>,
     /// Scenario whose true parameters set the model noise PSD (default: nominal parameters).
     pub scenario: Option<String>,
     /// Whitening filter order (lags).
@@ -105,9 +103,15 @@ pub struct WhitenJob {
 }
 
 impl WhitenJob {
-    /// Whitens `run_path` into `out`; returns the report: the filter, where it came from, and
-    /// the whitened moments with their uncertainties.
-    pub fn run(&self, run_path: &Path, out: &Path) -> Result<String, JobError> {
+    /// Whitens `run_path` into `out`; `setup` loads the model when its noise PSD is asked for.
+    /// Returns the report: the filter, where it came from, and the whitened moments with their
+    /// uncertainties.
+    pub fn run(
+        &self,
+        setup: impl FnOnce() -> Result<Setup, SetupError>,
+        run_path: &Path,
+        out: &Path,
+    ) -> Result<String, JobError> {
         let run = read_run(run_path)?;
         let (whitener, source) = match (&self.noise, self.model_psd) {
             (Some(path), _) => {
@@ -126,7 +130,7 @@ impl WhitenJob {
                 (w, format!("noise run {}", path.display()))
             }
             (None, true) => {
-                let setup = Setup::load(self.model.as_deref())?;
+                let setup = setup()?;
                 let p = match &self.scenario {
                     Some(s) => setup.spec.scenario(s)?.truth,
                     None => setup.spec.nominal(),
@@ -199,7 +203,7 @@ impl DatasetFit {
         for n in &ds.notes {
             notes(n);
         }
-        let (data, joined) = experiment_data(&ds)?;
+        let (data, joined) = experiment_data(setup, &ds)?;
         for n in &joined {
             notes(n);
         }

@@ -5,6 +5,7 @@
 //! and lays the results out as tables ([`tables`]). Measured and simulated data take the same
 //! path; nothing here prints.
 
+pub mod guidance;
 pub mod job;
 pub mod model_tables;
 pub mod tables;
@@ -31,6 +32,8 @@ pub enum AnalysisError {
     UnknownGuess { guess: String, scenarios: String },
     #[error("{}: {reason}", file.display())]
     GuessFile { file: PathBuf, reason: String },
+    #[error("{}: {reason}", file.display())]
+    Guidance { file: PathBuf, reason: String },
     #[error("--whitening noise: the dataset has no noise run")]
     NoNoiseRun,
     #[error("{}: {source}", what)]
@@ -56,10 +59,12 @@ pub fn outputs_of(run: &Run) -> Vec<Vec<f64>> {
 
 /// The experiments of a dataset as fit input, with notes on how the segments of runs with gaps
 /// were joined (a segment carries the earlier segments' guidance as lead-in when the gap lies
-/// in an injection pause).
-pub fn experiment_data(ds: &Dataset) -> Result<(ExperimentData, Vec<String>)> {
+/// in an injection pause) and, when the dataset declares its design, on the guidance made from
+/// it at the control rate ([`guidance`]).
+pub fn experiment_data(setup: &Setup, ds: &Dataset) -> Result<(ExperimentData, Vec<String>)> {
     let dt = ds.dt().ok_or(AnalysisError::NoRuns)?;
-    let (inputs, notes) = ds.inputs_with_lead_in();
+    let (mut inputs, mut notes) = ds.inputs_with_lead_in();
+    notes.extend(guidance::apply_declared_design(setup, ds, &mut inputs)?);
     let data = ExperimentData {
         names: ds.experiments.iter().map(|(n, _)| n.clone()).collect(),
         inputs,

@@ -57,13 +57,12 @@ pub fn whiten(a: WhitenArgs) -> Result<()> {
     let job = WhitenJob {
         noise: a.noise,
         model_psd: a.model_psd,
-        model: a.model.model,
         scenario: a.scenario,
         order: a.order,
         poly_degree: a.poly_degree,
     };
     // Printed once the file is written.
-    let report = job.run(&a.run, &a.out)?;
+    let report = job.run(|| a.model.setup(), &a.run, &a.out)?;
     out!("{report}");
     info!("wrote {}", a.out.display());
     Ok(())

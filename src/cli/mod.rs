@@ -101,11 +101,20 @@ pub struct ModelOpt {
     /// Model file (TOML, schema of lpf_x.toml); default: the embedded LPF-x reference model.
     #[arg(long, value_name = "FILE")]
     pub model: Option<PathBuf>,
+    /// The loop's frequency response, overriding the model file's `[control_loop] kind`: the
+    /// embedded model is digital (the spacecraft's held, sampled loop); `continuous` is the
+    /// thesis's idealisation, which its tables use.
+    #[arg(long = "loop", value_enum, value_name = "KIND")]
+    pub control_loop: Option<crate::model::spec::LoopKind>,
 }
 
 impl ModelOpt {
-    pub fn setup(&self) -> Result<Setup> {
-        Setup::load(self.model.as_deref()).map_err(anyhow::Error::from)
+    pub fn setup(&self) -> Result<Setup, crate::setup::Error> {
+        let setup = Setup::load(self.model.as_deref())?;
+        Ok(match self.control_loop {
+            Some(kind) => setup.with_loop(kind)?,
+            None => setup,
+        })
     }
 }
 

@@ -8,11 +8,20 @@
 //! [[experiment]]
 //! name = "exp2"
 //! file = "exp2.parquet"
+//! [injections]                         # optional: the guidance as designed (see below)
+//! design = "standard"                  # a model-file injection table, or a design TOML file
+//! start_s = 0.0                        # the design's t = 0 on the runs' time axis (default 0)
 //! [meta]                               # optional, free form (scenario, seed, truth values, ...)
 //! scenario = "standard"
 //! [meta.truth]
 //! w1_sq = -1.0e-6
 //! ```
+//!
+//! `[injections]` declares what was injected: each experiment (a segment `NAME.segK` too) is
+//! the design's experiment of the same name. The analysis then builds the guidance at the
+//! control rate and passes it through the telemetry's anti-alias decimation, as the readouts
+//! were, instead of trusting the 1 Hz `oi` columns, which cannot carry the stretch edges'
+//! content above the telemetry Nyquist frequency (`analysis::guidance`).
 //!
 //! Run paths are relative to the directory of the TOML file. [`read_dataset`] rejects unknown keys
 //! (naming the key), duplicate or empty experiment names, and loads and validates every run
@@ -39,7 +48,8 @@ use super::{in_memory, IoError};
 /// File name of the dataset description written by [`write_dataset`].
 pub const DATASET_FILE_NAME: &str = "dataset.toml";
 
-const TOP_KEYS: [&str; 3] = ["noise", "experiment", "meta"];
+const TOP_KEYS: [&str; 4] = ["noise", "experiment", "injections", "meta"];
+const INJECTION_KEYS: [&str; 2] = ["design", "start_s"];
 const EXPERIMENT_KEYS: [&str; 2] = ["name", "file"];
 
 /// A loaded, validated dataset.
@@ -53,6 +63,8 @@ pub struct Dataset {
     pub experiments: Vec<(String, Run)>,
     /// Free-form metadata (`[meta]`), e.g. scenario, seed, `[meta.truth]` parameter values.
     pub meta: toml::Table,
+    /// The declared injection design (`[injections]`), if any.
+    pub injections: Option<DeclaredInjections>,
     /// What the reader did leniently (columns ignored, timestamps converted, float32 readouts),
     /// one line each, for the commands to print as notes.
     pub notes: Vec<String>,
@@ -66,8 +78,22 @@ struct DatasetFile {
     noise: Option<String>,
     #[serde(default)]
     experiment: Vec<ExperimentEntry>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    injections: Option<DeclaredInjections>,
     #[serde(default, skip_serializing_if = "toml::Table::is_empty")]
     meta: toml::Table,
+}
+
+/// `[injections]`: the design the experiments ran, and when its clock started.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DeclaredInjections {
+    /// A model-file injection table (`standard`) or a design TOML file as `design optimize`
+    /// writes it, relative to the dataset file.
+    pub design: String,
+    /// The design's `t = 0` on the runs' time axis [s].
+    #[serde(default)]
+    pub start_s: f64,
 }
 
 #[derive(Debug, Serialize, Deserialize)]
@@ -113,6 +139,7 @@ impl Dataset {
             noise: None,
             experiments,
             meta: toml::Table::new(),
+            injections: None,
             notes: Vec::new(),
         };
         d.validate()?;
@@ -130,6 +157,19 @@ impl Dataset {
     pub fn with_meta(mut self, meta: toml::Table) -> Dataset {
         self.meta = meta;
         self
+    }
+
+    /// Declares the injection design (`[injections]`).
+    pub fn with_injections(mut self, injections: DeclaredInjections) -> Dataset {
+        self.injections = Some(injections);
+        self
+    }
+
+    /// The directory relative paths of the dataset file are resolved against.
+    pub fn dir(&self) -> PathBuf {
+        self.path
+            .as_deref()
+            .map_or_else(PathBuf::new, |p| parent_dir(p).to_path_buf())
     }
 
     /// The experiment called `name`.
@@ -355,6 +395,11 @@ fn check_keys(path: &Path, raw: &toml::Table) -> Result<(), IoError> {
             return Err(unknown(key, String::new(), &TOP_KEYS));
         }
     }
+    if let Some(toml::Value::Table(t)) = raw.get("injections") {
+        if let Some(key) = t.keys().find(|k| !INJECTION_KEYS.contains(&k.as_str())) {
+            return Err(unknown(key, "[injections]".into(), &INJECTION_KEYS));
+        }
+    }
     if let Some(toml::Value::Array(entries)) = raw.get("experiment") {
         for (i, entry) in entries.iter().enumerate() {
             if let toml::Value::Table(t) = entry {
@@ -479,11 +524,24 @@ pub fn read_dataset(path: impl AsRef<Path>) -> Result<Dataset, IoError> {
         experiments.extend(names.into_iter().zip(segments));
     }
     check_consistency(path, noise.as_ref(), &experiments)?;
+    if let Some(inj) = &spec.injections {
+        if inj.design.trim().is_empty() || !inj.start_s.is_finite() {
+            return Err(IoError::invalid(
+                path,
+                format!(
+                    "[injections]: design = '{}', start_s = {}: the design must be named and \
+                     start_s finite",
+                    inj.design, inj.start_s
+                ),
+            ));
+        }
+    }
     Ok(Dataset {
         path: Some(path.to_path_buf()),
         noise,
         experiments,
         meta: spec.meta,
+        injections: spec.injections,
         notes,
     })
 }
@@ -568,6 +626,7 @@ pub fn write_dataset(dir: impl AsRef<Path>, dataset: &Dataset) -> Result<PathBuf
     let spec = DatasetFile {
         noise,
         experiment: entries,
+        injections: dataset.injections.clone(),
         meta: dataset.meta.clone(),
     };
     write_toml_atomic(&toml_path, &spec)?;

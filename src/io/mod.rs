@@ -37,7 +37,7 @@ pub use atomic::{
     sha256_hex, write_bytes_atomic, write_json_atomic, write_text_atomic, write_toml_atomic,
     AtomicFile,
 };
-pub use dataset::{read_dataset, write_dataset, Dataset, DATASET_FILE_NAME};
+pub use dataset::{read_dataset, write_dataset, Dataset, DeclaredInjections, DATASET_FILE_NAME};
 pub use provenance::Provenance;
 pub use run::{
     read_csv, read_csv_noted, read_run, read_run_noted, read_run_segments, write_run, Gap, Run,

@@ -446,11 +446,13 @@ pub struct AntiAliasSpec {
 
 /// Which frequency response the model uses: the thesis's continuous loop, or the sampled-data
 /// loop (discrete controllers at `sampling.simulate_hz`, commands held, continuous plant).
-#[derive(Debug, Clone, Copy, Default, Deserialize, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, Default, Deserialize, PartialEq, Eq, clap::ValueEnum)]
 #[serde(rename_all = "snake_case")]
 pub enum LoopKind {
+    /// The thesis's idealisation: continuous controllers, no hold (its tables use it).
     #[default]
     Continuous,
+    /// The spacecraft's loop: discrete controllers at the control rate, held commands.
     Digital,
 }
 

@@ -305,6 +305,11 @@ impl ClosedLoopModel<2> for Extended {
         stability::instability(self, p)
     }
 
+    /// The base plant's: the effects perturb forces and readouts, not the hold.
+    fn inertia_advance(&self) -> f64 {
+        self.base.inertia_advance()
+    }
+
     fn noise_entry(&self, name: &str) -> Option<NoiseEntry<2>> {
         self.base.noise_entry(name)
     }

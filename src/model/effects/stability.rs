@@ -11,6 +11,14 @@
 //! - an unstable pole is located by continuation: every base pole is followed by Newton's method
 //!   while the effects are switched on in steps from zero to their values.
 //!
+//! A digital (sampled-data) base model is a rational function of `z = exp(s h)`: its operators
+//! repeat beyond the Nyquist frequency `1 / (2 h)`, where `D_d` has its pole (`z = -1`). There
+//! the same count runs along the upper unit circle, `f` from 0+ to Nyquist: a factor `z - z0`
+//! turns the phase by `2 pi` around the whole circle when `|z0| < 1` and by 0 when `|z0| > 1`,
+//! so each extra zero outside the unit circle again changes the phase by `-pi` over the half
+//! circle (the effects add their poles inside it). At Nyquist `D_d` dominates `Delta` and the
+//! ratio tends to a real constant, as at infinity in `s`.
+//!
 //! A negative lag (a lead, not physical) has a pole of its own at `s = 1/|tau|`, which the count
 //! does not see: for the small leads a fit may step through it lies far above the loop's
 //! bandwidth, where it is cancelled by a closed-loop zero next to it.
@@ -21,6 +29,7 @@ use super::Extended;
 use crate::model::closed_loop::{ClosedLoopModel, Instability};
 use crate::model::lpf_x::LpfPoint;
 use crate::model::poly::RootsError;
+use crate::model::sampled::z_and_zm1;
 
 /// Log-spaced frequency range of the phase tracking (Hz), and the starting density.
 const F_LO: f64 = 1e-9;
@@ -29,6 +38,32 @@ const PER_DECADE: usize = 50;
 /// A phase step above this (rad) between neighbouring points is refined by bisection.
 const MAX_STEP: f64 = 0.3;
 const MAX_DEPTH: usize = 40;
+/// A digital model's band ends this fraction below Nyquist, where `D_d = .../(z + 1)` is
+/// infinite and the ratio is 0/0; the ratio is already at its real limit there.
+const NYQUIST_MARGIN: f64 = 1e-6;
+
+/// The top of the frequency band the phase is tracked over (see the module docs).
+fn band_top(model: &Extended) -> f64 {
+    model
+        .base
+        .digital
+        .as_ref()
+        .map_or(F_HI, |dl| (1.0 - NYQUIST_MARGIN) / (2.0 * dl.h))
+}
+
+/// The base loop's characteristic polynomial at `s` (continuous, or the digital one in
+/// `w = z - 1`): `det Delta_base` with the controllers' poles cleared.
+fn base_polynomial_at(model: &Extended, s: Complex64, q: &[f64]) -> Complex64 {
+    match &model.base.digital {
+        Some(dl) => model
+            .base
+            .digital_characteristic_polynomial(q)
+            .map_or(Complex64::new(f64::NAN, 0.0), |poly| {
+                poly.eval(z_and_zm1(s, dl.h).1)
+            }),
+        None => model.base.characteristic_polynomial(q).eval(s),
+    }
+}
 
 fn det2(m: &crate::model::closed_loop::CMat<2>) -> Complex64 {
     m[(0, 0)] * m[(1, 1)] - m[(0, 1)] * m[(1, 0)]
@@ -61,9 +96,10 @@ pub(super) fn extra_rhp_zeros(model: &Extended, p: &[f64]) -> Option<usize> {
             &nominal,
         )
     };
-    let n = ((F_HI / F_LO).log10() * PER_DECADE as f64).ceil() as usize;
+    let f_hi = band_top(model);
+    let n = ((f_hi / F_LO).log10() * PER_DECADE as f64).ceil() as usize;
     let freqs: Vec<f64> = (0..=n)
-        .map(|i| F_LO * (F_HI / F_LO).powf(i as f64 / n as f64))
+        .map(|i| F_LO * (f_hi / F_LO).powf(i as f64 / n as f64))
         .collect();
     let mut total = 0.0;
     let mut prev = at(freqs[0]);
@@ -111,17 +147,13 @@ fn phase_change(
 pub(super) fn locate(model: &Extended, p: &[f64]) -> Option<Complex64> {
     let n_base = model.n_base();
     // The base poles were computable when `instability` got here.
-    let base_poles = model
-        .base
-        .characteristic_polynomial(&p[..n_base])
-        .roots()
-        .unwrap_or_default();
+    let base_poles = model.base.poles(&p[..n_base]).unwrap_or_default();
     let char_fn = |s: Complex64, q: &[f64]| {
         let pt = model.base.prepare_s(s);
         let nominal = model.nested(&q[..n_base]);
         // det Delta_ext = r * det Delta_base, and the base polynomial is det Delta_base times
         // the controllers' denominators: multiply r by it to clear the controllers' poles.
-        let poly = model.base.characteristic_polynomial(&q[..n_base]).eval(s);
+        let poly = base_polynomial_at(model, s, &q[..n_base]);
         det_delta(model, &pt, q) / det_delta(model, &pt, &nominal) * poly
     };
     const STEPS: usize = 20;
