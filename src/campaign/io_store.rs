@@ -596,6 +596,12 @@ pub fn max_threads() -> usize {
     std::thread::available_parallelism().map_or(1, |n| n.get())
 }
 
+/// Whether `out` holds a campaign's run (finished, or interrupted with checkpoints), which a
+/// `campaign run` continues or reports complete instead of refusing it as a non-empty folder.
+pub fn is_campaign_folder(out: &Path) -> bool {
+    out.join(MANIFEST).exists() || out.join(PARTIAL).exists()
+}
+
 impl RunOptions {
     /// A note when the options ask for more worker threads than the machine has cores.
     pub fn threads_note(&self) -> Option<String> {

@@ -143,11 +143,8 @@ fn validate(a: ValidateArgs) -> Result<()> {
     let cfg = ValidationConfig::from_file(&a.campaign, a.realizations)?;
     let out = a.out.clone().unwrap_or_else(|| cfg.out.clone());
     ensure_dir(&out)?;
-    info!(
-        "validating {} designs x {} realizations ...",
-        2 + cfg.criteria.len() + cfg.simultaneous_criteria.len(),
-        cfg.realizations
-    );
+    let (designs, realizations) = (cfg.designs(), cfg.realizations);
+    info!("validating {designs} designs x {realizations} realizations ...");
     let v = super::working("validating", |_| run_validation(&setup, &cfg))?;
     let md = write_validation(&setup, &v, &cfg, &out)?;
     out!("{md}");

@@ -184,6 +184,13 @@ struct ValidationSpec {
 pub const MIN_VALIDATION_REALIZATIONS: usize = 2;
 
 impl ValidationConfig {
+    /// How many designs the validation compares: the standard and the thesis's T-information
+    /// designs (the fixed references of `candidate_designs`) and one per criterion and layout.
+    pub fn designs(&self) -> usize {
+        let references = 2;
+        references + self.criteria.len() + self.simultaneous_criteria.len()
+    }
+
     /// Read and check `[design_validation]` of `file`; `realizations` overrides the file's.
     pub fn from_file(file: &Path, realizations: Option<usize>) -> Result<Self, DesignError> {
         let spec = crate::io::read_toml::<ValidationFile>(file)?.design_validation;
