@@ -19,6 +19,7 @@
 //! No file I/O; runs arrive as [`crate::io::Run`] values.
 
 pub mod derivative;
+pub mod job;
 pub mod operator;
 pub mod report;
 pub mod spectra;

@@ -6,6 +6,7 @@
 //! path; nothing here prints.
 
 pub mod guidance;
+pub mod job;
 pub mod model_tables;
 pub mod tables;
 pub mod transient;

@@ -1,13 +1,16 @@
 //! Closed-loop model products as tables (`freefall model transfer|noise|fisher`): the
 //! transfer matrix `T_{oi->o}(f)` (thesis ch. 3, "closed-loop operators"), the readout noise
 //! cross-PSD (ch. 4, "noise"), and the Fisher errors and correlations of a design (ch. 4,
-//! "estimation"; the reference README's formula).
+//! "estimation"; the reference README's formula), and the jobs that write them ([`GridJob`],
+//! [`FisherJob`]).
 
 use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
 
-use crate::io::{IoError, Table};
+use super::job::JobError;
+use crate::io::{ensure_parent, write_parquet, IoError, Provenance, Table};
 use crate::model::lpf_x::THESIS_SIGMA;
-use crate::model::{transfer, ClosedLoopModel};
+use crate::model::{check_stability, transfer, ClosedLoopModel};
 use crate::setup::Setup;
 use crate::signal::Design;
 
@@ -117,4 +120,89 @@ pub fn fisher_errors(
         correlation,
         text,
     }))
+}
+
+/// A scenario's truth (default: the nominal parameters), checked for a stable closed loop.
+fn stable_parameters(setup: &Setup, scenario: Option<&str>) -> Result<Vec<f64>, JobError> {
+    let p = match scenario {
+        Some(name) => setup.spec.scenario(name)?.truth,
+        None => setup.spec.nominal(),
+    };
+    check_stability(&setup.model, &p, Some(&setup.spec.nominal()))?;
+    Ok(p)
+}
+
+/// A closed-loop product tabulated on a log frequency grid.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Product {
+    /// The transfer matrix `T_{oi->o}` ([`transfer_table`]).
+    Transfer,
+    /// The readout noise cross-PSD ([`noise_table`]).
+    Noise,
+}
+
+/// A closed-loop product on `points` log-spaced frequencies from `fmin` to `fmax` [Hz], at a
+/// scenario's truth (default: the nominal parameters), written to a Parquet file.
+#[derive(Debug, Clone)]
+pub struct GridJob {
+    pub product: Product,
+    pub scenario: Option<String>,
+    pub fmin: f64,
+    pub fmax: f64,
+    pub points: usize,
+}
+
+impl GridJob {
+    /// Writes the table, with its provenance, to `out`; returns the number of frequencies.
+    pub fn run(&self, setup: &Setup, out: &Path) -> Result<usize, JobError> {
+        let p = stable_parameters(setup, self.scenario.as_deref())?;
+        let f = log_grid(self.fmin, self.fmax, self.points).map_err(JobError::Invalid)?;
+        let nyquist = 0.5 * setup.spec.sampling.simulate_hz;
+        if self.fmax > nyquist {
+            return Err(JobError::Invalid(format!(
+                "--fmax {} Hz is above the simulation Nyquist frequency {nyquist} Hz",
+                self.fmax
+            )));
+        }
+        let (table, command) = match self.product {
+            Product::Noise => (noise_table(setup, &p, &f)?, "model noise"),
+            Product::Transfer => (transfer_table(setup, &p, &f)?, "model transfer"),
+        };
+        let prov = Provenance::new(command).with_model(&setup.spec);
+        ensure_parent(out)?;
+        write_parquet(out, &table.with_meta_all(&prov.meta))?;
+        Ok(f.len())
+    }
+}
+
+/// The Fisher errors and correlations of a design of the model file at a scenario's truth.
+#[derive(Debug, Clone)]
+pub struct FisherJob {
+    pub scenario: String,
+    pub design: String,
+}
+
+impl FisherJob {
+    /// Writes the errors to `out` and the correlations to `<stem>_corr.parquet` beside it;
+    /// returns the printable comparison with the thesis's sigmas and the correlations' path.
+    pub fn run(&self, setup: &Setup, out: &Path) -> Result<(String, PathBuf), JobError> {
+        let p = stable_parameters(setup, Some(&self.scenario))?;
+        let design = setup.design(&self.design)?;
+        let fe = fisher_errors(setup, &design, &p)?.ok_or_else(|| {
+            JobError::Invalid(
+                "Fisher information is singular: the design cannot constrain every parameter"
+                    .into(),
+            )
+        })?;
+        let prov = Provenance::new("model fisher").with_model(&setup.spec);
+        ensure_parent(out)?;
+        let stem = out
+            .file_stem()
+            .map(|s| s.to_string_lossy().to_string())
+            .unwrap_or_else(|| "fisher".into());
+        let corr_path = out.with_file_name(format!("{stem}_corr.parquet"));
+        write_parquet(out, &fe.table.with_meta_all(&prov.meta))?;
+        write_parquet(&corr_path, &fe.correlation.with_meta_all(&prov.meta))?;
+        Ok((fe.text, corr_path))
+    }
 }

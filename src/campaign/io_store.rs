@@ -204,6 +204,48 @@ pub struct Manifest {
     pub merged_from: Vec<String>,
 }
 
+impl Manifest {
+    /// One line on a run or shard written to `out`: range, resumed part, fits, time, speed.
+    pub fn run_summary(&self, out: &Path) -> String {
+        format!(
+            "campaign '{}' shard {}: realizations {}..{} ({} resumed), {} fits, {} failed, {:.1} s on {} threads ({:.2} realizations/s); wrote {}",
+            self.campaign,
+            self.shard,
+            self.range_start,
+            self.range_end,
+            self.resumed_realizations,
+            self.fits,
+            self.failed,
+            self.wall_seconds,
+            self.threads,
+            self.realizations_per_second,
+            out.display()
+        )
+    }
+
+    /// One line on a run found already complete in `out`.
+    pub fn complete_summary(&self, out: &Path) -> String {
+        format!(
+            "{}: already complete ({} fits, {} failed)",
+            out.display(),
+            self.fits,
+            self.failed
+        )
+    }
+
+    /// One line on a merge into `out`.
+    pub fn merge_summary(&self, out: &Path) -> String {
+        format!(
+            "merged {} parts: {} realizations, {} fits ({} failed) into {}",
+            self.merged_from.len(),
+            self.realizations,
+            self.fits,
+            self.failed,
+            out.display()
+        )
+    }
+}
+
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 struct State {
     config_hash: String,
@@ -552,6 +594,23 @@ fn worker_pool(out: &Path, threads: Option<usize>) -> Result<rayon::ThreadPool, 
 /// The most worker threads a run uses: the machine's available parallelism.
 pub fn max_threads() -> usize {
     std::thread::available_parallelism().map_or(1, |n| n.get())
+}
+
+/// Whether `out` holds a campaign's run (finished, or interrupted with checkpoints), which a
+/// `campaign run` continues or reports complete instead of refusing it as a non-empty folder.
+pub fn is_campaign_folder(out: &Path) -> bool {
+    out.join(MANIFEST).exists() || out.join(PARTIAL).exists()
+}
+
+impl RunOptions {
+    /// A note when the options ask for more worker threads than the machine has cores.
+    pub fn threads_note(&self) -> Option<String> {
+        let max = max_threads();
+        let t = self.threads.filter(|&t| t > max)?;
+        Some(format!(
+            "--threads {t} is more than the machine's {max} cores; using {max}"
+        ))
+    }
 }
 
 /// A finished chunk, with a hint to remove it when it cannot be read (a truncated copy, a full

@@ -127,23 +127,7 @@ struct FitEntry {
 /// The simulator that draws a campaign's data (`[fit] engine`). One per campaign: it goes with
 /// the campaign's model (the time-domain engine's data need the sampled-data model), which is
 /// campaign-wide too.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Engine {
-    /// Templates plus coloured noise of the model's PSD at the analysis rate (fast).
-    FrequencyDomain,
-    /// The digital loop stepped at simulate_hz, decimated by the anti-alias FIR
-    /// (`sim::time_domain`).
-    TimeDomain,
-}
-
-impl Engine {
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Engine::FrequencyDomain => "frequency-domain",
-            Engine::TimeDomain => "time-domain",
-        }
-    }
-}
+pub use crate::sim::Engine;
 
 /// Where a scenario's parameter sets come from.
 #[derive(Debug, Clone)]

@@ -1,7 +1,6 @@
 //! `freefall campaign run|merge|slurm`: Monte Carlo campaigns from a campaign file (see
 //! `campaign::spec` for the schema), with shards, resume and SLURM job arrays.
 
-use std::io::IsTerminal;
 use std::path::PathBuf;
 
 use anyhow::Result;
@@ -41,7 +40,7 @@ pub struct RunArgs {
 #[derive(Debug, Args)]
 pub struct MergeArgs {
     /// Part directories written by `campaign run --shard K/N`.
-    #[arg(required = true)]
+    #[arg(required = true, value_name = "PART")]
     pub parts: Vec<PathBuf>,
     /// Output directory of the merged tables.
     #[arg(long)]
@@ -83,14 +82,7 @@ pub fn run(c: CampaignCmd) -> Result<()> {
         CampaignCmd::Run(a) => run_campaign(a),
         CampaignCmd::Merge(a) => {
             let m = campaign::merge(&a.parts, &a.out)?;
-            eprintln!(
-                "merged {} parts: {} realizations, {} fits ({} failed) into {}",
-                m.merged_from.len(),
-                m.realizations,
-                m.fits,
-                m.failed,
-                a.out.display()
-            );
+            eprintln!("{}", m.merge_summary(&a.out));
             Ok(())
         }
         CampaignCmd::Slurm(a) => {
@@ -102,10 +94,7 @@ pub fn run(c: CampaignCmd) -> Result<()> {
                 time: a.time,
                 mem: a.mem,
                 cpus_per_task: a.cpus_per_task,
-                binary: match a.binary {
-                    Some(b) => b,
-                    None => std::env::current_exe()?,
-                },
+                binary: a.binary.map_or_else(std::env::current_exe, Ok)?,
             };
             let written = slurm::write(&opts)?;
             outln!(
@@ -132,70 +121,24 @@ fn run_campaign(a: RunArgs) -> Result<()> {
         resume: a.resume,
         threads: a.threads,
     };
-    if let Some(t) = a.threads.filter(|&t| t > campaign::max_threads()) {
-        info!(
-            "note: --threads {t} is more than the machine's {} cores; using {}",
-            campaign::max_threads(),
-            campaign::max_threads()
-        );
+    if let Some(n) = opts.threads_note() {
+        info!("note: {n}");
     }
     crate::io::ensure_dir(&a.out)?;
-    let show = !super::quiet() && std::io::stderr().is_terminal();
-    let bar = if show {
-        let pb = indicatif::ProgressBar::new(0);
-        pb.set_style(
-            indicatif::ProgressStyle::with_template(
-                "{bar:40} {pos}/{len} realizations  {per_sec}  ETA {eta}  {msg}",
-            )
-            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
-        );
-        Some(pb)
-    } else {
-        None
-    };
-    let mut progress = |p: Progress| {
-        if let Some(pb) = &bar {
-            if pb.length() != Some(p.total) {
-                pb.set_length(p.total);
-                pb.set_position(p.done);
-                pb.reset_eta();
-            }
-            pb.set_position(p.done);
-            pb.set_message(format!("{} fits, {} failed", p.fits, p.failed));
-        }
-    };
-    let report = campaign::run(&loaded, &opts, &mut progress)?;
-    if let Some(pb) = bar {
-        pb.finish_and_clear();
-    }
+    let bar = super::Working::bar("{bar:40} {pos}/{len} realizations  {per_sec}  ETA {eta}  {msg}");
+    let report = campaign::run(&loaded, &opts, &mut |p: Progress| {
+        let msg = format!("{} fits, {} failed", p.fits, p.failed);
+        bar.progress(p.done, p.total, msg)
+    })?;
+    drop(bar);
     for n in &report.notes {
         info!("note: {n}");
     }
     let m = &report.manifest;
     if report.already_complete {
-        eprintln!(
-            "{}: already complete ({} fits, {} failed)",
-            a.out.display(),
-            m.fits,
-            m.failed
-        );
+        eprintln!("{}", m.complete_summary(&a.out));
         return Ok(());
     }
-    if !super::quiet() {
-        eprintln!(
-            "campaign '{}' shard {}: realizations {}..{} ({} resumed), {} fits, {} failed, {:.1} s on {} threads ({:.2} realizations/s); wrote {}",
-            m.campaign,
-            m.shard,
-            m.range_start,
-            m.range_end,
-            m.resumed_realizations,
-            m.fits,
-            m.failed,
-            m.wall_seconds,
-            m.threads,
-            m.realizations_per_second,
-            a.out.display()
-        );
-    }
+    info!("{}", m.run_summary(&a.out));
     Ok(())
 }

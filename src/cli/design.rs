@@ -2,16 +2,16 @@
 
 use std::path::PathBuf;
 
-use anyhow::{bail, Result};
+use anyhow::Result;
 use clap::{Args, Subcommand};
 
 use super::ModelOpt;
-use crate::design::criteria::{Kind, Matrix};
+use crate::design::criteria::{Choice, Matrix};
 use crate::design::report::{evaluate_design, write_optimization, write_validation};
 use crate::design::space::Layout;
 use crate::design::validate::{validate as run_validation, Study, ValidationConfig};
-use crate::design::{Criterion, Scaling};
-use crate::io::{ensure_dir, read_toml, write_parquet};
+use crate::design::Scaling;
+use crate::io::{ensure_dir, ensure_parent, read_toml, write_parquet};
 use crate::setup::Setup;
 use crate::signal::Design;
 
@@ -46,8 +46,8 @@ pub struct OptimizeArgs {
     #[command(flatten)]
     pub study: StudyOpt,
     /// Criterion (all: the six criteria, whatever --on says).
-    #[arg(long, value_enum, default_value_t = CriterionArg::T)]
-    pub criterion: CriterionArg,
+    #[arg(long, value_enum, default_value_t = Choice::T)]
+    pub criterion: Choice,
     /// Matrix the criterion acts on.
     #[arg(long, value_enum, default_value_t = Matrix::Information)]
     pub on: Matrix,
@@ -58,15 +58,6 @@ pub struct OptimizeArgs {
     /// landscape and signals Parquet files.
     #[arg(long)]
     pub out: PathBuf,
-}
-
-/// `--criterion`: one of the thesis's criteria, or all six.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum CriterionArg {
-    D,
-    E,
-    T,
-    All,
 }
 
 #[derive(Debug, Args)]
@@ -106,34 +97,23 @@ pub fn run(c: DesignCmd) -> Result<()> {
 }
 
 fn study(setup: &Setup, o: &StudyOpt) -> Result<Study> {
-    let p = setup.spec.scenario(&o.scenario)?.truth;
-    Ok(Study::new(
+    let parameters = o.parameters.as_deref();
+    Ok(Study::at_scenario(
         setup,
-        &p,
+        &o.scenario,
         o.scaling,
-        o.parameters.as_deref(),
-        None,
+        parameters,
     )?)
-}
-
-fn criteria(kind: CriterionArg, on: Matrix) -> Vec<Criterion> {
-    let kind = match kind {
-        CriterionArg::All => return Criterion::ALL.to_vec(),
-        CriterionArg::D => Kind::D,
-        CriterionArg::E => Kind::E,
-        CriterionArg::T => Kind::T,
-    };
-    vec![Criterion { kind, on }]
 }
 
 fn optimize(a: OptimizeArgs) -> Result<()> {
     let setup = a.study.model.setup()?;
     let st = study(&setup, &a.study)?;
     ensure_dir(&a.out)?;
-    let crits = criteria(a.criterion, a.on);
-    let working = super::Working::new("optimising");
-    let report = write_optimization(&setup, &st, a.layout, &crits, &a.out)?;
-    drop(working);
+    let crits = a.criterion.criteria(a.on);
+    let report = super::working("optimising", |_| {
+        write_optimization(&setup, &st, a.layout, &crits, &a.out)
+    })?;
     // Printed only once every file is written.
     out!("{report}");
     info!(
@@ -148,39 +128,24 @@ fn evaluate(a: EvaluateArgs) -> Result<()> {
     let st = study(&setup, &a.study)?;
     let design: Design = read_toml(&a.design)?;
     let ev = evaluate_design(&setup, &st, &design, &a.design)?;
-    if let Some(v) = ev.violations.first() {
-        if !a.allow_violations {
-            bail!(
-                "{}: {v} ({} violation(s); --allow-violations to score it anyway)",
-                a.design.display(),
-                ev.violations.len()
-            );
-        }
-        for v in &ev.violations {
-            info!("note: {}: {v}", a.design.display());
-        }
+    for n in ev.violation_notes(&a.design, a.allow_violations)? {
+        info!("note: {n}");
     }
     if let Some(out) = &a.out {
-        super::ensure_parent(out)?;
+        ensure_parent(out)?;
         write_parquet(out, &ev.table)?;
     }
     out!("{}", ev.text);
     Ok(())
 }
-
 fn validate(a: ValidateArgs) -> Result<()> {
     let setup = a.model.setup()?;
     let cfg = ValidationConfig::from_file(&a.campaign, a.realizations)?;
     let out = a.out.clone().unwrap_or_else(|| cfg.out.clone());
     ensure_dir(&out)?;
-    info!(
-        "validating {} designs x {} realizations ...",
-        2 + cfg.criteria.len() + cfg.simultaneous_criteria.len(),
-        cfg.realizations
-    );
-    let working = super::Working::new("validating");
-    let v = run_validation(&setup, &cfg)?;
-    drop(working);
+    let (designs, realizations) = (cfg.designs(), cfg.realizations);
+    info!("validating {designs} designs x {realizations} realizations ...");
+    let v = super::working("validating", |_| run_validation(&setup, &cfg))?;
     let md = write_validation(&setup, &v, &cfg, &out)?;
     out!("{md}");
     info!(

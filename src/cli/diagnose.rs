@@ -5,15 +5,14 @@
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{bail, Context, Result};
+use anyhow::{bail, Result};
 use clap::Args;
 
+use super::analysis::FitOpts;
 use super::ModelOpt;
-use crate::analysis::{experiment_data, parse_constraints, resolve_guess, truth_from_meta};
-use crate::diagnose::tables::Timeline;
-use crate::diagnose::{diagnose_observed, DiagnoseConfig, Observer};
-use crate::io::{read_dataset, write_text_atomic};
-use crate::setup::{DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
+use crate::diagnose::job::DiagnoseJob;
+use crate::diagnose::simulate_job::SimulateJob;
+use crate::sim::{Engine, Rate};
 
 #[derive(Debug, Args)]
 pub struct DiagnoseArgs {
@@ -25,23 +24,8 @@ pub struct DiagnoseArgs {
     /// time_chi2.parquet and PNG plots (when python3 with matplotlib is available).
     #[arg(long, default_value = "diagnosis")]
     pub out: PathBuf,
-    /// Starting point: a scenario name or a parameter TOML (default: nominal).
-    #[arg(long)]
-    pub guess: Option<String>,
-    /// Whitening filter order (lags).
-    #[arg(long, default_value_t = DEFAULT_WHITENING_ORDER)]
-    pub order: usize,
-    /// Degree of the whitened-domain polynomial nuisance per experiment and channel.
-    #[arg(long, default_value_t = DEFAULT_POLY_DEGREE)]
-    pub poly_degree: usize,
-    /// Hold a base parameter fixed in every fit (repeatable): NAME at its starting value, or
-    /// NAME=VALUE.
-    #[arg(long, value_name = "NAME[=VALUE]")]
-    pub fix: Vec<String>,
-    /// A Gaussian prior on a base parameter in every fit (repeatable); it also replaces the
-    /// model file's prior in the prior-tension report.
-    #[arg(long, value_name = "NAME=MEAN,SIGMA")]
-    pub prior: Vec<String>,
+    #[command(flatten)]
+    pub fit: FitOpts,
     /// Family-wise false-alarm probability of each decision (Bonferroni over candidates).
     #[arg(long, default_value_t = 0.01)]
     pub alpha: f64,
@@ -108,125 +92,23 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
     if a.simulate_into {
         return simulate(&a, &setup, &dataset);
     }
-    let ds = read_dataset(&dataset)?;
-    for n in &ds.notes {
-        info!("note: {n}");
-    }
-    let (data, notes) = experiment_data(&setup, &ds)?;
-    for n in notes {
-        info!("note: {n}");
-    }
-    let names = setup.parameter_names();
-    ds.check_lengths(
-        crate::fit::problem::min_length(a.order, a.poly_degree, names.len()),
-        &format!("a whitening filter of order {}", a.order),
-    )?;
-    let mut guess = resolve_guess(&setup, a.guess.as_deref())?;
-    let constraints =
-        parse_constraints(&names, &a.fix, &a.prior, &mut guess).map_err(anyhow::Error::msg)?;
-    if !super::force() {
-        crate::units::check_dataset(&setup, &guess, &ds)?;
-    }
-    let truth = truth_from_meta(&ds, &names);
-    let noise: Option<Vec<Vec<f64>>> = ds
-        .noise
-        .as_ref()
-        .map(|r| r.outputs().iter().map(|c| c.to_vec()).collect());
-    if let Some(nr) = &ds.noise {
-        if !crate::numerics::tol::same_time(nr.dt, data.dt) {
-            bail!(
-                "the noise run's sampling interval {} s differs from the experiments' {} s",
-                nr.dt,
-                data.dt
-            );
-        }
-    }
-    let cfg = DiagnoseConfig {
-        order: a.order,
-        poly_degree: a.poly_degree,
+    let job = DiagnoseJob {
+        dataset: a.fit.dataset_fit(),
         alpha: a.alpha,
         max_effects: a.max_effects,
         max_glitches: a.max_glitches,
-        whiten_from_model: a.model_psd,
-        decimated_telemetry: crate::analysis::decimated_telemetry(&ds),
+        model_psd: a.model_psd,
         lines: a.lines,
         glitches: !a.no_glitches,
         transients: !a.no_transients,
-        constraints,
-        ..Default::default()
+        plots: !a.no_plots,
     };
-    let working = super::Working::new("diagnosing");
-    let d = diagnose_observed(
-        &setup,
-        &data,
-        noise.as_deref(),
-        &guess,
-        truth.as_deref(),
-        &cfg,
-        &mut PrintNotes,
-    )
-    .with_context(|| dataset.display().to_string())?;
-    drop(working);
-    std::fs::create_dir_all(&a.out)
-        .with_context(|| format!("cannot create output directory '{}'", a.out.display()))?;
-    let prov = crate::io::Provenance::new("diagnose")
-        .with_model(&setup.spec)
-        .with_dataset(&ds)?;
-    let t0: Vec<f64> = ds.experiments.iter().map(|(_, r)| r.t0).collect();
-    let runs = Timeline {
-        names: &data.names,
-        t0: &t0,
-        dt: data.dt,
-    };
-    d.write_tables(&a.out, &runs, &prov.meta)?;
-    let mut md = d.to_markdown(&dataset.display().to_string());
-    if !a.no_plots {
-        match plot(&a.out) {
-            Ok(()) => md.push_str("\n## Plots\n\n![residual spectra](plots/psd.png)\n\n![time-resolved chi2](plots/time_chi2.png)\n"),
-            Err(e) => {
-                let note = format!("\n> note: no plots ({e}); the plot data are in spectra.parquet and time_chi2.parquet\n");
-                info!("note: no plots ({e})");
-                md.push_str(&note);
-            }
-        }
-    }
-    write_text_atomic(a.out.join("report.md"), &md)?;
-    outln!(
-        "chi2/nu {:.4} -> {:.4} (reference {:.4}); added: {}; unexplained: {}; {:.2} s",
-        d.before.chi2_reduced,
-        d.after.chi2_reduced,
-        d.after.reference_chi2_reduced,
-        if d.effects_added.is_empty() {
-            "none".to_string()
-        } else {
-            d.effects_added
-                .iter()
-                .map(|e| e.name.clone())
-                .collect::<Vec<_>>()
-                .join(", ")
-        },
-        d.unexplained.len(),
-        d.seconds
-    );
+    let d = super::working("diagnosing", |notes| {
+        job.run(&setup, &dataset, &a.out, notes)
+    })?;
+    outln!("{}", d.summary_line());
     info!("wrote {}", a.out.display());
     Ok(())
-}
-
-/// Prints each note of the diagnosis as it is made.
-struct PrintNotes;
-
-impl Observer for PrintNotes {
-    fn note(&mut self, text: &str) {
-        info!("note: {text}");
-    }
-}
-
-/// Run scripts/plot_diagnose.py (next to the crate, or FREEFALL_PLOT_SCRIPT) on the output.
-/// The plot script, embedded so that an installed binary plots without the source tree.
-const PLOT_SCRIPT: &str = include_str!("../../scripts/plot_diagnose.py");
-
-fn plot(out: &Path) -> Result<()> {
-    super::run_plot_script(out, PLOT_SCRIPT, "plot_diagnose.py")
 }
 
 /// `--simulate-into`: kept for one release as an alias of `freefall simulate --effect ...
@@ -237,16 +119,15 @@ fn simulate(a: &DiagnoseArgs, setup: &crate::setup::Setup, dir: &Path) -> Result
          use `freefall simulate --effect ... --rate analysis --out DIR`"
     );
     let design = setup.design(&a.design)?;
-    super::simulate::run(super::simulate::SimulateArgs {
-        model: a.model.clone(),
+    let job = SimulateJob {
         scenario: a.scenario.clone(),
         design: a.design.clone(),
         seed: a.seed,
-        rate: Some(super::simulate::Rate::Analysis),
-        engine: super::simulate::Engine::FrequencyDomain,
+        rate: Some(Rate::Analysis),
+        engine: Engine::FrequencyDomain,
         initial: None,
         noise_duration: Some(design.duration_s),
         effects: a.effects.clone(),
-        out: dir.to_path_buf(),
-    })
+    };
+    super::simulate::simulate_into(setup, &job, dir)
 }

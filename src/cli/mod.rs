@@ -40,8 +40,8 @@ pub mod simulate;
 
 use std::path::{Path, PathBuf};
 
-use anyhow::{Context, Result};
-use clap::{Args, Parser, Subcommand};
+use anyhow::Result;
+use clap::{ArgMatches, Args, FromArgMatches, Parser, Subcommand};
 
 use crate::setup::Setup;
 
@@ -109,7 +109,7 @@ pub struct ModelOpt {
 }
 
 impl ModelOpt {
-    pub fn setup(&self) -> Result<Setup> {
+    pub fn setup(&self) -> Result<Setup, crate::setup::Error> {
         let setup = Setup::load(self.model.as_deref())?;
         Ok(match self.control_loop {
             Some(kind) => setup.with_loop(kind)?,
@@ -156,23 +156,19 @@ pub fn write_stdout(args: std::fmt::Arguments<'_>) {
 
 /// Run the CLI; returns the process exit code.
 pub fn run() -> i32 {
-    let cli = Cli::parse();
+    let command = <Cli as clap::CommandFactory>::command();
+    let matches = command.clone().get_matches();
+    let cli = Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());
     QUIET.store(cli.quiet, std::sync::atomic::Ordering::Relaxed);
     FORCE.store(cli.force, std::sync::atomic::Ordering::Relaxed);
-    // The size checks allow half the available memory (the rest is the process's other data
-    // and the machine's other users); FREEFALL_MEMORY_BUDGET (bytes) sets it instead.
-    let budget = std::env::var("FREEFALL_MEMORY_BUDGET")
-        .ok()
-        .and_then(|v| v.trim().parse::<f64>().ok())
-        .filter(|b| b.is_finite() && *b > 0.0)
-        .map(|b| b as u64)
-        .or_else(|| crate::io::available_memory().map(|b| b / 2));
-    if let Some(bytes) = budget {
+    if let Some(bytes) = crate::io::memory_budget_from_env() {
         crate::config::set_memory_budget(bytes);
     }
-    if let Err(e) =
-        refuse_output_over_input(&cli.command).and_then(|()| refuse_overwrite(&cli.command))
-    {
+    let (inputs, outputs) = command_paths(&command, &matches);
+    let refused = crate::io::check_output_not_input(&inputs, &outputs)
+        .map_err(anyhow::Error::from)
+        .and_then(|()| refuse_overwrite(&cli.command, &outputs));
+    if let Err(e) = refused {
         eprintln!("error: {}", one_line(&e));
         return 1;
     }
@@ -185,23 +181,8 @@ pub fn run() -> i32 {
         Command::Campaign(c) => campaign::run(c),
         Command::Design(c) => design::run(c),
         Command::Diagnose(a) => diagnose::run(a),
-        Command::Completions { shell } => {
-            let mut out = Vec::new();
-            clap_complete::generate(
-                shell,
-                &mut <Cli as clap::CommandFactory>::command(),
-                "freefall",
-                &mut out,
-            );
-            write_stdout(format_args!("{}", String::from_utf8_lossy(&out)));
-            Ok(())
-        }
-        Command::Man => (|| {
-            let mut out = Vec::new();
-            clap_mangen::Man::new(<Cli as clap::CommandFactory>::command()).render(&mut out)?;
-            write_stdout(format_args!("{}", String::from_utf8_lossy(&out)));
-            Ok(())
-        })(),
+        Command::Completions { shell } => generated(command, Some(shell)),
+        Command::Man => generated(command, None),
         Command::Accel(a) => accel::run(a),
     };
     match res {
@@ -213,135 +194,116 @@ pub fn run() -> i32 {
     }
 }
 
-/// A command-line path and the flag or argument that named it.
-type Named<'a> = (&'static str, &'a Path);
-
-/// Possibly absent inputs, and the outputs.
-type InputsOutputs<'a> = (Vec<Option<Named<'a>>>, Vec<Named<'a>>);
-
-/// The files a command reads and the paths it writes.
-fn command_paths(cmd: &Command) -> (Vec<Named<'_>>, Vec<Named<'_>>) {
-    fn model(m: &ModelOpt) -> Option<Named<'_>> {
-        m.model.as_deref().map(|p| ("--model", p))
+/// Prints the completion script for `shell`, or without one the man page, of `command`.
+fn generated(mut command: clap::Command, shell: Option<clap_complete::Shell>) -> Result<()> {
+    let mut out = Vec::new();
+    match shell {
+        Some(shell) => clap_complete::generate(shell, &mut command, "freefall", &mut out),
+        None => clap_mangen::Man::new(command).render(&mut out)?,
     }
-    fn guess(g: &Option<String>) -> Option<Named<'_>> {
-        g.as_deref().map(|g| ("--guess", Path::new(g)))
-    }
-    let (inputs, outputs): InputsOutputs<'_> = match cmd {
-        Command::Model(model::ModelCmd::Transfer(a) | model::ModelCmd::Noise(a)) => {
-            (vec![model(&a.model)], vec![("--out", &a.out)])
-        }
-        Command::Model(model::ModelCmd::Fisher(a)) => {
-            (vec![model(&a.model)], vec![("--out", &a.out)])
-        }
-        Command::Simulate(a) => (vec![model(&a.model)], vec![("--out", &a.out)]),
-        Command::Psd(a) => (vec![Some(("RUN", &a.run))], vec![("--out", &a.out)]),
-        Command::Whiten(a) => (
-            vec![
-                Some(("RUN", &a.run)),
-                a.noise.as_deref().map(|p| ("--noise", p)),
-                model(&a.model),
-            ],
-            vec![("--out", &a.out)],
-        ),
-        Command::Fit(a) => (
-            vec![
-                Some(("DATASET", &a.dataset)),
-                model(&a.model),
-                guess(&a.guess),
-            ],
-            vec![("--out", &a.out)],
-        ),
-        // `--simulate-into DATASET` writes a dataset folder and nothing else.
-        Command::Diagnose(a) if a.simulate_into => (
-            vec![model(&a.model), guess(&a.guess)],
-            a.dataset.iter().map(|p| ("DATASET", p.as_path())).collect(),
-        ),
-        Command::Diagnose(a) => (
-            vec![
-                a.dataset.as_deref().map(|p| ("DATASET", p)),
-                model(&a.model),
-                guess(&a.guess),
-            ],
-            vec![("--out", &a.out)],
-        ),
-        Command::Accel(a) => (
-            vec![
-                Some(("INPUT", &a.input)),
-                a.params.as_deref().map(|p| ("--params", p)),
-                model(&a.model),
-            ],
-            vec![("--out", &a.out)],
-        ),
-        Command::Campaign(campaign::CampaignCmd::Run(a)) => (
-            vec![a.file.as_deref().map(|p| ("FILE", p))],
-            vec![("--out", &a.out)],
-        ),
-        Command::Campaign(campaign::CampaignCmd::Merge(a)) => (
-            a.parts
-                .iter()
-                .map(|p| Some(("PART", p.as_path())))
-                .collect(),
-            vec![("--out", &a.out)],
-        ),
-        Command::Campaign(campaign::CampaignCmd::Slurm(a)) => {
-            (vec![Some(("FILE", &a.file))], vec![("--out", &a.out)])
-        }
-        Command::Design(design::DesignCmd::Optimize(a)) => {
-            (vec![model(&a.study.model)], vec![("--out", &a.out)])
-        }
-        Command::Design(design::DesignCmd::Evaluate(a)) => (
-            vec![Some(("DESIGN", &a.design)), model(&a.study.model)],
-            a.out.iter().map(|p| ("--out", p.as_path())).collect(),
-        ),
-        Command::Completions { .. } | Command::Man => (Vec::new(), Vec::new()),
-        Command::Design(design::DesignCmd::Validate(a)) => (
-            vec![Some(("CAMPAIGN", &a.campaign)), model(&a.model)],
-            a.out.iter().map(|p| ("--out", p.as_path())).collect(),
-        ),
-    };
-    (inputs.into_iter().flatten().collect(), outputs)
-}
-
-/// Err when an output path is one of the command's input files (`psd run.parquet --out
-/// run.parquet` would replace its input): same file after resolving links and `..`.
-fn refuse_output_over_input(cmd: &Command) -> Result<()> {
-    let (inputs, outputs) = command_paths(cmd);
-    for (oflag, out) in &outputs {
-        let Ok(o) = out.canonicalize() else {
-            continue; // not there yet: cannot be an existing input
-        };
-        for (iflag, input) in &inputs {
-            if input.canonicalize().is_ok_and(|i| i == o) {
-                anyhow::bail!(
-                    "{oflag} '{}' is the input {iflag} '{}': writing it would replace the input; choose another output path",
-                    out.display(),
-                    input.display()
-                );
-            }
-        }
-    }
+    out!("{}", String::from_utf8_lossy(&out));
     Ok(())
 }
 
-/// A spinner with `msg` and the elapsed time on stderr while a command works (hidden under
-/// `--quiet` or when stderr is not a terminal); cleared when dropped.
+/// A command-line path and the flag (`--out`) or argument (`RUN`) that named it.
+type Named<'a> = (String, &'a Path);
+
+/// The files a command reads and the paths it writes, read off its parsed arguments: `--out`
+/// (or, with `diagnose --simulate-into`, the DATASET folder) is written; every other path
+/// argument, and `--guess` (a scenario name or a file), is read.
+fn command_paths<'a>(cmd: &clap::Command, m: &'a ArgMatches) -> (Vec<Named<'a>>, Vec<Named<'a>>) {
+    let (mut cmd, mut m) = (cmd, m);
+    while let Some((name, sub)) = m.subcommand() {
+        match cmd.find_subcommand(name) {
+            Some(c) => (cmd, m) = (c, sub),
+            None => break,
+        }
+    }
+    let simulate_into = m.try_get_one::<bool>("simulate_into").ok().flatten() == Some(&true);
+    let (mut inputs, mut outputs) = (Vec::new(), Vec::new());
+    for arg in cmd.get_arguments() {
+        let id = arg.get_id().as_str();
+        let label = match (arg.get_long(), arg.get_value_names()) {
+            (Some(long), _) => format!("--{long}"),
+            (None, Some([name, ..])) => name.to_string(),
+            (None, _) => id.to_uppercase(),
+        };
+        let paths: Vec<&Path> = match m.try_get_many::<PathBuf>(id) {
+            Ok(Some(v)) => v.map(PathBuf::as_path).collect(),
+            _ if id == "guess" => {
+                let guess = m.try_get_one::<String>(id).ok().flatten();
+                guess.map(Path::new).into_iter().collect()
+            }
+            _ => continue,
+        };
+        let list = match (simulate_into, id) {
+            (true, "out") => continue,
+            (true, "dataset") | (false, "out") => &mut outputs,
+            _ => &mut inputs,
+        };
+        list.extend(paths.into_iter().map(|p| (label.clone(), p)));
+    }
+    (inputs, outputs)
+}
+
+/// A spinner or a progress bar on stderr while a command works (hidden under `--quiet` or when
+/// stderr is not a terminal); cleared when dropped.
 pub struct Working(Option<indicatif::ProgressBar>);
 
 impl Working {
+    /// A spinner with `msg` and the elapsed time.
     pub fn new(msg: &str) -> Working {
+        let spinner = indicatif::ProgressBar::new_spinner();
+        let w = Working::shown(spinner, "{spinner} {msg} {elapsed}");
+        if let Some(pb) = &w.0 {
+            pb.set_message(msg.to_string());
+            pb.enable_steady_tick(std::time::Duration::from_millis(SPINNER_TICK_MS));
+        }
+        w
+    }
+
+    /// A progress bar drawn with `template`; [`Working::progress`] sets its length.
+    pub fn bar(template: &str) -> Working {
+        Working::shown(indicatif::ProgressBar::new(0), template)
+    }
+
+    fn shown(pb: indicatif::ProgressBar, template: &str) -> Working {
         use std::io::IsTerminal;
         if quiet() || !std::io::stderr().is_terminal() {
             return Working(None);
         }
-        let pb = indicatif::ProgressBar::new_spinner();
-        if let Ok(style) = indicatif::ProgressStyle::with_template("{spinner} {msg} {elapsed}") {
+        if let Ok(style) = indicatif::ProgressStyle::with_template(template) {
             pb.set_style(style);
         }
-        pb.set_message(msg.to_string());
-        pb.enable_steady_tick(std::time::Duration::from_millis(SPINNER_TICK_MS));
         Working(Some(pb))
     }
+
+    /// Moves the bar to `done` of `total` with `msg`; a new total restarts its rate estimate.
+    pub fn progress(&self, done: u64, total: u64, msg: String) {
+        if let Some(pb) = &self.0 {
+            if pb.length() != Some(total) {
+                pb.set_length(total);
+                pb.set_position(done);
+                pb.reset_eta();
+            }
+            pb.set_position(done);
+            pb.set_message(msg);
+        }
+    }
+
+    /// Prints `note: {text}` (unless `--quiet`) without breaking the spinner's line.
+    pub fn note(&self, text: &str) {
+        match &self.0 {
+            Some(pb) => pb.suspend(|| info!("note: {text}")),
+            None => info!("note: {text}"),
+        }
+    }
+}
+
+/// Runs `job` under a [`Working`] spinner with `msg`, handing it a printer of its notes.
+pub fn working<T>(msg: &str, job: impl FnOnce(crate::analysis::job::Notes<'_>) -> T) -> T {
+    let w = Working::new(msg);
+    job(&mut |n| w.note(n))
 }
 
 /// Spinner redraw interval (fast enough to look alive, slow enough to cost nothing).
@@ -359,13 +321,12 @@ impl Drop for Working {
 /// file or a non-empty output folder is refused unless `--force`. `campaign run` checks its own
 /// folder when it is a campaign's (it continues one with `--resume` and never overwrites a
 /// finished one); any other non-empty folder is refused here like everywhere else.
-fn refuse_overwrite(cmd: &Command) -> Result<()> {
+fn refuse_overwrite(cmd: &Command, outputs: &[Named<'_>]) -> Result<()> {
     if let Command::Campaign(campaign::CampaignCmd::Run(a)) = cmd {
-        if a.resume || a.out.join("manifest.json").exists() || a.out.join(".partial").exists() {
+        if a.resume || crate::campaign::io_store::is_campaign_folder(&a.out) {
             return Ok(());
         }
     }
-    let (_, outputs) = command_paths(cmd);
     for (flag, out) in outputs {
         crate::io::check_output(out, flag, force())?;
     }
@@ -380,49 +341,4 @@ pub fn one_line(e: &anyhow::Error) -> String {
         .collect::<Vec<_>>()
         .join(": ");
     text.split_whitespace().collect::<Vec<_>>().join(" ")
-}
-
-/// Create the parent directory of an output file, with a clear error.
-pub fn ensure_parent(path: &std::path::Path) -> Result<()> {
-    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        crate::io::ensure_dir(dir)
-            .with_context(|| format!("cannot create directory for '{}'", path.display()))?;
-    }
-    Ok(())
-}
-
-/// Run a plot script with python3 on the output directory `out`: FREEFALL_PLOT_SCRIPT if set,
-/// else `embedded` written to `out/.{name}` for the run and removed after. Shared by the
-/// commands that draw their figures (`diagnose`, `accel`).
-pub fn run_plot_script(out: &Path, embedded: &str, name: &str) -> Result<()> {
-    let custom = std::env::var_os("FREEFALL_PLOT_SCRIPT").map(PathBuf::from);
-    let script = match &custom {
-        Some(p) if !p.exists() => anyhow::bail!("plot script {} not found", p.display()),
-        Some(p) => p.clone(),
-        None => {
-            let p = out.join(format!(".{name}"));
-            std::fs::write(&p, embedded)
-                .with_context(|| format!("cannot write {}", p.display()))?;
-            p
-        }
-    };
-    let o = std::process::Command::new("python3")
-        .arg(&script)
-        .arg(out)
-        .output();
-    if custom.is_none() {
-        let _ = std::fs::remove_file(&script);
-    }
-    let o = o.context("python3 not available")?;
-    if !o.status.success() {
-        let err = String::from_utf8_lossy(&o.stderr);
-        let last = err.lines().last().unwrap_or("").to_string();
-        let hint = if last.contains("ModuleNotFoundError") {
-            " (install the plotting packages: python3 -m pip install numpy pyarrow matplotlib)"
-        } else {
-            ""
-        };
-        anyhow::bail!("the plot script failed: {last}{hint}");
-    }
-    Ok(())
 }

@@ -2,14 +2,11 @@
 
 use std::path::PathBuf;
 
-use anyhow::{bail, Context, Result};
+use anyhow::Result;
 use clap::{Args, Subcommand};
 
-use super::{ensure_parent, ModelOpt};
-use crate::analysis::model_tables::{fisher_errors, log_grid, noise_table, transfer_table};
-use crate::io::{write_parquet, Provenance};
-use crate::model::check_stability;
-use crate::setup::Setup;
+use super::ModelOpt;
+use crate::analysis::model_tables::{FisherJob, GridJob, Product};
 
 #[derive(Debug, Subcommand)]
 pub enum ModelCmd {
@@ -58,62 +55,32 @@ pub struct FisherArgs {
 }
 
 pub fn run(cmd: ModelCmd) -> Result<()> {
-    match cmd {
-        ModelCmd::Transfer(a) => grid_table(a, false),
-        ModelCmd::Noise(a) => grid_table(a, true),
-        ModelCmd::Fisher(a) => fisher(a),
-    }
-}
-
-fn parameters(setup: &Setup, scenario: Option<&str>) -> Result<Vec<f64>> {
-    let p = match scenario {
-        Some(name) => setup.spec.scenario(name)?.truth,
-        None => setup.spec.nominal(),
+    let (a, product) = match cmd {
+        ModelCmd::Transfer(a) => (a, Product::Transfer),
+        ModelCmd::Noise(a) => (a, Product::Noise),
+        ModelCmd::Fisher(a) => return fisher(a),
     };
-    check_stability(&setup.model, &p, Some(&setup.spec.nominal()))?;
-    Ok(p)
-}
-
-fn grid_table(a: GridArgs, noise: bool) -> Result<()> {
     let setup = a.model.setup()?;
-    let p = parameters(&setup, a.scenario.as_deref())?;
-    let f = log_grid(a.fmin, a.fmax, a.points).map_err(anyhow::Error::msg)?;
-    let nyquist = 0.5 * setup.spec.sampling.simulate_hz;
-    if a.fmax > nyquist {
-        bail!(
-            "--fmax {} Hz is above the simulation Nyquist frequency {nyquist} Hz",
-            a.fmax
-        );
-    }
-    let (table, command) = if noise {
-        (noise_table(&setup, &p, &f)?, "model noise")
-    } else {
-        (transfer_table(&setup, &p, &f)?, "model transfer")
+    let job = GridJob {
+        product,
+        scenario: a.scenario,
+        fmin: a.fmin,
+        fmax: a.fmax,
+        points: a.points,
     };
-    let prov = Provenance::new(command).with_model(&setup.spec);
-    ensure_parent(&a.out)?;
-    write_parquet(&a.out, &table.with_meta_all(&prov.meta))?;
-    info!("wrote {} ({} frequencies)", a.out.display(), f.len());
+    let n = job.run(&setup, &a.out)?;
+    info!("wrote {} ({n} frequencies)", a.out.display());
     Ok(())
 }
 
 fn fisher(a: FisherArgs) -> Result<()> {
     let setup = a.model.setup()?;
-    let p = parameters(&setup, Some(&a.scenario))?;
-    let design = setup.design(&a.design)?;
-    let fe = fisher_errors(&setup, &design, &p)?
-        .context("Fisher information is singular: the design cannot constrain every parameter")?;
-    let prov = Provenance::new("model fisher").with_model(&setup.spec);
-    ensure_parent(&a.out)?;
-    let stem = a
-        .out
-        .file_stem()
-        .map(|s| s.to_string_lossy().to_string())
-        .unwrap_or_else(|| "fisher".into());
-    let corr_path = a.out.with_file_name(format!("{stem}_corr.parquet"));
-    write_parquet(&a.out, &fe.table.with_meta_all(&prov.meta))?;
-    write_parquet(&corr_path, &fe.correlation.with_meta_all(&prov.meta))?;
-    out!("{}", fe.text);
+    let job = FisherJob {
+        scenario: a.scenario,
+        design: a.design,
+    };
+    let (text, corr_path) = job.run(&setup, &a.out)?;
+    out!("{text}");
     info!("wrote {} and {}", a.out.display(), corr_path.display());
     Ok(())
 }

@@ -54,6 +54,28 @@ pub enum Kind {
     T,
 }
 
+/// The criteria an optimisation is asked for: one kind on a chosen matrix, or all six.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Choice {
+    D,
+    E,
+    T,
+    All,
+}
+
+impl Choice {
+    /// The criteria chosen, the kind acting on `on` (all six whatever `on` says).
+    pub fn criteria(self, on: Matrix) -> Vec<Criterion> {
+        let kind = match self {
+            Choice::All => return Criterion::ALL.to_vec(),
+            Choice::D => Kind::D,
+            Choice::E => Kind::E,
+            Choice::T => Kind::T,
+        };
+        vec![Criterion { kind, on }]
+    }
+}
+
 /// One of the six criteria.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Criterion {

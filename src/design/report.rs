@@ -526,6 +526,25 @@ pub struct DesignEvaluation {
     pub table: Table,
 }
 
+impl DesignEvaluation {
+    /// The design's constraint violations as notes naming `origin` when `allow` (score it
+    /// anyway); else Err with the first, and how many there are.
+    pub fn violation_notes(&self, origin: &Path, allow: bool) -> Result<Vec<String>> {
+        match self.violations.first() {
+            Some(v) if !allow => Err(DesignError::Config(format!(
+                "{}: {v} ({} violation(s); --allow-violations to score it anyway)",
+                origin.display(),
+                self.violations.len()
+            ))),
+            _ => Ok(self
+                .violations
+                .iter()
+                .map(|v| format!("{}: {v}", origin.display()))
+                .collect()),
+        }
+    }
+}
+
 /// Score `design` (read from `origin`, named in errors) against the study `st`.
 pub fn evaluate_design(
     setup: &Setup,

@@ -36,6 +36,17 @@ pub struct Study {
 }
 
 impl Study {
+    /// The study at a scenario's truth, with the standard design's number of stretches.
+    pub fn at_scenario(
+        setup: &Setup,
+        scenario: &str,
+        scaling: Scaling,
+        parameters: Option<&[String]>,
+    ) -> Result<Study, DesignError> {
+        let p = setup.spec.scenario(scenario)?.truth;
+        Study::new(setup, &p, scaling, parameters, None)
+    }
+
     /// Space with the standard design's timing and `slots` stretches per experiment (default:
     /// as many as the standard design has), target `parameters` (default: the non-delay ones).
     pub fn new(
@@ -173,6 +184,13 @@ struct ValidationSpec {
 pub const MIN_VALIDATION_REALIZATIONS: usize = 2;
 
 impl ValidationConfig {
+    /// How many designs the validation compares: the standard and the thesis's T-information
+    /// designs (the fixed references of `candidate_designs`) and one per criterion and layout.
+    pub fn designs(&self) -> usize {
+        let references = 2;
+        references + self.criteria.len() + self.simultaneous_criteria.len()
+    }
+
     /// Read and check `[design_validation]` of `file`; `realizations` overrides the file's.
     pub fn from_file(file: &Path, realizations: Option<usize>) -> Result<Self, DesignError> {
         let spec = crate::io::read_toml::<ValidationFile>(file)?.design_validation;

@@ -204,6 +204,28 @@ impl Diagnosis {
         self.md_scope(&mut s);
         s
     }
+
+    /// The one-line summary: chi^2/nu before and after, the effects added, how many residual
+    /// features stay unexplained, and the time taken.
+    pub fn summary_line(&self) -> String {
+        let added = if self.effects_added.is_empty() {
+            "none".to_string()
+        } else {
+            self.effects_added
+                .iter()
+                .map(|e| e.name.clone())
+                .collect::<Vec<_>>()
+                .join(", ")
+        };
+        format!(
+            "chi2/nu {:.4} -> {:.4} (reference {:.4}); added: {added}; unexplained: {}; {:.2} s",
+            self.before.chi2_reduced,
+            self.after.chi2_reduced,
+            self.after.reference_chi2_reduced,
+            self.unexplained.len(),
+            self.seconds
+        )
+    }
 }
 
 impl Diagnosis {

@@ -185,6 +185,25 @@ pub fn ensure_dir(dir: impl AsRef<Path>) -> Result<(), IoError> {
     fs::create_dir_all(dir).map_err(|e| IoError::write(dir, e))
 }
 
+/// Creates the directory the output file `path` goes in, if it names one.
+pub fn ensure_parent(path: &Path) -> Result<(), IoError> {
+    match path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        Some(dir) => ensure_dir(dir).map_err(|e| IoError::ParentDir {
+            path: path.to_path_buf(),
+            source: Box::new(e),
+        }),
+        None => Ok(()),
+    }
+}
+
+/// Creates a command's output directory `dir` and its parents if needed.
+pub fn create_output_dir(dir: &Path) -> Result<(), IoError> {
+    fs::create_dir_all(dir).map_err(|source| IoError::OutputDir {
+        path: dir.to_path_buf(),
+        source,
+    })
+}
+
 /// The overwrite policy every command shares for its outputs: an `--out` that does not exist
 /// yet, or an empty directory, is fine; an existing file or a non-empty directory (a previous
 /// result, a finished campaign, a dataset) is refused unless `force`. `flag` names the option
@@ -244,6 +263,42 @@ pub fn available_memory() -> Option<u64> {
     let line = text.lines().find(|l| l.starts_with("MemAvailable:"))?;
     let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
     kb.checked_mul(1024)
+}
+
+/// The memory budget of the size checks (bytes): FREEFALL_MEMORY_BUDGET when it is a positive
+/// number, else half the available memory (the rest is the process's other data and the
+/// machine's other users); None when neither is known.
+pub fn memory_budget_from_env() -> Option<u64> {
+    std::env::var("FREEFALL_MEMORY_BUDGET")
+        .ok()
+        .and_then(|v| v.trim().parse::<f64>().ok())
+        .filter(|b| b.is_finite() && *b > 0.0)
+        .map(|b| b as u64)
+        .or_else(|| available_memory().map(|b| b / 2))
+}
+
+/// Err when one of the `outputs` is one of the `inputs` (`psd run.parquet --out run.parquet`
+/// would replace its input): the same file after resolving links and `..`. Each path comes
+/// with the flag or argument that named it.
+pub fn check_output_not_input(
+    inputs: &[(String, &Path)],
+    outputs: &[(String, &Path)],
+) -> Result<(), IoError> {
+    for (oflag, out) in outputs {
+        let Ok(o) = out.canonicalize() else {
+            continue; // not there yet: cannot be an existing input
+        };
+        for (iflag, input) in inputs {
+            if input.canonicalize().is_ok_and(|i| i == o) {
+                return Err(IoError::OutputIsInput {
+                    output: format!("{oflag} '{}'", out.display()),
+                    input: format!("{iflag} '{}'", input.display()),
+                    path: o,
+                });
+            }
+        }
+    }
+    Ok(())
 }
 
 /// Reads a whole UTF-8 text file.

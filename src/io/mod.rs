@@ -12,7 +12,8 @@
 //!   [`ParquetAppender`];
 //! - atomic writes ([`atomic`]): every output is written to a temporary file in the destination
 //!   directory, flushed to disk and renamed into place, so a reader never sees a half-written file
-//!   and a failed write leaves nothing behind.
+//!   and a failed write leaves nothing behind;
+//! - figures ([`plot`]): a Python script run on a command's output folder.
 //!
 //! # Errors
 //! Every failure is an [`IoError`] whose message is one line naming the file and, where it applies,
@@ -23,6 +24,7 @@
 
 pub mod atomic;
 pub mod dataset;
+pub mod plot;
 pub mod provenance;
 pub mod run;
 pub mod table;
@@ -30,7 +32,8 @@ pub mod table;
 use std::path::{Path, PathBuf};
 
 pub use atomic::{
-    available_memory, check_output, ensure_dir, file_sha256, read_json, read_text, read_toml,
+    available_memory, check_output, check_output_not_input, create_output_dir, ensure_dir,
+    ensure_parent, file_sha256, memory_budget_from_env, read_json, read_text, read_toml,
     sha256_hex, write_bytes_atomic, write_json_atomic, write_text_atomic, write_toml_atomic,
     AtomicFile,
 };
@@ -184,6 +187,29 @@ pub enum IoError {
     /// Any other invalid content; the message says what and where.
     #[error("{}: {message}", path.display())]
     Invalid { path: PathBuf, message: String },
+    /// The directory an output file goes in could not be created.
+    #[error("cannot create directory for '{}'", path.display())]
+    ParentDir {
+        /// The output file.
+        path: PathBuf,
+        #[source]
+        source: Box<IoError>,
+    },
+    /// An output path is one of the command's input files (`output` and `input` name the
+    /// flags and the paths as given; `path` is the file).
+    #[error("{output} is the input {input}: writing it would replace the input; choose another output path")]
+    OutputIsInput {
+        output: String,
+        input: String,
+        path: PathBuf,
+    },
+    /// A command's output directory could not be created.
+    #[error("cannot create output directory '{}'", path.display())]
+    OutputDir {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
 }
 
 impl IoError {
@@ -208,7 +234,10 @@ impl IoError {
             | IoError::TooShort { path, .. }
             | IoError::DtMismatch { path, .. }
             | IoError::DuplicateExperiment { path, .. }
-            | IoError::Invalid { path, .. } => path,
+            | IoError::Invalid { path, .. }
+            | IoError::ParentDir { path, .. }
+            | IoError::OutputDir { path, .. }
+            | IoError::OutputIsInput { path, .. } => path,
         }
     }
 

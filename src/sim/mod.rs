@@ -14,3 +14,44 @@ pub use crate::data::Series;
 pub use crate::forward::TemplateEngine;
 pub use experiment::Simulator;
 pub use whitened::WhitenedSimulator;
+
+/// The simulation engine of a dataset or a campaign.
+#[derive(Debug, Clone, Copy, clap::ValueEnum, PartialEq, Eq)]
+pub enum Engine {
+    /// Templates plus coloured noise of the continuous loop's PSD (fast; the campaigns'
+    /// default).
+    FrequencyDomain,
+    /// The digital loop stepped at simulate_hz (plant integrated exactly, discrete
+    /// controllers, held commands), decimated with the anti-alias FIR.
+    TimeDomain,
+}
+
+impl Engine {
+    /// The name in a dataset's `[meta]` and a campaign file's `[fit] engine`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Engine::FrequencyDomain => "frequency-domain",
+            Engine::TimeDomain => "time-domain",
+        }
+    }
+}
+
+/// The simulation path of a dataset.
+#[derive(Debug, Clone, Copy, clap::ValueEnum, PartialEq, Eq)]
+pub enum Rate {
+    /// Simulate at the model's simulate_hz and decimate with the anti-alias FIR (thesis).
+    Decimated,
+    /// Simulate directly at analyse_hz (ideal anti-alias decimation; what frequency-domain
+    /// campaigns use).
+    Analysis,
+}
+
+impl Rate {
+    /// The name in the dataset's `[meta]`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Rate::Decimated => "decimated",
+            Rate::Analysis => "analysis",
+        }
+    }
+}

@@ -242,6 +242,16 @@ impl CrossSpectrum {
         self.dof
     }
 
+    /// The estimate's size in words: bins, segments averaged, equivalent degrees of freedom.
+    pub fn describe(&self) -> String {
+        format!(
+            "{} bins, {} segments, {:.1} equivalent degrees of freedom",
+            self.f.len(),
+            self.segments,
+            self.dof
+        )
+    }
+
     /// Effective number of independent averages K_eff = nu / 2.
     pub fn k_eff(&self) -> f64 {
         self.dof / 2.0

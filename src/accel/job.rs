@@ -1,0 +1,162 @@
+//! One total-equivalent-acceleration analysis from its files to its output folder: the run
+//! (a run file, or a dataset's noise run or experiment), the parameters of `Delta(p)` (fitted
+//! estimates, a scenario or the nominal values), the readouts' noise model of the projection
+//! (the truth when the data or the scenario say it), and the tables and plot of
+//! [`super::report`].
+
+use std::path::{Path, PathBuf};
+
+use super::report::{analyse, parse_segment, AccelRequest};
+use super::Stencil;
+use crate::analysis::job::{context, JobError, Notes};
+use crate::analysis::{parameters_from_estimates, resolve_guess, truth_from_meta};
+use crate::io::plot::run_plot_script;
+use crate::io::{ensure_dir, read_dataset, read_run, write_parquet, Run};
+use crate::setup::Setup;
+use crate::spectral::WelchConfig;
+
+/// The plot script, embedded so that an installed binary plots without the source tree.
+const PLOT_SCRIPT: &str = include_str!("../../scripts/plot_accel.py");
+
+/// Which parameter set of a scenario.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum ScenarioSet {
+    Guess,
+    Truth,
+}
+
+/// The settings of one acceleration analysis.
+#[derive(Debug, Clone)]
+pub struct AccelJob {
+    /// With a dataset: the experiment to convert instead of the noise run.
+    pub run: Option<String>,
+    /// Parameters of Delta: an estimates.parquet written by a fit.
+    pub params: Option<PathBuf>,
+    /// Parameters of Delta: a scenario of the model file (its `set`); without `params` or
+    /// `scenario`, the model's nominal values.
+    pub scenario: Option<String>,
+    pub set: ScenarioSet,
+    /// Time spans START:END (s, run time) whose spectra are also estimated.
+    pub segments: Vec<String>,
+    /// Outer coefficient of the five-point second-derivative estimator.
+    pub stencil: f64,
+    /// Welch segments averaged.
+    pub welch_segments: usize,
+    /// Probability of the confidence band of the spectra.
+    pub level: f64,
+    /// Draw plots/accel.png with the embedded scripts/plot_accel.py (FREEFALL_PLOT_SCRIPT
+    /// names another script).
+    pub plots: bool,
+}
+
+impl AccelJob {
+    /// The request after checking every setting's range.
+    fn request(&self) -> Result<AccelRequest, JobError> {
+        crate::config::probability("--level", self.level)?;
+        crate::config::at_least_one("--welch-segments", self.welch_segments)?;
+        Ok(AccelRequest {
+            stencil: Stencil::new(self.stencil).map_err(context("--stencil"))?,
+            welch: WelchConfig {
+                segments: self.welch_segments,
+                ..WelchConfig::default()
+            },
+            level: self.level,
+            segments: self
+                .segments
+                .iter()
+                .map(|s| parse_segment(s))
+                .collect::<Result<_, _>>()
+                .map_err(JobError::Invalid)?,
+        })
+    }
+
+    /// Converts the run of `input` (a run file or a dataset TOML) and writes accel.parquet,
+    /// accel_psd.parquet, budget.parquet and the plot to `out`; returns the printable summary:
+    /// where the parameters came from, the run's size and the levels at the report frequencies.
+    pub fn run(
+        &self,
+        setup: &Setup,
+        input: &Path,
+        out: &Path,
+        notes: Notes<'_>,
+    ) -> Result<String, JobError> {
+        let req = self.request()?;
+        let (run, meta_truth) = self.load_input(input, setup)?;
+        let (p, p_label) = self.delta_parameters(setup)?;
+        // The readouts' noise model for the projection: the truth when the data say it.
+        let scenario_truth = match (&self.scenario, meta_truth.is_none()) {
+            (Some(s), true) => Some(setup.spec.scenario(s)?.truth),
+            _ => None,
+        };
+        let (p_noise, noise_label) = match (meta_truth, scenario_truth) {
+            (Some(t), _) => (t, "the dataset's [meta.truth]"),
+            (None, Some(t)) => (t, "the scenario's truth"),
+            (None, None) => (p.clone(), "the Delta parameters"),
+        };
+        let label = run.path.as_deref().unwrap_or(input).display().to_string();
+        let r = analyse(&setup.model, &setup.noise, &p, &p_noise, &run, &req)
+            .map_err(context(label))?;
+        ensure_dir(out).map_err(context(format!(
+            "cannot create output directory '{}'",
+            out.display()
+        )))?;
+        write_parquet(out.join("accel.parquet"), &r.series)?;
+        write_parquet(out.join("accel_psd.parquet"), &r.spectra)?;
+        write_parquet(out.join("budget.parquet"), &r.budget)?;
+        let text = format!(
+            "Delta parameters: {p_label}; readout noise model at {noise_label}; {} samples, dt = {} s\n{}",
+            r.acceleration.len(),
+            r.acceleration.dt,
+            r.levels_text()
+        );
+        if self.plots {
+            if let Err(e) = run_plot_script(out, PLOT_SCRIPT, "plot_accel.py") {
+                notes(&format!("no plots/accel.png: {}", e.with_causes()));
+            }
+        }
+        Ok(text)
+    }
+
+    /// The run to convert and the dataset's `[meta.truth]`, if any.
+    fn load_input(&self, input: &Path, setup: &Setup) -> Result<(Run, Option<Vec<f64>>), JobError> {
+        let is_dataset = input
+            .extension()
+            .is_some_and(|e| e.eq_ignore_ascii_case("toml"));
+        if !is_dataset {
+            if self.run.is_some() {
+                return Err(JobError::Invalid(format!(
+                    "--run needs a dataset TOML, '{}' is a run",
+                    input.display()
+                )));
+            }
+            return Ok((read_run(input)?, None));
+        }
+        let ds = read_dataset(input)?;
+        let truth = truth_from_meta(&ds, &setup.parameter_names());
+        let run = match (&self.run, &ds.noise) {
+            (Some(name), _) => ds.experiment(name)?.clone(),
+            (None, Some(noise)) => noise.clone(),
+            (None, None) => {
+                return Err(JobError::Invalid(format!(
+                    "{}: the dataset has no noise run; name an experiment with --run ({})",
+                    input.display(),
+                    ds.names().join(", ")
+                )))
+            }
+        };
+        Ok((run, truth))
+    }
+
+    /// The parameters of Delta and where they came from.
+    fn delta_parameters(&self, setup: &Setup) -> Result<(Vec<f64>, String), JobError> {
+        if let Some(p) = &self.params {
+            let v = parameters_from_estimates(p, &setup.parameter_names())?;
+            return Ok((v, format!("estimates {}", p.display())));
+        }
+        Ok(match (&self.scenario, self.set) {
+            (Some(s), ScenarioSet::Guess) => (resolve_guess(setup, Some(s))?, format!("{s} guess")),
+            (Some(s), ScenarioSet::Truth) => (setup.spec.scenario(s)?.truth, format!("{s} truth")),
+            (None, _) => (setup.spec.nominal(), "nominal".to_string()),
+        })
+    }
+}

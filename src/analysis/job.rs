@@ -1,0 +1,448 @@
+//! The analyses of measured-format data as jobs, from input files to output files: a run's
+//! one-sided Welch cross-spectra ([`psd`]), a run through a whitening filter estimated from a
+//! noise-only run or the model's noise cross-PSD ([`WhitenJob`]), and the whitened-likelihood
+//! MIMO fit of a dataset with its estimates, correlations, residuals and summary ([`FitJob`],
+//! thesis sec. 4.4). The preparation a fit and a diagnosis share (dataset, starting point,
+//! constraints, units check) is [`DatasetFit`]. Notes go to the caller as they are made;
+//! nothing here prints.
+
+use std::path::{Path, PathBuf};
+
+use super::transient::{clean_noise_run, fit_with_transients, TransientError, TransientReport};
+use super::{
+    correlation_table, dataset_whitener, decimated_telemetry, estimates_table, experiment_data,
+    outputs_of, parse_constraints, psd_table, residual_table, resolve_guess, truth_from_meta,
+    whitened_table, AnalysisError, FitSummary, Whitening,
+};
+use crate::data::ExperimentData;
+use crate::fit::{
+    fit as run_fit, Constraints, Estimator, FitConfig, FitError, FitResult, Likelihood, Whitener,
+};
+use crate::io::{
+    create_output_dir, ensure_parent, read_dataset, read_run, write_json_atomic, write_parquet,
+    Dataset, IoError, Provenance,
+};
+use crate::model::{check_stability, LpfX, ModelError};
+use crate::setup::{Error as SetupError, Setup};
+use crate::spectral::CrossSpectrum;
+use crate::units::UnitsError;
+
+/// False-alarm probability at which a fit with transients calls a run's transient significant
+/// (the diagnosis' default `alpha`).
+pub const TRANSIENT_ALPHA: f64 = 0.01;
+
+/// Receives the notes of a job as they are made (a fallback taken, how runs were joined).
+pub type Notes<'a> = &'a mut dyn FnMut(&str);
+
+/// Errors of a job on measured-format data; each names the file, option or parameter at fault.
+#[derive(Debug, thiserror::Error)]
+pub enum JobError {
+    /// A setting or an input that does not suit the job; the message says which and why.
+    #[error("{0}")]
+    Invalid(String),
+    /// What was being done, or the file it was done on, when `source` failed.
+    #[error("{context}")]
+    Context {
+        context: String,
+        #[source]
+        source: Box<dyn std::error::Error + Send + Sync>,
+    },
+    #[error(transparent)]
+    Analysis(#[from] AnalysisError),
+    #[error(transparent)]
+    Io(#[from] IoError),
+    #[error(transparent)]
+    Setup(#[from] SetupError),
+    #[error(transparent)]
+    Model(#[from] ModelError),
+    #[error(transparent)]
+    Fit(#[from] FitError),
+    #[error(transparent)]
+    Units(#[from] UnitsError),
+    #[error(transparent)]
+    Transient(#[from] TransientError),
+    #[error(transparent)]
+    Config(#[from] crate::config::OutOfRange),
+}
+
+/// Wraps an error in `context` (what was being done, or the file), keeping it as the source.
+pub fn context<E: std::error::Error + Send + Sync + 'static>(
+    context: impl Into<String>,
+) -> impl FnOnce(E) -> JobError {
+    let context = context.into();
+    move |e| JobError::Context {
+        context,
+        source: Box::new(e),
+    }
+}
+
+/// The one-sided Welch cross-spectra of the run `run_path` (the thesis's settings) written to
+/// `out` with their provenance; returns the spectra.
+pub fn psd(run_path: &Path, out: &Path) -> Result<CrossSpectrum, JobError> {
+    let run = read_run(run_path)?;
+    let (table, cs) = psd_table(&run).map_err(context(run_path.display().to_string()))?;
+    let table = table.with_meta_all(&Provenance::new("psd").with_run(run_path)?.meta);
+    ensure_parent(out)?;
+    write_parquet(out, &table)?;
+    Ok(cs)
+}
+
+/// A run through a whitening filter, from a noise-only run or from the model's noise PSD.
+#[derive(Debug, Clone)]
+pub struct WhitenJob {
+    /// Noise-only run from which the whitening filter is estimated.
+    pub noise: Option<PathBuf>,
+    /// Build the whitening filter from the model's noise PSD instead.
+    pub model_psd: bool,
+    /// Scenario whose true parameters set the model noise PSD (default: nominal parameters).
+    pub scenario: Option<String>,
+    /// Whitening filter order (lags).
+    pub order: usize,
+    /// Degree of the polynomial removed from the whitened series.
+    pub poly_degree: usize,
+}
+
+impl WhitenJob {
+    /// Whitens `run_path` into `out`; `setup` loads the model when its noise PSD is asked for.
+    /// Returns the report: the filter, where it came from, and the whitened moments with their
+    /// uncertainties.
+    pub fn run(
+        &self,
+        setup: impl FnOnce() -> Result<Setup, SetupError>,
+        run_path: &Path,
+        out: &Path,
+    ) -> Result<String, JobError> {
+        let run = read_run(run_path)?;
+        let (whitener, source) = match (&self.noise, self.model_psd) {
+            (Some(path), _) => {
+                let noise = read_run(path)?;
+                if !crate::numerics::tol::same_time(noise.dt, run.dt) {
+                    return Err(JobError::Invalid(format!(
+                        "{}: sampling interval {} s differs from {}'s {} s",
+                        path.display(),
+                        noise.dt,
+                        run_path.display(),
+                        run.dt
+                    )));
+                }
+                let w = Whitener::<2>::from_series(&outputs_of(&noise), self.order)
+                    .map_err(context(path.display().to_string()))?;
+                (w, format!("noise run {}", path.display()))
+            }
+            (None, true) => {
+                let setup = setup()?;
+                let p = match &self.scenario {
+                    Some(s) => setup.spec.scenario(s)?.truth,
+                    None => setup.spec.nominal(),
+                };
+                let w = setup.whitener_from_model(&p, run.len(), run.dt, self.order)?;
+                (w, "model noise PSD".to_string())
+            }
+            (None, false) => return Err(JobError::Invalid(
+                "give --noise NOISE.parquet or --model-psd to choose where the whitening filter comes from".into(),
+            )),
+        };
+        if run.len() < whitener.order() + 10 {
+            return Err(JobError::Invalid(format!(
+                "{}: {} samples, fewer than the whitening filter needs ({} + 10)",
+                run_path.display(),
+                run.len(),
+                whitener.order()
+            )));
+        }
+        let (table, moments) = whitened_table(&run, &whitener, self.poly_degree)?;
+        let p = whitener.order();
+        let report = format!(
+            "whitening filter: order {p}, from {source}; first {p} samples dropped\n{moments}"
+        );
+        let table = table.with_meta_all(&Provenance::new("whiten").with_run(run_path)?.meta);
+        ensure_parent(out)?;
+        write_parquet(out, &table)?;
+        Ok(report)
+    }
+}
+
+/// What a fit of a dataset and a diagnosis share: the starting point, the whitening filter's
+/// order, the nuisance polynomial, the constraints and the units check.
+#[derive(Debug, Clone)]
+pub struct DatasetFit {
+    /// Starting point: a scenario name (its guess) or a TOML file of `parameter = value`
+    /// (default: the model's nominal parameters).
+    pub guess: Option<String>,
+    /// Whitening filter order (lags).
+    pub order: usize,
+    /// Degree of the whitened-domain polynomial nuisance per experiment and channel.
+    pub poly_degree: usize,
+    /// Parameters held fixed: NAME at its starting value, or NAME=VALUE.
+    pub fix: Vec<String>,
+    /// Gaussian priors: NAME=MEAN,SIGMA.
+    pub prior: Vec<String>,
+    /// Refuse readouts that fail the units check ([`crate::units::check_dataset`]).
+    pub check_units: bool,
+}
+
+/// A dataset read for a fit: its experiments, the starting point and the constraints.
+#[derive(Debug, Clone)]
+pub struct Prepared {
+    pub ds: Dataset,
+    pub data: ExperimentData,
+    pub guess: Vec<f64>,
+    pub constraints: Constraints,
+}
+
+impl DatasetFit {
+    /// Reads the dataset at `path` and checks its runs' lengths against the filter; resolves
+    /// the starting point and the constraints. The units check is [`DatasetFit::check_units`].
+    pub fn prepare(
+        &self,
+        setup: &Setup,
+        path: &Path,
+        notes: Notes<'_>,
+    ) -> Result<Prepared, JobError> {
+        let ds = read_dataset(path)?;
+        for n in &ds.notes {
+            notes(n);
+        }
+        let (data, joined) = experiment_data(setup, &ds)?;
+        for n in &joined {
+            notes(n);
+        }
+        let names = setup.parameter_names();
+        // A segment of a run with gaps too short for the filter: one line naming file, row
+        // and gap.
+        ds.check_lengths(
+            crate::fit::problem::min_length(self.order, self.poly_degree, names.len()),
+            &format!("a whitening filter of order {}", self.order),
+        )?;
+        let mut guess = resolve_guess(setup, self.guess.as_deref())?;
+        let constraints = parse_constraints(&names, &self.fix, &self.prior, &mut guess)
+            .map_err(JobError::Invalid)?;
+        Ok(Prepared {
+            ds,
+            data,
+            guess,
+            constraints,
+        })
+    }
+
+    /// The units check of the readouts at the starting point, unless switched off.
+    pub fn check_units(&self, setup: &Setup, p: &Prepared) -> Result<(), JobError> {
+        if self.check_units {
+            crate::units::check_dataset(setup, &p.guess, &p.ds)?;
+        }
+        Ok(())
+    }
+}
+
+/// A fit of a dataset, written to an output folder: estimates.parquet, correlation.parquet,
+/// residuals.parquet and fit.json.
+#[derive(Debug, Clone)]
+pub struct FitJob {
+    pub dataset: DatasetFit,
+    /// Estimator (thesis eq. "L-estimates").
+    pub estimator: Estimator,
+    /// Where the whitening filter comes from.
+    pub whitening: Whitening,
+    /// Fit start-up transients (thesis sec. 3.2, 4.7): the closed loop's free responses are
+    /// fitted nuisance columns of every experiment, and the noise run's fitted free response
+    /// is removed before its whitening filter is estimated.
+    pub transient: bool,
+}
+
+/// A finished fit: its summary (as written to fit.json) and the printable result.
+#[derive(Debug)]
+pub struct FitOutcome {
+    pub summary: FitSummary,
+    /// The chi^2 line, one line per parameter (with truth and pull when the dataset has it)
+    /// and one per fitted start-up transient.
+    pub text: String,
+    /// Whether the optimiser stopped by a convergence test (the summary's `converged` also
+    /// asks for a chi^2 near its noise reference).
+    pub terminated: bool,
+}
+
+impl FitOutcome {
+    /// Err when the fit did not converge, or converged to a chi^2 far above its reference.
+    pub fn check(&self) -> Result<(), JobError> {
+        let s = &self.summary;
+        if self.terminated && !s.warnings.is_empty() {
+            return Err(JobError::Invalid(format!(
+                "the fit did not converge: {} but chi2/nu = {:.4e} (see the warning; are the \
+                 readouts in metres?)",
+                s.termination, s.chi2_reduced
+            )));
+        }
+        if !s.converged {
+            return Err(JobError::Invalid(format!(
+                "the fit did not converge: {}",
+                s.termination
+            )));
+        }
+        Ok(())
+    }
+}
+
+impl FitJob {
+    /// Fits the dataset at `path` and writes the results to `out`.
+    pub fn run(
+        &self,
+        setup: &Setup,
+        path: &Path,
+        out: &Path,
+        notes: Notes<'_>,
+    ) -> Result<FitOutcome, JobError> {
+        let prep = self.dataset.prepare(setup, path, notes)?;
+        let (ds, data, guess) = (&prep.ds, &prep.data, &prep.guess);
+        let mut cfg = prep.constraints.apply(FitConfig::new(&setup.model));
+        check_stability(&setup.model, guess, Some(&setup.spec.nominal()))
+            .map_err(context("the starting point"))?;
+        self.dataset.check_units(setup, &prep)?;
+        let (whitener, source, noise_report) = self.whitener(setup, ds, data, guess)?;
+        let through_fir = source.starts_with("model") && decimated_telemetry(ds);
+        if (ds.noise.is_none() && self.whitening == Whitening::Auto) || through_fir {
+            notes(&format!("whitening from the {source}"));
+        }
+        let mut lik = self.likelihood(setup, data, whitener, path)?;
+        cfg.estimator = self.estimator;
+        let mut transients = Vec::new();
+        let res = if self.transient {
+            let (mut res, mut reports) =
+                fit_with_transients(setup, &mut lik, data, guess, &cfg, TRANSIENT_ALPHA)?;
+            let mut noise_report = noise_report;
+            if noise_report.is_some() {
+                // The noise run's columns were evaluated at the guess: once more at the
+                // estimate (measured over 8 seeds: its v12 start scattered 2.7 sigma at the
+                // guess, 0.75 here).
+                let (w, _, r) = self.whitener(setup, ds, data, &res.estimate)?;
+                noise_report = r;
+                lik = self.likelihood(setup, data, w, path)?;
+                let start = res.estimate.clone();
+                (res, reports) =
+                    fit_with_transients(setup, &mut lik, data, &start, &cfg, TRANSIENT_ALPHA)?;
+            }
+            transients.extend(noise_report);
+            transients.extend(reports);
+            res
+        } else {
+            run_fit(&setup.model, &lik.problem(data)?, guess, &cfg)?
+        };
+        let names = setup.parameter_names();
+        let summary = FitSummary::new(
+            &res,
+            self.estimator,
+            source,
+            self.dataset.order,
+            self.dataset.poly_degree,
+            Provenance::new("fit")
+                .with_model(&setup.spec)
+                .with_dataset(ds)?
+                .meta,
+        )
+        .with_constraints(&names, &cfg);
+        let summary = FitSummary {
+            transients,
+            ..summary
+        };
+        write_fit(setup, &prep, &lik, &res, &summary, out)?;
+        let truth = truth_from_meta(ds, &names);
+        let mut text = summary.text(&names, &res, guess, truth.as_deref());
+        for t in &summary.transients {
+            text.push_str(&format!("transient {}\n", t.text()));
+        }
+        Ok(FitOutcome {
+            text,
+            summary,
+            terminated: res.termination.converged(),
+        })
+    }
+
+    /// The likelihood of `data` whitened by `w`; errors name the dataset file `path`.
+    fn likelihood<'m>(
+        &self,
+        setup: &'m Setup,
+        data: &ExperimentData,
+        w: Whitener<2>,
+        path: &Path,
+    ) -> Result<Likelihood<'m, LpfX, 2>, JobError> {
+        Likelihood::with_lengths(
+            &setup.model,
+            &data.inputs,
+            &data.lengths(),
+            data.dt,
+            w,
+            self.dataset.poly_degree,
+        )
+        .map_err(context(path.display().to_string()))
+    }
+
+    /// The whitening filter and where it came from; with transients and a noise run, from the
+    /// run less its free response fitted at `p`, with that fit's report.
+    fn whitener(
+        &self,
+        setup: &Setup,
+        ds: &Dataset,
+        data: &ExperimentData,
+        p: &[f64],
+    ) -> Result<(Whitener<2>, String, Option<TransientReport>), JobError> {
+        let (order, poly_degree) = (self.dataset.order, self.dataset.poly_degree);
+        if let (Some(noise), true) = (
+            &ds.noise,
+            self.transient && self.whitening != Whitening::Model,
+        ) {
+            let (t, report) = clean_noise_run(
+                setup,
+                p,
+                &outputs_of(noise),
+                data.dt,
+                order,
+                poly_degree,
+                TRANSIENT_ALPHA,
+            )?;
+            let w = Whitener::<2>::from_series(&t.cleaned, order)
+                .map_err(context("the noise run less its fitted start-up transient"))?;
+            let source = "noise run less its fitted start-up transient".to_string();
+            return Ok((w, source, Some(report)));
+        }
+        let (w, source) =
+            dataset_whitener(setup, ds, p, data.len(), data.dt, order, self.whitening)?;
+        Ok((w, source, None))
+    }
+}
+
+/// The tables and the summary of a fit, with the dataset's provenance, into the folder `out`.
+fn write_fit(
+    setup: &Setup,
+    prep: &Prepared,
+    lik: &Likelihood<'_, LpfX, 2>,
+    res: &FitResult,
+    summary: &FitSummary,
+    out: &Path,
+) -> Result<(), JobError> {
+    let (ds, data) = (&prep.ds, &prep.data);
+    let problem = lik.problem(data)?;
+    let names = setup.parameter_names();
+    create_output_dir(out)?;
+    let meta = &summary.provenance;
+    let est = estimates_table(&names, setup.parameter_units(), res, &prep.guess)?;
+    write_parquet(out.join("estimates.parquet"), &est.with_meta_all(meta))?;
+    write_parquet(
+        out.join("correlation.parquet"),
+        &correlation_table(&names, |i, j| res.correlation[(i, j)])?.with_meta_all(meta),
+    )?;
+    let t0: Vec<f64> = ds.experiments.iter().map(|(_, r)| r.t0).collect();
+    let raw = problem.raw_residuals(data, &res.estimate);
+    let residuals = residual_table(
+        &data.names,
+        &t0,
+        data.dt,
+        &raw,
+        &res.residuals_w,
+        problem.lik.order(),
+    )?;
+    write_parquet(
+        out.join("residuals.parquet"),
+        &residuals.with_meta_all(meta),
+    )?;
+    write_json_atomic(out.join("fit.json"), summary)?;
+    Ok(())
+}

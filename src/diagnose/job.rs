@@ -1,0 +1,123 @@
+//! A diagnosis of a dataset from its files to its report folder: the dataset read and checked
+//! like a fit's ([`DatasetFit`]), the forward selection of [`super::diagnose_observed`], and
+//! the outputs: the tables of [`super::tables`], report.md and, when python3 can draw them,
+//! the residual spectra and time-resolved chi^2 plots.
+
+use std::path::Path;
+
+use super::tables::Timeline;
+use super::{diagnose_observed, DiagnoseConfig, Diagnosis, Observer};
+use crate::analysis::job::{context, DatasetFit, JobError, Notes};
+use crate::analysis::{decimated_telemetry, truth_from_meta};
+use crate::io::plot::run_plot_script;
+use crate::io::{create_output_dir, write_text_atomic, Provenance};
+use crate::setup::Setup;
+
+/// The plot script, embedded so that an installed binary plots without the source tree.
+const PLOT_SCRIPT: &str = include_str!("../../scripts/plot_diagnose.py");
+
+/// The settings of one diagnosis of a dataset.
+#[derive(Debug, Clone)]
+pub struct DiagnoseJob {
+    /// Starting point, whitening order, nuisance polynomial, constraints (base parameters, in
+    /// every fit) and units check.
+    pub dataset: DatasetFit,
+    /// Family-wise false-alarm probability of each decision (Bonferroni over candidates).
+    pub alpha: f64,
+    /// At most this many effects (operator effects, drifts, lines) are added.
+    pub max_effects: usize,
+    /// At most this many glitches are added (counted apart from `max_effects`).
+    pub max_glitches: usize,
+    /// Whiten with the model noise PSD instead of the noise run.
+    pub model_psd: bool,
+    /// Propose every narrow line of the residual as a `line` effect.
+    pub lines: bool,
+    /// Scan the residual for glitches.
+    pub glitches: bool,
+    /// Test for start-up transients.
+    pub transients: bool,
+    /// Draw plots/psd.png and plots/time_chi2.png with the embedded scripts/plot_diagnose.py
+    /// (FREEFALL_PLOT_SCRIPT names another script).
+    pub plots: bool,
+}
+
+/// Hands each note of the diagnosis to the caller as it is made.
+struct Forward<'a, 'b>(&'a mut Notes<'b>);
+
+impl Observer for Forward<'_, '_> {
+    fn note(&mut self, text: &str) {
+        (self.0)(text);
+    }
+}
+
+impl DiagnoseJob {
+    /// Diagnoses the dataset at `path` and writes the report folder `out`.
+    pub fn run(
+        &self,
+        setup: &Setup,
+        path: &Path,
+        out: &Path,
+        mut notes: Notes<'_>,
+    ) -> Result<Diagnosis, JobError> {
+        let prep = self.dataset.prepare(setup, path, notes)?;
+        self.dataset.check_units(setup, &prep)?;
+        let (ds, data) = (&prep.ds, &prep.data);
+        let truth = truth_from_meta(ds, &setup.parameter_names());
+        let noise: Option<Vec<Vec<f64>>> = ds.noise.as_ref().map(crate::analysis::outputs_of);
+        if let Some(nr) = &ds.noise {
+            if !crate::numerics::tol::same_time(nr.dt, data.dt) {
+                return Err(JobError::Invalid(format!(
+                    "the noise run's sampling interval {} s differs from the experiments' {} s",
+                    nr.dt, data.dt
+                )));
+            }
+        }
+        let cfg = DiagnoseConfig {
+            order: self.dataset.order,
+            poly_degree: self.dataset.poly_degree,
+            alpha: self.alpha,
+            max_effects: self.max_effects,
+            max_glitches: self.max_glitches,
+            whiten_from_model: self.model_psd,
+            decimated_telemetry: decimated_telemetry(ds),
+            lines: self.lines,
+            glitches: self.glitches,
+            transients: self.transients,
+            constraints: prep.constraints.clone(),
+            ..Default::default()
+        };
+        let d = diagnose_observed(
+            setup,
+            data,
+            noise.as_deref(),
+            &prep.guess,
+            truth.as_deref(),
+            &cfg,
+            &mut Forward(&mut notes),
+        )
+        .map_err(context(path.display().to_string()))?;
+        create_output_dir(out)?;
+        let prov = Provenance::new("diagnose")
+            .with_model(&setup.spec)
+            .with_dataset(ds)?;
+        let t0: Vec<f64> = ds.experiments.iter().map(|(_, r)| r.t0).collect();
+        let runs = Timeline {
+            names: &data.names,
+            t0: &t0,
+            dt: data.dt,
+        };
+        d.write_tables(out, &runs, &prov.meta)?;
+        let mut md = d.to_markdown(&path.display().to_string());
+        if self.plots {
+            match run_plot_script(out, PLOT_SCRIPT, "plot_diagnose.py") {
+                Ok(()) => md.push_str("\n## Plots\n\n![residual spectra](plots/psd.png)\n\n![time-resolved chi2](plots/time_chi2.png)\n"),
+                Err(e) => {
+                    notes(&format!("no plots ({e})"));
+                    md.push_str(&format!("\n> note: no plots ({e}); the plot data are in spectra.parquet and time_chi2.parquet\n"));
+                }
+            }
+        }
+        write_text_atomic(out.join("report.md"), &md)?;
+        Ok(d)
+    }
+}

@@ -1,0 +1,296 @@
+//! A simulated dataset in the measured-data format: the experiments of an injection design
+//! and a noise-only run, drawn at a scenario's truth by one of the engines (frequency-domain
+//! templates plus coloured noise, or the digital loop stepped in time), optionally with effects
+//! the nominal model lacks switched on in the truth, and the `[meta]` that records how.
+//! It sits with the diagnosis because the effects are the diagnosis' library ([`super::inject`],
+//! [`super::simulate`]). The caller writes it (`io::write_dataset`); nothing here touches the
+//! file system.
+
+use super::inject::{apply, EffectSet, Injected};
+use super::{simulate_effect_set, DiagnoseError};
+use crate::data::ExperimentData;
+use crate::model::effects::Extended;
+use crate::model::spec::Scenario;
+use crate::model::{check_stability, ModelError};
+use crate::setup::{Error as SetupError, Setup};
+use crate::signal::Design;
+use crate::sim::rng::stream;
+use crate::sim::time_domain::{InitialConditions, PlantEffects, TimeDomainError};
+use crate::sim::{Engine, Rate};
+
+/// The default noise-only run lasts this many experiment durations (the thesis characterises
+/// noise on runs of 12 to 28 hours, longer than the 3-hour experiments).
+pub const NOISE_DURATIONS: f64 = 4.0;
+
+/// Errors of a simulation job; each names the option at fault.
+#[derive(Debug, thiserror::Error)]
+pub enum SimulateError {
+    #[error(
+        "--rate analysis is for the frequency-domain engine; the time-domain engine steps \
+         the loop at simulate_hz and decimates"
+    )]
+    AnalysisRateInTimeDomain,
+    #[error("--initial needs --engine time-domain")]
+    InitialNeedsTimeDomain,
+    #[error("--effect with the frequency-domain engine simulates at the analysis rate (--rate analysis); --engine time-domain simulates effects at simulate_hz")]
+    EffectsNeedAnalysisRate,
+    /// An `--effect` spec that does not parse.
+    #[error("{0}")]
+    Effect(String),
+    #[error("--effect '{spec}': the time-domain engine does not simulate {what} effects; use --engine frequency-domain")]
+    NotInTimeDomain { spec: String, what: &'static str },
+    /// A line effect that cannot be added to the readouts.
+    #[error("--effect: {0}")]
+    Inject(String),
+    #[error(transparent)]
+    Config(#[from] crate::config::OutOfRange),
+    #[error(transparent)]
+    Setup(#[from] SetupError),
+    #[error(transparent)]
+    Model(#[from] ModelError),
+    #[error(transparent)]
+    Diagnose(#[from] DiagnoseError),
+    #[error(transparent)]
+    TimeDomain(#[from] TimeDomainError),
+}
+
+/// One simulation: which truth, design, seed, engine and rate, and what is added to the truth.
+#[derive(Debug, Clone)]
+pub struct SimulateJob {
+    /// Scenario whose true parameters generate the data.
+    pub scenario: String,
+    /// Injection design of the model file.
+    pub design: String,
+    /// The experiments use random stream (seed, 0), the noise run stream (seed, 1).
+    pub seed: u64,
+    /// Simulation path (default: decimated; analysis with effects).
+    pub rate: Option<Rate>,
+    pub engine: Engine,
+    /// Initial conditions of every run (time-domain engine).
+    pub initial: Option<InitialConditions>,
+    /// Duration of the noise-only run [s]; default [`NOISE_DURATIONS`] experiment durations.
+    pub noise_duration: Option<f64>,
+    /// Effects the nominal model lacks, switched on in the truth (the forms of
+    /// [`EffectSet::parse`]).
+    pub effects: Vec<String>,
+}
+
+/// A simulated dataset: the experiments, the noise-only run's readouts, and the `[meta]` of its
+/// dataset file (generator, model, scenario, design, seed, rate, engine, truth, effects).
+#[derive(Debug, Clone)]
+pub struct Simulated {
+    pub data: ExperimentData,
+    pub noise: Vec<Vec<f64>>,
+    pub meta: toml::Table,
+}
+
+impl Simulated {
+    /// The dataset's size in words: experiments, samples, rate, and the noise run.
+    pub fn describe(&self) -> String {
+        format!(
+            "{} experiments of {} samples at {} Hz, plus a noise run",
+            self.data.names.len(),
+            self.data.len(),
+            1.0 / self.data.dt
+        )
+    }
+}
+
+/// The experiments and the noise-only run's readouts.
+type Runs = (ExperimentData, Vec<Vec<f64>>);
+
+impl SimulateJob {
+    /// The rate after its default: decimated, or the analysis rate for effects with the
+    /// frequency-domain engine.
+    pub fn resolved_rate(&self) -> Rate {
+        let default = if self.effects.is_empty() || self.engine == Engine::TimeDomain {
+            Rate::Decimated
+        } else {
+            Rate::Analysis
+        };
+        self.rate.unwrap_or(default)
+    }
+
+    /// Validates the job against the model file and draws the dataset.
+    pub fn run(&self, setup: &Setup) -> Result<Simulated, SimulateError> {
+        let sc = setup.spec.scenario(&self.scenario)?;
+        check_stability(&setup.model, &sc.truth, Some(&setup.spec.nominal()))?;
+        let design = setup.design(&self.design)?;
+        let noise_duration = self
+            .noise_duration
+            .unwrap_or(NOISE_DURATIONS * design.duration_s);
+        crate::config::positive("--noise-duration", noise_duration)?;
+        let noise_design = design.noise_only(noise_duration);
+        setup.check_simulation_size(&noise_design, "--noise-duration")?;
+        let rate = self.resolved_rate();
+        if self.engine == Engine::TimeDomain && rate == Rate::Analysis {
+            return Err(SimulateError::AnalysisRateInTimeDomain);
+        }
+        if self.engine == Engine::FrequencyDomain && self.initial.is_some() {
+            return Err(SimulateError::InitialNeedsTimeDomain);
+        }
+        if !self.effects.is_empty()
+            && (self.engine, rate) == (Engine::FrequencyDomain, Rate::Decimated)
+        {
+            return Err(SimulateError::EffectsNeedAnalysisRate);
+        }
+        let effects = EffectSet::parse(&self.effects, &setup.parameter_names())
+            .map_err(SimulateError::Effect)?;
+        let (data, noise) = self.draw(setup, (&design, &noise_design), &sc, &effects, rate)?;
+        let mut meta = self.meta(setup, &sc, rate);
+        if !effects.is_empty() {
+            meta.insert("effects".into(), toml::Value::Table(effects.meta));
+        }
+        Ok(Simulated { data, noise, meta })
+    }
+
+    /// The runs by the engine and rate of the job.
+    fn draw(
+        &self,
+        setup: &Setup,
+        (design, noise_design): (&Design, &Design),
+        sc: &Scenario,
+        effects: &EffectSet,
+        rate: Rate,
+    ) -> Result<Runs, SimulateError> {
+        let glitch = sc.glitch.as_ref();
+        let (truth, seed, initial) = (&sc.truth, self.seed, self.initial);
+        Ok(match (self.engine, rate) {
+            (Engine::TimeDomain, _) if !effects.is_empty() => {
+                self.time_domain_effects(setup, (design, noise_design), sc, effects)?
+            }
+            _ if !effects.is_empty() => simulate_effect_set(
+                setup,
+                design,
+                Some(noise_design),
+                truth,
+                effects,
+                glitch,
+                seed,
+            )?,
+            (Engine::TimeDomain, _) => {
+                let sim = setup.time_domain_simulator(design, truth, glitch, initial)?;
+                let nsim = setup.time_domain_simulator(noise_design, truth, glitch, initial)?;
+                draw_all(|r| sim.draw(r), |r| nsim.noise_run(r), seed)
+            }
+            (Engine::FrequencyDomain, Rate::Decimated) => {
+                let sim = setup.decimated_simulator(design, truth, glitch)?;
+                let nsim = setup.decimated_simulator(noise_design, truth, glitch)?;
+                draw_all(|r| sim.draw(r), |r| nsim.noise_run(r), seed)
+            }
+            (Engine::FrequencyDomain, Rate::Analysis) => {
+                let sim = setup.simulator(design, truth, glitch)?;
+                let nsim = setup.simulator(noise_design, truth, glitch)?;
+                draw_all(|r| sim.draw(r), |r| nsim.noise_series(r), seed)
+            }
+        })
+    }
+
+    /// The time-domain engine with effects: the library's operator effects in the plant
+    /// ([`PlantEffects`]), lines added to the experiments' readouts. Drifts and glitches are
+    /// refused naming the spec (the frequency-domain engine has them).
+    fn time_domain_effects(
+        &self,
+        setup: &Setup,
+        (design, noise_design): (&Design, &Design),
+        sc: &Scenario,
+        effects: &EffectSet,
+    ) -> Result<Runs, SimulateError> {
+        let (truth, glitch) = (&sc.truth, sc.glitch.as_ref());
+        let refused = |what: &'static str| {
+            let spec = self
+                .effects
+                .iter()
+                .find(|s| s.starts_with(what))
+                .map_or(what, String::as_str);
+            SimulateError::NotInTimeDomain {
+                spec: spec.to_string(),
+                what,
+            }
+        };
+        if !effects.drifts.is_empty() {
+            return Err(refused("drift_"));
+        }
+        if effects
+            .injected
+            .iter()
+            .any(|i| matches!(i, Injected::Glitch { .. }))
+        {
+            return Err(refused("glitch_"));
+        }
+        let fx = PlantEffects::from_library(&setup.model, &effects.effects)?;
+        let (initial, seed) = (self.initial, self.seed);
+        let sim = setup.time_domain_simulator_with_effects(design, truth, glitch, initial, &fx)?;
+        let nsim =
+            setup.time_domain_simulator_with_effects(noise_design, truth, glitch, initial, &fx)?;
+        let (mut data, noise) = draw_all(|r| sim.draw(r), |r| nsim.noise_run(r), seed);
+        if !effects.injected.is_empty() {
+            // Only lines remain: additive in the readouts, no model needed beyond the base.
+            let model = Extended::new(setup.model.clone(), Vec::new());
+            apply(&model, truth, &mut data, &effects.injected).map_err(SimulateError::Inject)?;
+        }
+        Ok((data, noise))
+    }
+
+    /// `[meta]` of a simulated dataset: generator, model, scenario (and its glitch population),
+    /// design, seed, rate, engine, initial conditions and the truth.
+    fn meta(&self, setup: &Setup, sc: &Scenario, rate: Rate) -> toml::Table {
+        let mut meta = toml::Table::new();
+        meta.insert(
+            "generator".into(),
+            format!("freefall {}", env!("CARGO_PKG_VERSION")).into(),
+        );
+        meta.insert("model".into(), setup.spec.origin.clone().into());
+        meta.insert("scenario".into(), self.scenario.clone().into());
+        if let Some(g) = &sc.glitch {
+            // The scenario's random sine-Gaussian glitches (thesis sec. 4.5.7) are in the data.
+            meta.insert(
+                "scenario_glitches".into(),
+                format!(
+                    "sine-Gaussian, {} of samples start one, f0 {:?} Hz, tau {:?} s, amplitude {:?} sigma of the white driving noise",
+                    g.fraction, g.f0_hz, g.tau_s, g.amplitude_sigma
+                )
+                .into(),
+            );
+        }
+        meta.insert("design".into(), self.design.clone().into());
+        meta.insert("seed".into(), toml::Value::Integer(self.seed as i64));
+        meta.insert("rate".into(), rate.as_str().into());
+        meta.insert("engine".into(), self.engine.as_str().into());
+        if self.engine == Engine::TimeDomain {
+            let cl = &setup.spec.control_loop;
+            meta.insert("discretisation".into(), cl.discretisation.as_str().into());
+            meta.insert(
+                "computation_delay_s".into(),
+                toml::Value::Float(cl.computation_delay_s),
+            );
+        }
+        if let Some(ic) = self.initial {
+            let mut t = toml::Table::new();
+            for (k, v) in [
+                ("o1", ic.o1),
+                ("o12", ic.o12),
+                ("v1", ic.v1),
+                ("v12", ic.v12),
+            ] {
+                t.insert(k.into(), toml::Value::Float(v));
+            }
+            meta.insert("initial".into(), toml::Value::Table(t));
+        }
+        let mut t = toml::Table::new();
+        for (n, v) in setup.parameter_names().iter().zip(&sc.truth) {
+            t.insert(n.clone(), toml::Value::Float(*v));
+        }
+        meta.insert("truth".into(), toml::Value::Table(t));
+        meta
+    }
+}
+
+/// All experiments from stream (seed, 0), the noise run from stream (seed, 1).
+fn draw_all(
+    draw: impl Fn(&mut rand_xoshiro::Xoshiro256PlusPlus) -> ExperimentData,
+    noise: impl Fn(&mut rand_xoshiro::Xoshiro256PlusPlus) -> Vec<Vec<f64>>,
+    seed: u64,
+) -> Runs {
+    (draw(&mut stream(seed, 0)), noise(&mut stream(seed, 1)))
+}
