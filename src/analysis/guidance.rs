@@ -209,9 +209,17 @@ fn point_sampled_edges(ds: &Dataset) -> Vec<String> {
                     _ => false,
                 }
             };
+            // The edge is the sample at rest next to the jump: a stretch starts at `k - 1`
+            // and ends at `k + 1`.
             let times: Vec<f64> = (1..x.len().saturating_sub(1))
-                .filter(|&k| {
-                    (x[k - 1] == 0.0 && sharp(k, 1)) || (x[k + 1] == 0.0 && k >= 2 && sharp(k, -1))
+                .filter_map(|k| {
+                    if x[k - 1] == 0.0 && sharp(k, 1) {
+                        Some(k - 1)
+                    } else if x[k + 1] == 0.0 && k >= 2 && sharp(k, -1) {
+                        Some(k + 1)
+                    } else {
+                        None
+                    }
                 })
                 .map(|k| run.t0 + k as f64 * run.dt)
                 .collect();

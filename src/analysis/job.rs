@@ -188,6 +188,9 @@ pub struct Prepared {
     pub data: ExperimentData,
     pub guess: Vec<f64>,
     pub constraints: Constraints,
+    /// How the experiments' inputs were made (runs joined across gaps, guidance from a
+    /// declared design, sharp stretch edges), for reports to carry.
+    pub input_notes: Vec<String>,
 }
 
 impl DatasetFit {
@@ -222,6 +225,7 @@ impl DatasetFit {
             data,
             guess,
             constraints,
+            input_notes: joined,
         })
     }
 

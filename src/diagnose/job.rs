@@ -86,7 +86,7 @@ impl DiagnoseJob {
             constraints: prep.constraints.clone(),
             ..Default::default()
         };
-        let d = diagnose_observed(
+        let mut d = diagnose_observed(
             setup,
             data,
             noise.as_deref(),
@@ -96,6 +96,9 @@ impl DiagnoseJob {
             &mut Forward(&mut notes),
         )
         .map_err(context(path.display().to_string()))?;
+        // The report carries how the inputs were made, first (a design or sharp-edge note
+        // explains the residual a user then reads about).
+        d.notes.splice(0..0, prep.input_notes.iter().cloned());
         create_output_dir(out)?;
         let prov = Provenance::new("diagnose")
             .with_model(&setup.spec)
