@@ -65,6 +65,7 @@ pub struct SimulateJob {
     pub seed: u64,
     /// Simulation path (default: decimated; analysis with effects).
     pub rate: Option<Rate>,
+    /// Frequency-domain templates plus noise, or the digital loop stepped in time.
     pub engine: Engine,
     /// Initial conditions of every run (time-domain engine).
     pub initial: Option<InitialConditions>,
