@@ -743,8 +743,32 @@ pub fn read_parquet_tolerant(
     read_parquet_with(path.as_ref(), Some(required), false)
 }
 
-/// The reader: strict when `required` is `None`, else tolerant of the other columns.
+/// The reader: strict when `required` is `None`, else tolerant of the other columns. A
+/// corrupt file can make the parquet crate's decoder panic (seen: "column start and length
+/// should not be negative" on a file with mutated page headers, by the fuzz test of
+/// tests/hostile.rs); the panic is caught and reported as an error naming the file.
 fn read_parquet_with(
+    path: &Path,
+    required: Option<&[&str]>,
+    float_nulls_as_nan: bool,
+) -> Result<(Table, ReadReport), IoError> {
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        read_parquet_unguarded(path, required, float_nulls_as_nan)
+    }))
+    .unwrap_or_else(|payload| {
+        let why = payload
+            .downcast_ref::<&str>()
+            .map(|s| s.to_string())
+            .or_else(|| payload.downcast_ref::<String>().cloned())
+            .unwrap_or_else(|| "unknown".into());
+        Err(IoError::Parquet {
+            path: path.to_path_buf(),
+            message: format!("corrupt file: the Parquet decoder failed ({why})"),
+        })
+    })
+}
+
+fn read_parquet_unguarded(
     path: &Path,
     required: Option<&[&str]>,
     float_nulls_as_nan: bool,
