@@ -24,8 +24,8 @@ use arrow::array::{
     UInt64Array,
 };
 use arrow::datatypes::{
-    DataType, Field, Float32Type, Float64Type, Int16Type, Int32Type, Int64Type, Int8Type, Schema,
-    SchemaRef, TimeUnit, UInt16Type, UInt32Type, UInt64Type, UInt8Type,
+    ArrowPrimitiveType, DataType, Field, Float32Type, Float64Type, Int16Type, Int32Type, Int64Type,
+    Int8Type, Schema, SchemaRef, TimeUnit, UInt16Type, UInt32Type, UInt64Type, UInt8Type,
 };
 use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
 use parquet::arrow::ArrowWriter;
@@ -914,67 +914,37 @@ fn empty_column_for(dt: &DataType) -> Option<Column> {
     })
 }
 
+/// The values of a primitive Arrow array, widened to `U` (float32 to f64, narrower integers to
+/// 64 bits: exact).
+fn widened<T: ArrowPrimitiveType, U: From<T::Native>>(
+    array: &dyn Array,
+) -> impl Iterator<Item = U> + '_ {
+    array
+        .as_primitive::<T>()
+        .values()
+        .iter()
+        .map(|&x| U::from(x))
+}
+
 /// Appends a null-free Arrow array of a type accepted by [`empty_column_for`].
 fn extend_from_arrow(column: &mut Column, array: &dyn Array) {
     match (column, array.data_type()) {
         (Column::F64(v), DataType::Float64) => {
             v.extend_from_slice(array.as_primitive::<Float64Type>().values())
         }
-        (Column::F64(v), DataType::Float32) => v.extend(
-            array
-                .as_primitive::<Float32Type>()
-                .values()
-                .iter()
-                .map(|&x| f64::from(x)),
-        ),
+        (Column::F64(v), DataType::Float32) => v.extend(widened::<Float32Type, f64>(array)),
         (Column::I64(v), DataType::Int64) => {
             v.extend_from_slice(array.as_primitive::<Int64Type>().values())
         }
-        (Column::I64(v), DataType::Int32) => v.extend(
-            array
-                .as_primitive::<Int32Type>()
-                .values()
-                .iter()
-                .map(|&x| i64::from(x)),
-        ),
-        (Column::I64(v), DataType::Int16) => v.extend(
-            array
-                .as_primitive::<Int16Type>()
-                .values()
-                .iter()
-                .map(|&x| i64::from(x)),
-        ),
-        (Column::I64(v), DataType::Int8) => v.extend(
-            array
-                .as_primitive::<Int8Type>()
-                .values()
-                .iter()
-                .map(|&x| i64::from(x)),
-        ),
+        (Column::I64(v), DataType::Int32) => v.extend(widened::<Int32Type, i64>(array)),
+        (Column::I64(v), DataType::Int16) => v.extend(widened::<Int16Type, i64>(array)),
+        (Column::I64(v), DataType::Int8) => v.extend(widened::<Int8Type, i64>(array)),
         (Column::U64(v), DataType::UInt64) => {
             v.extend_from_slice(array.as_primitive::<UInt64Type>().values())
         }
-        (Column::U64(v), DataType::UInt32) => v.extend(
-            array
-                .as_primitive::<UInt32Type>()
-                .values()
-                .iter()
-                .map(|&x| u64::from(x)),
-        ),
-        (Column::U64(v), DataType::UInt16) => v.extend(
-            array
-                .as_primitive::<UInt16Type>()
-                .values()
-                .iter()
-                .map(|&x| u64::from(x)),
-        ),
-        (Column::U64(v), DataType::UInt8) => v.extend(
-            array
-                .as_primitive::<UInt8Type>()
-                .values()
-                .iter()
-                .map(|&x| u64::from(x)),
-        ),
+        (Column::U64(v), DataType::UInt32) => v.extend(widened::<UInt32Type, u64>(array)),
+        (Column::U64(v), DataType::UInt16) => v.extend(widened::<UInt16Type, u64>(array)),
+        (Column::U64(v), DataType::UInt8) => v.extend(widened::<UInt8Type, u64>(array)),
         (Column::I64(v), DataType::Timestamp(unit, _)) => {
             // Nanoseconds since the epoch, in integers (f64 seconds since 1970 would keep only
             // ~0.2 us); the time zone only changes how a timestamp is shown.
