@@ -195,7 +195,8 @@ pub struct ModelSpec {
     pub scenarios: BTreeMap<String, ScenarioSpec>,
     #[serde(default)]
     pub expected_features: Option<ExpectedFeatures>,
-    /// How the control loop runs (optional table; default: continuous model, Tustin, no delay).
+    /// How the control loop runs (optional table; when absent: continuous model, Tustin, no
+    /// delay; the embedded file sets `kind = "digital"`).
     #[serde(default)]
     pub control_loop: ControlLoopSpec,
     /// The telemetry's anti-alias FIR (optional table; default: the Kaiser design).
