@@ -1023,6 +1023,7 @@ fn write_dataset_validates_before_writing() {
             // Experiments may differ in length, not in sampling interval.
             ("b".into(), sample_run(11, 0.5, 0.0)),
         ],
+        auxiliary: Vec::new(),
         meta: toml::Table::new(),
         notes: Vec::new(),
     };

@@ -247,6 +247,7 @@ fn simulate(a: &DiagnoseArgs, setup: &crate::setup::Setup, dir: &Path) -> Result
         initial: None,
         noise_duration: Some(design.duration_s),
         effects: a.effects.clone(),
+        auxiliary: false,
         out: dir.to_path_buf(),
     })
 }

@@ -85,9 +85,17 @@ pub struct SimulateArgs {
     /// the velocity kick in m/s) or o1, o12 (readout transient: AMP is its peak in m), in the
     /// first experiment unless exp is given, e.g. glitch_tm2=3e-12,t0=4000;
     /// `line_CHANNEL=AMP,f=HZ[,phase=RAD][,exp=NAME]` adds AMP sin(2 pi f t + phase) (m) to
-    /// readout o1 or o12 of every experiment unless exp is given, e.g. line_o1=1e-10,f=0.0371.
+    /// readout o1 or o12 of every experiment unless exp is given, e.g. line_o1=1e-10,f=0.0371;
+    /// `aux_crosstalk_COLUMN_CHANNEL=K[,rate=R]` adds K a + R da/dt of auxiliary readout
+    /// COLUMN (a `[auxiliary]` channel of the model file, written with --auxiliary) to readout
+    /// o1 or o12 of every run, noise run included, e.g. aux_crosstalk_oy1_o12=-3e-3.
     #[arg(long = "effect", value_name = "NAME=VALUE[,KEY=VALUE...]")]
     pub effects: Vec<String>,
+    /// Write the model file's auxiliary readouts (`[auxiliary]`: readouts of other degrees of
+    /// freedom, a documented stand-in noise) as extra columns of every run, declared in
+    /// `[[auxiliary]]` of dataset.toml (implied by an `aux_crosstalk_...` effect).
+    #[arg(long)]
+    pub auxiliary: bool,
     /// Output directory (created).
     #[arg(long)]
     pub out: PathBuf,
@@ -126,7 +134,7 @@ pub fn run(a: SimulateArgs) -> Result<()> {
     let effects =
         EffectSet::parse(&a.effects, &setup.parameter_names()).map_err(anyhow::Error::msg)?;
     let working = super::Working::new("simulating");
-    let (data, noise) = match (a.engine, rate) {
+    let (mut data, mut noise) = match (a.engine, rate) {
         (Engine::TimeDomain, _) if !effects.is_empty() => {
             time_domain_effects(&setup, (&design, &noise_design), &sc, &effects, &a)?
         }
@@ -155,12 +163,29 @@ pub fn run(a: SimulateArgs) -> Result<()> {
             draw_all(|r| sim.draw(r), |r| nsim.noise_series(r), a.seed)
         }
     };
+    let aux = if a.auxiliary || !effects.crosstalk.is_empty() {
+        if setup.spec.auxiliary.is_empty() {
+            bail!(
+                "--auxiliary: the model file {} has no [auxiliary] table",
+                setup.spec.origin
+            );
+        }
+        let n_noise = noise.first().map_or(0, Vec::len);
+        let aux =
+            crate::sim::auxiliary::draw(&setup.spec, &data.lengths(), n_noise, data.dt, a.seed)?;
+        crate::sim::auxiliary::apply(&aux, &effects.crosstalk, &mut data, &mut noise)
+            .map_err(|e| anyhow::anyhow!("--effect {e}"))?;
+        aux
+    } else {
+        crate::data::Auxiliary::default()
+    };
     drop(working);
     let mut meta = simulation_meta(&setup, &a, &sc, rate);
     if !effects.is_empty() {
         meta.insert("effects".into(), toml::Value::Table(effects.meta));
     }
-    let path = write_dataset(&a.out, &Dataset::simulated(&data, &noise, meta)?)?;
+    let ds = Dataset::simulated_with_auxiliary(&data, &noise, &aux, meta)?;
+    let path = write_dataset(&a.out, &ds)?;
     info!(
         "wrote {} ({} experiments of {} samples at {} Hz, plus a noise run)",
         path.display(),
