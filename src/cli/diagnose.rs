@@ -153,6 +153,7 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
         glitches: !a.no_glitches,
         transients: !a.no_transients,
         constraints,
+        auxiliary: (!ds.auxiliary.is_empty()).then(|| std::sync::Arc::new(ds.auxiliary_series())),
         ..Default::default()
     };
     let working = super::Working::new("diagnosing");

@@ -43,6 +43,7 @@
 //! ([`tension`]).
 
 pub mod additive;
+mod crosstalk;
 pub mod excess;
 pub mod glitch;
 pub mod inject;
@@ -141,6 +142,11 @@ pub struct DiagnoseConfig {
     /// only costs them power. A prior here also replaces the model file's in the prior-tension
     /// report.
     pub constraints: crate::fit::Constraints,
+    /// Recorded auxiliary readouts of the experiments and the noise run (a dataset's
+    /// `[[auxiliary]]`): the sensing cross-talk of each into o1 and o12, static and rate
+    /// (`additive::Additive::AuxCrosstalk`), is a candidate of every round, and a claimed one is
+    /// removed from the noise run before its whitening filter is estimated again.
+    pub auxiliary: Option<Arc<crate::data::Auxiliary>>,
 }
 
 impl Default for DiagnoseConfig {
@@ -161,6 +167,7 @@ impl Default for DiagnoseConfig {
             glitches: true,
             transients: true,
             constraints: crate::fit::Constraints::default(),
+            auxiliary: None,
         }
     }
 }
@@ -449,7 +456,14 @@ pub fn diagnose_observed(
     let mut state = DiagnosisState::new(&problem, fit0.clone(), &before);
     while let Round::Added(_) = next_round(&problem, &mut state, &mut both)? {}
     let final_model = state.model.clone();
-    let mut d = finish(&problem, state, &fit0, before, &mut both);
+    let xt_noise = crosstalk::refine(&problem, &mut state, guess, &mut both)?;
+    let mut d = match &xt_noise {
+        Some(clean) => {
+            let p2 = problem.replanned(clean, guess, &mut ())?;
+            finish(&p2, state, &fit0, before, &mut both)
+        }
+        None => finish(&problem, state, &fit0, before, &mut both),
+    };
     // The science product: the noise run's readouts (or the first experiment's, guidance
     // removed) through Delta before and after.
     let (source, o, oi) = match noise {
