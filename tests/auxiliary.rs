@@ -237,3 +237,54 @@ fn undeclared_auxiliary_columns_get_a_note() {
         "{err}"
     );
 }
+
+#[test]
+fn without_auxiliary_channels_the_leak_is_an_unexplained_noise_excess() {
+    // Oracle: the simulated truth. The same leak (5e-3 into o1, -3e-3 into o12 from oy1) with
+    // the [[auxiliary]] declarations removed: the noise-run whitening learns the coupling, and
+    // only the noise run's spectrum against the model's noise PSD shows it: in o12 (where the
+    // leak, 3e-3 x 2e-9 m/sqrt(Hz), equals the 6e-12 readout noise above a few mHz), above 10
+    // mHz, and not in o1 (whose 1.2e-9 m/sqrt(Hz) thruster noise hides the 1e-11 leak). No
+    // persistent effect (operator effect, drift, line) is claimed for it.
+    let dir = tempfile::tempdir().unwrap();
+    let leak = simulate(
+        dir.path(),
+        "leak",
+        &[
+            "--effect",
+            "aux_crosstalk_oy1_o1=5e-3",
+            "--effect",
+            "aux_crosstalk_oy1_o12=-3e-3",
+        ],
+    );
+    let text = std::fs::read_to_string(&leak).unwrap();
+    let head = text.split("[[auxiliary]]").next().unwrap();
+    let noaux = leak.with_file_name("noaux.toml");
+    std::fs::write(&noaux, head).unwrap();
+    let r = diagnose(&noaux, &dir.path().join("d"), &[]);
+    let persistent: Vec<&Value> = r["effects_added"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|e| e["family"] != "glitch")
+        .collect();
+    assert!(persistent.is_empty(), "claimed {persistent:?}");
+    let excess: Vec<&Value> = r["unexplained"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|u| u["kind"] == "noise_model")
+        .collect();
+    assert!(
+        !excess.is_empty(),
+        "no noise-model excess: {}",
+        r["unexplained"]
+    );
+    for u in &excess {
+        let lo = u["band_hz"][0].as_f64().unwrap();
+        assert!(u["channel"] == "o12" && lo >= 1e-2, "{u}");
+        // The leak doubles the o12 PSD: a level about 2 times the model's.
+        let level = 1.0 + u["excess"].as_f64().unwrap();
+        assert!((1.5..2.6).contains(&level), "{u}");
+    }
+}

@@ -47,6 +47,7 @@ mod crosstalk;
 pub mod excess;
 pub mod glitch;
 pub mod inject;
+pub mod noise_excess;
 pub mod observer;
 pub mod problem;
 pub mod redesign;
@@ -515,7 +516,22 @@ fn finish(
         }
     }
     let after = problem.stage(&state.model, &state.fit);
-    let unexplained = excess::find_unexplained(&after, cfg.alpha);
+    let mut unexplained = excess::find_unexplained(&after, cfg.alpha);
+    if let Some(nz) = problem.whitening.usable_noise {
+        let found = noise_excess::find(
+            problem.setup,
+            &state.model,
+            &after.estimate,
+            nz,
+            problem.data.dt,
+            cfg.decimated_telemetry,
+            cfg.alpha / excess::FAMILIES,
+        );
+        for n in noise_excess::notes(&found, problem.whitening_source()) {
+            obs.note(&n);
+        }
+        unexplained.extend(found);
+    }
     let robust = heavy_tails(problem, &state, &after, &unexplained, obs);
     redesign_degenerate(problem, &fit0.fit.estimate, &mut state.candidates, obs);
     let prior_tension = tension::prior_tension(
