@@ -46,6 +46,20 @@ fn simulate(dir: &Path, name: &str, extra: &[&str]) -> PathBuf {
     out.join("dataset.toml")
 }
 
+/// The worked example's dataset: oy1 leaks 5e-3 into o1 and -3e-3 into o12 of every run.
+fn simulate_leak(dir: &Path) -> PathBuf {
+    simulate(
+        dir,
+        "leak",
+        &[
+            "--effect",
+            "aux_crosstalk_oy1_o1=5e-3",
+            "--effect",
+            "aux_crosstalk_oy1_o12=-3e-3",
+        ],
+    )
+}
+
 fn diagnose(ds: &Path, out: &Path, extra: &[&str]) -> Value {
     let mut args = vec![
         "diagnose",
@@ -98,16 +112,7 @@ fn auxiliary_crosstalk_is_found_and_removed() {
     // whitening, the command-line default, whose filter leaves the same level above 1 on both)
     // and of 1 under model-noise whitening; the report shows the errors before and after.
     let dir = tempfile::tempdir().unwrap();
-    let leak = simulate(
-        dir.path(),
-        "leak",
-        &[
-            "--effect",
-            "aux_crosstalk_oy1_o1=5e-3",
-            "--effect",
-            "aux_crosstalk_oy1_o12=-3e-3",
-        ],
-    );
+    let leak = simulate_leak(dir.path());
     let control = simulate(dir.path(), "control", &["--auxiliary"]);
     let text = std::fs::read_to_string(&leak).unwrap();
     assert!(
@@ -247,16 +252,7 @@ fn without_auxiliary_channels_the_leak_is_an_unexplained_noise_excess() {
     // mHz, and not in o1 (whose 1.2e-9 m/sqrt(Hz) thruster noise hides the 1e-11 leak). No
     // persistent effect (operator effect, drift, line) is claimed for it.
     let dir = tempfile::tempdir().unwrap();
-    let leak = simulate(
-        dir.path(),
-        "leak",
-        &[
-            "--effect",
-            "aux_crosstalk_oy1_o1=5e-3",
-            "--effect",
-            "aux_crosstalk_oy1_o12=-3e-3",
-        ],
-    );
+    let leak = simulate_leak(dir.path());
     let text = std::fs::read_to_string(&leak).unwrap();
     let head = text.split("[[auxiliary]]").next().unwrap();
     let noaux = leak.with_file_name("noaux.toml");
