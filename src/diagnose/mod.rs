@@ -43,6 +43,7 @@
 //! ([`tension`]).
 
 pub mod additive;
+pub mod coherence;
 mod crosstalk;
 pub mod excess;
 pub mod glitch;
@@ -317,6 +318,9 @@ pub struct Diagnosis {
     /// The acceleration noise (S_g12) through Delta before and after (`science`); `None` when
     /// no run is long enough for the estimate.
     pub acceleration: Option<science::AccelChange>,
+    /// Coherence and partial coherence of the whitened residuals with each whitened auxiliary
+    /// readout, before and after, per run and channel ([`coherence`]).
+    pub aux_coherence: Vec<coherence::AuxCoherence>,
     pub seconds: f64,
 }
 
@@ -458,13 +462,15 @@ pub fn diagnose_observed(
     while let Round::Added(_) = next_round(&problem, &mut state, &mut both)? {}
     let final_model = state.model.clone();
     let xt_noise = crosstalk::refine(&problem, &mut state, guess, &mut both)?;
-    let mut d = match &xt_noise {
-        Some(clean) => {
-            let p2 = problem.replanned(clean, guess, &mut ())?;
-            finish(&p2, state, &fit0, before, &mut both)
-        }
-        None => finish(&problem, state, &fit0, before, &mut both),
+    let replanned = match &xt_noise {
+        Some(clean) => Some(problem.replanned(clean, guess, &mut ())?),
+        None => None,
     };
+    let last = replanned.as_ref().unwrap_or(&problem);
+    let mut d = finish(last, state, &fit0, before, &mut both);
+    d.aux_coherence = coherence::table("before", &problem, &d.residuals_before.0);
+    d.aux_coherence
+        .extend(coherence::table("after", last, &d.residuals_after.0));
     // The science product: the noise run's readouts (or the first experiment's, guidance
     // removed) through Delta before and after.
     let (source, o, oi) = match noise {
@@ -560,6 +566,7 @@ fn finish(
         robust,
         transients: Vec::new(),
         acceleration: None,
+        aux_coherence: Vec::new(),
         seconds: 0.0,
     }
 }

@@ -62,7 +62,7 @@ pub struct BandLevel {
 }
 
 /// Correlation of windowed periodogram bins `d` apart (module docs) for window `w`.
-fn bin_correlation(w: &[f64], d: usize) -> f64 {
+pub(crate) fn bin_correlation(w: &[f64], d: usize) -> f64 {
     let l = w.len() as f64;
     let (mut re, mut im, mut s2) = (0.0, 0.0, 0.0);
     for (t, v) in w.iter().enumerate() {
@@ -98,7 +98,7 @@ fn kernel(w: &[f64]) -> Vec<(f64, f64)> {
 }
 
 /// Octave bands `[lo, hi)` of bin indices from [`FIRST_BIN`] up to [`TOP_FRACTION`] of Nyquist.
-fn bands(cs: &CrossSpectrum) -> Vec<(usize, usize)> {
+pub(crate) fn bands(cs: &CrossSpectrum) -> Vec<(usize, usize)> {
     let top = ((TOP_FRACTION * 0.5 / cs.dt) / cs.df()).floor() as usize;
     let top = top.min(cs.f.len().saturating_sub(1));
     let mut out = Vec::new();
