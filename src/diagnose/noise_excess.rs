@@ -217,3 +217,43 @@ pub(crate) fn notes(found: &[Unexplained], source: super::WhiteningSource) -> Ve
     }
     out
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::RngExt;
+    use rand_distr::StandardNormal;
+
+    #[test]
+    fn white_noise_reads_at_the_model_level_and_a_doubled_channel_does_not() {
+        // Oracle: white noise of variance s^2 has one-sided PSD 2 s^2 dt; its band levels over
+        // that PSD scatter about 1 within the test's tail, and a channel scaled by sqrt(2) (a
+        // coupling as loud as the noise) reads 2 in every band.
+        let (n, dt) = (20000, 1.0);
+        let mut rng = crate::sim::rng::stream(11, 0);
+        let mut x = vec![vec![0.0; n]; 2];
+        for c in &mut x {
+            for v in c.iter_mut() {
+                *v = rng.sample::<f64, _>(StandardNormal);
+            }
+        }
+        x[1].iter_mut().for_each(|v| *v *= 2f64.sqrt());
+        let psd = |_: f64| {
+            let mut m = CMat::<2>::zeros();
+            m[(0, 0)] = (2.0 * dt).into();
+            m[(1, 1)] = (2.0 * dt).into();
+            m
+        };
+        let levels = band_levels(&x, dt, psd);
+        assert!(levels.len() > 10);
+        for b in &levels {
+            match b.channel {
+                Channel::O1 => assert!(b.p_value > 1e-4, "{b:?}"),
+                Channel::O12 => {
+                    let sd = (2.0 / b.dof).sqrt() * 2.0;
+                    assert!((b.excess - 1.0).abs() < 4.0 * sd, "{b:?}");
+                }
+            }
+        }
+    }
+}

@@ -162,7 +162,7 @@ fn check_auxiliary(
                     "experiment '{}' auxiliary {}",
                     data.names[e], aux.channels[k].column
                 ),
-                &[c.clone()],
+                std::slice::from_ref(c),
             )?;
         }
     }

@@ -136,3 +136,58 @@ pub fn apply(
     }
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rate_of_a_sine_is_the_central_difference_response() {
+        // Oracle: analytic; the central difference of sin(w t) is w cos(w t) sin(w dt)/(w dt).
+        let (dt, w) = (1.0, 2.0 * std::f64::consts::PI * 0.05);
+        let x: Vec<f64> = (0..200).map(|i| (w * i as f64 * dt).sin()).collect();
+        let d = rate(&x, dt);
+        for (i, v) in d.iter().enumerate().take(199).skip(1) {
+            let expected = w * (w * i as f64 * dt).cos() * (w * dt).sin() / (w * dt);
+            assert!((v - expected).abs() < 1e-12, "sample {i}");
+        }
+    }
+
+    #[test]
+    fn crosstalk_adds_the_recorded_series_to_every_run() {
+        // Oracle: the definition o_c += k a + k' da/dt, in the experiments and the noise run.
+        let spec = ModelSpec::embedded();
+        let aux = draw(&spec, &[64, 80], 100, 1.0, 7).unwrap();
+        let k = aux.channels.iter().position(|c| c.column == "oy1").unwrap();
+        let mut data = ExperimentData {
+            names: vec!["a".into(), "b".into()],
+            inputs: vec![vec![vec![0.0; 64]; 2], vec![vec![0.0; 80]; 2]],
+            outputs: vec![vec![vec![0.0; 64]; 2], vec![vec![0.0; 80]; 2]],
+            dt: 1.0,
+        };
+        let mut noise = vec![vec![0.0; 100]; 2];
+        let leak = Crosstalk {
+            column: "oy1".into(),
+            channel: 1,
+            coefficient: -3e-3,
+            rate: 2e-3,
+        };
+        apply(&aux, std::slice::from_ref(&leak), &mut data, &mut noise).unwrap();
+        let expect = |a: &[f64]| -> Vec<f64> {
+            let d = rate(a, 1.0);
+            a.iter()
+                .zip(&d)
+                .map(|(x, v)| -3e-3 * x + 2e-3 * v)
+                .collect()
+        };
+        assert_eq!(data.outputs[1][1], expect(&aux.experiments[1][k]));
+        assert_eq!(noise[1], expect(&aux.noise.as_ref().unwrap()[k]));
+        assert!(data.outputs[0][0].iter().all(|v| *v == 0.0));
+        let bad = Crosstalk {
+            column: "oz9".into(),
+            ..leak
+        };
+        let e = apply(&aux, &[bad], &mut data, &mut noise).unwrap_err();
+        assert!(e.contains("'oz9'") && e.contains("oy1"), "{e}");
+    }
+}
