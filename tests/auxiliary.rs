@@ -284,3 +284,49 @@ fn without_auxiliary_channels_the_leak_is_an_unexplained_noise_excess() {
         assert!((1.5..2.6).contains(&level), "{u}");
     }
 }
+
+#[test]
+fn a_rate_crosstalk_from_an_angle_readout_is_found_apart_from_a_static_one() {
+    // Oracle: the simulated truth: o12 gets 2e-3 oy1 (static) and -2e-4 s d(ophi1)/dt (rate
+    // only, from the angle readout); the diagnosis claims exactly these two, each within 3
+    // sigma, and not the static term of ophi1 (the rate of a stationary series is uncorrelated
+    // with it at zero lag).
+    let dir = tempfile::tempdir().unwrap();
+    let ds = simulate(
+        dir.path(),
+        "rate",
+        &[
+            "--effect",
+            "aux_crosstalk_ophi1_o12=0,rate=-2e-4",
+            "--effect",
+            "aux_crosstalk_oy1_o12=2e-3",
+        ],
+    );
+    let r = diagnose(&ds, &dir.path().join("d"), &[]);
+    let a = added(&r);
+    let mut names: Vec<&str> = a.iter().map(|(n, _, _)| n.as_str()).collect();
+    names.sort();
+    assert_eq!(
+        names,
+        ["aux_crosstalk_oy1_o12", "aux_crosstalk_rate_ophi1_o12"],
+        "{a:?}"
+    );
+    for (name, k, s) in &a {
+        let truth = if name.contains("rate") { -2e-4 } else { 2e-3 };
+        assert!(
+            ((k - truth) / s).abs() < PULL_MAX,
+            "{name} = {k:e} +- {s:e}"
+        );
+    }
+    let coh = r["aux_coherence"].as_array().unwrap();
+    let before = coh
+        .iter()
+        .find(|c| {
+            c["stage"] == "before"
+                && c["run"] == "noise run"
+                && c["channel"] == "o12"
+                && c["aux"] == "ophi1"
+        })
+        .expect("the noise run's o12-ophi1 coherence");
+    assert!(before["p_value"].as_f64().unwrap() < 1e-6, "{before}");
+}
