@@ -879,7 +879,7 @@ fn dataset_unknown_keys_are_named() {
         &err.to_string(),
         &[
             "dataset.toml: unknown key 'experimnt'",
-            "noise, experiment, meta",
+            "noise, experiment, auxiliary, meta",
         ],
     );
 

@@ -3,7 +3,8 @@
 //! A run file is Parquet (`.parquet`, `.pq`) or CSV with a header line (`.csv`) holding uniformly
 //! sampled columns `t` [s], `oi1`, `oi12` [m] (commanded guidance injections; zeros in a noise
 //! run) and `o1`, `o12` [m] (interferometer readouts). Extra numeric columns (`y1`, `phi1`, ...)
-//! are kept. [`read_run`] validates the file into a [`Run`]:
+//! are kept; a dataset declares the ones that are auxiliary readouts of other degrees of
+//! freedom (`[[auxiliary]]`, [`read_run_segments_declared`]). [`read_run`] validates the file into a [`Run`]:
 //! - the required columns are present (the error lists the columns found);
 //! - there are at least 2 rows;
 //! - every value is finite (the error gives column, 0-based data row and value);
