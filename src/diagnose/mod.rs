@@ -41,6 +41,15 @@
 //! `indistinguishable_from`. Fitted parameters far outside their prior (model file
 //! `prior_sigma`) are listed with the degenerate candidates that would explain the shift
 //! ([`tension`]).
+//!
+//! Cross-talk from the other degrees of freedom (thesis sec. 3.4): with recorded auxiliary
+//! readouts ([`DiagnoseConfig::auxiliary`]) the sensing cross-talk of each into o1 and o12
+//! (static and rate) is an additive candidate whose column is the measured series itself; a
+//! claimed one is removed from the noise run and the whitening filter estimated again
+//! (`crosstalk`). [`coherence`] reports the coherence and partial coherence of the whitened
+//! residuals with each auxiliary readout. Without auxiliary readouts, a coupling the noise-run
+//! whitening learned still shows as the noise run's level above the model's noise PSD
+//! ([`noise_excess`]), reported as unexplained with its channel and band.
 
 pub mod additive;
 pub mod coherence;
