@@ -219,3 +219,59 @@ pub(crate) fn table(
     }
     out
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::RngExt;
+    use rand_distr::StandardNormal;
+
+    #[test]
+    fn partial_coherence_removes_what_another_readout_explains() {
+        // Oracle: o1 = a1 + noise; a2 = a1 + 0.3 noise: both readouts are coherent with o1
+        // (1/2 and 1/2.18), but given a1, a2 adds nothing (partial coherence 0, the null
+        // level), while a1 given a2 keeps a partial coherence of 0.083^2 / (1.083 0.083) =
+        // 0.076; o12 is independent of both.
+        let (n, order) = (8192, 2);
+        let mut rng = crate::sim::rng::stream(3, 0);
+        let mut white = || -> Vec<f64> {
+            (0..n + order)
+                .map(|_| rng.sample::<f64, _>(StandardNormal))
+                .collect()
+        };
+        let a1 = white();
+        let a2: Vec<f64> = a1.iter().zip(white()).map(|(x, e)| x + 0.3 * e).collect();
+        let o1: Vec<f64> = a1.iter().zip(white()).map(|(x, e)| x + e).collect();
+        let o12 = white();
+        let residual = vec![o1[order..].to_vec(), o12[order..].to_vec()];
+        let aux = vec![a1, a2];
+        let filters: Vec<Option<Whitener<1>>> = aux
+            .iter()
+            .map(|x| Whitener::<1>::from_series(std::slice::from_ref(x), order).ok())
+            .collect();
+        let input = RunInput {
+            stage: "after",
+            run: "exp".into(),
+            residual: &residual,
+            aux: &aux,
+            offset: order,
+        };
+        let rows = run_coherence(&input, &["a1".into(), "a2".into()], &filters, 1.0);
+        let get = |ch: &str, a: &str| {
+            rows.iter()
+                .find(|r| r.channel == ch && r.aux == a)
+                .unwrap()
+                .clone()
+        };
+        let (o1a1, o1a2) = (get("o1", "a1"), get("o1", "a2"));
+        assert!((o1a1.coherence - 0.5).abs() < 0.1, "{o1a1:?}");
+        assert!(o1a1.partial_coherence > 2.0 * o1a1.null_level, "{o1a1:?}");
+        assert!(o1a2.coherence > 0.35, "{o1a2:?}");
+        // The largest band of a null partial coherence: within a few null levels.
+        assert!(o1a2.partial_coherence < 3.0 * o1a2.null_level, "{o1a2:?}");
+        for a in ["a1", "a2"] {
+            let r = get("o12", a);
+            assert!(r.coherence < 3.0 * r.null_level, "{r:?}");
+        }
+    }
+}
