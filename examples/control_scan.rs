@@ -1,12 +1,14 @@
 //! False-alarm calibration of `freefall diagnose` on control datasets (no effect simulated).
 //!
-//!     cargo run --release --example control_scan -- [SEEDS] [FIRST_SEED] [model|noise]
+//!     cargo run --release --example control_scan -- [SEEDS] [FIRST_SEED] [model|noise] [aux]
 //!
 //! For each seed: the embedded model, monte_carlo truth, standard design and one noise run, then a
 //! diagnosis with the command-line defaults (`noise`: noise-run whitening, order 300) or with
 //! model-noise whitening at order 200 (`model`, as in tests/diagnose.rs). Prints every claimed
 //! effect and every unexplained excess, then the rates. At alpha = 0.01 a calibrated diagnosis
-//! claims something on about 1% of the seeds.
+//! claims something on about 1% of the seeds. With `aux`, every run also carries the model
+//! file's auxiliary readouts (`[auxiliary]`, no cross-talk), which the diagnosis tests
+//! (sensing cross-talk into o1 and o12, static and rate).
 
 use freefall::diagnose::{diagnose, simulate_with_effects, DiagnoseConfig};
 use freefall::setup::Setup;
@@ -17,6 +19,7 @@ fn main() {
     let n: u64 = args.get(1).and_then(|s| s.parse().ok()).unwrap_or(40);
     let first: u64 = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(1000);
     let model = args.get(3).is_some_and(|s| s == "model");
+    let with_aux = args.get(4).is_some_and(|s| s == "aux");
     let setup = Setup::embedded();
     let design = setup.design("standard").unwrap();
     let sc = setup.spec.scenario("monte_carlo").unwrap();
@@ -36,6 +39,19 @@ fn main() {
         .map(|seed| {
             let (data, noise) =
                 simulate_with_effects(&setup, &design, &sc.truth, &[], seed).unwrap();
+            let mut cfg = cfg.clone();
+            if with_aux {
+                let n_noise = noise[0].len();
+                let aux = freefall::sim::auxiliary::draw(
+                    &setup.spec,
+                    &data.lengths(),
+                    n_noise,
+                    data.dt,
+                    seed,
+                )
+                .unwrap();
+                cfg.auxiliary = Some(std::sync::Arc::new(aux));
+            }
             let d = diagnose(&setup, &data, Some(&noise), &sc.guess, None, &cfg).unwrap();
             let claims = d
                 .effects_added

@@ -65,3 +65,60 @@ impl ExperimentData {
         self.len() == 0
     }
 }
+
+/// What an auxiliary readout measures: a displacement of another degree of freedom (y, z of a
+/// test mass, in m) or an angle (phi, eta, theta, in rad). Thesis sec. 3.4: the readouts of the
+/// other degrees of freedom are where cross-talk into the optical axis comes from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AuxKind {
+    Displacement,
+    Angle,
+}
+
+impl AuxKind {
+    pub const ALL: [AuxKind; 2] = [AuxKind::Displacement, AuxKind::Angle];
+
+    pub fn as_str(self) -> &'static str {
+        match self {
+            AuxKind::Displacement => "displacement",
+            AuxKind::Angle => "angle",
+        }
+    }
+
+    pub fn from_name(name: &str) -> Option<AuxKind> {
+        AuxKind::ALL.into_iter().find(|k| k.as_str() == name)
+    }
+
+    /// The SI unit its samples are in (`m` or `rad`).
+    pub fn unit(self) -> &'static str {
+        match self {
+            AuxKind::Displacement => "m",
+            AuxKind::Angle => "rad",
+        }
+    }
+}
+
+/// A recorded auxiliary readout: its column name in the run files, what it measures, its unit.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct AuxChannel {
+    pub column: String,
+    pub kind: AuxKind,
+    pub unit: String,
+}
+
+/// Auxiliary readouts recorded with a set of experiments: `experiments[e][k]` is channel
+/// `channels[k]` over experiment `e`'s samples (aligned with its outputs), `noise[k]` over the
+/// noise-only run.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Auxiliary {
+    pub channels: Vec<AuxChannel>,
+    pub experiments: Vec<Vec<Vec<f64>>>,
+    pub noise: Option<Vec<Vec<f64>>>,
+}
+
+impl Auxiliary {
+    pub fn is_empty(&self) -> bool {
+        self.channels.is_empty()
+    }
+}

@@ -879,7 +879,7 @@ fn dataset_unknown_keys_are_named() {
         &err.to_string(),
         &[
             "dataset.toml: unknown key 'experimnt'",
-            "noise, experiment, injections, meta",
+            "noise, experiment, auxiliary, injections, meta",
         ],
     );
 
@@ -1023,6 +1023,7 @@ fn write_dataset_validates_before_writing() {
             // Experiments may differ in length, not in sampling interval.
             ("b".into(), sample_run(11, 0.5, 0.0)),
         ],
+        auxiliary: Vec::new(),
         meta: toml::Table::new(),
         injections: None,
         notes: Vec::new(),

@@ -128,6 +128,7 @@ fn simulate(a: &DiagnoseArgs, setup: &crate::setup::Setup, dir: &Path) -> Result
         initial: None,
         noise_duration: Some(design.duration_s),
         effects: a.effects.clone(),
+        auxiliary: false,
     };
     super::simulate::simulate_into(setup, &job, dir)
 }

@@ -54,9 +54,17 @@ pub struct SimulateArgs {
     /// the velocity kick in m/s) or o1, o12 (readout transient: AMP is its peak in m), in the
     /// first experiment unless exp is given, e.g. glitch_tm2=3e-12,t0=4000;
     /// `line_CHANNEL=AMP,f=HZ[,phase=RAD][,exp=NAME]` adds AMP sin(2 pi f t + phase) (m) to
-    /// readout o1 or o12 of every experiment unless exp is given, e.g. line_o1=1e-10,f=0.0371.
+    /// readout o1 or o12 of every experiment unless exp is given, e.g. line_o1=1e-10,f=0.0371;
+    /// `aux_crosstalk_COLUMN_CHANNEL=K[,rate=R]` adds K a + R da/dt of auxiliary readout
+    /// COLUMN (a `[auxiliary]` channel of the model file, written with --auxiliary) to readout
+    /// o1 or o12 of every run, noise run included, e.g. aux_crosstalk_oy1_o12=-3e-3.
     #[arg(long = "effect", value_name = "NAME=VALUE[,KEY=VALUE...]")]
     pub effects: Vec<String>,
+    /// Write the model file's auxiliary readouts (`[auxiliary]`: readouts of other degrees of
+    /// freedom, a documented stand-in noise) as extra columns of every run, declared in
+    /// `[[auxiliary]]` of dataset.toml (implied by an `aux_crosstalk_...` effect).
+    #[arg(long)]
+    pub auxiliary: bool,
     /// Output directory (created).
     #[arg(long)]
     pub out: PathBuf,
@@ -74,6 +82,7 @@ impl SimulateArgs {
             initial: self.initial,
             noise_duration: self.noise_duration,
             effects: self.effects.clone(),
+            auxiliary: self.auxiliary,
         }
     }
 }
@@ -87,7 +96,7 @@ pub fn run(a: SimulateArgs) -> Result<()> {
 pub fn simulate_into(setup: &Setup, job: &SimulateJob, out: &Path) -> Result<()> {
     let s = super::working("simulating", |_| job.run(setup))?;
     let what = s.describe();
-    let path = write_dataset(out, &Dataset::simulated(&s.data, &s.noise, s.meta)?)?;
+    let path = write_dataset(out, &Dataset::simulated_with_auxiliary(&s.data, &s.noise, &s.aux, s.meta)?)?;
     info!("wrote {} ({what})", path.display());
     Ok(())
 }

@@ -11,6 +11,13 @@
 //!   bin, then fitted with the amplitudes).
 //! - `glitch` ([`super::glitch`]): a transient entering the loop at a force or readout entry of
 //!   one experiment; the amplitude linear, the time `t0` and width `tau` non-linear.
+//! - `aux_crosstalk` (thesis sec. 3.4, cross-talk from the other degrees of freedom): a
+//!   sensing cross-talk `k a(t)` of a recorded auxiliary readout `a` (a y or angle readout of
+//!   the dataset's `[[auxiliary]]`) into readout o1 or o12 of every experiment, or its rate term
+//!   `k' da/dt` (central differences, `sim::auxiliary::rate`). The readout is measured, so the
+//!   effect is a regression on a measured series: its column is the series itself, whitened
+//!   like the data, and the derivative with respect to `k` is exact. The fitted coupling is
+//!   also removed from the noise run before its whitening filter is estimated again.
 //! - `drift`: a linear drift of base parameter k over each run, `p_k(t) = p_k + d_k (t - T/2)/T`.
 //!   To first order the readouts change by `d_k ((t - T/2)/T) (d o_s / d p_k)(t)`, the raw
 //!   template derivative modulated in the time domain before whitening. The modulation does not
@@ -50,6 +57,17 @@ pub enum Additive {
         /// extension, proposed once the linear drift of the same parameter is in the model).
         quadratic: bool,
     },
+    AuxCrosstalk {
+        /// Index of the auxiliary channel in the diagnosis's [`crate::data::Auxiliary`].
+        aux: usize,
+        column: String,
+        /// Readout it leaks into (0: o1, 1: o12).
+        channel: usize,
+        /// The rate term `k' da/dt` instead of the static `k a`.
+        rate: bool,
+        /// The template (the series, or its rate) of every experiment, aligned with its outputs.
+        series: AuxSeries,
+    },
     Glitch {
         experiment: usize,
         experiment_name: String,
@@ -64,7 +82,80 @@ pub enum Additive {
     },
 }
 
+/// The recorded series of an auxiliary cross-talk, per experiment; shared, not printed.
+#[derive(Clone)]
+pub struct AuxSeries(pub std::sync::Arc<Vec<Vec<f64>>>);
+
+impl std::fmt::Debug for AuxSeries {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "AuxSeries({} experiments)", self.0.len())
+    }
+}
+
+impl PartialEq for AuxSeries {
+    fn eq(&self, other: &Self) -> bool {
+        std::sync::Arc::ptr_eq(&self.0, &other.0)
+    }
+}
+
 impl Additive {
+    /// The static and rate cross-talk candidates of every auxiliary channel of `aux` into
+    /// each readout.
+    pub fn aux_crosstalks(aux: &crate::data::Auxiliary, dt: f64) -> Vec<Additive> {
+        let mut out = Vec::new();
+        for (k, ch) in aux.channels.iter().enumerate() {
+            for rate in [false, true] {
+                let series: Vec<Vec<f64>> = aux
+                    .experiments
+                    .iter()
+                    .map(|x| match rate {
+                        false => x[k].clone(),
+                        true => crate::sim::auxiliary::rate(&x[k], dt),
+                    })
+                    .collect();
+                let series = AuxSeries(std::sync::Arc::new(series));
+                for channel in 0..2 {
+                    out.push(Additive::AuxCrosstalk {
+                        aux: k,
+                        column: ch.column.clone(),
+                        channel,
+                        rate,
+                        series: series.clone(),
+                    });
+                }
+            }
+        }
+        out
+    }
+
+    /// For an auxiliary cross-talk: its template over the noise run of `aux` (the series or
+    /// its rate) and the readout it leaks into.
+    pub fn noise_template(
+        &self,
+        aux: &crate::data::Auxiliary,
+        dt: f64,
+    ) -> Option<(usize, Vec<f64>)> {
+        match self {
+            Additive::AuxCrosstalk {
+                aux: k,
+                channel,
+                rate,
+                ..
+            } => {
+                let x = aux.noise.as_ref()?.get(*k)?;
+                Some((
+                    *channel,
+                    if *rate {
+                        crate::sim::auxiliary::rate(x, dt)
+                    } else {
+                        x.clone()
+                    },
+                ))
+            }
+            _ => None,
+        }
+    }
+
     /// A drift of base parameter `name` of `model`, if it has one.
     pub fn drift(model: &Extended, name: &str) -> Option<Additive> {
         let k = model
@@ -100,6 +191,7 @@ impl Additive {
             Additive::Line { .. } => Category::Line,
             Additive::Drift { .. } => Category::Drift,
             Additive::Glitch { .. } => Category::Glitch,
+            Additive::AuxCrosstalk { .. } => Category::AuxCrosstalk,
         }
     }
 
@@ -145,6 +237,17 @@ impl Additive {
                 t0,
                 ..
             } => format!("glitch_{experiment_name}_{}_{:.0}s", entry.key(), t0),
+            Additive::AuxCrosstalk {
+                column,
+                channel,
+                rate,
+                ..
+            } => format!(
+                "{}{}{column}_{}",
+                super::inject::AUX_CROSSTALK_PREFIX,
+                if *rate { "rate_" } else { "" },
+                ["o1", "o12"][(*channel).min(1)]
+            ),
         }
     }
 
@@ -184,6 +287,19 @@ impl Additive {
                 "{experiment_name} {} at t = {t0:.1} s (width {tau:.2} s)",
                 entry.describe()
             ),
+            Additive::AuxCrosstalk {
+                column,
+                channel,
+                rate,
+                ..
+            } => {
+                let o = ["o1", "o12"][(*channel).min(1)];
+                if *rate {
+                    format!("{o} += k' d{column}/dt (sensing cross-talk rate of the recorded {column})")
+                } else {
+                    format!("{o} += k {column} (sensing cross-talk of the recorded {column})")
+                }
+            }
         }
     }
 
@@ -200,6 +316,16 @@ impl Additive {
                 if *quadratic { "2" } else { "" }
             )],
             Additive::Glitch { .. } => vec!["amplitude".into()],
+            Additive::AuxCrosstalk {
+                column,
+                channel,
+                rate,
+                ..
+            } => vec![format!(
+                "k{}_{column}_{}",
+                if *rate { "dot" } else { "" },
+                ["o1", "o12"][(*channel).min(1)]
+            )],
         }
     }
 
@@ -207,7 +333,7 @@ impl Additive {
     pub fn nonlinear(&self) -> Vec<f64> {
         match self {
             Additive::Line { f_hz, .. } => vec![*f_hz],
-            Additive::Drift { .. } => Vec::new(),
+            Additive::Drift { .. } | Additive::AuxCrosstalk { .. } => Vec::new(),
             Additive::Glitch { t0, tau, .. } => vec![*t0, *tau],
         }
     }
@@ -221,7 +347,7 @@ impl Additive {
             Additive::Line { experiment, .. } | Additive::Glitch { experiment, .. } => {
                 Some(*experiment)
             }
-            Additive::Drift { .. } => None,
+            Additive::Drift { .. } | Additive::AuxCrosstalk { .. } => None,
         }
     }
 
@@ -236,7 +362,7 @@ impl Additive {
                     *f_hz = (*f_hz + clamp(*d, 0.25 * bin)).clamp(bin, 0.5 / dt - bin);
                 }
             }
-            Additive::Drift { .. } => {}
+            Additive::Drift { .. } | Additive::AuxCrosstalk { .. } => {}
             Additive::Glitch { t0, tau, .. } => {
                 if let [d0, d1] = step {
                     *t0 = (*t0 + clamp(*d0, tau.max(dt))).clamp(0.0, n as f64 * dt);
@@ -285,7 +411,9 @@ impl Additive {
                     vec![sa, sp, sd(2)],
                 )
             }
-            Additive::Drift { .. } => (self.parameter_names(), amps.to_vec(), vec![sd(0)]),
+            Additive::Drift { .. } | Additive::AuxCrosstalk { .. } => {
+                (self.parameter_names(), amps.to_vec(), vec![sd(0)])
+            }
             Additive::Glitch { t0, tau, .. } => (
                 vec!["amplitude".into(), "t0_s".into(), "tau_s".into()],
                 vec![amps[0], *t0, *tau],
@@ -340,6 +468,17 @@ impl Additive {
                 vec![col]
             }
             Additive::Glitch { .. } => vec![self.glitch_part(model, lik, data, p, Part::Value)],
+            Additive::AuxCrosstalk {
+                channel, series, ..
+            } => {
+                let mut col = zeros();
+                for (e, x) in series.0.iter().enumerate().take(col.len()) {
+                    let c = &mut col[e][*channel];
+                    let n = c.len().min(x.len());
+                    c[..n].copy_from_slice(&x[..n]);
+                }
+                vec![col]
+            }
         }
     }
 
@@ -401,7 +540,7 @@ impl Additive {
                 }
                 vec![d]
             }
-            Additive::Drift { .. } => Vec::new(),
+            Additive::Drift { .. } | Additive::AuxCrosstalk { .. } => Vec::new(),
             Additive::Glitch { .. } => [Part::DT0, Part::DTau]
                 .into_iter()
                 .map(|part| {

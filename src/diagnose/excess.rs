@@ -20,6 +20,9 @@ pub enum ExcessKind {
     Time,
     /// Samples beyond 5 sigma (excess: count over the Gaussian expectation, minus one).
     Outliers,
+    /// A band of the noise run above the model's noise PSD (excess: level over the model's,
+    /// minus one; [`super::noise_excess`]).
+    NoiseModel,
 }
 
 impl ExcessKind {
@@ -29,6 +32,7 @@ impl ExcessKind {
             ExcessKind::Band => "band",
             ExcessKind::Time => "time",
             ExcessKind::Outliers => "outliers",
+            ExcessKind::NoiseModel => "noise_model",
         }
     }
 }
@@ -51,11 +55,16 @@ const BAND_BEYOND_LINE_P: f64 = 1e-12;
 /// Floor of a Poisson mean (the expected outlier count can be zero to rounding).
 const TINY_MEAN: f64 = 1e-300;
 
+/// Families of tests of the unexplained excess, sharing the report's false-alarm probability:
+/// narrow lines, bands, time windows and outlier counts of the residual, and the noise run's
+/// bands against the model's noise PSD (`noise_excess`).
+pub(crate) const FAMILIES: f64 = 5.0;
+
 /// Significant excess left after the final fit, at a Bonferroni threshold over every test made.
 pub(crate) fn find_unexplained(after: &Stage, alpha: f64) -> Vec<Unexplained> {
-    // Four families (narrow lines, bands, time windows, outlier counts), each Bonferroni over
-    // its own tests: alpha / 4 apiece keeps the whole report's false-alarm probability at alpha.
-    let alpha = alpha / 4.0;
+    // Each family Bonferroni over its own tests: alpha / FAMILIES apiece keeps the whole
+    // report's false-alarm probability at alpha.
+    let alpha = alpha / FAMILIES;
     let n_band: usize = after
         .channels
         .iter()

@@ -16,6 +16,10 @@ use super::glitch::{self, Entry, SimGlitch};
 use crate::fit::ExperimentData;
 use crate::model::effects::Extended;
 
+/// Name prefix of a sensing cross-talk from an auxiliary readout, in `--effect` specs and in
+/// the diagnosis's effect names: `aux_crosstalk_COLUMN_CHANNEL`.
+pub const AUX_CROSSTALK_PREFIX: &str = "aux_crosstalk_";
+
 /// A transient or line to add to simulated readouts.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Injected {
@@ -272,6 +276,8 @@ pub struct EffectSet {
     pub effects: Vec<(std::sync::Arc<dyn crate::model::effects::Effect>, Vec<f64>)>,
     pub drifts: Vec<(usize, f64, f64)>,
     pub injected: Vec<Injected>,
+    /// Sensing cross-talk from recorded auxiliary readouts (`aux_crosstalk_COLUMN_CHANNEL`).
+    pub crosstalk: Vec<crate::sim::auxiliary::Crosstalk>,
     pub meta: toml::Table,
 }
 
@@ -292,6 +298,10 @@ impl EffectSet {
                 .split_once('=')
                 .ok_or_else(|| format!("--effect '{spec}': expected NAME=VALUE"))?;
             let name = name.trim();
+            if let Some(rest) = name.strip_prefix(AUX_CROSSTALK_PREFIX) {
+                set.push_crosstalk(spec, name, rest, value)?;
+                continue;
+            }
             if let Some(k) = name
                 .strip_prefix("drift_")
                 .and_then(|p| names.iter().position(|n| n == p))
@@ -305,7 +315,7 @@ impl EffectSet {
                     .map(|e| e.name())
                     .collect();
                 format!(
-                    "--effect '{spec}': unknown effect '{name}'; known: drift_PARAMETER (a linear drift d over the run), glitch_ENTRY=AMP,t0=S, line_CHANNEL=AMP,f=HZ, {}",
+                    "--effect '{spec}': unknown effect '{name}'; known: drift_PARAMETER (a linear drift d over the run), glitch_ENTRY=AMP,t0=S, line_CHANNEL=AMP,f=HZ, aux_crosstalk_COLUMN_CHANNEL=K[,rate=K'], {}",
                     known.join(", ")
                 )
             })?;
@@ -314,6 +324,50 @@ impl EffectSet {
             set.effects.push((e, vec![v]));
         }
         Ok(set)
+    }
+
+    /// `aux_crosstalk_COLUMN_CHANNEL=K[,rate=K']`: `rest` is `COLUMN_CHANNEL`.
+    fn push_crosstalk(
+        &mut self,
+        spec: &str,
+        name: &str,
+        rest: &str,
+        value: &str,
+    ) -> Result<(), String> {
+        let (column, ch) = rest.rsplit_once('_').unwrap_or(("", rest));
+        let channel = ["o1", "o12"]
+            .iter()
+            .position(|c| *c == ch)
+            .filter(|_| !column.is_empty())
+            .ok_or_else(|| {
+                format!(
+                    "--effect '{spec}': '{name}': expected aux_crosstalk_COLUMN_o1 or aux_crosstalk_COLUMN_o12"
+                )
+            })?;
+        let mut parts = value.split(',');
+        let coefficient = number(spec, name, parts.next().unwrap_or(""))?;
+        let mut rate = 0.0;
+        for t in parts {
+            let x = t
+                .trim()
+                .strip_prefix("rate=")
+                .ok_or_else(|| format!("--effect '{spec}': '{}': expected rate=VALUE", t.trim()))?;
+            rate = number(spec, t.trim(), x)?;
+        }
+        self.insert_meta(name, toml::Value::Float(coefficient));
+        if rate != 0.0 {
+            self.insert_meta(
+                &format!("{AUX_CROSSTALK_PREFIX}rate_{rest}"),
+                toml::Value::Float(rate),
+            );
+        }
+        self.crosstalk.push(crate::sim::auxiliary::Crosstalk {
+            column: column.to_string(),
+            channel,
+            coefficient,
+            rate,
+        });
+        Ok(())
     }
 
     /// `drift_NAME=D[,d2=D2]` of base parameter `k`.
@@ -353,6 +407,9 @@ impl EffectSet {
     }
 
     pub fn is_empty(&self) -> bool {
-        self.effects.is_empty() && self.drifts.is_empty() && self.injected.is_empty()
+        self.effects.is_empty()
+            && self.drifts.is_empty()
+            && self.injected.is_empty()
+            && self.crosstalk.is_empty()
     }
 }

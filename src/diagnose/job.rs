@@ -84,6 +84,8 @@ impl DiagnoseJob {
             glitches: self.glitches,
             transients: self.transients,
             constraints: prep.constraints.clone(),
+            auxiliary: (!ds.auxiliary.is_empty())
+                .then(|| std::sync::Arc::new(ds.auxiliary_series())),
             ..Default::default()
         };
         let mut d = diagnose_observed(

@@ -41,12 +41,24 @@
 //! `indistinguishable_from`. Fitted parameters far outside their prior (model file
 //! `prior_sigma`) are listed with the degenerate candidates that would explain the shift
 //! ([`tension`]).
+//!
+//! Cross-talk from the other degrees of freedom (thesis sec. 3.4): with recorded auxiliary
+//! readouts ([`DiagnoseConfig::auxiliary`]) the sensing cross-talk of each into o1 and o12
+//! (static and rate) is an additive candidate whose column is the measured series itself; a
+//! claimed one is removed from the noise run and the whitening filter estimated again
+//! (`crosstalk`). [`coherence`] reports the coherence and partial coherence of the whitened
+//! residuals with each auxiliary readout. Without auxiliary readouts, a coupling the noise-run
+//! whitening learned still shows as the noise run's level above the model's noise PSD
+//! ([`noise_excess`]), reported as unexplained with its channel and band.
 
 pub mod additive;
+pub mod coherence;
+mod crosstalk;
 pub mod excess;
 pub mod glitch;
 pub mod inject;
 pub mod job;
+pub mod noise_excess;
 pub mod observer;
 pub mod problem;
 pub mod redesign;
@@ -143,6 +155,11 @@ pub struct DiagnoseConfig {
     /// only costs them power. A prior here also replaces the model file's in the prior-tension
     /// report.
     pub constraints: crate::fit::Constraints,
+    /// Recorded auxiliary readouts of the experiments and the noise run (a dataset's
+    /// `[[auxiliary]]`): the sensing cross-talk of each into o1 and o12, static and rate
+    /// (`additive::Additive::AuxCrosstalk`), is a candidate of every round, and a claimed one is
+    /// removed from the noise run before its whitening filter is estimated again.
+    pub auxiliary: Option<Arc<crate::data::Auxiliary>>,
 }
 
 impl Default for DiagnoseConfig {
@@ -163,6 +180,7 @@ impl Default for DiagnoseConfig {
             glitches: true,
             transients: true,
             constraints: crate::fit::Constraints::default(),
+            auxiliary: None,
         }
     }
 }
@@ -311,6 +329,9 @@ pub struct Diagnosis {
     /// The acceleration noise (S_g12) through Delta before and after (`science`); `None` when
     /// no run is long enough for the estimate.
     pub acceleration: Option<science::AccelChange>,
+    /// Coherence and partial coherence of the whitened residuals with each whitened auxiliary
+    /// readout, before and after, per run and channel ([`coherence`]).
+    pub aux_coherence: Vec<coherence::AuxCoherence>,
     pub seconds: f64,
 }
 
@@ -451,7 +472,16 @@ pub fn diagnose_observed(
     let mut state = DiagnosisState::new(&problem, fit0.clone(), &before);
     while let Round::Added(_) = next_round(&problem, &mut state, &mut both)? {}
     let final_model = state.model.clone();
-    let mut d = finish(&problem, state, &fit0, before, &mut both);
+    let xt_noise = crosstalk::refine(&problem, &mut state, guess, &mut both)?;
+    let replanned = match &xt_noise {
+        Some(clean) => Some(problem.replanned(clean, guess, &mut ())?),
+        None => None,
+    };
+    let last = replanned.as_ref().unwrap_or(&problem);
+    let mut d = finish(last, state, &fit0, before, &mut both);
+    d.aux_coherence = coherence::table("before", &problem, &d.residuals_before.0);
+    d.aux_coherence
+        .extend(coherence::table("after", last, &d.residuals_after.0));
     // The science product: the noise run's readouts (or the first experiment's, guidance
     // removed) through Delta before and after.
     let (source, o, oi) = match noise {
@@ -503,7 +533,22 @@ fn finish(
         }
     }
     let after = problem.stage(&state.model, &state.fit);
-    let unexplained = excess::find_unexplained(&after, cfg.alpha);
+    let mut unexplained = excess::find_unexplained(&after, cfg.alpha);
+    if let Some(nz) = problem.whitening.usable_noise {
+        let found = noise_excess::find(
+            problem.setup,
+            &state.model,
+            &after.estimate,
+            nz,
+            problem.data.dt,
+            cfg.decimated_telemetry,
+            cfg.alpha / excess::FAMILIES,
+        );
+        for n in noise_excess::notes(&found, problem.whitening_source()) {
+            obs.note(&n);
+        }
+        unexplained.extend(found);
+    }
     let robust = heavy_tails(problem, &state, &after, &unexplained, obs);
     redesign_degenerate(problem, &fit0.fit.estimate, &mut state.candidates, obs);
     let prior_tension = tension::prior_tension(
@@ -532,6 +577,7 @@ fn finish(
         robust,
         transients: Vec::new(),
         acceleration: None,
+        aux_coherence: Vec::new(),
         seconds: 0.0,
     }
 }

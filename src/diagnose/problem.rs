@@ -71,6 +71,8 @@ pub struct DiagnosisProblem<'a> {
     pub(crate) noise_w: Option<Vec<Vec<f64>>>,
     /// The reference model with no effect.
     pub nominal: Extended,
+    /// The start-up transient columns profiled out of every fit (to plan again with them).
+    transient_raw: Option<Vec<Vec<Vec<Vec<f64>>>>>,
 }
 
 fn check_series(what: &str, s: &[Vec<f64>]) -> Result<(), DiagnoseError> {
@@ -122,6 +124,54 @@ fn check_data(data: &ExperimentData, obs: &mut dyn Observer) -> Result<(), Diagn
             obs.note(&format!(
                 "experiment '{name}' has no injection: it constrains the noise only"
             ));
+        }
+    }
+    Ok(())
+}
+
+/// The auxiliary readouts, if any, cover every experiment sample for sample (and the noise
+/// run, when it has them).
+fn check_auxiliary(
+    data: &ExperimentData,
+    noise: Option<&[Vec<f64>]>,
+    cfg: &DiagnoseConfig,
+) -> Result<(), DiagnoseError> {
+    let Some(aux) = cfg.auxiliary.as_deref() else {
+        return Ok(());
+    };
+    let n_aux = aux.channels.len();
+    let bad = |what: String| DiagnoseError::Input(format!("auxiliary readouts: {what}"));
+    if aux.experiments.len() != data.outputs.len() {
+        return Err(bad(format!(
+            "{} experiments, the data have {}",
+            aux.experiments.len(),
+            data.outputs.len()
+        )));
+    }
+    for (e, x) in aux.experiments.iter().enumerate() {
+        if x.len() != n_aux || x.iter().any(|c| c.len() != data.len_of(e)) {
+            return Err(bad(format!(
+                "experiment '{}' does not carry every channel over its {} samples",
+                data.names[e],
+                data.len_of(e)
+            )));
+        }
+        for (k, c) in x.iter().enumerate() {
+            check_series(
+                &format!(
+                    "experiment '{}' auxiliary {}",
+                    data.names[e], aux.channels[k].column
+                ),
+                std::slice::from_ref(c),
+            )?;
+        }
+    }
+    if let (Some(nz), Some(an)) = (noise, aux.noise.as_ref()) {
+        let n = nz.first().map_or(0, Vec::len);
+        if an.len() != n_aux || an.iter().any(|c| c.len() != n) {
+            return Err(bad(format!(
+                "the noise run does not carry every channel over its {n} samples"
+            )));
         }
     }
     Ok(())
@@ -272,6 +322,7 @@ impl<'a> DiagnosisProblem<'a> {
     ) -> Result<Self, DiagnoseError> {
         cfg.validate()?;
         check_data(data, obs)?;
+        check_auxiliary(data, noise, cfg)?;
         // The shortest experiment sets the order: every experiment drops its own start-up.
         let order = whitening_order(data.min_len(), cfg.order, obs)?;
         let whitening = whitening(setup, data, noise, guess, cfg, order, obs)?;
@@ -297,6 +348,7 @@ impl<'a> DiagnosisProblem<'a> {
             planned,
             noise_w,
             nominal: Extended::new(setup.model.clone(), Vec::new()),
+            transient_raw: None,
         })
     }
 
@@ -313,7 +365,28 @@ impl<'a> DiagnosisProblem<'a> {
         &mut self,
         raw: &[Vec<Vec<Vec<f64>>>],
     ) -> Result<(), DiagnoseError> {
-        Ok(self.planned.set_transient(raw)?)
+        self.planned.set_transient(raw)?;
+        self.transient_raw = Some(raw.to_vec());
+        Ok(())
+    }
+
+    /// The problem planned again on another noise run (the same data, settings and start-up
+    /// transient columns): its whitening filter and reference level are estimated afresh.
+    pub(crate) fn replanned<'b>(
+        &self,
+        noise: &'b [Vec<f64>],
+        guess: &[f64],
+        obs: &mut dyn Observer,
+    ) -> Result<DiagnosisProblem<'b>, DiagnoseError>
+    where
+        'a: 'b,
+    {
+        let mut p =
+            DiagnosisProblem::plan(self.setup, self.data, Some(noise), guess, self.cfg, obs)?;
+        if let Some(raw) = &self.transient_raw {
+            p.set_transient(raw)?;
+        }
+        Ok(p)
     }
 
     /// The planned likelihood for `model` (no re-planning).

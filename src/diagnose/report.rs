@@ -183,6 +183,12 @@ impl Diagnosis {
                 "wald_statistic": num(t.statistic),
                 "p_value": num(t.p_value),
             })).collect::<Vec<_>>(),
+            "aux_coherence": self.aux_coherence.iter().map(|c| json!({
+                "stage": c.stage, "run": c.run, "channel": c.channel, "aux": c.aux,
+                "band_hz": [num(c.band_hz[0]), num(c.band_hz[1])],
+                "coherence": num(c.coherence), "partial_coherence": num(c.partial_coherence),
+                "null_level": num(c.null_level), "p_value": num(c.p_value),
+            })).collect::<Vec<_>>(),
             "seconds": num(self.seconds),
         })
     }
@@ -199,6 +205,7 @@ impl Diagnosis {
         self.md_robust(&mut s);
         self.md_residuals(&mut s);
         self.md_unexplained(&mut s);
+        self.md_aux_coherence(&mut s);
         self.md_candidates(&mut s);
         self.md_degenerate(&mut s);
         self.md_scope(&mut s);
@@ -464,6 +471,33 @@ The closed loop's free response to initial conditions (thesis sec. 3.2, 4.7), fi
                 );
             }
         }
+    }
+
+    /// Coherence of the whitened residuals with the auxiliary readouts, before and after.
+    fn md_aux_coherence(&self, s: &mut String) {
+        if self.aux_coherence.is_empty() {
+            return;
+        }
+        let _ = writeln!(s, "\n## Coherence with the auxiliary readouts\n");
+        let _ = writeln!(s, "Band-mean coherence of each whitened residual with each whitened auxiliary readout, and partial coherence (conditioned on the other auxiliary readouts), in the octave band where the partial coherence is largest; independent series give about the null level.\n");
+        let _ = writeln!(s, "| stage | run | channel | auxiliary | band [Hz] | coherence | partial | null | p |\n|---|---|---|---|---|---|---|---|---|");
+        for c in &self.aux_coherence {
+            let _ = writeln!(
+                s,
+                "| {} | {} | {} | {} | {:.3e} - {:.3e} | {:.3} | {:.3} | {:.3} | {:.1e} |",
+                c.stage,
+                c.run,
+                c.channel,
+                c.aux,
+                c.band_hz[0],
+                c.band_hz[1],
+                c.coherence,
+                c.partial_coherence,
+                c.null_level,
+                c.p_value
+            );
+        }
+        let _ = writeln!(s);
     }
 
     /// Excess no effect explains.

@@ -812,6 +812,9 @@ fn additive_candidates(
                 .filter_map(|n| Additive::drift(&problem.nominal, n)),
         );
     }
+    if let Some(aux) = cfg.auxiliary.as_deref().filter(|a| !a.is_empty()) {
+        out.extend(Additive::aux_crosstalks(aux, data.dt));
+    }
     let n_ch = before.channels.len().max(1);
     let lines: Vec<(usize, usize, f64)> = before
         .channels

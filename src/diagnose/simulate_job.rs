@@ -51,6 +51,8 @@ pub enum SimulateError {
     #[error(transparent)]
     Diagnose(#[from] DiagnoseError),
     #[error(transparent)]
+    Noise(#[from] crate::noise::NoiseError),
+    #[error(transparent)]
     TimeDomain(#[from] TimeDomainError),
 }
 
@@ -74,6 +76,9 @@ pub struct SimulateJob {
     /// Effects the nominal model lacks, switched on in the truth (the forms of
     /// [`EffectSet::parse`]).
     pub effects: Vec<String>,
+    /// Write the model file's auxiliary readouts (`[auxiliary]`) as extra columns of every run
+    /// (implied by an `aux_crosstalk_...` effect).
+    pub auxiliary: bool,
 }
 
 /// A simulated dataset: the experiments, the noise-only run's readouts, and the `[meta]` of its
@@ -82,6 +87,8 @@ pub struct SimulateJob {
 pub struct Simulated {
     pub data: ExperimentData,
     pub noise: Vec<Vec<f64>>,
+    /// The auxiliary readouts written with the runs (empty unless asked for).
+    pub aux: crate::data::Auxiliary,
     pub meta: toml::Table,
 }
 
@@ -137,12 +144,39 @@ impl SimulateJob {
         }
         let effects = EffectSet::parse(&self.effects, &setup.parameter_names())
             .map_err(SimulateError::Effect)?;
-        let (data, noise) = self.draw(setup, (&design, &noise_design), &sc, &effects, rate)?;
+        let (mut data, mut noise) =
+            self.draw(setup, (&design, &noise_design), &sc, &effects, rate)?;
+        let aux = if self.auxiliary || !effects.crosstalk.is_empty() {
+            if setup.spec.auxiliary.is_empty() {
+                return Err(SimulateError::Effect(format!(
+                    "--auxiliary: the model file {} has no [auxiliary] table",
+                    setup.spec.origin
+                )));
+            }
+            let n_noise = noise.first().map_or(0, Vec::len);
+            let aux = crate::sim::auxiliary::draw(
+                &setup.spec,
+                &data.lengths(),
+                n_noise,
+                data.dt,
+                self.seed,
+            )?;
+            crate::sim::auxiliary::apply(&aux, &effects.crosstalk, &mut data, &mut noise)
+                .map_err(|e| SimulateError::Effect(format!("--effect {e}")))?;
+            aux
+        } else {
+            crate::data::Auxiliary::default()
+        };
         let mut meta = self.meta(setup, &sc, rate);
         if !effects.is_empty() {
             meta.insert("effects".into(), toml::Value::Table(effects.meta));
         }
-        Ok(Simulated { data, noise, meta })
+        Ok(Simulated {
+            data,
+            noise,
+            aux,
+            meta,
+        })
     }
 
     /// The runs by the engine and rate of the job.

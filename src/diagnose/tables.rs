@@ -146,5 +146,24 @@ pub fn effect_list() -> String {
         "A,t0,tau",
         "a transient (Gaussian pulse) entering the loop at a TM/spacecraft force or a readout, found by a matched-filter scan",
     );
+    for (name, par, what) in [
+        (
+            "aux_crosstalk_AUX_CHANNEL",
+            "k_AUX_CHANNEL",
+            "CHANNEL += k AUX",
+        ),
+        (
+            "aux_crosstalk_rate_AUX_CHANNEL",
+            "kdot_AUX_CHANNEL",
+            "CHANNEL += k' dAUX/dt",
+        ),
+    ] {
+        line(
+            name,
+            "aux_crosstalk",
+            par,
+            &format!("{what}: sensing cross-talk of a recorded auxiliary readout ([[auxiliary]] of the dataset) into o1 or o12"),
+        );
+    }
     s
 }

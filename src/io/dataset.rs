@@ -11,6 +11,10 @@
 //! [injections]                         # optional: the guidance as designed (see below)
 //! design = "standard"                  # a model-file injection table, or a design TOML file
 //! start_s = 0.0                        # the design's t = 0 on the runs' time axis (default 0)
+//! [[auxiliary]]                        # optional: recorded readouts of other degrees of freedom
+//! column = "oy1"                       # a column of every run (noise run included)
+//! kind = "displacement"                # or "angle"
+//! unit = "m"                           # "m" for a displacement, "rad" for an angle
 //! [meta]                               # optional, free form (scenario, seed, truth values, ...)
 //! scenario = "standard"
 //! [meta.truth]
@@ -22,6 +26,10 @@
 //! control rate and passes it through the telemetry's anti-alias decimation, as the readouts
 //! were, instead of trusting the 1 Hz `oi` columns, which cannot carry the stretch edges'
 //! content above the telemetry Nyquist frequency (`analysis::guidance`).
+//! Auxiliary readouts (thesis sec. 3.4, cross-talk from the other degrees of freedom) are
+//! columns every run must carry; a declared column missing from a run is a one-line error
+//! naming the file and the column, a wrong `kind` or `unit` names the key and the value, and
+//! numeric columns nobody declared get a note saying how to declare them.
 //!
 //! Run paths are relative to the directory of the TOML file. [`read_dataset`] rejects unknown keys
 //! (naming the key), duplicate or empty experiment names, and loads and validates every run
@@ -42,15 +50,17 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use super::atomic::{ensure_dir, parent_dir, read_text, toml_error, write_toml_atomic};
-use super::run::{read_run_segments, write_run, Run, TIME_TOLERANCE};
+use super::run::{read_run_segments_declared, write_run, Run, TIME_TOLERANCE};
 use super::{in_memory, IoError};
+use crate::data::{AuxChannel, AuxKind, Auxiliary};
 
 /// File name of the dataset description written by [`write_dataset`].
 pub const DATASET_FILE_NAME: &str = "dataset.toml";
 
-const TOP_KEYS: [&str; 4] = ["noise", "experiment", "injections", "meta"];
+const TOP_KEYS: [&str; 5] = ["noise", "experiment", "auxiliary", "injections", "meta"];
 const INJECTION_KEYS: [&str; 2] = ["design", "start_s"];
 const EXPERIMENT_KEYS: [&str; 2] = ["name", "file"];
+const AUXILIARY_KEYS: [&str; 3] = ["column", "kind", "unit"];
 
 /// A loaded, validated dataset.
 #[derive(Debug, Clone, PartialEq)]
@@ -61,6 +71,8 @@ pub struct Dataset {
     pub noise: Option<Run>,
     /// Named experiment runs, in file order.
     pub experiments: Vec<(String, Run)>,
+    /// Declared auxiliary readouts (`[[auxiliary]]`), columns of every run.
+    pub auxiliary: Vec<AuxChannel>,
     /// Free-form metadata (`[meta]`), e.g. scenario, seed, `[meta.truth]` parameter values.
     pub meta: toml::Table,
     /// The declared injection design (`[injections]`), if any.
@@ -80,6 +92,8 @@ struct DatasetFile {
     experiment: Vec<ExperimentEntry>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     injections: Option<DeclaredInjections>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    auxiliary: Vec<AuxiliaryEntry>,
     #[serde(default, skip_serializing_if = "toml::Table::is_empty")]
     meta: toml::Table,
 }
@@ -103,6 +117,61 @@ struct ExperimentEntry {
     file: String,
 }
 
+#[derive(Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct AuxiliaryEntry {
+    column: String,
+    kind: String,
+    unit: String,
+}
+
+impl AuxiliaryEntry {
+    /// The checked channel: a known kind, the unit of that kind, a column that is not one of
+    /// the format's own. Errors name the key and the value.
+    fn channel(&self, path: &Path, i: usize) -> Result<AuxChannel, IoError> {
+        let at = format!("[[auxiliary]] #{} ('{}')", i + 1, self.column);
+        let reserved = super::run::INPUT_COLUMNS
+            .iter()
+            .chain(&super::run::OUTPUT_COLUMNS)
+            .chain(&[super::run::TIME_COLUMN])
+            .any(|c| *c == self.column);
+        if self.column.trim().is_empty() || reserved {
+            return Err(IoError::invalid(
+                path,
+                format!(
+                    "{at}: column = \"{}\" is not an auxiliary column (empty, or one of t, oi1, oi12, o1, o12)",
+                    self.column
+                ),
+            ));
+        }
+        let kind = AuxKind::from_name(&self.kind).ok_or_else(|| {
+            IoError::invalid(
+                path,
+                format!(
+                    "{at}: kind = \"{}\" is not a kind of auxiliary readout (expected \"displacement\" or \"angle\")",
+                    self.kind
+                ),
+            )
+        })?;
+        if self.unit != kind.unit() {
+            return Err(IoError::invalid(
+                path,
+                format!(
+                    "{at}: unit = \"{}\" is not the unit of a {} readout (expected \"{}\")",
+                    self.unit,
+                    kind.as_str(),
+                    kind.unit()
+                ),
+            ));
+        }
+        Ok(AuxChannel {
+            column: self.column.clone(),
+            kind,
+            unit: self.unit.clone(),
+        })
+    }
+}
+
 impl Dataset {
     /// A simulated dataset: the experiments of `data` (inputs oi1, oi12 and readouts o1, o12,
     /// from t = 0) plus a noise-only run of readouts `noise` (inputs zero), with `meta`.
@@ -111,25 +180,66 @@ impl Dataset {
         noise: &[Vec<f64>],
         meta: toml::Table,
     ) -> Result<Dataset, IoError> {
-        let run = |inputs: &[Vec<f64>], outputs: &[Vec<f64>]| {
+        Dataset::simulated_with_auxiliary(data, noise, &Auxiliary::default(), meta)
+    }
+
+    /// [`Dataset::simulated`] with recorded auxiliary readouts `aux` as extra columns of every
+    /// run (declared in `[[auxiliary]]`).
+    pub fn simulated_with_auxiliary(
+        data: &crate::data::ExperimentData,
+        noise: &[Vec<f64>],
+        aux: &Auxiliary,
+        meta: toml::Table,
+    ) -> Result<Dataset, IoError> {
+        let run = |inputs: &[Vec<f64>], outputs: &[Vec<f64>], extra: Option<&Vec<Vec<f64>>>| {
             let names = ["oi1", "oi12", "o1", "o12"];
-            let cols = names
+            let mut cols: Vec<(String, Vec<f64>)> = names
                 .iter()
                 .map(|n| n.to_string())
                 .zip(inputs.iter().chain(outputs).cloned())
                 .collect();
+            for (ch, x) in aux.channels.iter().zip(extra.into_iter().flatten()) {
+                cols.push((ch.column.clone(), x.clone()));
+            }
             Run::new(0.0, data.dt, cols)
         };
         let exps = data
             .names
             .iter()
             .enumerate()
-            .map(|(e, name)| Ok((name.clone(), run(&data.inputs[e], &data.outputs[e])?)))
+            .map(|(e, name)| {
+                let r = run(&data.inputs[e], &data.outputs[e], aux.experiments.get(e))?;
+                Ok((name.clone(), r))
+            })
             .collect::<Result<Vec<_>, IoError>>()?;
         let zeros = vec![vec![0.0; noise.first().map_or(0, Vec::len)]; 2];
-        Ok(Dataset::new(exps)?
-            .with_noise(run(&zeros, noise)?)?
-            .with_meta(meta))
+        Dataset::new(exps)?
+            .with_noise(run(&zeros, noise, aux.noise.as_ref())?)?
+            .with_auxiliary(aux.channels.clone())
+            .map(|d| d.with_meta(meta))
+    }
+
+    /// Declares the auxiliary readouts `channels` (columns of every run) and re-validates.
+    pub fn with_auxiliary(mut self, channels: Vec<AuxChannel>) -> Result<Dataset, IoError> {
+        self.auxiliary = channels;
+        self.validate()?;
+        Ok(self)
+    }
+
+    /// The declared auxiliary readouts of every experiment (aligned with its outputs) and of
+    /// the noise run.
+    pub fn auxiliary_series(&self) -> Auxiliary {
+        let of = |r: &Run| -> Vec<Vec<f64>> {
+            self.auxiliary
+                .iter()
+                .map(|a| r.column(&a.column).map(<[f64]>::to_vec).unwrap_or_default())
+                .collect()
+        };
+        Auxiliary {
+            channels: self.auxiliary.clone(),
+            experiments: self.experiments.iter().map(|(_, r)| of(r)).collect(),
+            noise: self.noise.as_ref().map(of),
+        }
     }
 
     /// A validated in-memory dataset (no noise run, no metadata).
@@ -138,6 +248,7 @@ impl Dataset {
             path: None,
             noise: None,
             experiments,
+            auxiliary: Vec::new(),
             meta: toml::Table::new(),
             injections: None,
             notes: Vec::new(),
@@ -314,6 +425,15 @@ impl Dataset {
         for (_, run) in &self.experiments {
             run.validate()?;
         }
+        for run in self
+            .noise
+            .iter()
+            .chain(self.experiments.iter().map(|(_, r)| r))
+        {
+            for a in &self.auxiliary {
+                run.column(&a.column)?;
+            }
+        }
         check_consistency(&self.label(), self.noise.as_ref(), &self.experiments)
     }
 
@@ -400,6 +520,19 @@ fn check_keys(path: &Path, raw: &toml::Table) -> Result<(), IoError> {
             return Err(unknown(key, "[injections]".into(), &INJECTION_KEYS));
         }
     }
+    if let Some(toml::Value::Array(entries)) = raw.get("auxiliary") {
+        for (i, entry) in entries.iter().enumerate() {
+            if let toml::Value::Table(t) = entry {
+                if let Some(key) = t.keys().find(|k| !AUXILIARY_KEYS.contains(&k.as_str())) {
+                    let context = match t.get("column").and_then(|v| v.as_str()) {
+                        Some(c) => format!("[[auxiliary]] #{} ('{c}')", i + 1),
+                        None => format!("[[auxiliary]] #{}", i + 1),
+                    };
+                    return Err(unknown(key, context, &AUXILIARY_KEYS));
+                }
+            }
+        }
+    }
     if let Some(toml::Value::Array(entries)) = raw.get("experiment") {
         for (i, entry) in entries.iter().enumerate() {
             if let toml::Value::Table(t) = entry {
@@ -464,6 +597,23 @@ pub fn read_dataset(path: impl AsRef<Path>) -> Result<Dataset, IoError> {
     check_keys(path, &raw)?;
     let spec: DatasetFile = toml::from_str(&text).map_err(|e| toml_error(path, &text, &e))?;
     check_names(path, spec.experiment.iter().map(|e| e.name.as_str()))?;
+    let auxiliary = spec
+        .auxiliary
+        .iter()
+        .enumerate()
+        .map(|(i, a)| a.channel(path, i))
+        .collect::<Result<Vec<_>, IoError>>()?;
+    if let Some(dup) = auxiliary
+        .iter()
+        .enumerate()
+        .find(|(i, a)| auxiliary[..*i].iter().any(|b| b.column == a.column))
+    {
+        return Err(IoError::invalid(
+            path,
+            format!("[[auxiliary]] column '{}' is declared twice", dup.1.column),
+        ));
+    }
+    let declared: Vec<String> = auxiliary.iter().map(|a| a.column.clone()).collect();
 
     let dir = parent_dir(path);
     let resolve = |file: &str, what: &str| {
@@ -478,7 +628,7 @@ pub fn read_dataset(path: impl AsRef<Path>) -> Result<Dataset, IoError> {
     };
     let mut notes = Vec::new();
     let read = |file: PathBuf, notes: &mut Vec<String>| -> Result<Vec<Run>, IoError> {
-        let (runs, n) = read_run_segments(file)?;
+        let (runs, n) = read_run_segments_declared(file, &declared)?;
         notes.extend(n);
         Ok(runs)
     };
@@ -540,6 +690,7 @@ pub fn read_dataset(path: impl AsRef<Path>) -> Result<Dataset, IoError> {
         path: Some(path.to_path_buf()),
         noise,
         experiments,
+        auxiliary,
         meta: spec.meta,
         injections: spec.injections,
         notes,
@@ -627,6 +778,15 @@ pub fn write_dataset(dir: impl AsRef<Path>, dataset: &Dataset) -> Result<PathBuf
         noise,
         experiment: entries,
         injections: dataset.injections.clone(),
+        auxiliary: dataset
+            .auxiliary
+            .iter()
+            .map(|a| AuxiliaryEntry {
+                column: a.column.clone(),
+                kind: a.kind.as_str().to_string(),
+                unit: a.unit.clone(),
+            })
+            .collect(),
         meta: dataset.meta.clone(),
     };
     write_toml_atomic(&toml_path, &spec)?;

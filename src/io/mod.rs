@@ -40,8 +40,9 @@ pub use atomic::{
 pub use dataset::{read_dataset, write_dataset, Dataset, DeclaredInjections, DATASET_FILE_NAME};
 pub use provenance::Provenance;
 pub use run::{
-    read_csv, read_csv_noted, read_run, read_run_noted, read_run_segments, write_run, Gap, Run,
-    Segment, INPUT_COLUMNS, MIN_ROWS, OUTPUT_COLUMNS, TIME_COLUMN, TIME_TOLERANCE,
+    read_csv, read_csv_noted, read_run, read_run_noted, read_run_segments,
+    read_run_segments_declared, write_run, Gap, Run, Segment, INPUT_COLUMNS, MIN_ROWS,
+    OUTPUT_COLUMNS, TIME_COLUMN, TIME_TOLERANCE,
 };
 pub use table::{
     read_parquet, read_parquet_nulls_as_nan, write_parquet, Column, ParquetAppender, Table,

@@ -3,7 +3,8 @@
 //! A run file is Parquet (`.parquet`, `.pq`) or CSV with a header line (`.csv`) holding uniformly
 //! sampled columns `t` [s], `oi1`, `oi12` [m] (commanded guidance injections; zeros in a noise
 //! run) and `o1`, `o12` [m] (interferometer readouts). Extra numeric columns (`y1`, `phi1`, ...)
-//! are kept. [`read_run`] validates the file into a [`Run`]:
+//! are kept; a dataset declares the ones that are auxiliary readouts of other degrees of
+//! freedom (`[[auxiliary]]`, [`read_run_segments_declared`]). [`read_run`] validates the file into a [`Run`]:
 //! - the required columns are present (the error lists the columns found);
 //! - there are at least 2 rows;
 //! - every value is finite (the error gives column, 0-based data row and value);
@@ -510,7 +511,7 @@ pub const INTEGER_TIME_STEP_LIMIT: i64 = 1000;
 /// the first sample, float32 readouts, numeric columns the model does not use.
 pub fn read_run_noted(path: impl AsRef<Path>) -> Result<(Run, Vec<String>), IoError> {
     let path = path.as_ref();
-    let (columns, notes) = read_columns_noted(path)?;
+    let (columns, notes) = read_columns_noted(path, None)?;
     Ok((run_from_columns(path, columns)?, notes))
 }
 
@@ -518,7 +519,33 @@ pub fn read_run_noted(path: impl AsRef<Path>) -> Result<(Run, Vec<String>), IoEr
 /// segment (see the module docs), in time order.
 pub fn read_run_segments(path: impl AsRef<Path>) -> Result<(Vec<Run>, Vec<String>), IoError> {
     let path = path.as_ref();
-    let (columns, notes) = read_columns_noted(path)?;
+    let (columns, notes) = read_columns_noted(path, None)?;
+    Ok((segments_from_columns(path, columns)?, notes))
+}
+
+/// [`read_run_segments`] for a run of a dataset that declares the auxiliary readouts
+/// `declared` (`[[auxiliary]]` of `dataset.toml`): each must be a column of the file (a
+/// one-line error naming the file and the column otherwise), and the note on unused columns
+/// names only the undeclared ones, with how to declare them.
+pub fn read_run_segments_declared(
+    path: impl AsRef<Path>,
+    declared: &[String],
+) -> Result<(Vec<Run>, Vec<String>), IoError> {
+    let path = path.as_ref();
+    let (columns, notes) = read_columns_noted(path, Some(declared))?;
+    if let Some(missing) = declared
+        .iter()
+        .find(|d| !columns.iter().any(|(n, _)| n == *d))
+    {
+        let found: Vec<&str> = columns.iter().map(|(n, _)| n.as_str()).collect();
+        return Err(IoError::invalid(
+            path,
+            format!(
+                "auxiliary column '{missing}' (declared in [[auxiliary]] of the dataset) is missing (found: {})",
+                found.join(", ")
+            ),
+        ));
+    }
     Ok((segments_from_columns(path, columns)?, notes))
 }
 
@@ -527,7 +554,10 @@ type Columns = Vec<(String, Vec<f64>)>;
 
 /// The columns of a run file as `f64` (the time column converted to seconds), and the notes
 /// of what was read leniently.
-fn read_columns_noted(path: &Path) -> Result<(Columns, Vec<String>), IoError> {
+fn read_columns_noted(
+    path: &Path,
+    declared: Option<&[String]>,
+) -> Result<(Columns, Vec<String>), IoError> {
     let mut required = vec![TIME_COLUMN];
     required.extend(REQUIRED);
     let (mut table, report, mut notes) = match format_of(path)? {
@@ -589,12 +619,20 @@ fn read_columns_noted(path: &Path) -> Result<(Columns, Vec<String>), IoError> {
         .names()
         .into_iter()
         .filter(|n| *n != TIME_COLUMN && !REQUIRED.contains(n))
+        .filter(|n| declared.is_none_or(|d| !d.iter().any(|x| x == n)))
         .collect();
     if !unused.is_empty() {
-        notes.push(format!(
-            "{label}: columns kept but not used by the model: {}",
-            unused.join(", ")
-        ));
+        notes.push(match declared {
+            None => format!(
+                "{label}: columns kept but not used by the model: {}",
+                unused.join(", ")
+            ),
+            Some(_) => format!(
+                "{label}: columns not declared in the dataset and not used: {} (a recorded readout of another degree of freedom is declared as [[auxiliary]] column = \"{}\", kind = \"displacement\" or \"angle\", unit = \"m\" or \"rad\"; diagnose then tests its cross-talk into o1 and o12)",
+                unused.join(", "),
+                unused[0]
+            ),
+        });
     }
     let mut columns = Vec::with_capacity(table.columns.len());
     for (name, column) in &table.columns {

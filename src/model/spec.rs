@@ -96,6 +96,32 @@ pub struct NoiseSourceSpec {
     pub f_knee: Option<f64>,
 }
 
+/// An auxiliary readout of another degree of freedom (`[auxiliary.COLUMN]`), for simulated
+/// data only: colored Gaussian noise of one-sided ASD `shape(level, f_knee)` (the shapes of
+/// `[noise]`), in m/sqrt(Hz) for a displacement, rad/sqrt(Hz) for an angle. A stand-in for the
+/// other degrees of freedom's closed-loop readouts (thesis sec. 3.5) until the model has them.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct AuxiliarySpec {
+    pub kind: crate::data::AuxKind,
+    pub shape: Shape,
+    pub level: f64,
+    #[serde(default)]
+    pub f_knee: Option<f64>,
+}
+
+impl AuxiliarySpec {
+    /// Its ASD as a noise source (the `[noise]` shapes).
+    pub fn source(&self) -> NoiseSourceSpec {
+        NoiseSourceSpec {
+            enters: String::new(),
+            shape: self.shape,
+            level: self.level,
+            f_knee: self.f_knee,
+        }
+    }
+}
+
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct InjectionSpec {
@@ -202,6 +228,9 @@ pub struct ModelSpec {
     /// The telemetry's anti-alias FIR (optional table; default: the Kaiser design).
     #[serde(default)]
     pub anti_alias: AntiAliasSpec,
+    /// Auxiliary readouts simulated data may carry (optional; keyed by column name).
+    #[serde(default)]
+    pub auxiliary: BTreeMap<String, AuxiliarySpec>,
     /// Where the spec came from, for error messages ("embedded lpf_x.toml" or a path).
     #[serde(skip)]
     pub origin: String,
@@ -323,6 +352,7 @@ impl ModelSpec {
         }
         self.validate_injections()?;
         self.validate_constraints()?;
+        self.validate_auxiliary()?;
         let ratio = s.simulate_hz / s.analyse_hz;
         if !crate::numerics::tol::same_time(ratio, ratio.round()) || ratio < 1.0 {
             return Err(self.bad(
@@ -492,6 +522,31 @@ impl ModelSpec {
     /// `cycles / stretch_s` below the analysis Nyquist frequency (a sine above it aliases).
     /// `[[parameter]]`: the LPF-x names in order, finite nominals, positive prior widths, and
     /// finite ranges that hold the nominal value.
+    fn validate_auxiliary(&self) -> Result<(), ModelError> {
+        for (name, a) in &self.auxiliary {
+            let key = format!("auxiliary.{name}");
+            if ["t", "oi1", "oi12", "o1", "o12"].contains(&name.as_str()) {
+                return Err(self.bad(&key, "is a column of the data format, not an auxiliary one"));
+            }
+            if !(a.level.is_finite() && a.level > 0.0) {
+                return Err(self.bad(
+                    &format!("{key}.level"),
+                    format!("must be > 0, got {}", a.level),
+                ));
+            }
+            match (a.shape != Shape::Flat, a.f_knee) {
+                (true, None) => {
+                    return Err(self.bad(&format!("{key}.f_knee"), "required for this shape"))
+                }
+                (_, Some(k)) if !(k.is_finite() && k > 0.0) => {
+                    return Err(self.bad(&format!("{key}.f_knee"), format!("must be > 0, got {k}")))
+                }
+                _ => {}
+            }
+        }
+        Ok(())
+    }
+
     fn validate_parameters(&self) -> Result<(), ModelError> {
         let names: Vec<&str> = self.parameters.iter().map(|p| p.name.as_str()).collect();
         if names != LPF_X_PARAMETERS {

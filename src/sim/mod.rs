@@ -3,6 +3,7 @@
 //! injections. `time_domain` instead steps the digital loop sample by sample (held commands,
 //! discrete controllers, exactly integrated plant), as the spacecraft makes its data.
 
+pub mod auxiliary;
 pub mod decimated;
 pub mod experiment;
 pub mod rng;

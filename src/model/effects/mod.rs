@@ -62,6 +62,7 @@ pub enum Category {
     Drift,
     Line,
     Glitch,
+    AuxCrosstalk,
 }
 
 impl Category {
@@ -77,6 +78,7 @@ impl Category {
             Category::Drift => "drift",
             Category::Line => "line",
             Category::Glitch => "glitch",
+            Category::AuxCrosstalk => "aux_crosstalk",
         }
     }
 }

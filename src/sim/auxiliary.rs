@@ -1,0 +1,193 @@
+//! Auxiliary readouts of other degrees of freedom in simulated data, and their sensing
+//! cross-talk into the optical readouts (thesis sec. 3.4, "Cross-talk from degrees of freedom
+//! other than the optical axis").
+//!
+//! Each auxiliary channel of the model file (`[auxiliary.COLUMN]`) is drawn as colored
+//! Gaussian noise of its ASD ([`crate::model::spec::AuxiliarySpec`]), independently of the
+//! optical noise: experiments from stream (seed, [`AUX_STREAM`]), the noise run from stream
+//! (seed, [`AUX_STREAM`] + 1), so that adding auxiliary channels leaves the readouts of a seed
+//! unchanged. A sensing cross-talk adds `k a(t) + k' da/dt` of the recorded series `a` to
+//! readout o1 or o12 of every run, noise run included (a static coefficient and a first
+//! derivative term, [`rate`]).
+
+use crate::data::{AuxChannel, Auxiliary, ExperimentData};
+use crate::model::spec::ModelSpec;
+use crate::noise::generate::ColoredNoise;
+use crate::noise::NoiseError;
+use crate::sim::rng::stream;
+
+/// Stream index of the experiments' auxiliary series (the noise run's is the next one);
+/// streams 0 and 1 are the experiments' and the noise run's optical noise.
+pub const AUX_STREAM: u64 = 2;
+/// Length factor of the generated series over the requested one (as the optical noise).
+const OVERSAMPLE: usize = crate::setup::NOISE_OVERSAMPLE;
+
+/// The first derivative of a uniformly sampled series by central differences (one-sided at
+/// the ends): the template of a rate (first-derivative) cross-talk term, the same in the
+/// simulation and in the fit. Its response is `i sin(omega dt) / dt`, `i omega` to
+/// `(omega dt)^2 / 6` relative.
+pub fn rate(x: &[f64], dt: f64) -> Vec<f64> {
+    let n = x.len();
+    if n < 2 {
+        return vec![0.0; n];
+    }
+    (0..n)
+        .map(|i| match i {
+            0 => (x[1] - x[0]) / dt,
+            _ if i == n - 1 => (x[n - 1] - x[n - 2]) / dt,
+            _ => (x[i + 1] - x[i - 1]) / (2.0 * dt),
+        })
+        .collect()
+}
+
+/// A sensing cross-talk from auxiliary column `column` into readout `channel` (0: o1, 1: o12):
+/// `o += coefficient a + rate d a/dt` (coefficient in m/m or m/rad, rate in those per s^-1).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Crosstalk {
+    pub column: String,
+    pub channel: usize,
+    pub coefficient: f64,
+    pub rate: f64,
+}
+
+/// Draws every auxiliary channel of `spec` over experiments of `lengths` samples and a noise
+/// run of `noise_len` samples at `dt`.
+pub fn draw(
+    spec: &ModelSpec,
+    lengths: &[usize],
+    noise_len: usize,
+    dt: f64,
+    seed: u64,
+) -> Result<Auxiliary, NoiseError> {
+    let channels: Vec<AuxChannel> = spec
+        .auxiliary
+        .iter()
+        .map(|(name, a)| AuxChannel {
+            column: name.clone(),
+            kind: a.kind,
+            unit: a.kind.unit().to_string(),
+        })
+        .collect();
+    let series = |n: usize, rng: &mut rand_xoshiro::Xoshiro256PlusPlus| {
+        spec.auxiliary
+            .values()
+            .map(|a| {
+                let src = a.source();
+                let psd = |f: f64| {
+                    let mut m = crate::model::closed_loop::CMat::<1>::zeros();
+                    m[(0, 0)] = crate::noise::shapes::psd(&src, f).into();
+                    m
+                };
+                let g = ColoredNoise::<1>::new(psd, n, dt, OVERSAMPLE)?;
+                Ok(g.generate(rng).swap_remove(0))
+            })
+            .collect::<Result<Vec<Vec<f64>>, NoiseError>>()
+    };
+    let mut rng = stream(seed, AUX_STREAM);
+    let experiments = lengths
+        .iter()
+        .map(|&n| series(n, &mut rng))
+        .collect::<Result<Vec<_>, _>>()?;
+    let noise = series(noise_len, &mut stream(seed, AUX_STREAM + 1))?;
+    Ok(Auxiliary {
+        channels,
+        experiments,
+        noise: Some(noise),
+    })
+}
+
+/// Adds each cross-talk of `leaks` to the readouts of the experiments `data` and of the noise
+/// run `noise`, from the recorded series `aux`. Errors name a column `aux` does not have.
+pub fn apply(
+    aux: &Auxiliary,
+    leaks: &[Crosstalk],
+    data: &mut ExperimentData,
+    noise: &mut [Vec<f64>],
+) -> Result<(), String> {
+    let dt = data.dt;
+    for l in leaks {
+        let k = aux
+            .channels
+            .iter()
+            .position(|c| c.column == l.column)
+            .ok_or_else(|| {
+                let known: Vec<&str> = aux.channels.iter().map(|c| c.column.as_str()).collect();
+                format!(
+                    "aux_crosstalk_{}: no auxiliary channel '{}' in the model file (known: {})",
+                    l.column,
+                    l.column,
+                    known.join(", ")
+                )
+            })?;
+        let add = |o: &mut [f64], a: &[f64]| {
+            let da = rate(a, dt);
+            for ((o, a), d) in o.iter_mut().zip(a).zip(&da) {
+                *o += l.coefficient * a + l.rate * d;
+            }
+        };
+        for (e, out) in data.outputs.iter_mut().enumerate() {
+            if let Some(a) = aux.experiments.get(e).and_then(|x| x.get(k)) {
+                add(&mut out[l.channel], a);
+            }
+        }
+        if let Some(a) = aux.noise.as_ref().and_then(|x| x.get(k)) {
+            add(&mut noise[l.channel], a);
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rate_of_a_sine_is_the_central_difference_response() {
+        // Oracle: analytic; the central difference of sin(w t) is w cos(w t) sin(w dt)/(w dt).
+        let (dt, w) = (1.0, 2.0 * std::f64::consts::PI * 0.05);
+        let x: Vec<f64> = (0..200).map(|i| (w * i as f64 * dt).sin()).collect();
+        let d = rate(&x, dt);
+        for (i, v) in d.iter().enumerate().take(199).skip(1) {
+            let expected = w * (w * i as f64 * dt).cos() * (w * dt).sin() / (w * dt);
+            assert!((v - expected).abs() < 1e-12, "sample {i}");
+        }
+    }
+
+    #[test]
+    fn crosstalk_adds_the_recorded_series_to_every_run() {
+        // Oracle: the definition o_c += k a + k' da/dt, in the experiments and the noise run.
+        let spec = ModelSpec::embedded();
+        let aux = draw(&spec, &[64, 80], 100, 1.0, 7).unwrap();
+        let k = aux.channels.iter().position(|c| c.column == "oy1").unwrap();
+        let mut data = ExperimentData {
+            names: vec!["a".into(), "b".into()],
+            inputs: vec![vec![vec![0.0; 64]; 2], vec![vec![0.0; 80]; 2]],
+            outputs: vec![vec![vec![0.0; 64]; 2], vec![vec![0.0; 80]; 2]],
+            dt: 1.0,
+        };
+        let mut noise = vec![vec![0.0; 100]; 2];
+        let leak = Crosstalk {
+            column: "oy1".into(),
+            channel: 1,
+            coefficient: -3e-3,
+            rate: 2e-3,
+        };
+        apply(&aux, std::slice::from_ref(&leak), &mut data, &mut noise).unwrap();
+        let expect = |a: &[f64]| -> Vec<f64> {
+            let d = rate(a, 1.0);
+            a.iter()
+                .zip(&d)
+                .map(|(x, v)| -3e-3 * x + 2e-3 * v)
+                .collect()
+        };
+        assert_eq!(data.outputs[1][1], expect(&aux.experiments[1][k]));
+        assert_eq!(noise[1], expect(&aux.noise.as_ref().unwrap()[k]));
+        assert!(data.outputs[0][0].iter().all(|v| *v == 0.0));
+        let bad = Crosstalk {
+            column: "oz9".into(),
+            ..leak
+        };
+        let e = apply(&aux, &[bad], &mut data, &mut noise).unwrap_err();
+        assert!(e.contains("'oz9'") && e.contains("oy1"), "{e}");
+    }
+}
