@@ -2,7 +2,8 @@
 //!
 //!     cargo run --release --example control_scan -- [SEEDS] [FIRST_SEED] [model|noise] [aux]
 //!
-//! For each seed: the embedded model, monte_carlo truth, standard design and one noise run, then a
+//! For each seed: the embedded model with the thesis's continuous loop (the README's calibration
+//! figures were measured on it), monte_carlo truth, standard design and one noise run, then a
 //! diagnosis with the command-line defaults (`noise`: noise-run whitening, order 300) or with
 //! model-noise whitening at order 200 (`model`, as in tests/diagnose.rs). Prints every claimed
 //! effect and every unexplained excess, then the rates. At alpha = 0.01 a calibrated diagnosis
@@ -20,7 +21,7 @@ fn main() {
     let first: u64 = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(1000);
     let model = args.get(3).is_some_and(|s| s == "model");
     let with_aux = args.get(4).is_some_and(|s| s == "aux");
-    let setup = Setup::embedded();
+    let setup = Setup::embedded_continuous();
     let design = setup.design("standard").unwrap();
     let sc = setup.spec.scenario("monte_carlo").unwrap();
     let cfg = if model {
