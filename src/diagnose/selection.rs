@@ -212,10 +212,11 @@ pub fn next_round(
         return Ok(Round::Stop(StopReason::Limits));
     }
     state.round += 1;
-    let described = propose(problem, state, &open, obs)?;
+    let mut described = propose(problem, state, &open, obs)?;
     if described.is_empty() {
         return Ok(Round::Stop(StopReason::NoCandidates));
     }
+    calibrate_aux(problem, state, &mut described)?;
     let mut tested = score(problem, state, &described)?;
     let refits = refit(problem, state, &described, &mut tested, &open, obs);
     state.candidates.extend(tested.iter().cloned());
@@ -794,6 +795,67 @@ fn score_statistic(
         most_correlated,
         step,
     }
+}
+
+/// Circular shifts of the whitened residual that calibrate an auxiliary cross-talk's score.
+const CALIBRATION_SHIFTS: usize = 32;
+
+/// The null variance of each auxiliary cross-talk's normalised score `z = <c, r> / |c|`, with
+/// `c` its whitened column and `r` the current whitened residual: under no coupling the
+/// residual shifted in time is as unrelated to the recorded series as the residual itself, so
+/// the mean of `z^2` over [`CALIBRATION_SHIFTS`] circular shifts of every experiment's residual
+/// (spread over its length, away from zero) estimates it. It is 1 for a white unit residual and
+/// larger where the residual's spectrum is above 1 under the column's red spectrum (a whitening
+/// imperfect at low frequency). As for the glitch scan, the candidate's statistics are divided
+/// by it when it exceeds one.
+fn calibrate_aux(
+    problem: &DiagnosisProblem<'_>,
+    state: &DiagnosisState,
+    described: &mut [Described],
+) -> Result<(), DiagnoseError> {
+    if !described
+        .iter()
+        .any(|d| d.category == Category::AuxCrosstalk)
+    {
+        return Ok(());
+    }
+    let lik = problem.likelihood(&state.model)?;
+    let r = &state.fit.fit.residuals_w;
+    let est = &state.fit.fit.estimate;
+    for d in described.iter_mut() {
+        let Proposal::Additive { effect, .. } = &d.proposal else {
+            continue;
+        };
+        if d.category != Category::AuxCrosstalk {
+            continue;
+        }
+        let Some(col) = effect
+            .columns(lik.engine.model(), &lik, problem.data, est)
+            .into_iter()
+            .next()
+        else {
+            continue;
+        };
+        let c = additive::whiten(&lik, problem.data, col);
+        let norm = additive::dot(&c, &c);
+        if norm <= 0.0 {
+            continue;
+        }
+        let mut sum = 0.0;
+        for j in 1..=CALIBRATION_SHIFTS {
+            let mut u = 0.0;
+            for (ce, re) in c.iter().zip(r) {
+                for (cc, rc) in ce.iter().zip(re) {
+                    let n = rc.len().min(cc.len());
+                    let s = j * n / (CALIBRATION_SHIFTS + 1);
+                    u += (0..n).map(|i| cc[i] * rc[(i + s) % n]).sum::<f64>();
+                }
+            }
+            sum += u * u / norm;
+        }
+        d.noise_var = d.noise_var.max(sum / CALIBRATION_SHIFTS as f64);
+    }
+    Ok(())
 }
 
 /// Additive candidates: drifts of [`additive::DRIFT_PARAMETERS`], and the narrow lines of the
