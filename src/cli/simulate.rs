@@ -96,7 +96,10 @@ pub fn run(a: SimulateArgs) -> Result<()> {
 pub fn simulate_into(setup: &Setup, job: &SimulateJob, out: &Path) -> Result<()> {
     let s = super::working("simulating", |_| job.run(setup))?;
     let what = s.describe();
-    let path = write_dataset(out, &Dataset::simulated_with_auxiliary(&s.data, &s.noise, &s.aux, s.meta)?)?;
+    let path = write_dataset(
+        out,
+        &Dataset::simulated_with_auxiliary(&s.data, &s.noise, &s.aux, s.meta)?,
+    )?;
     info!("wrote {} ({what})", path.display());
     Ok(())
 }
