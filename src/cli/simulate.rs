@@ -7,7 +7,7 @@ use clap::Args;
 
 use super::ModelOpt;
 use crate::diagnose::simulate_job::SimulateJob;
-use crate::io::{write_dataset, Dataset};
+use crate::io::write_dataset;
 use crate::setup::Setup;
 use crate::sim::time_domain::InitialConditions;
 use crate::sim::Engine;
@@ -96,10 +96,7 @@ pub fn run(a: SimulateArgs) -> Result<()> {
 pub fn simulate_into(setup: &Setup, job: &SimulateJob, out: &Path) -> Result<()> {
     let s = super::working("simulating", |_| job.run(setup))?;
     let what = s.describe();
-    let path = write_dataset(
-        out,
-        &Dataset::simulated_with_auxiliary(&s.data, &s.noise, &s.aux, s.meta)?,
-    )?;
+    let path = write_dataset(out, &s.dataset()?)?;
     info!("wrote {} ({what})", path.display());
     Ok(())
 }

@@ -93,6 +93,17 @@ pub struct Simulated {
 }
 
 impl Simulated {
+    /// The measured-data form: the experiments, the noise run, the auxiliary readouts declared
+    /// in `[[auxiliary]]`, and the `[meta]`.
+    pub fn dataset(&self) -> Result<crate::io::Dataset, crate::io::IoError> {
+        crate::io::Dataset::simulated_with_auxiliary(
+            &self.data,
+            &self.noise,
+            &self.aux,
+            self.meta.clone(),
+        )
+    }
+
     /// The dataset's size in words: experiments, samples, rate, and the noise run.
     pub fn describe(&self) -> String {
         format!(
