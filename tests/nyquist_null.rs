@@ -5,9 +5,11 @@
 //! through such a FIR.
 
 use std::path::Path;
-use std::process::Command;
 
 use freefall::model::ModelSpec;
+
+mod common;
+use common::freefall;
 
 const EMBEDDED: &str = include_str!("../src/model/lpf_x.toml");
 /// Standard deviations of chi2/nu allowed around 1 (issue done-when).
@@ -43,13 +45,6 @@ fn write_model(dir: &Path, anti_alias: &str) -> std::path::PathBuf {
 fn cic_table() -> String {
     let taps: Vec<String> = cic_taps().iter().map(|t| format!("{t:e}")).collect();
     format!("taps = [{}]", taps.join(", "))
-}
-
-fn freefall(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_freefall"))
-        .args(args)
-        .output()
-        .expect("binary runs")
 }
 
 #[test]

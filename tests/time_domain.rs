@@ -10,8 +10,6 @@
 //! estimates of a long noise run, within the estimate's statistical error; the CLI's
 //! documented flags and one-line errors.
 
-use std::process::Command;
-
 use freefall::model::discrete::Discretisation;
 use freefall::model::spec::LoopKind;
 use freefall::model::{transfer, transfer_with_derivatives, CMat, ClosedLoopModel, ModelSpec};
@@ -23,6 +21,7 @@ use freefall::spectral::{welch_csd, WelchConfig};
 use num_complex::Complex64;
 
 mod common;
+use common::freefall;
 use common::loops::{measured_response, STANDARD_CYCLES, STRETCH_S};
 
 #[test]
@@ -121,13 +120,6 @@ fn noise_run_matches_the_model_cross_psd_where_the_loops_agree() {
     let mean = diffs / n as f64;
     let err = (2.0 / dof).sqrt() * (2.0 / n as f64).sqrt();
     assert!(mean.abs() < 4.0 * err, "cross term: {mean} +- {err}");
-}
-
-fn freefall(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_freefall"))
-        .args(args)
-        .output()
-        .expect("binary runs")
 }
 
 #[test]

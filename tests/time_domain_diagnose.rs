@@ -103,10 +103,7 @@ fn cli_loop_digital_finds_the_lag_in_time_domain_data() {
     let tmp = tempfile::tempdir().unwrap();
     let out = tmp.path().join("td_lag");
     let run = |args: &[&str]| {
-        let o = std::process::Command::new(env!("CARGO_BIN_EXE_freefall"))
-            .args(args)
-            .output()
-            .unwrap();
+        let o = common::freefall(args);
         assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     };
     let out_s = out.to_str().unwrap();

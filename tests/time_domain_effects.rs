@@ -6,8 +6,6 @@
 //! digital loop with the lag must approach to the order of its hold; and the CLI's documented
 //! one-line errors.
 
-use std::process::Command;
-
 use freefall::model::effects::{by_name, library, Extended};
 use freefall::model::lpf_x::A_DF;
 use freefall::model::{transfer, ClosedLoopModel};
@@ -15,6 +13,7 @@ use freefall::setup::Setup;
 use freefall::sim::time_domain::{DigitalLoop, LoopConfig, PlantEffects};
 
 mod common;
+use common::freefall;
 use common::loops::{digital_setup, measured_response, STANDARD_CYCLES, STRETCH_S};
 
 /// Index of the drag-free lag state in `DigitalLoop::state` when it is the only lag: after
@@ -128,13 +127,6 @@ fn every_library_effect_is_simulated_or_refused_by_name() {
     }
 }
 
-fn freefall(args: &[&str]) -> std::process::Output {
-    Command::new(env!("CARGO_BIN_EXE_freefall"))
-        .args(args)
-        .output()
-        .expect("binary runs")
-}
-
 #[test]
 fn cli_simulates_effects_in_the_time_domain_and_refuses_the_others_in_one_line() {
     // Oracle: the documented --effect behaviour of `simulate --engine time-domain`: library
@@ -227,7 +219,7 @@ fn lagged_loop_approaches_the_continuous_loop_with_the_library_lag() {
 /// the simulated lagged loop. The model applies `L(i w)` to the held command's spectrum at the
 /// telemetry frequency, while the aliased images of the held staircase see `L` at
 /// `w + k w_s`; they reach the sampled readouts through the plant and the hold, `~ (w h)^3`
-/// smaller: 2e-8 at 0.053 Hz, measured. The engine-agreement criterion is 1e-6.
+/// smaller: 3e-8 at 0.053 Hz, measured (the unstable pole at tau = 1 s: 2e-8). The engine-agreement criterion is 1e-6.
 const LAGGED_DIGITAL_AGREEMENT: f64 = 1e-6;
 
 #[test]

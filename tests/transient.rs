@@ -17,6 +17,7 @@ use freefall::sim::rng::stream;
 use freefall::sim::time_domain::{DigitalLoop, InitialConditions, LoopConfig};
 
 mod common;
+use common::freefall;
 use common::loops::digital_setup;
 
 /// The thesis's sec. 4.7 start: positions 0.24 um (o1) and 0.36 um (o12), rates -500 pm/s and
@@ -148,13 +149,6 @@ fn thesis_start_is_reported_and_leaves_estimates_and_errors_as_in_steady_state()
     let json = ic.to_json();
     assert_eq!(json["transient"].as_array().map(Vec::len), Some(3));
     assert_eq!(json["transient"][1]["initial_conditions"][3]["name"], "v12");
-}
-
-fn freefall(args: &[&str]) -> std::process::Output {
-    std::process::Command::new(env!("CARGO_BIN_EXE_freefall"))
-        .args(args)
-        .output()
-        .expect("binary runs")
 }
 
 /// Noise run of the CLI case: the shortest a whitening filter of order 300 accepts (10 x 2

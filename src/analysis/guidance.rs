@@ -16,6 +16,7 @@
 //! column could not carry, reported in a note.
 
 use crate::io::{read_toml, Dataset};
+use crate::model::ClosedLoopModel;
 use crate::setup::Setup;
 use crate::signal::Design;
 use crate::sim::decimated::DecimationGrid;
@@ -73,7 +74,7 @@ pub fn apply_declared_design(
     inputs: &mut [Vec<Vec<f64>>],
 ) -> Result<Vec<String>, AnalysisError> {
     let Some(design) = declared_design(setup, ds)? else {
-        return Ok(point_sampled_edges(ds));
+        return Ok(point_sampled_edges(ds, setup.model.input_names()));
     };
     let start_s = ds.injections.as_ref().map_or(0.0, |i| i.start_s);
     let decimator = setup.spec.decimator().map_err(crate::setup::Error::from)?;
@@ -115,7 +116,7 @@ pub fn apply_declared_design(
         let edges = stretch_edges(&design, e, first, dt, n_out);
         let mut worst_edge: f64 = 0.0;
         for (c, (recorded, designed)) in run.inputs().iter().zip(&made).enumerate() {
-            let column = ["oi1", "oi12"][c];
+            let column = setup.model.input_names()[c];
             let peak = designed
                 .iter()
                 .chain(recorded.iter())
@@ -192,7 +193,7 @@ const EDGE_STEP_RATIO: f64 = 0.5;
 /// full guidance; such a column lacks the edges' content above the telemetry Nyquist frequency,
 /// and so do the templates built from it. Data that `simulate --rate analysis` made
 /// (`meta.rate = "analysis"`) are exempt: their readouts respond to the same 1 Hz samples.
-fn point_sampled_edges(ds: &Dataset) -> Vec<String> {
+fn point_sampled_edges(ds: &Dataset, columns: [&str; 2]) -> Vec<String> {
     let mut notes = Vec::new();
     if ds.meta.get("rate").and_then(|v| v.as_str()) == Some("analysis") {
         return notes;
@@ -234,7 +235,7 @@ fn point_sampled_edges(ds: &Dataset) -> Vec<String> {
                  response to the guidance at its true rate; the edges' content above the \
                  telemetry Nyquist frequency is missing from the templates (stretch-edge \
                  transients, not glitches) unless dataset.toml declares the design ([injections])",
-                ["oi1", "oi12"][c],
+                columns[c],
                 times.len(),
                 shown.join(", ")
             ));

@@ -9,6 +9,14 @@ pub mod tables;
 
 use std::process::Command;
 
+/// Runs the freefall binary with `args`.
+pub fn freefall(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_freefall"))
+        .args(args)
+        .output()
+        .expect("binary runs")
+}
+
 /// Prints on the terminal even when the test's output is captured.
 pub fn visible(msg: &str) {
     use std::io::Write;
