@@ -22,7 +22,7 @@ use num_complex::Complex64;
 
 mod common;
 use common::freefall;
-use common::loops::{measured_response, STANDARD_CYCLES, STRETCH_S};
+use common::loops::response_errors;
 
 #[test]
 fn sine_responses_approach_the_continuous_loop_to_the_order_of_the_hold() {
@@ -35,26 +35,19 @@ fn sine_responses_approach_the_continuous_loop_to_the_order_of_the_hold() {
     let p = setup.spec.scenario("monte_carlo").unwrap().truth;
     let cfg = LoopConfig::from_spec(&setup.spec);
     let lp = DigitalLoop::new(&setup.model, &p, &cfg);
-    for cycles in STANDARD_CYCLES {
-        let f = cycles / STRETCH_S;
-        let wh = 2.0 * std::f64::consts::PI * f * cfg.dt;
-        let t = transfer(&setup.model, &setup.model.prepare(f), &p).oi_o;
-        for c in 0..2 {
-            let got = measured_response(&lp, f, c, p[5 + c]);
-            for r in 0..2 {
-                let want = t[(r, c)];
-                let rel = (got[r] - want).norm() / want.norm();
-                assert!(
-                    rel < 2.0 * wh,
-                    "f = {f} Hz, T{}{}: time domain {:.6e}, continuous {:.6e}, rel {rel:.2e} > 2 w h = {:.2e}",
-                    r + 1,
-                    c + 1,
-                    got[r],
-                    want,
-                    2.0 * wh
-                );
-            }
-        }
+    for e in response_errors(&lp, &setup.model, &p, [p[5], p[6]]) {
+        let wh = 2.0 * std::f64::consts::PI * e.f * cfg.dt;
+        assert!(
+            e.rel < 2.0 * wh,
+            "f = {} Hz, T{}{}: time domain {:.6e}, continuous {:.6e}, rel {:.2e} > 2 w h = {:.2e}",
+            e.f,
+            e.r + 1,
+            e.c + 1,
+            e.measured,
+            e.model,
+            e.rel,
+            2.0 * wh
+        );
     }
 }
 
@@ -216,23 +209,17 @@ fn sine_responses_match_the_sampled_data_response() {
         let setup = digital_setup(disc, tau);
         let p = setup.spec.scenario("monte_carlo").unwrap().truth;
         let lp = DigitalLoop::new(&setup.model, &p, &LoopConfig::from_spec(&setup.spec));
-        for cycles in STANDARD_CYCLES {
-            let f = cycles / STRETCH_S;
-            let t = transfer(&setup.model, &setup.model.prepare(f), &p).oi_o;
-            for c in 0..2 {
-                let got = measured_response(&lp, f, c, p[5 + c]);
-                for r in 0..2 {
-                    let rel = (got[r] - t[(r, c)]).norm() / t[(r, c)].norm();
-                    assert!(
-                        rel < ENGINE_AGREEMENT,
-                        "{disc:?}, tau {tau}: f = {f}, T{}{}: {:.9e} vs {:.9e} ({rel:.1e})",
-                        r + 1,
-                        c + 1,
-                        got[r],
-                        t[(r, c)]
-                    );
-                }
-            }
+        for e in response_errors(&lp, &setup.model, &p, [p[5], p[6]]) {
+            assert!(
+                e.rel < ENGINE_AGREEMENT,
+                "{disc:?}, tau {tau}: f = {}, T{}{}: {:.9e} vs {:.9e} ({:.1e})",
+                e.f,
+                e.r + 1,
+                e.c + 1,
+                e.measured,
+                e.model,
+                e.rel
+            );
         }
     }
 }

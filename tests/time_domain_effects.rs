@@ -8,13 +8,13 @@
 
 use freefall::model::effects::{by_name, library, Extended};
 use freefall::model::lpf_x::A_DF;
-use freefall::model::{transfer, ClosedLoopModel};
+use freefall::model::ClosedLoopModel;
 use freefall::setup::Setup;
 use freefall::sim::time_domain::{DigitalLoop, LoopConfig, PlantEffects};
 
 mod common;
 use common::freefall;
-use common::loops::{digital_setup, measured_response, STANDARD_CYCLES, STRETCH_S};
+use common::loops::{digital_setup, response_errors};
 
 /// Index of the drag-free lag state in `DigitalLoop::state` when it is the only lag: after
 /// the four plant states x1, x12, v1, v12.
@@ -193,25 +193,18 @@ fn lagged_loop_approaches_the_continuous_loop_with_the_library_lag() {
     let ext = Extended::new(setup.model.clone(), vec![lag[0].0.clone()]);
     let mut pe = p.clone();
     pe.push(tau);
-    for cycles in STANDARD_CYCLES {
-        let f = cycles / STRETCH_S;
-        let wh = 2.0 * std::f64::consts::PI * f * cfg.dt;
-        let t = transfer(&ext, &ext.prepare(f), &pe).oi_o;
-        for c in 0..2 {
-            let got = measured_response(&lp, f, c, p[5 + c]);
-            for r in 0..2 {
-                let want = t[(r, c)];
-                let rel = (got[r] - want).norm() / want.norm();
-                assert!(
-                    rel < 2.0 * wh,
-                    "f = {f} Hz, T{}{}: lagged digital {:.6e}, continuous {:.6e}, rel {rel:.2e}",
-                    r + 1,
-                    c + 1,
-                    got[r],
-                    want
-                );
-            }
-        }
+    for e in response_errors(&lp, &ext, &pe, [p[5], p[6]]) {
+        let wh = 2.0 * std::f64::consts::PI * e.f * cfg.dt;
+        assert!(
+            e.rel < 2.0 * wh,
+            "f = {} Hz, T{}{}: lagged digital {:.6e}, continuous {:.6e}, rel {:.2e}",
+            e.f,
+            e.r + 1,
+            e.c + 1,
+            e.measured,
+            e.model,
+            e.rel
+        );
     }
 }
 
@@ -256,21 +249,15 @@ fn digital_model_with_the_library_lag_is_the_lagged_loop() {
             assert!(err < LAGGED_DIGITAL_AGREEMENT, "pole {pole} vs loop {want}");
             continue;
         }
-        for cycles in STANDARD_CYCLES {
-            let f = cycles / STRETCH_S;
-            let t = transfer(&ext, &ext.prepare(f), &pe).oi_o;
-            for c in 0..2 {
-                let got = measured_response(&lp, f, c, p[5 + c]);
-                for r in 0..2 {
-                    let rel = (got[r] - t[(r, c)]).norm() / t[(r, c)].norm();
-                    assert!(
-                        rel < LAGGED_DIGITAL_AGREEMENT,
-                        "f = {f} Hz, T{}{}: rel {rel:.2e}",
-                        r + 1,
-                        c + 1
-                    );
-                }
-            }
+        for e in response_errors(&lp, &ext, &pe, [p[5], p[6]]) {
+            assert!(
+                e.rel < LAGGED_DIGITAL_AGREEMENT,
+                "f = {} Hz, T{}{}: rel {:.2e}",
+                e.f,
+                e.r + 1,
+                e.c + 1,
+                e.rel
+            );
         }
     }
 }

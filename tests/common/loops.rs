@@ -61,3 +61,46 @@ pub fn measured_response(lp: &DigitalLoop, f: f64, c: usize, delay: f64) -> [Com
         acc * Complex64::new(0.0, 2.0 / nw as f64)
     })
 }
+
+/// One element of `T_{oi->o}` at a standard frequency: the loop's measured steady-state
+/// response against the model's.
+pub struct ResponseError {
+    pub f: f64,
+    /// Readout row and guidance column, 0-based.
+    pub r: usize,
+    pub c: usize,
+    pub measured: Complex64,
+    pub model: Complex64,
+    /// `|measured - model| / |model|`.
+    pub rel: f64,
+}
+
+/// Every element of `T_{oi->o}` of `model` at `p`, against the sine responses of the loop `lp`
+/// (guidance delayed by `delays`), at the seven standard frequencies.
+pub fn response_errors<M: freefall::model::ClosedLoopModel<2>>(
+    lp: &DigitalLoop,
+    model: &M,
+    p: &[f64],
+    delays: [f64; 2],
+) -> Vec<ResponseError> {
+    let mut out = Vec::new();
+    for cycles in STANDARD_CYCLES {
+        let f = cycles / STRETCH_S;
+        let t = freefall::model::transfer(model, &model.prepare(f), p).oi_o;
+        for (c, delay) in delays.into_iter().enumerate() {
+            let got = measured_response(lp, f, c, delay);
+            for (r, measured) in got.into_iter().enumerate() {
+                let want = t[(r, c)];
+                out.push(ResponseError {
+                    f,
+                    r,
+                    c,
+                    measured,
+                    model: want,
+                    rel: (measured - want).norm() / want.norm(),
+                });
+            }
+        }
+    }
+    out
+}
