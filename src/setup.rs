@@ -1,5 +1,6 @@
-//! Assembling the pieces for the reference x-axis model: model file -> closed-loop model,
-//! noise model, designs, simulators and whitening filters. Shared by the CLI, campaigns,
+//! Assembling the pieces for a model file: model file -> closed-loop model, noise model,
+//! designs, simulators and whitening filters ([`SetupOf`], generic in the model; [`Setup`] is
+//! the x-axis model, [`SetupXy`] the 7-DOF xy model). Shared by the CLI, campaigns,
 //! design and diagnosis so that every job builds them the same way.
 
 use crate::fit::telemetry_psd::{folded, NullFloor};
@@ -7,7 +8,9 @@ use crate::fit::{FitError, Whitener};
 use crate::forward::fisher::{fisher_information, InputSpectra};
 use crate::model::closed_loop::CMat;
 use crate::model::spec::GlitchSpec;
-use crate::model::{LpfX, ModelError, ModelSpec};
+use crate::model::closed_loop::ClosedLoopModel;
+use crate::model::spec::ModelKind;
+use crate::model::{LpfX, LpfXy, ModelError, ModelSpec};
 use crate::noise::{GlitchConfig, NoiseError, NoiseModel};
 use crate::signal::{Design, SignalError};
 use crate::sim::decimated::DecimatedSimulator;
@@ -51,34 +54,69 @@ pub enum Error {
 /// 2.75 GB, `2e5` at 0.71 GB.
 pub const SIMULATION_BYTES_PER_SAMPLE: f64 = 400.0;
 
-/// A loaded model file with its closed-loop model and noise model.
-#[derive(Debug, Clone)]
-pub struct Setup {
-    pub spec: ModelSpec,
-    pub model: LpfX,
-    pub noise: NoiseModel<2>,
+/// A closed-loop model built from a model file: what [`SetupOf`] needs of its model.
+pub trait SpecModel<const N: usize>: ClosedLoopModel<N> + Clone + std::fmt::Debug {
+    /// The model file's `model = "..."` that describes this model.
+    const KIND: ModelKind;
+    fn from_spec(spec: &ModelSpec) -> Result<Self, ModelError>;
 }
 
-impl Setup {
+impl SpecModel<2> for LpfX {
+    const KIND: ModelKind = ModelKind::LpfX;
+    fn from_spec(spec: &ModelSpec) -> Result<Self, ModelError> {
+        Ok(LpfX::from_spec(spec))
+    }
+}
+
+impl SpecModel<7> for LpfXy {
+    const KIND: ModelKind = ModelKind::LpfXy;
+    fn from_spec(spec: &ModelSpec) -> Result<Self, ModelError> {
+        LpfXy::from_spec(spec)
+    }
+}
+
+/// A loaded model file with its closed-loop model `M` of dimension `N` and its noise model.
+#[derive(Debug, Clone)]
+pub struct SetupOf<M, const N: usize> {
+    pub spec: ModelSpec,
+    pub model: M,
+    pub noise: NoiseModel<N>,
+}
+
+/// The x-axis model (thesis sec. 3.3), which every command takes.
+pub type Setup = SetupOf<LpfX, 2>;
+/// The 7-DOF xy cross-talk model (thesis sec. 3.5).
+pub type SetupXy = SetupOf<LpfXy, 7>;
+
+impl<M: SpecModel<N>, const N: usize> SetupOf<M, N> {
     pub fn new(spec: ModelSpec) -> Result<Self, Error> {
-        let model = LpfX::from_spec(&spec);
+        if spec.model != M::KIND {
+            return Err(ModelError::Invalid {
+                origin: spec.origin.clone(),
+                key: "model".into(),
+                reason: format!(
+                    "the file describes the {} model; this takes the {} model",
+                    spec.model.name(),
+                    M::KIND.name()
+                ),
+            }
+            .into());
+        }
+        let model = M::from_spec(&spec)?;
         let noise = NoiseModel::new(&model, &spec.noise)?;
-        Ok(Setup { spec, model, noise })
+        Ok(SetupOf { spec, model, noise })
     }
 
-    /// The embedded reference model (`lpf_x.toml`).
+    /// The embedded model file of this kind (`lpf_x.toml`, `lpf_xy.toml`).
     pub fn embedded() -> Self {
-        Self::new(ModelSpec::embedded()).expect("embedded model is valid")
+        Self::new(ModelSpec::embedded_of(M::KIND)).expect("embedded model is valid")
     }
 
     /// The model file at `path`, or the embedded one.
     pub fn load(path: Option<&std::path::Path>) -> Result<Self, Error> {
         match path {
             None => Ok(Self::embedded()),
-            Some(p) => {
-                let text = crate::io::read_text(p)?;
-                Self::new(ModelSpec::from_toml_str(&text, &p.display().to_string())?)
-            }
+            Some(p) => Self::new(ModelSpec::load(p)?),
         }
     }
 
@@ -90,11 +128,6 @@ impl Setup {
         let mut spec = self.spec;
         spec.control_loop.kind = kind;
         Self::new(spec)
-    }
-
-    /// The embedded model with the thesis's continuous loop (its tables' comparisons).
-    pub fn embedded_continuous() -> Self {
-        Self::new(ModelSpec::embedded_continuous()).expect("embedded model is valid")
     }
 
     pub fn parameter_names(&self) -> Vec<String> {
@@ -121,13 +154,17 @@ impl Setup {
     }
 
     /// The readouts' one-sided cross-PSD at `p`.
-    pub fn psd<'a>(&'a self, p: &'a [f64]) -> impl Fn(f64) -> CMat<2> + 'a {
+    pub fn psd<'a>(&'a self, p: &'a [f64]) -> impl Fn(f64) -> CMat<N> + 'a {
         move |f| self.noise.readout_csd(&self.model, f, p)
     }
 
     /// A named injection design of the model file (e.g. "standard").
     pub fn design(&self, name: &str) -> Result<Design, Error> {
-        let design = Design::from_spec(name, self.spec.injection(name)?)?;
+        let design = Design::from_spec(
+            name,
+            self.spec.injection(name)?,
+            &self.model.input_names(),
+        )?;
         self.check_simulation_size(&design, "duration_s")?;
         Ok(design)
     }
@@ -139,8 +176,52 @@ impl Setup {
         n: usize,
         dt: f64,
         order: usize,
-    ) -> Result<Whitener<2>, Error> {
+    ) -> Result<Whitener<N>, Error> {
         Ok(Whitener::from_psd(self.psd(p), dt, order, n)?)
+    }
+
+    /// Checked before a simulator of `design` is built: the longest run's samples at the
+    /// simulation rate times [`SIMULATION_BYTES_PER_SAMPLE`] (per pair of channels) must fit
+    /// in memory. `option` names what set the duration (a design's `duration_s`,
+    /// `--noise-duration`).
+    pub fn check_simulation_size(
+        &self,
+        design: &Design,
+        option: &'static str,
+    ) -> Result<(), Error> {
+        let samples = design.duration_s / self.simulation_dt();
+        crate::config::fits_in_memory(
+            option,
+            design.duration_s,
+            samples * SIMULATION_BYTES_PER_SAMPLE * (N as f64 / 2.0).max(1.0),
+            &format!(
+                "simulating {:.3e} s of design '{}' ({samples:.3e} samples at {} Hz)",
+                design.duration_s, design.name, self.spec.sampling.simulate_hz
+            ),
+        )?;
+        Ok(())
+    }
+
+    /// A simulator of `design` at parameters `truth`, directly at the analysis rate, without
+    /// glitches (see [`Setup::simulator`]).
+    pub fn plain_simulator(&self, design: &Design, truth: &[f64]) -> Result<Simulator<N>, Error> {
+        self.check_simulation_size(design, "duration_s")?;
+        Ok(Simulator::new(
+            &self.model,
+            design,
+            truth,
+            self.psd(truth),
+            self.analysis_dt(),
+            NOISE_OVERSAMPLE,
+            None,
+        )?)
+    }
+}
+
+impl Setup {
+    /// The embedded x model with the thesis's continuous loop (its tables' comparisons).
+    pub fn embedded_continuous() -> Self {
+        Self::new(ModelSpec::embedded_continuous()).expect("embedded model is valid")
     }
 
     /// The whitening filter of data decimated by `decimator` (the time-domain engine's
@@ -174,27 +255,6 @@ impl Setup {
         let mut g = g.clone();
         g.amplitude_sigma = [g.amplitude_sigma[0] * ratio, g.amplitude_sigma[1] * ratio];
         GlitchConfig::new(&g, n)
-    }
-
-    /// Checked before a simulator of `design` is built: the longest run's samples at the
-    /// simulation rate times [`SIMULATION_BYTES_PER_SAMPLE`] must fit in memory. `option` names
-    /// what set the duration (a design's `duration_s`, `--noise-duration`).
-    pub fn check_simulation_size(
-        &self,
-        design: &Design,
-        option: &'static str,
-    ) -> Result<(), Error> {
-        let samples = design.duration_s / self.simulation_dt();
-        crate::config::fits_in_memory(
-            option,
-            design.duration_s,
-            samples * SIMULATION_BYTES_PER_SAMPLE,
-            &format!(
-                "simulating {:.3e} s of design '{}' ({samples:.3e} samples at {} Hz)",
-                design.duration_s, design.name, self.spec.sampling.simulate_hz
-            ),
-        )?;
-        Ok(())
     }
 
     /// A simulator of `design` at parameters `truth`, directly at the analysis rate. The noise
@@ -291,14 +351,18 @@ impl Setup {
 
 /// Fisher information of a design's experiments at the analysis rate (README formula), at
 /// parameters `p` under the model noise PSD at `p`.
-pub fn design_fisher(setup: &Setup, design: &Design, p: &[f64]) -> nalgebra::DMatrix<f64> {
+pub fn design_fisher<M: SpecModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
+    design: &Design,
+    p: &[f64],
+) -> nalgebra::DMatrix<f64> {
     let dt = setup.analysis_dt();
     let inputs: Vec<Vec<Vec<f64>>> = design
         .lengths(dt)
         .into_iter()
         .enumerate()
-        .map(|(e, n)| design.sample(e, 2, 0.0, dt, n))
+        .map(|(e, n)| design.sample(e, N, 0.0, dt, n))
         .collect();
-    let spectra = InputSpectra::<2>::from_series(&inputs, dt);
+    let spectra = InputSpectra::<N>::from_series(&inputs, dt);
     fisher_information(&setup.model, &spectra, p, setup.psd(p))
 }

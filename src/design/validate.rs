@@ -56,7 +56,7 @@ impl Study {
         parameters: Option<&[String]>,
         slots: Option<usize>,
     ) -> Result<Study, DesignError> {
-        let standard = Design::from_spec("standard", setup.spec.injection("standard")?)?;
+        let standard = setup.design("standard")?;
         let n_std = standard
             .experiments
             .iter()

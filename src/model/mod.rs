@@ -5,6 +5,7 @@ pub mod closed_loop;
 pub mod discrete;
 pub mod effects;
 pub mod lpf_x;
+pub mod lpf_xy;
 pub mod poly;
 pub mod sampled;
 pub mod spec;
@@ -15,6 +16,7 @@ pub use closed_loop::{
     NoiseEntry, OperatorDerivative, Operators, Transfer,
 };
 pub use lpf_x::LpfX;
+pub use lpf_xy::LpfXy;
 pub use spec::{ModelSpec, Scenario};
 
 /// Errors of model construction and evaluation.

@@ -12,6 +12,49 @@ use super::ModelError;
 
 /// The reference model shipped with freefall (a copy of `reference/lpf_x.toml`).
 pub const EMBEDDED_LPF_X: &str = include_str!("lpf_x.toml");
+/// The 7-DOF xy cross-talk model (thesis sec. 3.5) shipped with freefall.
+pub const EMBEDDED_LPF_XY: &str = include_str!("lpf_xy.toml");
+
+/// Which closed-loop model a model file describes (its top-level `model = "..."`; default
+/// `lpf_x`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize)]
+pub enum ModelKind {
+    /// Along the optical axis (thesis sec. 3.3): readouts o1, o12.
+    #[default]
+    #[serde(rename = "lpf_x")]
+    LpfX,
+    /// The xy cross-talk model (thesis sec. 3.5): o1, o12, oy1, oy2, ophi1, ophi2, ophiSC.
+    #[serde(rename = "lpf_xy")]
+    LpfXy,
+}
+
+impl ModelKind {
+    pub fn name(self) -> &'static str {
+        match self {
+            ModelKind::LpfX => "lpf_x",
+            ModelKind::LpfXy => "lpf_xy",
+        }
+    }
+
+    /// The model's noise entry points (`enters` of a `[noise]` source).
+    pub fn noise_entries(self) -> &'static [&'static str] {
+        match self {
+            ModelKind::LpfX => &["f_sc", "f_1", "f_2", "o_1", "o_12"],
+            ModelKind::LpfXy => &[
+                "f_sc", "f_1", "f_2", "o_1", "o_12", "f_sc_y", "f_1y", "f_2y", "t_sc", "t_1",
+                "t_2", "o_y1", "o_y2", "o_phi1", "o_phi12", "o_phisc",
+            ],
+        }
+    }
+
+    /// The embedded model file of this kind.
+    pub fn embedded_text(self) -> (&'static str, &'static str) {
+        match self {
+            ModelKind::LpfX => (EMBEDDED_LPF_X, "embedded lpf_x.toml"),
+            ModelKind::LpfXy => (EMBEDDED_LPF_XY, "embedded lpf_xy.toml"),
+        }
+    }
+}
 
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -19,6 +62,12 @@ pub struct Constants {
     pub m_sc: f64,
     pub m_tm: f64,
     pub gamma_x: f64,
+    /// TM size `l` [m] (the xy model's angle-to-displacement arm `l / 2`).
+    #[serde(default)]
+    pub tm_size_m: Option<f64>,
+    /// Nominal separation `L` of the TM centres of mass [m] (the xy model's attitude arm).
+    #[serde(default)]
+    pub tm_separation_m: Option<f64>,
 }
 
 #[derive(Debug, Clone, Deserialize)]
@@ -44,6 +93,35 @@ impl ControllerSpec {
 pub struct Controllers {
     pub drag_free: ControllerSpec,
     pub suspension: ControllerSpec,
+    /// The xy model's drag-free laws along y (`C_df,y1 = C_df,y2`).
+    #[serde(default)]
+    pub drag_free_y: Option<ControllerSpec>,
+    /// The xy model's TM angular suspension laws (`C_sus,phi1 = C_sus,phi2`).
+    #[serde(default)]
+    pub suspension_phi: Option<ControllerSpec>,
+    /// The xy model's star-tracker attitude law `C_sus,phiSC`.
+    #[serde(default)]
+    pub attitude: Option<ControllerSpec>,
+}
+
+impl Controllers {
+    /// Every law the file gives, with its key.
+    pub fn all(&self) -> Vec<(&'static str, &ControllerSpec)> {
+        let mut v = vec![
+            ("drag_free", &self.drag_free),
+            ("suspension", &self.suspension),
+        ];
+        for (k, c) in [
+            ("drag_free_y", &self.drag_free_y),
+            ("suspension_phi", &self.suspension_phi),
+            ("attitude", &self.attitude),
+        ] {
+            if let Some(c) = c {
+                v.push((k, c));
+            }
+        }
+        v
+    }
 }
 
 #[derive(Debug, Clone, Deserialize)]
@@ -128,8 +206,16 @@ pub struct InjectionSpec {
     pub stretch_s: f64,
     pub gap_s: f64,
     pub cycles: Vec<u32>,
+    /// Exp. 1 (on oi1) of the standard table; empty: no such experiment.
+    #[serde(default)]
     pub oi1_amplitude: Vec<f64>,
+    /// Exp. 2 (on oi12); empty: no such experiment.
+    #[serde(default)]
     pub oi12_amplitude: Vec<f64>,
+    /// One further experiment per guidance input named here (the model's input names, e.g.
+    /// `oi_y1` of the xy model), with these amplitudes; in the order of the model's inputs.
+    #[serde(default)]
+    pub amplitude: BTreeMap<String, Vec<f64>>,
     /// Time of the first stretch's start; defaults to one gap.
     #[serde(default)]
     pub start_s: Option<f64>,
@@ -210,6 +296,9 @@ pub struct ExpectedFeatures {
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ModelSpec {
+    /// Which closed-loop model the file describes (default `lpf_x`).
+    #[serde(default)]
+    pub model: ModelKind,
     pub constants: Constants,
     pub controllers: Controllers,
     #[serde(rename = "parameter")]
@@ -245,8 +334,28 @@ pub const LPF_X_PARAMETERS: [&str; 7] = ["w1_sq", "w12_sq", "s21", "a_df", "a_su
 impl ModelSpec {
     /// The embedded model file: the spacecraft's digital loop.
     pub fn embedded() -> Self {
-        Self::from_toml_str(EMBEDDED_LPF_X, "embedded lpf_x.toml")
-            .expect("the embedded model file is valid (checked by tests)")
+        Self::embedded_of(ModelKind::LpfX)
+    }
+
+    /// The embedded model file of `kind`.
+    pub fn embedded_of(kind: ModelKind) -> Self {
+        let (text, origin) = kind.embedded_text();
+        Self::from_toml_str(text, origin)
+            .expect("the embedded model files are valid (checked by tests)")
+    }
+
+    /// The model file at `path`; `lpf_x` or `lpf_xy` (when no such file exists) names an
+    /// embedded model.
+    pub fn load(path: &std::path::Path) -> Result<Self, crate::setup::Error> {
+        if !path.exists() {
+            for kind in [ModelKind::LpfX, ModelKind::LpfXy] {
+                if path.as_os_str() == kind.name() {
+                    return Ok(Self::embedded_of(kind));
+                }
+            }
+        }
+        let text = crate::io::read_text(path)?;
+        Ok(Self::from_toml_str(&text, &path.display().to_string())?)
     }
 
     /// The embedded model with the thesis's continuous loop, which its tables use.
@@ -286,10 +395,7 @@ impl ModelSpec {
         if !c.gamma_x.is_finite() {
             return Err(self.bad("constants.gamma_x", "must be finite"));
         }
-        for (name, ctrl) in [
-            ("drag_free", &self.controllers.drag_free),
-            ("suspension", &self.controllers.suspension),
-        ] {
+        for (name, ctrl) in self.controllers.all() {
             let all = std::iter::once(ctrl.gain)
                 .chain(ctrl.zeros.iter().copied())
                 .chain(ctrl.poles.iter().copied());
@@ -316,12 +422,15 @@ impl ModelSpec {
         let names: Vec<&str> = self.parameters.iter().map(|p| p.name.as_str()).collect();
         for (name, src) in &self.noise {
             let key = format!("noise.{name}");
-            if !["f_sc", "f_1", "f_2", "o_1", "o_12"].contains(&src.enters.as_str()) {
+            let entries = self.model.noise_entries();
+            if !entries.contains(&src.enters.as_str()) {
                 return Err(self.bad(
                     &format!("{key}.enters"),
                     format!(
-                        "unknown entry point '{}' (expected f_sc, f_1, f_2, o_1 or o_12)",
-                        src.enters
+                        "unknown entry point '{}' of the {} model (expected one of {})",
+                        src.enters,
+                        self.model.name(),
+                        entries.join(", ")
                     ),
                 ));
             }
@@ -549,10 +658,17 @@ impl ModelSpec {
 
     fn validate_parameters(&self) -> Result<(), ModelError> {
         let names: Vec<&str> = self.parameters.iter().map(|p| p.name.as_str()).collect();
-        if names != LPF_X_PARAMETERS {
+        let needed: &[&str] = match self.model {
+            ModelKind::LpfX => &LPF_X_PARAMETERS,
+            ModelKind::LpfXy => &super::lpf_xy::LPF_XY_PARAMETERS,
+        };
+        if names != needed {
             return Err(self.bad(
                 "parameter",
-                format!("the LPF-x model needs parameters {LPF_X_PARAMETERS:?} in this order, got {names:?}"),
+                format!(
+                    "the {} model needs parameters {needed:?} in this order, got {names:?}",
+                    self.model.name()
+                ),
             ));
         }
         for p in &self.parameters {
@@ -592,10 +708,29 @@ impl ModelSpec {
         for (name, inj) in &self.injections {
             let key = format!("injections.{name}");
             let n = inj.cycles.len();
-            if n == 0 || inj.oi1_amplitude.len() != n || inj.oi12_amplitude.len() != n {
+            let lists = [
+                ("oi1_amplitude", &inj.oi1_amplitude),
+                ("oi12_amplitude", &inj.oi12_amplitude),
+            ]
+            .into_iter()
+            .chain(inj.amplitude.iter().map(|(k, v)| (k.as_str(), v)));
+            let mut any = false;
+            for (which, amps) in lists {
+                if amps.is_empty() {
+                    continue;
+                }
+                any = true;
+                if amps.len() != n {
+                    return Err(self.bad(
+                        &format!("{key}.{which}"),
+                        format!("{} amplitudes for {n} cycles", amps.len()),
+                    ));
+                }
+            }
+            if n == 0 || !any {
                 return Err(self.bad(
                     &key,
-                    "cycles, oi1_amplitude and oi12_amplitude must have the same non-zero length",
+                    "needs cycles and at least one amplitude list of the same length",
                 ));
             }
             if !(inj.stretch_s.is_finite()
@@ -617,10 +752,13 @@ impl ModelSpec {
                     ));
                 }
             }
-            for (which, amps) in [
+            let lists = [
                 ("oi1_amplitude", &inj.oi1_amplitude),
                 ("oi12_amplitude", &inj.oi12_amplitude),
-            ] {
+            ]
+            .into_iter()
+            .chain(inj.amplitude.iter().map(|(k, v)| (k.as_str(), v)));
+            for (which, amps) in lists {
                 if let Some((k, a)) = amps.iter().enumerate().find(|(_, a)| !a.is_finite()) {
                     return Err(self.bad(
                         &format!("{key}.{which}[{k}]"),
@@ -660,10 +798,7 @@ impl ModelSpec {
                 format!("must be in [0, {h}) s (one control interval), got {tau}"),
             ));
         }
-        for (name, ctrl) in [
-            ("drag_free", &self.controllers.drag_free),
-            ("suspension", &self.controllers.suspension),
-        ] {
+        for (name, ctrl) in self.controllers.all() {
             if ctrl.poles.len() > MAX_ORDER {
                 return Err(self.bad(
                     &format!("controllers.{name}.poles"),

@@ -68,9 +68,10 @@ impl Design {
         }
     }
 
-    /// The two single-input experiments of a model-file injection table (Exp. 1 on oi1,
-    /// Exp. 2 on oi12; thesis Table "standard input signals").
-    pub fn from_spec(name: &str, spec: &InjectionSpec) -> Result<Self, SignalError> {
+    /// The single-input experiments of a model-file injection table: Exp. 1 on oi1 and Exp. 2
+    /// on oi12 (thesis Table "standard input signals"), each when its amplitudes are given,
+    /// then one per further input of `amplitude`, in the order of the model's `inputs`.
+    pub fn from_spec(name: &str, spec: &InjectionSpec, inputs: &[&str]) -> Result<Self, SignalError> {
         let freqs: Vec<f64> = spec
             .cycles
             .iter()
@@ -89,19 +90,42 @@ impl Design {
             gap_s: spec.gap_s,
             start_s: spec.start_s.unwrap_or(spec.gap_s),
             duration_s: spec.duration_s.unwrap_or(DEFAULT_DURATION_S),
-            experiments: vec![
-                Experiment {
-                    name: "exp1".into(),
-                    inputs: vec![Some(make(&spec.oi1_amplitude)), None],
-                    duration_s: None,
-                },
-                Experiment {
-                    name: "exp2".into(),
-                    inputs: vec![None, Some(make(&spec.oi12_amplitude))],
-                    duration_s: None,
-                },
-            ],
+            experiments: Vec::new(),
         };
+        let bad = |reason: String| SignalError::Invalid {
+            design: name.to_string(),
+            reason,
+        };
+        let on = |channel: usize, experiment: String, amps: &[f64]| {
+            let mut inputs = vec![None; inputs.len()];
+            inputs[channel] = Some(make(amps));
+            Experiment {
+                name: experiment,
+                inputs,
+                duration_s: None,
+            }
+        };
+        let mut d = d;
+        for (channel, experiment, amps) in [
+            (0, "exp1", &spec.oi1_amplitude),
+            (1, "exp2", &spec.oi12_amplitude),
+        ] {
+            if !amps.is_empty() {
+                d.experiments.push(on(channel, experiment.into(), amps));
+            }
+        }
+        if let Some(unknown) = spec.amplitude.keys().find(|k| !inputs.contains(&k.as_str())) {
+            return Err(bad(format!(
+                "amplitude.{unknown}: not a guidance input of the model ({})",
+                inputs.join(", ")
+            )));
+        }
+        for (channel, input) in inputs.iter().enumerate() {
+            if let Some(amps) = spec.amplitude.get(*input) {
+                d.experiments
+                    .push(on(channel, format!("exp_{input}"), amps));
+            }
+        }
         d.validate()?;
         Ok(d)
     }

@@ -1,0 +1,645 @@
+//! The xy cross-talk model of LISA Pathfinder (thesis sec. 3.4-3.5): 7 coordinates
+//! `q = (x1, x12, y1, y2, phi1, phi2, phiSC)` sensed as
+//! `o = (o1, o12, oy1, oy2, ophi1, ophi2, ophiSC)` in the same operator algebra as the x model
+//! (`closed_loop`: `Delta = D S^-1 + A C`).
+//!
+//! - The x block (rows and columns 0, 1) is the continuous LPF-x model ([`LpfX`]) unchanged:
+//!   with every cross-talk coefficient zero, `T_{oi->o}` restricted to (o1, o12) is the x
+//!   model's (tested).
+//! - y and phi follow thesis eqs. "eom_XY_along y/phi" after the SC accelerations are
+//!   eliminated: `D0 = diag(s^2 + w1y, s^2 + w2y, s^2 + w1phi, s^2 + w2phi, s^2)` and the
+//!   control matrix `C0` of sec. 3.5 (drag-free along y on `C_df,y`, TM angular suspension on
+//!   `C_sus,phi`, attitude on the star tracker through `C_sus,phiSC`).
+//!   The thesis prints `C0`'s last row (phiSC) with the signs of the phi1/phi2 rows; the SC's
+//!   own equation `s^2 phiSC = tau_SC + (C_df,y2 o_y2 - C_df,y1 o_y1) / L` gives the opposite
+//!   signs, which are the ones that close the attitude loop with negative feedback (with the
+//!   printed signs the loop is unstable for any positive attitude gain). We use the derived
+//!   signs.
+//! - The cross-talk to x is first order (sec. 3.4): the dynamical `delta D` (stiffness
+//!   matrix), sensing `delta S` and actuation `delta A C0` matrices of sec. 3.5, whose rows 0
+//!   and 1 are the only non-zero ones. All are linear in their coefficients, so the
+//!   derivatives are exact.
+//! - `ophi2 = ophi1 + ophi12` (thesis Table "coordinates_xy_cross-talk"): the readout noise of
+//!   `ophi1` enters both angular readouts, that of the differential IFO `ophi12` only `ophi2`.
+//!
+//! The loop is continuous; the model file's `[control_loop] kind = "digital"` is refused.
+
+use std::f64::consts::PI;
+
+use nalgebra::SMatrix;
+use num_complex::Complex64;
+
+use super::closed_loop::{CMat, ClosedLoopModel, NoiseEntry, OperatorDerivative, Operators};
+use super::lpf_x::{LpfPoint, LpfX, A_DF, A_SUS, DT1, DT12, S21};
+use super::poly::Poly;
+use super::spec::{LoopKind, ModelSpec};
+use super::zpk::Zpk;
+use super::ModelError;
+
+/// The xy model's parameters in order: the x model's seven, the y and phi stiffnesses, then
+/// the cross-talk coefficients (dynamical, sensing, actuation) of thesis sec. 3.5.
+pub const LPF_XY_PARAMETERS: [&str; 31] = [
+    "w1_sq", "w12_sq", "s21", "a_df", "a_sus", "dt1", "dt12", // x (thesis sec. 3.3)
+    "w1y_sq", "w2y_sq", "w1phi_sq", "w2phi_sq", // y and phi stiffnesses
+    "d1_xy", "d1_xphi", "d2_xy", "d2_xphi", // dynamical cross-talk (stiffness matrix)
+    "ds_1y1", "ds_1y2", "ds_1phi1", "ds_1phi2", "ds_1phisc", // sensing cross-talk into o1
+    "ds_2y1", "ds_2y2", "ds_2phi1", "ds_2phi2", "ds_2phisc", // sensing cross-talk into o12
+    "d_df_ysc", "d_df_phisc", "d_sus_y1", "d_sus_y2", "d_sus_phi1", "d_sus_phi2", // actuation
+];
+
+pub const W1Y: usize = 7;
+pub const W2Y: usize = 8;
+pub const W1PHI: usize = 9;
+pub const W2PHI: usize = 10;
+pub const D1_XY: usize = 11;
+pub const D1_XPHI: usize = 12;
+pub const D2_XY: usize = 13;
+pub const D2_XPHI: usize = 14;
+/// First sensing coefficient; `DS_1 + j` is `ds_1<aux j>`, `DS_2 + j` is `ds_2<aux j>` with
+/// `aux = (y1, y2, phi1, phi2, phiSC)`.
+pub const DS_1: usize = 15;
+pub const DS_2: usize = 20;
+pub const D_DF_YSC: usize = 25;
+pub const D_DF_PHISC: usize = 26;
+pub const D_SUS_Y1: usize = 27;
+pub const D_SUS_Y2: usize = 28;
+pub const D_SUS_PHI1: usize = 29;
+pub const D_SUS_PHI2: usize = 30;
+
+/// Coordinate (readout, input) indices.
+pub const X1: usize = 0;
+pub const X12: usize = 1;
+pub const Y1: usize = 2;
+pub const Y2: usize = 3;
+pub const PHI1: usize = 4;
+pub const PHI2: usize = 5;
+pub const PHISC: usize = 6;
+
+type M7 = CMat<7>;
+type R7 = SMatrix<f64, 7, 7>;
+
+fn c(re: f64) -> Complex64 {
+    Complex64::new(re, 0.0)
+}
+
+/// The control law acting through each column of `A C` (one per sensed coordinate).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Law {
+    DragFreeX,
+    SuspensionX,
+    DragFreeY,
+    SuspensionPhi,
+    Attitude,
+}
+
+/// The law of column `j` of `A C`.
+pub const COLUMN_LAW: [Law; 7] = [
+    Law::DragFreeX,
+    Law::SuspensionX,
+    Law::DragFreeY,
+    Law::DragFreeY,
+    Law::SuspensionPhi,
+    Law::SuspensionPhi,
+    Law::Attitude,
+];
+
+/// The 7-DOF xy model.
+#[derive(Debug, Clone)]
+pub struct LpfXy {
+    /// The continuous x model, whose operators are the x block.
+    pub x: LpfX,
+    /// TM size `l` [m].
+    pub l: f64,
+    /// TM separation `L` [m].
+    pub big_l: f64,
+    pub c_dfy: Zpk,
+    pub c_phi: Zpk,
+    pub c_att: Zpk,
+    names: Vec<String>,
+    bounds: Vec<(f64, f64)>,
+}
+
+/// Parameter-independent quantities at one frequency.
+#[derive(Debug, Clone, Copy)]
+pub struct XyPoint {
+    pub x: LpfPoint,
+    pub c_dfy: Complex64,
+    pub c_phi: Complex64,
+    pub c_att: Complex64,
+}
+
+impl LpfXy {
+    pub fn from_spec(spec: &ModelSpec) -> Result<Self, ModelError> {
+        let bad = |key: &str, reason: &str| ModelError::Invalid {
+            origin: spec.origin.clone(),
+            key: key.to_string(),
+            reason: reason.to_string(),
+        };
+        if spec.control_loop.kind == LoopKind::Digital {
+            return Err(bad(
+                "control_loop.kind",
+                "the xy model is continuous only (\"digital\" is not supported for it)",
+            ));
+        }
+        let law = |key: &str, c: &Option<super::spec::ControllerSpec>| {
+            c.as_ref()
+                .map(|c| c.zpk())
+                .ok_or_else(|| bad(&format!("controllers.{key}"), "required by the xy model"))
+        };
+        let length = |key: &str, v: Option<f64>| match v {
+            Some(v) if v.is_finite() && v > 0.0 => Ok(v),
+            _ => Err(bad(
+                &format!("constants.{key}"),
+                "required by the xy model: a length > 0 in metres",
+            )),
+        };
+        Ok(LpfXy {
+            x: LpfX::from_spec(spec),
+            l: length("tm_size_m", spec.constants.tm_size_m)?,
+            big_l: length("tm_separation_m", spec.constants.tm_separation_m)?,
+            c_dfy: law("drag_free_y", &spec.controllers.drag_free_y)?,
+            c_phi: law("suspension_phi", &spec.controllers.suspension_phi)?,
+            c_att: law("attitude", &spec.controllers.attitude)?,
+            names: spec.parameter_names(),
+            bounds: spec.parameters.iter().map(|p| p.bounds()).collect(),
+        })
+    }
+
+    /// The point at a complex Laplace variable `s`.
+    pub fn prepare_s(&self, s: Complex64) -> XyPoint {
+        XyPoint {
+            x: self.x.prepare_s(s),
+            c_dfy: self.c_dfy.eval(s),
+            c_phi: self.c_phi.eval(s),
+            c_att: self.c_att.eval(s),
+        }
+    }
+
+    /// The stiffness `K` of `D = s^2 + K` (x block as the x model, y/phi diagonal, the
+    /// dynamical cross-talk in rows 0 and 1).
+    pub fn stiffness(&self, p: &[f64]) -> R7 {
+        let mut k = R7::zeros();
+        let kx = self.x.stiffness(p);
+        for (i, row) in kx.iter().enumerate() {
+            for (j, v) in row.iter().enumerate() {
+                k[(i, j)] = *v;
+            }
+        }
+        k[(Y1, Y1)] = p[W1Y];
+        k[(Y2, Y2)] = p[W2Y];
+        k[(PHI1, PHI1)] = p[W1PHI];
+        k[(PHI2, PHI2)] = p[W2PHI];
+        let half_l = 0.5 * self.l;
+        k[(X1, Y1)] = p[D1_XY] * p[W1Y];
+        k[(X12, Y1)] = -p[D1_XY] * p[W1Y];
+        k[(X12, Y2)] = p[D2_XY] * p[W2Y];
+        k[(X1, PHI1)] = p[D1_XPHI] * half_l * p[W1PHI];
+        k[(X12, PHI1)] = -p[D1_XPHI] * half_l * p[W1PHI];
+        k[(X12, PHI2)] = p[D2_XPHI] * half_l * p[W2PHI];
+        k
+    }
+
+    /// `dK/dp_k` (zero for parameters that do not enter the stiffness).
+    fn stiffness_derivative(&self, p: &[f64], k: usize) -> Option<R7> {
+        let mut d = R7::zeros();
+        let half_l = 0.5 * self.l;
+        match k {
+            0 | 1 => {
+                let dk = self.x.stiffness_derivatives()[k];
+                for (i, row) in dk.iter().enumerate() {
+                    for (j, v) in row.iter().enumerate() {
+                        d[(i, j)] = *v;
+                    }
+                }
+            }
+            W1Y => {
+                d[(Y1, Y1)] = 1.0;
+                d[(X1, Y1)] = p[D1_XY];
+                d[(X12, Y1)] = -p[D1_XY];
+            }
+            W2Y => {
+                d[(Y2, Y2)] = 1.0;
+                d[(X12, Y2)] = p[D2_XY];
+            }
+            W1PHI => {
+                d[(PHI1, PHI1)] = 1.0;
+                d[(X1, PHI1)] = p[D1_XPHI] * half_l;
+                d[(X12, PHI1)] = -p[D1_XPHI] * half_l;
+            }
+            W2PHI => {
+                d[(PHI2, PHI2)] = 1.0;
+                d[(X12, PHI2)] = p[D2_XPHI] * half_l;
+            }
+            D1_XY => {
+                d[(X1, Y1)] = p[W1Y];
+                d[(X12, Y1)] = -p[W1Y];
+            }
+            D1_XPHI => {
+                d[(X1, PHI1)] = half_l * p[W1PHI];
+                d[(X12, PHI1)] = -half_l * p[W1PHI];
+            }
+            D2_XY => d[(X12, Y2)] = p[W2Y],
+            D2_XPHI => d[(X12, PHI2)] = half_l * p[W2PHI],
+            _ => return None,
+        }
+        Some(d)
+    }
+
+    /// The arm converting auxiliary coordinate `j` (0..5: y1, y2, phi1, phi2, phiSC) into a
+    /// displacement along x in `delta S` (1 for y, `l/2` for TM angles, `L/2` for phiSC).
+    fn sensing_arm(&self, j: usize) -> f64 {
+        match j {
+            0 | 1 => 1.0,
+            2 | 3 => 0.5 * self.l,
+            _ => 0.5 * self.big_l,
+        }
+    }
+
+    /// The sensing operator `S = 1 + delta S` (real).
+    pub fn sensing(&self, p: &[f64]) -> R7 {
+        let mut s = R7::identity();
+        s[(X12, X1)] = p[S21];
+        for j in 0..5 {
+            s[(X1, Y1 + j)] = self.sensing_arm(j) * p[DS_1 + j];
+            s[(X12, Y1 + j)] = self.sensing_arm(j) * p[DS_2 + j];
+        }
+        s
+    }
+
+    /// The vector `a_j` of column `j` of `A C = a_j law_j(s)` (actuation gains and cross-talk
+    /// included).
+    pub fn actuation_column(&self, p: &[f64], j: usize) -> [f64; 7] {
+        let (l, bl, mt) = (self.l, self.big_l, self.x.mt);
+        let mut a = [0.0; 7];
+        match j {
+            X1 => a[X1] = p[A_DF],
+            X12 => {
+                a[X1] = mt * p[A_SUS];
+                a[X12] = p[A_SUS];
+            }
+            Y1 | Y2 => {
+                let sign = if j == Y1 { -1.0 } else { 1.0 };
+                a[X1] = 0.5 * (p[D_DF_YSC] + sign * p[D_DF_PHISC]);
+                a[j] = 1.0;
+                a[PHI1] = sign / bl;
+                a[PHI2] = sign / bl;
+                a[PHISC] = -sign / bl;
+            }
+            PHI1 => {
+                a[X1] = -0.5 * p[D_SUS_PHI1] * l;
+                a[X12] = 0.5 * p[D_SUS_PHI1] * l;
+                a[PHI1] = 1.0;
+            }
+            PHI2 => {
+                a[X12] = -0.5 * p[D_SUS_PHI2] * l;
+                a[PHI2] = 1.0;
+            }
+            _ => {
+                a[X1] = -0.5 * p[D_SUS_Y1] * bl;
+                a[X12] = 0.5 * (p[D_SUS_Y1] + p[D_SUS_Y2]) * bl;
+                a[Y1] = -0.5 * bl;
+                a[Y2] = 0.5 * bl;
+            }
+        }
+        a
+    }
+
+    /// `d a_j / dp_k`, `None` when zero.
+    fn actuation_column_derivative(&self, j: usize, k: usize) -> Option<[f64; 7]> {
+        let (l, bl, mt) = (self.l, self.big_l, self.x.mt);
+        let mut a = [0.0; 7];
+        match (j, k) {
+            (X1, A_DF) => a[X1] = 1.0,
+            (X12, A_SUS) => {
+                a[X1] = mt;
+                a[X12] = 1.0;
+            }
+            (Y1 | Y2, D_DF_YSC) => a[X1] = 0.5,
+            (Y1, D_DF_PHISC) => a[X1] = -0.5,
+            (Y2, D_DF_PHISC) => a[X1] = 0.5,
+            (PHI1, D_SUS_PHI1) => {
+                a[X1] = -0.5 * l;
+                a[X12] = 0.5 * l;
+            }
+            (PHI2, D_SUS_PHI2) => a[X12] = -0.5 * l,
+            (PHISC, D_SUS_Y1) => {
+                a[X1] = -0.5 * bl;
+                a[X12] = 0.5 * bl;
+            }
+            (PHISC, D_SUS_Y2) => a[X12] = 0.5 * bl,
+            _ => return None,
+        }
+        Some(a)
+    }
+
+    /// The value of column `j`'s law at a point.
+    pub fn law_at(pt: &XyPoint, j: usize) -> Complex64 {
+        match COLUMN_LAW[j] {
+            Law::DragFreeX => pt.x.c_df,
+            Law::SuspensionX => pt.x.c_sus,
+            Law::DragFreeY => pt.c_dfy,
+            Law::SuspensionPhi => pt.c_phi,
+            Law::Attitude => pt.c_att,
+        }
+    }
+
+    /// The zpk of column `j`'s law.
+    pub fn law_zpk(&self, j: usize) -> &Zpk {
+        match COLUMN_LAW[j] {
+            Law::DragFreeX => &self.x.c_df,
+            Law::SuspensionX => &self.x.c_sus,
+            Law::DragFreeY => &self.c_dfy,
+            Law::SuspensionPhi => &self.c_phi,
+            Law::Attitude => &self.c_att,
+        }
+    }
+
+    /// The bare control law `C` (no actuation gains, no cross-talk).
+    fn bare_control(&self, pt: &XyPoint) -> M7 {
+        let mut m = M7::zeros();
+        let nominal = {
+            let mut q = vec![0.0; LPF_XY_PARAMETERS.len()];
+            q[A_DF] = 1.0;
+            q[A_SUS] = 1.0;
+            q
+        };
+        for j in 0..7 {
+            let a = self.actuation_column(&nominal, j);
+            let law = Self::law_at(pt, j);
+            for (i, ai) in a.iter().enumerate() {
+                m[(i, j)] = law * *ai;
+            }
+        }
+        m
+    }
+
+    /// The loop-at-a-time loop gain of column `j`'s law at frequency `f_hz`: with `A C`
+    /// column `j` = `a_j law_j`, `det Delta = det Delta_0 (1 + L_j)`, where `Delta_0` has that
+    /// column's law set to zero (every other loop closed) and
+    /// `L_j = law_j e_j^T Delta_0^-1 a_j`. Its unity-gain crossings give the phase margins.
+    pub fn loop_gain(&self, f_hz: f64, p: &[f64], j: usize) -> Complex64 {
+        let pt = self.prepare(f_hz);
+        let ops = self.operators(&pt, p);
+        let s_inv = ops.s.try_inverse().unwrap_or_else(M7::identity);
+        let mut delta0 = ops.d * s_inv + ops.ac;
+        let a = self.actuation_column(p, j);
+        let law = Self::law_at(&pt, j);
+        for (i, ai) in a.iter().enumerate() {
+            delta0[(i, j)] -= law * *ai;
+        }
+        let Some(inv) = delta0.try_inverse() else {
+            return c(f64::NAN);
+        };
+        let av = nalgebra::SVector::<Complex64, 7>::from_fn(|i, _| c(a[i]));
+        law * (inv * av)[j]
+    }
+}
+
+impl ClosedLoopModel<7> for LpfXy {
+    type Point = XyPoint;
+
+    fn parameter_names(&self) -> &[String] {
+        &self.names
+    }
+
+    fn parameter_bounds(&self) -> Vec<(f64, f64)> {
+        self.bounds.clone()
+    }
+
+    fn readout_names(&self) -> [&'static str; 7] {
+        ["o1", "o12", "oy1", "oy2", "ophi1", "ophi2", "ophisc"]
+    }
+
+    fn input_names(&self) -> [&'static str; 7] {
+        ["oi1", "oi12", "oi_y1", "oi_y2", "oi_phi1", "oi_phi2", "oi_phisc"]
+    }
+
+    fn prepare(&self, f_hz: f64) -> XyPoint {
+        self.prepare_s(Complex64::new(0.0, 2.0 * PI * f_hz))
+    }
+
+    fn operators(&self, pt: &XyPoint, p: &[f64]) -> Operators<7> {
+        let s2 = pt.x.s2;
+        let d = self.stiffness(p).map(c) + M7::identity() * s2;
+        let mut ac = M7::zeros();
+        for j in 0..7 {
+            let a = self.actuation_column(p, j);
+            let law = Self::law_at(pt, j);
+            for (i, ai) in a.iter().enumerate() {
+                ac[(i, j)] = law * *ai;
+            }
+        }
+        let mut t = M7::identity();
+        t[(X1, X1)] = (-pt.x.s * p[DT1]).exp();
+        t[(X12, X12)] = (-pt.x.s * p[DT12]).exp();
+        Operators {
+            d,
+            s: self.sensing(p).map(c),
+            ac,
+            c: self.bare_control(pt),
+            t,
+        }
+    }
+
+    fn derivative(&self, pt: &XyPoint, p: &[f64], k: usize) -> OperatorDerivative<7> {
+        let mut der = OperatorDerivative::default();
+        der.d = self.stiffness_derivative(p, k).map(|m| m.map(c));
+        if k == S21 {
+            let mut m = M7::zeros();
+            m[(X12, X1)] = c(1.0);
+            der.s = Some(m);
+        }
+        if (DS_1..DS_1 + 10).contains(&k) {
+            let (row, j) = if k < DS_2 {
+                (X1, k - DS_1)
+            } else {
+                (X12, k - DS_2)
+            };
+            let mut m = M7::zeros();
+            m[(row, Y1 + j)] = c(self.sensing_arm(j));
+            der.s = Some(m);
+        }
+        let mut dac: Option<M7> = None;
+        for j in 0..7 {
+            if let Some(a) = self.actuation_column_derivative(j, k) {
+                let law = Self::law_at(pt, j);
+                let m = dac.get_or_insert_with(M7::zeros);
+                for (i, ai) in a.iter().enumerate() {
+                    m[(i, j)] += law * *ai;
+                }
+            }
+        }
+        der.ac = dac;
+        if k == DT1 || k == DT12 {
+            let i = if k == DT1 { X1 } else { X12 };
+            let mut m = M7::zeros();
+            m[(i, i)] = -pt.x.s * (-pt.x.s * p[k]).exp();
+            der.t = Some(m);
+        }
+        der
+    }
+
+    /// `det(Delta)` times the laws' denominators: `S` is constant, so
+    /// `D S^-1 = s^2 S^-1 + K S^-1`, and column `j` of `Delta` times its law's denominator
+    /// `den_j` is the polynomial column `(D S^-1)_{:j} den_j + a_j num_j`.
+    fn characteristic_polynomial(&self, p: &[f64]) -> Poly {
+        let s_inv = self.sensing(p).try_inverse().unwrap_or_else(R7::identity);
+        let ks = self.stiffness(p) * s_inv;
+        let m: Vec<Vec<Poly>> = (0..7)
+            .map(|i| {
+                (0..7)
+                    .map(|j| {
+                        let law = self.law_zpk(j);
+                        let a = self.actuation_column(p, j);
+                        Poly(vec![ks[(i, j)], 0.0, s_inv[(i, j)]])
+                            .mul(&law.denominator())
+                            .add(&law.numerator().scale(a[i]))
+                    })
+                    .collect()
+            })
+            .collect();
+        determinant(&m)
+    }
+
+    fn noise_entry(&self, name: &str) -> Option<NoiseEntry<7>> {
+        let mt = self.x.mt;
+        let half_bl = 0.5 * self.big_l;
+        let unit = |i: usize| {
+            let mut w = [0.0; 7];
+            w[i] = 1.0;
+            w
+        };
+        Some(match name {
+            // The x model's rows, unchanged.
+            "f_sc" => NoiseEntry::Force(unit(X1).map(|v| -v)),
+            "f_1" => {
+                let mut w = [0.0; 7];
+                w[X1] = 1.0 + mt;
+                w[X12] = -1.0;
+                NoiseEntry::Force(w)
+            }
+            "f_2" => {
+                let mut w = [0.0; 7];
+                w[X1] = mt;
+                w[X12] = 1.0;
+                NoiseEntry::Force(w)
+            }
+            // y rows: f_iy - f_SC,y + (+-L/2) tau_SC; phi rows: tau_i - tau_SC; phiSC: tau_SC.
+            "f_sc_y" => {
+                let mut w = [0.0; 7];
+                w[Y1] = -1.0;
+                w[Y2] = -1.0;
+                NoiseEntry::Force(w)
+            }
+            "f_1y" => NoiseEntry::Force(unit(Y1)),
+            "f_2y" => NoiseEntry::Force(unit(Y2)),
+            "t_sc" => {
+                let mut w = [0.0; 7];
+                w[Y1] = half_bl;
+                w[Y2] = -half_bl;
+                w[PHI1] = -1.0;
+                w[PHI2] = -1.0;
+                w[PHISC] = 1.0;
+                NoiseEntry::Force(w)
+            }
+            "t_1" => NoiseEntry::Force(unit(PHI1)),
+            "t_2" => NoiseEntry::Force(unit(PHI2)),
+            "o_1" => NoiseEntry::Readout(unit(X1)),
+            "o_12" => NoiseEntry::Readout(unit(X12)),
+            "o_y1" => NoiseEntry::Readout(unit(Y1)),
+            "o_y2" => NoiseEntry::Readout(unit(Y2)),
+            // ophi2 = ophi1 + ophi12.
+            "o_phi1" => {
+                let mut w = [0.0; 7];
+                w[PHI1] = 1.0;
+                w[PHI2] = 1.0;
+                NoiseEntry::Readout(w)
+            }
+            "o_phi12" => NoiseEntry::Readout(unit(PHI2)),
+            "o_phisc" => NoiseEntry::Readout(unit(PHISC)),
+            _ => return None,
+        })
+    }
+}
+
+/// The determinant of a square matrix of polynomials, by expansion along the rows with the
+/// minors of the remaining columns memoised (2^n of them): exact in the coefficients up to
+/// the rounding of the products.
+pub fn determinant(m: &[Vec<Poly>]) -> Poly {
+    let n = m.len();
+    let full = (1usize << n) - 1;
+    // minor[mask]: determinant of rows (n - popcount(mask))..n over the columns in `mask`.
+    let mut minor: Vec<Option<Poly>> = vec![None; 1 << n];
+    minor[0] = Some(Poly::constant(1.0));
+    for mask in 1..=full {
+        let row = n - (mask as u32).count_ones() as usize;
+        let mut acc = Poly::constant(0.0);
+        for (rank, j) in (0..n).filter(|j| mask & (1 << j) != 0).enumerate() {
+            let e = &m[row][j];
+            if e.0.iter().all(|&v| v == 0.0) {
+                continue;
+            }
+            let rest = minor[mask & !(1 << j)].as_ref().expect("computed before");
+            let term = e.mul(rest);
+            acc = if rank % 2 == 0 {
+                acc.add(&term)
+            } else {
+                acc.sub(&term)
+            };
+        }
+        minor[mask] = Some(acc);
+    }
+    minor[full].take().expect("computed")
+}
+
+/// A unity-gain crossing of a loop gain: its frequency and phase margin
+/// (`180 deg + arg L`, wrapped to (-180, 180]).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Crossing {
+    pub f_hz: f64,
+    pub phase_margin_deg: f64,
+}
+
+impl LpfXy {
+    /// Every unity-gain crossing of column `j`'s loop gain ([`Self::loop_gain`]) between
+    /// `f_lo` and `f_hi`: bracketed on a logarithmic grid of 200 points per decade, then
+    /// bisected to a relative 1e-9 in frequency.
+    pub fn crossings(&self, p: &[f64], j: usize, f_lo: f64, f_hi: f64) -> Vec<Crossing> {
+        let decades = (f_hi / f_lo).log10();
+        let n = (200.0 * decades).ceil() as usize;
+        let f_at = |k: usize| f_lo * 10f64.powf(decades * k as f64 / n as f64);
+        let excess = |f: f64| self.loop_gain(f, p, j).norm().ln();
+        let mut out = Vec::new();
+        let (mut f0, mut e0) = (f_lo, excess(f_lo));
+        for k in 1..=n {
+            let f1 = f_at(k);
+            let e1 = excess(f1);
+            if e0.is_finite() && e1.is_finite() && (e0 > 0.0) != (e1 > 0.0) {
+                let (mut a, mut b, ea) = (f0, f1, e0);
+                while (b - a) > 1e-9 * b {
+                    let m = (a * b).sqrt();
+                    if (excess(m) > 0.0) == (ea > 0.0) {
+                        a = m;
+                    } else {
+                        b = m;
+                    }
+                }
+                let f = (a * b).sqrt();
+                let arg = self.loop_gain(f, p, j).arg().to_degrees();
+                let mut pm = 180.0 + arg;
+                while pm > 180.0 {
+                    pm -= 360.0;
+                }
+                while pm <= -180.0 {
+                    pm += 360.0;
+                }
+                out.push(Crossing {
+                    f_hz: f,
+                    phase_margin_deg: pm,
+                });
+            }
+            (f0, e0) = (f1, e1);
+        }
+        out
+    }
+}
