@@ -366,3 +366,51 @@ pub fn design_fisher<M: SpecModel<N>, const N: usize>(
     let spectra = InputSpectra::<N>::from_series(&inputs, dt);
     fisher_information(&setup.model, &spectra, p, setup.psd(p))
 }
+
+/// A model file of either kind, for the commands that take both (`--model lpf_xy`).
+#[derive(Debug, Clone)]
+pub enum AnySetup {
+    X(Box<Setup>),
+    Xy(Box<SetupXy>),
+}
+
+impl AnySetup {
+    /// The model file at `path` (or the embedded `lpf_x` / `lpf_xy`), as its `model` says;
+    /// the embedded x model without a path.
+    pub fn load(path: Option<&std::path::Path>) -> Result<Self, Error> {
+        let spec = match path {
+            None => return Ok(AnySetup::X(Box::new(Setup::embedded()))),
+            Some(p) => ModelSpec::load(p)?,
+        };
+        Ok(match spec.model {
+            ModelKind::LpfX => AnySetup::X(Box::new(Setup::new(spec)?)),
+            ModelKind::LpfXy => AnySetup::Xy(Box::new(SetupXy::new(spec)?)),
+        })
+    }
+
+    /// The same with its loop `kind` instead of the file's.
+    pub fn with_loop(self, kind: crate::model::spec::LoopKind) -> Result<Self, Error> {
+        Ok(match self {
+            AnySetup::X(s) => AnySetup::X(Box::new(s.with_loop(kind)?)),
+            AnySetup::Xy(s) => AnySetup::Xy(Box::new(s.with_loop(kind)?)),
+        })
+    }
+
+    pub fn spec(&self) -> &ModelSpec {
+        match self {
+            AnySetup::X(s) => &s.spec,
+            AnySetup::Xy(s) => &s.spec,
+        }
+    }
+
+    /// The x model, or an error naming `what` (a command) and the file for the xy model.
+    pub fn x(self, what: &str) -> Result<Setup, Error> {
+        match self {
+            AnySetup::X(s) => Ok(*s),
+            AnySetup::Xy(s) => Err(Error::Other(format!(
+                "{what} takes the lpf_x model; {} describes lpf_xy",
+                s.spec.origin
+            ))),
+        }
+    }
+}

@@ -98,7 +98,8 @@ pub enum Command {
 /// `--model FILE`: a model file of the lpf_x.toml schema (default: the embedded one).
 #[derive(Debug, Clone, Args)]
 pub struct ModelOpt {
-    /// Model file (TOML, schema of lpf_x.toml); default: the embedded LPF-x reference model.
+    /// Model file (TOML, schema of lpf_x.toml), or `lpf_x` / `lpf_xy` for an embedded model;
+    /// default: the embedded LPF-x reference model.
     #[arg(long, value_name = "FILE")]
     pub model: Option<PathBuf>,
     /// The loop's frequency response, overriding the model file's `[control_loop] kind`: the
@@ -109,6 +110,15 @@ pub struct ModelOpt {
 }
 
 impl ModelOpt {
+    /// The model file of either kind (commands that take the xy model too).
+    pub fn any_setup(&self) -> Result<crate::setup::AnySetup, crate::setup::Error> {
+        let setup = crate::setup::AnySetup::load(self.model.as_deref())?;
+        Ok(match self.control_loop {
+            Some(kind) => setup.with_loop(kind)?,
+            None => setup,
+        })
+    }
+
     pub fn setup(&self) -> Result<Setup, crate::setup::Error> {
         let setup = Setup::load(self.model.as_deref())?;
         Ok(match self.control_loop {
