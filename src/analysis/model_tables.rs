@@ -10,8 +10,8 @@ use std::path::{Path, PathBuf};
 use super::job::JobError;
 use crate::io::{ensure_parent, write_parquet, IoError, Provenance, Table};
 use crate::model::lpf_x::THESIS_SIGMA;
-use crate::model::{check_stability, transfer, ClosedLoopModel};
-use crate::setup::Setup;
+use crate::model::{check_stability, transfer};
+use crate::setup::{SetupOf, SpecModel};
 use crate::signal::Design;
 
 /// `points` log-spaced frequencies from `fmin` to `fmax`; `Err` names the bad bound.
@@ -29,14 +29,33 @@ pub fn log_grid(fmin: f64, fmax: f64, points: usize) -> Result<Vec<f64>, String>
         .collect())
 }
 
-/// `T_{oi->o}[out, in](f)` at `p`: f, t11_re, t11_im, ..., t22_im (dimensionless).
-pub fn transfer_table(setup: &Setup, p: &[f64], f: &[f64]) -> Result<Table, IoError> {
+/// The column stem of `T[out, in]`: `t11` ... `t22` for the x model (1-based indices), else
+/// `t_<readout>_<input>` (e.g. `t_o1_oi_y1` of the xy model).
+fn transfer_stem<M: SpecModel<N>, const N: usize>(model: &M, o: usize, i: usize) -> String {
+    if N == 2 {
+        format!("t{}{}", o + 1, i + 1)
+    } else {
+        format!("t_{}_{}", model.readout_names()[o], model.input_names()[i])
+    }
+}
+
+/// `T_{oi->o}[out, in](f)` at `p`: f, then the real and imaginary part of every element
+/// (t11_re, t11_im, ..., t22_im for the x model; dimensionless, or m/rad and rad/m between
+/// displacements and angles).
+pub fn transfer_table<M: SpecModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
+    p: &[f64],
+    f: &[f64],
+) -> Result<Table, IoError> {
     let t: Vec<_> = f
         .iter()
         .map(|&x| transfer(&setup.model, &setup.model.prepare(x), p).oi_o)
         .collect();
     let mut table = Table::new().with_f64("f", f.to_vec())?.with_unit("f", "Hz");
-    for (name, o, i) in [("t11", 0, 0), ("t12", 0, 1), ("t21", 1, 0), ("t22", 1, 1)] {
+    let elements =
+        (0..N).flat_map(|o| (0..N).map(move |i| (o, i)));
+    for (o, i) in elements {
+        let name = transfer_stem(&setup.model, o, i);
         for (part, take) in [("re", 0), ("im", 1)] {
             let col = format!("{name}_{part}");
             let v = t
@@ -55,12 +74,32 @@ pub fn transfer_table(setup: &Setup, p: &[f64], f: &[f64]) -> Result<Table, IoEr
     Ok(table)
 }
 
-/// One-sided readout cross-PSD at `p`: f, s11, s22, s12_re, s12_im (m^2/Hz).
-pub fn noise_table(setup: &Setup, p: &[f64], f: &[f64]) -> Result<Table, IoError> {
+/// One-sided readout cross-PSD at `p`: f, s11, s22, s12_re, s12_im (m^2/Hz) for the x model;
+/// for another model f, `s_<a>` for each readout and `s_<a>_<b>_re`, `s_<a>_<b>_im` for each
+/// pair (readout units squared per Hz).
+pub fn noise_table<M: SpecModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
+    p: &[f64],
+    f: &[f64],
+) -> Result<Table, IoError> {
     let s: Vec<_> = f
         .iter()
         .map(|&x| setup.noise.readout_csd(&setup.model, x, p))
         .collect();
+    if N != 2 {
+        let names = setup.model.readout_names();
+        let mut table = Table::new().with_f64("f", f.to_vec())?.with_unit("f", "Hz");
+        for a in 0..N {
+            table = table.with_f64(format!("s_{}", names[a]), s.iter().map(|m| m[(a, a)].re).collect())?;
+            for b in a + 1..N {
+                let stem = format!("s_{}_{}", names[a], names[b]);
+                table = table
+                    .with_f64(format!("{stem}_re"), s.iter().map(|m| m[(a, b)].re).collect())?
+                    .with_f64(format!("{stem}_im"), s.iter().map(|m| m[(a, b)].im).collect())?;
+            }
+        }
+        return Ok(table);
+    }
     Ok(Table::new()
         .with_f64("f", f.to_vec())?
         .with_f64("s11", s.iter().map(|m| m[(0, 0)].re).collect())?
@@ -79,8 +118,8 @@ pub struct FisherErrors {
 }
 
 /// [`FisherErrors`] of `design` at `p`; `None` if the information is singular.
-pub fn fisher_errors(
-    setup: &Setup,
+pub fn fisher_errors<M: SpecModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
     design: &Design,
     p: &[f64],
 ) -> Result<Option<FisherErrors>, IoError> {
@@ -99,20 +138,21 @@ pub fn fisher_errors(
     let mut text = String::new();
     let _ = writeln!(
         text,
-        "{:<8} {:>14} {:>12} {:>12} {:>7}",
+        "{:<10} {:>14} {:>12} {:>12} {:>7}",
         "param", "value", "sigma", "thesis", "ratio"
     );
     for (k, n) in names.iter().enumerate() {
-        let _ = match THESIS_SIGMA.iter().find(|(t, _)| t == n).map(|(_, v)| *v) {
+        let thesis = THESIS_SIGMA.iter().find(|(t, _)| N == 2 && t == n);
+        let _ = match thesis.map(|(_, v)| *v) {
             Some(t) => writeln!(
                 text,
-                "{n:<8} {:>14.6e} {:>12.3e} {:>12.1e} {:>7.2}",
+                "{n:<10} {:>14.6e} {:>12.3e} {:>12.1e} {:>7.2}",
                 p[k],
                 sigma[k],
                 t,
                 sigma[k] / t
             ),
-            None => writeln!(text, "{n:<8} {:>14.6e} {:>12.3e}", p[k], sigma[k]),
+            None => writeln!(text, "{n:<10} {:>14.6e} {:>12.3e}", p[k], sigma[k]),
         };
     }
     Ok(Some(FisherErrors {
@@ -123,7 +163,9 @@ pub fn fisher_errors(
 }
 
 /// A scenario's truth (default: the nominal parameters), checked for a stable closed loop.
-fn stable_parameters(setup: &Setup, scenario: Option<&str>) -> Result<Vec<f64>, JobError> {
+fn stable_parameters<M: SpecModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
+    scenario: Option<&str>) -> Result<Vec<f64>, JobError> {
     let p = match scenario {
         Some(name) => setup.spec.scenario(name)?.truth,
         None => setup.spec.nominal(),
@@ -154,7 +196,11 @@ pub struct GridJob {
 
 impl GridJob {
     /// Writes the table, with its provenance, to `out`; returns the number of frequencies.
-    pub fn run(&self, setup: &Setup, out: &Path) -> Result<usize, JobError> {
+    pub fn run<M: SpecModel<N>, const N: usize>(
+        &self,
+        setup: &SetupOf<M, N>,
+        out: &Path,
+    ) -> Result<usize, JobError> {
         let p = stable_parameters(setup, self.scenario.as_deref())?;
         let f = log_grid(self.fmin, self.fmax, self.points).map_err(JobError::Invalid)?;
         let nyquist = 0.5 * setup.spec.sampling.simulate_hz;
@@ -185,7 +231,11 @@ pub struct FisherJob {
 impl FisherJob {
     /// Writes the errors to `out` and the correlations to `<stem>_corr.parquet` beside it;
     /// returns the printable comparison with the thesis's sigmas and the correlations' path.
-    pub fn run(&self, setup: &Setup, out: &Path) -> Result<(String, PathBuf), JobError> {
+    pub fn run<M: SpecModel<N>, const N: usize>(
+        &self,
+        setup: &SetupOf<M, N>,
+        out: &Path,
+    ) -> Result<(String, PathBuf), JobError> {
         let p = stable_parameters(setup, Some(&self.scenario))?;
         let design = setup.design(&self.design)?;
         let fe = fisher_errors(setup, &design, &p)?.ok_or_else(|| {

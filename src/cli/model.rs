@@ -7,6 +7,7 @@ use clap::{Args, Subcommand};
 
 use super::ModelOpt;
 use crate::analysis::model_tables::{FisherJob, GridJob, Product};
+use crate::setup::AnySetup;
 
 #[derive(Debug, Subcommand)]
 pub enum ModelCmd {
@@ -60,7 +61,6 @@ pub fn run(cmd: ModelCmd) -> Result<()> {
         ModelCmd::Noise(a) => (a, Product::Noise),
         ModelCmd::Fisher(a) => return fisher(a),
     };
-    let setup = a.model.setup()?;
     let job = GridJob {
         product,
         scenario: a.scenario,
@@ -68,18 +68,23 @@ pub fn run(cmd: ModelCmd) -> Result<()> {
         fmax: a.fmax,
         points: a.points,
     };
-    let n = job.run(&setup, &a.out)?;
+    let n = match a.model.any_setup()? {
+        AnySetup::X(s) => job.run(&*s, &a.out)?,
+        AnySetup::Xy(s) => job.run(&*s, &a.out)?,
+    };
     info!("wrote {} ({n} frequencies)", a.out.display());
     Ok(())
 }
 
 fn fisher(a: FisherArgs) -> Result<()> {
-    let setup = a.model.setup()?;
     let job = FisherJob {
         scenario: a.scenario,
         design: a.design,
     };
-    let (text, corr_path) = job.run(&setup, &a.out)?;
+    let (text, corr_path) = match a.model.any_setup()? {
+        AnySetup::X(s) => job.run(&*s, &a.out)?,
+        AnySetup::Xy(s) => job.run(&*s, &a.out)?,
+    };
     out!("{text}");
     info!("wrote {} and {}", a.out.display(), corr_path.display());
     Ok(())

@@ -8,7 +8,7 @@ use clap::Args;
 use super::ModelOpt;
 use crate::diagnose::simulate_job::SimulateJob;
 use crate::io::write_dataset;
-use crate::setup::Setup;
+use crate::setup::{AnySetup, Setup};
 use crate::sim::time_domain::InitialConditions;
 use crate::sim::Engine;
 use crate::sim::Rate;
@@ -88,8 +88,15 @@ impl SimulateArgs {
 }
 
 pub fn run(a: SimulateArgs) -> Result<()> {
-    let setup = a.model.setup()?;
-    simulate_into(&setup, &a.job(), &a.out)
+    match a.model.any_setup()? {
+        AnySetup::X(setup) => simulate_into(&setup, &a.job(), &a.out),
+        AnySetup::Xy(setup) => {
+            let s = super::working("simulating", |_| a.job().run_xy(&setup))?;
+            let path = write_dataset(&a.out, &s.dataset()?)?;
+            info!("wrote {} ({})", path.display(), s.describe());
+            Ok(())
+        }
+    }
 }
 
 /// Runs `job` and writes its dataset to `out`.

@@ -10,7 +10,7 @@ use super::inject::{apply, EffectSet, Injected};
 use super::{simulate_effect_set, DiagnoseError};
 use crate::data::ExperimentData;
 use crate::model::effects::Extended;
-use crate::model::spec::Scenario;
+use crate::model::spec::{ModelSpec, Scenario};
 use crate::model::{check_stability, ModelError};
 use crate::setup::{Error as SetupError, Setup};
 use crate::signal::Design;
@@ -178,7 +178,7 @@ impl SimulateJob {
         } else {
             crate::data::Auxiliary::default()
         };
-        let mut meta = self.meta(setup, &sc, rate);
+        let mut meta = self.meta(&setup.spec, &sc, rate);
         if !effects.is_empty() {
             meta.insert("effects".into(), toml::Value::Table(effects.meta));
         }
@@ -280,13 +280,13 @@ impl SimulateJob {
 
     /// `[meta]` of a simulated dataset: generator, model, scenario (and its glitch population),
     /// design, seed, rate, engine, initial conditions and the truth.
-    fn meta(&self, setup: &Setup, sc: &Scenario, rate: Rate) -> toml::Table {
+    pub(super) fn meta(&self, setup: &ModelSpec, sc: &Scenario, rate: Rate) -> toml::Table {
         let mut meta = toml::Table::new();
         meta.insert(
             "generator".into(),
             format!("freefall {}", env!("CARGO_PKG_VERSION")).into(),
         );
-        meta.insert("model".into(), setup.spec.origin.clone().into());
+        meta.insert("model".into(), setup.origin.clone().into());
         meta.insert("scenario".into(), self.scenario.clone().into());
         if let Some(g) = &sc.glitch {
             // The scenario's random sine-Gaussian glitches (thesis sec. 4.5.7) are in the data.
@@ -304,7 +304,7 @@ impl SimulateJob {
         meta.insert("rate".into(), rate.as_str().into());
         meta.insert("engine".into(), self.engine.as_str().into());
         if self.engine == Engine::TimeDomain {
-            let cl = &setup.spec.control_loop;
+            let cl = &setup.control_loop;
             meta.insert("discretisation".into(), cl.discretisation.as_str().into());
             meta.insert(
                 "computation_delay_s".into(),
@@ -333,7 +333,7 @@ impl SimulateJob {
 }
 
 /// All experiments from stream (seed, 0), the noise run from stream (seed, 1).
-fn draw_all(
+pub(super) fn draw_all(
     draw: impl Fn(&mut rand_xoshiro::Xoshiro256PlusPlus) -> ExperimentData,
     noise: impl Fn(&mut rand_xoshiro::Xoshiro256PlusPlus) -> Vec<Vec<f64>>,
     seed: u64,

@@ -1,0 +1,111 @@
+//! A simulated dataset of the xy model (thesis sec. 3.5) in the measured-data format: the
+//! optical readouts o1, o12 with their guidance oi1, oi12 as the runs' readouts and inputs,
+//! and the other degrees of freedom's readouts (oy1, oy2, ophi1, ophi2, ophisc) as declared
+//! auxiliary columns (`[[auxiliary]]` of dataset.toml), experiments and noise run alike.
+//!
+//! Drawn by the frequency-domain engine at the analysis rate (`SetupOf::plain_simulator`): the
+//! xy model is continuous, and effects, initial conditions and the time-domain engine are the
+//! x model's. The guidance on the y/phi inputs is the model file's design (named in `[meta]`),
+//! not a column: the measured-data format records oi1 and oi12.
+
+use super::simulate_job::{draw_all, SimulateError, SimulateJob, Simulated, NOISE_DURATIONS};
+use crate::data::{AuxChannel, AuxKind, Auxiliary, ExperimentData};
+use crate::model::check_stability;
+use crate::model::ClosedLoopModel;
+use crate::setup::SetupXy;
+use crate::sim::{Engine, Rate};
+
+/// The x readouts and inputs of the xy model's channels (o1, o12; oi1, oi12).
+const X_CHANNELS: usize = 2;
+
+impl SimulateJob {
+    /// Draws the dataset of the xy model; refuses what only the x model simulates.
+    pub fn run_xy(&self, setup: &SetupXy) -> Result<Simulated, SimulateError> {
+        let refuse = |what: &str| {
+            Err(SimulateError::Effect(format!(
+                "{what}: the xy model ({}) is simulated by the frequency-domain engine at the \
+                 analysis rate, without effects or initial conditions",
+                setup.spec.origin
+            )))
+        };
+        if self.engine == Engine::TimeDomain {
+            return refuse("--engine time-domain");
+        }
+        if self.rate == Some(Rate::Decimated) {
+            return refuse("--rate decimated");
+        }
+        if !self.effects.is_empty() {
+            return refuse("--effect");
+        }
+        if self.initial.is_some() {
+            return refuse("--initial");
+        }
+        let sc = setup.spec.scenario(&self.scenario)?;
+        check_stability(&setup.model, &sc.truth, Some(&setup.spec.nominal()))?;
+        let design = setup.design(&self.design)?;
+        let noise_duration = self
+            .noise_duration
+            .unwrap_or(NOISE_DURATIONS * design.duration_s);
+        crate::config::positive("--noise-duration", noise_duration)?;
+        let noise_design = design.noise_only(noise_duration);
+        let sim = setup.plain_simulator(&design, &sc.truth)?;
+        let nsim = setup.plain_simulator(&noise_design, &sc.truth)?;
+        let (all, noise) = draw_all(|r| sim.draw(r), |r| nsim.noise_series(r), self.seed);
+        let (data, aux) = split_x(&setup.model, all, &noise);
+        let noise = noise[..X_CHANNELS].to_vec();
+        Ok(Simulated {
+            data,
+            noise,
+            aux,
+            meta: self.meta(&setup.spec, &sc, Rate::Analysis),
+        })
+    }
+}
+
+/// The x channels as the runs, every other readout as an auxiliary channel (metres for a
+/// displacement, radians for an angle).
+fn split_x<M: ClosedLoopModel<7>>(
+    model: &M,
+    all: ExperimentData,
+    noise: &[Vec<f64>],
+) -> (ExperimentData, Auxiliary) {
+    let channels = model.readout_names()[X_CHANNELS..]
+        .iter()
+        .map(|name| {
+            let kind = if name.starts_with("ophi") {
+                AuxKind::Angle
+            } else {
+                AuxKind::Displacement
+            };
+            AuxChannel {
+                column: name.to_string(),
+                kind,
+                unit: kind.unit().to_string(),
+            }
+        })
+        .collect();
+    let aux = Auxiliary {
+        channels,
+        experiments: all
+            .outputs
+            .iter()
+            .map(|o| o[X_CHANNELS..].to_vec())
+            .collect(),
+        noise: Some(noise[X_CHANNELS..].to_vec()),
+    };
+    let data = ExperimentData {
+        names: all.names,
+        inputs: all
+            .inputs
+            .into_iter()
+            .map(|i| i[..X_CHANNELS].to_vec())
+            .collect(),
+        outputs: all
+            .outputs
+            .into_iter()
+            .map(|o| o[..X_CHANNELS].to_vec())
+            .collect(),
+        dt: all.dt,
+    };
+    (data, aux)
+}
