@@ -134,3 +134,26 @@ fn xy_noise_psd_is_hermitian_and_positive() {
         eprintln!("f {f}: diag {:?} min eig (real part) {:e}", m.diagonal().map(|z| z.re.sqrt()).as_slice(), eig.min());
     }
 }
+
+#[test]
+fn x_models_in_loop_sensing_leak_is_the_xy_models_response() {
+    // Oracle: the 7-DOF xy loop, an independent path. With a sensing cross-talk ds_1y1 (ds_2y2)
+    // only, the x readouts' response to a y injection must be the x model's in-loop leak
+    // operator Delta^-1 D S^-1 (what `sim::auxiliary::in_loop` and the diagnosis' auxiliary
+    // cross-talk apply) times the cross-talk times the recorded y readout's response.
+    let s = xy();
+    let x = Setup::embedded_continuous();
+    let p = s.spec.scenario("sensing_crosstalk").unwrap().truth;
+    let (k1, k2) = (p[lpf_xy::DS_1], p[lpf_xy::DS_2 + 1]);
+    for f in [1e-3, 1e-2, 0.03, 0.0533] {
+        let t = transfer(&s.model, &s.model.prepare(f), &p).oi_o;
+        let tx = transfer(&x.model, &x.model.prepare(f), &p[..7]);
+        let h = tx.delta_inv * tx.ops.d * tx.ops.s.try_inverse().unwrap();
+        for (got, want) in [
+            (t[(0, 2)], h[(0, 0)] * t[(2, 2)] * k1),
+            (t[(1, 3)], h[(1, 1)] * t[(3, 3)] * k2),
+        ] {
+            assert!((got - want).norm() <= 1e-9 * want.norm(), "{f} Hz: {got} vs {want}");
+        }
+    }
+}

@@ -129,12 +129,14 @@ impl Additive {
     }
 
     /// For an auxiliary cross-talk: its template over the noise run of `aux` (the series or
-    /// its rate) and the readout it leaks into.
+    /// its rate, through the loop of `model` at `p`: `sim::auxiliary::in_loop`), both readouts.
     pub fn noise_template(
         &self,
+        model: &Extended,
+        p: &[f64],
         aux: &crate::data::Auxiliary,
         dt: f64,
-    ) -> Option<(usize, Vec<f64>)> {
+    ) -> Option<[Vec<f64>; 2]> {
         match self {
             Additive::AuxCrosstalk {
                 aux: k,
@@ -143,14 +145,12 @@ impl Additive {
                 ..
             } => {
                 let x = aux.noise.as_ref()?.get(*k)?;
-                Some((
-                    *channel,
-                    if *rate {
-                        crate::sim::auxiliary::rate(x, dt)
-                    } else {
-                        x.clone()
-                    },
-                ))
+                let leak = if *rate {
+                    crate::sim::auxiliary::rate(x, dt)
+                } else {
+                    x.clone()
+                };
+                Some(crate::sim::auxiliary::in_loop(model, p, &leak, *channel, dt))
             }
             _ => None,
         }
@@ -295,9 +295,9 @@ impl Additive {
             } => {
                 let o = ["o1", "o12"][(*channel).min(1)];
                 if *rate {
-                    format!("{o} += k' d{column}/dt (sensing cross-talk rate of the recorded {column})")
+                    format!("{o} sensor += k' d{column}/dt, through the loop (sensing cross-talk rate of the recorded {column})")
                 } else {
-                    format!("{o} += k {column} (sensing cross-talk of the recorded {column})")
+                    format!("{o} sensor += k {column}, through the loop (sensing cross-talk of the recorded {column})")
                 }
             }
         }
@@ -471,11 +471,14 @@ impl Additive {
             Additive::AuxCrosstalk {
                 channel, series, ..
             } => {
+                // The leak enters the sensor, inside the loop (`sim::auxiliary::in_loop`).
                 let mut col = zeros();
                 for (e, x) in series.0.iter().enumerate().take(col.len()) {
-                    let c = &mut col[e][*channel];
-                    let n = c.len().min(x.len());
-                    c[..n].copy_from_slice(&x[..n]);
+                    let y = crate::sim::auxiliary::in_loop(model, p, x, *channel, data.dt);
+                    for (c, y) in col[e].iter_mut().zip(y) {
+                        let n = c.len().min(y.len());
+                        c[..n].copy_from_slice(&y[..n]);
+                    }
                 }
                 vec![col]
             }

@@ -1,6 +1,7 @@
 //! Sensing cross-talk from recorded auxiliary readouts (thesis sec. 3.4) in a diagnosis: once
-//! the selection has claimed couplings `o_c += k a + k' da/dt` of auxiliary readouts `a` (a
-//! regression on measured series, [`super::additive`]), the same couplings are in the noise
+//! the selection has claimed couplings `k a + k' da/dt` of auxiliary readouts `a` into the
+//! sensor of o1 or o12 (through the loop, `sim::auxiliary::in_loop`; a regression on measured
+//! series, [`super::additive`]), the same couplings are in the noise
 //! run, whose whitening filter (and reference level) learned them as noise. They are removed
 //! from the noise run with the fitted coefficients, the filter is estimated again, and the
 //! final model is refitted under it; the coefficients move with the filter, so this alternates
@@ -28,12 +29,15 @@ fn cleaned(
     let mut out = noise.to_vec();
     let mut any = false;
     for (a, v) in &state.fit.linear {
-        let Some((c, x)) = a.noise_template(aux, problem.data.dt) else {
+        let Some(x) = a.noise_template(&state.model, &state.fit.fit.estimate, aux, problem.data.dt)
+        else {
             continue;
         };
         any = true;
-        for (o, t) in out[c].iter_mut().zip(&x) {
-            *o -= v[0] * t;
+        for (o, x) in out.iter_mut().zip(&x) {
+            for (o, t) in o.iter_mut().zip(x) {
+                *o -= v[0] * t;
+            }
         }
     }
     any.then_some(out)

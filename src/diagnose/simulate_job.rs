@@ -172,7 +172,7 @@ impl SimulateJob {
                 data.dt,
                 self.seed,
             )?;
-            crate::sim::auxiliary::apply(&aux, &effects.crosstalk, &mut data, &mut noise)
+            crate::sim::auxiliary::apply(&setup.model, &sc.truth, &aux, &effects.crosstalk, &mut data, &mut noise)
                 .map_err(|e| SimulateError::Effect(format!("--effect {e}")))?;
             aux
         } else {

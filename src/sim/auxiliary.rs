@@ -6,11 +6,20 @@
 //! Gaussian noise of its ASD ([`crate::model::spec::AuxiliarySpec`]), independently of the
 //! optical noise: experiments from stream (seed, [`AUX_STREAM`]), the noise run from stream
 //! (seed, [`AUX_STREAM`] + 1), so that adding auxiliary channels leaves the readouts of a seed
-//! unchanged. A sensing cross-talk adds `k a(t) + k' da/dt` of the recorded series `a` to
-//! readout o1 or o12 of every run, noise run included (a static coefficient and a first
-//! derivative term, [`rate`]).
+//! unchanged.
+//!
+//! A sensing cross-talk leaks `k a(t) + k' da/dt` of the recorded series `a` (a static
+//! coefficient and a first-derivative term, [`rate`]) into the sensor of o1 or o12, of every
+//! run, noise run included. The sensor is inside the loop: o1 is the drag-free error signal,
+//! o12 the suspension's. With `o_x = S q_x + delta_S a + n` the dynamics
+//! `D q_x = f - A C (o_x - o_i)` give `Delta o_x = ... + D S^-1 delta_S a`, so the leak reaches
+//! the recorded readouts as `Delta^-1 D S^-1 e_c (k a + k' da/dt)` ([`in_loop`]): suppressed by
+//! the loop in its band, additive above it (thesis sec. 3.4, the readout-noise cross-talk
+//! operator). The xy model (sec. 3.5) simulates the same physics with the auxiliary degrees of
+//! freedom in its loop, an independent path (`tests/xy_diagnose.rs`).
 
 use crate::data::{AuxChannel, Auxiliary, ExperimentData};
+use crate::model::closed_loop::{transfer, CMat, ClosedLoopModel};
 use crate::model::spec::ModelSpec;
 use crate::noise::generate::ColoredNoise;
 use crate::noise::NoiseError;
@@ -96,9 +105,61 @@ pub fn draw(
     })
 }
 
-/// Adds each cross-talk of `leaks` to the readouts of the experiments `data` and of the noise
-/// run `noise`, from the recorded series `aux`. Errors name a column `aux` does not have.
-pub fn apply(
+/// The response of the two readouts to a leak `x(t)` into the sensor of readout `channel`
+/// (0: o1, 1: o12) of `model` at `p`: `Delta^-1 D S^-1 e_channel x` (module doc), by FFT with
+/// zero padding to at least twice the length (a linear, not circular, filter; the loop starts
+/// from rest at the first sample).
+pub fn in_loop<M: ClosedLoopModel<2>>(
+    model: &M,
+    p: &[f64],
+    x: &[f64],
+    channel: usize,
+    dt: f64,
+) -> [Vec<f64>; 2] {
+    use num_complex::Complex64;
+    use realfft::RealFftPlanner;
+    let n = x.len();
+    if n == 0 {
+        return [Vec::new(), Vec::new()];
+    }
+    let m = (2 * n).next_power_of_two();
+    let mut planner = RealFftPlanner::<f64>::new();
+    let fwd = planner.plan_fft_forward(m);
+    let inv = planner.plan_fft_inverse(m);
+    let mut buf = vec![0.0; m];
+    buf[..n].copy_from_slice(x);
+    let mut spec = fwd.make_output_vec();
+    fwd.process(&mut buf, &mut spec).expect("FFT sizes match");
+    let df = 1.0 / (m as f64 * dt);
+    let mut out = [spec.clone(), spec];
+    for k in 0..out[0].len() {
+        // The loop's DC response is its limit at low frequency (D has s^2, Delta^-1 finite).
+        let f = if k == 0 { 1e-3 * df } else { k as f64 * df };
+        let tr = transfer(model, &model.prepare(f), p);
+        let s_inv = tr.ops.s.try_inverse().unwrap_or_else(CMat::<2>::identity);
+        let h = tr.delta_inv * tr.ops.d * s_inv;
+        for (r, o) in out.iter_mut().enumerate() {
+            o[k] *= h[(r, channel)];
+        }
+    }
+    out.map(|mut spec| {
+        spec[0].im = 0.0;
+        let last = spec.len() - 1;
+        spec[last] = Complex64::new(spec[last].re, 0.0);
+        let mut y = inv.make_output_vec();
+        inv.process(&mut spec, &mut y).expect("FFT sizes match");
+        y.truncate(n);
+        y.iter_mut().for_each(|v| *v /= m as f64);
+        y
+    })
+}
+
+/// Adds each cross-talk of `leaks`, through the loop of `model` at `p` ([`in_loop`]), to the
+/// readouts of the experiments `data` and of the noise run `noise`, from the recorded series
+/// `aux`. Errors name a column `aux` does not have.
+pub fn apply<M: ClosedLoopModel<2>>(
+    model: &M,
+    p: &[f64],
     aux: &Auxiliary,
     leaks: &[Crosstalk],
     data: &mut ExperimentData,
@@ -119,19 +180,26 @@ pub fn apply(
                     known.join(", ")
                 )
             })?;
-        let add = |o: &mut [f64], a: &[f64]| {
+        let add = |o: &mut [Vec<f64>], a: &[f64]| {
             let da = rate(a, dt);
-            for ((o, a), d) in o.iter_mut().zip(a).zip(&da) {
-                *o += l.coefficient * a + l.rate * d;
+            let leak: Vec<f64> = a
+                .iter()
+                .zip(&da)
+                .map(|(a, d)| l.coefficient * a + l.rate * d)
+                .collect();
+            for (o, r) in o.iter_mut().zip(in_loop(model, p, &leak, l.channel, dt)) {
+                for (o, r) in o.iter_mut().zip(r) {
+                    *o += r;
+                }
             }
         };
         for (e, out) in data.outputs.iter_mut().enumerate() {
             if let Some(a) = aux.experiments.get(e).and_then(|x| x.get(k)) {
-                add(&mut out[l.channel], a);
+                add(out, a);
             }
         }
         if let Some(a) = aux.noise.as_ref().and_then(|x| x.get(k)) {
-            add(&mut noise[l.channel], a);
+            add(noise, a);
         }
     }
     Ok(())
@@ -140,6 +208,27 @@ pub fn apply(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn in_loop_leak_is_additive_above_the_loop_and_suppressed_below() {
+        // Oracle: Delta^-1 D S^-1 -> 1 where the control is negligible (far above the
+        // suspension's unity gain, ~1 mHz), and the steady-state response of a sine is the
+        // transfer at its frequency.
+        let setup = crate::setup::Setup::embedded_continuous();
+        let p = setup.spec.nominal();
+        let (dt, n) = (1.0, 8192);
+        for (f, tol) in [(0.2, 0.02), (1.0 / 1024.0, f64::INFINITY)] {
+            let w = 2.0 * std::f64::consts::PI * f;
+            let x: Vec<f64> = (0..n).map(|i| (w * i as f64 * dt).sin()).collect();
+            let y = in_loop(&setup.model, &p, &x, 1, dt);
+            let tail = &y[1][n / 2..];
+            let amp = (2.0 * tail.iter().map(|v| v * v).sum::<f64>() / tail.len() as f64).sqrt();
+            let tr = transfer(&setup.model, &setup.model.prepare(f), &p);
+            let h = tr.delta_inv * tr.ops.d * tr.ops.s.try_inverse().unwrap();
+            assert!((amp / h[(1, 1)].norm() - 1.0).abs() < 1e-2, "f {f}: {amp} vs {}", h[(1, 1)].norm());
+            assert!((amp - 1.0).abs() < tol, "f {f}: amplitude {amp}");
+        }
+    }
 
     #[test]
     fn rate_of_a_sine_is_the_central_difference_response() {
@@ -154,9 +243,12 @@ mod tests {
     }
 
     #[test]
-    fn crosstalk_adds_the_recorded_series_to_every_run() {
-        // Oracle: the definition o_c += k a + k' da/dt, in the experiments and the noise run.
+    fn crosstalk_adds_the_recorded_series_through_the_loop_to_every_run() {
+        // Oracle: the definition, the loop's response to k a + k' da/dt entering the sensor of
+        // o12, in the experiments and the noise run.
         let spec = ModelSpec::embedded();
+        let setup = crate::setup::Setup::embedded();
+        let p = spec.nominal();
         let aux = draw(&spec, &[64, 80], 100, 1.0, 7).unwrap();
         let k = aux.channels.iter().position(|c| c.column == "oy1").unwrap();
         let mut data = ExperimentData {
@@ -172,22 +264,25 @@ mod tests {
             coefficient: -3e-3,
             rate: 2e-3,
         };
-        apply(&aux, std::slice::from_ref(&leak), &mut data, &mut noise).unwrap();
-        let expect = |a: &[f64]| -> Vec<f64> {
+        let m = &setup.model;
+        apply(m, &p, &aux, std::slice::from_ref(&leak), &mut data, &mut noise).unwrap();
+        let expect = |a: &[f64]| -> [Vec<f64>; 2] {
             let d = rate(a, 1.0);
-            a.iter()
+            let leak: Vec<f64> = a
+                .iter()
                 .zip(&d)
                 .map(|(x, v)| -3e-3 * x + 2e-3 * v)
-                .collect()
+                .collect();
+            in_loop(m, &p, &leak, 1, 1.0)
         };
-        assert_eq!(data.outputs[1][1], expect(&aux.experiments[1][k]));
-        assert_eq!(noise[1], expect(&aux.noise.as_ref().unwrap()[k]));
-        assert!(data.outputs[0][0].iter().all(|v| *v == 0.0));
+        assert_eq!(data.outputs[1], expect(&aux.experiments[1][k]).to_vec());
+        assert_eq!(noise, expect(&aux.noise.as_ref().unwrap()[k]).to_vec());
+        assert!(data.outputs[0][1].iter().any(|v| *v != 0.0));
         let bad = Crosstalk {
             column: "oz9".into(),
             ..leak
         };
-        let e = apply(&aux, &[bad], &mut data, &mut noise).unwrap_err();
+        let e = apply(m, &p, &aux, &[bad], &mut data, &mut noise).unwrap_err();
         assert!(e.contains("'oz9'") && e.contains("oy1"), "{e}");
     }
 }
