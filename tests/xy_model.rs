@@ -149,11 +149,15 @@ fn x_models_in_loop_sensing_leak_is_the_xy_models_response() {
         let t = transfer(&s.model, &s.model.prepare(f), &p).oi_o;
         let tx = transfer(&x.model, &x.model.prepare(f), &p[..7]);
         let h = tx.delta_inv * tx.ops.d * tx.ops.s.try_inverse().unwrap();
-        for (got, want) in [
-            (t[(0, 2)], h[(0, 0)] * t[(2, 2)] * k1),
-            (t[(1, 3)], h[(1, 1)] * t[(3, 3)] * k2),
-        ] {
-            assert!((got - want).norm() <= 1e-9 * want.norm(), "{f} Hz: {got} vs {want}");
+        // Both leaks respond to either injection (the SC couples y1 and y2), and the loop
+        // mixes o1 and o12: o_x = h (k1 y1, k2 y2)^T for an injection on input j.
+        for (r, j) in [(0, 2), (1, 3), (0, 3), (1, 2)] {
+            let got = t[(r, j)];
+            let want = h[(r, 0)] * t[(2, j)] * k1 + h[(r, 1)] * t[(3, j)] * k2;
+            assert!(
+                (got - want).norm() <= 1e-9 * want.norm(),
+                "{f} Hz, T[{r},{j}]: {got} vs {want}"
+            );
         }
     }
 }
