@@ -99,12 +99,17 @@ impl AuxKind {
     }
 }
 
-/// A recorded auxiliary readout: its column name in the run files, what it measures, its unit.
+/// A recorded auxiliary channel: its column name in the run files, what it measures, its unit,
+/// and whether it is a readout of another degree of freedom or that degree of freedom's
+/// guidance signal (`role = "guidance"` in dataset.toml: the commanded offset, as oi1 and oi12
+/// are for x; a model of that degree of freedom, such as the xy model, takes it as an input,
+/// and the x model's diagnosis leaves it out).
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct AuxChannel {
     pub column: String,
     pub kind: AuxKind,
     pub unit: String,
+    pub guidance: bool,
 }
 
 /// Auxiliary readouts recorded with a set of experiments: `experiments[e][k]` is channel

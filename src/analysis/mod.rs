@@ -7,6 +7,7 @@
 
 pub mod guidance;
 pub mod job;
+mod job_xy;
 pub mod model_tables;
 pub mod tables;
 pub mod transient;
@@ -76,7 +77,10 @@ pub fn experiment_data(setup: &Setup, ds: &Dataset) -> Result<(ExperimentData, V
 
 /// The starting point `--guess`: a scenario name (its guess), a TOML file of
 /// `parameter = value` (every parameter, no other key), or the model's nominal parameters.
-pub fn resolve_guess(setup: &Setup, guess: Option<&str>) -> Result<Vec<f64>> {
+pub fn resolve_guess<M: crate::setup::SpecModel<N>, const N: usize>(
+    setup: &crate::setup::SetupOf<M, N>,
+    guess: Option<&str>,
+) -> Result<Vec<f64>> {
     let names = setup.parameter_names();
     let Some(g) = guess else {
         return Ok(setup.spec.nominal());

@@ -10,6 +10,7 @@ use super::ModelOpt;
 use crate::analysis::job::{psd as psd_job, DatasetFit, FitJob, WhitenJob};
 use crate::analysis::Whitening;
 use crate::fit::Estimator;
+use crate::setup::AnySetup;
 use crate::setup::{DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 
 #[derive(Debug, Args)]
@@ -137,15 +138,16 @@ pub struct FitArgs {
 }
 
 pub fn fit(a: FitArgs) -> Result<()> {
-    let setup = a.model.setup()?;
+    let setup = a.model.any_setup()?;
     let job = FitJob {
         dataset: a.fit.dataset_fit(),
         estimator: a.estimator,
         whitening: a.whitening,
         transient: a.transient,
     };
-    let fitted = super::working("fitting", |notes| {
-        job.run(&setup, &a.dataset, &a.out, notes)
+    let fitted = super::working("fitting", |notes| match &setup {
+        AnySetup::X(s) => job.run(s, &a.dataset, &a.out, notes),
+        AnySetup::Xy(s) => job.run_xy(s, &a.dataset, &a.out, notes),
     })?;
     out!("{}", fitted.text);
     info!("wrote {}", a.out.display());

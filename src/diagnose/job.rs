@@ -84,8 +84,9 @@ impl DiagnoseJob {
             glitches: self.glitches,
             transients: self.transients,
             constraints: prep.constraints.clone(),
-            auxiliary: (!ds.auxiliary.is_empty())
-                .then(|| std::sync::Arc::new(ds.auxiliary_series())),
+            auxiliary: Some(ds.auxiliary_series())
+                .filter(|a| !a.is_empty())
+                .map(std::sync::Arc::new),
             ..Default::default()
         };
         let mut d = diagnose_observed(

@@ -5,8 +5,9 @@
 //!
 //! Drawn by the frequency-domain engine at the analysis rate (`SetupOf::plain_simulator`): the
 //! xy model is continuous, and effects, initial conditions and the time-domain engine are the
-//! x model's. The guidance on the y/phi inputs is the model file's design (named in `[meta]`),
-//! not a column: the measured-data format records oi1 and oi12.
+//! x model's. The guidance on the y/phi inputs (oi_y1, ..., oi_phisc) is recorded as auxiliary
+//! columns of role guidance, which the xy model's fit takes as inputs and the x model's
+//! diagnosis leaves out.
 
 use super::simulate_job::{draw_all, SimulateError, SimulateJob, Simulated, NOISE_DURATIONS};
 use crate::data::{AuxChannel, AuxKind, Auxiliary, ExperimentData};
@@ -69,29 +70,34 @@ fn split_x<M: ClosedLoopModel<7>>(
     all: ExperimentData,
     noise: &[Vec<f64>],
 ) -> (ExperimentData, Auxiliary) {
-    let channels = model.readout_names()[X_CHANNELS..]
-        .iter()
-        .map(|name| {
-            let kind = if name.starts_with("ophi") {
-                AuxKind::Angle
-            } else {
-                AuxKind::Displacement
-            };
-            AuxChannel {
-                column: name.to_string(),
-                kind,
-                unit: kind.unit().to_string(),
-            }
-        })
+    let channel = |name: &str, guidance: bool| {
+        let kind = if name.contains("phi") {
+            AuxKind::Angle
+        } else {
+            AuxKind::Displacement
+        };
+        AuxChannel {
+            column: name.to_string(),
+            kind,
+            unit: kind.unit().to_string(),
+            guidance,
+        }
+    };
+    let channels = (model.readout_names()[X_CHANNELS..].iter())
+        .map(|n| channel(n, false))
+        .chain(model.input_names()[X_CHANNELS..].iter().map(|n| channel(n, true)))
         .collect();
+    let n_noise = noise.first().map_or(0, Vec::len);
+    let quiet = vec![vec![0.0; n_noise]; 7 - X_CHANNELS];
     let aux = Auxiliary {
         channels,
         experiments: all
             .outputs
             .iter()
-            .map(|o| o[X_CHANNELS..].to_vec())
+            .zip(&all.inputs)
+            .map(|(o, i)| [&o[X_CHANNELS..], &i[X_CHANNELS..]].concat())
             .collect(),
-        noise: Some(noise[X_CHANNELS..].to_vec()),
+        noise: Some([&noise[X_CHANNELS..], &quiet[..]].concat()),
     };
     let data = ExperimentData {
         names: all.names,

@@ -15,6 +15,8 @@
 //! column = "oy1"                       # a column of every run (noise run included)
 //! kind = "displacement"                # or "angle"
 //! unit = "m"                           # "m" for a displacement, "rad" for an angle
+//! role = "readout"                     # optional: or "guidance" (that degree of freedom's
+//!                                      # guidance signal, an input of a model of it)
 //! [meta]                               # optional, free form (scenario, seed, truth values, ...)
 //! scenario = "standard"
 //! [meta.truth]
@@ -60,7 +62,7 @@ pub const DATASET_FILE_NAME: &str = "dataset.toml";
 const TOP_KEYS: [&str; 5] = ["noise", "experiment", "auxiliary", "injections", "meta"];
 const INJECTION_KEYS: [&str; 2] = ["design", "start_s"];
 const EXPERIMENT_KEYS: [&str; 2] = ["name", "file"];
-const AUXILIARY_KEYS: [&str; 3] = ["column", "kind", "unit"];
+const AUXILIARY_KEYS: [&str; 4] = ["column", "kind", "unit", "role"];
 
 /// A loaded, validated dataset.
 #[derive(Debug, Clone, PartialEq)]
@@ -123,6 +125,9 @@ struct AuxiliaryEntry {
     column: String,
     kind: String,
     unit: String,
+    /// "readout" (default) or "guidance".
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    role: Option<String>,
 }
 
 impl AuxiliaryEntry {
@@ -164,10 +169,21 @@ impl AuxiliaryEntry {
                 ),
             ));
         }
+        let guidance = match self.role.as_deref() {
+            None | Some("readout") => false,
+            Some("guidance") => true,
+            Some(other) => {
+                return Err(IoError::invalid(
+                    path,
+                    format!("{at}: role = \"{other}\" is not a role (expected \"readout\" or \"guidance\")"),
+                ))
+            }
+        };
         Ok(AuxChannel {
             column: self.column.clone(),
             kind,
             unit: self.unit.clone(),
+            guidance,
         })
     }
 }
@@ -226,17 +242,29 @@ impl Dataset {
         Ok(self)
     }
 
-    /// The declared auxiliary readouts of every experiment (aligned with its outputs) and of
-    /// the noise run.
+    /// The declared auxiliary readouts (not the guidance channels) of every experiment
+    /// (aligned with its outputs) and of the noise run.
     pub fn auxiliary_series(&self) -> Auxiliary {
+        self.auxiliary_of(false)
+    }
+
+    /// The declared auxiliary channels of role guidance (`guidance`) or readout (not), as
+    /// [`Self::auxiliary_series`].
+    pub fn auxiliary_of(&self, guidance: bool) -> Auxiliary {
+        let channels: Vec<AuxChannel> = self
+            .auxiliary
+            .iter()
+            .filter(|a| a.guidance == guidance)
+            .cloned()
+            .collect();
         let of = |r: &Run| -> Vec<Vec<f64>> {
-            self.auxiliary
+            channels
                 .iter()
                 .map(|a| r.column(&a.column).map(<[f64]>::to_vec).unwrap_or_default())
                 .collect()
         };
         Auxiliary {
-            channels: self.auxiliary.clone(),
+            channels: channels.clone(),
             experiments: self.experiments.iter().map(|(_, r)| of(r)).collect(),
             noise: self.noise.as_ref().map(of),
         }
@@ -785,6 +813,7 @@ pub fn write_dataset(dir: impl AsRef<Path>, dataset: &Dataset) -> Result<PathBuf
                 column: a.column.clone(),
                 kind: a.kind.as_str().to_string(),
                 unit: a.unit.clone(),
+                role: a.guidance.then(|| "guidance".to_string()),
             })
             .collect(),
         meta: dataset.meta.clone(),

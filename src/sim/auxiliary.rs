@@ -75,6 +75,7 @@ pub fn draw(
             column: name.clone(),
             kind: a.kind,
             unit: a.kind.unit().to_string(),
+            guidance: false,
         })
         .collect();
     let series = |n: usize, rng: &mut rand_xoshiro::Xoshiro256PlusPlus| {
