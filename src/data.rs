@@ -104,12 +104,16 @@ impl AuxKind {
 /// guidance signal (`role = "guidance"` in dataset.toml: the commanded offset, as oi1 and oi12
 /// are for x; a model of that degree of freedom, such as the xy model, takes it as an input,
 /// and the x model's diagnosis leaves it out).
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct AuxChannel {
     pub column: String,
     pub kind: AuxKind,
     pub unit: String,
     pub guidance: bool,
+    /// The readout's own noise floor, a one-sided ASD in `unit`/sqrt(Hz) (`noise_asd` in
+    /// dataset.toml), when known: the diagnosis then regresses on the series with that noise
+    /// filtered out (`diagnose::additive`, errors in the regressor).
+    pub noise_asd: Option<f64>,
 }
 
 /// Auxiliary readouts recorded with a set of experiments: `experiments[e][k]` is channel

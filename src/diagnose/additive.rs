@@ -104,13 +104,17 @@ impl Additive {
     pub fn aux_crosstalks(aux: &crate::data::Auxiliary, dt: f64) -> Vec<Additive> {
         let mut out = Vec::new();
         for (k, ch) in aux.channels.iter().enumerate() {
+            let base: Vec<Vec<f64>> = aux
+                .experiments
+                .iter()
+                .map(|x| regressor(&x[k], ch.noise_asd, dt))
+                .collect();
             for rate in [false, true] {
-                let series: Vec<Vec<f64>> = aux
-                    .experiments
+                let series: Vec<Vec<f64>> = base
                     .iter()
                     .map(|x| match rate {
-                        false => x[k].clone(),
-                        true => crate::sim::auxiliary::rate(&x[k], dt),
+                        false => x.clone(),
+                        true => crate::sim::auxiliary::rate(x, dt),
                     })
                     .collect();
                 let series = AuxSeries(std::sync::Arc::new(series));
@@ -145,10 +149,11 @@ impl Additive {
                 ..
             } => {
                 let x = aux.noise.as_ref()?.get(*k)?;
+                let x = regressor(x, aux.channels.get(*k)?.noise_asd, dt);
                 let leak = if *rate {
-                    crate::sim::auxiliary::rate(x, dt)
+                    crate::sim::auxiliary::rate(&x, dt)
                 } else {
-                    x.clone()
+                    x
                 };
                 Some(crate::sim::auxiliary::in_loop(model, p, &leak, *channel, dt))
             }
@@ -554,6 +559,75 @@ impl Additive {
                 .collect(),
         }
     }
+}
+
+/// Half-width, in bins of the record's own resolution, of the smoothing of the periodogram that
+/// [`denoised`] compares with the noise floor (17 bins: a 12 % scatter of the smoothed PSD).
+const DENOISE_HALF_WIDTH: usize = 8;
+
+/// Where the smoothed periodogram exceeds this many times the noise floor, the series is kept
+/// as it is (gain 1 instead of `1 - S_n / S_x`, at least 0.75).
+const DENOISE_KEEP: f64 = 4.0;
+
+/// The regressor of a cross-talk from a recorded readout `x`: `x` itself, or, when its noise
+/// floor is declared, `x` with that noise filtered out ([`denoised`]).
+fn regressor(x: &[f64], noise_asd: Option<f64>, dt: f64) -> Vec<f64> {
+    match noise_asd {
+        Some(a) => denoised(x, a * a, dt),
+        None => x.to_vec(),
+    }
+}
+
+/// A recorded readout `x = q + n` with its own white noise `n` (one-sided PSD `noise_psd`)
+/// filtered out: `W x` with the Wiener gain `W(f) = max(0, 1 - S_n / S_x(f))`, `S_x` the
+/// periodogram of `x` smoothed over `2 DENOISE_HALF_WIDTH + 1` bins of the record's
+/// resolution. A cross-talk `k q` regressed on `x` itself is biased towards zero by the
+/// regressor's noise (errors in variables: where `x` is mostly its readout noise, the data
+/// hold no `k n`); on `W x` the cross-spectrum with the data is `k W S_q` and the template's
+/// power `W^2 S_x = W S_q`, so the estimate is `k` again.
+pub fn denoised(x: &[f64], noise_psd: f64, dt: f64) -> Vec<f64> {
+    use realfft::RealFftPlanner;
+    let n = x.len();
+    if n < 4 {
+        return x.to_vec();
+    }
+    let m = (2 * n).next_power_of_two();
+    let mut planner = RealFftPlanner::<f64>::new();
+    let fwd = planner.plan_fft_forward(m);
+    let inv = planner.plan_fft_inverse(m);
+    let mut buf = vec![0.0; m];
+    buf[..n].copy_from_slice(x);
+    let mut spec = fwd.make_output_vec();
+    fwd.process(&mut buf, &mut spec).expect("FFT sizes match");
+    // One-sided periodogram of the n-sample record on the padded grid.
+    let pgram: Vec<f64> = spec
+        .iter()
+        .map(|z| 2.0 * dt * z.norm_sqr() / n as f64)
+        .collect();
+    let half = DENOISE_HALF_WIDTH * m / n;
+    let mut prefix = vec![0.0; pgram.len() + 1];
+    for (i, p) in pgram.iter().enumerate() {
+        prefix[i + 1] = prefix[i] + p;
+    }
+    for (k, z) in spec.iter_mut().enumerate() {
+        let (lo, hi) = (k.saturating_sub(half), (k + half + 1).min(pgram.len()));
+        let smooth = (prefix[hi] - prefix[lo]) / (hi - lo) as f64;
+        let w = if smooth > DENOISE_KEEP * noise_psd {
+            1.0
+        } else if smooth > 0.0 {
+            (1.0 - noise_psd / smooth).max(0.0)
+        } else {
+            0.0
+        };
+        *z *= w;
+    }
+    spec[0].im = 0.0;
+    let last = spec.len() - 1;
+    spec[last].im = 0.0;
+    inv.process(&mut spec, &mut buf).expect("FFT sizes match");
+    buf.truncate(n);
+    buf.iter_mut().for_each(|v| *v /= m as f64);
+    buf
 }
 
 /// Zero series of the shape of `data`'s outputs (every experiment of its own length).

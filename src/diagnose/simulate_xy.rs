@@ -19,6 +19,22 @@ use crate::sim::{Engine, Rate};
 /// The x readouts and inputs of the xy model's channels (o1, o12; oi1, oi12).
 const X_CHANNELS: usize = 2;
 
+/// Each readout's own noise floor (one-sided ASD at the analysis Nyquist frequency) from the
+/// model's readout noise sources, declared as the auxiliary readouts' `noise_asd`.
+fn readout_floors(setup: &SetupXy) -> [f64; 7] {
+    let f = 0.5 * setup.spec.sampling.analyse_hz;
+    let mut psd = [0.0; 7];
+    for (_, src, entry) in &setup.noise.sources {
+        if let crate::model::NoiseEntry::Readout(w) = entry {
+            let s = crate::noise::shapes::psd(src, f);
+            for (p, w) in psd.iter_mut().zip(w) {
+                *p += w * w * s;
+            }
+        }
+    }
+    psd.map(f64::sqrt)
+}
+
 impl SimulateJob {
     /// Draws the dataset of the xy model; refuses what only the x model simulates.
     pub fn run_xy(&self, setup: &SetupXy) -> Result<Simulated, SimulateError> {
@@ -52,7 +68,7 @@ impl SimulateJob {
         let sim = setup.plain_simulator(&design, &sc.truth)?;
         let nsim = setup.plain_simulator(&noise_design, &sc.truth)?;
         let (all, noise) = draw_all(|r| sim.draw(r), |r| nsim.noise_series(r), self.seed);
-        let (data, aux) = split_x(&setup.model, all, &noise);
+        let (data, aux) = split_x(&setup.model, readout_floors(setup), all, &noise);
         let noise = noise[..X_CHANNELS].to_vec();
         Ok(Simulated {
             data,
@@ -67,10 +83,11 @@ impl SimulateJob {
 /// displacement, radians for an angle).
 fn split_x<M: ClosedLoopModel<7>>(
     model: &M,
+    floors: [f64; 7],
     all: ExperimentData,
     noise: &[Vec<f64>],
 ) -> (ExperimentData, Auxiliary) {
-    let channel = |name: &str, guidance: bool| {
+    let channel = |name: &str, guidance: bool, noise_asd: Option<f64>| {
         let kind = if name.contains("phi") {
             AuxKind::Angle
         } else {
@@ -81,11 +98,14 @@ fn split_x<M: ClosedLoopModel<7>>(
             kind,
             unit: kind.unit().to_string(),
             guidance,
+            noise_asd,
         }
     };
-    let channels = (model.readout_names()[X_CHANNELS..].iter())
-        .map(|n| channel(n, false))
-        .chain(model.input_names()[X_CHANNELS..].iter().map(|n| channel(n, true)))
+    let channels = (model.readout_names()[X_CHANNELS..].iter().enumerate())
+        .map(|(k, n)| channel(n, false, Some(floors[X_CHANNELS + k])))
+        .chain(
+            (model.input_names()[X_CHANNELS..].iter()).map(|n| channel(n, true, None)),
+        )
         .collect();
     let n_noise = noise.first().map_or(0, Vec::len);
     let quiet = vec![vec![0.0; n_noise]; 7 - X_CHANNELS];

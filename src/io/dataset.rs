@@ -17,6 +17,7 @@
 //! unit = "m"                           # "m" for a displacement, "rad" for an angle
 //! role = "readout"                     # optional: or "guidance" (that degree of freedom's
 //!                                      # guidance signal, an input of a model of it)
+//! noise_asd = 1.8e-9                   # optional: the readout's noise floor, unit/sqrt(Hz)
 //! [meta]                               # optional, free form (scenario, seed, truth values, ...)
 //! scenario = "standard"
 //! [meta.truth]
@@ -62,7 +63,7 @@ pub const DATASET_FILE_NAME: &str = "dataset.toml";
 const TOP_KEYS: [&str; 5] = ["noise", "experiment", "auxiliary", "injections", "meta"];
 const INJECTION_KEYS: [&str; 2] = ["design", "start_s"];
 const EXPERIMENT_KEYS: [&str; 2] = ["name", "file"];
-const AUXILIARY_KEYS: [&str; 4] = ["column", "kind", "unit", "role"];
+const AUXILIARY_KEYS: [&str; 5] = ["column", "kind", "unit", "role", "noise_asd"];
 
 /// A loaded, validated dataset.
 #[derive(Debug, Clone, PartialEq)]
@@ -128,6 +129,9 @@ struct AuxiliaryEntry {
     /// "readout" (default) or "guidance".
     #[serde(default, skip_serializing_if = "Option::is_none")]
     role: Option<String>,
+    /// The readout's noise floor (one-sided ASD, unit/sqrt(Hz)).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    noise_asd: Option<f64>,
 }
 
 impl AuxiliaryEntry {
@@ -179,11 +183,18 @@ impl AuxiliaryEntry {
                 ))
             }
         };
+        if let Some(v) = self.noise_asd.filter(|v| !(v.is_finite() && *v > 0.0)) {
+            return Err(IoError::invalid(
+                path,
+                format!("{at}: noise_asd = {v} must be a noise floor > 0 (unit/sqrt(Hz))"),
+            ));
+        }
         Ok(AuxChannel {
             column: self.column.clone(),
             kind,
             unit: self.unit.clone(),
             guidance,
+            noise_asd: self.noise_asd,
         })
     }
 }
@@ -814,6 +825,7 @@ pub fn write_dataset(dir: impl AsRef<Path>, dataset: &Dataset) -> Result<PathBuf
                 kind: a.kind.as_str().to_string(),
                 unit: a.unit.clone(),
                 role: a.guidance.then(|| "guidance".to_string()),
+                noise_asd: a.noise_asd,
             })
             .collect(),
         meta: dataset.meta.clone(),

@@ -76,6 +76,7 @@ pub fn draw(
             kind: a.kind,
             unit: a.kind.unit().to_string(),
             guidance: false,
+            noise_asd: None,
         })
         .collect();
     let series = |n: usize, rng: &mut rand_xoshiro::Xoshiro256PlusPlus| {
