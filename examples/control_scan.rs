@@ -1,6 +1,6 @@
 //! False-alarm calibration of `freefall diagnose` on control datasets (no effect simulated).
 //!
-//!     cargo run --release --example control_scan -- [SEEDS] [FIRST_SEED] [model|noise] [aux]
+//!     cargo run --release --example control_scan -- [SEEDS] [FIRST_SEED] [model|noise] [aux|xy]
 //!
 //! For each seed: the embedded model with the thesis's continuous loop (the README's calibration
 //! figures were measured on it), monte_carlo truth, standard design and one noise run, then a
@@ -9,7 +9,10 @@
 //! effect and every unexplained excess, then the rates. At alpha = 0.01 a calibrated diagnosis
 //! claims something on about 1% of the seeds. With `aux`, every run also carries the model
 //! file's auxiliary readouts (`[auxiliary]`, no cross-talk), which the diagnosis tests
-//! (sensing cross-talk into o1 and o12, static and rate).
+//! (sensing cross-talk into o1 and o12, static and rate). With `xy`, each control dataset is
+//! the xy model's (`simulate --model lpf_xy --scenario nominal --design standard_xy`: no
+//! cross-talk), diagnosed by the x model with the recorded y/phi readouts (and their declared
+//! noise floors) as auxiliary readouts, as `tests/xy_diagnose.rs` does.
 
 use freefall::diagnose::{diagnose, simulate_with_effects, DiagnoseConfig};
 use freefall::setup::Setup;
@@ -21,6 +24,8 @@ fn main() {
     let first: u64 = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(1000);
     let model = args.get(3).is_some_and(|s| s == "model");
     let with_aux = args.get(4).is_some_and(|s| s == "aux");
+    let xy = args.get(4).is_some_and(|s| s == "xy");
+    let xy_setup = freefall::setup::SetupXy::embedded();
     let setup = Setup::embedded_continuous();
     let design = setup.design("standard").unwrap();
     let sc = setup.spec.scenario("monte_carlo").unwrap();
@@ -38,9 +43,26 @@ fn main() {
     let rows: Vec<Row> = (first..first + n)
         .into_par_iter()
         .map(|seed| {
-            let (data, noise) =
-                simulate_with_effects(&setup, &design, &sc.truth, &[], seed).unwrap();
             let mut cfg = cfg.clone();
+            let (data, noise) = if xy {
+                let job = freefall::diagnose::simulate_job::SimulateJob {
+                    scenario: "nominal".into(),
+                    design: "standard_xy".into(),
+                    seed,
+                    rate: None,
+                    engine: freefall::sim::Engine::FrequencyDomain,
+                    initial: None,
+                    noise_duration: None,
+                    effects: Vec::new(),
+                    auxiliary: false,
+                };
+                let s = job.run_xy(&xy_setup).unwrap();
+                let readouts = s.dataset().unwrap().auxiliary_series();
+                cfg.auxiliary = Some(std::sync::Arc::new(readouts));
+                (s.data, s.noise)
+            } else {
+                simulate_with_effects(&setup, &design, &sc.truth, &[], seed).unwrap()
+            };
             if with_aux {
                 let n_noise = noise[0].len();
                 let aux = freefall::sim::auxiliary::draw(

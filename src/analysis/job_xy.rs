@@ -18,7 +18,7 @@ use crate::io::{
     create_output_dir, read_dataset, write_json_atomic, write_parquet, Dataset, Provenance,
 };
 use crate::model::{check_stability, ClosedLoopModel};
-use crate::setup::SetupXy;
+use crate::setup::{AnySetup, SetupXy};
 
 /// The columns of readout `names` and input `inputs` of every run of `ds` (the experiments,
 /// then the noise run's readouts), one-line errors naming the run file and the column.
@@ -58,6 +58,20 @@ fn xy_series(
 }
 
 impl FitJob {
+    /// [`Self::run`] or [`Self::run_xy`], as the model is.
+    pub fn run_any(
+        &self,
+        setup: &AnySetup,
+        path: &Path,
+        out: &Path,
+        notes: Notes<'_>,
+    ) -> Result<FitOutcome, JobError> {
+        match setup {
+            AnySetup::X(s) => self.run(s, path, out, notes),
+            AnySetup::Xy(s) => self.run_xy(s, path, out, notes),
+        }
+    }
+
     /// Fits the dataset at `path` by the xy model and writes estimates.parquet,
     /// correlation.parquet and fit.json to `out`.
     pub fn run_xy(

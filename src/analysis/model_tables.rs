@@ -11,7 +11,7 @@ use super::job::JobError;
 use crate::io::{ensure_parent, write_parquet, IoError, Provenance, Table};
 use crate::model::lpf_x::THESIS_SIGMA;
 use crate::model::{check_stability, transfer};
-use crate::setup::{SetupOf, SpecModel};
+use crate::setup::{AnySetup, SetupOf, SpecModel};
 use crate::signal::Design;
 
 /// `points` log-spaced frequencies from `fmin` to `fmax`; `Err` names the bad bound.
@@ -195,6 +195,14 @@ pub struct GridJob {
 }
 
 impl GridJob {
+    /// [`Self::run`] on either model.
+    pub fn run_any(&self, setup: &AnySetup, out: &Path) -> Result<usize, JobError> {
+        match setup {
+            AnySetup::X(s) => self.run(&**s, out),
+            AnySetup::Xy(s) => self.run(&**s, out),
+        }
+    }
+
     /// Writes the table, with its provenance, to `out`; returns the number of frequencies.
     pub fn run<M: SpecModel<N>, const N: usize>(
         &self,
@@ -229,6 +237,14 @@ pub struct FisherJob {
 }
 
 impl FisherJob {
+    /// [`Self::run`] on either model.
+    pub fn run_any(&self, setup: &AnySetup, out: &Path) -> Result<(String, PathBuf), JobError> {
+        match setup {
+            AnySetup::X(s) => self.run(&**s, out),
+            AnySetup::Xy(s) => self.run(&**s, out),
+        }
+    }
+
     /// Writes the errors to `out` and the correlations to `<stem>_corr.parquet` beside it;
     /// returns the printable comparison with the thesis's sigmas and the correlations' path.
     pub fn run<M: SpecModel<N>, const N: usize>(

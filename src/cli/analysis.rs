@@ -10,7 +10,6 @@ use super::ModelOpt;
 use crate::analysis::job::{psd as psd_job, DatasetFit, FitJob, WhitenJob};
 use crate::analysis::Whitening;
 use crate::fit::Estimator;
-use crate::setup::AnySetup;
 use crate::setup::{DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 
 #[derive(Debug, Args)]
@@ -145,9 +144,8 @@ pub fn fit(a: FitArgs) -> Result<()> {
         whitening: a.whitening,
         transient: a.transient,
     };
-    let fitted = super::working("fitting", |notes| match &setup {
-        AnySetup::X(s) => job.run(s, &a.dataset, &a.out, notes),
-        AnySetup::Xy(s) => job.run_xy(s, &a.dataset, &a.out, notes),
+    let fitted = super::working("fitting", |notes| {
+        job.run_any(&setup, &a.dataset, &a.out, notes)
     })?;
     out!("{}", fitted.text);
     info!("wrote {}", a.out.display());

@@ -12,6 +12,7 @@ use super::analysis::FitOpts;
 use super::ModelOpt;
 use crate::diagnose::job::DiagnoseJob;
 use crate::diagnose::simulate_job::SimulateJob;
+use crate::setup::AnySetup;
 use crate::sim::{Engine, Rate};
 
 #[derive(Debug, Args)]
@@ -130,5 +131,5 @@ fn simulate(a: &DiagnoseArgs, setup: &crate::setup::Setup, dir: &Path) -> Result
         effects: a.effects.clone(),
         auxiliary: false,
     };
-    super::simulate::simulate_into(setup, &job, dir)
+    super::simulate::simulate_into(&AnySetup::X(Box::new(setup.clone())), &job, dir)
 }

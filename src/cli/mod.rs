@@ -119,12 +119,9 @@ impl ModelOpt {
         })
     }
 
+    /// The x model (commands that take only it).
     pub fn setup(&self) -> Result<Setup, crate::setup::Error> {
-        let setup = Setup::load(self.model.as_deref())?;
-        Ok(match self.control_loop {
-            Some(kind) => setup.with_loop(kind)?,
-            None => setup,
-        })
+        self.any_setup()?.x("this command")
     }
 }
 

@@ -7,7 +7,6 @@ use clap::{Args, Subcommand};
 
 use super::ModelOpt;
 use crate::analysis::model_tables::{FisherJob, GridJob, Product};
-use crate::setup::AnySetup;
 
 #[derive(Debug, Subcommand)]
 pub enum ModelCmd {
@@ -68,10 +67,7 @@ pub fn run(cmd: ModelCmd) -> Result<()> {
         fmax: a.fmax,
         points: a.points,
     };
-    let n = match a.model.any_setup()? {
-        AnySetup::X(s) => job.run(&*s, &a.out)?,
-        AnySetup::Xy(s) => job.run(&*s, &a.out)?,
-    };
+    let n = job.run_any(&a.model.any_setup()?, &a.out)?;
     info!("wrote {} ({n} frequencies)", a.out.display());
     Ok(())
 }
@@ -81,10 +77,7 @@ fn fisher(a: FisherArgs) -> Result<()> {
         scenario: a.scenario,
         design: a.design,
     };
-    let (text, corr_path) = match a.model.any_setup()? {
-        AnySetup::X(s) => job.run(&*s, &a.out)?,
-        AnySetup::Xy(s) => job.run(&*s, &a.out)?,
-    };
+    let (text, corr_path) = job.run_any(&a.model.any_setup()?, &a.out)?;
     out!("{text}");
     info!("wrote {} and {}", a.out.display(), corr_path.display());
     Ok(())

@@ -8,7 +8,7 @@ use clap::Args;
 use super::ModelOpt;
 use crate::diagnose::simulate_job::SimulateJob;
 use crate::io::write_dataset;
-use crate::setup::{AnySetup, Setup};
+use crate::setup::AnySetup;
 use crate::sim::time_domain::InitialConditions;
 use crate::sim::Engine;
 use crate::sim::Rate;
@@ -88,20 +88,12 @@ impl SimulateArgs {
 }
 
 pub fn run(a: SimulateArgs) -> Result<()> {
-    match a.model.any_setup()? {
-        AnySetup::X(setup) => simulate_into(&setup, &a.job(), &a.out),
-        AnySetup::Xy(setup) => {
-            let s = super::working("simulating", |_| a.job().run_xy(&setup))?;
-            let path = write_dataset(&a.out, &s.dataset()?)?;
-            info!("wrote {} ({})", path.display(), s.describe());
-            Ok(())
-        }
-    }
+    simulate_into(&a.model.any_setup()?, &a.job(), &a.out)
 }
 
 /// Runs `job` and writes its dataset to `out`.
-pub fn simulate_into(setup: &Setup, job: &SimulateJob, out: &Path) -> Result<()> {
-    let s = super::working("simulating", |_| job.run(setup))?;
+pub fn simulate_into(setup: &AnySetup, job: &SimulateJob, out: &Path) -> Result<()> {
+    let s = super::working("simulating", |_| job.run_any(setup))?;
     let what = s.describe();
     let path = write_dataset(out, &s.dataset()?)?;
     info!("wrote {} ({what})", path.display());

@@ -13,7 +13,7 @@ use super::simulate_job::{draw_all, SimulateError, SimulateJob, Simulated, NOISE
 use crate::data::{AuxChannel, AuxKind, Auxiliary, ExperimentData};
 use crate::model::check_stability;
 use crate::model::ClosedLoopModel;
-use crate::setup::SetupXy;
+use crate::setup::{AnySetup, SetupXy};
 use crate::sim::{Engine, Rate};
 
 /// The x readouts and inputs of the xy model's channels (o1, o12; oi1, oi12).
@@ -36,6 +36,14 @@ fn readout_floors(setup: &SetupXy) -> [f64; 7] {
 }
 
 impl SimulateJob {
+    /// Draws the dataset of either model.
+    pub fn run_any(&self, setup: &AnySetup) -> Result<Simulated, SimulateError> {
+        match setup {
+            AnySetup::X(s) => self.run(s),
+            AnySetup::Xy(s) => self.run_xy(s),
+        }
+    }
+
     /// Draws the dataset of the xy model; refuses what only the x model simulates.
     pub fn run_xy(&self, setup: &SetupXy) -> Result<Simulated, SimulateError> {
         let refuse = |what: &str| {
