@@ -43,7 +43,7 @@ use std::path::Path;
 
 use nalgebra::DMatrix;
 
-use super::criteria::{spd_inverse, Criterion, Evaluation, Scaling, Target};
+use super::criteria::{Criterion, Evaluation, Scaling, Target};
 use super::report::{file_id, toml_design};
 use super::search::{optimize, OptimizeConfig, Optimized};
 use super::space::{
@@ -151,6 +151,42 @@ impl Bounds {
     }
 }
 
+impl Bounds {
+    /// `design` with each stretch's amplitudes scaled by the largest factor `<= 1` that keeps
+    /// every constraint (triangle bound over the inputs sharing the stretch); frequencies are
+    /// kept, even above `f_max_hz`.
+    fn clip(&self, model: &LpfXy, p: &[f64], design: &Design) -> Design {
+        let mut d = design.clone();
+        d.name = format!("{}_clipped", design.name);
+        for e in &mut d.experiments {
+            let n = e
+                .inputs
+                .iter()
+                .flatten()
+                .map(|v| v.len())
+                .max()
+                .unwrap_or(0);
+            for k in 0..n {
+                let lims: Vec<_> = (e.inputs.iter().enumerate())
+                    .filter_map(|(c, v)| Some((c, v.as_ref()?.get(k)?)))
+                    .filter(|(_, s)| s.amplitude != 0.0 && s.f_hz != 0.0)
+                    .map(|(c, s)| (self.limit(model, p, c, s.f_hz), s.amplitude.abs()))
+                    .collect();
+                let lambda = (0..XY_CONSTRAINTS)
+                    .map(|r| {
+                        let resp: f64 = lims.iter().map(|(l, a)| l.gain[r] * a).sum();
+                        self.bound[r] / resp
+                    })
+                    .fold(1.0, f64::min);
+                for s in e.inputs.iter_mut().flatten().filter_map(|v| v.get_mut(k)) {
+                    s.amplitude *= lambda;
+                }
+            }
+        }
+        d
+    }
+}
+
 /// Everything the xy design needs at one parameter point.
 #[derive(Debug, Clone)]
 pub struct XyStudy {
@@ -171,8 +207,10 @@ pub struct XyStudy {
     pub standard_information: DMatrix<f64>,
     /// The priors' information `diag(prior_sigma^-2)` (0 without a prior).
     pub prior: DMatrix<f64>,
-    /// The model file's y/phi injections (`y_phi`), the reference the optimum must beat.
+    /// The model file's y/phi injections (`y_phi`) and the same with every stretch scaled into
+    /// the constraints ([`XyStudy::clip`]): the reference the optimum must beat.
     pub reference: Design,
+    pub reference_clipped: Design,
     pub target: Target,
     pub scaling: Scaling,
 }
@@ -274,6 +312,7 @@ impl XyStudy {
             standard,
             standard_information,
             prior,
+            reference_clipped: bounds.clip(&setup.model, p, &reference),
             reference,
             target,
             scaling,
@@ -440,9 +479,17 @@ impl XyStudy {
     }
 }
 
-/// Marginal Fisher sigmas of every parameter; a parameter with zero information has an
-/// infinite sigma and the others come from the block of those with information (NaN if that
-/// block is singular).
+/// Relative eigenvalue of the diagonally normalised information below which a direction is
+/// unidentified: the structural null directions of the xy cross-talk are at 1e-15 .. 4e-13, the
+/// weakest identified one at 1e-9 (every candidate together, scenario `crosstalk`).
+pub const NULL_EIGENVALUE: f64 = 1e-11;
+
+/// Marginal sigmas of every parameter from an information matrix that may be singular: with
+/// `A = D^-1/2 I D^-1/2` (`D = diag I`) and its eigenpairs `(lambda_k, v_k)`, a parameter with a
+/// weight `sum_{lambda_k < NULL_EIGENVALUE} v_ik^2 > 1e-6` on the null directions is not
+/// identified (infinite sigma, as is one with zero information); the others have
+/// `sigma_i^2 = sum_{lambda_k >= NULL_EIGENVALUE} v_ik^2 / (lambda_k I_ii)` (the pseudo-inverse,
+/// which is the inverse when `I` is regular).
 pub fn marginal(info: &DMatrix<f64>) -> Vec<f64> {
     let n = info.nrows();
     let scale = (0..n).map(|i| info[(i, i)].abs()).fold(0.0, f64::max);
@@ -450,23 +497,40 @@ pub fn marginal(info: &DMatrix<f64>) -> Vec<f64> {
     let keep: Vec<usize> = (0..n)
         .filter(|&i| info[(i, i)] > 1e-300_f64.max(1e-30 * scale))
         .collect();
-    let sub = DMatrix::from_fn(keep.len(), keep.len(), |a, b| info[(keep[a], keep[b])]);
-    let cov = spd_inverse(&sub);
+    let d: Vec<f64> = keep.iter().map(|&i| info[(i, i)].sqrt()).collect();
+    let a = DMatrix::from_fn(keep.len(), keep.len(), |x, y| {
+        info[(keep[x], keep[y])] / (d[x] * d[y])
+    });
+    let eig = a.symmetric_eigen();
     let mut out = vec![f64::INFINITY; n];
-    for (a, &i) in keep.iter().enumerate() {
-        out[i] = cov.as_ref().map_or(f64::NAN, |c| c[(a, a)].sqrt());
+    for (x, &i) in keep.iter().enumerate() {
+        let (mut null, mut var) = (0.0, 0.0);
+        for (k, &l) in eig.eigenvalues.iter().enumerate() {
+            let v2 = eig.eigenvectors[(x, k)].powi(2);
+            if l < NULL_EIGENVALUE {
+                null += v2;
+            } else {
+                var += v2 / l;
+            }
+        }
+        if null <= 1e-6 {
+            out[i] = var.sqrt() / d[x];
+        }
     }
     out
 }
 
-/// Per parameter, in the order (a) the standard x design alone, (b) with the `y_phi` reference,
-/// (c) with an optimum: the marginal sigmas of the data alone ([`marginal`] of the Fisher
-/// information, full formula) and with the priors.
+/// Per parameter, in the order (a) the standard x design alone, (b) with the `y_phi` table,
+/// (b') with the table clipped to the constraints, (c) with an optimum: the marginal sigmas of
+/// the data alone ([`marginal`] of the Fisher information, full formula) and with the priors.
 pub struct SigmaTable {
     pub names: Vec<String>,
-    pub fisher: [Vec<f64>; 3],
-    pub posterior: [Vec<f64>; 3],
+    pub fisher: [Vec<f64>; 4],
+    pub posterior: [Vec<f64>; 4],
 }
+
+/// The designs of a [`SigmaTable`], in its order.
+pub const SIGMA_COLUMNS: [&str; 4] = ["standard", "y_phi", "y_phi_clipped", "optimum"];
 
 impl XyStudy {
     /// The fixed information `M0`: the priors and the standard x experiments (row-major order
@@ -475,12 +539,14 @@ impl XyStudy {
         &self.prior + &self.standard_information
     }
 
-    /// The sigmas of the standard design, standard + `y_phi` and standard + `optimum`.
+    /// The sigmas of the standard design alone and with `y_phi`, `y_phi` clipped and `optimum`.
     pub fn sigma_table(&self, setup: &SetupXy, optimum: &Design) -> SigmaTable {
+        let with = |d: &Design| &self.standard_information + design_fisher(setup, d, &self.p);
         let data = [
             self.standard_information.clone(),
-            &self.standard_information + design_fisher(setup, &self.reference, &self.p),
-            &self.standard_information + design_fisher(setup, optimum, &self.p),
+            with(&self.reference),
+            with(&self.reference_clipped),
+            with(optimum),
         ];
         SigmaTable {
             names: self.parameter_names.clone(),
@@ -521,13 +587,13 @@ pub fn write_optimization(
     );
     let _ = writeln!(
         report,
-        "reference {REFERENCE}: {} constraint violation(s){}",
+        "reference {REFERENCE}: {} constraint violation(s){}; clipped to the constraints: {} (frequencies above f_max_hz are kept)",
         ref_violations.len(),
         ref_violations
             .first()
-            .map_or(String::new(), |v| format!("; first: {v}"))
+            .map_or(String::new(), |v| format!(" (first: {v})")),
+        st.violations(setup, &st.reference_clipped).len()
     );
-    type Row = (String, usize, [f64; 3], [f64; 3], f64);
     let mut rows: Vec<Row> = Vec::new();
     for &c in criteria {
         let (set, opt) = st.optimize(c)?;
@@ -540,10 +606,11 @@ pub fn write_optimization(
         let cert = opt.certificate;
         let _ = writeln!(
             report,
-            "{id}: phi = {:.6e} (reference {REFERENCE}: {:.6e}, full formula: optimum {:.6e}); certificate: upper bound {:.6e}, max directional derivative {:.6}, efficiency >= {:.4}; {} violation(s)",
+            "{id}: phi = {:.6e} (full formula: optimum {:.6e}, {REFERENCE} {:.6e}, {REFERENCE} clipped {:.6e}); certificate: upper bound {:.6e}, max directional derivative {:.6}, efficiency >= {:.4}; {} violation(s)",
             opt.phi,
-            st.phi_full(setup, &st.reference, c),
             st.phi_full(setup, &d, c),
+            st.phi_full(setup, &st.reference, c),
+            st.phi_full(setup, &st.reference_clipped, c),
             cert.upper_bound,
             cert.max_directional_derivative,
             cert.efficiency_lower_bound,
@@ -557,40 +624,16 @@ pub fn write_optimization(
             );
         }
         report.push_str(&describe(st, &d));
-        let tab = st.sigma_table(setup, &d);
-        let _ = writeln!(
-            report,
-            "  {:<11} | Fisher: {:>9} {:>10} {:>10} | with priors: {:>9} {:>10} {:>10} {:>6}",
-            "parameter",
-            "standard",
-            "+ y_phi",
-            "+ optimum",
-            "standard",
-            "+ y_phi",
-            "+ optimum",
-            "gain"
-        );
-        for (k, n) in tab.names.iter().enumerate() {
-            let f = [0, 1, 2].map(|j| tab.fisher[j][k]);
-            let q = [0, 1, 2].map(|j| tab.posterior[j][k]);
-            if st.target.names.contains(n) {
-                let _ = writeln!(
-                    report,
-                    "  {n:<11} | {:>17.3e} {:>10.3e} {:>10.3e} | {:>23.3e} {:>10.3e} {:>10.3e} {:>6.2}",
-                    f[0],
-                    f[1],
-                    f[2],
-                    q[0],
-                    q[1],
-                    q[2],
-                    q[1] / q[2]
-                );
-            }
-            rows.push((id.clone(), k, f, q, cert.efficiency_lower_bound));
-        }
+        report.push_str(&sigma_lines(
+            st,
+            &st.sigma_table(setup, &d),
+            &id,
+            &mut rows,
+            cert,
+        ));
     }
     let names = &st.parameter_names;
-    let table = Table::new()
+    let mut table = Table::new()
         .with_str(
             "design_id",
             rows.iter().map(|r| r.0.clone()).collect::<Vec<_>>(),
@@ -604,25 +647,54 @@ pub fn write_optimization(
             rows.iter()
                 .map(|r| st.target.indices.contains(&r.1))
                 .collect(),
-        )?
-        .with_f64(
-            "fisher_sigma_standard",
-            rows.iter().map(|r| r.2[0]).collect(),
-        )?
-        .with_f64("fisher_sigma_y_phi", rows.iter().map(|r| r.2[1]).collect())?
-        .with_f64(
-            "fisher_sigma_optimum",
-            rows.iter().map(|r| r.2[2]).collect(),
-        )?
-        .with_f64(
-            "prior_sigma_standard",
-            rows.iter().map(|r| r.3[0]).collect(),
-        )?
-        .with_f64("prior_sigma_y_phi", rows.iter().map(|r| r.3[1]).collect())?
-        .with_f64("prior_sigma_optimum", rows.iter().map(|r| r.3[2]).collect())?
-        .with_f64("efficiency_lower_bound", rows.iter().map(|r| r.4).collect())?;
+        )?;
+    for (j, col) in SIGMA_COLUMNS.iter().enumerate() {
+        table = table
+            .with_f64(
+                format!("fisher_sigma_{col}"),
+                rows.iter().map(|r| r.2[j]).collect(),
+            )?
+            .with_f64(
+                format!("prior_sigma_{col}"),
+                rows.iter().map(|r| r.3[j]).collect(),
+            )?;
+    }
+    let table = table.with_f64("efficiency_lower_bound", rows.iter().map(|r| r.4).collect())?;
     write_parquet(out.join("sigmas.parquet"), &table)?;
     Ok(report)
+}
+
+/// A row of `sigmas.parquet`: design id, parameter index, Fisher and with-prior sigmas in
+/// [`SIGMA_COLUMNS`] order, efficiency bound.
+type Row = (String, usize, [f64; 4], [f64; 4], f64);
+
+/// The targets' lines of the report for the optimum `id`; every parameter's row into `rows`.
+fn sigma_lines(
+    st: &XyStudy,
+    tab: &SigmaTable,
+    id: &str,
+    rows: &mut Vec<Row>,
+    cert: super::Certificate,
+) -> String {
+    let mut s = String::new();
+    let _ = writeln!(
+        s,
+        "  {:<11} | Fisher (inf: not identified): {:>8} {:>9} {:>9} {:>9} | with priors: {:>8} {:>9} {:>9} {:>9} | gain",
+        "parameter", "standard", "+ y_phi", "+ clipped", "+ optimum", "standard", "+ y_phi", "+ clipped", "+ optimum"
+    );
+    for (k, n) in tab.names.iter().enumerate() {
+        let f = [0, 1, 2, 3].map(|j| tab.fisher[j][k]);
+        let q = [0, 1, 2, 3].map(|j| tab.posterior[j][k]);
+        if st.target.names.contains(n) {
+            let _ = writeln!(
+                s,
+                "  {n:<11} | {:>38.3e} {:>9.3e} {:>9.3e} {:>9.3e} | {:>22.3e} {:>9.3e} {:>9.3e} {:>9.3e} | {:.2}",
+                f[0], f[1], f[2], f[3], q[0], q[1], q[2], q[3], q[2] / q[3]
+            );
+        }
+        rows.push((id.to_string(), k, f, q, cert.efficiency_lower_bound));
+    }
+    s
 }
 
 /// The y/phi injections of `d`, one line per input (mHz, cycles, amplitude in m or rad).
