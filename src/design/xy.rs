@@ -24,7 +24,10 @@
 //!   `I_tm |u_phi1|`, `I_tm |u_phi2|` (TM torques) and `m_tm (L/2) |u_phisc|` (TM y forces of
 //!   the attitude loop), each times `a` within its bound.
 //! - **Targets**: the cross-talk coefficients (`d1_xy` .. `d_sus_phi2`, thesis sec. 3.5) or the
-//!   user's subset; every other parameter is a nuisance (Schur complement, [`super::criteria`]).
+//!   user's subset. The fit is of the x parameters, the y/phi stiffnesses and the targets: the
+//!   cross-talk coefficients that are not targets are held at the scenario's values ([`fitted`];
+//!   a study of `ds_1y1, ds_2y2` fits those two cross-talk terms only). Every fitted parameter
+//!   that is not a target is a nuisance (Schur complement, [`super::criteria`]).
 //! - **Scaling**: `natural` is 1 (the coefficients are dimensionless); `standard` and `nominal`
 //!   are the marginal Fisher sigmas of the reference design, standard + `y_phi` (the nominal
 //!   cross-talk is 0, so `max(|p|, sigma)` is that sigma).
@@ -77,6 +80,20 @@ pub fn crosstalk_names(all: &[String]) -> Vec<String> {
         .filter(|n| LPF_XY_PARAMETERS[D1_XY..].contains(&n.as_str()))
         .cloned()
         .collect()
+}
+
+/// The fitted parameters (indices into `all`): every parameter but the cross-talk coefficients
+/// that are not among `targets`, which are held at the scenario's values.
+pub fn fitted(all: &[String], targets: &[String]) -> Vec<usize> {
+    let crosstalk = crosstalk_names(all);
+    (0..all.len())
+        .filter(|&i| !crosstalk.contains(&all[i]) || targets.contains(&all[i]))
+        .collect()
+}
+
+/// The block of `m` on the parameters `keep`.
+fn block(m: &DMatrix<f64>, keep: &[usize]) -> DMatrix<f64> {
+    DMatrix::from_fn(keep.len(), keep.len(), |a, b| m[(keep[a], keep[b])])
 }
 
 /// The bounds of [`Constraint::ALL_XY`] and the constants the responses need.
@@ -192,7 +209,11 @@ impl Bounds {
 pub struct XyStudy {
     pub p: Vec<f64>,
     pub timing: Timing,
+    /// The fitted parameters' names and their indices among the model's parameters: every
+    /// parameter but the cross-talk coefficients that are not targets ([`fitted`]). Every
+    /// matrix of the study is over these.
     pub parameter_names: Vec<String>,
+    pub fitted: Vec<usize>,
     pub input_names: Vec<String>,
     pub f_max_hz: f64,
     /// Highest number of cycles per stretch.
@@ -267,26 +288,30 @@ impl XyStudy {
             })
             .collect();
         let pairs: Vec<(usize, usize)> = AUX_INPUTS.iter().map(|&c| (c, c)).collect();
-        let unit = unit_information_pairs(setup, p, &timing, m_max, &pairs);
-        let standard_information = design_fisher(setup, &standard, p);
+        let all = setup.parameter_names();
+        let targets = match parameters {
+            Some(t) => t.to_vec(),
+            None => crosstalk_names(&all),
+        };
+        let fitted = fitted(&all, &targets);
+        let names: Vec<String> = fitted.iter().map(|&i| all[i].clone()).collect();
+        let unit = unit_information_pairs(setup, p, &timing, m_max, &pairs)
+            .iter()
+            .map(|v| v.iter().map(|m| block(m, &fitted)).collect())
+            .collect();
+        let standard_information = block(&design_fisher(setup, &standard, p), &fitted);
         let prior = DMatrix::from_diagonal(&nalgebra::DVector::from_iterator(
-            p.len(),
-            setup
-                .spec
-                .parameters
-                .iter()
-                .map(|q| q.prior_sigma.map_or(0.0, |s| 1.0 / (s * s))),
+            fitted.len(),
+            fitted.iter().map(|&i| {
+                let q = &setup.spec.parameters[i];
+                q.prior_sigma.map_or(0.0, |s| 1.0 / (s * s))
+            }),
         ));
-        let names = setup.parameter_names();
-        let reference_information = design_fisher(setup, &reference, p);
+        let reference_information = block(&design_fisher(setup, &reference, p), &fitted);
         let sigma_ref = marginal(&(&prior + &standard_information + reference_information));
         let scales = match scaling {
             Scaling::Natural => vec![1.0; names.len()],
             _ => sigma_ref,
-        };
-        let targets = match parameters {
-            Some(t) => t.to_vec(),
-            None => crosstalk_names(&names),
         };
         let target = Target::new(&names, &targets, &scales).map_err(|e| {
             DesignError::Config(format!(
@@ -298,6 +323,7 @@ impl XyStudy {
             p: p.to_vec(),
             timing,
             parameter_names: names,
+            fitted,
             input_names: setup
                 .model
                 .input_names()
@@ -541,7 +567,9 @@ impl XyStudy {
 
     /// The sigmas of the standard design alone and with `y_phi`, `y_phi` clipped and `optimum`.
     pub fn sigma_table(&self, setup: &SetupXy, optimum: &Design) -> SigmaTable {
-        let with = |d: &Design| &self.standard_information + design_fisher(setup, d, &self.p);
+        let with = |d: &Design| {
+            &self.standard_information + block(&design_fisher(setup, d, &self.p), &self.fitted)
+        };
         let data = [
             self.standard_information.clone(),
             with(&self.reference),
@@ -557,7 +585,7 @@ impl XyStudy {
 
     /// `phi(c)` of the priors, standard and `design` (full formula), 0 when singular.
     pub fn phi_full(&self, setup: &SetupXy, design: &Design, c: Criterion) -> f64 {
-        let info = self.fixed() + design_fisher(setup, design, &self.p);
+        let info = self.fixed() + block(&design_fisher(setup, design, &self.p), &self.fitted);
         Evaluation::new(&info, &self.target).map_or(0.0, |e| e.phi(c))
     }
 }
@@ -576,7 +604,8 @@ pub fn write_optimization(
     let ref_violations = st.violations(setup, &st.reference);
     let _ = writeln!(
         report,
-        "xy design at p = scenario truth; fixed: standard ({} x experiments); candidates: {} experiments of {} stretches on {}; targets ({}, scaling {}): {}",
+        "xy design at p = scenario truth; {} fitted parameters (cross-talk not among the targets held known); fixed: priors and standard ({} x experiments); candidates: {} experiments of {} stretches on {}; targets ({}, scaling {}): {}",
+        st.fitted.len(),
         st.standard.experiments.len(),
         AUX_INPUTS.len(),
         st.timing.slots,
