@@ -33,7 +33,7 @@ pub struct StudyOpt {
     #[arg(long)]
     pub scenario: Option<String>,
     /// Parameter scaling for T and E (standard: relative to the standard design's Fisher
-    /// sigmas).
+    /// sigmas; for lpf_xy, those of standard + y_phi with the priors).
     #[arg(long, value_enum, default_value_t = Scaling::Standard)]
     pub scaling: Scaling,
     /// Target parameters (comma-separated; default: the non-delay ones, as in thesis ch. 5;

@@ -140,6 +140,12 @@ impl AnyStudy {
                 report::write_optimization(s, st, layout, criteria, out)?,
                 "designs.parquet and designs/*.toml",
             ),
+            AnyStudy::Xy(_, _) if layout != Layout::Separate => {
+                return Err(DesignError::Config(format!(
+                    "--layout {} is for the lpf_x model; the lpf_xy design has one experiment per y/phi input",
+                    layout.name()
+                )))
+            }
             AnyStudy::Xy(s, st) => (
                 xy::write_optimization(s, st, criteria, out)?,
                 "sigmas.parquet and designs/*.toml",
