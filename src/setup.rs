@@ -7,8 +7,8 @@ use crate::fit::telemetry_psd::{folded, NullFloor};
 use crate::fit::{FitError, Whitener};
 use crate::forward::fisher::{fisher_information, InputSpectra};
 use crate::model::closed_loop::CMat;
-use crate::model::spec::GlitchSpec;
 use crate::model::closed_loop::ClosedLoopModel;
+use crate::model::spec::GlitchSpec;
 use crate::model::spec::ModelKind;
 use crate::model::{LpfX, LpfXy, ModelError, ModelSpec};
 use crate::noise::{GlitchConfig, NoiseError, NoiseModel};
@@ -160,11 +160,8 @@ impl<M: SpecModel<N>, const N: usize> SetupOf<M, N> {
 
     /// A named injection design of the model file (e.g. "standard").
     pub fn design(&self, name: &str) -> Result<Design, Error> {
-        let design = Design::from_spec(
-            name,
-            self.spec.injection(name)?,
-            &self.model.input_names(),
-        )?;
+        let design =
+            Design::from_spec(name, self.spec.injection(name)?, &self.model.input_names())?;
         self.check_simulation_size(&design, "duration_s")?;
         Ok(design)
     }

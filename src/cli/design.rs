@@ -7,12 +7,11 @@ use clap::{Args, Subcommand};
 
 use super::ModelOpt;
 use crate::design::criteria::{Choice, Matrix};
-use crate::design::report::{evaluate_design, write_optimization, write_validation};
+use crate::design::report::{evaluate_design, write_validation};
 use crate::design::space::Layout;
 use crate::design::validate::{validate as run_validation, Study, ValidationConfig};
-use crate::design::Scaling;
+use crate::design::{AnyStudy, Scaling};
 use crate::io::{ensure_dir, ensure_parent, read_toml, write_parquet};
-use crate::setup::Setup;
 use crate::signal::Design;
 
 #[derive(Debug, Subcommand)]
@@ -29,14 +28,16 @@ pub enum DesignCmd {
 pub struct StudyOpt {
     #[command(flatten)]
     pub model: ModelOpt,
-    /// Scenario whose true parameters the design is computed at.
-    #[arg(long, default_value = "monte_carlo")]
-    pub scenario: String,
+    /// Scenario whose true parameters the design is computed at [default: monte_carlo for
+    /// lpf_x, crosstalk for lpf_xy].
+    #[arg(long)]
+    pub scenario: Option<String>,
     /// Parameter scaling for T and E (standard: relative to the standard design's Fisher
-    /// sigmas).
+    /// sigmas; for lpf_xy, those of standard + y_phi with the priors).
     #[arg(long, value_enum, default_value_t = Scaling::Standard)]
     pub scaling: Scaling,
-    /// Target parameters (comma-separated; default: the non-delay ones, as in thesis ch. 5).
+    /// Target parameters (comma-separated; default: the non-delay ones, as in thesis ch. 5;
+    /// for lpf_xy the cross-talk coefficients).
     #[arg(long, value_delimiter = ',')]
     pub parameters: Option<Vec<String>>,
 }
@@ -51,7 +52,7 @@ pub struct OptimizeArgs {
     /// Matrix the criterion acts on.
     #[arg(long, value_enum, default_value_t = Matrix::Information)]
     pub on: Matrix,
-    /// separate (Exp. 1 on oi1, Exp. 2 on oi12) or simultaneous (Exp. 3 on both).
+    /// separate (Exp. 1 on oi1, Exp. 2 on oi12) or simultaneous (Exp. 3 on both); lpf_x only.
     #[arg(long, value_enum, default_value_t = Layout::Separate)]
     pub layout: Layout,
     /// Output directory: designs.parquet, designs/*.toml, limits, derivatives, methods,
@@ -96,36 +97,25 @@ pub fn run(c: DesignCmd) -> Result<()> {
     }
 }
 
-fn study(setup: &Setup, o: &StudyOpt) -> Result<Study> {
-    let parameters = o.parameters.as_deref();
-    Ok(Study::at_scenario(
-        setup,
-        &o.scenario,
-        o.scaling,
-        parameters,
-    )?)
-}
-
 fn optimize(a: OptimizeArgs) -> Result<()> {
-    let setup = a.study.model.setup()?;
-    let st = study(&setup, &a.study)?;
-    ensure_dir(&a.out)?;
+    let (o, out) = (&a.study, &a.out);
+    let (sc, pars) = (o.scenario.as_deref(), o.parameters.as_deref());
+    let st = AnyStudy::new(o.model.any_setup()?, sc, o.scaling, pars)?;
+    ensure_dir(out)?;
     let crits = a.criterion.criteria(a.on);
-    let report = super::working("optimising", |_| {
-        write_optimization(&setup, &st, a.layout, &crits, &a.out)
+    let (report, files) = super::working("optimising", |_| {
+        st.write_optimization(a.layout, &crits, out)
     })?;
     // Printed only once every file is written.
     out!("{report}");
-    info!(
-        "wrote {}/designs.parquet and designs/*.toml",
-        a.out.display()
-    );
+    info!("wrote {}/{files}", out.display());
     Ok(())
 }
 
 fn evaluate(a: EvaluateArgs) -> Result<()> {
-    let setup = a.study.model.setup()?;
-    let st = study(&setup, &a.study)?;
+    let (o, setup) = (&a.study, a.study.model.setup()?);
+    let (sc, pars) = (o.scenario.as_deref(), o.parameters.as_deref());
+    let st = Study::at_scenario(&setup, sc, o.scaling, pars)?;
     let design: Design = read_toml(&a.design)?;
     let ev = evaluate_design(&setup, &st, &design, &a.design)?;
     for n in ev.violation_notes(&a.design, a.allow_violations)? {

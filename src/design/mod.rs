@@ -12,7 +12,9 @@
 //! - the searches ([`search`]): the thesis's direct search with frequencies pulled to the nearest
 //!   grid node, a Fedorov-type exchange, and the multiplicative algorithm for the approximate
 //!   design with its equivalence-theorem certificate (Pukelsheim, "Optimal Design of
-//!   Experiments", Wiley 1993, ch. 5-7 and 12).
+//!   Experiments", Wiley 1993, ch. 5-7 and 12);
+//! - the design on the 7-DOF xy model ([`xy`]): injections on the y and phi inputs ranked for
+//!   the cross-talk coefficients, the standard x experiments held fixed as known information.
 //!
 //! # Amplitude bound: a ratio, not a product
 //! The thesis's eq. "constraints" prints `a = min{T_{oi->o} o_max, T_{oi->fc} f_max}`. A response
@@ -34,6 +36,11 @@ pub mod report;
 pub mod search;
 pub mod space;
 pub mod validate;
+pub mod xy;
+
+use std::path::Path;
+
+use crate::setup::{AnySetup, Setup, SetupXy};
 
 pub use criteria::{Criterion, CriterionValues, Evaluation, Matrix, Scaling, Target};
 pub use search::{optimize, Certificate, MethodResult, OptimizeConfig, Optimized};
@@ -90,4 +97,59 @@ pub enum DesignError {
     Campaign(#[from] crate::campaign::CampaignError),
     #[error(transparent)]
     Io(#[from] crate::io::IoError),
+}
+
+/// A design study of either model (`design optimize --model lpf_x|lpf_xy`).
+pub enum AnyStudy {
+    X(Box<Setup>, Box<validate::Study>),
+    Xy(Box<SetupXy>, Box<xy::XyStudy>),
+}
+
+impl AnyStudy {
+    /// The study at `scenario`'s truth (default: [`validate::DEFAULT_SCENARIO`] for the x model,
+    /// [`xy::DEFAULT_SCENARIO`] for the xy model).
+    pub fn new(
+        setup: AnySetup,
+        scenario: Option<&str>,
+        scaling: Scaling,
+        parameters: Option<&[String]>,
+    ) -> Result<AnyStudy, DesignError> {
+        Ok(match setup {
+            AnySetup::X(s) => {
+                let st = validate::Study::at_scenario(&s, scenario, scaling, parameters)?;
+                AnyStudy::X(s, Box::new(st))
+            }
+            AnySetup::Xy(s) => {
+                let st = xy::XyStudy::at_scenario(&s, scenario, scaling, parameters)?;
+                AnyStudy::Xy(s, Box::new(st))
+            }
+        })
+    }
+
+    /// Optimise every criterion of `criteria` (the x model in `layout`; the xy model over the
+    /// y/phi experiments) and write the study's files to `out` (which must exist): the
+    /// printable report and the main files written.
+    pub fn write_optimization(
+        &self,
+        layout: Layout,
+        criteria: &[Criterion],
+        out: &Path,
+    ) -> Result<(String, &'static str), DesignError> {
+        Ok(match self {
+            AnyStudy::X(s, st) => (
+                report::write_optimization(s, st, layout, criteria, out)?,
+                "designs.parquet and designs/*.toml",
+            ),
+            AnyStudy::Xy(_, _) if layout != Layout::Separate => {
+                return Err(DesignError::Config(format!(
+                    "--layout {} is for the lpf_x model; the lpf_xy design has one experiment per y/phi input",
+                    layout.name()
+                )))
+            }
+            AnyStudy::Xy(s, st) => (
+                xy::write_optimization(s, st, criteria, out)?,
+                "sigmas.parquet and designs/*.toml",
+            ),
+        })
+    }
 }

@@ -20,6 +20,12 @@
 //! design `E` has efficiency `phi(E) / phi(E_opt) >= phi(E) / U`. The reported maximum
 //! directional derivative is `U / phi(M)` at the approximate optimum: 1 at the optimum of the
 //! relaxation (for D-optimality it is `max_x d(x) / s` of the Kiefer-Wolfowitz theorem).
+//!
+//! With a fixed known part `M0` of the information ([`CandidateSet::base`]; the xy design's
+//! standard x experiments), `phi(M0 + M)` is concave in `M` but no longer homogeneous in it:
+//! Euler and concavity at `M0 + M` give `phi(M0 + M*) <= tr(G M0) + tr(G M*)`, so the bound is
+//! `U = tr(G M0) + sum_g N_g max_{i in g} tr(G M_i)` (the same argument applied at `M0 + M`;
+//! `M0 = 0` gives the bound above).
 
 use nalgebra::DMatrix;
 
@@ -101,8 +107,8 @@ pub fn phi_flat(np: usize, flat: &[f64], target: &Target, c: Criterion) -> f64 {
 }
 
 /// Fedorov-type exchange from `start`.
-pub fn exchange(
-    set: &CandidateSet,
+pub fn exchange<const K: usize>(
+    set: &CandidateSet<K>,
     target: &Target,
     c: Criterion,
     start: &ExactDesign,
@@ -162,8 +168,8 @@ pub fn exchange(
 
 /// The thesis's direct search: compass search on continuous cycles per (group, slot, input),
 /// snapped to the nearest grid node at every evaluation. `cycles[g][slot][input]` starts it.
-pub fn direct_search(
-    set: &CandidateSet,
+pub fn direct_search<const K: usize>(
+    set: &CandidateSet<K>,
     target: &Target,
     c: Criterion,
     start: &ExactDesign,
@@ -284,14 +290,14 @@ struct Approximate {
 }
 
 /// Directional quantities `d_i = tr(G M_i)` and the bound `U` at counts `n`.
-fn derivatives(
-    set: &CandidateSet,
+fn derivatives<const K: usize>(
+    set: &CandidateSet<K>,
     target: &Target,
     c: Criterion,
     counts: &[Vec<f64>],
 ) -> Option<(f64, Vec<Vec<f64>>, f64)> {
     let np = set.np;
-    let mut m = vec![0.0; np * np];
+    let mut m = set.base.clone().unwrap_or_else(|| vec![0.0; np * np]);
     for (g, cs) in set.groups.iter().zip(counts) {
         for (cand, &n) in g.candidates.iter().zip(cs) {
             if n > 0.0 {
@@ -321,21 +327,32 @@ fn derivatives(
                 .collect()
         })
         .collect();
-    let upper = set
-        .groups
-        .iter()
-        .zip(&d)
-        .map(|(g, dg)| g.slots as f64 * dg.iter().copied().fold(0.0, f64::max))
-        .sum();
+    // With fixed information M0 (`set.base`): phi(M0 + M*) <= tr(G (M0 + M*)) (Euler plus
+    // concavity at M0 + M) = tr(G M0) + tr(G M*).
+    let fixed: f64 = set
+        .base
+        .as_ref()
+        .map_or(0.0, |b| b.iter().zip(&grad).map(|(a, g)| a * g).sum());
+    let upper = fixed
+        + set
+            .groups
+            .iter()
+            .zip(&d)
+            .map(|(g, dg)| g.slots as f64 * dg.iter().copied().fold(0.0, f64::max))
+            .sum::<f64>();
     Some((phi, d, upper))
 }
 
 /// E-optimality bound `min_alpha sum_g N_g max_{i in g} sum_k alpha_k (P v_k)^T M_i (P v_k)` over
 /// the simplex (`lambda_min(I~(M*)) <= tr(W I~(M*)) <= tr(P W P^T M*)` for any `W = sum_k
 /// alpha_k v_k v_k^T`, `tr W = 1`), minimised by exponentiated subgradient steps.
-fn e_bound(set: &CandidateSet, target: &Target, counts: &[Vec<f64>]) -> Option<f64> {
+fn e_bound<const K: usize>(
+    set: &CandidateSet<K>,
+    target: &Target,
+    counts: &[Vec<f64>],
+) -> Option<f64> {
     let np = set.np;
-    let mut m = vec![0.0; np * np];
+    let mut m = set.base.clone().unwrap_or_else(|| vec![0.0; np * np]);
     for (g, cs) in set.groups.iter().zip(counts) {
         for (cand, &n) in g.candidates.iter().zip(cs) {
             if n > 0.0 {
@@ -348,11 +365,15 @@ fn e_bound(set: &CandidateSet, target: &Target, counts: &[Vec<f64>]) -> Option<f
     let ev = Evaluation::new(&dmat(np, &m), target)?;
     let pv = ev.projected_eigenvectors(target);
     let s = pv.len();
-    // d[g][i][k] = (P v_k)^T M_i (P v_k)
+    // d[g][i][k] = (P v_k)^T M_i (P v_k); d0[k] = (P v_k)^T M0 (P v_k) for the fixed part.
     let d = quad_forms(set, &pv);
+    let d0: Vec<f64> = match &set.base {
+        Some(b) => pv.iter().map(|u| quad_form(np, b, u)).collect(),
+        None => vec![0.0; s],
+    };
     let bound = |alpha: &[f64]| -> (f64, Vec<f64>) {
-        let mut total = 0.0;
-        let mut grad = vec![0.0; s];
+        let mut total: f64 = d0.iter().zip(alpha).map(|(a, b)| a * b).sum();
+        let mut grad = d0.clone();
         for (g, dg) in set.groups.iter().zip(&d) {
             let (best, val) = dg
                 .iter()
@@ -397,13 +418,13 @@ const E_SMOOTH_P: f64 = -12.0;
 
 /// Directional derivatives of `phi_p(I~) = (tr I~^p / s)^(1/p)` up to a positive factor:
 /// `d_i = sum_k lambda_k^(p-1) (P v_k)^T M_i (P v_k)`, normalised to a maximum of 1.
-fn e_smooth_derivatives(
-    set: &CandidateSet,
+fn e_smooth_derivatives<const K: usize>(
+    set: &CandidateSet<K>,
     target: &Target,
     counts: &[Vec<f64>],
 ) -> Option<Vec<Vec<f64>>> {
     let np = set.np;
-    let mut m = vec![0.0; np * np];
+    let mut m = set.base.clone().unwrap_or_else(|| vec![0.0; np * np]);
     for (g, cs) in set.groups.iter().zip(counts) {
         for (cand, &n) in g.candidates.iter().zip(cs) {
             for (a, b) in m.iter_mut().zip(&cand.info) {
@@ -444,33 +465,32 @@ fn e_smooth_derivatives(
     })
 }
 
+/// `u^T M u` of a row-major `np x np` matrix.
+fn quad_form(np: usize, m: &[f64], u: &[f64]) -> f64 {
+    let mut acc = 0.0;
+    for i in 0..np {
+        let row: f64 = (0..np).map(|j| m[i * np + j] * u[j]).sum();
+        acc += u[i] * row;
+    }
+    acc
+}
+
 /// `q[g][i][k] = u_k^T M_i u_k`.
-fn quad_forms(set: &CandidateSet, pv: &[Vec<f64>]) -> Vec<Vec<Vec<f64>>> {
+fn quad_forms<const K: usize>(set: &CandidateSet<K>, pv: &[Vec<f64>]) -> Vec<Vec<Vec<f64>>> {
     let np = set.np;
     set.groups
         .iter()
         .map(|g| {
             g.candidates
                 .iter()
-                .map(|cand| {
-                    pv.iter()
-                        .map(|u| {
-                            let mut acc = 0.0;
-                            for i in 0..np {
-                                let row: f64 = (0..np).map(|j| cand.info[i * np + j] * u[j]).sum();
-                                acc += u[i] * row;
-                            }
-                            acc
-                        })
-                        .collect()
-                })
+                .map(|cand| pv.iter().map(|u| quad_form(np, &cand.info, u)).collect())
                 .collect()
         })
         .collect()
 }
 
-fn multiplicative(
-    set: &CandidateSet,
+fn multiplicative<const K: usize>(
+    set: &CandidateSet<K>,
     target: &Target,
     cfg: &OptimizeConfig,
 ) -> Result<Approximate, DesignError> {
@@ -536,7 +556,7 @@ fn multiplicative(
 
 /// Round approximate counts to an exact design (efficient rounding per group over the points
 /// holding at least 1% of the group's stretches).
-fn round(set: &CandidateSet, counts: &[Vec<f64>]) -> ExactDesign {
+fn round<const K: usize>(set: &CandidateSet<K>, counts: &[Vec<f64>]) -> ExactDesign {
     let choice = set
         .groups
         .iter()
@@ -563,8 +583,8 @@ fn round(set: &CandidateSet, counts: &[Vec<f64>]) -> ExactDesign {
 /// Optimise `cfg.criterion` over the exact designs of `set`: direct search and exchange from
 /// `start` (typically the standard design), multiplicative algorithm + rounding + exchange; the
 /// best design carries the certificate.
-pub fn optimize(
-    set: &CandidateSet,
+pub fn optimize<const K: usize>(
+    set: &CandidateSet<K>,
     target: &Target,
     cfg: &OptimizeConfig,
     start: &ExactDesign,

@@ -21,7 +21,7 @@ use realfft::RealFftPlanner;
 use super::DesignError;
 use crate::model::{transfer, transfer_with_derivatives, CMat, ClosedLoopModel};
 use crate::numerics::tol::{same_time, SAME_TIME};
-use crate::setup::Setup;
+use crate::setup::{Setup, SetupOf, SpecModel};
 use crate::signal::{Design, Experiment, Stretch};
 
 /// Number of guidance inputs of the LPF-x model.
@@ -29,7 +29,9 @@ pub const INPUTS: usize = 2;
 /// Number of operating constraints per stretch.
 pub const CONSTRAINTS: usize = 4;
 
-/// An operating constraint (thesis ch. 5 list; `[constraints]` of the model file).
+/// An operating constraint (thesis ch. 5 list; `[constraints]` of the model file). The first
+/// [`CONSTRAINTS`] are the x model's ([`Constraint::ALL`]); the xy model's design adds the y/phi
+/// ones ([`Constraint::ALL_XY`], see [`crate::design::xy`]). The variant order is the index.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Constraint {
     /// `|T_{oi->o1}| a <= o_max_m`.
@@ -40,6 +42,26 @@ pub enum Constraint {
     Thruster,
     /// `m_tm |T_{oi->fc}[row 2]| a <= suspension_force_max_n`.
     Suspension,
+    /// `|T_{oi->oy1}| a <= o_y_max_m`.
+    ReadoutY1,
+    /// `|T_{oi->oy2}| a <= o_y_max_m`.
+    ReadoutY2,
+    /// `|T_{oi->ophi1}| a <= o_phi_max_rad`.
+    ReadoutPhi1,
+    /// `|T_{oi->ophi2}| a <= o_phi_max_rad`.
+    ReadoutPhi2,
+    /// `|T_{oi->ophisc}| a <= o_phisc_max_rad`.
+    ReadoutPhiSc,
+    /// y drag-free force `m_sc |u_y1 + u_y2| / 2 <= thruster_force_max_n`.
+    ThrusterY,
+    /// y drag-free torque `I_sc |u_y1 - u_y2| / L <= thruster_torque_max_nm`.
+    ThrusterTorque,
+    /// `I_tm |u_phi1| <= tm_torque_max_nm`.
+    TorqueTm1,
+    /// `I_tm |u_phi2| <= tm_torque_max_nm`.
+    TorqueTm2,
+    /// attitude loop's TM y forces `m_tm (L/2) |u_phisc| <= suspension_force_max_n`.
+    SuspensionY,
 }
 
 impl Constraint {
@@ -48,6 +70,24 @@ impl Constraint {
         Constraint::ReadoutO12,
         Constraint::Thruster,
         Constraint::Suspension,
+    ];
+
+    /// The xy model's constraints: the x model's, then the y/phi ones.
+    pub const ALL_XY: [Constraint; 14] = [
+        Constraint::ReadoutO1,
+        Constraint::ReadoutO12,
+        Constraint::Thruster,
+        Constraint::Suspension,
+        Constraint::ReadoutY1,
+        Constraint::ReadoutY2,
+        Constraint::ReadoutPhi1,
+        Constraint::ReadoutPhi2,
+        Constraint::ReadoutPhiSc,
+        Constraint::ThrusterY,
+        Constraint::ThrusterTorque,
+        Constraint::TorqueTm1,
+        Constraint::TorqueTm2,
+        Constraint::SuspensionY,
     ];
 
     pub fn index(self) -> usize {
@@ -61,6 +101,16 @@ impl Constraint {
             Constraint::ReadoutO12 => "readout o12",
             Constraint::Thruster => "thruster force",
             Constraint::Suspension => "suspension force",
+            Constraint::ReadoutY1 => "readout oy1",
+            Constraint::ReadoutY2 => "readout oy2",
+            Constraint::ReadoutPhi1 => "readout ophi1",
+            Constraint::ReadoutPhi2 => "readout ophi2",
+            Constraint::ReadoutPhiSc => "readout ophisc",
+            Constraint::ThrusterY => "thruster force y",
+            Constraint::ThrusterTorque => "thruster torque",
+            Constraint::TorqueTm1 => "TM1 torque",
+            Constraint::TorqueTm2 => "TM2 torque",
+            Constraint::SuspensionY => "suspension force y",
         }
     }
 
@@ -68,28 +118,61 @@ impl Constraint {
     pub fn key(self) -> &'static str {
         match self {
             Constraint::ReadoutO1 | Constraint::ReadoutO12 => "constraints.o_max_m",
-            Constraint::Thruster => "constraints.thruster_force_max_n",
-            Constraint::Suspension => "constraints.suspension_force_max_n",
+            Constraint::Thruster | Constraint::ThrusterY => "constraints.thruster_force_max_n",
+            Constraint::Suspension | Constraint::SuspensionY => {
+                "constraints.suspension_force_max_n"
+            }
+            Constraint::ReadoutY1 | Constraint::ReadoutY2 => "constraints.o_y_max_m",
+            Constraint::ReadoutPhi1 | Constraint::ReadoutPhi2 => "constraints.o_phi_max_rad",
+            Constraint::ReadoutPhiSc => "constraints.o_phisc_max_rad",
+            Constraint::ThrusterTorque => "constraints.thruster_torque_max_nm",
+            Constraint::TorqueTm1 | Constraint::TorqueTm2 => "constraints.tm_torque_max_nm",
         }
     }
 
     pub fn unit(self) -> &'static str {
         match self {
-            Constraint::ReadoutO1 | Constraint::ReadoutO12 => "m",
+            Constraint::ReadoutO1
+            | Constraint::ReadoutO12
+            | Constraint::ReadoutY1
+            | Constraint::ReadoutY2 => "m",
+            Constraint::ReadoutPhi1 | Constraint::ReadoutPhi2 | Constraint::ReadoutPhiSc => "rad",
+            Constraint::ThrusterTorque | Constraint::TorqueTm1 | Constraint::TorqueTm2 => "N m",
             _ => "N",
         }
     }
 }
 
-/// The largest amplitude of a stretch of one input at one grid frequency.
+/// The largest amplitude of a stretch of one input at one grid frequency (`R` constraints).
 #[derive(Debug, Clone, Copy)]
-pub struct StretchLimit {
+pub struct StretchLimit<const R: usize = CONSTRAINTS> {
     pub f_hz: f64,
     /// `min_r bound_r / gain_r` [m].
     pub a_max: f64,
     pub binding: Constraint,
     /// Response per metre of injection for each constraint (m/m or N/m), in [`Constraint::ALL`] order.
-    pub gain: [f64; CONSTRAINTS],
+    pub gain: [f64; R],
+}
+
+impl<const R: usize> StretchLimit<R> {
+    /// The limit of a stretch at `f_hz` whose responses per unit amplitude are `gain` against
+    /// `bounds`, constraints `which` (same order): `a_max = min_r bound_r / gain_r`.
+    pub fn new(f_hz: f64, gain: [f64; R], bounds: &[f64; R], which: &[Constraint; R]) -> Self {
+        let (mut a_max, mut binding) = (f64::INFINITY, which[0]);
+        for r in 0..R {
+            let a = bounds[r] / gain[r];
+            if a < a_max {
+                a_max = a;
+                binding = which[r];
+            }
+        }
+        StretchLimit {
+            f_hz,
+            a_max,
+            binding,
+            gain,
+        }
+    }
 }
 
 /// Timing of every experiment of a design (fixed during the optimisation, as in the thesis).
@@ -154,11 +237,12 @@ impl Layout {
 }
 
 /// One candidate stretch of a group: cycles per input (`None` = input silent), amplitudes,
-/// binding constraint and information at those amplitudes.
+/// binding constraint and information at those amplitudes (`K` inputs: [`INPUTS`] for the x
+/// model, 7 for the xy model).
 #[derive(Debug, Clone)]
-pub struct Candidate {
-    pub cycles: [Option<usize>; INPUTS],
-    pub amplitude: [f64; INPUTS],
+pub struct Candidate<const K: usize = INPUTS> {
+    pub cycles: [Option<usize>; K],
+    pub amplitude: [f64; K],
     pub binding: Constraint,
     /// Row-major `np x np` information of one stretch.
     pub info: Vec<f64>,
@@ -166,18 +250,21 @@ pub struct Candidate {
 
 /// The stretches of one experiment: `slots` draws from `candidates`.
 #[derive(Debug, Clone)]
-pub struct Group {
+pub struct Group<const K: usize = INPUTS> {
     pub experiment: String,
     pub slots: usize,
-    pub candidates: Vec<Candidate>,
+    pub candidates: Vec<Candidate<K>>,
 }
 
 /// All groups of a layout (the exact design chooses one candidate per slot of each group).
 #[derive(Debug, Clone)]
-pub struct CandidateSet {
+pub struct CandidateSet<const K: usize = INPUTS> {
     pub layout: Layout,
     pub np: usize,
-    pub groups: Vec<Group>,
+    pub groups: Vec<Group<K>>,
+    /// Known information of experiments held fixed (row-major `np x np`; the xy design's
+    /// standard x experiments), added to every design's information. `None`: zero.
+    pub base: Option<Vec<f64>>,
 }
 
 /// An exact design: candidate index per slot per group.
@@ -273,20 +360,7 @@ impl DesignSpace {
                         m_sc * tr.oi_fc[(0, c)].norm(),
                         m_tm * tr.oi_fc[(1, c)].norm(),
                     ];
-                    let (mut a_max, mut binding) = (f64::INFINITY, Constraint::ReadoutO1);
-                    for r in Constraint::ALL {
-                        let a = bounds[r.index()] / gain[r.index()];
-                        if a < a_max {
-                            a_max = a;
-                            binding = r;
-                        }
-                    }
-                    StretchLimit {
-                        f_hz,
-                        a_max,
-                        binding,
-                        gain,
-                    }
+                    StretchLimit::new(f_hz, gain, &bounds, &Constraint::ALL)
                 })
             })
             .collect();
@@ -434,7 +508,12 @@ impl DesignSpace {
                     .collect(),
             }],
         };
-        CandidateSet { layout, np, groups }
+        CandidateSet {
+            layout,
+            np,
+            groups,
+            base: None,
+        }
     }
 
     /// Check that `design` matches this space's timing and grid (not the amplitude limits).
@@ -680,10 +759,13 @@ impl DesignSpace {
     }
 }
 
-impl CandidateSet {
-    /// Row-major information of an exact design.
+impl<const K: usize> CandidateSet<K> {
+    /// Row-major information of an exact design (with the fixed [`CandidateSet::base`]).
     pub fn information_flat(&self, d: &ExactDesign) -> Vec<f64> {
-        let mut m = vec![0.0; self.np * self.np];
+        let mut m = self
+            .base
+            .clone()
+            .unwrap_or_else(|| vec![0.0; self.np * self.np]);
         for (g, ch) in self.groups.iter().zip(&d.choice) {
             for &i in ch {
                 for (a, b) in m.iter_mut().zip(&g.candidates[i].info) {
@@ -700,7 +782,11 @@ impl CandidateSet {
 
     /// The exact design as a `signal::Design` (stretches sorted by frequency).
     pub fn to_design(&self, space: &DesignSpace, d: &ExactDesign, name: &str) -> Design {
-        let t = &space.timing;
+        self.to_design_timed(&space.timing, d, name)
+    }
+
+    /// [`CandidateSet::to_design`] with the timing `t` of any design space.
+    pub fn to_design_timed(&self, t: &Timing, d: &ExactDesign, name: &str) -> Design {
         let experiments = self
             .groups
             .iter()
@@ -708,7 +794,7 @@ impl CandidateSet {
             .map(|(g, ch)| {
                 let mut ch = ch.clone();
                 ch.sort_unstable();
-                let mut inputs: Vec<Option<Vec<Stretch>>> = vec![None; INPUTS];
+                let mut inputs: Vec<Option<Vec<Stretch>>> = vec![None; K];
                 for &i in &ch {
                     let cand = &g.candidates[i];
                     for (c, inp) in inputs.iter_mut().enumerate() {
@@ -741,7 +827,7 @@ impl CandidateSet {
     /// input); unknown combinations are an error.
     pub fn choice_of(
         &self,
-        cycles: &[Vec<[Option<usize>; INPUTS]>],
+        cycles: &[Vec<[Option<usize>; K]>],
     ) -> Result<ExactDesign, DesignError> {
         let mut choice = Vec::new();
         for (g, cy) in self.groups.iter().zip(cycles) {
@@ -773,6 +859,30 @@ fn unit_information(
     timing: &Timing,
     m_max: usize,
 ) -> Vec<[[DMatrix<f64>; INPUTS]; INPUTS]> {
+    let pairs: Vec<(usize, usize)> = (0..INPUTS)
+        .flat_map(|c1| (0..INPUTS).map(move |c| (c1, c)))
+        .collect();
+    unit_information_pairs(setup, p, timing, m_max, &pairs)
+        .into_iter()
+        .map(|v| {
+            let mut it = v.into_iter();
+            std::array::from_fn(|_| std::array::from_fn(|_| it.next().expect("INPUTS^2 pairs")))
+        })
+        .collect()
+}
+
+/// `J(m)[q]` for `m = 1..=m_max` and each pair `q = (c1, c)` of inputs of a model of dimension
+/// `N`: `J_{ab} = sum_k (4/T) w_k Re[u_{a,c1}^H S^-1 u_{b,c}]` with `u_{a,c} = dT/dp_a [:, c]`
+/// and `w_k = dt^2 |X_k|^2` the periodogram of a unit sine stretch of `m` cycles placed at
+/// `timing.start_s` in an experiment of `timing.duration_s` at the analysis rate. `(c, c)` is
+/// input `c` alone; `(c1, c)` with `c1 != c` the cross block of two inputs in one stretch.
+pub fn unit_information_pairs<M: SpecModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
+    p: &[f64],
+    timing: &Timing,
+    m_max: usize,
+    pairs: &[(usize, usize)],
+) -> Vec<Vec<DMatrix<f64>>> {
     let model = &setup.model;
     let np = model.n_params();
     let dt = setup.analysis_dt();
@@ -780,10 +890,11 @@ fn unit_information(
     let nb = n / 2 + 1;
     let duration = n as f64 * dt;
     let psd = setup.psd(p);
-    // H_k[c][c'][a][b] = Re[u_{a,c}^H S^-1 u_{b,c'}], u_{a,c} = dT/dp_a [:, c].
-    let blk = INPUTS * INPUTS * np * np;
+    // H_k[q][a][b] = Re[u_{a,c1}^H S^-1 u_{b,c}], q = (c1, c).
+    let nq = pairs.len();
+    let blk = nq * np * np;
     let mut h = vec![0.0; nb * blk];
-    let mut d = vec![CMat::<INPUTS>::zeros(); np];
+    let mut d = vec![CMat::<N>::zeros(); np];
     for k in 1..nb {
         let f = k as f64 / duration;
         let pt = model.prepare(f);
@@ -792,22 +903,23 @@ fn unit_information(
             continue;
         };
         let hk = &mut h[k * blk..(k + 1) * blk];
-        for c in 0..INPUTS {
-            // S^-1 u_{b,c}
-            let su: Vec<[Complex64; INPUTS]> = (0..np)
-                .map(|b| {
-                    std::array::from_fn(|i| (0..INPUTS).map(|j| s_inv[(i, j)] * d[b][(j, c)]).sum())
-                })
-                .collect();
-            for c1 in 0..INPUTS {
-                for a in 0..np {
-                    for (b, sub) in su.iter().enumerate() {
-                        let mut v = Complex64::new(0.0, 0.0);
-                        for i in 0..INPUTS {
-                            v += d[a][(i, c1)].conj() * sub[i];
-                        }
-                        hk[((c1 * INPUTS + c) * np + a) * np + b] = v.re;
+        // S^-1 u_{b,c} for the columns c the pairs use.
+        let mut su: Vec<Option<Vec<[Complex64; N]>>> = vec![None; N];
+        for (q, &(c1, c)) in pairs.iter().enumerate() {
+            let su = su[c].get_or_insert_with(|| {
+                (0..np)
+                    .map(|b| {
+                        std::array::from_fn(|i| (0..N).map(|j| s_inv[(i, j)] * d[b][(j, c)]).sum())
+                    })
+                    .collect()
+            });
+            for a in 0..np {
+                for (b, sub) in su.iter().enumerate() {
+                    let mut v = Complex64::new(0.0, 0.0);
+                    for i in 0..N {
+                        v += d[a][(i, c1)].conj() * sub[i];
                     }
+                    hk[(q * np + a) * np + b] = v.re;
                 }
             }
         }
@@ -835,12 +947,9 @@ fn unit_information(
                     *a += w * b;
                 }
             }
-            std::array::from_fn(|c1| {
-                std::array::from_fn(|c| {
-                    let off = (c1 * INPUTS + c) * np * np;
-                    dmat_from_flat(np, &acc[off..off + np * np])
-                })
-            })
+            (0..nq)
+                .map(|q| dmat_from_flat(np, &acc[q * np * np..(q + 1) * np * np]))
+                .collect()
         })
         .collect()
 }

@@ -23,6 +23,9 @@ use crate::model::spec::Scenario;
 use crate::setup::{Setup, DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 use crate::signal::Design;
 
+/// Default scenario of the x model's design studies.
+pub const DEFAULT_SCENARIO: &str = "monte_carlo";
+
 /// Everything a design study needs at one parameter point.
 #[derive(Debug, Clone)]
 pub struct Study {
@@ -36,14 +39,16 @@ pub struct Study {
 }
 
 impl Study {
-    /// The study at a scenario's truth, with the standard design's number of stretches.
+    /// The study at a scenario's truth (default [`DEFAULT_SCENARIO`]), with the standard
+    /// design's number of stretches.
     pub fn at_scenario(
         setup: &Setup,
-        scenario: &str,
+        scenario: Option<&str>,
         scaling: Scaling,
         parameters: Option<&[String]>,
     ) -> Result<Study, DesignError> {
-        let p = setup.spec.scenario(scenario)?.truth;
+        let sc = scenario.unwrap_or(DEFAULT_SCENARIO);
+        let p = setup.spec.scenario(sc)?.truth;
         Study::new(setup, &p, scaling, parameters, None)
     }
 

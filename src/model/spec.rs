@@ -68,6 +68,12 @@ pub struct Constants {
     /// Nominal separation `L` of the TM centres of mass [m] (the xy model's attitude arm).
     #[serde(default)]
     pub tm_separation_m: Option<f64>,
+    /// SC moment of inertia about z [kg m^2] (the xy design's thruster-torque constraint).
+    #[serde(default)]
+    pub sc_inertia_kg_m2: Option<f64>,
+    /// TM moment of inertia about z [kg m^2] (the xy design's TM-torque constraint).
+    #[serde(default)]
+    pub tm_inertia_kg_m2: Option<f64>,
 }
 
 #[derive(Debug, Clone, Deserialize)]
@@ -231,6 +237,22 @@ pub struct Constraints {
     pub thruster_force_max_n: f64,
     pub suspension_force_max_n: f64,
     pub f_max_hz: f64,
+    /// The xy design's y/phi constraints (optional; required by `design --model lpf_xy`):
+    /// capacitive y readout range [m],
+    #[serde(default)]
+    pub o_y_max_m: Option<f64>,
+    /// IFO angular readout range [rad],
+    #[serde(default)]
+    pub o_phi_max_rad: Option<f64>,
+    /// star-tracker (SC attitude) range [rad],
+    #[serde(default)]
+    pub o_phisc_max_rad: Option<f64>,
+    /// thruster torque authority about z [N m],
+    #[serde(default)]
+    pub thruster_torque_max_nm: Option<f64>,
+    /// electrostatic torque authority on a TM about z [N m].
+    #[serde(default)]
+    pub tm_torque_max_nm: Option<f64>,
 }
 
 #[derive(Debug, Clone, Deserialize)]
@@ -781,7 +803,30 @@ impl ModelSpec {
                 c.suspension_force_max_n,
             ),
             ("constraints.f_max_hz", c.f_max_hz),
-        ] {
+        ]
+        .into_iter()
+        .chain(
+            [
+                ("constraints.o_y_max_m", c.o_y_max_m),
+                ("constraints.o_phi_max_rad", c.o_phi_max_rad),
+                ("constraints.o_phisc_max_rad", c.o_phisc_max_rad),
+                (
+                    "constraints.thruster_torque_max_nm",
+                    c.thruster_torque_max_nm,
+                ),
+                ("constraints.tm_torque_max_nm", c.tm_torque_max_nm),
+                (
+                    "constants.sc_inertia_kg_m2",
+                    self.constants.sc_inertia_kg_m2,
+                ),
+                (
+                    "constants.tm_inertia_kg_m2",
+                    self.constants.tm_inertia_kg_m2,
+                ),
+            ]
+            .into_iter()
+            .filter_map(|(k, v)| v.map(|v| (k, v))),
+        ) {
             if !(v.is_finite() && v > 0.0) {
                 return Err(self.bad(k, format!("must be a finite limit > 0, got {v}")));
             }

@@ -1,0 +1,758 @@
+//! Optimal design on the 7-DOF xy model (issue 16): injections on the y and phi inputs ranked
+//! for the cross-talk coefficients, with the standard x experiments held fixed.
+//!
+//! # Design space
+//! - **Fixed part** `M0 = P + M_std` ([`CandidateSet::base`]): the model file's priors
+//!   `P = diag(prior_sigma^-2)` (a fit with those priors, `fit::Prior`) and the `standard`
+//!   injections (Exp. 1 on oi1, Exp. 2 on oi12; full FFT formula, [`design_fisher`]). The
+//!   certificate of [`super::search`] then bounds `phi(M0 + M*)` by
+//!   `tr(G M0) + sum_g N_g max_i tr(G M_i)`. The priors are needed: no injection on these
+//!   inputs separates the sensing cross-talk into o12 (`ds_2*`) from the suspension actuation
+//!   cross-talk (`d_sus_*`): the information of every candidate together has four null
+//!   directions in those nine coefficients (a sensing term `eps q` in o12 acts on the x12 loop as
+//!   the force `eps D q`, which the actuation terms reproduce), so without priors every
+//!   criterion on the cross-talk coefficients is zero for every design.
+//! - **Candidates**: one experiment per y/phi input (`oi_y1, oi_y2, oi_phi1, oi_phi2,
+//!   oi_phisc`), with the `y_phi` table's timing and number of stretches; a stretch is a sine of
+//!   `m` cycles, `1 <= m <= f_max_hz stretch_s`, at the largest amplitude the constraints allow
+//!   (fast information `a^2 J(m)` as for x, see [`super::space`]).
+//! - **Constraints** ([`Constraint::ALL_XY`], bounds from `[constraints]` and `[constants]`):
+//!   with `u_j = law_j(f) (delta_{jc} - T_{oi->o}[j, c])` the command of loop `j` per unit
+//!   injection on input `c` (`T_{oi->fc} = A_0 diag(law) (1 - T)`), the ratio bounds
+//!   `|T[r, c]| a <= o_max_r` on every readout, the x ones of [`super::space`], and
+//!   `m_sc |u_y1 + u_y2| / 2` (y thrust), `I_sc |u_y1 - u_y2| / L` (thruster torque),
+//!   `I_tm |u_phi1|`, `I_tm |u_phi2|` (TM torques) and `m_tm (L/2) |u_phisc|` (TM y forces of
+//!   the attitude loop), each times `a` within its bound.
+//! - **Targets**: the cross-talk coefficients (`d1_xy` .. `d_sus_phi2`, thesis sec. 3.5) or the
+//!   user's subset. The fit is of the x parameters, the y/phi stiffnesses and the targets: the
+//!   cross-talk coefficients that are not targets are held at the scenario's values ([`fitted`];
+//!   a study of `ds_1y1, ds_2y2` fits those two cross-talk terms only). Every fitted parameter
+//!   that is not a target is a nuisance (Schur complement, [`super::criteria`]).
+//! - **Scaling**: `natural` is 1 (the coefficients are dimensionless); `standard` and `nominal`
+//!   are the marginal Fisher sigmas of the reference design, standard + `y_phi` (the nominal
+//!   cross-talk is 0, so `max(|p|, sigma)` is that sigma).
+//!
+//! # Sigmas
+//! [`XyStudy::sigma_table`] gives each parameter's marginal sigma (full formula) for the standard
+//! design alone, standard + `y_phi` and standard + an optimum, from the data alone (Fisher) and
+//! with the priors. The x injections do not move y or phi (the cross-talk acts on x only), so
+//! with the standard design alone the y/phi and cross-talk parameters have *zero* Fisher
+//! information: their sigma is reported as infinite, and the others' come from the block of the
+//! parameters with information ([`marginal`]); when that block is singular (the confounded
+//! `ds_2*`, `d_sus_*`) the Fisher sigmas are NaN.
+
+use std::fmt::Write as _;
+use std::path::Path;
+
+use nalgebra::DMatrix;
+
+use super::criteria::{Criterion, Evaluation, Scaling, Target};
+use super::report::{file_id, toml_design};
+use super::search::{optimize, OptimizeConfig, Optimized};
+use super::space::{
+    unit_information_pairs, Candidate, CandidateSet, Constraint, ExactDesign, Group, Layout,
+    StretchLimit, Timing,
+};
+use super::{DesignError, Violation};
+use crate::io::{write_parquet, write_toml_atomic, Table};
+use crate::model::lpf_xy::{LpfXy, D1_XY, LPF_XY_PARAMETERS, PHI1, PHI2, PHISC, Y1, Y2};
+use crate::model::{check_stability, transfer, ClosedLoopModel};
+use crate::numerics::tol::SAME_TIME;
+use crate::setup::{design_fisher, SetupXy};
+use crate::signal::{Design, Stretch};
+
+/// Inputs of the xy model.
+pub const XY_INPUTS: usize = 7;
+/// The candidate inputs: y1, y2, phi1, phi2, phiSC.
+pub const AUX_INPUTS: [usize; 5] = [Y1, Y2, PHI1, PHI2, PHISC];
+/// Number of constraints of the xy design.
+pub const XY_CONSTRAINTS: usize = Constraint::ALL_XY.len();
+/// The model file's reference y/phi injections.
+pub const REFERENCE: &str = "y_phi";
+/// Default scenario of the xy design (every kind of cross-talk at 1e-3).
+pub const DEFAULT_SCENARIO: &str = "crosstalk";
+
+type Result<T> = std::result::Result<T, DesignError>;
+
+/// The cross-talk coefficients of thesis sec. 3.5 among `all` (the default targets).
+pub fn crosstalk_names(all: &[String]) -> Vec<String> {
+    all.iter()
+        .filter(|n| LPF_XY_PARAMETERS[D1_XY..].contains(&n.as_str()))
+        .cloned()
+        .collect()
+}
+
+/// The fitted parameters (indices into `all`): every parameter but the cross-talk coefficients
+/// that are not among `targets`, which are held at the scenario's values.
+pub fn fitted(all: &[String], targets: &[String]) -> Vec<usize> {
+    let crosstalk = crosstalk_names(all);
+    (0..all.len())
+        .filter(|&i| !crosstalk.contains(&all[i]) || targets.contains(&all[i]))
+        .collect()
+}
+
+/// The block of `m` on the parameters `keep`.
+fn block(m: &DMatrix<f64>, keep: &[usize]) -> DMatrix<f64> {
+    DMatrix::from_fn(keep.len(), keep.len(), |a, b| m[(keep[a], keep[b])])
+}
+
+/// The bounds of [`Constraint::ALL_XY`] and the constants the responses need.
+#[derive(Debug, Clone, Copy)]
+struct Bounds {
+    bound: [f64; XY_CONSTRAINTS],
+    m_sc: f64,
+    m_tm: f64,
+    i_sc: f64,
+    i_tm: f64,
+}
+
+impl Bounds {
+    fn of(setup: &SetupXy) -> Result<Bounds> {
+        let spec = &setup.spec;
+        let (c, k) = (&spec.constraints, &spec.constants);
+        let need = |key: &str, v: Option<f64>| {
+            v.filter(|v| v.is_finite() && *v > 0.0).ok_or_else(|| {
+                DesignError::Config(format!(
+                    "{}: key '{key}': required by the xy design, a finite limit > 0 (see src/model/lpf_xy.toml), got {v:?}",
+                    spec.origin
+                ))
+            })
+        };
+        let o_y = need("constraints.o_y_max_m", c.o_y_max_m)?;
+        let o_phi = need("constraints.o_phi_max_rad", c.o_phi_max_rad)?;
+        let o_phisc = need("constraints.o_phisc_max_rad", c.o_phisc_max_rad)?;
+        let torque = need(
+            "constraints.thruster_torque_max_nm",
+            c.thruster_torque_max_nm,
+        )?;
+        let tm_torque = need("constraints.tm_torque_max_nm", c.tm_torque_max_nm)?;
+        let (thr, sus) = (c.thruster_force_max_n, c.suspension_force_max_n);
+        Ok(Bounds {
+            bound: [
+                c.o_max_m, c.o_max_m, thr, sus, o_y, o_y, o_phi, o_phi, o_phisc, thr, torque,
+                tm_torque, tm_torque, sus,
+            ],
+            m_sc: k.m_sc,
+            m_tm: k.m_tm,
+            i_sc: need("constants.sc_inertia_kg_m2", k.sc_inertia_kg_m2)?,
+            i_tm: need("constants.tm_inertia_kg_m2", k.tm_inertia_kg_m2)?,
+        })
+    }
+
+    /// The limit of a unit stretch on input `c` at `f_hz` (responses in [`Constraint::ALL_XY`]
+    /// order; module docs).
+    fn limit(&self, model: &LpfXy, p: &[f64], c: usize, f_hz: f64) -> StretchLimit<XY_CONSTRAINTS> {
+        let pt = model.prepare(f_hz);
+        let tr = transfer(model, &pt, p);
+        let kron = |j: usize| if j == c { 1.0 } else { 0.0 };
+        let u = |j: usize| LpfXy::law_at(&pt, j) * (kron(j) - tr.oi_o[(j, c)]);
+        let t = |r: usize| tr.oi_o[(r, c)].norm();
+        let l = model.big_l;
+        let gain = [
+            t(0),
+            t(1),
+            self.m_sc * tr.oi_fc[(0, c)].norm(),
+            self.m_tm * tr.oi_fc[(1, c)].norm(),
+            t(Y1),
+            t(Y2),
+            t(PHI1),
+            t(PHI2),
+            t(PHISC),
+            self.m_sc * (u(Y1) + u(Y2)).norm() / 2.0,
+            self.i_sc * (u(Y1) - u(Y2)).norm() / l,
+            self.i_tm * u(PHI1).norm(),
+            self.i_tm * u(PHI2).norm(),
+            self.m_tm * 0.5 * l * u(PHISC).norm(),
+        ];
+        StretchLimit::new(f_hz, gain, &self.bound, &Constraint::ALL_XY)
+    }
+}
+
+impl Bounds {
+    /// `design` with each stretch's amplitudes scaled by the largest factor `<= 1` that keeps
+    /// every constraint (triangle bound over the inputs sharing the stretch); frequencies are
+    /// kept, even above `f_max_hz`.
+    fn clip(&self, model: &LpfXy, p: &[f64], design: &Design) -> Design {
+        let mut d = design.clone();
+        d.name = format!("{}_clipped", design.name);
+        for e in &mut d.experiments {
+            let n = e
+                .inputs
+                .iter()
+                .flatten()
+                .map(|v| v.len())
+                .max()
+                .unwrap_or(0);
+            for k in 0..n {
+                let lims: Vec<_> = (e.inputs.iter().enumerate())
+                    .filter_map(|(c, v)| Some((c, v.as_ref()?.get(k)?)))
+                    .filter(|(_, s)| s.amplitude != 0.0 && s.f_hz != 0.0)
+                    .map(|(c, s)| (self.limit(model, p, c, s.f_hz), s.amplitude.abs()))
+                    .collect();
+                let lambda = (0..XY_CONSTRAINTS)
+                    .map(|r| {
+                        let resp: f64 = lims.iter().map(|(l, a)| l.gain[r] * a).sum();
+                        self.bound[r] / resp
+                    })
+                    .fold(1.0, f64::min);
+                for s in e.inputs.iter_mut().flatten().filter_map(|v| v.get_mut(k)) {
+                    s.amplitude *= lambda;
+                }
+            }
+        }
+        d
+    }
+}
+
+/// Everything the xy design needs at one parameter point.
+#[derive(Debug, Clone)]
+pub struct XyStudy {
+    pub p: Vec<f64>,
+    pub timing: Timing,
+    /// The fitted parameters' names and their indices among the model's parameters: every
+    /// parameter but the cross-talk coefficients that are not targets ([`fitted`]). Every
+    /// matrix of the study is over these.
+    pub parameter_names: Vec<String>,
+    pub fitted: Vec<usize>,
+    pub input_names: Vec<String>,
+    pub f_max_hz: f64,
+    /// Highest number of cycles per stretch.
+    pub m_max: usize,
+    /// `limits[k][m - 1]`: the limit of `AUX_INPUTS[k]` at `m` cycles.
+    pub limits: Vec<Vec<StretchLimit<XY_CONSTRAINTS>>>,
+    /// `unit[m - 1][k]`: information of a unit stretch of `m` cycles on `AUX_INPUTS[k]`.
+    unit: Vec<Vec<DMatrix<f64>>>,
+    bounds: Bounds,
+    /// The fixed x experiments (`standard`) and their information (full formula).
+    pub standard: Design,
+    pub standard_information: DMatrix<f64>,
+    /// The priors' information `diag(prior_sigma^-2)` (0 without a prior).
+    pub prior: DMatrix<f64>,
+    /// The model file's y/phi injections (`y_phi`) and the same with every stretch scaled into
+    /// the constraints ([`XyStudy::clip`]): the reference the optimum must beat.
+    pub reference: Design,
+    pub reference_clipped: Design,
+    pub target: Target,
+    pub scaling: Scaling,
+}
+
+impl XyStudy {
+    /// The study at a scenario's truth (default [`DEFAULT_SCENARIO`]).
+    pub fn at_scenario(
+        setup: &SetupXy,
+        scenario: Option<&str>,
+        scaling: Scaling,
+        parameters: Option<&[String]>,
+    ) -> Result<XyStudy> {
+        let p = setup
+            .spec
+            .scenario(scenario.unwrap_or(DEFAULT_SCENARIO))?
+            .truth;
+        XyStudy::new(setup, &p, scaling, parameters)
+    }
+
+    /// The design space with the `y_phi` table's timing and stretch count, at parameters `p`.
+    pub fn new(
+        setup: &SetupXy,
+        p: &[f64],
+        scaling: Scaling,
+        parameters: Option<&[String]>,
+    ) -> Result<XyStudy> {
+        let bounds = Bounds::of(setup)?;
+        let standard = setup.design("standard")?;
+        let reference = setup.design(REFERENCE)?;
+        let slots = reference
+            .experiments
+            .iter()
+            .flat_map(|e| e.inputs.iter().flatten())
+            .map(|s| s.len())
+            .max()
+            .unwrap_or(1);
+        let timing = super::DesignSpace::timing_of(&reference, slots);
+        check_stability(&setup.model, p, Some(&setup.spec.nominal()))?;
+        let nyquist = 0.5 * setup.spec.sampling.analyse_hz;
+        let f_max_hz = setup.spec.constraints.f_max_hz.min(nyquist);
+        let m_max = (f_max_hz * timing.stretch_s * (1.0 + SAME_TIME)).floor() as usize;
+        if m_max == 0 {
+            return Err(DesignError::Config(format!(
+                "{}: key 'constraints.f_max_hz' = {} Hz is below one cycle per stretch of {} s",
+                setup.spec.origin, f_max_hz, timing.stretch_s
+            )));
+        }
+        let limits = AUX_INPUTS
+            .iter()
+            .map(|&c| {
+                (1..=m_max)
+                    .map(|m| bounds.limit(&setup.model, p, c, m as f64 / timing.stretch_s))
+                    .collect()
+            })
+            .collect();
+        let pairs: Vec<(usize, usize)> = AUX_INPUTS.iter().map(|&c| (c, c)).collect();
+        let all = setup.parameter_names();
+        let targets = match parameters {
+            Some(t) => t.to_vec(),
+            None => crosstalk_names(&all),
+        };
+        let fitted = fitted(&all, &targets);
+        let names: Vec<String> = fitted.iter().map(|&i| all[i].clone()).collect();
+        let unit = unit_information_pairs(setup, p, &timing, m_max, &pairs)
+            .iter()
+            .map(|v| v.iter().map(|m| block(m, &fitted)).collect())
+            .collect();
+        let standard_information = block(&design_fisher(setup, &standard, p), &fitted);
+        let prior = DMatrix::from_diagonal(&nalgebra::DVector::from_iterator(
+            fitted.len(),
+            fitted.iter().map(|&i| {
+                let q = &setup.spec.parameters[i];
+                q.prior_sigma.map_or(0.0, |s| 1.0 / (s * s))
+            }),
+        ));
+        let reference_information = block(&design_fisher(setup, &reference, p), &fitted);
+        let sigma_ref = marginal(&(&prior + &standard_information + reference_information));
+        let scales = match scaling {
+            Scaling::Natural => vec![1.0; names.len()],
+            _ => sigma_ref,
+        };
+        let target = Target::new(&names, &targets, &scales).map_err(|e| {
+            DesignError::Config(format!(
+                "{e} (scaling {}: the sigmas of standard + {REFERENCE}; try --scaling natural)",
+                scaling.name()
+            ))
+        })?;
+        Ok(XyStudy {
+            p: p.to_vec(),
+            timing,
+            parameter_names: names,
+            fitted,
+            input_names: setup
+                .model
+                .input_names()
+                .iter()
+                .map(|s| s.to_string())
+                .collect(),
+            f_max_hz,
+            m_max,
+            limits,
+            unit,
+            bounds,
+            standard,
+            standard_information,
+            prior,
+            reference_clipped: bounds.clip(&setup.model, p, &reference),
+            reference,
+            target,
+            scaling,
+        })
+    }
+
+    /// One group per y/phi input (`exp_<input>`), each of `timing.slots` stretches drawn from
+    /// the grid at the largest allowed amplitudes, over the fixed standard information.
+    pub fn candidates(&self) -> CandidateSet<XY_INPUTS> {
+        let np = self.parameter_names.len();
+        let groups = AUX_INPUTS
+            .iter()
+            .enumerate()
+            .map(|(k, &c)| Group {
+                experiment: format!("exp_{}", self.input_names[c]),
+                slots: self.timing.slots,
+                candidates: (1..=self.m_max)
+                    .map(|m| {
+                        let lim = &self.limits[k][m - 1];
+                        let mut cycles = [None; XY_INPUTS];
+                        cycles[c] = Some(m);
+                        let mut amplitude = [0.0; XY_INPUTS];
+                        amplitude[c] = lim.a_max;
+                        let u = &self.unit[m - 1][k];
+                        let a2 = lim.a_max * lim.a_max;
+                        Candidate {
+                            cycles,
+                            amplitude,
+                            binding: lim.binding,
+                            info: (0..np * np).map(|i| a2 * u[(i / np, i % np)]).collect(),
+                        }
+                    })
+                    .collect(),
+            })
+            .collect();
+        CandidateSet {
+            layout: Layout::Separate,
+            np,
+            groups,
+            base: Some(self.fixed().as_slice().to_vec()),
+        }
+    }
+
+    /// The reference's cycles (clamped to the grid) as the starting exact design.
+    pub fn start(&self, set: &CandidateSet<XY_INPUTS>) -> Result<ExactDesign> {
+        let t = self.timing.stretch_s;
+        let cycles: Vec<Vec<[Option<usize>; XY_INPUTS]>> = AUX_INPUTS
+            .iter()
+            .map(|&c| {
+                let e = self
+                    .reference
+                    .experiments
+                    .iter()
+                    .find_map(|e| e.inputs.get(c)?.as_ref().filter(|v| !v.is_empty()));
+                let mut cyc: Vec<usize> = e.map_or_else(Vec::new, |v| {
+                    v.iter()
+                        .map(|s| ((s.f_hz * t).round() as usize).clamp(1, self.m_max))
+                        .collect()
+                });
+                cyc.resize(self.timing.slots, 1);
+                cyc.iter()
+                    .map(|&m| {
+                        let mut a = [None; XY_INPUTS];
+                        a[c] = Some(m);
+                        a
+                    })
+                    .collect()
+            })
+            .collect();
+        set.choice_of(&cycles)
+    }
+
+    /// Optimise `criterion` over the y/phi candidates.
+    pub fn optimize(&self, criterion: Criterion) -> Result<(CandidateSet<XY_INPUTS>, Optimized)> {
+        let set = self.candidates();
+        let start = self.start(&set)?;
+        let opt = optimize(&set, &self.target, &OptimizeConfig::new(criterion), &start)?;
+        Ok((set, opt))
+    }
+
+    /// Every constraint violation of `design`'s stretches (f above `f_max_hz`, or a response
+    /// above its bound under the triangle bound over the inputs sharing a stretch).
+    pub fn violations(&self, setup: &SetupXy, design: &Design) -> Vec<DesignError> {
+        let mut out = Vec::new();
+        for e in &design.experiments {
+            let n = e
+                .inputs
+                .iter()
+                .flatten()
+                .map(|v| v.len())
+                .max()
+                .unwrap_or(0);
+            for k in 0..n {
+                let active: Vec<(usize, &Stretch)> = e
+                    .inputs
+                    .iter()
+                    .enumerate()
+                    .filter_map(|(c, v)| Some((c, v.as_ref()?.get(k)?)))
+                    .filter(|(_, s)| s.amplitude != 0.0 && s.f_hz != 0.0)
+                    .collect();
+                let Some(&(c0, s0)) = active.first() else {
+                    continue;
+                };
+                let mut v = Violation {
+                    design: design.name.clone(),
+                    experiment: e.name.clone(),
+                    input: active
+                        .iter()
+                        .map(|(c, _)| self.input_names[*c].as_str())
+                        .collect::<Vec<_>>()
+                        .join(" + "),
+                    stretch: k,
+                    f_hz: s0.f_hz,
+                    amplitude: s0.amplitude,
+                    constraint: String::new(),
+                    detail: String::new(),
+                };
+                if let Some((_, s)) = active
+                    .iter()
+                    .find(|(_, s)| s.f_hz > self.f_max_hz * (1.0 + SAME_TIME))
+                {
+                    v.constraint = "frequency".into();
+                    v.detail = format!(
+                        "f = {:.6e} Hz is above constraints.f_max_hz = {:.6e} Hz",
+                        s.f_hz, self.f_max_hz
+                    );
+                    out.push(DesignError::Constraint(Box::new(v.clone())));
+                }
+                let lims: Vec<_> = active
+                    .iter()
+                    .map(|(c, s)| {
+                        (
+                            self.bounds.limit(&setup.model, &self.p, *c, s.f_hz),
+                            s.amplitude.abs(),
+                        )
+                    })
+                    .collect();
+                let worst = Constraint::ALL_XY
+                    .iter()
+                    .map(|r| {
+                        let resp: f64 = lims.iter().map(|(l, a)| l.gain[r.index()] * a).sum();
+                        (resp / self.bounds.bound[r.index()], *r, resp)
+                    })
+                    .max_by(|a, b| a.0.total_cmp(&b.0))
+                    .expect("constraints");
+                // Beyond the 1e-6 rounding of the scaled amplitudes.
+                if worst.0 > 1.0 + 1e-6 {
+                    let (ratio, r, resp) = worst;
+                    v.constraint = r.name().into();
+                    v.detail = format!(
+                        "response {resp:.4e} {} exceeds {} = {:.4e} {} by a factor {ratio:.3}; the largest amplitude of {} alone here is {:.4e}",
+                        r.unit(),
+                        r.key(),
+                        self.bounds.bound[r.index()],
+                        r.unit(),
+                        self.input_names[c0],
+                        lims[0].0.a_max
+                    );
+                    out.push(DesignError::Constraint(Box::new(v)));
+                }
+            }
+        }
+        out
+    }
+}
+
+/// Relative eigenvalue of the diagonally normalised information below which a direction is
+/// unidentified: the structural null directions of the xy cross-talk are at 1e-15 .. 4e-13, the
+/// weakest identified one at 1e-9 (every candidate together, scenario `crosstalk`).
+pub const NULL_EIGENVALUE: f64 = 1e-11;
+
+/// Marginal sigmas of every parameter from an information matrix that may be singular: with
+/// `A = D^-1/2 I D^-1/2` (`D = diag I`) and its eigenpairs `(lambda_k, v_k)`, a parameter with a
+/// weight `sum_{lambda_k < NULL_EIGENVALUE} v_ik^2 > 1e-6` on the null directions is not
+/// identified (infinite sigma, as is one with zero information); the others have
+/// `sigma_i^2 = sum_{lambda_k >= NULL_EIGENVALUE} v_ik^2 / (lambda_k I_ii)` (the pseudo-inverse,
+/// which is the inverse when `I` is regular).
+pub fn marginal(info: &DMatrix<f64>) -> Vec<f64> {
+    let n = info.nrows();
+    let scale = (0..n).map(|i| info[(i, i)].abs()).fold(0.0, f64::max);
+    // A row of an information matrix is zero when its diagonal is: (I_ii I_jj >= I_ij^2).
+    let keep: Vec<usize> = (0..n)
+        .filter(|&i| info[(i, i)] > 1e-300_f64.max(1e-30 * scale))
+        .collect();
+    let d: Vec<f64> = keep.iter().map(|&i| info[(i, i)].sqrt()).collect();
+    let a = DMatrix::from_fn(keep.len(), keep.len(), |x, y| {
+        info[(keep[x], keep[y])] / (d[x] * d[y])
+    });
+    let eig = a.symmetric_eigen();
+    let mut out = vec![f64::INFINITY; n];
+    for (x, &i) in keep.iter().enumerate() {
+        let (mut null, mut var) = (0.0, 0.0);
+        for (k, &l) in eig.eigenvalues.iter().enumerate() {
+            let v2 = eig.eigenvectors[(x, k)].powi(2);
+            if l < NULL_EIGENVALUE {
+                null += v2;
+            } else {
+                var += v2 / l;
+            }
+        }
+        if null <= 1e-6 {
+            out[i] = var.sqrt() / d[x];
+        }
+    }
+    out
+}
+
+/// Per parameter, in the order (a) the standard x design alone, (b) with the `y_phi` table,
+/// (b') with the table clipped to the constraints, (c) with an optimum: the marginal sigmas of
+/// the data alone ([`marginal`] of the Fisher information, full formula) and with the priors.
+pub struct SigmaTable {
+    pub names: Vec<String>,
+    pub fisher: [Vec<f64>; 4],
+    pub posterior: [Vec<f64>; 4],
+}
+
+/// The designs of a [`SigmaTable`], in its order.
+pub const SIGMA_COLUMNS: [&str; 4] = ["standard", "y_phi", "y_phi_clipped", "optimum"];
+
+impl XyStudy {
+    /// The fixed information `M0`: the priors and the standard x experiments (row-major order
+    /// is column-major order: `M0` is symmetric).
+    pub fn fixed(&self) -> DMatrix<f64> {
+        &self.prior + &self.standard_information
+    }
+
+    /// The sigmas of the standard design alone and with `y_phi`, `y_phi` clipped and `optimum`.
+    pub fn sigma_table(&self, setup: &SetupXy, optimum: &Design) -> SigmaTable {
+        let with = |d: &Design| {
+            &self.standard_information + block(&design_fisher(setup, d, &self.p), &self.fitted)
+        };
+        let data = [
+            self.standard_information.clone(),
+            with(&self.reference),
+            with(&self.reference_clipped),
+            with(optimum),
+        ];
+        SigmaTable {
+            names: self.parameter_names.clone(),
+            fisher: data.clone().map(|m| marginal(&m)),
+            posterior: data.map(|m| marginal(&(m + &self.prior))),
+        }
+    }
+
+    /// `phi(c)` of the priors, standard and `design` (full formula), 0 when singular.
+    pub fn phi_full(&self, setup: &SetupXy, design: &Design, c: Criterion) -> f64 {
+        let info = self.fixed() + block(&design_fisher(setup, design, &self.p), &self.fitted);
+        Evaluation::new(&info, &self.target).map_or(0.0, |e| e.phi(c))
+    }
+}
+
+/// The optimum of every criterion: designs/*.toml (the y/phi experiments), `sigmas.parquet`
+/// (per criterion and parameter: the sigmas of [`SigmaTable`] and the certificate) and
+/// the printable report (certificate, methods, injections, the target parameters' sigmas).
+pub fn write_optimization(
+    setup: &SetupXy,
+    st: &XyStudy,
+    criteria: &[Criterion],
+    out: &Path,
+) -> Result<String> {
+    crate::io::ensure_dir(out.join("designs"))?;
+    let mut report = String::new();
+    let ref_violations = st.violations(setup, &st.reference);
+    let _ = writeln!(
+        report,
+        "xy design at p = scenario truth; {} fitted parameters (cross-talk not among the targets held known); fixed: priors and standard ({} x experiments); candidates: {} experiments of {} stretches on {}; targets ({}, scaling {}): {}",
+        st.fitted.len(),
+        st.standard.experiments.len(),
+        AUX_INPUTS.len(),
+        st.timing.slots,
+        AUX_INPUTS.map(|c| st.input_names[c].as_str()).join(", "),
+        st.target.s(),
+        st.scaling.name(),
+        st.target.names.join(", ")
+    );
+    let _ = writeln!(
+        report,
+        "reference {REFERENCE}: {} constraint violation(s){}; clipped to the constraints: {} (frequencies above f_max_hz are kept)",
+        ref_violations.len(),
+        ref_violations
+            .first()
+            .map_or(String::new(), |v| format!(" (first: {v})")),
+        st.violations(setup, &st.reference_clipped).len()
+    );
+    let mut rows: Vec<Row> = Vec::new();
+    for &c in criteria {
+        let (set, opt) = st.optimize(c)?;
+        let id = format!("{}/xy", c.name());
+        let d = set.to_design_timed(&st.timing, &opt.design, &id);
+        write_toml_atomic(
+            out.join("designs").join(format!("{}.toml", file_id(&id))),
+            &toml_design(&d),
+        )?;
+        let cert = opt.certificate;
+        let _ = writeln!(
+            report,
+            "{id}: phi = {:.6e} (full formula: optimum {:.6e}, {REFERENCE} {:.6e}, {REFERENCE} clipped {:.6e}); certificate: upper bound {:.6e}, max directional derivative {:.6}, efficiency >= {:.4}; {} violation(s)",
+            opt.phi,
+            st.phi_full(setup, &d, c),
+            st.phi_full(setup, &st.reference, c),
+            st.phi_full(setup, &st.reference_clipped, c),
+            cert.upper_bound,
+            cert.max_directional_derivative,
+            cert.efficiency_lower_bound,
+            st.violations(setup, &d).len()
+        );
+        for m in &opt.methods {
+            let _ = writeln!(
+                report,
+                "  {:<34} phi = {:.6e} ({} evaluations)",
+                m.method, m.phi, m.evaluations
+            );
+        }
+        report.push_str(&describe(st, &d));
+        report.push_str(&sigma_lines(
+            st,
+            &st.sigma_table(setup, &d),
+            &id,
+            &mut rows,
+            cert,
+        ));
+    }
+    let names = &st.parameter_names;
+    let mut table = Table::new()
+        .with_str(
+            "design_id",
+            rows.iter().map(|r| r.0.clone()).collect::<Vec<_>>(),
+        )?
+        .with_str(
+            "parameter",
+            rows.iter().map(|r| names[r.1].clone()).collect::<Vec<_>>(),
+        )?
+        .with_bool(
+            "target",
+            rows.iter()
+                .map(|r| st.target.indices.contains(&r.1))
+                .collect(),
+        )?;
+    for (j, col) in SIGMA_COLUMNS.iter().enumerate() {
+        table = table
+            .with_f64(
+                format!("fisher_sigma_{col}"),
+                rows.iter().map(|r| r.2[j]).collect(),
+            )?
+            .with_f64(
+                format!("prior_sigma_{col}"),
+                rows.iter().map(|r| r.3[j]).collect(),
+            )?;
+    }
+    let table = table.with_f64("efficiency_lower_bound", rows.iter().map(|r| r.4).collect())?;
+    write_parquet(out.join("sigmas.parquet"), &table)?;
+    Ok(report)
+}
+
+/// A row of `sigmas.parquet`: design id, parameter index, Fisher and with-prior sigmas in
+/// [`SIGMA_COLUMNS`] order, efficiency bound.
+type Row = (String, usize, [f64; 4], [f64; 4], f64);
+
+/// The targets' lines of the report for the optimum `id`; every parameter's row into `rows`.
+fn sigma_lines(
+    st: &XyStudy,
+    tab: &SigmaTable,
+    id: &str,
+    rows: &mut Vec<Row>,
+    cert: super::Certificate,
+) -> String {
+    let mut s = String::new();
+    let _ = writeln!(
+        s,
+        "  {:<11} | Fisher (inf: not identified): {:>8} {:>9} {:>9} {:>9} | with priors: {:>8} {:>9} {:>9} {:>9} | gain",
+        "parameter", "standard", "+ y_phi", "+ clipped", "+ optimum", "standard", "+ y_phi", "+ clipped", "+ optimum"
+    );
+    for (k, n) in tab.names.iter().enumerate() {
+        let f = [0, 1, 2, 3].map(|j| tab.fisher[j][k]);
+        let q = [0, 1, 2, 3].map(|j| tab.posterior[j][k]);
+        if st.target.names.contains(n) {
+            let _ = writeln!(
+                s,
+                "  {n:<11} | {:>38.3e} {:>9.3e} {:>9.3e} {:>9.3e} | {:>22.3e} {:>9.3e} {:>9.3e} {:>9.3e} | {:.2}",
+                f[0], f[1], f[2], f[3], q[0], q[1], q[2], q[3], q[2] / q[3]
+            );
+        }
+        rows.push((id.to_string(), k, f, q, cert.efficiency_lower_bound));
+    }
+    s
+}
+
+/// The y/phi injections of `d`, one line per input (mHz, cycles, amplitude in m or rad).
+fn describe(st: &XyStudy, d: &Design) -> String {
+    let mut s = String::new();
+    for e in &d.experiments {
+        for (c, inp) in e.inputs.iter().enumerate() {
+            let Some(v) = inp.as_ref().filter(|v| !v.is_empty()) else {
+                continue;
+            };
+            let parts: Vec<String> = v
+                .iter()
+                .map(|x| {
+                    format!(
+                        "{:.2} mHz ({:.0}) {:.3e}",
+                        x.f_hz * 1e3,
+                        x.f_hz * st.timing.stretch_s,
+                        x.amplitude
+                    )
+                })
+                .collect();
+            let _ = writeln!(
+                s,
+                "  {} {}: {}",
+                e.name,
+                st.input_names[c],
+                parts.join(", ")
+            );
+        }
+    }
+    s
+}
