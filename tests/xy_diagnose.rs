@@ -18,8 +18,16 @@ const DS_2Y2: f64 = -3e-3;
 /// Cross-talk the design cannot separate from the sensing one (the Fisher information of all
 /// 20 coefficients is singular: `freefall model fisher --model lpf_xy`): held at zero.
 const HELD: [&str; 10] = [
-    "d1_xy", "d1_xphi", "d2_xy", "d2_xphi", "d_df_ysc", "d_df_phisc", "d_sus_y1", "d_sus_y2",
-    "d_sus_phi1", "d_sus_phi2",
+    "d1_xy",
+    "d1_xphi",
+    "d2_xy",
+    "d2_xphi",
+    "d_df_ysc",
+    "d_df_phisc",
+    "d_sus_y1",
+    "d_sus_y2",
+    "d_sus_phi1",
+    "d_sus_phi2",
 ];
 
 fn ok(args: &[&str]) -> std::process::Output {
@@ -35,15 +43,29 @@ fn ok(args: &[&str]) -> std::process::Output {
 fn simulate(dir: &Path, scenario: &str, seed: &str) -> PathBuf {
     let out = dir.join(scenario);
     ok(&[
-        "simulate", "--model", "lpf_xy", "--scenario", scenario, "--design", "standard_xy",
-        "--seed", seed, "--out", out.to_str().unwrap(),
+        "simulate",
+        "--model",
+        "lpf_xy",
+        "--scenario",
+        scenario,
+        "--design",
+        "standard_xy",
+        "--seed",
+        seed,
+        "--out",
+        out.to_str().unwrap(),
     ]);
     out.join("dataset.toml")
 }
 
 fn diagnose(ds: &Path, out: &Path) -> Value {
     ok(&[
-        "diagnose", ds.to_str().unwrap(), "--loop", "continuous", "--no-plots", "--out",
+        "diagnose",
+        ds.to_str().unwrap(),
+        "--loop",
+        "continuous",
+        "--no-plots",
+        "--out",
         out.to_str().unwrap(),
     ]);
     serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap()
@@ -85,18 +107,29 @@ fn xy_sensing_crosstalk_is_found_by_the_xy_fit_and_by_the_diagnosis() {
 
     let fit_out = dir.path().join("fit");
     let mut args = vec![
-        "fit", ds.to_str().unwrap(), "--model", "lpf_xy", "--guess", "sensing_crosstalk",
-        "--out", fit_out.to_str().unwrap(),
+        "fit",
+        ds.to_str().unwrap(),
+        "--model",
+        "lpf_xy",
+        "--guess",
+        "sensing_crosstalk",
+        "--out",
+        fit_out.to_str().unwrap(),
     ];
     for h in HELD {
         args.extend(["--fix", h]);
     }
     ok(&args);
     let fit: Value =
-        serde_json::from_str(&std::fs::read_to_string(fit_out.join("fit.json")).unwrap())
-            .unwrap();
-    let (chi2, nu) = (fit["chi2_reduced"].as_f64().unwrap(), fit["nu"].as_f64().unwrap());
-    assert!((chi2 - 1.0).abs() < 3.0 * (2.0 / nu).sqrt(), "xy fit chi2/nu {chi2} (nu {nu})");
+        serde_json::from_str(&std::fs::read_to_string(fit_out.join("fit.json")).unwrap()).unwrap();
+    let (chi2, nu) = (
+        fit["chi2_reduced"].as_f64().unwrap(),
+        fit["nu"].as_f64().unwrap(),
+    );
+    assert!(
+        (chi2 - 1.0).abs() < 3.0 * (2.0 / nu).sqrt(),
+        "xy fit chi2/nu {chi2} (nu {nu})"
+    );
     let table = freefall::io::read_parquet(fit_out.join("estimates.parquet")).unwrap();
     let est = |name: &str| {
         let k = (table.str_column("parameter").unwrap().iter())
@@ -109,7 +142,10 @@ fn xy_sensing_crosstalk_is_found_by_the_xy_fit_and_by_the_diagnosis() {
     };
     for (name, truth) in [("ds_1y1", DS_1Y1), ("ds_2y2", DS_2Y2)] {
         let (v, s) = est(name);
-        assert!(((v - truth) / s).abs() < 3.0, "xy fit {name} = {v:e} +- {s:e}");
+        assert!(
+            ((v - truth) / s).abs() < 3.0,
+            "xy fit {name} = {v:e} +- {s:e}"
+        );
     }
 
     let r = diagnose(&ds, &dir.path().join("d"));
@@ -122,7 +158,10 @@ fn xy_sensing_crosstalk_is_found_by_the_xy_fit_and_by_the_diagnosis() {
             .iter()
             .find(|(n, ..)| n == name)
             .unwrap_or_else(|| panic!("{name} not claimed: {a:?}"));
-        assert!(((k - truth) / s).abs() < 3.0, "{name} = {k:e} +- {s:e}, truth {truth:e}");
+        assert!(
+            ((k - truth) / s).abs() < 3.0,
+            "{name} = {k:e} +- {s:e}, truth {truth:e}"
+        );
     }
     let operator: Vec<_> = a
         .iter()
@@ -130,8 +169,14 @@ fn xy_sensing_crosstalk_is_found_by_the_xy_fit_and_by_the_diagnosis() {
         .collect();
     assert!(operator.is_empty(), "claimed {operator:?}");
     let after = &r["after"];
-    let (chi2, nu) = (after["chi2_reduced"].as_f64().unwrap(), after["nu"].as_f64().unwrap());
-    assert!((chi2 - 1.0).abs() < 3.0 * (2.0 / nu).sqrt(), "diagnosis chi2/nu {chi2} (nu {nu})");
+    let (chi2, nu) = (
+        after["chi2_reduced"].as_f64().unwrap(),
+        after["nu"].as_f64().unwrap(),
+    );
+    assert!(
+        (chi2 - 1.0).abs() < 3.0 * (2.0 / nu).sqrt(),
+        "diagnosis chi2/nu {chi2} (nu {nu})"
+    );
     let md = std::fs::read_to_string(dir.path().join("d/report.md")).unwrap();
     assert!(md.contains("error before [sigma]") && md.contains("error after [sigma]"));
 }
@@ -161,7 +206,11 @@ fn without_auxiliary_channels_the_xy_leak_is_an_unexplained_excess_in_o12() {
         .iter()
         .filter(|u| u["kind"] == "noise_model" && u["channel"] == "o12")
         .collect();
-    assert!(!excess.is_empty(), "no o12 noise-model excess: {}", r["unexplained"]);
+    assert!(
+        !excess.is_empty(),
+        "no o12 noise-model excess: {}",
+        r["unexplained"]
+    );
     for u in &excess {
         assert!(u["band_hz"][0].as_f64().unwrap() >= 1e-3, "{u}");
     }

@@ -20,12 +20,15 @@ use crate::io::{
 use crate::model::{check_stability, ClosedLoopModel};
 use crate::setup::{AnySetup, SetupXy};
 
+/// The experiments of an xy dataset and its noise run's readouts.
+type XySeries = (ExperimentData, Option<Vec<Vec<f64>>>);
+
 /// The columns of readout `names` and input `inputs` of every run of `ds` (the experiments,
 /// then the noise run's readouts), one-line errors naming the run file and the column.
 fn xy_series(
     setup: &SetupXy,
     ds: &Dataset,
-) -> Result<(ExperimentData, Option<Vec<Vec<f64>>>), JobError> {
+) -> Result<XySeries, JobError> {
     let (readouts, inputs) = (setup.model.readout_names(), setup.model.input_names());
     let take = |run: &crate::io::Run, names: &[&str]| -> Result<Vec<Vec<f64>>, JobError> {
         names
@@ -41,7 +44,9 @@ fn xy_series(
             })
             .collect()
     };
-    let dt = ds.dt().ok_or_else(|| JobError::Invalid("the dataset has no run".into()))?;
+    let dt = ds
+        .dt()
+        .ok_or_else(|| JobError::Invalid("the dataset has no run".into()))?;
     let mut data = ExperimentData {
         names: Vec::new(),
         inputs: Vec::new(),

@@ -52,8 +52,7 @@ pub fn transfer_table<M: SpecModel<N>, const N: usize>(
         .map(|&x| transfer(&setup.model, &setup.model.prepare(x), p).oi_o)
         .collect();
     let mut table = Table::new().with_f64("f", f.to_vec())?.with_unit("f", "Hz");
-    let elements =
-        (0..N).flat_map(|o| (0..N).map(move |i| (o, i)));
+    let elements = (0..N).flat_map(|o| (0..N).map(move |i| (o, i)));
     for (o, i) in elements {
         let name = transfer_stem(&setup.model, o, i);
         for (part, take) in [("re", 0), ("im", 1)] {
@@ -90,12 +89,21 @@ pub fn noise_table<M: SpecModel<N>, const N: usize>(
         let names = setup.model.readout_names();
         let mut table = Table::new().with_f64("f", f.to_vec())?.with_unit("f", "Hz");
         for a in 0..N {
-            table = table.with_f64(format!("s_{}", names[a]), s.iter().map(|m| m[(a, a)].re).collect())?;
+            table = table.with_f64(
+                format!("s_{}", names[a]),
+                s.iter().map(|m| m[(a, a)].re).collect(),
+            )?;
             for b in a + 1..N {
                 let stem = format!("s_{}_{}", names[a], names[b]);
                 table = table
-                    .with_f64(format!("{stem}_re"), s.iter().map(|m| m[(a, b)].re).collect())?
-                    .with_f64(format!("{stem}_im"), s.iter().map(|m| m[(a, b)].im).collect())?;
+                    .with_f64(
+                        format!("{stem}_re"),
+                        s.iter().map(|m| m[(a, b)].re).collect(),
+                    )?
+                    .with_f64(
+                        format!("{stem}_im"),
+                        s.iter().map(|m| m[(a, b)].im).collect(),
+                    )?;
             }
         }
         return Ok(table);
@@ -165,7 +173,8 @@ pub fn fisher_errors<M: SpecModel<N>, const N: usize>(
 /// A scenario's truth (default: the nominal parameters), checked for a stable closed loop.
 fn stable_parameters<M: SpecModel<N>, const N: usize>(
     setup: &SetupOf<M, N>,
-    scenario: Option<&str>) -> Result<Vec<f64>, JobError> {
+    scenario: Option<&str>,
+) -> Result<Vec<f64>, JobError> {
     let p = match scenario {
         Some(name) => setup.spec.scenario(name)?.truth,
         None => setup.spec.nominal(),

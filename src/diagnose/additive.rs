@@ -155,7 +155,9 @@ impl Additive {
                 } else {
                     x
                 };
-                Some(crate::sim::auxiliary::in_loop(model, p, &leak, *channel, dt))
+                Some(crate::sim::auxiliary::in_loop(
+                    model, p, &leak, *channel, dt,
+                ))
             }
             _ => None,
         }

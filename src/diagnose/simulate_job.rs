@@ -172,8 +172,15 @@ impl SimulateJob {
                 data.dt,
                 self.seed,
             )?;
-            crate::sim::auxiliary::apply(&setup.model, &sc.truth, &aux, &effects.crosstalk, &mut data, &mut noise)
-                .map_err(|e| SimulateError::Effect(format!("--effect {e}")))?;
+            crate::sim::auxiliary::apply(
+                &setup.model,
+                &sc.truth,
+                &aux,
+                &effects.crosstalk,
+                &mut data,
+                &mut noise,
+            )
+            .map_err(|e| SimulateError::Effect(format!("--effect {e}")))?;
             aux
         } else {
             crate::data::Auxiliary::default()

@@ -111,9 +111,7 @@ fn split_x<M: ClosedLoopModel<7>>(
     };
     let channels = (model.readout_names()[X_CHANNELS..].iter().enumerate())
         .map(|(k, n)| channel(n, false, Some(floors[X_CHANNELS + k])))
-        .chain(
-            (model.input_names()[X_CHANNELS..].iter()).map(|n| channel(n, true, None)),
-        )
+        .chain((model.input_names()[X_CHANNELS..].iter()).map(|n| channel(n, true, None)))
         .collect();
     let n_noise = noise.first().map_or(0, Vec::len);
     let quiet = vec![vec![0.0; n_noise]; 7 - X_CHANNELS];

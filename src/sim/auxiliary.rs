@@ -227,7 +227,11 @@ mod tests {
             let amp = (2.0 * tail.iter().map(|v| v * v).sum::<f64>() / tail.len() as f64).sqrt();
             let tr = transfer(&setup.model, &setup.model.prepare(f), &p);
             let h = tr.delta_inv * tr.ops.d * tr.ops.s.try_inverse().unwrap();
-            assert!((amp / h[(1, 1)].norm() - 1.0).abs() < 1e-2, "f {f}: {amp} vs {}", h[(1, 1)].norm());
+            assert!(
+                (amp / h[(1, 1)].norm() - 1.0).abs() < 1e-2,
+                "f {f}: {amp} vs {}",
+                h[(1, 1)].norm()
+            );
             assert!((amp - 1.0).abs() < tol, "f {f}: amplitude {amp}");
         }
     }
@@ -267,7 +271,15 @@ mod tests {
             rate: 2e-3,
         };
         let m = &setup.model;
-        apply(m, &p, &aux, std::slice::from_ref(&leak), &mut data, &mut noise).unwrap();
+        apply(
+            m,
+            &p,
+            &aux,
+            std::slice::from_ref(&leak),
+            &mut data,
+            &mut noise,
+        )
+        .unwrap();
         let expect = |a: &[f64]| -> [Vec<f64>; 2] {
             let d = rate(a, 1.0);
             let leak: Vec<f64> = a
