@@ -25,10 +25,7 @@ type XySeries = (ExperimentData, Option<Vec<Vec<f64>>>);
 
 /// The columns of readout `names` and input `inputs` of every run of `ds` (the experiments,
 /// then the noise run's readouts), one-line errors naming the run file and the column.
-fn xy_series(
-    setup: &SetupXy,
-    ds: &Dataset,
-) -> Result<XySeries, JobError> {
+fn xy_series(setup: &SetupXy, ds: &Dataset) -> Result<XySeries, JobError> {
     let (readouts, inputs) = (setup.model.readout_names(), setup.model.input_names());
     let take = |run: &crate::io::Run, names: &[&str]| -> Result<Vec<Vec<f64>>, JobError> {
         names

@@ -132,17 +132,28 @@ pub fn fisher_errors<M: SpecModel<N>, const N: usize>(
     p: &[f64],
 ) -> Result<Option<FisherErrors>, IoError> {
     let info = crate::setup::design_fisher(setup, design, p);
-    let Some(cov) = info.try_inverse() else {
+    let names = setup.parameter_names();
+    // A singular information (the xy model's cross-talk with every coefficient free) gives
+    // the identified parameters their marginal sigma and the others an infinite one.
+    let sigma = crate::numerics::linalg::marginal(&info);
+    if sigma.iter().all(|s| !s.is_finite()) {
+        return Ok(None);
+    }
+    let Some(cov) = crate::numerics::linalg::equilibrated_pinv(&info) else {
         return Ok(None);
     };
-    let names = setup.parameter_names();
-    let sigma: Vec<f64> = (0..names.len()).map(|k| cov[(k, k)].sqrt()).collect();
     let table = Table::new()
         .with_str("parameter", names.clone())?
         .with_f64("value", p.to_vec())?
         .with_f64("sigma", sigma.clone())?
         .with_str("unit", setup.parameter_units())?;
-    let correlation = super::correlation_table(&names, |i, j| cov[(i, j)] / (sigma[i] * sigma[j]))?;
+    let correlation = super::correlation_table(&names, |i, j| {
+        if sigma[i].is_finite() && sigma[j].is_finite() {
+            cov[(i, j)] / (cov[(i, i)] * cov[(j, j)]).sqrt()
+        } else {
+            f64::NAN
+        }
+    })?;
     let mut text = String::new();
     let _ = writeln!(
         text,
@@ -162,6 +173,13 @@ pub fn fisher_errors<M: SpecModel<N>, const N: usize>(
             ),
             None => writeln!(text, "{n:<10} {:>14.6e} {:>12.3e}", p[k], sigma[k]),
         };
+    }
+    if sigma.iter().any(|s| !s.is_finite()) {
+        let _ = writeln!(
+            text,
+            "inf: not identified by this design (the information is singular in it; hold \
+             such parameters fixed, or add injections that move them)"
+        );
     }
     Ok(Some(FisherErrors {
         table,

@@ -505,46 +505,7 @@ impl XyStudy {
     }
 }
 
-/// Relative eigenvalue of the diagonally normalised information below which a direction is
-/// unidentified: the structural null directions of the xy cross-talk are at 1e-15 .. 4e-13, the
-/// weakest identified one at 1e-9 (every candidate together, scenario `crosstalk`).
-pub const NULL_EIGENVALUE: f64 = 1e-11;
-
-/// Marginal sigmas of every parameter from an information matrix that may be singular: with
-/// `A = D^-1/2 I D^-1/2` (`D = diag I`) and its eigenpairs `(lambda_k, v_k)`, a parameter with a
-/// weight `sum_{lambda_k < NULL_EIGENVALUE} v_ik^2 > 1e-6` on the null directions is not
-/// identified (infinite sigma, as is one with zero information); the others have
-/// `sigma_i^2 = sum_{lambda_k >= NULL_EIGENVALUE} v_ik^2 / (lambda_k I_ii)` (the pseudo-inverse,
-/// which is the inverse when `I` is regular).
-pub fn marginal(info: &DMatrix<f64>) -> Vec<f64> {
-    let n = info.nrows();
-    let scale = (0..n).map(|i| info[(i, i)].abs()).fold(0.0, f64::max);
-    // A row of an information matrix is zero when its diagonal is: (I_ii I_jj >= I_ij^2).
-    let keep: Vec<usize> = (0..n)
-        .filter(|&i| info[(i, i)] > 1e-300_f64.max(1e-30 * scale))
-        .collect();
-    let d: Vec<f64> = keep.iter().map(|&i| info[(i, i)].sqrt()).collect();
-    let a = DMatrix::from_fn(keep.len(), keep.len(), |x, y| {
-        info[(keep[x], keep[y])] / (d[x] * d[y])
-    });
-    let eig = a.symmetric_eigen();
-    let mut out = vec![f64::INFINITY; n];
-    for (x, &i) in keep.iter().enumerate() {
-        let (mut null, mut var) = (0.0, 0.0);
-        for (k, &l) in eig.eigenvalues.iter().enumerate() {
-            let v2 = eig.eigenvectors[(x, k)].powi(2);
-            if l < NULL_EIGENVALUE {
-                null += v2;
-            } else {
-                var += v2 / l;
-            }
-        }
-        if null <= 1e-6 {
-            out[i] = var.sqrt() / d[x];
-        }
-    }
-    out
-}
+pub use crate::numerics::linalg::{marginal, NULL_EIGENVALUE};
 
 /// Per parameter, in the order (a) the standard x design alone, (b) with the `y_phi` table,
 /// (b') with the table clipped to the constraints, (c) with an optimum: the marginal sigmas of

@@ -176,12 +176,14 @@ impl AuxiliaryEntry {
         let guidance = match self.role.as_deref() {
             None | Some("readout") => false,
             Some("guidance") => true,
-            Some(other) => return Err(IoError::invalid(
-                path,
-                format!(
+            Some(other) => {
+                return Err(IoError::invalid(
+                    path,
+                    format!(
                     "{at}: role = \"{other}\" is not a role (expected \"readout\" or \"guidance\")"
                 ),
-            )),
+                ))
+            }
         };
         if let Some(v) = self.noise_asd.filter(|v| !(v.is_finite() && *v > 0.0)) {
             return Err(IoError::invalid(
