@@ -588,20 +588,13 @@ fn regressor(x: &[f64], noise_asd: Option<f64>, dt: f64) -> Vec<f64> {
 /// hold no `k n`); on `W x` the cross-spectrum with the data is `k W S_q` and the template's
 /// power `W^2 S_x = W S_q`, so the estimate is `k` again.
 pub fn denoised(x: &[f64], noise_psd: f64, dt: f64) -> Vec<f64> {
-    use realfft::RealFftPlanner;
     let n = x.len();
     if n < 4 {
         return x.to_vec();
     }
+    // One-sided periodogram of the n-sample record on the padded grid, smoothed.
     let m = (2 * n).next_power_of_two();
-    let mut planner = RealFftPlanner::<f64>::new();
-    let fwd = planner.plan_fft_forward(m);
-    let inv = planner.plan_fft_inverse(m);
-    let mut buf = vec![0.0; m];
-    buf[..n].copy_from_slice(x);
-    let mut spec = fwd.make_output_vec();
-    fwd.process(&mut buf, &mut spec).expect("FFT sizes match");
-    // One-sided periodogram of the n-sample record on the padded grid.
+    let spec = padded_spectrum(x, m);
     let pgram: Vec<f64> = spec
         .iter()
         .map(|z| 2.0 * dt * z.norm_sqr() / n as f64)
@@ -611,25 +604,28 @@ pub fn denoised(x: &[f64], noise_psd: f64, dt: f64) -> Vec<f64> {
     for (i, p) in pgram.iter().enumerate() {
         prefix[i + 1] = prefix[i] + p;
     }
-    for (k, z) in spec.iter_mut().enumerate() {
+    let gain = |k: usize| {
         let (lo, hi) = (k.saturating_sub(half), (k + half + 1).min(pgram.len()));
         let smooth = (prefix[hi] - prefix[lo]) / (hi - lo) as f64;
-        let w = if smooth > DENOISE_KEEP * noise_psd {
+        if smooth > DENOISE_KEEP * noise_psd {
             1.0
         } else if smooth > 0.0 {
             (1.0 - noise_psd / smooth).max(0.0)
         } else {
             0.0
-        };
-        *z *= w;
-    }
-    spec[0].im = 0.0;
-    let last = spec.len() - 1;
-    spec[last].im = 0.0;
-    inv.process(&mut spec, &mut buf).expect("FFT sizes match");
-    buf.truncate(n);
-    buf.iter_mut().for_each(|v| *v /= m as f64);
-    buf
+        }
+    };
+    crate::numerics::fft::filter_padded(x, dt, |k, _| gain(k).into())
+}
+
+/// The transform of `x` zero-padded to `m` samples.
+fn padded_spectrum(x: &[f64], m: usize) -> Vec<num_complex::Complex64> {
+    let fwd = realfft::RealFftPlanner::<f64>::new().plan_fft_forward(m);
+    let mut buf = vec![0.0; m];
+    buf[..x.len()].copy_from_slice(x);
+    let mut spec = fwd.make_output_vec();
+    fwd.process(&mut buf, &mut spec).expect("FFT sizes match");
+    spec
 }
 
 /// Zero series of the shape of `data`'s outputs (every experiment of its own length).

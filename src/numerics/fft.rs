@@ -50,3 +50,36 @@ pub fn fast_len(min: usize) -> usize {
         m += 1;
     }
 }
+
+/// A real series `x` of `n` samples filtered linearly (not circularly) in the frequency
+/// domain: zero-padded to a power of two `m >= 2 n`, transformed, each bin `k` (frequency
+/// `k / (m dt)`) multiplied by `gain(k, f)`, transformed back and cut to `n` samples. The
+/// imaginary parts of the DC and Nyquist bins are dropped (a real filter's are zero).
+pub fn filter_padded(
+    x: &[f64],
+    dt: f64,
+    gain: impl Fn(usize, f64) -> num_complex::Complex64,
+) -> Vec<f64> {
+    let n = x.len();
+    if n == 0 {
+        return Vec::new();
+    }
+    let m = (2 * n).next_power_of_two();
+    let mut planner = realfft::RealFftPlanner::<f64>::new();
+    let (fwd, inv) = (planner.plan_fft_forward(m), planner.plan_fft_inverse(m));
+    let mut buf = vec![0.0; m];
+    buf[..n].copy_from_slice(x);
+    let mut spec = fwd.make_output_vec();
+    fwd.process(&mut buf, &mut spec).expect("FFT sizes match");
+    let df = 1.0 / (m as f64 * dt);
+    for (k, z) in spec.iter_mut().enumerate() {
+        *z *= gain(k, k as f64 * df);
+    }
+    spec[0].im = 0.0;
+    let last = spec.len() - 1;
+    spec[last].im = 0.0;
+    inv.process(&mut spec, &mut buf).expect("FFT sizes match");
+    buf.truncate(n);
+    buf.iter_mut().for_each(|v| *v /= m as f64);
+    buf
+}

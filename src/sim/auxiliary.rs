@@ -23,6 +23,7 @@ use crate::model::closed_loop::{transfer, CMat, ClosedLoopModel};
 use crate::model::spec::ModelSpec;
 use crate::noise::generate::ColoredNoise;
 use crate::noise::NoiseError;
+use crate::numerics::fft::filter_padded;
 use crate::sim::rng::stream;
 
 /// Stream index of the experiments' auxiliary series (the noise run's is the next one);
@@ -118,42 +119,23 @@ pub fn in_loop<M: ClosedLoopModel<2>>(
     channel: usize,
     dt: f64,
 ) -> [Vec<f64>; 2] {
-    use num_complex::Complex64;
-    use realfft::RealFftPlanner;
-    let n = x.len();
-    if n == 0 {
-        return [Vec::new(), Vec::new()];
-    }
-    let m = (2 * n).next_power_of_two();
-    let mut planner = RealFftPlanner::<f64>::new();
-    let fwd = planner.plan_fft_forward(m);
-    let inv = planner.plan_fft_inverse(m);
-    let mut buf = vec![0.0; m];
-    buf[..n].copy_from_slice(x);
-    let mut spec = fwd.make_output_vec();
-    fwd.process(&mut buf, &mut spec).expect("FFT sizes match");
-    let df = 1.0 / (m as f64 * dt);
-    let mut out = [spec.clone(), spec];
-    for k in 0..out[0].len() {
-        // The loop's DC response is its limit at low frequency (D has s^2, Delta^-1 finite).
-        let f = if k == 0 { 1e-3 * df } else { k as f64 * df };
+    let df = 1.0 / ((2 * x.len()).next_power_of_two() as f64 * dt);
+    // The loop's response per bin; the DC bin takes its limit at low frequency (D has s^2,
+    // Delta^-1 finite).
+    let h = |f: f64| {
+        let f = if f == 0.0 { 1e-3 * df } else { f };
         let tr = transfer(model, &model.prepare(f), p);
         let s_inv = tr.ops.s.try_inverse().unwrap_or_else(CMat::<2>::identity);
-        let h = tr.delta_inv * tr.ops.d * s_inv;
-        for (r, o) in out.iter_mut().enumerate() {
-            o[k] *= h[(r, channel)];
-        }
-    }
-    out.map(|mut spec| {
-        spec[0].im = 0.0;
-        let last = spec.len() - 1;
-        spec[last] = Complex64::new(spec[last].re, 0.0);
-        let mut y = inv.make_output_vec();
-        inv.process(&mut spec, &mut y).expect("FFT sizes match");
-        y.truncate(n);
-        y.iter_mut().for_each(|v| *v /= m as f64);
-        y
-    })
+        tr.delta_inv * tr.ops.d * s_inv
+    };
+    let responses: Vec<_> = if x.is_empty() {
+        Vec::new()
+    } else {
+        (0..=(2 * x.len()).next_power_of_two() / 2)
+            .map(|k| h(k as f64 * df))
+            .collect()
+    };
+    [0, 1].map(|r| filter_padded(x, dt, |k, _| responses[k][(r, channel)]))
 }
 
 /// Adds each cross-talk of `leaks`, through the loop of `model` at `p` ([`in_loop`]), to the
