@@ -3,7 +3,9 @@
 //!
 //! ```toml
 //! name = "quick"                # optional, default: the file stem
-//! model = "my_model.toml"       # optional, relative to this file; default: embedded lpf_x.toml
+//! model = "my_model.toml"       # optional, relative to this file; default: embedded lpf_x.toml;
+//!                               # "lpf_xy" ("lpf_x"), when no such file exists, names the
+//!                               # embedded 7-DOF xy (x) model
 //! seed = 20120401               # master seed (u64)
 //! realizations = 50
 //! estimators = ["squared"]      # any of "squared", "absolute", "log"; default ["squared"]
@@ -55,7 +57,7 @@ use serde::Deserialize;
 
 use super::CampaignError;
 use crate::fit::Estimator;
-use crate::model::spec::GlitchSpec;
+use crate::model::spec::{GlitchSpec, ModelKind};
 use crate::setup::{DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 
 /// Default realizations per checkpoint chunk.
@@ -223,8 +225,11 @@ pub struct Campaign {
     pub file: PathBuf,
     pub name: String,
     pub description: String,
-    /// Model file (resolved against the campaign file's directory); `None` = embedded model.
+    /// Model file (resolved against the campaign file's directory); `None` = the embedded
+    /// model `embedded_model`.
     pub model: Option<PathBuf>,
+    /// The embedded model used without a model file: lpf_x, or lpf_xy for `model = "lpf_xy"`.
+    pub embedded_model: ModelKind,
     pub seed: u64,
     pub realizations: u64,
     pub estimators: Vec<Estimator>,
@@ -257,12 +262,21 @@ impl Campaign {
         if spec.realizations == 0 {
             return Err(cx.bad("realizations", "must be at least 1"));
         }
-        let model = match spec.model.as_deref() {
-            None | Some("embedded") => None,
+        let (model, embedded_model) = match spec.model.as_deref() {
+            None | Some("embedded") => (None, ModelKind::LpfX),
             Some("") => {
                 return Err(cx.bad("model", "empty path (omit the key for the embedded model)"))
             }
-            Some(m) => Some(cx.resolve(m)),
+            Some(m) => {
+                let path = cx.resolve(m);
+                match [ModelKind::LpfX, ModelKind::LpfXy]
+                    .into_iter()
+                    .find(|k| k.name() == m)
+                {
+                    Some(kind) if !path.exists() => (None, kind),
+                    _ => (Some(path), ModelKind::LpfX),
+                }
+            }
         };
         let batch = spec.batch.unwrap_or(DEFAULT_BATCH);
         if batch == 0 {
@@ -273,6 +287,7 @@ impl Campaign {
             name,
             description: spec.description.unwrap_or_default(),
             model,
+            embedded_model,
             seed: spec.seed,
             realizations: spec.realizations,
             estimators: cx.estimators(spec.estimators.as_deref())?,

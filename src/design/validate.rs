@@ -278,6 +278,7 @@ pub fn monte_carlo(
         name: "design-validation".into(),
         description: String::new(),
         model: None,
+        embedded_model: crate::model::spec::ModelKind::LpfX,
         seed,
         realizations: realizations.end,
         estimators: vec![Estimator::Squared],

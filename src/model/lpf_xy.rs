@@ -39,12 +39,37 @@ use super::ModelError;
 /// The xy model's parameters in order: the x model's seven, the y and phi stiffnesses, then
 /// the cross-talk coefficients (dynamical, sensing, actuation) of thesis sec. 3.5.
 pub const LPF_XY_PARAMETERS: [&str; 31] = [
-    "w1_sq", "w12_sq", "s21", "a_df", "a_sus", "dt1", "dt12", // x (thesis sec. 3.3)
-    "w1y_sq", "w2y_sq", "w1phi_sq", "w2phi_sq", // y and phi stiffnesses
-    "d1_xy", "d1_xphi", "d2_xy", "d2_xphi", // dynamical cross-talk (stiffness matrix)
-    "ds_1y1", "ds_1y2", "ds_1phi1", "ds_1phi2", "ds_1phisc", // sensing cross-talk into o1
-    "ds_2y1", "ds_2y2", "ds_2phi1", "ds_2phi2", "ds_2phisc", // sensing cross-talk into o12
-    "d_df_ysc", "d_df_phisc", "d_sus_y1", "d_sus_y2", "d_sus_phi1", "d_sus_phi2", // actuation
+    "w1_sq",
+    "w12_sq",
+    "s21",
+    "a_df",
+    "a_sus",
+    "dt1",
+    "dt12", // x (thesis sec. 3.3)
+    "w1y_sq",
+    "w2y_sq",
+    "w1phi_sq",
+    "w2phi_sq", // y and phi stiffnesses
+    "d1_xy",
+    "d1_xphi",
+    "d2_xy",
+    "d2_xphi", // dynamical cross-talk (stiffness matrix)
+    "ds_1y1",
+    "ds_1y2",
+    "ds_1phi1",
+    "ds_1phi2",
+    "ds_1phisc", // sensing cross-talk into o1
+    "ds_2y1",
+    "ds_2y2",
+    "ds_2phi1",
+    "ds_2phi2",
+    "ds_2phisc", // sensing cross-talk into o12
+    "d_df_ysc",
+    "d_df_phisc",
+    "d_sus_y1",
+    "d_sus_y2",
+    "d_sus_phi1",
+    "d_sus_phi2", // actuation
 ];
 
 pub const W1Y: usize = 7;
@@ -411,7 +436,9 @@ impl ClosedLoopModel<7> for LpfXy {
     }
 
     fn input_names(&self) -> [&'static str; 7] {
-        ["oi1", "oi12", "oi_y1", "oi_y2", "oi_phi1", "oi_phi2", "oi_phisc"]
+        [
+            "oi1", "oi12", "oi_y1", "oi_y2", "oi_phi1", "oi_phi2", "oi_phisc",
+        ]
     }
 
     fn prepare(&self, f_hz: f64) -> XyPoint {

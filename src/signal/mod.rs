@@ -71,7 +71,11 @@ impl Design {
     /// The single-input experiments of a model-file injection table: Exp. 1 on oi1 and Exp. 2
     /// on oi12 (thesis Table "standard input signals"), each when its amplitudes are given,
     /// then one per further input of `amplitude`, in the order of the model's `inputs`.
-    pub fn from_spec(name: &str, spec: &InjectionSpec, inputs: &[&str]) -> Result<Self, SignalError> {
+    pub fn from_spec(
+        name: &str,
+        spec: &InjectionSpec,
+        inputs: &[&str],
+    ) -> Result<Self, SignalError> {
         let freqs: Vec<f64> = spec
             .cycles
             .iter()
@@ -114,7 +118,11 @@ impl Design {
                 d.experiments.push(on(channel, experiment.into(), amps));
             }
         }
-        if let Some(unknown) = spec.amplitude.keys().find(|k| !inputs.contains(&k.as_str())) {
+        if let Some(unknown) = spec
+            .amplitude
+            .keys()
+            .find(|k| !inputs.contains(&k.as_str()))
+        {
             return Err(bad(format!(
                 "amplitude.{unknown}: not a guidance input of the model ({})",
                 inputs.join(", ")
