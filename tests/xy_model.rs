@@ -87,7 +87,10 @@ fn xy_model_without_crosstalk_is_the_x_model_along_x() {
             }
         }
     }
-    assert!(worst <= 1e-12, "x block differs from the x model by {worst:e}");
+    assert!(
+        worst <= 1e-12,
+        "x block differs from the x model by {worst:e}"
+    );
 }
 
 #[test]
@@ -131,6 +134,10 @@ fn xy_noise_psd_is_hermitian_and_positive() {
         for i in 0..7 {
             assert!(m[(i, i)].re > 0.0, "S[{i},{i}] at {f} Hz");
         }
-        eprintln!("f {f}: diag {:?} min eig (real part) {:e}", m.diagonal().map(|z| z.re.sqrt()).as_slice(), eig.min());
+        eprintln!(
+            "f {f}: diag {:?} min eig (real part) {:e}",
+            m.diagonal().map(|z| z.re.sqrt()).as_slice(),
+            eig.min()
+        );
     }
 }

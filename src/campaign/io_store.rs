@@ -80,8 +80,11 @@ pub fn load(path: Option<&Path>) -> Result<Loaded, CampaignError> {
         context: format!("{}: key 'model'", file.display()),
         source: Box::new(e),
     };
-    let spec = crate::model::ModelSpec::from_toml_str(&model_text, &model_label)
-        .map_err(|e| model_err(e.into()))?;
+    let spec = match &campaign.model {
+        None => crate::model::ModelSpec::embedded_of(campaign.embedded_model),
+        Some(_) => crate::model::ModelSpec::from_toml_str(&model_text, &model_label)
+            .map_err(|e| model_err(e.into()))?,
+    };
     let setup = AnySetup::new(spec).map_err(model_err)?;
     let inputs = setup.input_names();
     let mut design_texts = Vec::new();
@@ -428,20 +431,7 @@ pub fn run(
         });
     }
     let pool = worker_pool(out, opts.threads)?;
-    let runner: Box<dyn Jobs> = match &loaded.setup {
-        AnySetup::X(s) => Box::new(Runner::new(
-            s.as_ref(),
-            c,
-            loaded.scenarios.clone(),
-            &loaded.designs,
-        )?),
-        AnySetup::Xy(s) => Box::new(Runner::new(
-            s.as_ref(),
-            c,
-            loaded.scenarios.clone(),
-            &loaded.designs,
-        )?),
-    };
+    let runner = prepare(loaded)?;
     let layout = runner.layout().clone();
     let mut agg = Aggregates::new(layout.clone());
     let (mut next, mut fit_seconds) =
@@ -538,6 +528,15 @@ pub fn run(
         manifest,
         already_complete: false,
         notes: runner.notes().to_vec(),
+    })
+}
+
+/// The runner of a loaded campaign, for its model (x or xy).
+fn prepare(loaded: &Loaded) -> Result<Box<dyn Jobs + '_>, CampaignError> {
+    let (c, scenarios, designs) = (&loaded.campaign, &loaded.scenarios, &loaded.designs);
+    Ok(match &loaded.setup {
+        AnySetup::X(s) => Box::new(Runner::new(s.as_ref(), c, scenarios.clone(), designs)?),
+        AnySetup::Xy(s) => Box::new(Runner::new(s.as_ref(), c, scenarios.clone(), designs)?),
     })
 }
 

@@ -743,6 +743,12 @@ fn build_cell<'s, M: CampaignModel<N>, const N: usize>(
     };
     let mut base = constraints.apply(FitConfig::new(&setup.model));
     base.max_iterations = campaign.fit.max_iterations;
+    if let Some(t) = campaign.fit.ftol {
+        base.ftol = t;
+    }
+    if let Some(t) = campaign.fit.ptol {
+        base.ptol = t;
+    }
     if campaign.fit.cached_jacobian {
         base.jacobian = cell_jacobians(setup, &source, &lik, sc, campaign.seed, &base)
             .map_err(|e| ctx(e.into()))?;

@@ -36,6 +36,11 @@
 //!                               # 0's estimate, reused within 5 sigma (fit::JacobianCache);
 //!                               # "exact": evaluated at every accepted step
 //! fixed = ["dt1"]               # held at the scenario's guess: not fitted, not in nu, sigma 0
+//! ftol = 1e-4                   # a fit ends when chi^2 changes by less than ftol of itself
+//! ptol = 1e-4                   # ... or every parameter by less than ptol of |p| + sigma
+//!                               # (defaults 1e-4, thesis sec. 4.4.4; with nu ~ 5e5 degrees of
+//!                               # freedom ftol = 1e-4 is 50 units of chi^2, too coarse for
+//!                               # ill-conditioned parameters: see campaigns/xy_crosstalk.toml)
 //! engine = "frequency-domain"   # data simulator: "frequency-domain" (default; templates plus
 //!                               # coloured noise at the analysis rate) or "time-domain" (the
 //!                               # digital loop stepped at simulate_hz and decimated by the
@@ -124,6 +129,8 @@ struct FitEntry {
     fixed: Option<Vec<String>>,
     prior: Option<BTreeMap<String, [f64; 2]>>,
     engine: Option<String>,
+    ftol: Option<f64>,
+    ptol: Option<f64>,
 }
 
 /// The simulator that draws a campaign's data (`[fit] engine`). One per campaign: it goes with
@@ -216,6 +223,9 @@ pub struct FitOptions {
     pub priors: BTreeMap<String, [f64; 2]>,
     /// The data simulator (`engine = "time-domain"`).
     pub engine: Engine,
+    /// The fits' relative chi^2 and parameter tolerances (`None`: the fit's defaults).
+    pub ftol: Option<f64>,
+    pub ptol: Option<f64>,
 }
 
 /// A validated campaign file.
@@ -595,7 +605,15 @@ impl Checker<'_> {
                 ));
             }
         }
+        let tolerance = |key: &str, t: Option<f64>| match t {
+            Some(t) if !(t.is_finite() && t > 0.0 && t < 1.0) => {
+                Err(self.bad(key, format!("{t}: expected 0 < tolerance < 1")))
+            }
+            _ => Ok(t),
+        };
         Ok(FitOptions {
+            ftol: tolerance("fit.ftol", fit.ftol)?,
+            ptol: tolerance("fit.ptol", fit.ptol)?,
             whitening_order,
             poly_degree,
             max_iterations,

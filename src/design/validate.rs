@@ -296,6 +296,8 @@ pub fn monte_carlo(
             fixed: Vec::new(),
             priors: Default::default(),
             engine: crate::campaign::spec::Engine::FrequencyDomain,
+            ftol: None,
+            ptol: None,
         },
         accel_bands: Vec::new(),
     };
