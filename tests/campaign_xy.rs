@@ -7,10 +7,12 @@ use std::path::{Path, PathBuf};
 use freefall::campaign::io_store::Progress;
 use freefall::campaign::{self, RunOptions, Shard};
 use freefall::io::read_parquet;
+use freefall::setup::{design_fisher, SetupXy};
 
-/// Realizations of the reduced campaign: about 2 minutes on 2 cores (5 s per realization of
-/// 7 experiments x 7 readouts and 26 free parameters, plus the cell's set-up).
-const REALIZATIONS: u64 = 24;
+/// Realizations of the reduced campaign (7 experiments x 7 readouts, 26 free parameters):
+/// about 2.1 s of CPU each plus 15 s of set-up, 50 s on 2 idle cores, 2-3 minutes on 2 busy
+/// ones.
+const REALIZATIONS: u64 = 32;
 
 /// The sensing cross-talk coefficients the campaign fits (all ten of the model).
 const SENSING: [&str; 10] = [
@@ -56,11 +58,42 @@ fn run(file: &Path, out: &Path) -> Result<campaign::Manifest, campaign::Campaign
     campaign::run(&loaded, &opts, &mut |_: Progress| {}).map(|r| r.manifest)
 }
 
+/// Marginal Fisher errors at the truth of `names` from the frequency-domain Fisher information
+/// of the standard_xy design (`setup::design_fisher`, README formula), restricted to the
+/// parameters not in `fixed` and inverted after equilibration (its entries span 20 decades).
+fn fisher_sigmas(names: &[&str], fixed: &[String]) -> Vec<f64> {
+    let setup = SetupXy::embedded();
+    let design = setup.design("standard_xy").unwrap();
+    let truth = setup.spec.scenario("sensing_crosstalk").unwrap().truth;
+    let all = setup.parameter_names();
+    let info = design_fisher(&setup, &design, &truth);
+    let free: Vec<usize> = (0..all.len())
+        .filter(|&k| !fixed.contains(&all[k]))
+        .collect();
+    let d: Vec<f64> = free.iter().map(|&k| info[(k, k)].sqrt()).collect();
+    let n = free.len();
+    let eq = nalgebra::DMatrix::from_fn(n, n, |a, b| info[(free[a], free[b])] / (d[a] * d[b]));
+    let cov = eq
+        .cholesky()
+        .expect("the free parameters are identifiable")
+        .inverse();
+    names
+        .iter()
+        .map(|name| {
+            let a = free.iter().position(|&k| all[k] == *name).unwrap();
+            cov[(a, a)].sqrt() / d[a]
+        })
+        .collect()
+}
+
 // Oracle: Fisher theory (thesis sec. 4.5.5): at the truth the Monte Carlo sd of an unbiased
 // efficient estimator equals its Fisher error. The sample sd over n realizations has relative
-// sd 1/sqrt(2(n-1)) (Gaussian estimates), so MC sd / mean fit sigma must lie within 3 of those
-// of 1: 3/sqrt(46) = 44 % here (the 200-realization CLI campaign: 21 %, sd 5 %). Estimates are
-// unbiased (mean within 4 standard errors of the mean of the truth) and every fit converges.
+// sd 1/sqrt(2(n-1)) (Gaussian estimates), so MC sd / sigma must lie within 3 of those of 1:
+// 3/sqrt(62) = 38 % here (the 200-realization CLI campaign: 21 %, sd 5 %), both for the fits'
+// own sigma (J^T J at the estimate) and for the frequency-domain Fisher information of the
+// design (an independent formula, which the fits' sigma must match within 10 %: it is not a
+// sampled quantity). Estimates are unbiased (mean within 4 standard errors of the mean of the
+// truth) and every fit converges.
 #[test]
 fn xy_crosstalk_scatter_matches_fisher() {
     let tmp = tempfile::tempdir().unwrap();
@@ -77,6 +110,12 @@ fn xy_crosstalk_scatter_matches_fisher() {
         s.f64_column("bias_in_sigma").unwrap(),
         s.f64_column("truth").unwrap(),
     );
+    let (sd, mean_sigma) = (
+        s.f64_column("sd").unwrap(),
+        s.f64_column("mean_sigma").unwrap(),
+    );
+    let fixed = campaign::load(Some(&file)).unwrap().campaign.fit.fixed;
+    let fisher = fisher_sigmas(&SENSING, &fixed);
     let tolerance = 3.0 / (2.0 * (REALIZATIONS as f64 - 1.0)).sqrt();
     let mut seen = Vec::new();
     for i in 0..s.num_rows() {
@@ -84,11 +123,23 @@ fn xy_crosstalk_scatter_matches_fisher() {
             continue;
         }
         seen.push(p[i].clone());
+        let f = fisher[SENSING.iter().position(|n| *n == p[i]).unwrap()];
+        eprintln!(
+            "{:10} Fisher sigma {f:.3e}  mean fit sigma {:.3e}  MC sd {:.3e}  sd/Fisher {:.3}  sd/fit sigma {:.3}",
+            p[i], mean_sigma[i], sd[i], sd[i] / f, ratio[i]
+        );
         assert!(
-            (ratio[i] - 1.0).abs() < tolerance,
-            "{}: MC sd / sigma = {:.3}, outside 1 +- {tolerance:.3}",
+            (ratio[i] - 1.0).abs() < tolerance && (sd[i] / f - 1.0).abs() < tolerance,
+            "{}: MC sd / fit sigma = {:.3}, MC sd / Fisher sigma = {:.3}, outside 1 +- {tolerance:.3}",
             p[i],
-            ratio[i]
+            ratio[i],
+            sd[i] / f
+        );
+        assert!(
+            (mean_sigma[i] / f - 1.0).abs() < 0.1,
+            "{}: mean fit sigma {:.3e} vs Fisher sigma {f:.3e}",
+            p[i],
+            mean_sigma[i]
         );
         assert!(
             bias[i].abs() < 4.0,
@@ -193,7 +244,7 @@ fn x_only_features_are_refused_for_the_xy_model() {
     let design = tmp.path().join("d7.toml");
     std::fs::write(
         &design,
-        toml::to_string(&setup.design("standard_xy").unwrap()).unwrap(),
+        "name = \"d7\"\nstretch_s = 1200.0\ngap_s = 150.0\nstart_s = 150.0\nduration_s = 10800.0\n[[experiments]]\nname = \"e1\"\ninputs = [[{f_hz = 8.333333333333334e-4, amplitude = 1e-6}], [], [], [], [], [], []]\n",
     )
     .unwrap();
     let x = tmp.path().join("x.toml");
