@@ -20,15 +20,14 @@ fn xy_loops_have_30_degrees_of_phase_margin() {
         // Columns 0 and 1 are the x model's laws, which reproduce the thesis's closed-loop
         // features (the drag-free loop's T11 peak of almost 3 means about 20 degrees); the
         // y/phi laws were designed here and must keep 30 degrees.
-        for j in 2..7 {
+        for (j, law) in COLUMN_LAW.iter().enumerate().skip(2) {
             let cr = s.model.crossings(&p, j, 1e-6, 5.0);
-            eprintln!("{sc} column {j} ({:?}): {cr:?}", COLUMN_LAW[j]);
+            eprintln!("{sc} column {j} ({law:?}): {cr:?}");
             assert!(!cr.is_empty(), "column {j}: no unity-gain crossing");
             for c in &cr {
                 assert!(
                     c.phase_margin_deg >= 30.0,
-                    "{sc}: column {j} ({:?}) crosses unity gain at {:.3e} Hz with {:.1} deg",
-                    COLUMN_LAW[j],
+                    "{sc}: column {j} ({law:?}) crosses unity gain at {:.3e} Hz with {:.1} deg",
                     c.f_hz,
                     c.phase_margin_deg
                 );

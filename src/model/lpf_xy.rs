@@ -469,8 +469,10 @@ impl ClosedLoopModel<7> for LpfXy {
     }
 
     fn derivative(&self, pt: &XyPoint, p: &[f64], k: usize) -> OperatorDerivative<7> {
-        let mut der = OperatorDerivative::default();
-        der.d = self.stiffness_derivative(p, k).map(|m| m.map(c));
+        let mut der = OperatorDerivative {
+            d: self.stiffness_derivative(p, k).map(|m| m.map(c)),
+            ..Default::default()
+        };
         if k == S21 {
             let mut m = M7::zeros();
             m[(X12, X1)] = c(1.0);
