@@ -78,7 +78,7 @@ pub fn load(path: Option<&Path>) -> Result<Loaded, CampaignError> {
     };
     let model_err = |e: crate::setup::Error| CampaignError::Setup {
         context: format!("{}: key 'model'", file.display()),
-        source: Box::new(e),
+        cause: Box::new(e),
     };
     let spec = match &campaign.model {
         None => crate::model::ModelSpec::embedded_of(campaign.embedded_model),

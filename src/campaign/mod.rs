@@ -75,9 +75,12 @@ pub enum CampaignError {
     },
     #[error(transparent)]
     Io(#[from] crate::io::IoError),
-    #[error("{context}: {source}")]
+    /// A model, design or cell that cannot be set up; `context` names the file and key (or
+    /// the campaign cell). The cause is part of the message, not a separate `source` (the
+    /// CLI's one-line error joins the chain, which would repeat it).
+    #[error("{context}: {cause}")]
     Setup {
         context: String,
-        source: Box<crate::setup::Error>,
+        cause: Box<crate::setup::Error>,
     },
 }

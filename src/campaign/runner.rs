@@ -698,7 +698,7 @@ fn build_cell<'s, M: CampaignModel<N>, const N: usize>(
 ) -> Result<(Cell<'s, M, N>, Option<String>), CampaignError> {
     let ctx = |e: crate::setup::Error| CampaignError::Setup {
         context: label.to_string(),
-        source: Box::new(e),
+        cause: Box::new(e),
     };
     let p_w = match campaign.fit.whiten_at {
         WhitenAt::Truth => &sc.truth,
