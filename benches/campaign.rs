@@ -14,8 +14,9 @@ fn bench(c: &mut Criterion) {
     let file = dir.join("bench.toml");
     std::fs::write(&file, text).unwrap();
     let loaded = campaign::load(Some(&file)).unwrap();
+    let setup = loaded.setup.x("the campaign bench").unwrap();
     let runner = Runner::new(
-        &loaded.setup,
+        &setup,
         &loaded.campaign,
         loaded.scenarios.clone(),
         &loaded.designs,

@@ -19,8 +19,9 @@ fn main() {
     let file = dir.join("prof.toml");
     std::fs::write(&file, text).unwrap();
     let loaded = campaign::load(Some(&file)).unwrap();
+    let setup = loaded.setup.x("prof_realization").unwrap();
     let runner = Runner::new(
-        &loaded.setup,
+        &setup,
         &loaded.campaign,
         loaded.scenarios.clone(),
         &loaded.designs,

@@ -375,14 +375,34 @@ impl AnySetup {
     /// The model file at `path` (or the embedded `lpf_x` / `lpf_xy`), as its `model` says;
     /// the embedded x model without a path.
     pub fn load(path: Option<&std::path::Path>) -> Result<Self, Error> {
-        let spec = match path {
-            None => return Ok(AnySetup::X(Box::new(Setup::embedded()))),
-            Some(p) => ModelSpec::load(p)?,
-        };
+        match path {
+            None => Ok(AnySetup::X(Box::new(Setup::embedded()))),
+            Some(p) => Self::new(ModelSpec::load(p)?),
+        }
+    }
+
+    /// The model of a parsed model file, as its `model` says.
+    pub fn new(spec: ModelSpec) -> Result<Self, Error> {
         Ok(match spec.model {
             ModelKind::LpfX => AnySetup::X(Box::new(Setup::new(spec)?)),
             ModelKind::LpfXy => AnySetup::Xy(Box::new(SetupXy::new(spec)?)),
         })
+    }
+
+    /// A named injection design of the model file ([`SetupOf::design`]).
+    pub fn design(&self, name: &str) -> Result<Design, Error> {
+        match self {
+            AnySetup::X(s) => s.design(name),
+            AnySetup::Xy(s) => s.design(name),
+        }
+    }
+
+    /// The model's guidance inputs, in column order.
+    pub fn input_names(&self) -> Vec<&'static str> {
+        match self {
+            AnySetup::X(s) => s.model.input_names().to_vec(),
+            AnySetup::Xy(s) => s.model.input_names().to_vec(),
+        }
     }
 
     /// The same with its loop `kind` instead of the file's.

@@ -301,6 +301,7 @@ fn bad_campaign_files_are_one_line_errors() {
         ("seed = 1\nrealizations = 2\n[[scenario]]\nname = \"monte_carlo\"\n[[design]]\nname = \"d\"\nfile = \"missing.toml\"\n", &["missing.toml"]),
         ("seed = -1\nrealizations = 2\n[[scenario]]\nname = \"monte_carlo\"\n", &["bad.toml", "line 1"]),
         ("seed = 1\nrealizations = 2\n[fit]\nwhiten_at = \"noise\"\n[[scenario]]\nname = \"monte_carlo\"\n", &["fit.whiten_at", "noise"]),
+        ("seed = 1\nrealizations = 2\n[fit]\nftol = 0.0\n[[scenario]]\nname = \"monte_carlo\"\n", &["fit.ftol", "0 < tolerance < 1"]),
     ];
     for (text, needles) in cases {
         let f = write_campaign(tmp.path(), "bad.toml", text);

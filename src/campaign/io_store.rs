@@ -16,7 +16,7 @@ use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
 use serde::{Deserialize, Serialize};
 
-use super::runner::{resolve_scenarios, Runner};
+use super::runner::{check_x_only, resolve_scenarios, Jobs, Runner};
 use super::spec::{Campaign, DesignSource};
 use super::stats::{Aggregates, Layout};
 use super::CampaignError;
@@ -25,8 +25,9 @@ use crate::io::{
     self, read_json, read_parquet, write_json_atomic, write_parquet, IoError, ParquetAppender,
     Table,
 };
+use crate::model::spec::ModelKind;
 use crate::model::spec::Scenario;
-use crate::setup::Setup;
+use crate::setup::AnySetup;
 use crate::signal::Design;
 
 /// The quick campaign, used when `campaign run` is given no file.
@@ -39,7 +40,8 @@ const MANIFEST: &str = "manifest.json";
 /// A campaign with everything it refers to, loaded and checked.
 pub struct Loaded {
     pub campaign: Campaign,
-    pub setup: Setup,
+    /// The campaign's model: the x model or the xy model.
+    pub setup: AnySetup,
     pub scenarios: Vec<Scenario>,
     pub designs: Vec<Design>,
     pub campaign_sha256: String,
@@ -62,28 +64,29 @@ pub fn load(path: Option<&Path>) -> Result<Loaded, CampaignError> {
         ),
     };
     let campaign = Campaign::from_toml_str(&text, &file)?;
-    let (model_text, model_label) = match &campaign.model {
-        None => (
+    let (model_text, model_label) = match (&campaign.model, campaign.embedded_model) {
+        // The x campaigns' label, as before the xy model.
+        (None, ModelKind::LpfX) => (
             crate::model::spec::EMBEDDED_LPF_X.to_string(),
             "embedded".to_string(),
         ),
-        Some(m) => (io::read_text(m)?, m.display().to_string()),
+        (None, kind) => (
+            kind.embedded_text().0.to_string(),
+            format!("embedded {}", kind.name()),
+        ),
+        (Some(m), _) => (io::read_text(m)?, m.display().to_string()),
     };
-    let setup = if campaign.model.is_none() {
-        Setup::embedded()
-    } else {
-        let spec =
-            crate::model::ModelSpec::from_toml_str(&model_text, &model_label).map_err(|e| {
-                CampaignError::Setup {
-                    context: format!("{}: key 'model'", file.display()),
-                    source: Box::new(e.into()),
-                }
-            })?;
-        Setup::new(spec).map_err(|e| CampaignError::Setup {
-            context: format!("{}: key 'model'", file.display()),
-            source: Box::new(e),
-        })?
+    let model_err = |e: crate::setup::Error| CampaignError::Setup {
+        context: format!("{}: key 'model'", file.display()),
+        cause: Box::new(e),
     };
+    let spec = match &campaign.model {
+        None => crate::model::ModelSpec::embedded_of(campaign.embedded_model),
+        Some(_) => crate::model::ModelSpec::from_toml_str(&model_text, &model_label)
+            .map_err(|e| model_err(e.into()))?,
+    };
+    let setup = AnySetup::new(spec).map_err(model_err)?;
+    let inputs = setup.input_names();
     let mut design_texts = Vec::new();
     let mut designs = Vec::new();
     for (i, d) in campaign.designs.iter().enumerate() {
@@ -104,14 +107,24 @@ pub fn load(path: Option<&Path>) -> Result<Loaded, CampaignError> {
         };
         design.name = d.name.clone();
         design.validate().map_err(|e| bad(e.to_string()))?;
-        if design.experiments.iter().any(|e| e.inputs.len() > 2) {
-            return Err(bad(
-                "the LPF-x model has 2 guidance inputs; an experiment lists more".into(),
-            ));
+        if let Some(e) = design
+            .experiments
+            .iter()
+            .find(|e| e.inputs.len() > inputs.len())
+        {
+            return Err(bad(format!(
+                "experiment '{}' lists {} inputs; the {} model has {} ({})",
+                e.name,
+                e.inputs.len(),
+                setup.spec().model.name(),
+                inputs.len(),
+                inputs.join(", ")
+            )));
         }
         designs.push(design);
     }
-    let scenarios = resolve_scenarios(&setup, &campaign)?;
+    let scenarios = resolve_scenarios(setup.spec(), &campaign)?;
+    check_x_only(&campaign, &scenarios, setup.spec().model)?;
     let mut parts: Vec<&[u8]> = vec![text.as_bytes(), model_text.as_bytes()];
     parts.extend(design_texts.iter().map(|t| t.as_bytes()));
     Ok(Loaded {
@@ -418,11 +431,11 @@ pub fn run(
         });
     }
     let pool = worker_pool(out, opts.threads)?;
-    let runner = Runner::new(&loaded.setup, c, loaded.scenarios.clone(), &loaded.designs)?;
-    let layout = runner.layout.clone();
+    let runner = prepare(loaded)?;
+    let layout = runner.layout().clone();
     let mut agg = Aggregates::new(layout.clone());
     let (mut next, mut fit_seconds) =
-        replay_chunks(loaded, &runner, &partial, start, end, &mut agg)?;
+        replay_chunks(loaded, runner.as_ref(), &partial, start, end, &mut agg)?;
     let resumed = next - start;
     let total = end - start;
     let (f, x) = agg.counts();
@@ -514,7 +527,16 @@ pub fn run(
     Ok(RunReport {
         manifest,
         already_complete: false,
-        notes: runner.notes.clone(),
+        notes: runner.notes().to_vec(),
+    })
+}
+
+/// The runner of a loaded campaign, for its model (x or xy).
+fn prepare(loaded: &Loaded) -> Result<Box<dyn Jobs + '_>, CampaignError> {
+    let (c, scenarios, designs) = (&loaded.campaign, &loaded.scenarios, &loaded.designs);
+    Ok(match &loaded.setup {
+        AnySetup::X(s) => Box::new(Runner::new(s.as_ref(), c, scenarios.clone(), designs)?),
+        AnySetup::Xy(s) => Box::new(Runner::new(s.as_ref(), c, scenarios.clone(), designs)?),
     })
 }
 
@@ -632,7 +654,7 @@ fn read_chunk(path: &Path) -> Result<Table, CampaignError> {
 /// another campaign (seed) or has the wrong size, naming it.
 fn replay_chunks(
     loaded: &Loaded,
-    runner: &Runner,
+    runner: &dyn Jobs,
     partial: &Path,
     start: u64,
     end: u64,
@@ -656,7 +678,7 @@ fn replay_chunks(
                 ),
             ));
         }
-        let rows = runner.layout.rows_from_table(&table)?;
+        let rows = runner.layout().rows_from_table(&table)?;
         if rows.len() as u64 != (b - a) * runner.rows_per_realization() as u64 {
             return Err(store_err(&path, "chunk has the wrong number of rows"));
         }

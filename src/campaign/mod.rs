@@ -14,6 +14,14 @@
 //!   the output tables and `manifest.json` (all file access goes through [`crate::io`]);
 //! - SLURM job-array submission scripts ([`slurm`]).
 //!
+//! # Models
+//! A campaign runs on the x model (`lpf_x`, the default) or on the 7-DOF xy cross-talk model
+//! (`model = "lpf_xy"`, or a model file that says `model = "lpf_xy"`); the runner is generic
+//! in the model ([`runner::CampaignModel`]). The time-domain engine, glitches and `[accel]`
+//! are the x model's only and are refused for the xy model in one line. The xy model's
+//! `standard_xy` injection table is the x standard design plus one experiment per y/phi input
+//! (campaigns/xy_crosstalk.toml).
+//!
 //! # Random streams
 //! Realization `i` of a campaign with seed `s` draws everything from
 //! [`crate::sim::rng::stream`]`(s, i)`: first the noise of every experiment (in design order), then
@@ -75,9 +83,12 @@ pub enum CampaignError {
     },
     #[error(transparent)]
     Io(#[from] crate::io::IoError),
-    #[error("{context}: {source}")]
+    /// A model, design or cell that cannot be set up; `context` names the file and key (or
+    /// the campaign cell). The cause is part of the message, not a separate `source` (the
+    /// CLI's one-line error joins the chain, which would repeat it).
+    #[error("{context}: {cause}")]
     Setup {
         context: String,
-        source: Box<crate::setup::Error>,
+        cause: Box<crate::setup::Error>,
     },
 }

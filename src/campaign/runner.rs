@@ -17,6 +17,10 @@
 //! its likelihood on the decimated guidance telemetry, with the whitening filter of the model
 //! PSD folded through the anti-alias FIR (`fit::telemetry_psd`). The model must then be the
 //! sampled-data one.
+//!
+//! The runner is generic in the model ([`CampaignModel`]): the x model (`lpf_x`) and the 7-DOF
+//! xy model (`lpf_xy`). The time-domain engine, glitches and the `[accel]` statistics are the
+//! x model's only; [`check_x_only`] refuses them for another model in one line.
 
 use rayon::prelude::*;
 
@@ -25,11 +29,12 @@ use super::stats::{Layout, Row, ScenarioLabel};
 use super::CampaignError;
 use crate::data::ExperimentData;
 use crate::fit::{
-    fit, Estimator, FitConfig, JacobianCache, JacobianPolicy, Likelihood, JACOBIAN_REUSE_SIGMA,
+    fit, Estimator, FitConfig, JacobianCache, JacobianPolicy, Likelihood, Whitener,
+    JACOBIAN_REUSE_SIGMA,
 };
-use crate::model::spec::Scenario;
-use crate::model::{check_stability, LpfX};
-use crate::setup::Setup;
+use crate::model::spec::{ModelKind, ModelSpec, Scenario};
+use crate::model::{check_stability, LpfX, LpfXy};
+use crate::setup::{SetupOf, SpecModel};
 use crate::signal::Design;
 use crate::sim::rng::stream;
 use crate::sim::time_domain::TimeDomainSimulator;
@@ -38,22 +43,145 @@ use crate::sim::WhitenedSimulator;
 
 use super::spec::Engine;
 
+/// A time-domain cell's parts: the simulator, the decimated guidance telemetry (the
+/// likelihood's inputs), the analysis interval, the whitening filter through the decimator and
+/// a note if it needed a floor.
+pub type TimeDomainParts<const N: usize> = (
+    Box<TimeDomainSimulator>,
+    Vec<Vec<Vec<f64>>>,
+    f64,
+    Whitener<N>,
+    Option<String>,
+);
+
+/// What a campaign needs of its model beyond [`SpecModel`]: the simulators of its cells. The
+/// x model has them all; the xy model has the frequency-domain simulator without glitches (its
+/// campaigns are checked by [`check_x_only`] before any cell is built).
+pub trait CampaignModel<const N: usize>: SpecModel<N> + Sync {
+    /// The frequency-domain simulator of design `d` at the scenario's truth, at the analysis
+    /// rate (with the scenario's glitches where the model has them).
+    fn campaign_simulator(
+        setup: &SetupOf<Self, N>,
+        d: &Design,
+        sc: &Scenario,
+    ) -> Result<Simulator<N>, crate::setup::Error>;
+
+    /// The time-domain engine's parts of design `d` at the scenario's truth, whitened with the
+    /// model PSD at `p_w` folded through the decimator, filter order `order`.
+    fn time_domain_parts(
+        setup: &SetupOf<Self, N>,
+        d: &Design,
+        sc: &Scenario,
+        p_w: &[f64],
+        order: usize,
+    ) -> Result<TimeDomainParts<N>, crate::setup::Error>;
+}
+
+impl CampaignModel<2> for LpfX {
+    fn campaign_simulator(
+        setup: &SetupOf<Self, 2>,
+        d: &Design,
+        sc: &Scenario,
+    ) -> Result<Simulator<2>, crate::setup::Error> {
+        setup.simulator(d, &sc.truth, sc.glitch.as_ref())
+    }
+
+    fn time_domain_parts(
+        setup: &SetupOf<Self, 2>,
+        d: &Design,
+        sc: &Scenario,
+        p_w: &[f64],
+        order: usize,
+    ) -> Result<TimeDomainParts<2>, crate::setup::Error> {
+        let td = setup.time_domain_simulator(d, &sc.truth, sc.glitch.as_ref(), None)?;
+        let inputs = td.telemetry_inputs();
+        let (n, dt) = (
+            inputs.iter().map(|e| e[0].len()).max().unwrap_or(0),
+            td.grid.dt_out,
+        );
+        let (whitener, floor) =
+            setup.whitener_through_decimator(p_w, n, dt, order, &td.grid.decimator)?;
+        Ok((Box::new(td), inputs, dt, whitener, floor.map(|f| f.note())))
+    }
+}
+
+impl CampaignModel<7> for LpfXy {
+    fn campaign_simulator(
+        setup: &SetupOf<Self, 7>,
+        d: &Design,
+        sc: &Scenario,
+    ) -> Result<Simulator<7>, crate::setup::Error> {
+        if sc.glitch.is_some() {
+            return Err(x_only_error(&setup.spec, "glitches"));
+        }
+        setup.plain_simulator(d, &sc.truth)
+    }
+
+    fn time_domain_parts(
+        setup: &SetupOf<Self, 7>,
+        _: &Design,
+        _: &Scenario,
+        _: &[f64],
+        _: usize,
+    ) -> Result<TimeDomainParts<7>, crate::setup::Error> {
+        Err(x_only_error(&setup.spec, "the time-domain engine"))
+    }
+}
+
+fn x_only_error(spec: &ModelSpec, what: &str) -> crate::setup::Error {
+    crate::setup::Error::Other(format!(
+        "{}: {what} is the lpf_x model's only; this is the {} model",
+        spec.origin,
+        spec.model.name()
+    ))
+}
+
+/// Refuse the x-only features (time-domain engine, glitches, `[accel]`) in a campaign on a
+/// model of another `kind`, naming the campaign file and key.
+pub fn check_x_only(
+    campaign: &Campaign,
+    scenarios: &[Scenario],
+    kind: ModelKind,
+) -> Result<(), CampaignError> {
+    if kind == ModelKind::LpfX {
+        return Ok(());
+    }
+    let bad = |key: String, what: &str| CampaignError::Invalid {
+        file: campaign.file.clone(),
+        key,
+        reason: format!(
+            "{what} is the lpf_x model's only; this campaign's model is {}",
+            kind.name()
+        ),
+    };
+    if campaign.fit.engine == Engine::TimeDomain {
+        return Err(bad("fit.engine".into(), "\"time-domain\""));
+    }
+    if let Some(i) = scenarios.iter().position(|s| s.glitch.is_some()) {
+        return Err(bad(format!("scenario[{i}].glitch"), "a glitch"));
+    }
+    if !campaign.accel_bands.is_empty() {
+        return Err(bad("accel.bands_hz".into(), "the acceleration-noise bias"));
+    }
+    Ok(())
+}
+
 /// Where a cell's data come from (`[fit] engine`).
 // One per campaign cell, built once: the variants' size difference costs nothing.
 #[allow(clippy::large_enum_variant)]
-enum Source {
+enum Source<const N: usize> {
     /// The frequency-domain simulator at the analysis rate, with realizations delivered
     /// whitened (`wsim`; `None` if the noise window is too close to the start of its generator
     /// for the whitening filter; then `sim.draw` is whitened).
     Frequency {
-        sim: Box<Simulator<2>>,
-        wsim: Option<Box<WhitenedSimulator<2>>>,
+        sim: Box<Simulator<N>>,
+        wsim: Option<Box<WhitenedSimulator<N>>>,
     },
     /// The digital loop in the time domain, decimated to the analysis rate.
     Time(Box<TimeDomainSimulator>),
 }
 
-impl Source {
+impl<const N: usize> Source<N> {
     /// The experiments of one realization (what `run_job` fits), from `rng`.
     fn draw(&self, rng: &mut rand_xoshiro::Xoshiro256PlusPlus) -> ExperimentData {
         match self {
@@ -63,30 +191,30 @@ impl Source {
     }
 }
 
-struct Cell<'s> {
-    source: Source,
-    lik: Likelihood<'s, LpfX, 2>,
+struct Cell<'s, M: CampaignModel<N>, const N: usize> {
+    source: Source<N>,
+    lik: Likelihood<'s, M, N>,
     /// Fit configuration per estimator (they differ by estimator and by the cell's Jacobians).
     configs: Vec<FitConfig>,
     /// The acceleration-noise reference of `[accel]` bands, if recorded.
-    accel: Option<AccelReference>,
+    accel: Option<AccelReference<N>>,
 }
 
 /// A realization's whitened problem, and, if asked, the noise-only run's `(nu, whitened
 /// series)`, or the errors of either.
-type Drawn<'a, 's> = (
-    Result<crate::fit::Problem<'a, 's, LpfX, 2>, crate::fit::FitError>,
+type Drawn<'a, 's, M, const N: usize> = (
+    Result<crate::fit::Problem<'a, 's, M, N>, crate::fit::FitError>,
     Option<Result<(usize, crate::data::Series), crate::fit::FitError>>,
 );
 
-impl<'s> Cell<'s> {
+impl<'s, M: CampaignModel<N>, const N: usize> Cell<'s, M, N> {
     /// Draw one realization from `rng`: the data first (every experiment), then, if
     /// `noise_chi2`, a noise-only run per experiment from the same stream.
     fn draw<'a>(
         &'a self,
         rng: &mut rand_xoshiro::Xoshiro256PlusPlus,
         noise_chi2: bool,
-    ) -> Drawn<'a, 's> {
+    ) -> Drawn<'a, 's, M, N> {
         let lik = &self.lik;
         if let Source::Frequency { wsim: Some(ws), .. } = &self.source {
             let data_w = ws.draw(rng);
@@ -121,16 +249,16 @@ const ACCEL_BAND_POINTS: usize = 16;
 
 /// Per band: the frequency grid, the model's readout noise cross-PSD at the cell's truth on it,
 /// and S_g12 of that noise converted with the true parameters (thesis sec. 4.6).
-struct AccelReference {
+struct AccelReference<const N: usize> {
     dt: f64,
     grids: Vec<Vec<f64>>,
-    csd: Vec<Vec<crate::model::CMat<2>>>,
+    csd: Vec<Vec<crate::model::CMat<N>>>,
     level_true: Vec<f64>,
 }
 
-impl AccelReference {
-    fn new(
-        setup: &Setup,
+impl<const N: usize> AccelReference<N> {
+    fn new<M: SpecModel<N>>(
+        setup: &SetupOf<M, N>,
         truth: &[f64],
         bands: &[[f64; 2]],
         dt: f64,
@@ -162,7 +290,11 @@ impl AccelReference {
     }
 
     /// Mean S_g12 per band of the readout noise converted with parameters `p`.
-    fn levels(&self, setup: &Setup, p: &[f64]) -> Result<Vec<f64>, crate::accel::AccelError> {
+    fn levels<M: SpecModel<N>>(
+        &self,
+        setup: &SetupOf<M, N>,
+        p: &[f64],
+    ) -> Result<Vec<f64>, crate::accel::AccelError> {
         use crate::accel::{DeltaEstimator, Response, Stencil};
         let est = DeltaEstimator::new(&setup.model, p, self.dt, Stencil::default())?;
         Ok(self
@@ -180,7 +312,7 @@ impl AccelReference {
     }
 
     /// `S_g12(p) / S_g12(truth) - 1` per band; NaN where `p` cannot be converted.
-    fn bias(&self, setup: &Setup, p: &[f64]) -> Vec<f64> {
+    fn bias<M: SpecModel<N>>(&self, setup: &SetupOf<M, N>, p: &[f64]) -> Vec<f64> {
         match self.levels(setup, p) {
             Ok(l) => l
                 .iter()
@@ -196,10 +328,10 @@ impl AccelReference {
 /// realization 0: both are pure functions of the campaign cell, so every shard, thread count
 /// and resume computes the same cache (see `fit::JacobianCache`). If realization 0 cannot be
 /// fitted, the cache holds the guess only.
-fn cell_jacobians(
-    setup: &Setup,
-    sim: &Source,
-    lik: &Likelihood<'_, LpfX, 2>,
+fn cell_jacobians<M: CampaignModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
+    sim: &Source<N>,
+    lik: &Likelihood<'_, M, N>,
     sc: &Scenario,
     seed: u64,
     base: &FitConfig,
@@ -213,19 +345,20 @@ fn cell_jacobians(
             }
         }
     }
-    let cache = JacobianCache::new(lik, &points, JACOBIAN_REUSE_SIGMA)?;
+    let fixed: Vec<usize> = (0..base.fixed.len()).filter(|&k| base.fixed[k]).collect();
+    let cache = JacobianCache::with_fixed(lik, &points, JACOBIAN_REUSE_SIGMA, &fixed)?;
     Ok(JacobianPolicy::Cached(std::sync::Arc::new(cache)))
 }
 
 /// Everything needed to run realizations of a campaign; `Sync`, shared by the workers.
-pub struct Runner<'s> {
-    setup: &'s Setup,
+pub struct Runner<'s, M: CampaignModel<N>, const N: usize> {
+    setup: &'s SetupOf<M, N>,
     seed: u64,
     scenarios: Vec<Scenario>,
     n_designs: usize,
     estimators: Vec<Estimator>,
     noise_chi2: bool,
-    cells: Vec<Cell<'s>>,
+    cells: Vec<Cell<'s, M, N>>,
     pub layout: Layout,
     /// How cells were prepared, when it departs from the plain path (a whitening floor).
     pub notes: Vec<String>,
@@ -234,10 +367,10 @@ pub struct Runner<'s> {
 /// The scenarios of a campaign in model parameter order; inline sets are checked here (unknown
 /// or missing parameters name the campaign file and key).
 pub fn resolve_scenarios(
-    setup: &Setup,
+    spec: &ModelSpec,
     campaign: &Campaign,
 ) -> Result<Vec<Scenario>, CampaignError> {
-    let names = setup.parameter_names();
+    let names = spec.parameter_names();
     let bad = |key: String, reason: String| CampaignError::Invalid {
         file: campaign.file.clone(),
         key,
@@ -248,8 +381,7 @@ pub fn resolve_scenarios(
         .iter()
         .enumerate()
         .map(|(i, s)| match &s.source {
-            ScenarioSource::Model => setup
-                .spec
+            ScenarioSource::Model => spec
                 .scenario(&s.name)
                 .map_err(|e| bad(format!("scenario[{i}].name"), e.to_string())),
             ScenarioSource::Inline {
@@ -324,10 +456,10 @@ fn fit_constraints(
     Ok(c)
 }
 
-impl<'s> Runner<'s> {
+impl<'s, M: CampaignModel<N>, const N: usize> Runner<'s, M, N> {
     /// Prepare every (scenario, design) cell. `designs` are in campaign order, named as there.
     pub fn new(
-        setup: &'s Setup,
+        setup: &'s SetupOf<M, N>,
         campaign: &Campaign,
         scenarios: Vec<Scenario>,
         designs: &[Design],
@@ -350,7 +482,8 @@ impl<'s> Runner<'s> {
                 ),
             });
         }
-        check_engine_model(setup, campaign)?;
+        check_x_only(campaign, &scenarios, M::KIND)?;
+        check_engine_model(&setup.spec, campaign)?;
         let (mut cells, mut notes) = (Vec::new(), Vec::new());
         for (i, sc) in scenarios.iter().enumerate() {
             for (which, p) in [("true", &sc.truth), ("guess", &sc.guess)] {
@@ -504,20 +637,46 @@ impl<'s> Runner<'s> {
     }
 }
 
+/// A prepared campaign of either model, as the store runs it (`Runner` of the x or the xy
+/// model behind one type).
+pub trait Jobs: Sync {
+    /// The labels of the rows.
+    fn layout(&self) -> &Layout;
+    /// How cells were prepared, when it departs from the plain path.
+    fn notes(&self) -> &[String];
+    /// Rows produced per realization (scenarios x designs x estimators).
+    fn rows_per_realization(&self) -> usize;
+    /// Rows of realizations `start..end` in row order, on the current rayon pool.
+    fn run_range(&self, start: u64, end: u64) -> Vec<Row>;
+}
+
+impl<M: CampaignModel<N>, const N: usize> Jobs for Runner<'_, M, N> {
+    fn layout(&self) -> &Layout {
+        &self.layout
+    }
+    fn notes(&self) -> &[String] {
+        &self.notes
+    }
+    fn rows_per_realization(&self) -> usize {
+        Runner::rows_per_realization(self)
+    }
+    fn run_range(&self, start: u64, end: u64) -> Vec<Row> {
+        Runner::run_range(self, start, end)
+    }
+}
+
 /// The time-domain engine's data come from a digital loop: fitted with the continuous model
 /// they give biased guidance delays and drag-free gain (the hold's half-sample delay; README
 /// "Time-domain simulation of the digital loop"), so the campaign's model must be digital.
-fn check_engine_model(setup: &Setup, campaign: &Campaign) -> Result<(), CampaignError> {
+fn check_engine_model(spec: &ModelSpec, campaign: &Campaign) -> Result<(), CampaignError> {
     use crate::model::spec::LoopKind;
-    if campaign.fit.engine == Engine::TimeDomain
-        && setup.spec.control_loop.kind != LoopKind::Digital
-    {
+    if campaign.fit.engine == Engine::TimeDomain && spec.control_loop.kind != LoopKind::Digital {
         return Err(CampaignError::Invalid {
             file: campaign.file.clone(),
             key: "fit.engine".into(),
             reason: format!(
                 "\"time-domain\" needs a sampled-data model: the model '{}' is continuous; give `model =` a model file with [control_loop] kind = \"digital\" (the embedded model is one; campaigns/models/lpf_x_continuous.toml is not)",
-                setup.spec.origin
+                spec.origin
             ),
         });
     }
@@ -529,17 +688,17 @@ fn check_engine_model(setup: &Setup, campaign: &Campaign) -> Result<(), Campaign
 /// model PSD folded through the anti-alias FIR, `fit::telemetry_psd`), the fit configurations
 /// and the `[accel]` reference; and a note when the whitening needed a floor. `label` names
 /// the cell in errors.
-fn build_cell<'s>(
-    setup: &'s Setup,
+fn build_cell<'s, M: CampaignModel<N>, const N: usize>(
+    setup: &'s SetupOf<M, N>,
     campaign: &Campaign,
     constraints: &crate::fit::Constraints,
     sc: &Scenario,
     d: &Design,
     label: &str,
-) -> Result<(Cell<'s>, Option<String>), CampaignError> {
+) -> Result<(Cell<'s, M, N>, Option<String>), CampaignError> {
     let ctx = |e: crate::setup::Error| CampaignError::Setup {
         context: label.to_string(),
-        source: Box::new(e),
+        cause: Box::new(e),
     };
     let p_w = match campaign.fit.whiten_at {
         WhitenAt::Truth => &sc.truth,
@@ -549,9 +708,7 @@ fn build_cell<'s>(
     let mut note = None;
     let (source, inputs, dt, whitener) = match campaign.fit.engine {
         Engine::FrequencyDomain => {
-            let sim = setup
-                .simulator(d, &sc.truth, sc.glitch.as_ref())
-                .map_err(ctx)?;
+            let sim = M::campaign_simulator(setup, d, sc).map_err(ctx)?;
             let whitener = setup
                 .whitener_from_model(p_w, sim.n, sim.dt, order)
                 .map_err(ctx)?;
@@ -563,19 +720,10 @@ fn build_cell<'s>(
             (source, inputs, dt, whitener)
         }
         Engine::TimeDomain => {
-            let td = setup
-                .time_domain_simulator(d, &sc.truth, sc.glitch.as_ref(), None)
-                .map_err(ctx)?;
-            let inputs = td.telemetry_inputs();
-            let (n, dt) = (
-                inputs.iter().map(|e| e[0].len()).max().unwrap_or(0),
-                td.grid.dt_out,
-            );
-            let (whitener, floor) = setup
-                .whitener_through_decimator(p_w, n, dt, order, &td.grid.decimator)
-                .map_err(ctx)?;
-            note = floor.map(|f| f.note());
-            (Source::Time(Box::new(td)), inputs, dt, whitener)
+            let (td, inputs, dt, whitener, floor) =
+                M::time_domain_parts(setup, d, sc, p_w, order).map_err(ctx)?;
+            note = floor;
+            (Source::Time(td), inputs, dt, whitener)
         }
     };
     let lik = Likelihood::new(
@@ -595,6 +743,12 @@ fn build_cell<'s>(
     };
     let mut base = constraints.apply(FitConfig::new(&setup.model));
     base.max_iterations = campaign.fit.max_iterations;
+    if let Some(t) = campaign.fit.ftol {
+        base.ftol = t;
+    }
+    if let Some(t) = campaign.fit.ptol {
+        base.ptol = t;
+    }
     if campaign.fit.cached_jacobian {
         base.jacobian = cell_jacobians(setup, &source, &lik, sc, campaign.seed, &base)
             .map_err(|e| ctx(e.into()))?;

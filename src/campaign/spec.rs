@@ -3,7 +3,9 @@
 //!
 //! ```toml
 //! name = "quick"                # optional, default: the file stem
-//! model = "my_model.toml"       # optional, relative to this file; default: embedded lpf_x.toml
+//! model = "my_model.toml"       # optional, relative to this file; default: embedded lpf_x.toml;
+//!                               # "lpf_xy" ("lpf_x"), when no such file exists, names the
+//!                               # embedded 7-DOF xy (x) model
 //! seed = 20120401               # master seed (u64)
 //! realizations = 50
 //! estimators = ["squared"]      # any of "squared", "absolute", "log"; default ["squared"]
@@ -34,6 +36,11 @@
 //!                               # 0's estimate, reused within 5 sigma (fit::JacobianCache);
 //!                               # "exact": evaluated at every accepted step
 //! fixed = ["dt1"]               # held at the scenario's guess: not fitted, not in nu, sigma 0
+//! ftol = 1e-4                   # a fit ends when chi^2 changes by less than ftol of itself
+//! ptol = 1e-4                   # ... or every parameter by less than ptol of |p| + sigma
+//!                               # (defaults 1e-4, thesis sec. 4.4.4; with nu ~ 5e5 degrees of
+//!                               # freedom ftol = 1e-4 is 50 units of chi^2, too coarse for
+//!                               # ill-conditioned parameters: see campaigns/xy_crosstalk.toml)
 //! engine = "frequency-domain"   # data simulator: "frequency-domain" (default; templates plus
 //!                               # coloured noise at the analysis rate) or "time-domain" (the
 //!                               # digital loop stepped at simulate_hz and decimated by the
@@ -55,7 +62,7 @@ use serde::Deserialize;
 
 use super::CampaignError;
 use crate::fit::Estimator;
-use crate::model::spec::GlitchSpec;
+use crate::model::spec::{GlitchSpec, ModelKind};
 use crate::setup::{DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 
 /// Default realizations per checkpoint chunk.
@@ -122,6 +129,8 @@ struct FitEntry {
     fixed: Option<Vec<String>>,
     prior: Option<BTreeMap<String, [f64; 2]>>,
     engine: Option<String>,
+    ftol: Option<f64>,
+    ptol: Option<f64>,
 }
 
 /// The simulator that draws a campaign's data (`[fit] engine`). One per campaign: it goes with
@@ -214,6 +223,9 @@ pub struct FitOptions {
     pub priors: BTreeMap<String, [f64; 2]>,
     /// The data simulator (`engine = "time-domain"`).
     pub engine: Engine,
+    /// The fits' relative chi^2 and parameter tolerances (`None`: the fit's defaults).
+    pub ftol: Option<f64>,
+    pub ptol: Option<f64>,
 }
 
 /// A validated campaign file.
@@ -223,8 +235,11 @@ pub struct Campaign {
     pub file: PathBuf,
     pub name: String,
     pub description: String,
-    /// Model file (resolved against the campaign file's directory); `None` = embedded model.
+    /// Model file (resolved against the campaign file's directory); `None` = the embedded
+    /// model `embedded_model`.
     pub model: Option<PathBuf>,
+    /// The embedded model used without a model file: lpf_x, or lpf_xy for `model = "lpf_xy"`.
+    pub embedded_model: ModelKind,
     pub seed: u64,
     pub realizations: u64,
     pub estimators: Vec<Estimator>,
@@ -257,12 +272,21 @@ impl Campaign {
         if spec.realizations == 0 {
             return Err(cx.bad("realizations", "must be at least 1"));
         }
-        let model = match spec.model.as_deref() {
-            None | Some("embedded") => None,
+        let (model, embedded_model) = match spec.model.as_deref() {
+            None | Some("embedded") => (None, ModelKind::LpfX),
             Some("") => {
                 return Err(cx.bad("model", "empty path (omit the key for the embedded model)"))
             }
-            Some(m) => Some(cx.resolve(m)),
+            Some(m) => {
+                let path = cx.resolve(m);
+                match [ModelKind::LpfX, ModelKind::LpfXy]
+                    .into_iter()
+                    .find(|k| k.name() == m)
+                {
+                    Some(kind) if !path.exists() => (None, kind),
+                    _ => (Some(path), ModelKind::LpfX),
+                }
+            }
         };
         let batch = spec.batch.unwrap_or(DEFAULT_BATCH);
         if batch == 0 {
@@ -273,6 +297,7 @@ impl Campaign {
             name,
             description: spec.description.unwrap_or_default(),
             model,
+            embedded_model,
             seed: spec.seed,
             realizations: spec.realizations,
             estimators: cx.estimators(spec.estimators.as_deref())?,
@@ -580,7 +605,15 @@ impl Checker<'_> {
                 ));
             }
         }
+        let tolerance = |key: &str, t: Option<f64>| match t {
+            Some(t) if !(t.is_finite() && t > 0.0 && t < 1.0) => {
+                Err(self.bad(key, format!("{t}: expected 0 < tolerance < 1")))
+            }
+            _ => Ok(t),
+        };
         Ok(FitOptions {
+            ftol: tolerance("fit.ftol", fit.ftol)?,
+            ptol: tolerance("fit.ptol", fit.ptol)?,
             whitening_order,
             poly_degree,
             max_iterations,

@@ -283,6 +283,7 @@ pub fn monte_carlo(
         name: "design-validation".into(),
         description: String::new(),
         model: None,
+        embedded_model: crate::model::spec::ModelKind::LpfX,
         seed,
         realizations: realizations.end,
         estimators: vec![Estimator::Squared],
@@ -300,6 +301,8 @@ pub fn monte_carlo(
             fixed: Vec::new(),
             priors: Default::default(),
             engine: crate::campaign::spec::Engine::FrequencyDomain,
+            ftol: None,
+            ptol: None,
         },
         accel_bands: Vec::new(),
     };

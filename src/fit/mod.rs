@@ -333,19 +333,40 @@ impl JacobianCache {
         points: &[Vec<f64>],
         max_sigma: f64,
     ) -> Result<Self, FitError> {
+        Self::with_fixed(lik, points, max_sigma, &[])
+    }
+
+    /// [`Self::new`] for fits that hold the parameters `fixed` (indices): the reuse distance
+    /// takes the marginal errors of the free parameters, from the information restricted to
+    /// them (which must be invertible; the full one need not be); fixed parameters never move
+    /// (their error is taken as infinite).
+    pub fn with_fixed<M: ClosedLoopModel<N>, const N: usize>(
+        lik: &Likelihood<'_, M, N>,
+        points: &[Vec<f64>],
+        max_sigma: f64,
+        fixed: &[usize],
+    ) -> Result<Self, FitError> {
         let entries = points
             .iter()
             .map(|p| {
                 let (templates, j) = lik.templates_and_jacobian(p);
                 let information = gram(&j);
-                let cov = invert_spd(&information).ok_or_else(|| {
+                let free: Vec<usize> = (0..p.len()).filter(|k| !fixed.contains(k)).collect();
+                let restricted = DMatrix::from_fn(free.len(), free.len(), |a, b| {
+                    information[(free[a], free[b])]
+                });
+                let cov = invert_spd(&restricted).ok_or_else(|| {
+                    let names = lik.engine.model().parameter_names();
                     FitError::Singular(explain_singular(
                         "Fisher information at a cached Jacobian point",
-                        &information,
-                        lik.engine.model().parameter_names(),
+                        &restricted,
+                        &free.iter().map(|&k| names[k].clone()).collect::<Vec<_>>(),
                     ))
                 })?;
-                let sigma = (0..p.len()).map(|k| cov[(k, k)].sqrt()).collect();
+                let mut sigma = vec![f64::INFINITY; p.len()];
+                for (a, &k) in free.iter().enumerate() {
+                    sigma[k] = cov[(a, a)].sqrt();
+                }
                 Ok(CachedJacobian {
                     p: p.clone(),
                     templates,
