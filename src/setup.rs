@@ -83,7 +83,7 @@ pub struct SetupOf<M, const N: usize> {
     pub noise: NoiseModel<N>,
 }
 
-/// The x-axis model (thesis sec. 3.3), which every command takes.
+/// The x-axis model (thesis sec. 3.3).
 pub type Setup = SetupOf<LpfX, 2>;
 /// The 7-DOF xy cross-talk model (thesis sec. 3.5).
 pub type SetupXy = SetupOf<LpfXy, 7>;
