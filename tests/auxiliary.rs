@@ -262,7 +262,7 @@ fn without_auxiliary_channels_the_leak_is_an_unexplained_noise_excess() {
         .as_array()
         .unwrap()
         .iter()
-        .filter(|e| e["family"] != "glitch")
+        .filter(|e| e["category"] != "glitch")
         .collect();
     assert!(persistent.is_empty(), "claimed {persistent:?}");
     let excess: Vec<&Value> = r["unexplained"]
