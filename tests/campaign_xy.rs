@@ -1,4 +1,4 @@
-//! Campaigns on the 7-DOF xy model (issue 16): the shipped campaigns/xy_crosstalk.toml at a
+//! Campaigns on the 7-DOF xy model (thesis sec. 3.5): the shipped campaigns/xy_crosstalk.toml at a
 //! reduced realization count, the x-only features refused for the xy model, and the singular
 //! information of all 31 parameters reported instead of hidden.
 

@@ -1,4 +1,4 @@
-//! Optimal design on the xy model (issue 16): y/phi injections ranked for the cross-talk
+//! Optimal design on the xy model (thesis ch. 5, sec. 3.5): y/phi injections ranked for the cross-talk
 //! coefficients, the standard x experiments and the model file's priors held fixed. Each test
 //! names its oracle.
 
@@ -13,7 +13,7 @@ use freefall::setup::SetupXy;
 use rand::RngExt;
 
 mod tol {
-    /// Issue 16: the optimal y/phi design's certificate (efficiency lower bound).
+    /// The optimal y/phi design's certificate (efficiency lower bound).
     pub const CERTIFICATE: f64 = 0.9;
     /// Rounding of phi comparisons against the certificate's bound.
     pub const PHI_REL: f64 = 1e-9;
@@ -28,7 +28,7 @@ fn geometric_mean(v: &[f64], idx: &[usize]) -> f64 {
 fn xy_optimum_is_certified_and_beats_the_y_phi_table_within_the_constraints() {
     // Oracles: (1) the equivalence-theorem bound U of design::search with the fixed part
     // (tr(G M0) + sum_g N_g max_i tr(G M_i)): the optimum's efficiency phi/U must reach 0.9
-    // (issue 16) and no random exact design may exceed U; (2) the model file's `y_phi` table
+    // and no random exact design may exceed U; (2) the model file's `y_phi` table
     // clipped to the same constraints (same inputs, frequencies, stretch count and timing):
     // the optimum's full-formula D criterion must be larger and its sigmas of the cross-talk
     // coefficients (with the priors) smaller in geometric mean and in sum of variances.

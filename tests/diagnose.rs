@@ -466,7 +466,7 @@ fn a_line_outside_the_library_is_unexplained_at_its_frequency() {
 
 #[test]
 fn odd_data_give_notes_or_errors_never_panics() {
-    // Oracle: the robustness list of issue 6.
+    // Oracle: the diagnosis' robustness list (odd inputs give a note or a one-line error).
     let (setup, data, noise, truth, guess) = simulate(&[("loss_angle_tm2", 0.01)], 61);
     let cfg = config();
     // Missing noise run: model noise, said so; the effect is still found.
@@ -526,7 +526,7 @@ fn odd_data_give_notes_or_errors_never_panics() {
 
 #[test]
 fn cli_end_to_end_writes_the_report() {
-    // Oracle: the report.json keys listed in issue 6, from the CLI on a simulated dataset.
+    // Oracle: the report.json keys the report promises (README), from the CLI on a simulated dataset.
     let dir = tempfile::tempdir().unwrap();
     let ds = dir.path().join("ds");
     let out = dir.path().join("out");

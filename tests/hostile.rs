@@ -1,4 +1,4 @@
-//! Hostile inputs (issue 18): absurd values, sizes that would abort the process, outputs over
+//! Hostile inputs: absurd values, sizes that would abort the process, outputs over
 //! inputs, duplicated files, damaged files. Each case asserts the exact behaviour: the one-line
 //! error and what it names, or the result. Plus proptests over random and mutated bytes for the
 //! dataset TOML, run Parquet and model TOML readers (no panic, no hang; a fixed case count).

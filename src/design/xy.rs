@@ -1,4 +1,4 @@
-//! Optimal design on the 7-DOF xy model (issue 16): injections on the y and phi inputs ranked
+//! Optimal design (thesis ch. 5) on the 7-DOF xy model (sec. 3.5): injections on the y and phi inputs ranked
 //! for the cross-talk coefficients, with the standard x experiments held fixed.
 //!
 //! # Design space
