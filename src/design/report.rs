@@ -16,7 +16,7 @@ use super::validate::{Study, Validation, ValidationConfig};
 use super::{Criterion, DesignError, Optimized};
 use crate::io::{write_parquet, write_text_atomic, write_toml_atomic, Table};
 use crate::setup::Setup;
-use crate::signal::Design;
+use crate::signal::{Design, Experiment};
 
 type Result<T> = std::result::Result<T, DesignError>;
 
@@ -96,14 +96,7 @@ impl DesignRows {
         let vals = values.named().map(|x| x.1);
         let t = space.timing.stretch_s;
         for e in &d.experiments {
-            let n = e
-                .inputs
-                .iter()
-                .flatten()
-                .map(|v| v.len())
-                .max()
-                .unwrap_or(0);
-            for k in 0..n {
+            for k in 0..e.slots() {
                 let st: [Option<(usize, f64, f64)>; INPUTS] = std::array::from_fn(|c| {
                     let s = e.inputs.get(c)?.as_ref()?.get(k)?;
                     Some(((s.f_hz * t).round() as usize, s.f_hz, s.amplitude))
@@ -553,11 +546,8 @@ pub fn evaluate_design(
     origin: &Path,
 ) -> Result<DesignEvaluation> {
     let at_file = |e: DesignError| DesignError::Config(format!("{}: {e}", origin.display()));
-    let slots = design
-        .experiments
-        .iter()
-        .flat_map(|e| e.inputs.iter().flatten())
-        .map(|v| v.len())
+    let slots = (design.experiments.iter())
+        .map(Experiment::slots)
         .max()
         .unwrap_or(1)
         .max(1);

@@ -59,7 +59,7 @@ use crate::model::lpf_xy::{LpfXy, D1_XY, LPF_XY_PARAMETERS, PHI1, PHI2, PHISC, Y
 use crate::model::{check_stability, transfer, ClosedLoopModel};
 use crate::numerics::tol::SAME_TIME;
 use crate::setup::{design_fisher, SetupXy};
-use crate::signal::{Design, Stretch};
+use crate::signal::Design;
 
 /// Inputs of the xy model.
 pub const XY_INPUTS: usize = 7;
@@ -176,17 +176,8 @@ impl Bounds {
         let mut d = design.clone();
         d.name = format!("{}_clipped", design.name);
         for e in &mut d.experiments {
-            let n = e
-                .inputs
-                .iter()
-                .flatten()
-                .map(|v| v.len())
-                .max()
-                .unwrap_or(0);
-            for k in 0..n {
-                let lims: Vec<_> = (e.inputs.iter().enumerate())
-                    .filter_map(|(c, v)| Some((c, v.as_ref()?.get(k)?)))
-                    .filter(|(_, s)| s.amplitude != 0.0 && s.f_hz != 0.0)
+            for k in 0..e.slots() {
+                let lims: Vec<_> = (e.active_at(k).into_iter())
                     .map(|(c, s)| (self.limit(model, p, c, s.f_hz), s.amplitude.abs()))
                     .collect();
                 let lambda = (0..XY_CONSTRAINTS)
@@ -424,21 +415,8 @@ impl XyStudy {
     pub fn violations(&self, setup: &SetupXy, design: &Design) -> Vec<DesignError> {
         let mut out = Vec::new();
         for e in &design.experiments {
-            let n = e
-                .inputs
-                .iter()
-                .flatten()
-                .map(|v| v.len())
-                .max()
-                .unwrap_or(0);
-            for k in 0..n {
-                let active: Vec<(usize, &Stretch)> = e
-                    .inputs
-                    .iter()
-                    .enumerate()
-                    .filter_map(|(c, v)| Some((c, v.as_ref()?.get(k)?)))
-                    .filter(|(_, s)| s.amplitude != 0.0 && s.f_hz != 0.0)
-                    .collect();
+            for k in 0..e.slots() {
+                let active = e.active_at(k);
                 let Some(&(c0, s0)) = active.first() else {
                     continue;
                 };

@@ -615,7 +615,8 @@ pub fn denoised(x: &[f64], noise_psd: f64, dt: f64) -> Vec<f64> {
             0.0
         }
     };
-    crate::numerics::fft::filter_padded(x, dt, |k, _| gain(k).into())
+    let [y] = crate::numerics::fft::filter_padded(x, dt, |k, _| [gain(k).into()]);
+    y
 }
 
 /// The transform of `x` zero-padded to `m` samples.

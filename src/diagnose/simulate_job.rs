@@ -12,7 +12,7 @@ use crate::data::ExperimentData;
 use crate::model::effects::Extended;
 use crate::model::spec::{ModelSpec, Scenario};
 use crate::model::{check_stability, ModelError};
-use crate::setup::{Error as SetupError, Setup};
+use crate::setup::{Error as SetupError, Setup, SetupOf, SpecModel};
 use crate::signal::Design;
 use crate::sim::rng::stream;
 use crate::sim::time_domain::{InitialConditions, PlantEffects, TimeDomainError};
@@ -119,6 +119,24 @@ impl Simulated {
 type Runs = (ExperimentData, Vec<Vec<f64>>);
 
 impl SimulateJob {
+    /// The scenario (its truth checked for a stable loop), the design and the noise-only run of
+    /// this job on the model file of `setup`, each checked against the memory limit.
+    pub(super) fn plan<M: SpecModel<N>, const N: usize>(
+        &self,
+        setup: &SetupOf<M, N>,
+    ) -> Result<(Scenario, Design, Design), SimulateError> {
+        let sc = setup.spec.scenario(&self.scenario)?;
+        check_stability(&setup.model, &sc.truth, Some(&setup.spec.nominal()))?;
+        let design = setup.design(&self.design)?;
+        let noise_duration = self
+            .noise_duration
+            .unwrap_or(NOISE_DURATIONS * design.duration_s);
+        crate::config::positive("--noise-duration", noise_duration)?;
+        let noise_design = design.noise_only(noise_duration);
+        setup.check_simulation_size(&noise_design, "--noise-duration")?;
+        Ok((sc, design, noise_design))
+    }
+
     /// The rate after its default: decimated, or the analysis rate for effects with the
     /// frequency-domain engine.
     pub fn resolved_rate(&self) -> Rate {
@@ -132,15 +150,7 @@ impl SimulateJob {
 
     /// Validates the job against the model file and draws the dataset.
     pub fn run(&self, setup: &Setup) -> Result<Simulated, SimulateError> {
-        let sc = setup.spec.scenario(&self.scenario)?;
-        check_stability(&setup.model, &sc.truth, Some(&setup.spec.nominal()))?;
-        let design = setup.design(&self.design)?;
-        let noise_duration = self
-            .noise_duration
-            .unwrap_or(NOISE_DURATIONS * design.duration_s);
-        crate::config::positive("--noise-duration", noise_duration)?;
-        let noise_design = design.noise_only(noise_duration);
-        setup.check_simulation_size(&noise_design, "--noise-duration")?;
+        let (sc, design, noise_design) = self.plan(setup)?;
         let rate = self.resolved_rate();
         if self.engine == Engine::TimeDomain && rate == Rate::Analysis {
             return Err(SimulateError::AnalysisRateInTimeDomain);

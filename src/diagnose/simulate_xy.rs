@@ -9,9 +9,8 @@
 //! columns of role guidance, which the xy model's fit takes as inputs and the x model's
 //! diagnosis leaves out.
 
-use super::simulate_job::{draw_all, SimulateError, SimulateJob, Simulated, NOISE_DURATIONS};
+use super::simulate_job::{draw_all, SimulateError, SimulateJob, Simulated};
 use crate::data::{AuxChannel, AuxKind, Auxiliary, ExperimentData};
-use crate::model::check_stability;
 use crate::model::ClosedLoopModel;
 use crate::setup::{AnySetup, SetupXy};
 use crate::sim::{Engine, Rate};
@@ -65,14 +64,7 @@ impl SimulateJob {
         if self.initial.is_some() {
             return refuse("--initial");
         }
-        let sc = setup.spec.scenario(&self.scenario)?;
-        check_stability(&setup.model, &sc.truth, Some(&setup.spec.nominal()))?;
-        let design = setup.design(&self.design)?;
-        let noise_duration = self
-            .noise_duration
-            .unwrap_or(NOISE_DURATIONS * design.duration_s);
-        crate::config::positive("--noise-duration", noise_duration)?;
-        let noise_design = design.noise_only(noise_duration);
+        let (sc, design, noise_design) = self.plan(setup)?;
         let sim = setup.plain_simulator(&design, &sc.truth)?;
         let nsim = setup.plain_simulator(&noise_design, &sc.truth)?;
         let (all, noise) = draw_all(|r| sim.draw(r), |r| nsim.noise_series(r), self.seed);

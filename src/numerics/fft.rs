@@ -51,35 +51,42 @@ pub fn fast_len(min: usize) -> usize {
     }
 }
 
-/// A real series `x` of `n` samples filtered linearly (not circularly) in the frequency
-/// domain: zero-padded to a power of two `m >= 2 n`, transformed, each bin `k` (frequency
-/// `k / (m dt)`) multiplied by `gain(k, f)`, transformed back and cut to `n` samples. The
-/// imaginary parts of the DC and Nyquist bins are dropped (a real filter's are zero).
-pub fn filter_padded(
+/// A real series `x` of `n` samples filtered linearly (not circularly) by `R` filters at once in
+/// the frequency domain: zero-padded to a power of two `m >= 2 n`, transformed once, bin `k`
+/// (frequency `f = k / (m dt)`) multiplied by the `R` gains `gain(k, f)` (evaluated once per
+/// bin), each transformed back and cut to `n` samples. The imaginary parts of the DC and
+/// Nyquist bins are dropped (a real filter's are zero).
+pub fn filter_padded<const R: usize>(
     x: &[f64],
     dt: f64,
-    gain: impl Fn(usize, f64) -> num_complex::Complex64,
-) -> Vec<f64> {
+    gain: impl Fn(usize, f64) -> [num_complex::Complex64; R],
+) -> [Vec<f64>; R] {
     let n = x.len();
     if n == 0 {
-        return Vec::new();
+        return std::array::from_fn(|_| Vec::new());
     }
     let m = (2 * n).next_power_of_two();
     let mut planner = realfft::RealFftPlanner::<f64>::new();
     let (fwd, inv) = (planner.plan_fft_forward(m), planner.plan_fft_inverse(m));
     let mut buf = vec![0.0; m];
     buf[..n].copy_from_slice(x);
-    let mut spec = fwd.make_output_vec();
-    fwd.process(&mut buf, &mut spec).expect("FFT sizes match");
+    let spec = {
+        let mut spec = fwd.make_output_vec();
+        fwd.process(&mut buf, &mut spec).expect("FFT sizes match");
+        spec
+    };
     let df = 1.0 / (m as f64 * dt);
-    for (k, z) in spec.iter_mut().enumerate() {
-        *z *= gain(k, k as f64 * df);
+    let mut out: [Vec<num_complex::Complex64>; R] = std::array::from_fn(|_| spec.clone());
+    for (k, z) in spec.iter().enumerate() {
+        for (o, g) in out.iter_mut().zip(gain(k, k as f64 * df)) {
+            o[k] = z * g;
+        }
     }
-    spec[0].im = 0.0;
-    let last = spec.len() - 1;
-    spec[last].im = 0.0;
-    inv.process(&mut spec, &mut buf).expect("FFT sizes match");
-    buf.truncate(n);
-    buf.iter_mut().for_each(|v| *v /= m as f64);
-    buf
+    out.map(|mut spec| {
+        spec[0].im = 0.0;
+        let last = spec.len() - 1;
+        spec[last].im = 0.0;
+        inv.process(&mut spec, &mut buf).expect("FFT sizes match");
+        buf[..n].iter().map(|v| v / m as f64).collect()
+    })
 }

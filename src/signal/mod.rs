@@ -53,6 +53,28 @@ pub enum SignalError {
     Invalid { design: String, reason: String },
 }
 
+impl Experiment {
+    /// Number of stretch slots its longest input uses.
+    pub fn slots(&self) -> usize {
+        self.inputs
+            .iter()
+            .flatten()
+            .map(Vec::len)
+            .max()
+            .unwrap_or(0)
+    }
+
+    /// The inputs with a non-zero stretch in slot `k`: (input channel, stretch).
+    pub fn active_at(&self, k: usize) -> Vec<(usize, &Stretch)> {
+        self.inputs
+            .iter()
+            .enumerate()
+            .filter_map(|(c, v)| Some((c, v.as_ref()?.get(k)?)))
+            .filter(|(_, s)| s.amplitude != 0.0 && s.f_hz != 0.0)
+            .collect()
+    }
+}
+
 impl Design {
     /// A noise-only run of `duration_s` with this design's timing: one experiment, `noise`, no
     /// injections.

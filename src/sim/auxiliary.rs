@@ -119,23 +119,16 @@ pub fn in_loop<M: ClosedLoopModel<2>>(
     channel: usize,
     dt: f64,
 ) -> [Vec<f64>; 2] {
-    let df = 1.0 / ((2 * x.len()).next_power_of_two() as f64 * dt);
     // The loop's response per bin; the DC bin takes its limit at low frequency (D has s^2,
     // Delta^-1 finite).
-    let h = |f: f64| {
+    let df = 1.0 / ((2 * x.len()).next_power_of_two() as f64 * dt);
+    filter_padded(x, dt, |_, f| {
         let f = if f == 0.0 { 1e-3 * df } else { f };
         let tr = transfer(model, &model.prepare(f), p);
         let s_inv = tr.ops.s.try_inverse().unwrap_or_else(CMat::<2>::identity);
-        tr.delta_inv * tr.ops.d * s_inv
-    };
-    let responses: Vec<_> = if x.is_empty() {
-        Vec::new()
-    } else {
-        (0..=(2 * x.len()).next_power_of_two() / 2)
-            .map(|k| h(k as f64 * df))
-            .collect()
-    };
-    [0, 1].map(|r| filter_padded(x, dt, |k, _| responses[k][(r, channel)]))
+        let h = tr.delta_inv * tr.ops.d * s_inv;
+        [h[(0, channel)], h[(1, channel)]]
+    })
 }
 
 /// Adds each cross-talk of `leaks`, through the loop of `model` at `p` ([`in_loop`]), to the
