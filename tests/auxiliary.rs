@@ -9,6 +9,9 @@ use std::process::{Command, Output};
 
 use serde_json::Value;
 
+mod common;
+use common::added;
+
 const BIN: &str = env!("CARGO_BIN_EXE_freefall");
 /// The cross-talks of the worked example: y1 leaks into o1 and o12 (m/m).
 const K_O1: f64 = 5e-3;
@@ -73,29 +76,6 @@ fn diagnose(ds: &Path, out: &Path, extra: &[&str]) -> Value {
     serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap()
 }
 
-fn added(report: &Value) -> Vec<(String, f64, f64)> {
-    report["effects_added"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|e| {
-            // One parameter each: the value of the single key of `parameters` and `sigmas`.
-            let first = |k: &str| -> f64 {
-                let m = e[k].as_object().unwrap();
-                m.values()
-                    .next()
-                    .and_then(Value::as_f64)
-                    .unwrap_or(f64::NAN)
-            };
-            (
-                e["name"].as_str().unwrap().to_string(),
-                first("parameters"),
-                first("sigmas"),
-            )
-        })
-        .collect()
-}
-
 fn chi2(report: &Value, stage: &str) -> (f64, f64) {
     let s = &report[stage];
     (
@@ -127,9 +107,9 @@ fn auxiliary_crosstalk_is_found_and_removed() {
             ("aux_crosstalk_oy1_o1", K_O1),
             ("aux_crosstalk_oy1_o12", K_O12),
         ] {
-            let (_, k, s) = a
+            let (_, k, s, _) = a
                 .iter()
-                .find(|(n, _, _)| n == name)
+                .find(|(n, ..)| n == name)
                 .unwrap_or_else(|| panic!("{label}: {name} not claimed: {a:?}"));
             assert!(
                 ((k - truth) / s).abs() < PULL_MAX,
@@ -304,14 +284,14 @@ fn a_rate_crosstalk_from_an_angle_readout_is_found_apart_from_a_static_one() {
     );
     let r = diagnose(&ds, &dir.path().join("d"), &[]);
     let a = added(&r);
-    let mut names: Vec<&str> = a.iter().map(|(n, _, _)| n.as_str()).collect();
+    let mut names: Vec<&str> = a.iter().map(|(n, ..)| n.as_str()).collect();
     names.sort();
     assert_eq!(
         names,
         ["aux_crosstalk_oy1_o12", "aux_crosstalk_rate_ophi1_o12"],
         "{a:?}"
     );
-    for (name, k, s) in &a {
+    for (name, k, s, _) in &a {
         let truth = if name.contains("rate") { -2e-4 } else { 2e-3 };
         assert!(
             ((k - truth) / s).abs() < PULL_MAX,

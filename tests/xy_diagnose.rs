@@ -9,7 +9,7 @@ mod common;
 
 use std::path::{Path, PathBuf};
 
-use common::freefall;
+use common::{added, freefall};
 use serde_json::Value;
 
 /// The truth of scenario `sensing_crosstalk` of lpf_xy.toml.
@@ -69,29 +69,6 @@ fn diagnose(ds: &Path, out: &Path) -> Value {
         out.to_str().unwrap(),
     ]);
     serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap()
-}
-
-/// (name, first parameter, its sigma, category) of every effect the diagnosis added.
-fn added(r: &Value) -> Vec<(String, f64, f64, String)> {
-    let first = |e: &Value, k: &str| {
-        e[k].as_object()
-            .and_then(|m| m.values().next())
-            .and_then(Value::as_f64)
-            .unwrap_or(f64::NAN)
-    };
-    r["effects_added"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|e| {
-            (
-                e["name"].as_str().unwrap().to_string(),
-                first(e, "parameters"),
-                first(e, "sigmas"),
-                e["category"].as_str().unwrap_or("").to_string(),
-            )
-        })
-        .collect()
 }
 
 #[test]

@@ -3,7 +3,8 @@
 //! guidance inputs oi1 and oi12 and the auxiliary columns of role guidance (oi_y1, ...), as
 //! `freefall simulate --model lpf_xy` writes them. The MIMO fit, whitening and estimates are
 //! the x model's, in dimension 7. Start-up transients, the units check and decimated telemetry
-//! are the x model's and are refused or left out here.
+//! are the x model's and are refused or left out here, as is residuals.parquet (its table has
+//! the x model's two channels).
 
 use std::path::Path;
 
@@ -23,8 +24,8 @@ use crate::setup::{AnySetup, SetupXy};
 /// The experiments of an xy dataset and its noise run's readouts.
 type XySeries = (ExperimentData, Option<Vec<Vec<f64>>>);
 
-/// The columns of readout `names` and input `inputs` of every run of `ds` (the experiments,
-/// then the noise run's readouts), one-line errors naming the run file and the column.
+/// The model's readouts and inputs, by column name, of every experiment of `ds`, and the noise
+/// run's readouts; one-line errors name the run file and the column.
 fn xy_series(setup: &SetupXy, ds: &Dataset) -> Result<XySeries, JobError> {
     let (readouts, inputs) = (setup.model.readout_names(), setup.model.input_names());
     let take = |run: &crate::io::Run, names: &[&str]| -> Result<Vec<Vec<f64>>, JobError> {

@@ -382,12 +382,11 @@ impl LpfXy {
     /// The bare control law `C` (no actuation gains, no cross-talk).
     fn bare_control(&self, pt: &XyPoint) -> M7 {
         let mut m = M7::zeros();
-        let nominal = {
-            let mut q = vec![0.0; LPF_XY_PARAMETERS.len()];
-            q[A_DF] = 1.0;
-            q[A_SUS] = 1.0;
-            q
-        };
+        // Unit actuation gains and no cross-talk: the laws as designed (on the stack, this runs
+        // once per frequency bin).
+        let mut nominal = [0.0; LPF_XY_PARAMETERS.len()];
+        nominal[A_DF] = 1.0;
+        nominal[A_SUS] = 1.0;
         for j in 0..7 {
             let a = self.actuation_column(&nominal, j);
             let law = Self::law_at(pt, j);

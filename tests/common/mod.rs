@@ -56,3 +56,27 @@ pub fn skip_without_python(test: &str, modules: &[&'static str]) -> bool {
     visible(&msg);
     true
 }
+
+/// (name, first parameter, its sigma, category) of every effect a `freefall diagnose`
+/// `report.json` says was added.
+pub fn added(r: &serde_json::Value) -> Vec<(String, f64, f64, String)> {
+    let first = |e: &serde_json::Value, k: &str| {
+        e[k].as_object()
+            .and_then(|m| m.values().next())
+            .and_then(serde_json::Value::as_f64)
+            .unwrap_or(f64::NAN)
+    };
+    r["effects_added"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|e| {
+            (
+                e["name"].as_str().unwrap().to_string(),
+                first(e, "parameters"),
+                first(e, "sigmas"),
+                e["category"].as_str().unwrap_or("").to_string(),
+            )
+        })
+        .collect()
+}
