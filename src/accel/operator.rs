@@ -32,6 +32,23 @@
 //! it equals `Delta(f)` up to `(w dt)^2 / 3` relative in the inertia (3 % at 50 mHz for a 1 Hz
 //! run with the default stencil).
 //!
+//! **Controllers' initial state.** The zero-padded convolution starts the control laws at rest
+//! at the first sample, but the loop's controllers carry the history of the readouts before it
+//! (a time-domain run starts its loop at the anti-alias filter's margin, 28 s before the first
+//! telemetry sample; measured data start with whatever state the controllers had). What that
+//! history adds to `g` is a free response of the control laws: for output `i`,
+//! `sum_j sum_{m >= 1} R_ij[k + m] o_j[-m]`, a sum of the laws' modes. Like the running sum's
+//! start constant, its amplitudes are unknown. [`DeltaEstimator::apply`] reads each slow mode's
+//! decay per sample from the kernel tail `R_ij[k + 1]` (the response to a unit sample just
+//! before the series; LPF-x: `C_sus`'s pole at -1.16e-2 s^-1, 86 s; `C_df`'s -2 s^-1 is gone
+//! within the edge samples), fits the modes by least squares with a constant and a slope over
+//! the window holding them, and subtracts the fitted modes. Without this, a run started from
+//! the thesis's initial conditions (sec. 4.7) kept 2.6e-12 m s^-2 in `g12` at the first
+//! sample, decaying with the suspension law's 86 s, 2.6 times the noise's S_g12 at 1 mHz over
+//! the first 4000 s; with it, 1.1e-3 (README, "Transients"). A digital model's kernels are
+//! dominated by the held plant's higher orders alternating near Nyquist, so no mode is read
+//! from them and its estimate is unchanged.
+//!
 //! With guidance injections `o_i` the commanded force acts on the error signal `o - T o_i`, so the
 //! estimate is `Delta o - A C T o_i` (thesis eq. "equation of motion in the sensed coordinates"):
 //! the total equivalent acceleration without the injected bias, i.e. force noise plus
@@ -177,7 +194,8 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> DeltaEstimator<'m, M, N> {
     }
 
     /// Total equivalent acceleration `Delta_h o - A C T o_i` at samples `2 .. n - 2` of the
-    /// readouts `o` (and guidance `o_i`, if given), channel by channel.
+    /// readouts `o` (and guidance `o_i`, if given), channel by channel, without the free
+    /// response of the controllers' state at the first sample (module docs).
     pub fn apply(
         &self,
         o: [&[f64]; N],
@@ -186,7 +204,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> DeltaEstimator<'m, M, N> {
         let n = check_series(&o, oi.as_ref())?;
         let oi = oi.filter(|c| c.iter().any(|x| x.iter().any(|v| *v != 0.0)));
         let keep = n - 2 * HALF_WIDTH;
-        let mut g = self.convolve(&o, oi.as_ref(), n)?;
+        let (mut g, tails) = self.convolve(&o, oi.as_ref(), n)?;
         for (i, gi) in g.iter_mut().enumerate() {
             for (j, oj) in o.iter().enumerate() {
                 let w = self.s0_inv[(i, j)].re;
@@ -217,17 +235,22 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> DeltaEstimator<'m, M, N> {
                 }
             }
             debug_assert_eq!(gi.len(), keep);
+            remove_free_modes(gi, &tails[i]);
         }
         Ok(g)
     }
 
-    /// The FFT part `IFFT[R O - (Q - J_q / s) O_i]`, samples `2 .. n - 2`.
+    /// The FFT part `IFFT[R O - (Q - J_q / s) O_i]`, samples `2 .. n - 2`, and the history
+    /// responses `tails[i][j]`: the response of channel `i` of the FFT part to a unit sample of
+    /// readout `j` just before the series (kernel `R_ij` at lags `3 .. n - 1`), at the same
+    /// samples.
+    #[allow(clippy::type_complexity)]
     fn convolve(
         &self,
         o: &[&[f64]; N],
         oi: Option<&[&[f64]; N]>,
         n: usize,
-    ) -> Result<Vec<Vec<f64>>, AccelError> {
+    ) -> Result<(Vec<Vec<f64>>, Vec<Vec<Vec<f64>>>), AccelError> {
         let m = fast_len(PAD_FACTOR * n);
         let nb = m / 2 + 1;
         let mut planner = RealFftPlanner::<f64>::new();
@@ -255,9 +278,13 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> DeltaEstimator<'m, M, N> {
             None => None,
         };
         let mut out = vec![vec![Complex64::new(0.0, 0.0); nb]; N];
+        let mut kernels = vec![vec![Complex64::new(0.0, 0.0); nb]; N * N];
         let df = 1.0 / (m as f64 * self.dt);
         for k in 0..nb {
             let (r, q) = self.multipliers(k as f64 * df);
+            for (ij, kern) in kernels.iter_mut().enumerate() {
+                kern[k] = r[(ij / N, ij % N)];
+            }
             for i in 0..N {
                 let mut acc = Complex64::new(0.0, 0.0);
                 for j in 0..N {
@@ -270,21 +297,32 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> DeltaEstimator<'m, M, N> {
             }
         }
         let norm = 1.0 / m as f64;
-        out.iter_mut()
-            .map(|spec| {
-                // The DC and (even m) Nyquist bins of a real series are real.
-                spec[0].im = 0.0;
-                if m.is_multiple_of(2) {
-                    spec[nb - 1].im = 0.0;
-                }
-                inv.process(spec, &mut buf)
-                    .map_err(|e| AccelError::Fft(e.to_string()))?;
-                Ok(buf[HALF_WIDTH..n - HALF_WIDTH]
+        let mut inverse = |spec: &mut Vec<Complex64>, from: usize| {
+            // The DC and (even m) Nyquist bins of a real series are real.
+            spec[0].im = 0.0;
+            if m.is_multiple_of(2) {
+                spec[nb - 1].im = 0.0;
+            }
+            inv.process(spec, &mut buf)
+                .map_err(|e| AccelError::Fft(e.to_string()))?;
+            Ok::<Vec<f64>, AccelError>(
+                buf[from..from + n - 2 * HALF_WIDTH]
                     .iter()
                     .map(|v| v * norm)
-                    .collect())
-            })
-            .collect()
+                    .collect(),
+            )
+        };
+        let g = out
+            .iter_mut()
+            .map(|spec| inverse(spec, HALF_WIDTH))
+            .collect::<Result<Vec<_>, _>>()?;
+        // Output sample k (series sample k + 2) sees the sample before the series at lag k + 3;
+        // lags up to n + 1 < m / 2 do not wrap around.
+        let mut tails = vec![Vec::with_capacity(N); N];
+        for (ij, kern) in kernels.iter_mut().enumerate() {
+            tails[ij / N].push(inverse(kern, HALF_WIDTH + 1)?);
+        }
+        Ok((g, tails))
     }
 }
 
@@ -344,4 +382,95 @@ fn check_series<const N: usize>(
         }
     }
     Ok(n)
+}
+
+/// A history response counts when its norm is at least this fraction of the largest one's (a
+/// kernel that is a constant up to round-off has a tail of order 1e-13 of it).
+const MODE_SIGNIFICANCE: f64 = 1e-9;
+
+/// A history response is fitted only when its decay per sample is at least this: a slow mode
+/// (time constant of 10 samples or more; `C_sus`'s is 86 s). Faster modes are gone within the
+/// first tens of samples, and a kernel dominated by terms that alternate near Nyquist (the held
+/// plant's higher orders in a digital model's `R`) does not isolate a controller mode.
+const MODE_SMOOTHNESS: f64 = 0.9;
+
+/// Decay rates closer than this (relative) are one mode.
+const MODE_SAME_RATE: f64 = 1e-3;
+
+/// The fit window holds all but this fraction of every mode's energy.
+const MODE_ENERGY_LEFT: f64 = 1e-8;
+
+/// Fewest samples of the fit window (the baseline's constant and slope need some).
+const MIN_FIT_SAMPLES: usize = 64;
+
+/// Per-sample decay `rho` of a history response, read from its pair sums (which cancel the
+/// terms alternating near Nyquist): `sum u_k u_(k+1) / sum u_k^2`, `u_k = t_k + t_(k+1)`.
+fn decay_per_sample(t: &[f64]) -> f64 {
+    let u: Vec<f64> = t.windows(2).map(|w| w[0] + w[1]).collect();
+    let lag1: f64 = u.windows(2).map(|w| w[0] * w[1]).sum();
+    let e: f64 = u.iter().map(|x| x * x).sum();
+    if e > 0.0 {
+        lag1 / e
+    } else {
+        0.0
+    }
+}
+
+/// Remove the free response of the controllers' unknown initial state from `g` (module docs,
+/// "Controllers' initial state"): each significant history response `tails[j]` decaying
+/// slowly is a mode `rho^k`; the modes are fitted by least squares together with a constant and
+/// a slope (the running sum's unknown start and the local level of the acceleration) over the
+/// window where they live, and only the fitted modes are subtracted.
+fn remove_free_modes(g: &mut [f64], tails: &[Vec<f64>]) {
+    let norm = |v: &[f64]| v.iter().map(|x| x * x).sum::<f64>().sqrt();
+    let norms: Vec<f64> = tails.iter().map(|t| norm(t)).collect();
+    let top = norms.iter().cloned().fold(0.0, f64::max);
+    if !(top > 0.0 && top.is_finite()) {
+        return;
+    }
+    let mut rates: Vec<f64> = Vec::new();
+    for (t, &nm) in tails.iter().zip(&norms) {
+        if nm < MODE_SIGNIFICANCE * top {
+            continue;
+        }
+        let rho = decay_per_sample(t);
+        if (MODE_SMOOTHNESS..1.0).contains(&rho)
+            && rates
+                .iter()
+                .all(|r| (r - rho).abs() > MODE_SAME_RATE * (1.0 - rho))
+        {
+            rates.push(rho);
+        }
+    }
+    if rates.is_empty() {
+        return;
+    }
+    let w = rates
+        .iter()
+        .map(|r| (MODE_ENERGY_LEFT.ln() / (2.0 * r.ln())).ceil() as usize)
+        .fold(MIN_FIT_SAMPLES, usize::max)
+        .min(g.len());
+    let cols = 2 + rates.len();
+    if w <= cols {
+        return;
+    }
+    let a = nalgebra::DMatrix::<f64>::from_fn(w, cols, |k, c| match c {
+        0 => 1.0,
+        1 => k as f64 / w as f64,
+        _ => rates[c - 2].powi(k as i32),
+    });
+    let b = nalgebra::DVector::<f64>::from_column_slice(&g[..w]);
+    let Ok(x) = a.svd(true, true).solve(&b, 1e-12) else {
+        return;
+    };
+    for (c, rho) in rates.iter().enumerate() {
+        let mut e = x[2 + c];
+        for gk in g.iter_mut() {
+            *gk -= e;
+            e *= rho;
+            if e == 0.0 {
+                break;
+            }
+        }
+    }
 }
