@@ -55,6 +55,7 @@ fn main() {
                     noise_duration: None,
                     effects: Vec::new(),
                     auxiliary: false,
+                    commands: false,
                 };
                 let s = job.run_xy(&xy_setup).unwrap();
                 let readouts = s.dataset().unwrap().auxiliary_series();

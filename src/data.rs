@@ -66,23 +66,35 @@ impl ExperimentData {
     }
 }
 
-/// What an auxiliary readout measures: a displacement of another degree of freedom (y, z of a
-/// test mass, in m) or an angle (phi, eta, theta, in rad). Thesis sec. 3.4: the readouts of the
-/// other degrees of freedom are where cross-talk into the optical axis comes from.
+/// What an auxiliary channel measures: a displacement of another degree of freedom (y, z of a
+/// test mass, in m) or an angle (phi, eta, theta, in rad), for a readout or a guidance signal;
+/// a commanded acceleration per unit mass (m s^-2) or angular acceleration per unit inertia
+/// (rad s^-2), for a control loop's recorded command. Thesis sec. 3.4: the readouts and the
+/// actuation of the other degrees of freedom are where cross-talk into the optical axis comes
+/// from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum AuxKind {
     Displacement,
     Angle,
+    Acceleration,
+    AngularAcceleration,
 }
 
 impl AuxKind {
-    pub const ALL: [AuxKind; 2] = [AuxKind::Displacement, AuxKind::Angle];
+    pub const ALL: [AuxKind; 4] = [
+        AuxKind::Displacement,
+        AuxKind::Angle,
+        AuxKind::Acceleration,
+        AuxKind::AngularAcceleration,
+    ];
 
     pub fn as_str(self) -> &'static str {
         match self {
             AuxKind::Displacement => "displacement",
             AuxKind::Angle => "angle",
+            AuxKind::Acceleration => "acceleration",
+            AuxKind::AngularAcceleration => "angular_acceleration",
         }
     }
 
@@ -90,26 +102,60 @@ impl AuxKind {
         AuxKind::ALL.into_iter().find(|k| k.as_str() == name)
     }
 
-    /// The SI unit its samples are in (`m` or `rad`).
+    /// The SI unit its samples are in (`m`, `rad`, `m s^-2` or `rad s^-2`).
     pub fn unit(self) -> &'static str {
         match self {
             AuxKind::Displacement => "m",
             AuxKind::Angle => "rad",
+            AuxKind::Acceleration => "m s^-2",
+            AuxKind::AngularAcceleration => "rad s^-2",
         }
+    }
+
+    /// Whether it is a command's kind (an acceleration), not a position's.
+    pub fn is_command(self) -> bool {
+        matches!(self, AuxKind::Acceleration | AuxKind::AngularAcceleration)
+    }
+}
+
+/// What a recorded auxiliary channel is to the analysis (`role` in dataset.toml).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum AuxRole {
+    /// A readout of another degree of freedom: a sensing cross-talk's source.
+    Readout,
+    /// That degree of freedom's guidance signal (the commanded offset, as oi1 and oi12 are for
+    /// x): an input of a model of it, which the x model's diagnosis leaves out.
+    Guidance,
+    /// A control loop's command (the acceleration the loop asks its actuator for): a force
+    /// cross-talk's source.
+    Command,
+}
+
+impl AuxRole {
+    pub const ALL: [AuxRole; 3] = [AuxRole::Readout, AuxRole::Guidance, AuxRole::Command];
+
+    pub fn as_str(self) -> &'static str {
+        match self {
+            AuxRole::Readout => "readout",
+            AuxRole::Guidance => "guidance",
+            AuxRole::Command => "command",
+        }
+    }
+
+    pub fn from_name(name: &str) -> Option<AuxRole> {
+        AuxRole::ALL.into_iter().find(|k| k.as_str() == name)
     }
 }
 
 /// A recorded auxiliary channel: its column name in the run files, what it measures, its unit,
-/// and whether it is a readout of another degree of freedom or that degree of freedom's
-/// guidance signal (`role = "guidance"` in dataset.toml: the commanded offset, as oi1 and oi12
-/// are for x; a model of that degree of freedom, such as the xy model, takes it as an input,
-/// and the x model's diagnosis leaves it out).
+/// and its role: a readout of another degree of freedom, that degree of freedom's guidance
+/// signal, or a control loop's command ([`AuxRole`]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct AuxChannel {
     pub column: String,
     pub kind: AuxKind,
     pub unit: String,
-    pub guidance: bool,
+    pub role: AuxRole,
     /// The readout's own noise floor, a one-sided ASD in `unit`/sqrt(Hz) (`noise_asd` in
     /// dataset.toml), when known: the diagnosis then regresses on the series with that noise
     /// filtered out (`diagnose::additive`, errors in the regressor).

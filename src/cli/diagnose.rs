@@ -130,6 +130,7 @@ fn simulate(a: &DiagnoseArgs, setup: &crate::setup::Setup, dir: &Path) -> Result
         noise_duration: Some(design.duration_s),
         effects: a.effects.clone(),
         auxiliary: false,
+        commands: false,
     };
     super::simulate::simulate_into(&AnySetup::X(Box::new(setup.clone())), &job, dir)
 }

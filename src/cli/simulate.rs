@@ -65,6 +65,11 @@ pub struct SimulateArgs {
     /// `[[auxiliary]]` of dataset.toml (implied by an `aux_crosstalk_...` effect).
     #[arg(long)]
     pub auxiliary: bool,
+    /// Record the y/phi loops' commands (`uy1`, `uy2`, `uphi1`, `uphi2`, `uphisc`: the
+    /// acceleration each law asks for, m s^-2 or rad s^-2) as extra columns of every run,
+    /// declared in `[[auxiliary]]` with role = "command" (`--model lpf_xy` only).
+    #[arg(long)]
+    pub commands: bool,
     /// Output directory (created).
     #[arg(long)]
     pub out: PathBuf,
@@ -83,6 +88,7 @@ impl SimulateArgs {
             noise_duration: self.noise_duration,
             effects: self.effects.clone(),
             auxiliary: self.auxiliary,
+            commands: self.commands,
         }
     }
 }

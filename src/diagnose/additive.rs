@@ -18,6 +18,13 @@
 //!   effect is a regression on a measured series: its column is the series itself, whitened
 //!   like the data, and the derivative with respect to `k` is exact. The fitted coupling is
 //!   also removed from the noise run before its whitening filter is estimated again.
+//!   `aux_force` is the force cross-talk of a recorded command `u` (`[[auxiliary]]` of role
+//!   command: the acceleration another degree of freedom's loop asks for; thesis sec. 3.5, the
+//!   actuation cross-talk `delta A C0`): `k u(t)` enters the acceleration of x1 or x12 and
+//!   reaches the readouts through `Delta^-1` (`sim::auxiliary::Leak::Force`). A command is a
+//!   number the controller computed, not a measurement: it has no noise of its own, so its
+//!   regressor is the series itself and there is no rate term (the loop's own dynamics give
+//!   the command its frequency content).
 //! - `drift`: a linear drift of base parameter k over each run, `p_k(t) = p_k + d_k (t - T/2)/T`.
 //!   To first order the readouts change by `d_k ((t - T/2)/T) (d o_s / d p_k)(t)`, the raw
 //!   template derivative modulated in the time domain before whitening. The modulation does not
@@ -36,7 +43,11 @@ use crate::fit::{ExperimentData, Likelihood};
 use crate::model::effects::{Category, Extended};
 use crate::model::ClosedLoopModel;
 use crate::numerics::linalg::equilibrated_pinv;
+use crate::sim::auxiliary::{through_loop, Leak};
 use crate::sim::Series;
+
+/// Name prefix of a force cross-talk from a recorded command (`aux_force_COLUMN_CHANNEL`).
+pub const AUX_FORCE_PREFIX: &str = "aux_force_";
 
 /// Base parameters a drift candidate is proposed for.
 pub const DRIFT_PARAMETERS: [&str; 4] = ["w1_sq", "w12_sq", "a_df", "a_sus"];
@@ -65,6 +76,9 @@ pub enum Additive {
         channel: usize,
         /// The rate term `k' da/dt` instead of the static `k a`.
         rate: bool,
+        /// Where it enters the loop: the sensor (a readout's sensing cross-talk) or the
+        /// acceleration (a command's force cross-talk).
+        leak: Leak,
         /// The template (the series, or its rate) of every experiment, aligned with its outputs.
         series: AuxSeries,
     },
@@ -99,17 +113,23 @@ impl PartialEq for AuxSeries {
 }
 
 impl Additive {
-    /// The static and rate cross-talk candidates of every auxiliary channel of `aux` into
-    /// each readout.
+    /// The cross-talk candidates of every auxiliary channel of `aux` into each readout: the
+    /// static and rate sensing cross-talks of a readout, the force cross-talk of a command.
     pub fn aux_crosstalks(aux: &crate::data::Auxiliary, dt: f64) -> Vec<Additive> {
         let mut out = Vec::new();
         for (k, ch) in aux.channels.iter().enumerate() {
+            let command = ch.role == crate::data::AuxRole::Command;
             let base: Vec<Vec<f64>> = aux
                 .experiments
                 .iter()
                 .map(|x| regressor(&x[k], ch.noise_asd, dt))
                 .collect();
-            for rate in [false, true] {
+            let (leak, rates): (Leak, &[bool]) = if command {
+                (Leak::Force, &[false])
+            } else {
+                (Leak::Sensor, &[false, true])
+            };
+            for &rate in rates {
                 let series: Vec<Vec<f64>> = base
                     .iter()
                     .map(|x| match rate {
@@ -124,6 +144,7 @@ impl Additive {
                         column: ch.column.clone(),
                         channel,
                         rate,
+                        leak,
                         series: series.clone(),
                     });
                 }
@@ -133,7 +154,8 @@ impl Additive {
     }
 
     /// For an auxiliary cross-talk: its template over the noise run of `aux` (the series or
-    /// its rate, through the loop of `model` at `p`: `sim::auxiliary::in_loop`), both readouts.
+    /// its rate, through the loop of `model` at `p`: `sim::auxiliary::through_loop`), both
+    /// readouts.
     pub fn noise_template(
         &self,
         model: &Extended,
@@ -146,18 +168,17 @@ impl Additive {
                 aux: k,
                 channel,
                 rate,
+                leak,
                 ..
             } => {
                 let x = aux.noise.as_ref()?.get(*k)?;
                 let x = regressor(x, aux.channels.get(*k)?.noise_asd, dt);
-                let leak = if *rate {
+                let x = if *rate {
                     crate::sim::auxiliary::rate(&x, dt)
                 } else {
                     x
                 };
-                Some(crate::sim::auxiliary::in_loop(
-                    model, p, &leak, *channel, dt,
-                ))
+                Some(through_loop(model, p, &x, *channel, *leak, dt))
             }
             _ => None,
         }
@@ -248,10 +269,14 @@ impl Additive {
                 column,
                 channel,
                 rate,
+                leak,
                 ..
             } => format!(
                 "{}{}{column}_{}",
-                super::inject::AUX_CROSSTALK_PREFIX,
+                match leak {
+                    Leak::Sensor => super::inject::AUX_CROSSTALK_PREFIX,
+                    Leak::Force => AUX_FORCE_PREFIX,
+                },
                 if *rate { "rate_" } else { "" },
                 ["o1", "o12"][(*channel).min(1)]
             ),
@@ -297,6 +322,15 @@ impl Additive {
             Additive::AuxCrosstalk {
                 column,
                 channel,
+                leak: Leak::Force,
+                ..
+            } => {
+                let x = ["x1", "x12"][(*channel).min(1)];
+                format!("{x} acceleration += kf {column}, through the loop (force cross-talk of the recorded command {column})")
+            }
+            Additive::AuxCrosstalk {
+                column,
+                channel,
                 rate,
                 ..
             } => {
@@ -327,9 +361,11 @@ impl Additive {
                 column,
                 channel,
                 rate,
+                leak,
                 ..
             } => vec![format!(
-                "k{}_{column}_{}",
+                "k{}{}_{column}_{}",
+                if *leak == Leak::Force { "f" } else { "" },
                 if *rate { "dot" } else { "" },
                 ["o1", "o12"][(*channel).min(1)]
             )],
@@ -476,12 +512,16 @@ impl Additive {
             }
             Additive::Glitch { .. } => vec![self.glitch_part(model, lik, data, p, Part::Value)],
             Additive::AuxCrosstalk {
-                channel, series, ..
+                channel,
+                series,
+                leak,
+                ..
             } => {
-                // The leak enters the sensor, inside the loop (`sim::auxiliary::in_loop`).
+                // The leak enters the sensor or the acceleration, inside the loop
+                // (`sim::auxiliary::through_loop`).
                 let mut col = zeros();
                 for (e, x) in series.0.iter().enumerate().take(col.len()) {
-                    let y = crate::sim::auxiliary::in_loop(model, p, x, *channel, data.dt);
+                    let y = through_loop(model, p, x, *channel, *leak, data.dt);
                     for (c, y) in col[e].iter_mut().zip(y) {
                         let n = c.len().min(y.len());
                         c[..n].copy_from_slice(&y[..n]);

@@ -68,7 +68,7 @@ pub mod science;
 pub mod selection;
 mod simulate;
 pub mod simulate_job;
-mod simulate_xy;
+pub mod simulate_xy;
 pub mod tables;
 pub mod tension;
 mod transient;

@@ -79,6 +79,9 @@ pub struct SimulateJob {
     /// Write the model file's auxiliary readouts (`[auxiliary]`) as extra columns of every run
     /// (implied by an `aux_crosstalk_...` effect).
     pub auxiliary: bool,
+    /// Record the y/phi loops' commands as auxiliary columns of role command (xy model only;
+    /// `simulate_xy`).
+    pub commands: bool,
 }
 
 /// A simulated dataset: the experiments, the noise-only run's readouts, and the `[meta]` of its
@@ -150,6 +153,13 @@ impl SimulateJob {
 
     /// Validates the job against the model file and draws the dataset.
     pub fn run(&self, setup: &Setup) -> Result<Simulated, SimulateError> {
+        if self.commands {
+            return Err(SimulateError::Effect(format!(
+                "--commands: the x model ({}) has no loops of other degrees of freedom to record \
+                 commands from; use --model lpf_xy",
+                setup.spec.origin
+            )));
+        }
         let (sc, design, noise_design) = self.plan(setup)?;
         let rate = self.resolved_rate();
         if self.engine == Engine::TimeDomain && rate == Rate::Analysis {

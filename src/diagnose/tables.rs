@@ -165,5 +165,11 @@ pub fn effect_list() -> String {
             &format!("{what}: sensing cross-talk of a recorded auxiliary readout ([[auxiliary]] of the dataset) into o1 or o12"),
         );
     }
+    line(
+        "aux_force_AUX_CHANNEL",
+        "aux_crosstalk",
+        "kf_AUX_CHANNEL",
+        "g(CHANNEL) += kf AUX: force cross-talk of a recorded auxiliary command ([[auxiliary]] role = \"command\") into the acceleration of x1 (o1) or x12 (o12)",
+    );
     s
 }

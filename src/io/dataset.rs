@@ -13,10 +13,11 @@
 //! start_s = 0.0                        # the design's t = 0 on the runs' time axis (default 0)
 //! [[auxiliary]]                        # optional: recorded readouts of other degrees of freedom
 //! column = "oy1"                       # a column of every run (noise run included)
-//! kind = "displacement"                # or "angle"
-//! unit = "m"                           # "m" for a displacement, "rad" for an angle
+//! kind = "displacement"                # or "angle"; a command: "acceleration", "angular_acceleration"
+//! unit = "m"                           # "m", "rad", "m s^-2", "rad s^-2" (as the kind)
 //! role = "readout"                     # optional: or "guidance" (that degree of freedom's
-//!                                      # guidance signal, an input of a model of it)
+//!                                      # guidance signal, an input of a model of it), or
+//!                                      # "command" (a control loop's commanded acceleration)
 //! noise_asd = 1.8e-9                   # optional: the readout's noise floor, unit/sqrt(Hz)
 //! [meta]                               # optional, free form (scenario, seed, truth values, ...)
 //! scenario = "standard"
@@ -55,7 +56,7 @@ use serde::{Deserialize, Serialize};
 use super::atomic::{ensure_dir, parent_dir, read_text, toml_error, write_toml_atomic};
 use super::run::{read_run_segments_declared, write_run, Run, TIME_TOLERANCE};
 use super::{in_memory, IoError};
-use crate::data::{AuxChannel, AuxKind, Auxiliary};
+use crate::data::{AuxChannel, AuxKind, AuxRole, Auxiliary};
 
 /// File name of the dataset description written by [`write_dataset`].
 pub const DATASET_FILE_NAME: &str = "dataset.toml";
@@ -126,7 +127,7 @@ struct AuxiliaryEntry {
     column: String,
     kind: String,
     unit: String,
-    /// "readout" (default) or "guidance".
+    /// "readout" (default), "guidance" or "command".
     #[serde(default, skip_serializing_if = "Option::is_none")]
     role: Option<String>,
     /// The readout's noise floor (one-sided ASD, unit/sqrt(Hz)).
@@ -157,7 +158,7 @@ impl AuxiliaryEntry {
             IoError::invalid(
                 path,
                 format!(
-                    "{at}: kind = \"{}\" is not a kind of auxiliary readout (expected \"displacement\" or \"angle\")",
+                    "{at}: kind = \"{}\" is not a kind of auxiliary channel (expected \"displacement\", \"angle\", \"acceleration\" or \"angular_acceleration\")",
                     self.kind
                 ),
             )
@@ -166,25 +167,40 @@ impl AuxiliaryEntry {
             return Err(IoError::invalid(
                 path,
                 format!(
-                    "{at}: unit = \"{}\" is not the unit of a {} readout (expected \"{}\")",
+                    "{at}: unit = \"{}\" is not the unit of a {} channel (expected \"{}\")",
                     self.unit,
                     kind.as_str(),
                     kind.unit()
                 ),
             ));
         }
-        let guidance = match self.role.as_deref() {
-            None | Some("readout") => false,
-            Some("guidance") => true,
-            Some(other) => {
-                return Err(IoError::invalid(
+        let role = match self.role.as_deref() {
+            None => AuxRole::Readout,
+            Some(name) => AuxRole::from_name(name).ok_or_else(|| {
+                IoError::invalid(
                     path,
                     format!(
-                    "{at}: role = \"{other}\" is not a role (expected \"readout\" or \"guidance\")"
-                ),
-                ))
-            }
+                        "{at}: role = \"{name}\" is not a role (expected \"readout\", \"guidance\" or \"command\")"
+                    ),
+                )
+            })?,
         };
+        // A command is an acceleration, a readout or guidance a position: the two keys agree.
+        if kind.is_command() != (role == AuxRole::Command) {
+            let expected = if role == AuxRole::Command {
+                "\"acceleration\" or \"angular_acceleration\""
+            } else {
+                "\"displacement\" or \"angle\""
+            };
+            return Err(IoError::invalid(
+                path,
+                format!(
+                    "{at}: kind = \"{}\" is not the kind of a {} channel (expected {expected})",
+                    self.kind,
+                    role.as_str()
+                ),
+            ));
+        }
         if let Some(v) = self.noise_asd.filter(|v| !(v.is_finite() && *v > 0.0)) {
             return Err(IoError::invalid(
                 path,
@@ -195,7 +211,7 @@ impl AuxiliaryEntry {
             column: self.column.clone(),
             kind,
             unit: self.unit.clone(),
-            guidance,
+            role,
             noise_asd: self.noise_asd,
         })
     }
@@ -255,19 +271,19 @@ impl Dataset {
         Ok(self)
     }
 
-    /// The declared auxiliary readouts (not the guidance channels) of every experiment
-    /// (aligned with its outputs) and of the noise run.
+    /// The declared auxiliary readouts and commands (not the guidance channels) of every
+    /// experiment (aligned with its outputs) and of the noise run: the sources a diagnosis
+    /// tests for cross-talk.
     pub fn auxiliary_series(&self) -> Auxiliary {
-        self.auxiliary_of(false)
+        self.auxiliary_of(&[AuxRole::Readout, AuxRole::Command])
     }
 
-    /// The declared auxiliary channels of role guidance (`guidance`) or readout (not), as
-    /// [`Self::auxiliary_series`].
-    pub fn auxiliary_of(&self, guidance: bool) -> Auxiliary {
+    /// The declared auxiliary channels of the roles `roles`, as [`Self::auxiliary_series`].
+    pub fn auxiliary_of(&self, roles: &[AuxRole]) -> Auxiliary {
         let channels: Vec<AuxChannel> = self
             .auxiliary
             .iter()
-            .filter(|a| a.guidance == guidance)
+            .filter(|a| roles.contains(&a.role))
             .cloned()
             .collect();
         let of = |r: &Run| -> Vec<Vec<f64>> {
@@ -826,7 +842,7 @@ pub fn write_dataset(dir: impl AsRef<Path>, dataset: &Dataset) -> Result<PathBuf
                 column: a.column.clone(),
                 kind: a.kind.as_str().to_string(),
                 unit: a.unit.clone(),
-                role: a.guidance.then(|| "guidance".to_string()),
+                role: (a.role != AuxRole::Readout).then(|| a.role.as_str().to_string()),
                 noise_asd: a.noise_asd,
             })
             .collect(),

@@ -17,6 +17,11 @@
 //! the loop in its band, additive above it (thesis sec. 3.4, the readout-noise cross-talk
 //! operator). The xy model (sec. 3.5) simulates the same physics with the auxiliary degrees of
 //! freedom in its loop, an independent path (`tests/xy_diagnose.rs`).
+//!
+//! A force cross-talk leaks `k u(t)` of a recorded command `u` (the acceleration another
+//! degree of freedom's loop asks its actuator for) into the acceleration of x1 or x12, the
+//! row of `Delta o_x = g + ...` it acts on (thesis sec. 3.5, the actuation cross-talk
+//! `delta A C0`): it reaches the readouts as `Delta^-1 e_c k u` ([`Leak::Force`]).
 
 use crate::data::{AuxChannel, Auxiliary, ExperimentData};
 use crate::model::closed_loop::{transfer, CMat, ClosedLoopModel};
@@ -76,7 +81,11 @@ pub fn draw(
             column: name.clone(),
             kind: a.kind,
             unit: a.kind.unit().to_string(),
-            guidance: false,
+            role: if a.kind.is_command() {
+                crate::data::AuxRole::Command
+            } else {
+                crate::data::AuxRole::Readout
+            },
             noise_asd: None,
         })
         .collect();
@@ -108,6 +117,15 @@ pub fn draw(
     })
 }
 
+/// Where a cross-talk enters the x loop (module docs).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Leak {
+    /// Into the sensor of a readout: `Delta^-1 D S^-1 e_c`.
+    Sensor,
+    /// Into the acceleration of a coordinate: `Delta^-1 e_c`.
+    Force,
+}
+
 /// The response of the two readouts to a leak `x(t)` into the sensor of readout `channel`
 /// (0: o1, 1: o12) of `model` at `p`: `Delta^-1 D S^-1 e_channel x` (module doc), by FFT with
 /// zero padding to at least twice the length (a linear, not circular, filter; the loop starts
@@ -119,14 +137,35 @@ pub fn in_loop<M: ClosedLoopModel<2>>(
     channel: usize,
     dt: f64,
 ) -> [Vec<f64>; 2] {
+    through_loop(model, p, x, channel, Leak::Sensor, dt)
+}
+
+/// The response of the two readouts to a leak `x(t)` entering the x loop of `model` at `p`
+/// at `leak` of row `channel` (0: o1 / x1, 1: o12 / x12): `Delta^-1 D S^-1 e_channel x` for a
+/// sensing, `Delta^-1 e_channel x` for a force cross-talk, by FFT with zero padding to at
+/// least twice the length (a linear, not circular, filter; the loop starts from rest at the
+/// first sample).
+pub fn through_loop<M: ClosedLoopModel<2>>(
+    model: &M,
+    p: &[f64],
+    x: &[f64],
+    channel: usize,
+    leak: Leak,
+    dt: f64,
+) -> [Vec<f64>; 2] {
     // The loop's response per bin; the DC bin takes its limit at low frequency (D has s^2,
     // Delta^-1 finite).
     let df = 1.0 / ((2 * x.len()).next_power_of_two() as f64 * dt);
     filter_padded(x, dt, |_, f| {
         let f = if f == 0.0 { 1e-3 * df } else { f };
         let tr = transfer(model, &model.prepare(f), p);
-        let s_inv = tr.ops.s.try_inverse().unwrap_or_else(CMat::<2>::identity);
-        let h = tr.delta_inv * tr.ops.d * s_inv;
+        let h = match leak {
+            Leak::Sensor => {
+                let s_inv = tr.ops.s.try_inverse().unwrap_or_else(CMat::<2>::identity);
+                tr.delta_inv * tr.ops.d * s_inv
+            }
+            Leak::Force => tr.delta_inv,
+        };
         [h[(0, channel)], h[(1, channel)]]
     })
 }
