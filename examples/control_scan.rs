@@ -1,6 +1,6 @@
 //! False-alarm calibration of `freefall diagnose` on control datasets (no effect simulated).
 //!
-//!     cargo run --release --example control_scan -- [SEEDS] [FIRST_SEED] [model|noise] [aux|xy]
+//!     cargo run --release --example control_scan -- [SEEDS] [FIRST_SEED] [model|noise] [aux|xy|xycmd]
 //!
 //! For each seed: the embedded model with the thesis's continuous loop (the README's calibration
 //! figures were measured on it), monte_carlo truth, standard design and one noise run, then a
@@ -12,7 +12,9 @@
 //! (sensing cross-talk into o1 and o12, static and rate). With `xy`, each control dataset is
 //! the xy model's (`simulate --model lpf_xy --scenario nominal --design standard_xy`: no
 //! cross-talk), diagnosed by the x model with the recorded y/phi readouts (and their declared
-//! noise floors) as auxiliary readouts, as `tests/xy_diagnose.rs` does.
+//! noise floors) as auxiliary readouts, as `tests/xy_diagnose.rs` does. `xycmd` is `xy` with
+//! the y/phi loops' commands recorded too (`simulate --commands`), which the diagnosis tests
+//! for force cross-talk into o1 and o12, as `tests/xy_commands.rs` does.
 
 use freefall::diagnose::{diagnose, simulate_with_effects, DiagnoseConfig};
 use freefall::setup::Setup;
@@ -24,7 +26,8 @@ fn main() {
     let first: u64 = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(1000);
     let model = args.get(3).is_some_and(|s| s == "model");
     let with_aux = args.get(4).is_some_and(|s| s == "aux");
-    let xy = args.get(4).is_some_and(|s| s == "xy");
+    let commands = args.get(4).is_some_and(|s| s == "xycmd");
+    let xy = commands || args.get(4).is_some_and(|s| s == "xy");
     let xy_setup = freefall::setup::SetupXy::embedded();
     let setup = Setup::embedded_continuous();
     let design = setup.design("standard").unwrap();
@@ -55,7 +58,7 @@ fn main() {
                     noise_duration: None,
                     effects: Vec::new(),
                     auxiliary: false,
-                    commands: false,
+                    commands,
                 };
                 let s = job.run_xy(&xy_setup).unwrap();
                 let readouts = s.dataset().unwrap().auxiliary_series();
