@@ -7,8 +7,8 @@
 
 mod common;
 
-use std::path::{Path, PathBuf};
 
+use common::xy::{diagnose, simulate};
 use common::{added, freefall};
 use freefall::diagnose::simulate_job::SimulateJob;
 use freefall::diagnose::simulate_xy::{command_coefficients, command_response};
@@ -18,48 +18,6 @@ use freefall::setup::{Setup, SetupXy};
 use freefall::sim::auxiliary::{through_loop, Leak};
 use freefall::sim::Engine;
 use freefall::spectral::welch::{welch_csd, Detrend, WelchConfig};
-
-fn ok(args: &[&str]) -> std::process::Output {
-    let o = freefall(args);
-    assert!(
-        o.status.success(),
-        "freefall {args:?}: {}",
-        String::from_utf8_lossy(&o.stderr)
-    );
-    o
-}
-
-fn simulate(dir: &Path, scenario: &str, seed: &str) -> PathBuf {
-    let out = dir.join(scenario);
-    ok(&[
-        "simulate",
-        "--model",
-        "lpf_xy",
-        "--scenario",
-        scenario,
-        "--design",
-        "standard_xy",
-        "--seed",
-        seed,
-        "--commands",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
-    out.join("dataset.toml")
-}
-
-fn diagnose(ds: &Path, out: &Path) -> serde_json::Value {
-    ok(&[
-        "diagnose",
-        ds.to_str().unwrap(),
-        "--loop",
-        "continuous",
-        "--no-plots",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
-    serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap()
-}
 
 fn job(scenario: &str) -> SimulateJob {
     SimulateJob {
@@ -199,7 +157,7 @@ fn force_crosstalk_of_recorded_commands_is_found_by_the_diagnosis() {
     // cross-talk is claimed (the commands and the readouts of the same loops are both
     // offered); chi^2/nu ends within 3 sqrt(2/nu) of 1.
     let dir = tempfile::tempdir().unwrap();
-    let ds = simulate(dir.path(), "actuation_crosstalk", "3");
+    let ds = simulate(dir.path(), "actuation_crosstalk", "3", &["--commands"]);
     let r = diagnose(&ds, &dir.path().join("d"));
     let xy = SetupXy::embedded();
     let truth = xy.spec.scenario("actuation_crosstalk").unwrap().truth;
@@ -249,7 +207,7 @@ fn xy_control_with_recorded_commands_claims_nothing() {
     // Oracle: the truth has no cross-talk (scenario nominal): with the commands offered as
     // well as the readouts, nothing is claimed.
     let dir = tempfile::tempdir().unwrap();
-    let ds = simulate(dir.path(), "nominal", "5");
+    let ds = simulate(dir.path(), "nominal", "5", &["--commands"]);
     let r = diagnose(&ds, &dir.path().join("d"));
     assert!(added(&r).is_empty(), "control claims {:?}", added(&r));
 }
@@ -260,7 +218,7 @@ fn commands_are_declared_and_checked() {
     // unit and role; a command declared with a position's kind, or an unknown role, is a
     // one-line error naming the entry and the key; the x model has no command to record.
     let dir = tempfile::tempdir().unwrap();
-    let ds = simulate(dir.path(), "nominal", "1");
+    let ds = simulate(dir.path(), "nominal", "1", &["--commands"]);
     let text = std::fs::read_to_string(&ds).unwrap();
     assert!(text.contains("column = \"uphisc\""), "{text}");
     assert!(text.contains("kind = \"angular_acceleration\""), "{text}");

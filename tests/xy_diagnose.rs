@@ -7,9 +7,9 @@
 
 mod common;
 
-use std::path::{Path, PathBuf};
 
-use common::{added, freefall};
+use common::xy::{diagnose, ok, simulate};
+use common::added;
 use serde_json::Value;
 
 /// The truth of scenario `sensing_crosstalk` of lpf_xy.toml.
@@ -30,47 +30,6 @@ const HELD: [&str; 10] = [
     "d_sus_phi2",
 ];
 
-fn ok(args: &[&str]) -> std::process::Output {
-    let o = freefall(args);
-    assert!(
-        o.status.success(),
-        "freefall {args:?}: {}",
-        String::from_utf8_lossy(&o.stderr)
-    );
-    o
-}
-
-fn simulate(dir: &Path, scenario: &str, seed: &str) -> PathBuf {
-    let out = dir.join(scenario);
-    ok(&[
-        "simulate",
-        "--model",
-        "lpf_xy",
-        "--scenario",
-        scenario,
-        "--design",
-        "standard_xy",
-        "--seed",
-        seed,
-        "--out",
-        out.to_str().unwrap(),
-    ]);
-    out.join("dataset.toml")
-}
-
-fn diagnose(ds: &Path, out: &Path) -> Value {
-    ok(&[
-        "diagnose",
-        ds.to_str().unwrap(),
-        "--loop",
-        "continuous",
-        "--no-plots",
-        "--out",
-        out.to_str().unwrap(),
-    ]);
-    serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap()
-}
-
 #[test]
 fn xy_sensing_crosstalk_is_found_by_the_xy_fit_and_by_the_diagnosis() {
     // Oracle: the simulated truth (ds_1y1 = 5e-3, ds_2y2 = -3e-3 in the xy model's sensing
@@ -80,7 +39,7 @@ fn xy_sensing_crosstalk_is_found_by_the_xy_fit_and_by_the_diagnosis() {
     // oy1 into o1 and of oy2 into o12, each within 3 sigma of the same coefficients, and brings
     // chi^2/nu back within 3 sqrt(2/nu) of 1; the report shows the errors before and after.
     let dir = tempfile::tempdir().unwrap();
-    let ds = simulate(dir.path(), "sensing_crosstalk", "3");
+    let ds = simulate(dir.path(), "sensing_crosstalk", "3", &[]);
 
     let fit_out = dir.path().join("fit");
     let mut args = vec![
@@ -167,7 +126,7 @@ fn without_auxiliary_channels_the_xy_leak_is_an_unexplained_excess_in_o12() {
     // y2 loop's residual motion, -n_y2 below its 77 mHz unity gain, leaks -3e-3 of
     // 1.8e-9 m/sqrt(Hz) into o12, whose own readout noise is 6e-12).
     let dir = tempfile::tempdir().unwrap();
-    let ds = simulate(dir.path(), "sensing_crosstalk", "4");
+    let ds = simulate(dir.path(), "sensing_crosstalk", "4", &[]);
     let text = std::fs::read_to_string(&ds).unwrap();
     let noaux = ds.with_file_name("noaux.toml");
     std::fs::write(&noaux, text.split("[[auxiliary]]").next().unwrap()).unwrap();
@@ -197,7 +156,7 @@ fn without_auxiliary_channels_the_xy_leak_is_an_unexplained_excess_in_o12() {
 fn xy_control_with_auxiliary_readouts_claims_nothing() {
     // Oracle: the truth has no cross-talk (scenario nominal): nothing is claimed.
     let dir = tempfile::tempdir().unwrap();
-    let ds = simulate(dir.path(), "nominal", "5");
+    let ds = simulate(dir.path(), "nominal", "5", &[]);
     let r = diagnose(&ds, &dir.path().join("d"));
     assert!(added(&r).is_empty(), "control claims {:?}", added(&r));
 }

@@ -6,6 +6,7 @@
 
 pub mod loops;
 pub mod tables;
+pub mod xy;
 
 use std::process::Command;
 
