@@ -7,7 +7,6 @@
 
 mod common;
 
-
 use common::xy::{diagnose, simulate};
 use common::{added, freefall};
 use freefall::diagnose::simulate_job::SimulateJob;

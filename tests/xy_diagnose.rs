@@ -7,9 +7,8 @@
 
 mod common;
 
-
-use common::xy::{diagnose, ok, simulate};
 use common::added;
+use common::xy::{diagnose, ok, simulate};
 use serde_json::Value;
 
 /// The truth of scenario `sensing_crosstalk` of lpf_xy.toml.
