@@ -44,7 +44,8 @@
 //!
 //! Cross-talk from the other degrees of freedom (thesis sec. 3.4): with recorded auxiliary
 //! readouts ([`DiagnoseConfig::auxiliary`]) the sensing cross-talk of each into o1 and o12
-//! (static and rate) is an additive candidate whose column is the measured series itself; a
+//! (static and rate) is an additive candidate whose column is the measured series itself, as is
+//! the force cross-talk of each recorded command (sec. 3.5, `aux_force_...`); a
 //! claimed one is removed from the noise run and the whitening filter estimated again
 //! (`crosstalk`). [`coherence`] reports the coherence and partial coherence of the whitened
 //! residuals with each auxiliary readout. Without auxiliary readouts, a coupling the noise-run
@@ -156,9 +157,10 @@ pub struct DiagnoseConfig {
     /// only costs them power. A prior here also replaces the model file's in the prior-tension
     /// report.
     pub constraints: crate::fit::Constraints,
-    /// Recorded auxiliary readouts of the experiments and the noise run (a dataset's
-    /// `[[auxiliary]]`): the sensing cross-talk of each into o1 and o12, static and rate
-    /// (`additive::Additive::AuxCrosstalk`), is a candidate of every round, and a claimed one is
+    /// Recorded auxiliary readouts and commands of the experiments and the noise run (a
+    /// dataset's `[[auxiliary]]`): the sensing cross-talk of each readout into o1 and o12,
+    /// static and rate, and the force cross-talk of each command into x1 and x12
+    /// (`additive::Additive::AuxCrosstalk`), are candidates of every round, and a claimed one is
     /// removed from the noise run before its whitening filter is estimated again.
     pub auxiliary: Option<Arc<crate::data::Auxiliary>>,
 }
