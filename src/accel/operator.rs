@@ -293,7 +293,9 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> DeltaEstimator<'m, M, N> {
             None => None,
         };
         let mut out = vec![vec![Complex64::new(0.0, 0.0); nb]; N];
-        let mut kernels = vec![vec![Complex64::new(0.0, 0.0); nb]; N * N];
+        // The kernels' tails serve only the initial-state fit.
+        let mut kernels =
+            vec![vec![Complex64::new(0.0, 0.0); nb]; if self.free_modes { N * N } else { 0 }];
         let df = 1.0 / (m as f64 * self.dt);
         for k in 0..nb {
             let (r, q) = self.multipliers(k as f64 * df);

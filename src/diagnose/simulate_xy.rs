@@ -242,10 +242,11 @@ pub fn command_response(
     out
 }
 
-/// The commands `-C_j (o_j - o_i,j)` of loops `j = 2..7` of every experiment of `sim` and of
-/// the noise run of `nsim`, drawn from the random streams the readouts were (module docs).
+/// The commands of every experiment (loop by loop) and of the noise run.
 type Commands = (Vec<Vec<Vec<f64>>>, Vec<Vec<f64>>);
 
+/// The commands `-C_j (o_j - o_i,j)` of loops `j = 2..7` of every experiment of `sim` and of
+/// the noise run of `nsim`, drawn from the random streams the readouts were (module docs).
 fn commands(
     model: &LpfXy,
     truth: &[f64],
@@ -269,14 +270,19 @@ fn commands(
             })
             .collect()
     };
-    let noise_part = |src: &crate::noise::ColoredNoise<7>, rng: &mut _| {
-        let filtered = src.filtered(&law_rows(src.driving_len()));
-        filtered.generate(rng).split_off(X_CHANNELS)
-    };
+    let filtered = |src: &crate::noise::ColoredNoise<7>| src.filtered(&law_rows(src.driving_len()));
+    // One filtered generator per distinct length, as the simulator has one generator each.
+    let generators: Vec<_> = sim.noises.iter().map(|s| filtered(&s.noise)).collect();
     let mut rng = stream(seed, 0);
     let mut exps = Vec::with_capacity(sim.signal.len());
     for e in 0..sim.signal.len() {
-        let mut c = noise_part(&sim.source_of(e).noise, &mut rng);
+        let src = sim.source_of(e);
+        let g = sim
+            .noises
+            .iter()
+            .position(|s| std::ptr::eq(s, src))
+            .expect("an experiment's generator is one of the simulator's");
+        let mut c = generators[g].generate(&mut rng).split_off(X_CHANNELS);
         let n = c.first().map_or(0, Vec::len);
         let l = sim.inputs[e].first().map_or(0, Vec::len).saturating_sub(n);
         let inputs: Vec<Vec<f64>> = sim.inputs[e].iter().map(|x| x[l..].to_vec()).collect();
@@ -291,6 +297,8 @@ fn commands(
         exps.push(c);
     }
     // The noise run's readouts come from its generator of the longest length (one experiment).
-    let noise = noise_part(&nsim.source_of(0).noise, &mut stream(seed, 1));
+    let noise = filtered(&nsim.source_of(0).noise)
+        .generate(&mut stream(seed, 1))
+        .split_off(X_CHANNELS);
     Ok((exps, noise))
 }
