@@ -14,9 +14,13 @@
 //!   detrending of every spectrum);
 //! - **the rest** `R(f) = Delta(f) - s^2 S0^-1 - J / s`: stiffness and cross-talk (constants)
 //!   and the regular part of the control laws, applied as a multiplier on the FFT of the series
-//!   zero-padded to at least twice its length, i.e. a linear (not circular) convolution with the
-//!   kernel whose DTFT is `R(f)`; the kernel decays within the slowest closed-loop-independent
-//!   time constant of the controllers (minutes), far shorter than the padding.
+//!   padded to at least twice its length, i.e. a convolution with the kernel whose DTFT is
+//!   `R(f)`. The padding is not zeros but a raised-cosine blend from the last sample back to the
+//!   first, so the circular series has no jump: before its start the convolution sees the
+//!   readouts held near their first value, after its end near their last. A jump would meet
+//!   every kernel term at once, and a digital model's kernel rings near Nyquist for hundreds of
+//!   samples (below). The kernel's slow part decays within the controllers' time constants
+//!   (minutes), far shorter than the padding, so the wrap-around does not reach the series.
 //!
 //! A digital loop's inverse plant carries the zero-order hold: the held force acts half a
 //! control step `h` late on average, so `D_d = s^2 (1 + tau s + ...) + K` with `tau = h / 2`
@@ -24,30 +28,34 @@
 //! central third-derivative stencil (response `(sin 2 w dt - 2 sin w dt) / dt^3`, `s^3` at low
 //! frequency and zero at Nyquist), not as an FFT multiplier: there its imaginary part would
 //! jump across the telemetry's Nyquist frequency (1.5 s^-2 in `Delta_22` at 1 Hz for
-//! `h = 0.1 s`), a kernel decaying only as `(-1)^k / k`, and the jump of the zero-padded series
-//! at its first sample would ring through a whole start-up transient.
+//! `h = 0.1 s`), a kernel decaying only as `(-1)^k / k`, and a start-up transient would ring
+//! through it. The terms after `tau s^3` stay in `R`: their kernel alternates as
+//! `(-1)^k / k^2` (`R_22` about 0.03 at lag 1, 3.4e-3 at lag 3), which is why the padding must
+//! not jump.
 //!
 //! So the estimator applies
 //! `Delta_h(f) = Delta(f) + (H(f) - s^2 + tau (H_3(f) - s^3)) S0^-1 + J (trap(f) - 1 / s)`, which [`DeltaEstimator::response`] returns for the model projection;
 //! it equals `Delta(f)` up to `(w dt)^2 / 3` relative in the inertia (3 % at 50 mHz for a 1 Hz
 //! run with the default stencil).
 //!
-//! **Controllers' initial state.** The zero-padded convolution starts the control laws at rest
-//! at the first sample, but the loop's controllers carry the history of the readouts before it
+//! **Controllers' initial state.** The convolution starts the control laws as if the readouts
+//! had rested at their first value, but the loop's controllers carry the history before it
 //! (a time-domain run starts its loop at the anti-alias filter's margin, 28 s before the first
 //! telemetry sample; measured data start with whatever state the controllers had). What that
 //! history adds to `g` is a free response of the control laws: for output `i`,
-//! `sum_j sum_{m >= 1} R_ij[k + m] o_j[-m]`, a sum of the laws' modes. Like the running sum's
+//! `sum_j sum_{m >= 1} R_ij[k + m] (o_j[-m] - o_j[0])`, a sum of the laws' modes. Like the running sum's
 //! start constant, its amplitudes are unknown. [`DeltaEstimator::apply`] reads each slow mode's
 //! decay per sample from the kernel tail `R_ij[k + 1]` (the response to a unit sample just
 //! before the series; LPF-x: `C_sus`'s pole at -1.16e-2 s^-1, 86 s; `C_df`'s -2 s^-1 is gone
-//! within the edge samples), fits the modes by least squares with a constant and a slope over
+//! within the edge samples), after repeated pair sums that cancel the terms alternating near
+//! Nyquist and beyond the first lags, and only where one exponential explains that tail.
+//! It fits the modes by least squares with a constant and a slope over
 //! the window holding them, and subtracts the fitted modes. Without this, a run started from
 //! the thesis's initial conditions (sec. 4.7) kept 2.6e-12 m s^-2 in `g12` at the first
 //! sample, decaying with the suspension law's 86 s, 2.6 times the noise's S_g12 at 1 mHz over
-//! the first 4000 s; with it, 1.1e-3 (README, "Transients"). A digital model's kernels are
-//! dominated by the held plant's higher orders alternating near Nyquist, so no mode is read
-//! from them and its estimate is unchanged.
+//! the first 4000 s; with it, 1.1e-3 (README, "Transients"). The digital model's loop has the
+//! same slow mode under its alternating terms: with the smooth padding and the mode fit, its
+//! free response on that run falls from 28 to 5e-5 times the noise's level.
 //!
 //! With guidance injections `o_i` the commanded force acts on the error signal `o - T o_i`, so the
 //! estimate is `Delta o - A C T o_i` (thesis eq. "equation of motion in the sensed coordinates"):
@@ -197,7 +205,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> DeltaEstimator<'m, M, N> {
     }
 
     /// The same estimator without the fit of the controllers' initial state (module docs): the
-    /// plain linear filter from rest. A comparison of two estimators on the same data wants
+    /// plain linear filter, from readouts held at their first value. A comparison of two estimators on the same data wants
     /// it: the fitted modes differ between the two and absorb different parts of the noise
     /// near the start (on a 1 % loss angle of TM2, 0.7 % of S_g12 at 0.57 mHz against the
     /// effect's own 0.2 %), while the free response they remove is nearly the same in both.
@@ -274,7 +282,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> DeltaEstimator<'m, M, N> {
         let mut buf = vec![0.0; m];
         let mut spectrum = |x: &[f64]| {
             buf[..n].copy_from_slice(x);
-            buf[n..].iter_mut().for_each(|v| *v = 0.0);
+            extend_smoothly(&mut buf, n);
             let mut out = vec![Complex64::new(0.0, 0.0); nb];
             fwd.process(&mut buf, &mut out)
                 .map_err(|e| AccelError::Fft(e.to_string()))?;
@@ -340,6 +348,18 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> DeltaEstimator<'m, M, N> {
             tails[ij / N].push(inverse(kern, HALF_WIDTH + 1)?);
         }
         Ok((g, tails))
+    }
+}
+
+/// Fill `buf[n..]` (the padding of a circular convolution, which wraps round to the series'
+/// start) with a raised-cosine blend from the last sample `buf[n - 1]` to the first `buf[0]`,
+/// so that the kernels see no jump at either end of the series.
+fn extend_smoothly(buf: &mut [f64], n: usize) {
+    let (first, last) = (buf[0], buf[n - 1]);
+    let pad = buf.len() - n;
+    for (k, v) in buf[n..].iter_mut().enumerate() {
+        let w = 0.5 * (1.0 - (std::f64::consts::PI * (k + 1) as f64 / (pad + 1) as f64).cos());
+        *v = last + (first - last) * w;
     }
 }
 
@@ -420,17 +440,50 @@ const MODE_ENERGY_LEFT: f64 = 1e-8;
 /// Fewest samples of the fit window (the baseline's constant and slope need some).
 const MIN_FIT_SAMPLES: usize = 64;
 
-/// Per-sample decay `rho` of a history response, read from its pair sums (which cancel the
-/// terms alternating near Nyquist): `sum u_k u_(k+1) / sum u_k^2`, `u_k = t_k + t_(k+1)`.
-fn decay_per_sample(t: &[f64]) -> f64 {
-    let u: Vec<f64> = t.windows(2).map(|w| w[0] + w[1]).collect();
+/// Times the pair sum `u_k = t_k + t_(k+1)` is applied before the decay is read: each pass
+/// turns a term alternating as `(-1)^k f(k)` into one of `f`'s differences, so the held
+/// plant's `(-1)^k / k^2` near Nyquist in a digital model's kernel falls as `k^-6` while a
+/// slow mode keeps its shape.
+const PAIR_SUMS: usize = 4;
+
+/// Lags skipped before the decay is read: the alternating terms and the fast modes live there
+/// (LPF-x digital, `R_22`: 3.4e-3 at lag 3 against the suspension mode's 3.2e-7).
+const MODE_SKIP: usize = 32;
+
+/// A history response is a mode only when `rho^k` leaves at most this fraction of the energy
+/// of its pair sums beyond the first lags. LPF-x `R_11` (the drag-free law) is no single
+/// exponential there and leaves 0.07; the suspension law's 86 s mode in `R_22` leaves 2e-7,
+/// under the digital model's alternating terms as well.
+const MODE_FIT_RESIDUAL: f64 = 1e-2;
+
+/// Per-sample decay `rho` of a history response and the fraction of energy that `rho^k` leaves,
+/// read from its repeated pair sums (which cancel the terms alternating near Nyquist) beyond
+/// the first lags: `rho = sum u_k u_(k+1) / sum u_k^2`.
+fn decay_per_sample(t: &[f64]) -> (f64, f64) {
+    let mut u = t.to_vec();
+    for _ in 0..PAIR_SUMS {
+        u = u.windows(2).map(|w| w[0] + w[1]).collect();
+    }
+    let u = u.get(MODE_SKIP..).unwrap_or(&[]);
     let lag1: f64 = u.windows(2).map(|w| w[0] * w[1]).sum();
     let e: f64 = u.iter().map(|x| x * x).sum();
-    if e > 0.0 {
-        lag1 / e
-    } else {
-        0.0
+    if e.is_nan() || e <= 0.0 {
+        return (0.0, 1.0);
     }
+    let rho = lag1 / e;
+    // Least-squares amplitude of rho^k and what it leaves.
+    let (mut uv, mut vv, mut v) = (0.0, 0.0, 1.0);
+    for x in u {
+        uv += x * v;
+        vv += v * v;
+        v *= rho;
+    }
+    let left = if vv > 0.0 {
+        1.0 - uv * uv / (vv * e)
+    } else {
+        1.0
+    };
+    (rho, left)
 }
 
 /// Remove the free response of the controllers' unknown initial state from `g` (module docs,
@@ -450,8 +503,9 @@ fn remove_free_modes(g: &mut [f64], tails: &[Vec<f64>]) {
         if nm < MODE_SIGNIFICANCE * top {
             continue;
         }
-        let rho = decay_per_sample(t);
+        let (rho, left) = decay_per_sample(t);
         if (MODE_SMOOTHNESS..1.0).contains(&rho)
+            && left <= MODE_FIT_RESIDUAL
             && rates
                 .iter()
                 .all(|r| (r - rho).abs() > MODE_SAME_RATE * (1.0 - rho))

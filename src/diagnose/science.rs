@@ -46,7 +46,7 @@ fn s_g12<M: ClosedLoopModel<2>>(
     o: [&[f64]; 2],
     oi: Option<[&[f64]; 2]>,
 ) -> Option<(Vec<f64>, Vec<f64>, f64, f64)> {
-    // Both estimates filter the same data from rest: the initial-state fit would differ
+    // Both estimates filter the same data as the same linear filter: the initial-state fit would differ
     // between them (`DeltaEstimator::without_initial_state`).
     let est = DeltaEstimator::new(model, p, dt, Stencil::default())
         .ok()?
