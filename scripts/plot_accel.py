@@ -10,7 +10,8 @@ variable FREEFALL_PLOT_SCRIPT names another) as `python3 SCRIPT ACCEL_DIR`.
   accel.png  amplitude spectral densities of the total equivalent acceleration g12 (top) and g1
              (bottom) of the whole run and of each --segment, with their confidence bands, the
              model's projection Delta S_o Delta^H and (for the whole run) the noise budget per
-             source.
+             source; with compare.parquet (`freefall accel --compare REF`), the reference's
+             whole-run g12 and its band in grey.
 Units come from the tables (Parquet field metadata "unit", key-value "freefall.units"); a table
 without them is read in the units freefall writes (f in Hz, S_* in m^2 s^-4 Hz^-1).
 Needs numpy, matplotlib and pyarrow.
@@ -102,6 +103,15 @@ def main():
             if name == "all":
                 ax.loglog(f, np.sqrt(np.array(psd[f"model_{ch}"])[m]), "k--", lw=1.3, zorder=4,
                           label="model $\\Delta S_o \\Delta^H$")
+        cmp_path = args.input / "compare.parquet"
+        if ch == "g12" and cmp_path.exists():
+            c = pq.read_table(cmp_path).to_pydict()
+            fc = np.array(c["f"], dtype=float)
+            ax.loglog(fc, np.sqrt(np.array(c["S_g12_ref"], dtype=float)), color="0.3", lw=1.0, zorder=2.5,
+                      label="reference (--compare), whole run")
+            ax.fill_between(fc, np.sqrt(np.array(c["S_g12_ref_lo"], dtype=float)),
+                            np.sqrt(np.array(c["S_g12_ref_hi"], dtype=float)), color="0.5", alpha=0.2, lw=0,
+                            zorder=1.5, label="reference's band")
         est = np.sqrt(np.array(psd[f"S_{ch}"], dtype=float))
         # Budget terms far below the estimate (and the Nyquist zero of the derivative) would
         # stretch the axis over ten decades: show two decades below the estimate's 2nd percentile.

@@ -14,6 +14,7 @@ use freefall::spectral::WelchConfig;
 use num_complex::Complex64;
 
 mod common;
+use common::freefall;
 use common::loops::digital_setup;
 
 /// Analysis sampling interval of the reference model (1 Hz).
@@ -341,19 +342,11 @@ fn identification_removes_the_excess_of_the_under_performing_scenario() {
     }
 }
 
-/// Oracle: the documented outputs, and linearity of the budget read back from the files. End to
-/// end: `simulate` a short dataset, `accel` its noise run with a segment; accel_psd.parquet holds
-/// the whole run and the segment, the budget's sources sum to the projection column, and a
-/// reversed segment is a one-line error naming it.
-#[test]
-fn cli_writes_the_documented_tables() {
-    use freefall::io::read_parquet;
-    use std::process::Command;
-    let dir = tempfile::tempdir().unwrap();
-    let ds = dir.path().join("ds");
-    let bin = env!("CARGO_BIN_EXE_freefall");
-    let run = |args: &[&str]| Command::new(bin).args(args).output().unwrap();
-    let o = run(&[
+/// `freefall simulate` of the under-performing scenario with a 40000 s noise run at 1 Hz into
+/// `dir/ds`; returns its dataset.toml.
+fn short_noise_dataset(dir: &std::path::Path) -> std::path::PathBuf {
+    let ds = dir.join("ds");
+    let o = freefall(&[
         "simulate",
         "--scenario",
         "under_performing",
@@ -365,8 +358,19 @@ fn cli_writes_the_documented_tables() {
         ds.to_str().unwrap(),
     ]);
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    ds.join("dataset.toml")
+}
+
+/// Oracle: the documented outputs, and linearity of the budget read back from the files. End to
+/// end: `simulate` a short dataset, `accel` its noise run with a segment; accel_psd.parquet holds
+/// the whole run and the segment, the budget's sources sum to the projection column, and a
+/// reversed segment is a one-line error naming it.
+#[test]
+fn cli_writes_the_documented_tables() {
+    use freefall::io::read_parquet;
+    let dir = tempfile::tempdir().unwrap();
+    let dataset = short_noise_dataset(dir.path());
     let out = dir.path().join("acc");
-    let dataset = ds.join("dataset.toml");
     let args = |seg: &str| {
         vec![
             "accel".to_string(),
@@ -381,7 +385,7 @@ fn cli_writes_the_documented_tables() {
         ]
     };
     let a = args("0:20000");
-    let o = run(&a.iter().map(String::as_str).collect::<Vec<_>>());
+    let o = freefall(&a.iter().map(String::as_str).collect::<Vec<_>>());
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     let acc = read_parquet(out.join("accel.parquet")).unwrap();
     assert_eq!(acc.names(), ["t", "g1", "g12"]);
@@ -407,11 +411,117 @@ fn cli_writes_the_documented_tables() {
     // --force: the folder holds the tables above (a non-empty --out is refused first).
     let mut a = args("300:100");
     a.push("--force".into());
-    let o = run(&a.iter().map(String::as_str).collect::<Vec<_>>());
+    let o = freefall(&a.iter().map(String::as_str).collect::<Vec<_>>());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(
         !o.status.success() && err.contains("300:100") && err.trim().lines().count() == 1,
         "{err}"
+    );
+}
+
+/// Oracle: the two analyses' own tables, read back from their files. `accel --compare` of
+/// Delta at the guess against Delta at the truth (same run): compare.parquet's ratio is
+/// `sqrt(S_g12 / S_g12,ref)` of the two accel_psd.parquet files, compare_budget.parquet's
+/// excesses sum to the difference of the two projections (each budget sums to its own), the
+/// printed 50 mHz factor is the band mean of that ratio, and spectra on different frequency
+/// grids are a one-line error naming the reference folder, with nothing written.
+#[test]
+fn cli_compares_two_parameter_sets_of_one_run() {
+    use freefall::io::read_parquet;
+    let dir = tempfile::tempdir().unwrap();
+    let dataset = short_noise_dataset(dir.path());
+    let (truth, guess) = (dir.path().join("truth"), dir.path().join("guess"));
+    let accel = |set: &str, out: &std::path::Path, extra: &[&str]| {
+        let mut a = vec![
+            "accel",
+            dataset.to_str().unwrap(),
+            "--scenario",
+            "under_performing",
+            "--use",
+            set,
+            "--no-plots",
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        a.extend_from_slice(extra);
+        freefall(&a)
+    };
+    let o = accel("truth", &truth, &[]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    // A reference on another frequency grid: refused before anything is written.
+    let bad = dir.path().join("bad");
+    let o = accel(
+        "guess",
+        &bad,
+        &[
+            "--compare",
+            truth.to_str().unwrap(),
+            "--welch-segments",
+            "8",
+        ],
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success()
+            && err.contains(truth.to_str().unwrap())
+            && err.contains("--welch-segments")
+            && err.trim().lines().count() == 1,
+        "{err}"
+    );
+    assert!(!bad.join("compare.parquet").exists());
+    let o = accel("guess", &guess, &["--compare", truth.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    let whole = |d: &std::path::Path, col: &str| {
+        let t = read_parquet(d.join("accel_psd.parquet")).unwrap();
+        let seg = t.str_column("segment").unwrap().to_vec();
+        let c = t.f64_column(col).unwrap();
+        (0..c.len())
+            .filter(|&k| seg[k] == "all")
+            .map(|k| c[k])
+            .collect::<Vec<f64>>()
+    };
+    let (f, s_t, s_g) = (
+        whole(&truth, "f"),
+        whole(&truth, "S_g12"),
+        whole(&guess, "S_g12"),
+    );
+    let (m_t, m_g) = (whole(&truth, "model_g12"), whole(&guess, "model_g12"));
+    let cmp = read_parquet(guess.join("compare.parquet")).unwrap();
+    let ratio = cmp.f64_column("ratio_g12").unwrap();
+    assert_eq!(cmp.f64_column("f").unwrap(), f.as_slice());
+    for k in 0..f.len() {
+        let want = (s_g[k] / s_t[k]).sqrt();
+        assert!((ratio[k] / want - 1.0).abs() < 1e-12, "f = {}", f[k]);
+    }
+    let bud = read_parquet(guess.join("compare_budget.parquet")).unwrap();
+    let (bf, bx) = (
+        bud.f64_column("f").unwrap(),
+        bud.f64_column("excess_S_g12").unwrap(),
+    );
+    for k in (0..f.len()).step_by(97) {
+        let sum: f64 = (0..bf.len())
+            .filter(|&j| bf[j] == f[k])
+            .map(|j| bx[j])
+            .sum();
+        let want = m_g[k] - m_t[k];
+        assert!(
+            (sum - want).abs() <= 0.02 * m_g[k].max(m_t[k]),
+            "f = {}: excess {sum:e} vs projections' difference {want:e}",
+            f[k]
+        );
+    }
+    let band: Vec<usize> = (0..f.len())
+        .filter(|&k| f[k] >= 48e-3 && f[k] <= 52e-3)
+        .collect();
+    let factor = band.iter().map(|&k| ratio[k]).sum::<f64>() / band.len() as f64;
+    let line = stdout
+        .lines()
+        .find(|l| l.starts_with("48-52 mHz"))
+        .unwrap_or_else(|| panic!("no 50 mHz line in:\n{stdout}"));
+    assert!(
+        line.contains(&format!("reference = {factor:.2} ")) && line.contains("thruster"),
+        "{line} (band mean {factor:.3})"
     );
 }
 

@@ -6,6 +6,7 @@
 
 use std::path::{Path, PathBuf};
 
+use super::compare::{compare, Reference};
 use super::report::{analyse, parse_segment, AccelRequest};
 use super::Stencil;
 use crate::analysis::job::{context, JobError, Notes};
@@ -47,6 +48,9 @@ pub struct AccelJob {
     /// Draw plots/accel.png with the embedded scripts/plot_accel.py (FREEFALL_PLOT_SCRIPT
     /// names another script).
     pub plots: bool,
+    /// An earlier `freefall accel` output folder of the same run to compare against
+    /// ([`super::compare`]): writes compare.parquet and compare_budget.parquet.
+    pub compare: Option<PathBuf>,
 }
 
 impl AccelJob {
@@ -81,6 +85,14 @@ impl AccelJob {
         notes: Notes<'_>,
     ) -> Result<String, JobError> {
         let req = self.request()?;
+        // The reference first: a bad one fails before anything is computed or written.
+        let reference = match &self.compare {
+            Some(dir) => Some((
+                Reference::read(dir).map_err(context(format!("--compare {}", dir.display())))?,
+                dir,
+            )),
+            None => None,
+        };
         let (run, meta_truth) = self.load_input(input, setup)?;
         let (p, p_label) = self.delta_parameters(setup)?;
         // The readouts' noise model for the projection: the truth when the data say it.
@@ -96,6 +108,13 @@ impl AccelJob {
         let label = run.path.as_deref().unwrap_or(input).display().to_string();
         let r = analyse(&setup.model, &setup.noise, &p, &p_noise, &run, &req)
             .map_err(context(label))?;
+        let comparison = match &reference {
+            Some((reference, dir)) => Some(
+                compare(&r, reference, dir)
+                    .map_err(context(format!("--compare {}", dir.display())))?,
+            ),
+            None => None,
+        };
         ensure_dir(out).map_err(context(format!(
             "cannot create output directory '{}'",
             out.display()
@@ -103,12 +122,17 @@ impl AccelJob {
         write_parquet(out.join("accel.parquet"), &r.series)?;
         write_parquet(out.join("accel_psd.parquet"), &r.spectra)?;
         write_parquet(out.join("budget.parquet"), &r.budget)?;
-        let text = format!(
+        let mut text = format!(
             "Delta parameters: {p_label}; readout noise model at {noise_label}; {} samples, dt = {} s\n{}",
             r.acceleration.len(),
             r.acceleration.dt,
             r.levels_text()
         );
+        if let (Some(c), Some((_, dir))) = (&comparison, &reference) {
+            write_parquet(out.join("compare.parquet"), &c.table)?;
+            write_parquet(out.join("compare_budget.parquet"), &c.budget)?;
+            text.push_str(&format!("against {}:\n{}", dir.display(), c.text()));
+        }
         if self.plots {
             if let Err(e) = run_plot_script(out, PLOT_SCRIPT, "plot_accel.py") {
                 notes(&format!("no plots/accel.png: {}", e.with_causes()));

@@ -18,6 +18,7 @@
 //!
 //! No file I/O; runs arrive as [`crate::io::Run`] values.
 
+pub mod compare;
 pub mod derivative;
 pub mod job;
 pub mod operator;

@@ -44,13 +44,19 @@ pub struct AccelArgs {
     #[arg(long, default_value_t = 0.9)]
     pub level: f64,
     /// Output directory (created): accel.parquet, accel_psd.parquet, budget.parquet,
-    /// plots/accel.png.
+    /// plots/accel.png (and compare*.parquet with --compare).
     #[arg(long)]
     pub out: PathBuf,
     /// Do not draw plots/accel.png (the embedded scripts/plot_accel.py, run with python3;
     /// FREEFALL_PLOT_SCRIPT names another script).
     #[arg(long)]
     pub no_plots: bool,
+    /// An earlier `freefall accel` output folder of the same run (e.g. Delta at the truth) to
+    /// compare against: the amplitude ratio at 0.4 and 50 mHz, which noise sources make the
+    /// excess, and whether the spectrum lies inside the reference's band; writes
+    /// compare.parquet and compare_budget.parquet.
+    #[arg(long, value_name = "DIR")]
+    pub compare: Option<PathBuf>,
 }
 
 pub fn run(a: AccelArgs) -> Result<()> {
@@ -65,6 +71,7 @@ pub fn run(a: AccelArgs) -> Result<()> {
         welch_segments: a.welch_segments,
         level: a.level,
         plots: !a.no_plots,
+        compare: a.compare,
     };
     let text = super::working("converting to acceleration", |notes| {
         job.run(&setup, &a.input, &a.out, notes)
