@@ -7,8 +7,8 @@
 use std::f64::consts::PI;
 
 use freefall::spectral::{
-    welch_csd, welch_csd_windowed, welch_psd, welch_psd_windowed, Decimator, Detrend,
-    SpectralError, WelchConfig, Window,
+    welch_csd, welch_csd_pieces, welch_csd_windowed, welch_psd, welch_psd_windowed, Decimator,
+    Detrend, SpectralError, WelchConfig, Window,
 };
 use num_complex::Complex64;
 use rand::SeedableRng;
@@ -117,6 +117,71 @@ fn white_noise_dof_and_confidence_coverage() {
     assert!(
         (coverage - 0.9).abs() < tol::COVERAGE,
         "coverage {coverage} of the 90% band [{lo}, {hi}]"
+    );
+}
+
+// Oracle: the Welch average's definition, and white noise. (1) One piece is `welch_csd`
+// exactly. (2) Two identical pieces average the same segments twice: the same spectrum, twice
+// the segments and the degrees of freedom. (3) A piece shorter than one segment adds nothing.
+// (4) White noise cut by two gaps: the level 2 sigma^2 dt within the standard error of the
+// summed degrees of freedom, and the bin-to-bin variance 2 / nu with nu the pieces' sum.
+#[test]
+fn welch_over_pieces_between_gaps() {
+    let cfg = WelchConfig::default();
+    let x = white(60_000, 1.0, 7);
+    let one = welch_csd(&[&x], 1.0, &cfg).unwrap();
+    let (single, counts) = welch_csd_pieces(&[vec![&x[..]]], 1.0, &cfg).unwrap();
+    assert_eq!(counts, [16]);
+    assert_eq!(single, one);
+    let (twice, counts) = welch_csd_pieces(&[vec![&x[..]], vec![&x[..]]], 1.0, &cfg).unwrap();
+    assert_eq!(counts, [16, 16]);
+    assert_eq!(twice.segments, 32);
+    assert!((twice.dof() / one.dof() - 2.0).abs() < tol::EXACT);
+    for (a, b) in twice.psd(0).iter().zip(one.psd(0)) {
+        assert!((a / b - 1.0).abs() < tol::EXACT, "{a} vs {b}");
+    }
+    let short = &x[..one.nperseg - 1];
+    let (with_short, counts) = welch_csd_pieces(&[vec![short], vec![&x[..]]], 1.0, &cfg).unwrap();
+    assert_eq!(counts, [0, 16]);
+    assert_eq!(with_short, one);
+    // White noise between two gaps: pieces of 200 000, 130 000 and 70 000 samples.
+    let (sigma, dt) = (1.3, 0.5);
+    let y = white(400_000, sigma, 8);
+    let pieces = [&y[..200_000], &y[200_000..330_000], &y[330_000..]];
+    let (sp, counts) = welch_csd_pieces(
+        &pieces.iter().map(|p| vec![*p]).collect::<Vec<_>>(),
+        dt,
+        &cfg,
+    )
+    .unwrap();
+    assert_eq!(counts[0], 16);
+    assert!(counts[1] > 8 && counts[2] > 3, "{counts:?}");
+    assert_eq!(sp.segments, counts.iter().sum::<usize>());
+    // More degrees of freedom than the longest piece alone, in proportion to the segments.
+    let longest = welch_csd(&[pieces[0]], dt, &cfg).unwrap();
+    let per_segment = longest.dof() / 16.0;
+    assert!(
+        (sp.dof() / (per_segment * sp.segments as f64) - 1.0).abs() < 0.05,
+        "nu = {} for {} segments, the longest piece alone {}",
+        sp.dof(),
+        sp.segments,
+        longest.dof()
+    );
+    let s0 = 2.0 * sigma * sigma * dt;
+    let psd = sp.psd(0);
+    let r: Vec<f64> = psd[interior(psd.len())].iter().map(|s| s / s0).collect();
+    let se = (2.0 / sp.dof() * tol::BIN_CORRELATION / r.len() as f64).sqrt();
+    assert!(
+        (mean(&r) - 1.0).abs() < tol::SIGMAS * se,
+        "mean PSD / (2 sigma^2 dt) = {}, standard error {se}",
+        mean(&r)
+    );
+    let var = variance(&r);
+    assert!(
+        (var * sp.dof() / 2.0 - 1.0).abs() < tol::DOF_VARIANCE,
+        "variance {var}, 2/nu = {} (nu = {})",
+        2.0 / sp.dof(),
+        sp.dof()
     );
 }
 

@@ -12,7 +12,7 @@ use super::Stencil;
 use crate::analysis::job::{context, JobError, Notes};
 use crate::analysis::{parameters_from_estimates, resolve_guess, truth_from_meta};
 use crate::io::plot::run_plot_script;
-use crate::io::{ensure_dir, read_dataset, read_run, write_parquet, Run};
+use crate::io::{ensure_dir, read_dataset, read_run_segments, write_parquet, Run};
 use crate::setup::Setup;
 use crate::spectral::WelchConfig;
 
@@ -93,7 +93,7 @@ impl AccelJob {
             )),
             None => None,
         };
-        let (run, meta_truth) = self.load_input(input, setup)?;
+        let (runs, meta_truth) = self.load_input(input, setup, &mut *notes)?;
         let (p, p_label) = self.delta_parameters(setup)?;
         // The readouts' noise model for the projection: the truth when the data say it.
         let scenario_truth = match (&self.scenario, meta_truth.is_none()) {
@@ -105,9 +105,29 @@ impl AccelJob {
             (None, Some(t)) => (t, "the scenario's truth"),
             (None, None) => (p.clone(), "the Delta parameters"),
         };
-        let label = run.path.as_deref().unwrap_or(input).display().to_string();
-        let r = analyse(&setup.model, &setup.noise, &p, &p_noise, &run, &req)
-            .map_err(context(label))?;
+        let label = runs[0]
+            .path
+            .as_deref()
+            .unwrap_or(input)
+            .display()
+            .to_string();
+        let r = analyse(&setup.model, &setup.noise, &p, &p_noise, &runs, &req)
+            .map_err(context(label.clone()))?;
+        if runs.len() > 1 {
+            let used: Vec<String> = runs
+                .iter()
+                .zip(&r.welch_per_piece)
+                .map(|(run, k)| format!("{} s from t = {} s: {k}", run.duration(), run.t0))
+                .collect();
+            notes(&format!(
+                "{label}: {} contiguous pieces between gaps, each converted to acceleration on its own \
+                 (its first and last {} samples lost); the spectra average the Welch segments that fit \
+                 in each piece ({})",
+                runs.len(),
+                super::derivative::HALF_WIDTH,
+                used.join("; ")
+            ));
+        }
         let comparison = match &reference {
             Some((reference, dir)) => Some(
                 compare(&r, reference, dir)
@@ -123,9 +143,13 @@ impl AccelJob {
         write_parquet(out.join("accel_psd.parquet"), &r.spectra)?;
         write_parquet(out.join("budget.parquet"), &r.budget)?;
         let mut text = format!(
-            "Delta parameters: {p_label}; readout noise model at {noise_label}; {} samples, dt = {} s\n{}",
-            r.acceleration.len(),
-            r.acceleration.dt,
+            "Delta parameters: {p_label}; readout noise model at {noise_label}; {} samples{}, dt = {} s\n{}",
+            r.samples(),
+            match r.pieces.len() {
+                1 => String::new(),
+                k => format!(" in {k} pieces"),
+            },
+            runs[0].dt,
             r.levels_text()
         );
         if let (Some(c), Some((_, dir))) = (&comparison, &reference) {
@@ -141,11 +165,23 @@ impl AccelJob {
         Ok(text)
     }
 
-    /// The run to convert and the dataset's `[meta.truth]`, if any.
-    fn load_input(&self, input: &Path, setup: &Setup) -> Result<(Run, Option<Vec<f64>>), JobError> {
+    /// The run to convert, as its contiguous pieces between gaps (one for a run without), and
+    /// the dataset's `[meta.truth]`, if any. A dataset's noise run with gaps is read again
+    /// whole: the dataset keeps only its longest segment, for the fits.
+    fn load_input(
+        &self,
+        input: &Path,
+        setup: &Setup,
+        notes: Notes<'_>,
+    ) -> Result<(Vec<Run>, Option<Vec<f64>>), JobError> {
         let is_dataset = input
             .extension()
             .is_some_and(|e| e.eq_ignore_ascii_case("toml"));
+        let mut all_pieces = |path: &Path| -> Result<Vec<Run>, JobError> {
+            let (runs, read_notes) = read_run_segments(path)?;
+            read_notes.iter().for_each(|n| notes(n));
+            Ok(runs)
+        };
         if !is_dataset {
             if self.run.is_some() {
                 return Err(JobError::Invalid(format!(
@@ -153,13 +189,16 @@ impl AccelJob {
                     input.display()
                 )));
             }
-            return Ok((read_run(input)?, None));
+            return Ok((all_pieces(input)?, None));
         }
         let ds = read_dataset(input)?;
         let truth = truth_from_meta(&ds, &setup.parameter_names());
-        let run = match (&self.run, &ds.noise) {
-            (Some(name), _) => ds.experiment(name)?.clone(),
-            (None, Some(noise)) => noise.clone(),
+        let runs = match (&self.run, &ds.noise) {
+            (Some(name), _) => vec![ds.experiment(name)?.clone()],
+            (None, Some(noise)) => match (&noise.segment, &noise.path) {
+                (Some(seg), Some(path)) if seg.count > 1 => all_pieces(path)?,
+                _ => vec![noise.clone()],
+            },
             (None, None) => {
                 return Err(JobError::Invalid(format!(
                     "{}: the dataset has no noise run; name an experiment with --run ({})",
@@ -168,7 +207,7 @@ impl AccelJob {
                 )))
             }
         };
-        Ok((run, truth))
+        Ok((runs, truth))
     }
 
     /// The parameters of Delta and where they came from.

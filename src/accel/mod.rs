@@ -27,7 +27,9 @@ pub mod spectra;
 
 pub use derivative::Stencil;
 pub use operator::DeltaEstimator;
-pub use spectra::{budget, projection, welch_psd, AccelPsd, BudgetTerm, Response};
+pub use spectra::{
+    budget, projection, welch_psd, welch_psd_pieces, AccelPsd, BudgetTerm, Response,
+};
 
 use crate::io::Run;
 use crate::model::closed_loop::ClosedLoopModel;

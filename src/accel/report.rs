@@ -5,8 +5,8 @@
 use std::fmt::Write as _;
 
 use super::{
-    budget, projection, welch_psd, AccelError, AccelPsd, Acceleration, BudgetTerm, DeltaEstimator,
-    Response, Stencil,
+    budget, projection, welch_psd_pieces, AccelError, AccelPsd, Acceleration, BudgetTerm,
+    DeltaEstimator, Response, Stencil,
 };
 use crate::io::{IoError, Run, Table};
 use crate::model::closed_loop::ClosedLoopModel;
@@ -33,8 +33,11 @@ pub struct AccelRequest {
 
 /// The outcome: three tables and the whole run's spectrum and budget.
 pub struct AccelReport {
-    pub acceleration: Acceleration,
-    /// t, g1, g12.
+    /// One contiguous piece per segment of the run between its gaps (one for a run without).
+    pub pieces: Vec<Acceleration>,
+    /// Welch segments each piece added to the whole run's spectrum (0: shorter than one).
+    pub welch_per_piece: Vec<usize>,
+    /// t, g1, g12 (the pieces in time order; `t` jumps across the gaps).
     pub series: Table,
     /// One block of rows per span: segment, f, S_g1, S_g12, their bands, model, level.
     pub spectra: Table,
@@ -42,6 +45,13 @@ pub struct AccelReport {
     pub budget: Table,
     pub whole: AccelPsd,
     pub terms: Vec<BudgetTerm>,
+}
+
+impl AccelReport {
+    /// Samples of acceleration, all pieces together.
+    pub fn samples(&self) -> usize {
+        self.pieces.iter().map(Acceleration::len).sum()
+    }
 }
 
 /// Errors: the estimate's, or a table's.
@@ -78,54 +88,95 @@ pub fn parse_segment(spec: &str) -> Result<(String, f64, f64), String> {
     Ok((spec.to_string(), t0, t1))
 }
 
-/// Convert `run` through `Delta(p)` and estimate its spectra and noise budget, the model's
-/// readout noise taken at `p_noise`.
+/// Convert `runs` (the contiguous pieces of one run, in time order; one for a run without gaps)
+/// through `Delta(p)`, each on its own, and estimate their spectra, averaging the Welch segments
+/// of all pieces, and the noise budget, the model's readout noise taken at `p_noise`.
 pub fn analyse<M: ClosedLoopModel<2>>(
     model: &M,
     noise: &NoiseModel<2>,
     p: &[f64],
     p_noise: &[f64],
-    run: &Run,
+    runs: &[Run],
     req: &AccelRequest,
 ) -> Result<AccelReport, AccelReportError> {
-    let acc = super::acceleration_of_run(model, p, run, req.stencil)?;
-    let est = DeltaEstimator::new(model, p, run.dt, req.stencil)?;
+    let pieces = runs
+        .iter()
+        .map(|run| super::acceleration_of_run(model, p, run, req.stencil))
+        .collect::<Result<Vec<_>, _>>()?;
+    let Some(first) = pieces.first() else {
+        return Err(AccelError::TooShort {
+            len: 0,
+            required: 2 * super::derivative::HALF_WIDTH + 1,
+        }
+        .into());
+    };
+    let dt = first.dt;
+    let est = DeltaEstimator::new(model, p, dt, req.stencil)?;
+    let concat = |f: &dyn Fn(&Acceleration) -> Vec<f64>| pieces.iter().flat_map(f).collect();
     let series = Table::new()
-        .with_f64("t", acc.time())?
-        .with_f64("g1", acc.g[0].clone())?
-        .with_f64("g12", acc.g[1].clone())?
+        .with_f64("t", concat(&|a| a.time()))?
+        .with_f64("g1", concat(&|a| a.g[0].clone()))?
+        .with_f64("g12", concat(&|a| a.g[1].clone()))?
         .with_units([("t", "s"), ("g1", ACCEL_UNIT), ("g12", ACCEL_UNIT)]);
-    let mut spans = vec![("all".to_string(), acc.clone())];
+    let mut spans = vec![("all".to_string(), pieces.clone())];
     for (name, t0, t1) in &req.segments {
-        spans.push((name.clone(), acc.segment(*t0, *t1)?));
+        spans.push((name.clone(), span_of(&pieces, *t0, *t1)?));
     }
     let mut spectra: Option<Table> = None;
-    let mut whole: Option<AccelPsd> = None;
+    let mut whole: Option<(AccelPsd, Vec<usize>)> = None;
     for (name, span) in &spans {
-        let psd = welch_psd(&span.channels(), span.dt, &req.welch, req.level).map_err(|e| {
-            AccelReportError::Segment {
-                segment: name.clone(),
-                source: e,
-            }
-        })?;
+        let channels: Vec<Vec<&[f64]>> = span.iter().map(Acceleration::channels).collect();
+        let (psd, counts) =
+            welch_psd_pieces(&channels, dt, &req.welch, req.level).map_err(|e| {
+                AccelReportError::Segment {
+                    segment: name.clone(),
+                    source: e,
+                }
+            })?;
         let proj = projection(&est, model, noise, p_noise, &psd.f, Response::Estimator);
         let rows = psd_rows(name, &psd, &proj)?;
         match spectra.as_mut() {
             None => spectra = Some(rows),
             Some(t) => t.append(&rows)?,
         }
-        whole.get_or_insert(psd);
+        whole.get_or_insert((psd, counts));
     }
-    let whole = whole.expect("the whole run is always analysed");
+    let (whole, welch_per_piece) = whole.expect("the whole run is always analysed");
     let terms = budget(&est, model, noise, p_noise, &whole.f, Response::Estimator);
     Ok(AccelReport {
         budget: budget_rows(&whole.f, &terms)?,
         spectra: spectra.expect("the whole run is always analysed"),
-        acceleration: acc,
+        pieces,
+        welch_per_piece,
         series,
         whole,
         terms,
     })
+}
+
+/// The samples of `pieces` with `start <= t < end`, piece by piece (a span across a gap keeps
+/// a part on each side); Err when the span is reversed or holds no sample.
+fn span_of(pieces: &[Acceleration], start: f64, end: f64) -> Result<Vec<Acceleration>, AccelError> {
+    let inside: Vec<Acceleration> = pieces
+        .iter()
+        .filter_map(|a| a.segment(start, end).ok())
+        .collect();
+    if inside.is_empty() {
+        let (a, z) = (&pieces[0], &pieces[pieces.len() - 1]);
+        let ordered = start.is_finite() && end.is_finite() && start < end;
+        return Err(AccelError::Segment {
+            start,
+            end,
+            reason: if ordered {
+                "no sample inside"
+            } else {
+                "START must be finite and below END"
+            },
+            t_first: a.t0,
+            t_last: z.t0 + (z.len().max(1) - 1) as f64 * z.dt,
+        });
+    }
+    Ok(inside)
 }
 
 impl AccelReport {

@@ -8,7 +8,7 @@ use super::operator::DeltaEstimator;
 use super::AccelError;
 use crate::model::closed_loop::{transfer, CMat, ClosedLoopModel, NoiseEntry};
 use crate::noise::{shapes, NoiseModel};
-use crate::spectral::{welch_csd, WelchConfig};
+use crate::spectral::{welch_csd, welch_csd_pieces, CrossSpectrum, WelchConfig};
 
 /// One-sided Welch PSDs of the acceleration channels, the DC bin left out.
 #[derive(Debug, Clone)]
@@ -32,11 +32,29 @@ pub fn welch_psd(
     cfg: &WelchConfig,
     level: f64,
 ) -> Result<AccelPsd, AccelError> {
-    let cs = welch_csd(g, dt, cfg)?;
+    accel_psd(&welch_csd(g, dt, cfg)?, level)
+}
+
+/// [`welch_psd`] of a series with gaps, `pieces[i]` the channels of one contiguous stretch
+/// ([`crate::spectral::welch_csd_pieces`]: the longest piece sets the Welch segment, every
+/// piece adds the segments that fit in it); also returns the segments each piece added.
+pub fn welch_psd_pieces(
+    pieces: &[Vec<&[f64]>],
+    dt: f64,
+    cfg: &WelchConfig,
+    level: f64,
+) -> Result<(AccelPsd, Vec<usize>), AccelError> {
+    let (cs, counts) = welch_csd_pieces(pieces, dt, cfg)?;
+    Ok((accel_psd(&cs, level)?, counts))
+}
+
+fn accel_psd(cs: &CrossSpectrum, level: f64) -> Result<AccelPsd, AccelError> {
     let (lo, hi) = cs.psd_confidence(level)?;
     Ok(AccelPsd {
         f: cs.f[1..].to_vec(),
-        psd: (0..g.len()).map(|c| cs.psd(c)[1..].to_vec()).collect(),
+        psd: (0..cs.channels())
+            .map(|c| cs.psd(c)[1..].to_vec())
+            .collect(),
         lo,
         hi,
         level,

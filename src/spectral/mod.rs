@@ -33,8 +33,8 @@ pub mod window;
 
 pub use decimate::Decimator;
 pub use welch::{
-    welch_csd, welch_csd_windowed, welch_psd, welch_psd_windowed, CrossSpectrum, Detrend,
-    Segmentation, WelchConfig,
+    welch_csd, welch_csd_pieces, welch_csd_windowed, welch_psd, welch_psd_windowed, CrossSpectrum,
+    Detrend, Segmentation, WelchConfig,
 };
 pub use window::{blackman_harris_92, blackman_harris_92_symmetric, hann, Window, WindowSums};
 

@@ -449,8 +449,70 @@ pub fn welch_csd_windowed(
 ) -> Result<CrossSpectrum, SpectralError> {
     let n = check_inputs(x, dt)?;
     let seg = cfg.segmentation(n)?;
+    welch_of_pieces(&[(x, seg.segments)], seg, dt, cfg.detrend, window)
+}
+
+/// Welch cross-spectral matrix of a series with gaps: `pieces[i]` holds the channels of one
+/// contiguous stretch (same channels, same `dt`). The segment length and step are those `cfg`
+/// gives the longest piece; every piece adds the whole segments that fit in it (the longest
+/// exactly `cfg.segments`), none straddles a gap, and all are averaged with equal weight.
+/// Pieces are independent, so their equivalent degrees of freedom add. Returns the spectrum
+/// and, per piece, the segments it added (0 for a piece shorter than one segment).
+pub fn welch_csd_pieces(
+    pieces: &[Vec<&[f64]>],
+    dt: f64,
+    cfg: &WelchConfig,
+) -> Result<(CrossSpectrum, Vec<usize>), SpectralError> {
+    let lens = pieces
+        .iter()
+        .map(|x| check_inputs(x, dt))
+        .collect::<Result<Vec<_>, _>>()?;
+    let channels = pieces.first().map_or(0, Vec::len);
+    if let Some(bad) = pieces.iter().find(|x| x.len() != channels) {
+        return Err(SpectralError::InvalidParameter {
+            name: "channels of a piece",
+            value: bad.len() as f64,
+            expected: "the same number in every piece",
+        });
+    }
+    let longest = (0..lens.len())
+        .max_by_key(|&i| (lens[i], std::cmp::Reverse(i)))
+        .ok_or(SpectralError::NoChannels)?;
+    let seg = cfg.segmentation(lens[longest])?;
+    let counts: Vec<usize> = lens
+        .iter()
+        .enumerate()
+        .map(|(i, &n)| {
+            if i == longest {
+                seg.segments
+            } else if n >= seg.nperseg {
+                1 + (n - seg.nperseg) / seg.step
+            } else {
+                0
+            }
+        })
+        .collect();
+    let used: Vec<(&[&[f64]], usize)> = pieces
+        .iter()
+        .zip(&counts)
+        .filter(|(_, &k)| k > 0)
+        .map(|(x, &k)| (x.as_slice(), k))
+        .collect();
+    let cs = welch_of_pieces(&used, seg, dt, cfg.detrend, Window::BlackmanHarris92)?;
+    Ok((cs, counts))
+}
+
+/// The Welch average over `pieces[i].1` segments of `seg.nperseg` samples, `seg.step` apart,
+/// from the start of each piece `pieces[i].0`.
+fn welch_of_pieces(
+    pieces: &[(&[&[f64]], usize)],
+    seg: Segmentation,
+    dt: f64,
+    detrend: Detrend,
+    window: Window,
+) -> Result<CrossSpectrum, SpectralError> {
     let l = seg.nperseg;
-    let m = x.len();
+    let m = pieces.first().map_or(0, |(x, _)| x.len());
     let w = window.samples(l);
     let sums = WindowSums::of(&w);
 
@@ -469,11 +531,15 @@ pub fn welch_csd_windowed(
         })
         .collect();
 
-    for k in 0..seg.segments {
+    let total: usize = pieces.iter().map(|(_, k)| k).sum();
+    for (k, x) in pieces
+        .iter()
+        .flat_map(|(x, count)| (0..*count).map(move |k| (k, *x)))
+    {
         let start = k * seg.step;
         for (ch, spec) in x.iter().zip(spectra.iter_mut()) {
             buf.copy_from_slice(&ch[start..start + l]);
-            detrend_in_place(&mut buf, cfg.detrend);
+            detrend_in_place(&mut buf, detrend);
             buf.iter_mut().zip(&w).for_each(|(v, wv)| *v *= wv);
             fft.process_with_scratch(&mut buf, spec, &mut scratch)
                 .expect("buffer lengths come from the plan");
@@ -487,8 +553,8 @@ pub fn welch_csd_windowed(
         }
     }
 
-    let scale = 2.0 * dt / (sums.sum_sq * seg.segments as f64);
-    let nyquist = if l % 2 == 0 { Some(l / 2) } else { None };
+    let scale = 2.0 * dt / (sums.sum_sq * total as f64);
+    let nyquist = if l.is_multiple_of(2) { Some(l / 2) } else { None };
     for row in acc.iter_mut() {
         for col in row.iter_mut() {
             for (b, v) in col.iter_mut().enumerate() {
@@ -513,13 +579,16 @@ pub fn welch_csd_windowed(
     Ok(CrossSpectrum {
         f: (0..nb).map(|k| k as f64 * df).collect(),
         s: acc,
-        segments: seg.segments,
+        segments: total,
         nperseg: l,
         step: seg.step,
         dt,
         enbw_hz: sums.enbw_hz(dt),
         window,
-        dof: welch_dof(&w, seg.step, seg.segments),
+        dof: pieces
+            .iter()
+            .map(|(_, k)| welch_dof(&w, seg.step, *k))
+            .sum(),
     })
 }
 
