@@ -10,7 +10,9 @@ use super::compare::{compare, Reference};
 use super::report::{analyse, parse_segment, AccelRequest};
 use super::Stencil;
 use crate::analysis::job::{context, JobError, Notes};
-use crate::analysis::{parameters_from_estimates, resolve_guess, truth_from_meta};
+use crate::analysis::{
+    decimated_telemetry, parameters_from_estimates, resolve_guess, truth_from_meta,
+};
 use crate::io::plot::run_plot_script;
 use crate::io::{ensure_dir, read_dataset, read_run_segments, write_parquet, Run};
 use crate::setup::Setup;
@@ -24,6 +26,15 @@ const PLOT_SCRIPT: &str = include_str!("../../scripts/plot_accel.py");
 pub enum ScenarioSet {
     Guess,
     Truth,
+}
+
+/// What `freefall accel` reads: the run's contiguous pieces between gaps (one for a run
+/// without), a dataset's `[meta.truth]`, and whether a dataset says its telemetry went through
+/// the model's anti-alias FIR.
+struct Input {
+    runs: Vec<Run>,
+    truth: Option<Vec<f64>>,
+    decimated: bool,
 }
 
 /// The settings of one acceleration analysis.
@@ -48,14 +59,19 @@ pub struct AccelJob {
     /// Draw plots/accel.png with the embedded scripts/plot_accel.py (FREEFALL_PLOT_SCRIPT
     /// names another script).
     pub plots: bool,
+    /// The readouts went through the model file's anti-alias FIR (`[anti_alias]`): fold the
+    /// projection's readout noise through it. A dataset says so itself (`[meta] rate =
+    /// "decimated"`); this is for a run file.
+    pub decimated: bool,
     /// An earlier `freefall accel` output folder of the same run to compare against
     /// ([`super::compare`]): writes compare.parquet and compare_budget.parquet.
     pub compare: Option<PathBuf>,
 }
 
 impl AccelJob {
-    /// The request after checking every setting's range.
-    fn request(&self) -> Result<AccelRequest, JobError> {
+    /// The request after checking every setting's range; `decimated`: the telemetry went
+    /// through the model's anti-alias FIR.
+    fn request(&self, setup: &Setup, decimated: bool) -> Result<AccelRequest, JobError> {
         crate::config::probability("--level", self.level)?;
         crate::config::at_least_one("--welch-segments", self.welch_segments)?;
         Ok(AccelRequest {
@@ -71,6 +87,10 @@ impl AccelJob {
                 .map(|s| parse_segment(s))
                 .collect::<Result<_, _>>()
                 .map_err(JobError::Invalid)?,
+            telemetry: match decimated {
+                true => Some(setup.spec.decimator().map_err(crate::setup::Error::from)?),
+                false => None,
+            },
         })
     }
 
@@ -84,7 +104,6 @@ impl AccelJob {
         out: &Path,
         notes: Notes<'_>,
     ) -> Result<String, JobError> {
-        let req = self.request()?;
         // The reference first: a bad one fails before anything is computed or written.
         let reference = match &self.compare {
             Some(dir) => Some((
@@ -93,7 +112,12 @@ impl AccelJob {
             )),
             None => None,
         };
-        let (runs, meta_truth) = self.load_input(input, setup, &mut *notes)?;
+        let Input {
+            runs,
+            truth: meta_truth,
+            decimated,
+        } = self.load_input(input, setup, &mut *notes)?;
+        let req = self.request(setup, self.decimated || decimated)?;
         let (p, p_label) = self.delta_parameters(setup)?;
         // The readouts' noise model for the projection: the truth when the data say it.
         let scenario_truth = match (&self.scenario, meta_truth.is_none()) {
@@ -143,7 +167,11 @@ impl AccelJob {
         write_parquet(out.join("accel_psd.parquet"), &r.spectra)?;
         write_parquet(out.join("budget.parquet"), &r.budget)?;
         let mut text = format!(
-            "Delta parameters: {p_label}; readout noise model at {noise_label}; {} samples{}, dt = {} s\n{}",
+            "Delta parameters: {p_label}; readout noise model at {noise_label}{}; {} samples{}, dt = {} s\n{}",
+            match req.telemetry {
+                Some(_) => ", folded through the anti-alias FIR",
+                None => "",
+            },
             r.samples(),
             match r.pieces.len() {
                 1 => String::new(),
@@ -165,15 +193,9 @@ impl AccelJob {
         Ok(text)
     }
 
-    /// The run to convert, as its contiguous pieces between gaps (one for a run without), and
-    /// the dataset's `[meta.truth]`, if any. A dataset's noise run with gaps is read again
+    /// The run to convert and what its dataset says ([`Input`]). A dataset's noise run with gaps is read again
     /// whole: the dataset keeps only its longest segment, for the fits.
-    fn load_input(
-        &self,
-        input: &Path,
-        setup: &Setup,
-        notes: Notes<'_>,
-    ) -> Result<(Vec<Run>, Option<Vec<f64>>), JobError> {
+    fn load_input(&self, input: &Path, setup: &Setup, notes: Notes<'_>) -> Result<Input, JobError> {
         let is_dataset = input
             .extension()
             .is_some_and(|e| e.eq_ignore_ascii_case("toml"));
@@ -189,7 +211,11 @@ impl AccelJob {
                     input.display()
                 )));
             }
-            return Ok((all_pieces(input)?, None));
+            return Ok(Input {
+                runs: all_pieces(input)?,
+                truth: None,
+                decimated: false,
+            });
         }
         let ds = read_dataset(input)?;
         let truth = truth_from_meta(&ds, &setup.parameter_names());
@@ -207,7 +233,11 @@ impl AccelJob {
                 )))
             }
         };
-        Ok((runs, truth))
+        Ok(Input {
+            runs,
+            truth,
+            decimated: decimated_telemetry(&ds),
+        })
     }
 
     /// The parameters of Delta and where they came from.

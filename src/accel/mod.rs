@@ -28,7 +28,8 @@ pub mod spectra;
 pub use derivative::Stencil;
 pub use operator::DeltaEstimator;
 pub use spectra::{
-    budget, projection, welch_psd, welch_psd_pieces, AccelPsd, BudgetTerm, Response,
+    budget, budget_of_telemetry, projection, projection_of_telemetry, welch_psd, welch_psd_pieces,
+    AccelPsd, BudgetTerm, Response,
 };
 
 use crate::io::Run;

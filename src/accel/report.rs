@@ -5,13 +5,13 @@
 use std::fmt::Write as _;
 
 use super::{
-    budget, projection, welch_psd_pieces, AccelError, AccelPsd, Acceleration, BudgetTerm,
-    DeltaEstimator, Response, Stencil,
+    budget_of_telemetry, projection_of_telemetry, welch_psd_pieces, AccelError, AccelPsd,
+    Acceleration, BudgetTerm, DeltaEstimator, Response, Stencil,
 };
 use crate::io::{IoError, Run, Table};
 use crate::model::closed_loop::ClosedLoopModel;
 use crate::noise::NoiseModel;
-use crate::spectral::WelchConfig;
+use crate::spectral::{Decimator, WelchConfig};
 
 /// Frequencies at which the levels are printed: the thesis's comparison points (sec. 4.6).
 pub const REPORT_HZ: [f64; 2] = [0.4e-3, 50e-3];
@@ -29,6 +29,9 @@ pub struct AccelRequest {
     pub level: f64,
     /// Named time spans `(name, start, end)` (s, run time) analysed beside the whole run.
     pub segments: Vec<(String, f64, f64)>,
+    /// The anti-alias decimator the telemetry went through, if it did: the projection and the
+    /// budget fold the readout noise through it (`fit::telemetry_psd`).
+    pub telemetry: Option<Decimator>,
 }
 
 /// The outcome: three tables and the whole run's spectrum and budget.
@@ -133,7 +136,15 @@ pub fn analyse<M: ClosedLoopModel<2>>(
                     source: e,
                 }
             })?;
-        let proj = projection(&est, model, noise, p_noise, &psd.f, Response::Estimator);
+        let proj = projection_of_telemetry(
+            &est,
+            model,
+            noise,
+            p_noise,
+            &psd.f,
+            Response::Estimator,
+            req.telemetry.as_ref(),
+        );
         let rows = psd_rows(name, &psd, &proj)?;
         match spectra.as_mut() {
             None => spectra = Some(rows),
@@ -142,7 +153,15 @@ pub fn analyse<M: ClosedLoopModel<2>>(
         whole.get_or_insert((psd, counts));
     }
     let (whole, welch_per_piece) = whole.expect("the whole run is always analysed");
-    let terms = budget(&est, model, noise, p_noise, &whole.f, Response::Estimator);
+    let terms = budget_of_telemetry(
+        &est,
+        model,
+        noise,
+        p_noise,
+        &whole.f,
+        Response::Estimator,
+        req.telemetry.as_ref(),
+    );
     Ok(AccelReport {
         budget: budget_rows(&whole.f, &terms)?,
         spectra: spectra.expect("the whole run is always analysed"),

@@ -6,9 +6,10 @@ use num_complex::Complex64;
 
 use super::operator::DeltaEstimator;
 use super::AccelError;
+use crate::fit::telemetry_psd::folded;
 use crate::model::closed_loop::{transfer, CMat, ClosedLoopModel, NoiseEntry};
 use crate::noise::{shapes, NoiseModel};
-use crate::spectral::{welch_csd, welch_csd_pieces, CrossSpectrum, WelchConfig};
+use crate::spectral::{welch_csd, welch_csd_pieces, CrossSpectrum, Decimator, WelchConfig};
 
 /// One-sided Welch PSDs of the acceleration channels, the DC bin left out.
 #[derive(Debug, Clone)]
@@ -108,6 +109,44 @@ pub fn projection<M: ClosedLoopModel<N>, const N: usize>(
         .collect()
 }
 
+/// [`projection`] of telemetry that went through the anti-alias `decimator` (`None`: readouts
+/// sampled directly at the analysis rate): `S_o` is the folded telemetry PSD
+/// `sum_k |H(f_k)|^2 S_o(f_k)` over the images `f_k = f + k fs_out`
+/// ([`crate::fit::telemetry_psd::folded`], the PSD `fit` and `diagnose` whiten with).
+pub fn projection_of_telemetry<M: ClosedLoopModel<2>>(
+    est: &DeltaEstimator<'_, M, 2>,
+    model: &M,
+    noise: &NoiseModel<2>,
+    p_noise: &[f64],
+    f: &[f64],
+    which: Response,
+    decimator: Option<&Decimator>,
+) -> Vec<[f64; 2]> {
+    let Some(dec) = decimator else {
+        return projection(est, model, noise, p_noise, f, which);
+    };
+    let s_dec = folded(|fk| noise.readout_csd(model, fk, p_noise), dec);
+    f.iter()
+        .map(|&fk| est.project(fk, &s_dec(fk), which))
+        .collect()
+}
+
+/// The frequencies whose content lands at `f` in the telemetry, with their power gain: `f`
+/// itself with gain 1 without a decimator, else the images `f + k fs_out` below the input
+/// Nyquist frequency with `|H|^2` (module [`crate::fit::telemetry_psd`], "Folding").
+fn images(f: f64, decimator: Option<&Decimator>) -> Vec<(f64, f64)> {
+    let Some(dec) = decimator else {
+        return vec![(f, 1.0)];
+    };
+    let (fs_in, fs_out) = (dec.fs_in(), dec.fs_out());
+    let m = dec.factor() as i64;
+    (-m..=m)
+        .map(|k| f + k as f64 * fs_out)
+        .filter(|fk| *fk != 0.0 && fk.abs() < 0.5 * fs_in)
+        .map(|fk| (fk, dec.frequency_response(fk.abs()).powi(2)))
+        .collect()
+}
+
 /// One noise source's contribution to the acceleration PSDs.
 #[derive(Debug, Clone)]
 pub struct BudgetTerm {
@@ -134,6 +173,22 @@ pub fn budget<M: ClosedLoopModel<N>, const N: usize>(
     f: &[f64],
     which: Response,
 ) -> Vec<BudgetTerm> {
+    budget_of_telemetry(est, model, noise, p_noise, f, which, None)
+}
+
+/// [`budget`] of telemetry that went through the anti-alias `decimator`: each source's
+/// readout response at every image `f_k` of `f`, weighted by `|H(f_k)|^2`, then through
+/// `Delta_est(f)` (the images are incoherent: their PSDs add). The terms sum to
+/// [`projection_of_telemetry`].
+pub fn budget_of_telemetry<M: ClosedLoopModel<N>, const N: usize>(
+    est: &DeltaEstimator<'_, M, N>,
+    model: &M,
+    noise: &NoiseModel<N>,
+    p_noise: &[f64],
+    f: &[f64],
+    which: Response,
+    decimator: Option<&Decimator>,
+) -> Vec<BudgetTerm> {
     assert!(N <= N_MAX, "budget carries at most {N_MAX} channels");
     let mut terms: Vec<BudgetTerm> = noise
         .sources
@@ -144,28 +199,37 @@ pub fn budget<M: ClosedLoopModel<N>, const N: usize>(
                 NoiseEntry::Force(_) => "force",
                 NoiseEntry::Readout(_) => "readout",
             },
-            psd: Vec::with_capacity(f.len()),
+            psd: vec![[0.0; N_MAX]; f.len()],
         })
         .collect();
-    for &fk in f {
-        let pt = model.prepare(fk);
-        let tr = transfer(model, &pt, p_noise);
-        let to_acc = est.delta(fk, which) * tr.delta_inv;
-        let ds = tr.ops.d * tr.ops.s.try_inverse().unwrap_or_else(CMat::<N>::identity);
-        for (term, (_, src, entry)) in terms.iter_mut().zip(&noise.sources) {
-            let col: [Complex64; N] = match entry {
-                NoiseEntry::Force(g) => std::array::from_fn(|i| Complex64::new(g[i], 0.0)),
-                NoiseEntry::Readout(w) => {
-                    std::array::from_fn(|i| (0..N).map(|j| ds[(i, j)] * w[j]).sum::<Complex64>())
+    for (k, &fk) in f.iter().enumerate() {
+        let d_est = est.delta(fk, which);
+        for (fi, gain) in images(fk, decimator) {
+            let pt = model.prepare(fi.abs());
+            let tr = transfer(model, &pt, p_noise);
+            let ds = tr.ops.d * tr.ops.s.try_inverse().unwrap_or_else(CMat::<N>::identity);
+            for (term, (_, src, entry)) in terms.iter_mut().zip(&noise.sources) {
+                let col: [Complex64; N] = match entry {
+                    NoiseEntry::Force(g) => std::array::from_fn(|i| Complex64::new(g[i], 0.0)),
+                    NoiseEntry::Readout(w) => std::array::from_fn(|i| {
+                        (0..N).map(|j| ds[(i, j)] * w[j]).sum::<Complex64>()
+                    }),
+                };
+                // The source's readout response at |f_i|; a negative image is its conjugate.
+                let r: [Complex64; N] = std::array::from_fn(|i| {
+                    let v: Complex64 = (0..N).map(|j| tr.delta_inv[(i, j)] * col[j]).sum();
+                    if fi < 0.0 {
+                        v.conj()
+                    } else {
+                        v
+                    }
+                });
+                let psd = gain * shapes::psd(src, fi.abs());
+                for (i, out) in term.psd[k].iter_mut().enumerate().take(N) {
+                    let v: Complex64 = (0..N).map(|j| d_est[(i, j)] * r[j]).sum();
+                    *out += v.norm_sqr() * psd;
                 }
-            };
-            let psd = shapes::psd(src, fk);
-            let mut row = [0.0; N_MAX];
-            for (i, r) in row.iter_mut().enumerate().take(N) {
-                let v: Complex64 = (0..N).map(|j| to_acc[(i, j)] * col[j]).sum();
-                *r = v.norm_sqr() * psd;
             }
-            term.psd.push(row);
         }
     }
     terms

@@ -51,6 +51,11 @@ pub struct AccelArgs {
     /// FREEFALL_PLOT_SCRIPT names another script).
     #[arg(long)]
     pub no_plots: bool,
+    /// The run file's readouts went through the model file's anti-alias FIR (`[anti_alias]`):
+    /// the projection and the budget fold the readout noise through it. A dataset says so in
+    /// `[meta] rate = "decimated"` (as `freefall simulate` writes it).
+    #[arg(long)]
+    pub decimated: bool,
     /// An earlier `freefall accel` output folder of the same run (e.g. Delta at the truth) to
     /// compare against: the amplitude ratio at 0.4 and 50 mHz, which noise sources make the
     /// excess, and whether the spectrum lies inside the reference's band; writes
@@ -72,6 +77,7 @@ pub fn run(a: AccelArgs) -> Result<()> {
         level: a.level,
         plots: !a.no_plots,
         compare: a.compare,
+        decimated: a.decimated,
     };
     let text = super::working("converting to acceleration", |notes| {
         job.run(&setup, &a.input, &a.out, notes)

@@ -554,7 +554,11 @@ fn welch_of_pieces(
     }
 
     let scale = 2.0 * dt / (sums.sum_sq * total as f64);
-    let nyquist = if l.is_multiple_of(2) { Some(l / 2) } else { None };
+    let nyquist = if l.is_multiple_of(2) {
+        Some(l / 2)
+    } else {
+        None
+    };
     for row in acc.iter_mut() {
         for col in row.iter_mut() {
             for (b, v) in col.iter_mut().enumerate() {
