@@ -263,15 +263,25 @@ fn estimate_psd_matches_the_model_projection_and_the_budget_sums_to_it() {
             Response::Estimator,
         );
         assert_eq!(terms.len(), setup.noise.sources.len());
-        for (k, row) in model.iter().enumerate() {
-            for (ch, want) in row.iter().enumerate() {
-                let sum: f64 = terms.iter().map(|t| t.psd[k][ch]).sum();
-                assert!(
-                    (sum / want - 1.0).abs() < 0.01,
-                    "f = {}: budget {sum:e} vs projection {want:e}",
-                    psd.f[k]
-                );
-            }
+        assert_budget_sums(&terms, &model, &psd.f, 0.01);
+    }
+}
+
+/// The budget's terms sum to the projection `model` at every frequency, to `tol` relative.
+fn assert_budget_sums(
+    terms: &[freefall::accel::BudgetTerm],
+    model: &[[f64; 2]],
+    f: &[f64],
+    tol: f64,
+) {
+    for (k, row) in model.iter().enumerate() {
+        for (ch, want) in row.iter().enumerate() {
+            let sum: f64 = terms.iter().map(|t| t.psd[k][ch]).sum();
+            assert!(
+                (sum / want - 1.0).abs() < tol,
+                "f = {}: budget {sum:e} vs projection {want:e}",
+                f[k]
+            );
         }
     }
 }
@@ -355,16 +365,7 @@ fn time_domain_acceleration_follows_the_projection_through_the_anti_alias_fir() 
             Response::Estimator,
             Some(&dec),
         );
-        for (k, row) in folded.iter().enumerate() {
-            for (ch, want) in row.iter().enumerate() {
-                let sum: f64 = terms.iter().map(|t| t.psd[k][ch]).sum();
-                assert!(
-                    (sum / want - 1.0).abs() < 1e-9,
-                    "f = {}: budget {sum:e} vs folded projection {want:e}",
-                    psd.f[k]
-                );
-            }
-        }
+        assert_budget_sums(&terms, &folded, &psd.f, 1e-9);
     }
 }
 
