@@ -8,15 +8,20 @@
 //!   not amplify readout noise at high frequency ([`derivative`]);
 //! - the time-domain application of `Delta(p)` to a run, and the frequency response of exactly
 //!   what is applied ([`operator`]);
-//! - Welch spectra of `g` with confidence bands, the model's projection `Delta S_o Delta^H` and
-//!   the noise budget per physical source ([`spectra`]).
+//! - Welch spectra of `g` with confidence bands (a run with gaps averages the segments of all
+//!   its pieces), the model's projection `Delta S_o Delta^H` and the noise budget per physical
+//!   source, with the readout noise folded through the anti-alias FIR for decimated telemetry
+//!   ([`spectra`]);
+//! - one analysis laid out as tables ([`report`]), the comparison of two analyses of one run
+//!   ([`compare`], thesis Figure "conv2acc"), and the `freefall accel` job ([`job`]).
 //!
 //! The accuracy of `g` depends on the parameters `p` (thesis sec. 4.6): with biased parameters
 //! the stiffness, actuation-gain and cross-talk terms leave spacecraft jitter, TM couplings and
 //! actuation noise in `g`; with a calibrated `Delta`, start-up transients are suppressed as well
 //! (thesis sec. 3.2, 4.7: the free response lies in the kernel of `Delta`).
 //!
-//! No file I/O; runs arrive as [`crate::io::Run`] values.
+//! Files are read and written only by [`job`] and [`compare::Reference::read`]; the rest takes
+//! runs as [`crate::io::Run`] values.
 
 pub mod compare;
 pub mod derivative;
