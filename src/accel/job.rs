@@ -87,9 +87,10 @@ impl AccelJob {
                 .map(|s| parse_segment(s))
                 .collect::<Result<_, _>>()
                 .map_err(JobError::Invalid)?,
-            telemetry: match decimated {
-                true => Some(setup.spec.decimator().map_err(crate::setup::Error::from)?),
-                false => None,
+            telemetry: if decimated {
+                Some(setup.spec.decimator().map_err(crate::setup::Error::from)?)
+            } else {
+                None
             },
         })
     }
@@ -193,8 +194,8 @@ impl AccelJob {
         Ok(text)
     }
 
-    /// The run to convert and what its dataset says ([`Input`]). A dataset's noise run with gaps is read again
-    /// whole: the dataset keeps only its longest segment, for the fits.
+    /// The run to convert and what its dataset says ([`Input`]). A dataset's noise run with
+    /// gaps is read again whole: the dataset keeps only its longest segment, for the fits.
     fn load_input(&self, input: &Path, setup: &Setup, notes: Notes<'_>) -> Result<Input, JobError> {
         let is_dataset = input
             .extension()
