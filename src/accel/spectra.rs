@@ -3,6 +3,7 @@
 //! and its noise budget, one term per physical source, which sum to the projection.
 
 use num_complex::Complex64;
+use rayon::prelude::*;
 
 use super::operator::DeltaEstimator;
 use super::AccelError;
@@ -113,7 +114,7 @@ pub fn projection<M: ClosedLoopModel<N>, const N: usize>(
 /// sampled directly at the analysis rate): `S_o` is the folded telemetry PSD
 /// `sum_k |H(f_k)|^2 S_o(f_k)` over the images `f_k = f + k fs_out`
 /// ([`crate::fit::telemetry_psd::folded`], the PSD `fit` and `diagnose` whiten with).
-pub fn projection_of_telemetry<M: ClosedLoopModel<2>>(
+pub fn projection_of_telemetry<M: ClosedLoopModel<2> + Sync>(
     est: &DeltaEstimator<'_, M, 2>,
     model: &M,
     noise: &NoiseModel<2>,
@@ -126,7 +127,8 @@ pub fn projection_of_telemetry<M: ClosedLoopModel<2>>(
         return projection(est, model, noise, p_noise, f, which);
     };
     let s_dec = folded(|fk| noise.readout_csd(model, fk, p_noise), dec);
-    f.iter()
+    // Every bin sums some 20 images: spread the bins over the cores.
+    f.par_iter()
         .map(|&fk| est.project(fk, &s_dec(fk), which))
         .collect()
 }
@@ -165,7 +167,7 @@ pub const N_MAX: usize = 2;
 /// `Delta_est Delta(p_noise)^-1 G_j` for a force, `Delta_est Delta(p_noise)^-1 D S^-1 w_j` for a
 /// readout. With `est` at `p_noise` the first is `G_j` itself (thesis eq. "equation of motion in
 /// the sensed coordinates"). The terms sum to [`projection`].
-pub fn budget<M: ClosedLoopModel<N>, const N: usize>(
+pub fn budget<M: ClosedLoopModel<N> + Sync, const N: usize>(
     est: &DeltaEstimator<'_, M, N>,
     model: &M,
     noise: &NoiseModel<N>,
@@ -180,7 +182,7 @@ pub fn budget<M: ClosedLoopModel<N>, const N: usize>(
 /// readout response at every image `f_k` of `f`, weighted by `|H(f_k)|^2`, then through
 /// `Delta_est(f)` (the images are incoherent: their PSDs add). The terms sum to
 /// [`projection_of_telemetry`].
-pub fn budget_of_telemetry<M: ClosedLoopModel<N>, const N: usize>(
+pub fn budget_of_telemetry<M: ClosedLoopModel<N> + Sync, const N: usize>(
     est: &DeltaEstimator<'_, M, N>,
     model: &M,
     noise: &NoiseModel<N>,
@@ -190,47 +192,53 @@ pub fn budget_of_telemetry<M: ClosedLoopModel<N>, const N: usize>(
     decimator: Option<&Decimator>,
 ) -> Vec<BudgetTerm> {
     assert!(N <= N_MAX, "budget carries at most {N_MAX} channels");
-    let mut terms: Vec<BudgetTerm> = noise
+    // One row of all sources per bin, the bins spread over the cores (each sums its images).
+    let rows: Vec<Vec<[f64; N_MAX]>> = f
+        .par_iter()
+        .map(|&fk| {
+            let mut row = vec![[0.0; N_MAX]; noise.sources.len()];
+            let d_est = est.delta(fk, which);
+            for (fi, gain) in images(fk, decimator) {
+                let pt = model.prepare(fi.abs());
+                let tr = transfer(model, &pt, p_noise);
+                let ds = tr.ops.d * tr.ops.s.try_inverse().unwrap_or_else(CMat::<N>::identity);
+                for (out, (_, src, entry)) in row.iter_mut().zip(&noise.sources) {
+                    let col: [Complex64; N] = match entry {
+                        NoiseEntry::Force(g) => std::array::from_fn(|i| Complex64::new(g[i], 0.0)),
+                        NoiseEntry::Readout(w) => std::array::from_fn(|i| {
+                            (0..N).map(|j| ds[(i, j)] * w[j]).sum::<Complex64>()
+                        }),
+                    };
+                    // The source's readout response at |f_i|; a negative image is its conjugate.
+                    let r: [Complex64; N] = std::array::from_fn(|i| {
+                        let v: Complex64 = (0..N).map(|j| tr.delta_inv[(i, j)] * col[j]).sum();
+                        if fi < 0.0 {
+                            v.conj()
+                        } else {
+                            v
+                        }
+                    });
+                    let psd = gain * shapes::psd(src, fi.abs());
+                    for (i, o) in out.iter_mut().enumerate().take(N) {
+                        let v: Complex64 = (0..N).map(|j| d_est[(i, j)] * r[j]).sum();
+                        *o += v.norm_sqr() * psd;
+                    }
+                }
+            }
+            row
+        })
+        .collect();
+    noise
         .sources
         .iter()
-        .map(|(name, _, entry)| BudgetTerm {
+        .enumerate()
+        .map(|(j, (name, _, entry))| BudgetTerm {
             source: name.clone(),
             entry: match entry {
                 NoiseEntry::Force(_) => "force",
                 NoiseEntry::Readout(_) => "readout",
             },
-            psd: vec![[0.0; N_MAX]; f.len()],
+            psd: rows.iter().map(|row| row[j]).collect(),
         })
-        .collect();
-    for (k, &fk) in f.iter().enumerate() {
-        let d_est = est.delta(fk, which);
-        for (fi, gain) in images(fk, decimator) {
-            let pt = model.prepare(fi.abs());
-            let tr = transfer(model, &pt, p_noise);
-            let ds = tr.ops.d * tr.ops.s.try_inverse().unwrap_or_else(CMat::<N>::identity);
-            for (term, (_, src, entry)) in terms.iter_mut().zip(&noise.sources) {
-                let col: [Complex64; N] = match entry {
-                    NoiseEntry::Force(g) => std::array::from_fn(|i| Complex64::new(g[i], 0.0)),
-                    NoiseEntry::Readout(w) => std::array::from_fn(|i| {
-                        (0..N).map(|j| ds[(i, j)] * w[j]).sum::<Complex64>()
-                    }),
-                };
-                // The source's readout response at |f_i|; a negative image is its conjugate.
-                let r: [Complex64; N] = std::array::from_fn(|i| {
-                    let v: Complex64 = (0..N).map(|j| tr.delta_inv[(i, j)] * col[j]).sum();
-                    if fi < 0.0 {
-                        v.conj()
-                    } else {
-                        v
-                    }
-                });
-                let psd = gain * shapes::psd(src, fi.abs());
-                for (i, out) in term.psd[k].iter_mut().enumerate().take(N) {
-                    let v: Complex64 = (0..N).map(|j| d_est[(i, j)] * r[j]).sum();
-                    *out += v.norm_sqr() * psd;
-                }
-            }
-        }
-    }
-    terms
+        .collect()
 }
