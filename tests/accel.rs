@@ -14,8 +14,9 @@ use freefall::spectral::WelchConfig;
 use num_complex::Complex64;
 
 mod common;
-use common::freefall;
 use common::loops::digital_setup;
+use common::{freefall, ok};
+use std::process::Output;
 
 /// Analysis sampling interval of the reference model (1 Hz).
 const DT: f64 = 1.0;
@@ -441,7 +442,7 @@ fn identification_removes_the_excess_of_the_under_performing_scenario() {
 /// `dir/ds`; returns its dataset.toml.
 fn short_noise_dataset(dir: &std::path::Path) -> std::path::PathBuf {
     let ds = dir.join("ds");
-    let o = freefall(&[
+    ok(&[
         "simulate",
         "--scenario",
         "under_performing",
@@ -452,7 +453,6 @@ fn short_noise_dataset(dir: &std::path::Path) -> std::path::PathBuf {
         "--out",
         ds.to_str().unwrap(),
     ]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
     ds.join("dataset.toml")
 }
 
@@ -480,8 +480,7 @@ fn cli_writes_the_documented_tables() {
         ]
     };
     let a = args("0:20000");
-    let o = freefall(&a.iter().map(String::as_str).collect::<Vec<_>>());
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    ok(&a.iter().map(String::as_str).collect::<Vec<_>>());
     let acc = read_parquet(out.join("accel.parquet")).unwrap();
     assert_eq!(acc.names(), ["t", "g1", "g12"]);
     assert_eq!(acc.num_rows(), 40_000 - 4);
@@ -526,7 +525,8 @@ fn cli_compares_two_parameter_sets_of_one_run() {
     let dir = tempfile::tempdir().unwrap();
     let dataset = short_noise_dataset(dir.path());
     let (truth, guess) = (dir.path().join("truth"), dir.path().join("guess"));
-    let accel = |set: &str, out: &std::path::Path, extra: &[&str]| {
+    // `run` is `ok` where the command must succeed, `freefall` where it must fail.
+    let accel = |run: fn(&[&str]) -> Output, set: &str, out: &std::path::Path, extra: &[&str]| {
         let mut a = vec![
             "accel",
             dataset.to_str().unwrap(),
@@ -539,13 +539,13 @@ fn cli_compares_two_parameter_sets_of_one_run() {
             out.to_str().unwrap(),
         ];
         a.extend_from_slice(extra);
-        freefall(&a)
+        run(&a)
     };
-    let o = accel("truth", &truth, &[]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    accel(ok, "truth", &truth, &[]);
     // A reference on another frequency grid: refused before anything is written.
     let bad = dir.path().join("bad");
     let o = accel(
+        freefall,
         "guess",
         &bad,
         &[
@@ -564,8 +564,7 @@ fn cli_compares_two_parameter_sets_of_one_run() {
         "{err}"
     );
     assert!(!bad.join("compare.parquet").exists());
-    let o = accel("guess", &guess, &["--compare", truth.to_str().unwrap()]);
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = accel(ok, "guess", &guess, &["--compare", truth.to_str().unwrap()]);
     let stdout = String::from_utf8_lossy(&o.stdout);
     let whole = |d: &std::path::Path, col: &str| {
         let t = read_parquet(d.join("accel_psd.parquet")).unwrap();
@@ -658,7 +657,7 @@ fn cli_converts_a_run_with_gaps_piece_by_piece() {
     write_run(&alone, &first).unwrap();
     let accel = |input: &std::path::Path, out: &str| {
         let out = dir.path().join(out);
-        let o = freefall(&[
+        let o = ok(&[
             "accel",
             input.to_str().unwrap(),
             "--scenario",
@@ -669,7 +668,6 @@ fn cli_converts_a_run_with_gaps_piece_by_piece() {
             "--out",
             out.to_str().unwrap(),
         ]);
-        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
         (out, String::from_utf8_lossy(&o.stderr).to_string())
     };
     let (out, stderr) = accel(&gapped, "gapped");

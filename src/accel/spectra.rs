@@ -7,7 +7,7 @@ use rayon::prelude::*;
 
 use super::operator::DeltaEstimator;
 use super::AccelError;
-use crate::fit::telemetry_psd::folded;
+use crate::fit::telemetry_psd::{folded, images};
 use crate::model::closed_loop::{transfer, CMat, ClosedLoopModel, NoiseEntry};
 use crate::noise::{shapes, NoiseModel};
 use crate::spectral::{welch_csd, welch_csd_pieces, CrossSpectrum, Decimator, WelchConfig};
@@ -127,25 +127,9 @@ pub fn projection_of_telemetry<M: ClosedLoopModel<2> + Sync>(
         return projection(est, model, noise, p_noise, f, which);
     };
     let s_dec = folded(|fk| noise.readout_csd(model, fk, p_noise), dec);
-    // Every bin sums some 20 images: spread the bins over the cores.
+    // Every bin sums ten images (LPF: factor 10): spread the bins over the cores.
     f.par_iter()
         .map(|&fk| est.project(fk, &s_dec(fk), which))
-        .collect()
-}
-
-/// The frequencies whose content lands at `f` in the telemetry, with their power gain: `f`
-/// itself with gain 1 without a decimator, else the images `f + k fs_out` below the input
-/// Nyquist frequency with `|H|^2` (module [`crate::fit::telemetry_psd`], "Folding").
-fn images(f: f64, decimator: Option<&Decimator>) -> Vec<(f64, f64)> {
-    let Some(dec) = decimator else {
-        return vec![(f, 1.0)];
-    };
-    let (fs_in, fs_out) = (dec.fs_in(), dec.fs_out());
-    let m = dec.factor() as i64;
-    (-m..=m)
-        .map(|k| f + k as f64 * fs_out)
-        .filter(|fk| *fk != 0.0 && fk.abs() < 0.5 * fs_in)
-        .map(|fk| (fk, dec.frequency_response(fk.abs()).powi(2)))
         .collect()
 }
 
@@ -198,7 +182,11 @@ pub fn budget_of_telemetry<M: ClosedLoopModel<N> + Sync, const N: usize>(
         .map(|&fk| {
             let mut row = vec![[0.0; N_MAX]; noise.sources.len()];
             let d_est = est.delta(fk, which);
-            for (fi, gain) in images(fk, decimator) {
+            // Without a decimator, `f` itself with gain 1; with one, its images.
+            let imgs = std::iter::once((fk, 1.0))
+                .filter(|_| decimator.is_none())
+                .chain(decimator.into_iter().flat_map(|d| images(fk, d)));
+            for (fi, gain) in imgs {
                 let pt = model.prepare(fi.abs());
                 let tr = transfer(model, &pt, p_noise);
                 let ds = tr.ops.d * tr.ops.s.try_inverse().unwrap_or_else(CMat::<N>::identity);

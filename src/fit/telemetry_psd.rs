@@ -42,29 +42,34 @@ pub const IN_BAND: [f64; 2] = [0.4, 0.8];
 /// Frequencies per channel at which the folded PSD is scanned for a null and its in-band level.
 const SCAN_POINTS: usize = 2000;
 
+/// The frequencies `f_k = f + k fs_out` (non-zero, below the input Nyquist frequency) whose
+/// content lands at `f` after `decimator`, each with the FIR's power gain `|H(f_k)|^2` (module
+/// doc, "Folding").
+pub fn images(f: f64, decimator: &Decimator) -> impl Iterator<Item = (f64, f64)> + '_ {
+    let (fs_in, fs_out) = (decimator.fs_in(), decimator.fs_out());
+    let m = decimator.factor() as i64;
+    (-m..=m)
+        .map(move |k| f + k as f64 * fs_out)
+        .filter(move |fk| *fk != 0.0 && fk.abs() < 0.5 * fs_in)
+        .map(|fk| (fk, decimator.frequency_response(fk.abs()).powi(2)))
+}
+
 /// The telemetry PSD `S_dec` of a process of one-sided cross-PSD `psd` at the decimator's input
 /// rate, after `decimator` (module doc, "Folding").
 pub fn folded<'a>(
     psd: impl Fn(f64) -> CMat<2> + 'a,
     decimator: &'a Decimator,
 ) -> impl Fn(f64) -> CMat<2> + 'a {
-    let (fs_in, fs_out) = (decimator.fs_in(), decimator.fs_out());
-    let images = decimator.factor() as i64;
     move |f: f64| {
         let mut s = CMat::<2>::zeros();
-        for k in -images..=images {
-            let fk = f + k as f64 * fs_out;
-            if fk.abs() >= 0.5 * fs_in || fk == 0.0 {
-                continue;
-            }
-            let h = decimator.frequency_response(fk.abs());
+        for (fk, h2) in images(f, decimator) {
             // A real process: S(-f) = conj(S(f)) for the negative images.
             let sk = if fk > 0.0 {
                 psd(fk)
             } else {
                 psd(-fk).map(|z| z.conj())
             };
-            s += sk * Complex64::new(h * h, 0.0);
+            s += sk * Complex64::new(h2, 0.0);
         }
         s
     }

@@ -18,6 +18,17 @@ pub fn freefall(args: &[&str]) -> std::process::Output {
         .expect("binary runs")
 }
 
+/// Runs the binary with `args` and asserts that it succeeded (its stderr otherwise).
+pub fn ok(args: &[&str]) -> std::process::Output {
+    let o = freefall(args);
+    assert!(
+        o.status.success(),
+        "freefall {args:?}: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    o
+}
+
 /// Prints on the terminal even when the test's output is captured.
 pub fn visible(msg: &str) {
     use std::io::Write;

@@ -3,18 +3,7 @@
 
 use std::path::{Path, PathBuf};
 
-use super::freefall;
-
-/// Runs the binary with `args` and asserts that it succeeded (its stderr otherwise).
-pub fn ok(args: &[&str]) -> std::process::Output {
-    let o = freefall(args);
-    assert!(
-        o.status.success(),
-        "freefall {args:?}: {}",
-        String::from_utf8_lossy(&o.stderr)
-    );
-    o
-}
+pub use super::ok;
 
 /// The dataset of scenario `scenario` of lpf_xy.toml, design standard_xy, seed `seed`, with
 /// the further simulate options `extra`, under `dir/scenario`; returns its dataset.toml.
