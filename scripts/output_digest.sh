@@ -10,7 +10,7 @@ rm -rf "$out"; mkdir -p "$out"; cd "$out"
 q="--quiet"
 "$bin" $q simulate --scenario monte_carlo --seed 3 --out ds
 "$bin" $q simulate --scenario monte_carlo --seed 5 --engine time-domain --out ds_td
-"$bin" $q simulate --scenario monte_carlo --seed 2 --effect actuation_lag=0.3 --out ds_lag
+"$bin" $q simulate --scenario monte_carlo --seed 2 --effect actuation_lag_df=0.3 --out ds_lag
 "$bin" $q simulate --model lpf_xy --scenario monte_carlo --seed 4 --out ds_xy
 "$bin" $q fit ds/dataset.toml --out fit
 "$bin" $q fit ds_td/dataset.toml --out fit_td
