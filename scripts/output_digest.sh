@@ -11,7 +11,7 @@ q="--quiet"
 "$bin" $q simulate --scenario monte_carlo --seed 3 --out ds
 "$bin" $q simulate --scenario monte_carlo --seed 5 --engine time-domain --out ds_td
 "$bin" $q simulate --scenario monte_carlo --seed 2 --effect actuation_lag_df=0.3 --out ds_lag
-"$bin" $q simulate --model lpf_xy --scenario monte_carlo --seed 4 --out ds_xy
+"$bin" $q simulate --model lpf_xy --scenario crosstalk --seed 4 --out ds_xy
 "$bin" $q fit ds/dataset.toml --out fit
 "$bin" $q fit ds_td/dataset.toml --out fit_td
 "$bin" $q fit ds_xy/dataset.toml --model lpf_xy --out fit_xy
