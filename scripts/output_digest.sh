@@ -14,7 +14,7 @@ q="--quiet"
 "$bin" $q simulate --model lpf_xy --scenario crosstalk --seed 4 --out ds_xy
 "$bin" $q fit ds/dataset.toml --out fit
 "$bin" $q fit ds_td/dataset.toml --out fit_td
-"$bin" $q fit ds_xy/dataset.toml --model lpf_xy --out fit_xy
+"$bin" $q model transfer --model lpf_xy --out transfer_xy.parquet
 "$bin" $q fit ds/dataset.toml --transient --out fit_tr
 "$bin" $q diagnose ds_lag/dataset.toml --out diag_lag
 "$bin" $q diagnose ds/dataset.toml --out diag
