@@ -8,6 +8,7 @@ set -euo pipefail
 bin=$(realpath "$1"); out=$2
 rm -rf "$out"; mkdir -p "$out"; cd "$out"
 q="--quiet"
+exec 3>&1 >commands.log   # the commands' own printing (timings vary) stays out of the digests
 "$bin" $q simulate --scenario monte_carlo --seed 3 --out ds
 "$bin" $q simulate --scenario monte_carlo --seed 5 --engine time-domain --out ds_td
 "$bin" $q simulate --scenario monte_carlo --seed 2 --effect actuation_lag_df=0.3 --out ds_lag
@@ -25,6 +26,7 @@ q="--quiet"
 "$bin" $q model noise --out noise.parquet
 "$bin" $q model fisher --scenario monte_carlo --out fisher.parquet
 "$bin" $q psd ds/noise.parquet --out psd.parquet
+exec 1>&3
 python3 - <<'PY'
 import hashlib, json, pathlib, pyarrow.parquet as pq
 for p in sorted(pathlib.Path('.').rglob('*')):
