@@ -34,6 +34,8 @@ for p in sorted(pathlib.Path('.').rglob('*')):
         t = pq.read_table(p)
         h = hashlib.sha256()
         for name in t.column_names:
+            if name == 'seconds':   # a realization's wall time
+                continue
             h.update(name.encode())
             h.update(repr(t.column(name).to_pylist()).encode())
         print(f"{h.hexdigest()[:16]}  {p}")
@@ -42,7 +44,7 @@ for p in sorted(pathlib.Path('.').rglob('*')):
         def strip(x):
             if isinstance(x, dict):
                 return {k: strip(v) for k, v in x.items()
-                        if k not in ('seconds', 'provenance', 'version', 'elapsed_s', 'wall_s', 'created', 'command', 'started', 'finished', 'threads', 'host')}
+                        if k not in ('seconds', 'provenance', 'version', 'elapsed_s', 'wall_s', 'created', 'command', 'started', 'finished', 'threads', 'host', 'started_unix', 'finished_unix', 'wall_seconds', 'fit_seconds', 'realizations_per_second')}
             if isinstance(x, list):
                 return [strip(v) for v in x]
             return x
