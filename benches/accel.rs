@@ -4,7 +4,8 @@
 use criterion::{criterion_group, criterion_main, Criterion};
 use freefall::accel::{welch_psd, DeltaEstimator, Stencil};
 use freefall::noise::ColoredNoise;
-use freefall::setup::{Setup, NOISE_OVERSAMPLE};
+use freefall::noise::NOISE_OVERSAMPLE;
+use freefall::setup::Setup;
 use freefall::sim::rng::stream;
 use freefall::spectral::WelchConfig;
 

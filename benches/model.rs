@@ -6,7 +6,8 @@
 use criterion::{criterion_group, criterion_main, Criterion};
 use freefall::model::{CMat, ClosedLoopModel};
 use freefall::noise::ColoredNoise;
-use freefall::setup::{Setup, NOISE_OVERSAMPLE};
+use freefall::noise::NOISE_OVERSAMPLE;
+use freefall::setup::Setup;
 use freefall::sim::rng::stream;
 use std::hint::black_box;
 

@@ -16,8 +16,9 @@
 //! the y/phi loops' commands recorded too (`simulate --commands`), which the diagnosis tests
 //! for force cross-talk into o1 and o12, as `tests/xy_commands.rs` does.
 
-use freefall::diagnose::{diagnose, simulate_with_effects, DiagnoseConfig};
+use freefall::diagnose::{diagnose, DiagnoseConfig};
 use freefall::setup::Setup;
+use freefall::sim::simulate_with_effects;
 use rayon::prelude::*;
 
 fn main() {
@@ -48,7 +49,7 @@ fn main() {
         .map(|seed| {
             let mut cfg = cfg.clone();
             let (data, noise) = if xy {
-                let job = freefall::diagnose::simulate_job::SimulateJob {
+                let job = freefall::sim::simulate_job::SimulateJob {
                     scenario: "nominal".into(),
                     design: "standard_xy".into(),
                     seed,

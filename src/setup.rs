@@ -1,7 +1,8 @@
 //! Assembling the pieces for a model file: model file -> closed-loop model, noise model,
-//! designs, simulators and whitening filters ([`SetupOf`], generic in the model; [`Setup`] is
+//! designs and whitening filters ([`SetupOf`], generic in the model; [`Setup`] is
 //! the x-axis model, [`SetupXy`] the 7-DOF xy model). Shared by the CLI, campaigns,
-//! design and diagnosis so that every job builds them the same way.
+//! design and diagnosis so that every job builds them the same way; the simulators built from
+//! a setup are `sim`'s (`SetupOf::plain_simulator`, `Setup::simulator`, ...).
 
 use crate::fit::telemetry_psd::{folded, NullFloor};
 use crate::fit::{FitError, Whitener};
@@ -13,19 +14,12 @@ use crate::model::spec::ModelKind;
 use crate::model::{LpfX, LpfXy, ModelError, ModelSpec};
 use crate::noise::{GlitchConfig, NoiseError, NoiseModel};
 use crate::signal::{Design, SignalError};
-use crate::sim::decimated::DecimatedSimulator;
-use crate::sim::time_domain::{
-    InitialConditions, LoopConfig, PlantEffects, TimeDomainError, TimeDomainSimulator,
-};
-use crate::sim::Simulator;
 
 /// Default order of the whitening filter (see `fit::whiten`): long enough to resolve the
 /// noise structure around 1 mHz at 1 Hz sampling.
 pub const DEFAULT_WHITENING_ORDER: usize = 300;
 /// Default degree of the whitened-domain polynomial nuisance (thesis: "first or second order").
 pub const DEFAULT_POLY_DEGREE: usize = 1;
-/// Noise series are generated this many times longer than requested (see `noise::generate`).
-pub const NOISE_OVERSAMPLE: usize = 3;
 
 /// Errors of any subsystem, for library users who want one type.
 #[derive(Debug, thiserror::Error)]
@@ -40,8 +34,10 @@ pub enum Error {
     Fit(#[from] FitError),
     #[error(transparent)]
     Io(#[from] crate::io::IoError),
+    /// The time-domain engine's error (`sim::time_domain::TimeDomainError`, which converts
+    /// into this; `sim` sits above `setup`, so it is held boxed).
     #[error(transparent)]
-    TimeDomain(#[from] TimeDomainError),
+    TimeDomain(Box<dyn std::error::Error + Send + Sync>),
     #[error(transparent)]
     Config(#[from] crate::config::OutOfRange),
     #[error("{0}")]
@@ -198,21 +194,6 @@ impl<M: SpecModel<N>, const N: usize> SetupOf<M, N> {
         )?;
         Ok(())
     }
-
-    /// A simulator of `design` at parameters `truth`, directly at the analysis rate, without
-    /// glitches (see [`Setup::simulator`]).
-    pub fn plain_simulator(&self, design: &Design, truth: &[f64]) -> Result<Simulator<N>, Error> {
-        self.check_simulation_size(design, "duration_s")?;
-        Ok(Simulator::new(
-            &self.model,
-            design,
-            truth,
-            self.psd(truth),
-            self.analysis_dt(),
-            NOISE_OVERSAMPLE,
-            None,
-        )?)
-    }
 }
 
 impl Setup {
@@ -252,97 +233,6 @@ impl Setup {
         let mut g = g.clone();
         g.amplitude_sigma = [g.amplitude_sigma[0] * ratio, g.amplitude_sigma[1] * ratio];
         GlitchConfig::new(&g, n)
-    }
-
-    /// A simulator of `design` at parameters `truth`, directly at the analysis rate. The noise
-    /// has the model PSD sampled at the analysis rate, i.e. the data an ideal anti-alias
-    /// decimator would produce (the 10 Hz path with a real filter is `sim::decimated`).
-    pub fn simulator(
-        &self,
-        design: &Design,
-        truth: &[f64],
-        glitch: Option<&GlitchSpec>,
-    ) -> Result<Simulator<2>, Error> {
-        self.check_simulation_size(design, "duration_s")?;
-        let dt = self.analysis_dt();
-        let glitches = glitch.map(|g| self.analysis_glitches(g, design.samples(dt)));
-        Ok(Simulator::new(
-            &self.model,
-            design,
-            truth,
-            self.psd(truth),
-            dt,
-            NOISE_OVERSAMPLE,
-            glitches,
-        )?)
-    }
-
-    /// The thesis's path: a simulator at simulate_hz whose output is decimated with the
-    /// anti-alias FIR to analyse_hz (`sim::decimated`).
-    pub fn decimated_simulator(
-        &self,
-        design: &Design,
-        truth: &[f64],
-        glitch: Option<&GlitchSpec>,
-    ) -> Result<DecimatedSimulator<2>, Error> {
-        self.check_simulation_size(design, "duration_s")?;
-        Ok(DecimatedSimulator::with_decimator(
-            &self.model,
-            design,
-            truth,
-            self.psd(truth),
-            self.spec.decimator()?,
-            NOISE_OVERSAMPLE,
-            glitch,
-        )?)
-    }
-}
-
-impl Setup {
-    /// The time-domain simulator of the digital loop (`sim::time_domain`): controllers at
-    /// simulate_hz as `[control_loop]` says, telemetry decimated to analyse_hz by the
-    /// anti-alias FIR, optional initial conditions. Glitches are refused (not simulated).
-    pub fn time_domain_simulator(
-        &self,
-        design: &Design,
-        truth: &[f64],
-        glitch: Option<&GlitchSpec>,
-        initial: Option<InitialConditions>,
-    ) -> Result<TimeDomainSimulator, Error> {
-        self.time_domain_simulator_with_effects(
-            design,
-            truth,
-            glitch,
-            initial,
-            &PlantEffects::default(),
-        )
-    }
-
-    /// [`Self::time_domain_simulator`] with the library's operator effects `effects` in the
-    /// plant (`sim::time_domain::PlantEffects`).
-    pub fn time_domain_simulator_with_effects(
-        &self,
-        design: &Design,
-        truth: &[f64],
-        glitch: Option<&GlitchSpec>,
-        initial: Option<InitialConditions>,
-        effects: &PlantEffects,
-    ) -> Result<TimeDomainSimulator, Error> {
-        if glitch.is_some() {
-            return Err(TimeDomainError::Glitches.into());
-        }
-        self.check_simulation_size(design, "duration_s")?;
-        Ok(TimeDomainSimulator::new(
-            &self.model,
-            &self.noise,
-            &LoopConfig::from_spec(&self.spec),
-            self.spec.decimator()?,
-            design,
-            truth,
-            initial,
-            NOISE_OVERSAMPLE,
-            effects,
-        )?)
     }
 }
 

@@ -8,7 +8,8 @@ use freefall::accel::{
     welch_psd, AccelPsd, DeltaEstimator, Response, Stencil,
 };
 use freefall::noise::ColoredNoise;
-use freefall::setup::{Setup, NOISE_OVERSAMPLE};
+use freefall::noise::NOISE_OVERSAMPLE;
+use freefall::setup::Setup;
 use freefall::sim::rng::stream;
 use freefall::spectral::WelchConfig;
 use num_complex::Complex64;

@@ -12,14 +12,14 @@
 
 use std::sync::Arc;
 
-use freefall::diagnose::glitch::{self, Entry};
-use freefall::diagnose::{
-    diagnose, simulate_with_drift_paths, simulate_with_drifts, simulate_with_effects,
-    DiagnoseConfig, Diagnosis, SimGlitch,
-};
+use freefall::diagnose::{diagnose, DiagnoseConfig, Diagnosis};
 use freefall::fit::ExperimentData;
 use freefall::model::effects::{by_name, Effect, Extended};
 use freefall::setup::Setup;
+use freefall::sim::glitch::{self, Entry};
+use freefall::sim::{
+    simulate_with_drift_paths, simulate_with_drifts, simulate_with_effects, SimGlitch,
+};
 
 /// Tolerances, in one place.
 const ORDER: usize = 200;
@@ -367,15 +367,9 @@ fn the_thesis_glitch_population_is_reported_as_heavy_tails() {
     let setup = Setup::embedded_continuous();
     let design = setup.design("standard").unwrap();
     let sc = setup.spec.scenario("glitches").unwrap();
-    let (data, noise) = freefall::diagnose::simulate_glitched(
-        &setup,
-        &design,
-        &sc.truth,
-        &[],
-        sc.glitch.as_ref(),
-        81,
-    )
-    .unwrap();
+    let (data, noise) =
+        freefall::sim::simulate_glitched(&setup, &design, &sc.truth, &[], sc.glitch.as_ref(), 81)
+            .unwrap();
     let d = diagnose(
         &setup,
         &data,

@@ -7,11 +7,11 @@
 
 use freefall::design::space::DesignSpace;
 use freefall::diagnose::redesign::{identifiable_fraction, probe};
-use freefall::diagnose::simulate_with_effects;
 use freefall::fit::{Likelihood, Whitener};
 use freefall::model::effects::{by_name, Extended};
 use freefall::model::ClosedLoopModel;
 use freefall::setup::Setup;
+use freefall::sim::simulate_with_effects;
 use nalgebra::DMatrix;
 
 #[test]

@@ -7,7 +7,8 @@
 use freefall::fit::whiten::psd_autocovariance;
 use freefall::model::{transfer, CMat, ClosedLoopModel};
 use freefall::noise::ColoredNoise;
-use freefall::setup::{Setup, NOISE_OVERSAMPLE};
+use freefall::noise::NOISE_OVERSAMPLE;
+use freefall::setup::Setup;
 use freefall::signal::{Design, Experiment, Stretch};
 use freefall::sim::decimated::DecimatedSimulator;
 use freefall::sim::rng::stream;

@@ -9,12 +9,12 @@ mod common;
 
 use common::xy::{diagnose, simulate};
 use common::{added, freefall};
-use freefall::diagnose::simulate_job::SimulateJob;
-use freefall::diagnose::simulate_xy::{command_coefficients, command_response};
 use freefall::model::lpf_xy::LpfXy;
 use freefall::model::ClosedLoopModel;
 use freefall::setup::{Setup, SetupXy};
 use freefall::sim::auxiliary::{through_loop, Leak};
+use freefall::sim::simulate_job::SimulateJob;
+use freefall::sim::simulate_xy::{command_coefficients, command_response};
 use freefall::sim::Engine;
 use freefall::spectral::welch::{welch_csd, Detrend, WelchConfig};
 

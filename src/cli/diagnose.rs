@@ -11,8 +11,8 @@ use clap::Args;
 use super::analysis::FitOpts;
 use super::ModelOpt;
 use crate::diagnose::job::DiagnoseJob;
-use crate::diagnose::simulate_job::SimulateJob;
 use crate::setup::AnySetup;
+use crate::sim::simulate_job::SimulateJob;
 use crate::sim::{Engine, Rate};
 
 #[derive(Debug, Args)]

@@ -6,9 +6,9 @@ use anyhow::Result;
 use clap::Args;
 
 use super::ModelOpt;
-use crate::diagnose::simulate_job::SimulateJob;
 use crate::io::write_dataset;
 use crate::setup::AnySetup;
+use crate::sim::simulate_job::SimulateJob;
 use crate::sim::time_domain::InitialConditions;
 use crate::sim::Engine;
 use crate::sim::Rate;

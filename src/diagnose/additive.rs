@@ -38,12 +38,12 @@
 
 use nalgebra::DMatrix;
 
-use super::glitch::{self, Entry, Grid, Part};
 use crate::fit::{ExperimentData, Likelihood};
 use crate::model::effects::{Category, Extended};
 use crate::model::ClosedLoopModel;
 use crate::numerics::linalg::equilibrated_pinv;
 use crate::sim::auxiliary::{through_loop, Leak};
+use crate::sim::glitch::{self, Entry, Grid, Part};
 use crate::sim::Series;
 
 /// Name prefix of a force cross-talk from a recorded command (`aux_force_COLUMN_CHANNEL`).
@@ -274,7 +274,7 @@ impl Additive {
             } => format!(
                 "{}{}{column}_{}",
                 match leak {
-                    Leak::Sensor => super::inject::AUX_CROSSTALK_PREFIX,
+                    Leak::Sensor => crate::sim::inject::AUX_CROSSTALK_PREFIX,
                     Leak::Force => AUX_FORCE_PREFIX,
                 },
                 if *rate { "rate_" } else { "" },

@@ -57,7 +57,6 @@ pub mod coherence;
 mod crosstalk;
 pub mod excess;
 pub mod glitch;
-pub mod inject;
 pub mod job;
 pub mod noise_excess;
 pub mod observer;
@@ -67,9 +66,6 @@ pub mod report;
 pub mod residuals;
 pub mod science;
 pub mod selection;
-mod simulate;
-pub mod simulate_job;
-pub mod simulate_xy;
 pub mod tables;
 pub mod tension;
 mod transient;
@@ -86,15 +82,10 @@ use crate::setup::{Setup, DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 use crate::sim::Series;
 
 pub use excess::ExcessKind;
-pub use glitch::SimGlitch;
-pub use observer::{Notes, Observer};
+pub use observer::{Notes, Observer, Round, StopReason};
 pub use problem::DiagnosisProblem;
 pub use residuals::{ChannelReport, SpectrumCurve};
-pub use selection::{next_round, DiagnosisState, Family, Round, StopReason};
-pub use simulate::{
-    simulate_effect_set, simulate_glitched, simulate_with_drift_paths, simulate_with_drifts,
-    simulate_with_effects,
-};
+pub use selection::{next_round, DiagnosisState, Family};
 pub use tension::{Explanation, PriorTension};
 
 #[derive(Debug, thiserror::Error)]

@@ -3,8 +3,6 @@
 //! decides what to do with it. The report's notes list is one observer ([`Notes`]), always
 //! attached; a caller adds its own (the command line prints each note as it comes).
 
-use super::selection::Round;
-
 /// Receives what a diagnosis notices while it runs.
 pub trait Observer {
     /// A remark for the reader: a fallback taken, a fit that did not converge, a test's scope.
@@ -40,4 +38,26 @@ impl Observer for Both<'_, '_> {
         self.0.round(round, outcome);
         self.1.round(round, outcome);
     }
+}
+
+/// Why the selection stopped.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StopReason {
+    /// Every family reached its limit.
+    Limits,
+    /// No candidate was left to test.
+    NoCandidates,
+    /// No refit of the round was significant, converged and physical.
+    NothingSignificant,
+    /// The largest significant chi^2 drop is a candidate degenerate with a fitted parameter:
+    /// it is not claimed, and nothing is added in its place.
+    Degenerate,
+}
+
+/// The outcome of one round.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Round {
+    /// An effect was added (its index in [`super::DiagnosisState::added`]).
+    Added(usize),
+    Stop(StopReason),
 }

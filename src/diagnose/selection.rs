@@ -27,7 +27,7 @@ use serde::Serialize;
 
 use super::additive::{self, Additive};
 use super::glitch;
-use super::observer::Observer;
+use super::observer::{Observer, Round, StopReason};
 use super::problem::{DiagnosisProblem, LinearFit};
 use super::{AddedEffect, Alternative, Candidate, Channel, DiagnoseConfig, DiagnoseError, Stage};
 use crate::fit::{ExperimentData, FitResult, Likelihood};
@@ -65,28 +65,6 @@ impl Family {
             Family::Glitch => cfg.max_glitches,
         }
     }
-}
-
-/// Why the selection stopped.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum StopReason {
-    /// Every family reached its limit.
-    Limits,
-    /// No candidate was left to test.
-    NoCandidates,
-    /// No refit of the round was significant, converged and physical.
-    NothingSignificant,
-    /// The largest significant chi^2 drop is a candidate degenerate with a fitted parameter:
-    /// it is not claimed, and nothing is added in its place.
-    Degenerate,
-}
-
-/// The outcome of one round.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Round {
-    /// An effect was added (its index in [`DiagnosisState::added`]).
-    Added(usize),
-    Stop(StopReason),
 }
 
 /// How a candidate of one round enters the model.
@@ -299,7 +277,7 @@ fn propose(
                 obs.note(&format!(
                     "glitch scan: {:.0} trials per round (every analysed sample of every experiment, {} entry points, {} widths); glitch p-values carry that look-elsewhere factor{}",
                     a.trials(),
-                    glitch::ENTRIES.len(),
+                    crate::sim::glitch::ENTRIES.len(),
                     glitch::SCAN_WIDTHS.len(),
                     if problem.noise_w.is_some() {
                         ", and each matched filter's statistic is calibrated by its variance over the noise-only run"
@@ -960,7 +938,7 @@ fn glitch_candidates(
     };
     for n in distinct {
         let first = lens.iter().position(|&l| l == n).unwrap_or(0);
-        let grid = glitch::Grid {
+        let grid = crate::sim::glitch::Grid {
             n,
             m: lik.engine.padded_len_of(first),
             dt: data.dt,

@@ -22,6 +22,12 @@ pub use spec::{ModelSpec, Scenario};
 /// Errors of model construction and evaluation.
 #[derive(Debug, thiserror::Error)]
 pub enum ModelError {
+    /// The model file could not be opened or read (worded as `io::IoError::Read`).
+    #[error("cannot read '{}': {error}", path.display())]
+    Read {
+        path: std::path::PathBuf,
+        error: std::io::Error,
+    },
     #[error("{origin}: {message}{}", span.map(|l| format!(" (line {l})")).unwrap_or_default())]
     Parse {
         origin: String,

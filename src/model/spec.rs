@@ -368,7 +368,7 @@ impl ModelSpec {
 
     /// The model file at `path`; `lpf_x` or `lpf_xy` (when no such file exists) names an
     /// embedded model.
-    pub fn load(path: &std::path::Path) -> Result<Self, crate::setup::Error> {
+    pub fn load(path: &std::path::Path) -> Result<Self, ModelError> {
         if !path.exists() {
             for kind in [ModelKind::LpfX, ModelKind::LpfXy] {
                 if path.as_os_str() == kind.name() {
@@ -376,8 +376,11 @@ impl ModelSpec {
                 }
             }
         }
-        let text = crate::io::read_text(path)?;
-        Ok(Self::from_toml_str(&text, &path.display().to_string())?)
+        let text = std::fs::read_to_string(path).map_err(|error| ModelError::Read {
+            path: path.to_path_buf(),
+            error,
+        })?;
+        Self::from_toml_str(&text, &path.display().to_string())
     }
 
     /// The embedded model with the thesis's continuous loop, which its tables use.

@@ -12,6 +12,9 @@ pub use generate::ColoredNoise;
 pub use glitch::{Glitch, GlitchConfig};
 pub use psd::NoiseModel;
 
+/// Noise series are generated this many times longer than requested (see [`generate`]).
+pub const NOISE_OVERSAMPLE: usize = 3;
+
 #[derive(Debug, thiserror::Error)]
 pub enum NoiseError {
     #[error("noise source '{source_name}': unknown entry point '{enters}' for this model")]

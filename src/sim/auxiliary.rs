@@ -35,7 +35,7 @@ use crate::sim::rng::stream;
 /// streams 0 and 1 are the experiments' and the noise run's optical noise.
 pub const AUX_STREAM: u64 = 2;
 /// Length factor of the generated series over the requested one (as the optical noise).
-const OVERSAMPLE: usize = crate::setup::NOISE_OVERSAMPLE;
+const OVERSAMPLE: usize = crate::noise::NOISE_OVERSAMPLE;
 
 /// The first derivative of a uniformly sampled series by central differences (one-sided at
 /// the ends): the template of a rate (first-derivative) cross-talk term, the same in the

@@ -6,7 +6,13 @@
 pub mod auxiliary;
 pub mod decimated;
 pub mod experiment;
+mod from_setup;
+pub mod glitch;
+pub mod inject;
 pub mod rng;
+mod simulate;
+pub mod simulate_job;
+pub mod simulate_xy;
 pub mod time_domain;
 pub mod transient;
 pub mod whitened;
@@ -14,6 +20,11 @@ pub mod whitened;
 pub use crate::data::Series;
 pub use crate::forward::TemplateEngine;
 pub use experiment::Simulator;
+pub use glitch::SimGlitch;
+pub use simulate::{
+    simulate_effect_set, simulate_glitched, simulate_with_drift_paths, simulate_with_drifts,
+    simulate_with_effects, EffectsError,
+};
 pub use whitened::WhitenedSimulator;
 
 /// The simulation engine of a dataset or a campaign.

@@ -1,14 +1,20 @@
 //! Simulated datasets whose truth holds what the nominal model lacks: library effects (operator
 //! perturbations of thesis sec. 3.4-3.5 and 4.1.1), parameter drifts over a run, and the thesis's
 //! random sine-Gaussian glitches (sec. 4.5.7). Every simulator is the frequency-domain simulator
-//! of `sim` on the extended model, so the data carry exactly the operators the diagnosis fits.
+//! of this module on the extended model, so the data carry exactly the operators the diagnosis fits.
 
 use std::sync::Arc;
 
-use super::DiagnoseError;
 use crate::fit::ExperimentData;
 use crate::model::effects::{Effect, Extended};
 use crate::setup::Setup;
+
+/// A simulation with effects that cannot be drawn: an effect with the wrong number of
+/// parameters, a drift of a parameter the model lacks, a truth whose loop is unstable, an
+/// `--effect` that cannot be added to the readouts. One line, naming what is at fault.
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub struct EffectsError(pub String);
 
 /// Simulate experiments of `design` whose truth includes library effects: `truth` holds the
 /// base parameters, `effects` the (effect, parameter values) switched on. The noise has the model
@@ -20,7 +26,7 @@ pub fn simulate_with_effects(
     truth: &[f64],
     effects: &[(Arc<dyn Effect>, Vec<f64>)],
     seed: u64,
-) -> Result<(ExperimentData, Vec<Vec<f64>>), DiagnoseError> {
+) -> Result<(ExperimentData, Vec<Vec<f64>>), EffectsError> {
     simulate_glitched(setup, design, truth, effects, None, seed)
 }
 
@@ -34,7 +40,7 @@ pub fn simulate_glitched(
     effects: &[(Arc<dyn Effect>, Vec<f64>)],
     glitch: Option<&crate::model::spec::GlitchSpec>,
     seed: u64,
-) -> Result<(ExperimentData, Vec<Vec<f64>>), DiagnoseError> {
+) -> Result<(ExperimentData, Vec<Vec<f64>>), EffectsError> {
     let model = Extended::new(
         setup.model.clone(),
         effects.iter().map(|(e, _)| e.clone()).collect(),
@@ -42,7 +48,7 @@ pub fn simulate_glitched(
     let mut p = truth.to_vec();
     for (e, v) in effects {
         if v.len() != e.parameter_names().len() {
-            return Err(DiagnoseError::Input(format!(
+            return Err(EffectsError(format!(
                 "effect {} takes {} parameters, got {}",
                 e.name(),
                 e.parameter_names().len(),
@@ -51,8 +57,7 @@ pub fn simulate_glitched(
         }
         p.extend(v);
     }
-    crate::model::check_stability(&model, &p, None)
-        .map_err(|e| DiagnoseError::Input(e.to_string()))?;
+    crate::model::check_stability(&model, &p, None).map_err(|e| EffectsError(e.to_string()))?;
     let dt = setup.analysis_dt();
     let psd = |f: f64| setup.noise.readout_csd(&model, f, &p);
     let glitches = glitch.map(|g| setup.analysis_glitches(g, design.samples(dt)));
@@ -62,10 +67,10 @@ pub fn simulate_glitched(
         &p,
         psd,
         dt,
-        crate::setup::NOISE_OVERSAMPLE,
+        crate::noise::NOISE_OVERSAMPLE,
         glitches,
     )
-    .map_err(|e| DiagnoseError::Input(e.to_string()))?;
+    .map_err(|e| EffectsError(e.to_string()))?;
     let data = sim.draw(&mut crate::sim::rng::stream(seed, 0));
     let noise = sim.noise_series(&mut crate::sim::rng::stream(seed, 1));
     Ok((data, noise))
@@ -82,7 +87,7 @@ pub fn simulate_with_drifts(
     effects: &[(Arc<dyn Effect>, Vec<f64>)],
     drifts: &[(usize, f64)],
     seed: u64,
-) -> Result<(ExperimentData, Vec<Vec<f64>>), DiagnoseError> {
+) -> Result<(ExperimentData, Vec<Vec<f64>>), EffectsError> {
     simulate_drifts_glitched(setup, design, truth, effects, drifts, None, seed)
 }
 
@@ -94,7 +99,7 @@ fn simulate_drifts_glitched(
     drifts: &[(usize, f64)],
     glitch: Option<&crate::model::spec::GlitchSpec>,
     seed: u64,
-) -> Result<(ExperimentData, Vec<Vec<f64>>), DiagnoseError> {
+) -> Result<(ExperimentData, Vec<Vec<f64>>), EffectsError> {
     if drifts.is_empty() {
         return simulate_glitched(setup, design, truth, effects, glitch, seed);
     }
@@ -102,7 +107,7 @@ fn simulate_drifts_glitched(
         let mut p = truth.to_vec();
         for &(k, d) in drifts {
             let v = p.get_mut(k).ok_or_else(|| {
-                DiagnoseError::Input(format!("drift of parameter {k}: no such parameter"))
+                EffectsError(format!("drift of parameter {k}: no such parameter"))
             })?;
             *v += sign * 0.5 * d;
         }
@@ -135,7 +140,7 @@ pub fn simulate_with_drift_paths(
     drifts: &[(usize, f64, f64)],
     glitch: Option<&crate::model::spec::GlitchSpec>,
     seed: u64,
-) -> Result<(ExperimentData, Vec<Vec<f64>>), DiagnoseError> {
+) -> Result<(ExperimentData, Vec<Vec<f64>>), EffectsError> {
     if drifts.iter().all(|d| d.2 == 0.0) {
         let linear: Vec<(usize, f64)> = drifts.iter().map(|d| (d.0, d.1)).collect();
         return simulate_drifts_glitched(setup, design, truth, effects, &linear, glitch, seed);
@@ -144,7 +149,7 @@ pub fn simulate_with_drift_paths(
         let mut p = truth.to_vec();
         for &(k, d, d2) in drifts {
             let v = p.get_mut(k).ok_or_else(|| {
-                DiagnoseError::Input(format!("drift of parameter {k}: no such parameter"))
+                EffectsError(format!("drift of parameter {k}: no such parameter"))
             })?;
             // u in [-1/2, 1/2]: u^2 - 1/12 is the zero-mean quadratic drift.
             *v += d * u + d2 * (u * u - 1.0 / 12.0);
@@ -180,7 +185,7 @@ pub fn simulate_effect_set(
     set: &super::inject::EffectSet,
     glitch: Option<&crate::model::spec::GlitchSpec>,
     seed: u64,
-) -> Result<(ExperimentData, Vec<Vec<f64>>), DiagnoseError> {
+) -> Result<(ExperimentData, Vec<Vec<f64>>), EffectsError> {
     let (mut data, mut noise) = simulate_with_drift_paths(
         setup,
         design,
@@ -205,7 +210,7 @@ pub fn simulate_effect_set(
             p.extend(v);
         }
         super::inject::apply(&model, &p, &mut data, &set.injected)
-            .map_err(|e| DiagnoseError::Input(format!("--effect: {e}")))?;
+            .map_err(|e| EffectsError(format!("--effect: {e}")))?;
     }
     Ok((data, noise))
 }

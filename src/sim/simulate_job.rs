@@ -2,12 +2,12 @@
 //! and a noise-only run, drawn at a scenario's truth by one of the engines (frequency-domain
 //! templates plus coloured noise, or the digital loop stepped in time), optionally with effects
 //! the nominal model lacks switched on in the truth, and the `[meta]` that records how.
-//! It sits with the diagnosis because the effects are the diagnosis' library ([`super::inject`],
-//! [`super::simulate`]). The caller writes it (`io::write_dataset`); nothing here touches the
+//! The effects are the diagnosis' library, injected by [`super::inject`] and
+//! `super::simulate`. The caller writes it (`io::write_dataset`); nothing here touches the
 //! file system.
 
 use super::inject::{apply, EffectSet, Injected};
-use super::{simulate_effect_set, DiagnoseError};
+use super::{simulate_effect_set, EffectsError};
 use crate::data::ExperimentData;
 use crate::model::effects::Extended;
 use crate::model::spec::{ModelSpec, Scenario};
@@ -49,7 +49,7 @@ pub enum SimulateError {
     #[error(transparent)]
     Model(#[from] ModelError),
     #[error(transparent)]
-    Diagnose(#[from] DiagnoseError),
+    Effects(#[from] EffectsError),
     #[error(transparent)]
     Noise(#[from] crate::noise::NoiseError),
     #[error(transparent)]

@@ -1,0 +1,130 @@
+//! Simulators of a model file's setup: the builders on [`SetupOf`] and [`Setup`] (analysis
+//! rate, decimated, time domain), each checked against the memory limit first. They live here,
+//! not in `setup`, so that `setup` (model file -> model, noise, designs, whitening) sits below
+//! the simulators that use it.
+
+use crate::model::spec::GlitchSpec;
+use crate::noise::NOISE_OVERSAMPLE;
+use crate::setup::{Error, Setup, SetupOf, SpecModel};
+use crate::signal::Design;
+use crate::sim::decimated::DecimatedSimulator;
+use crate::sim::time_domain::{
+    InitialConditions, LoopConfig, PlantEffects, TimeDomainError, TimeDomainSimulator,
+};
+use crate::sim::Simulator;
+
+impl From<TimeDomainError> for Error {
+    fn from(e: TimeDomainError) -> Self {
+        Error::TimeDomain(Box::new(e))
+    }
+}
+
+impl<M: SpecModel<N>, const N: usize> SetupOf<M, N> {
+    /// A simulator of `design` at parameters `truth`, directly at the analysis rate, without
+    /// glitches (see [`Setup::simulator`]).
+    pub fn plain_simulator(&self, design: &Design, truth: &[f64]) -> Result<Simulator<N>, Error> {
+        self.check_simulation_size(design, "duration_s")?;
+        Ok(Simulator::new(
+            &self.model,
+            design,
+            truth,
+            self.psd(truth),
+            self.analysis_dt(),
+            NOISE_OVERSAMPLE,
+            None,
+        )?)
+    }
+}
+
+impl Setup {
+    /// A simulator of `design` at parameters `truth`, directly at the analysis rate. The noise
+    /// has the model PSD sampled at the analysis rate, i.e. the data an ideal anti-alias
+    /// decimator would produce (the 10 Hz path with a real filter is `sim::decimated`).
+    pub fn simulator(
+        &self,
+        design: &Design,
+        truth: &[f64],
+        glitch: Option<&GlitchSpec>,
+    ) -> Result<Simulator<2>, Error> {
+        self.check_simulation_size(design, "duration_s")?;
+        let dt = self.analysis_dt();
+        let glitches = glitch.map(|g| self.analysis_glitches(g, design.samples(dt)));
+        Ok(Simulator::new(
+            &self.model,
+            design,
+            truth,
+            self.psd(truth),
+            dt,
+            NOISE_OVERSAMPLE,
+            glitches,
+        )?)
+    }
+
+    /// The thesis's path: a simulator at simulate_hz whose output is decimated with the
+    /// anti-alias FIR to analyse_hz (`sim::decimated`).
+    pub fn decimated_simulator(
+        &self,
+        design: &Design,
+        truth: &[f64],
+        glitch: Option<&GlitchSpec>,
+    ) -> Result<DecimatedSimulator<2>, Error> {
+        self.check_simulation_size(design, "duration_s")?;
+        Ok(DecimatedSimulator::with_decimator(
+            &self.model,
+            design,
+            truth,
+            self.psd(truth),
+            self.spec.decimator()?,
+            NOISE_OVERSAMPLE,
+            glitch,
+        )?)
+    }
+}
+
+impl Setup {
+    /// The time-domain simulator of the digital loop (`sim::time_domain`): controllers at
+    /// simulate_hz as `[control_loop]` says, telemetry decimated to analyse_hz by the
+    /// anti-alias FIR, optional initial conditions. Glitches are refused (not simulated).
+    pub fn time_domain_simulator(
+        &self,
+        design: &Design,
+        truth: &[f64],
+        glitch: Option<&GlitchSpec>,
+        initial: Option<InitialConditions>,
+    ) -> Result<TimeDomainSimulator, Error> {
+        self.time_domain_simulator_with_effects(
+            design,
+            truth,
+            glitch,
+            initial,
+            &PlantEffects::default(),
+        )
+    }
+
+    /// [`Self::time_domain_simulator`] with the library's operator effects `effects` in the
+    /// plant (`sim::time_domain::PlantEffects`).
+    pub fn time_domain_simulator_with_effects(
+        &self,
+        design: &Design,
+        truth: &[f64],
+        glitch: Option<&GlitchSpec>,
+        initial: Option<InitialConditions>,
+        effects: &PlantEffects,
+    ) -> Result<TimeDomainSimulator, Error> {
+        if glitch.is_some() {
+            return Err(TimeDomainError::Glitches.into());
+        }
+        self.check_simulation_size(design, "duration_s")?;
+        Ok(TimeDomainSimulator::new(
+            &self.model,
+            &self.noise,
+            &LoopConfig::from_spec(&self.spec),
+            self.spec.decimator()?,
+            design,
+            truth,
+            initial,
+            NOISE_OVERSAMPLE,
+            effects,
+        )?)
+    }
+}
