@@ -4,7 +4,7 @@
 //! `true`, an SQL keyword). Checked twice: through freefall's own reader, and through pyarrow
 //! and DuckDB as an analyst would read them.
 
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
 use std::process::Command;

@@ -9,7 +9,7 @@ use freefall::campaign::{self, merge, RunOptions, Shard};
 use freefall::io::read_parquet;
 use freefall::setup::{design_fisher, SetupXy};
 
-mod common;
+use crate::common;
 use common::tables::assert_same_dirs;
 
 /// Realizations of the reduced campaign (7 experiments x 7 readouts, 26 free parameters):

@@ -12,7 +12,7 @@ use freefall::model::ClosedLoopModel;
 use freefall::setup::Setup;
 use freefall::sim::time_domain::{DigitalLoop, LoopConfig, PlantEffects};
 
-mod common;
+use crate::common;
 use common::freefall;
 use common::loops::{digital_setup, response_errors};
 

@@ -17,7 +17,7 @@ use freefall::io::{read_dataset, write_dataset, Dataset, DeclaredInjections};
 use freefall::setup::Setup;
 use freefall::sim::rng::stream;
 
-mod common;
+use crate::common;
 use common::loops::digital_setup;
 
 /// Noise run of 12 hours, as the runs.

@@ -3,7 +3,7 @@
 //! error and what it names, or the result. Plus proptests over random and mutated bytes for the
 //! dataset TOML, run Parquet and model TOML readers (no panic, no hang; a fixed case count).
 
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};

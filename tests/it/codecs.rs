@@ -7,7 +7,7 @@
 //! scripts/requirements.txt). Where a package is missing the test says which on the terminal (not
 //! in captured output) and returns; where `CI=true` a missing package fails it instead.
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 use std::process::Command;

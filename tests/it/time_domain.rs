@@ -20,7 +20,7 @@ use freefall::sim::time_domain::{DigitalLoop, InitialConditions, LoopConfig};
 use freefall::spectral::{welch_csd, WelchConfig};
 use num_complex::Complex64;
 
-mod common;
+use crate::common;
 use common::freefall;
 use common::loops::response_errors;
 

@@ -5,7 +5,7 @@
 //! command, must find it as `aux_force_...` effects. Two paths that share no code for the
 //! leak: the xy model's 7x7 operators against the x model's `Delta^-1` on a recorded series.
 
-mod common;
+use crate::common;
 
 use common::xy::{diagnose, simulate};
 use common::{added, freefall};

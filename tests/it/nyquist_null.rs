@@ -8,10 +8,10 @@ use std::path::Path;
 
 use freefall::model::ModelSpec;
 
-mod common;
+use crate::common;
 use common::freefall;
 
-const EMBEDDED: &str = include_str!("../src/model/lpf_x.toml");
+const EMBEDDED: &str = include_str!("../../src/model/lpf_x.toml");
 /// Standard deviations of chi2/nu allowed around 1 (issue done-when).
 const CHI2_SIGMAS: f64 = 3.0;
 /// Boxcar lengths of the CIC-like test filter at 10 Hz: the 20-sample boxcar has zeros at every

@@ -14,7 +14,7 @@ use freefall::sim::rng::stream;
 use freefall::spectral::WelchConfig;
 use num_complex::Complex64;
 
-mod common;
+use crate::common;
 use common::loops::digital_setup;
 use common::{freefall, ok};
 use std::process::Output;

@@ -3,7 +3,7 @@
 //! user's terminal). `freefall diagnose` and `freefall accel` run their embedded script; the
 //! figures of every script go to `<input folder>/plots/` unless `--out DIR`.
 
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
 use std::process::Command;

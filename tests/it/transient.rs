@@ -16,7 +16,7 @@ use freefall::signal::Design;
 use freefall::sim::rng::stream;
 use freefall::sim::time_domain::{DigitalLoop, InitialConditions, LoopConfig};
 
-mod common;
+use crate::common;
 use common::freefall;
 use common::loops::digital_setup;
 

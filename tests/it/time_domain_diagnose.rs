@@ -13,7 +13,7 @@ use freefall::setup::Setup;
 use freefall::sim::rng::stream;
 use freefall::sim::time_domain::PlantEffects;
 
-mod common;
+use crate::common;
 use common::loops::digital_setup;
 
 /// Noise run of 12 hours, as the runs.

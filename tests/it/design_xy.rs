@@ -2,7 +2,7 @@
 //! coefficients, the standard x experiments and the model file's priors held fixed. Each test
 //! names its oracle.
 
-mod common;
+use crate::common;
 
 use freefall::design::search::phi_flat;
 use freefall::design::space::ExactDesign;
@@ -138,7 +138,7 @@ fn marginal_sigmas_flag_null_directions_and_invert_regular_blocks() {
 #[test]
 fn xy_design_without_y_phi_constraints_names_the_missing_key() {
     // Oracle: the house error format: the file, the key and what is wrong, on one line.
-    let text = include_str!("../src/model/lpf_xy.toml").replace("o_phi_max_rad = ", "# ");
+    let text = include_str!("../../src/model/lpf_xy.toml").replace("o_phi_max_rad = ", "# ");
     let spec = ModelSpec::from_toml_str(&text, "no_phi.toml").unwrap();
     let setup = SetupXy::new(spec).unwrap();
     let err = XyStudy::at_scenario(&setup, None, Scaling::Natural, None)

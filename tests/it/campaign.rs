@@ -9,7 +9,7 @@ use freefall::campaign::io_store::Progress;
 use freefall::campaign::{self, merge, RunOptions, Shard};
 use freefall::io::{read_parquet, Table};
 
-mod common;
+use crate::common;
 use common::tables::{assert_same, assert_same_dirs};
 
 const BIN: &str = env!("CARGO_BIN_EXE_freefall");

@@ -5,7 +5,7 @@
 //! End-to-end through the CLI: `simulate --model lpf_xy`, `fit --model lpf_xy`, and the x
 //! model's `diagnose` on the same dataset with its auxiliary readouts.
 
-mod common;
+use crate::common;
 
 use common::added;
 use common::xy::{diagnose, ok, simulate};

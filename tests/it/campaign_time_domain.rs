@@ -9,7 +9,7 @@ use freefall::campaign::io_store::Progress;
 use freefall::campaign::{self, merge, RunOptions, Shard};
 use freefall::io::{read_parquet, Column};
 
-mod common;
+use crate::common;
 use common::tables::assert_same_dirs;
 
 /// The done-when band of the time-domain campaign: MC sd / mean Fisher sigma within 10 %.
