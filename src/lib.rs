@@ -17,6 +17,8 @@ pub mod diagnose;
 pub mod fit;
 pub mod forward;
 pub mod io;
+#[cfg(test)]
+mod layers;
 pub mod model;
 pub mod noise;
 pub mod numerics;
