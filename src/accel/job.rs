@@ -22,7 +22,7 @@ use crate::spectral::WelchConfig;
 const PLOT_SCRIPT: &str = include_str!("../../scripts/plot_accel.py");
 
 /// Which parameter set of a scenario.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ScenarioSet {
     Guess,
     Truth,

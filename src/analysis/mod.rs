@@ -122,7 +122,7 @@ pub fn resolve_guess<M: crate::setup::SpecModel<N>, const N: usize>(
 }
 
 /// Where the whitening filter should come from (`--whitening`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Whitening {
     /// The dataset's noise run if it has one, else the model's noise PSD.
     Auto,

@@ -6,8 +6,9 @@ use std::path::PathBuf;
 use anyhow::Result;
 use clap::Args;
 
+use super::values::ScenarioSet;
 use super::ModelOpt;
-use crate::accel::job::{AccelJob, ScenarioSet};
+use crate::accel::job::AccelJob;
 
 #[derive(Debug, Args)]
 pub struct AccelArgs {
@@ -70,7 +71,7 @@ pub fn run(a: AccelArgs) -> Result<()> {
         run: a.run,
         params: a.params,
         scenario: a.scenario,
-        set: a.set,
+        set: a.set.into(),
         segments: a.segments,
         stencil: a.stencil,
         welch_segments: a.welch_segments,

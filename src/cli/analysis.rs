@@ -6,10 +6,9 @@ use std::path::PathBuf;
 use anyhow::Result;
 use clap::Args;
 
+use super::values::{Estimator, Whitening};
 use super::ModelOpt;
 use crate::analysis::job::{psd as psd_job, DatasetFit, FitJob, WhitenJob};
-use crate::analysis::Whitening;
-use crate::fit::Estimator;
 use crate::setup::{DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 
 #[derive(Debug, Args)]
@@ -140,8 +139,8 @@ pub fn fit(a: FitArgs) -> Result<()> {
     let setup = a.model.any_setup()?;
     let job = FitJob {
         dataset: a.fit.dataset_fit(),
-        estimator: a.estimator,
-        whitening: a.whitening,
+        estimator: a.estimator.into(),
+        whitening: a.whitening.into(),
         transient: a.transient,
     };
     let fitted = super::working("fitting", |notes| {

@@ -5,12 +5,11 @@ use std::path::PathBuf;
 use anyhow::Result;
 use clap::{Args, Subcommand};
 
+use super::values::{Choice, Layout, Matrix, Scaling};
 use super::ModelOpt;
-use crate::design::criteria::{Choice, Matrix};
 use crate::design::report::{evaluate_design, write_validation};
-use crate::design::space::Layout;
 use crate::design::validate::{validate as run_validation, Study, ValidationConfig};
-use crate::design::{AnyStudy, Scaling};
+use crate::design::AnyStudy;
 use crate::io::{ensure_dir, ensure_parent, read_toml, write_parquet};
 use crate::signal::Design;
 
@@ -100,11 +99,11 @@ pub fn run(c: DesignCmd) -> Result<()> {
 fn optimize(a: OptimizeArgs) -> Result<()> {
     let (o, out) = (&a.study, &a.out);
     let (sc, pars) = (o.scenario.as_deref(), o.parameters.as_deref());
-    let st = AnyStudy::new(o.model.any_setup()?, sc, o.scaling, pars)?;
+    let st = AnyStudy::new(o.model.any_setup()?, sc, o.scaling.into(), pars)?;
     ensure_dir(out)?;
-    let crits = a.criterion.criteria(a.on);
+    let crits = crate::design::criteria::Choice::from(a.criterion).criteria(a.on.into());
     let (report, files) = super::working("optimising", |_| {
-        st.write_optimization(a.layout, &crits, out)
+        st.write_optimization(a.layout.into(), &crits, out)
     })?;
     // Printed only once every file is written.
     out!("{report}");
@@ -115,7 +114,7 @@ fn optimize(a: OptimizeArgs) -> Result<()> {
 fn evaluate(a: EvaluateArgs) -> Result<()> {
     let (o, setup) = (&a.study, a.study.model.setup()?);
     let (sc, pars) = (o.scenario.as_deref(), o.parameters.as_deref());
-    let st = Study::at_scenario(&setup, sc, o.scaling, pars)?;
+    let st = Study::at_scenario(&setup, sc, o.scaling.into(), pars)?;
     let design: Design = read_toml(&a.design)?;
     let ev = evaluate_design(&setup, &st, &design, &a.design)?;
     for n in ev.violation_notes(&a.design, a.allow_violations)? {

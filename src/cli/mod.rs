@@ -37,6 +37,7 @@ pub mod design;
 pub mod diagnose;
 pub mod model;
 pub mod simulate;
+pub mod values;
 
 use std::path::{Path, PathBuf};
 
@@ -106,7 +107,7 @@ pub struct ModelOpt {
     /// embedded model is digital (the spacecraft's held, sampled loop); `continuous` is the
     /// thesis's idealisation, which its tables use.
     #[arg(long = "loop", value_enum, value_name = "KIND")]
-    pub control_loop: Option<crate::model::spec::LoopKind>,
+    pub control_loop: Option<values::LoopKind>,
 }
 
 impl ModelOpt {
@@ -114,7 +115,7 @@ impl ModelOpt {
     pub fn any_setup(&self) -> Result<crate::setup::AnySetup, crate::setup::Error> {
         let setup = crate::setup::AnySetup::load(self.model.as_deref())?;
         Ok(match self.control_loop {
-            Some(kind) => setup.with_loop(kind)?,
+            Some(kind) => setup.with_loop(kind.into())?,
             None => setup,
         })
     }

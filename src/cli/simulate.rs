@@ -5,13 +5,12 @@ use std::path::{Path, PathBuf};
 use anyhow::Result;
 use clap::Args;
 
+use super::values::{Engine, Rate};
 use super::ModelOpt;
 use crate::io::write_dataset;
 use crate::setup::AnySetup;
 use crate::sim::simulate_job::SimulateJob;
 use crate::sim::time_domain::InitialConditions;
-use crate::sim::Engine;
-use crate::sim::Rate;
 
 #[derive(Debug, Args)]
 pub struct SimulateArgs {
@@ -82,8 +81,8 @@ impl SimulateArgs {
             scenario: self.scenario.clone(),
             design: self.design.clone(),
             seed: self.seed,
-            rate: self.rate,
-            engine: self.engine,
+            rate: self.rate.map(Into::into),
+            engine: self.engine.into(),
             initial: self.initial,
             noise_duration: self.noise_duration,
             effects: self.effects.clone(),

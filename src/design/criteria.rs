@@ -38,11 +38,9 @@ use nalgebra::DMatrix;
 use super::DesignError;
 
 /// Information or covariance matrix.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Matrix {
-    #[value(alias = "info")]
     Information,
-    #[value(alias = "cov")]
     Covariance,
 }
 
@@ -55,7 +53,7 @@ pub enum Kind {
 }
 
 /// The criteria an optimisation is asked for: one kind on a chosen matrix, or all six.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Choice {
     D,
     E,
@@ -161,7 +159,7 @@ impl Criterion {
 }
 
 /// Parameter scaling for T and E (module docs).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Scaling {
     Natural,
     Nominal,

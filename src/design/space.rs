@@ -209,7 +209,7 @@ pub struct DesignSpace {
 }
 
 /// How the experiments use the inputs.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Layout {
     /// Multi-experiment single-input: Exp. 1 on oi1, Exp. 2 on oi12 (thesis sec. 5.3).
     Separate,

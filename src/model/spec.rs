@@ -619,7 +619,7 @@ pub struct AntiAliasSpec {
 
 /// Which frequency response the model uses: the thesis's continuous loop, or the sampled-data
 /// loop (discrete controllers at `sampling.simulate_hz`, commands held, continuous plant).
-#[derive(Debug, Clone, Copy, Default, Deserialize, PartialEq, Eq, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, Default, Deserialize, PartialEq, Eq)]
 #[serde(rename_all = "snake_case")]
 pub enum LoopKind {
     /// The thesis's idealisation: continuous controllers, no hold (its tables use it).

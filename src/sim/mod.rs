@@ -2,6 +2,13 @@
 //! realization, `o_exp = o_s + o_n`; a noise-only run is produced the same way with zero
 //! injections. `time_domain` instead steps the digital loop sample by sample (held commands,
 //! discrete controllers, exactly integrated plant), as the spacecraft makes its data.
+//!
+//! Built from a model file's setup by the builders of `from_setup` (`Setup::simulator`,
+//! `decimated_simulator`, `time_domain_simulator`, `SetupOf::plain_simulator`). What the nominal
+//! model lacks is switched on here too: library effects, drifts and glitches in the truth
+//! ([`simulate_with_effects`] and its kin), glitches and lines added to the readouts
+//! ([`inject`], [`glitch`]); [`simulate_job`] (with [`simulate_xy`] for the xy model) is the
+//! `simulate` command's job, a dataset with its `[meta]`.
 
 pub mod auxiliary;
 pub mod decimated;
@@ -28,7 +35,7 @@ pub use simulate::{
 pub use whitened::WhitenedSimulator;
 
 /// The simulation engine of a dataset or a campaign.
-#[derive(Debug, Clone, Copy, clap::ValueEnum, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Engine {
     /// Templates plus coloured noise of the continuous loop's PSD (fast; the campaigns'
     /// default).
@@ -49,7 +56,7 @@ impl Engine {
 }
 
 /// The simulation path of a dataset.
-#[derive(Debug, Clone, Copy, clap::ValueEnum, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Rate {
     /// Simulate at the model's simulate_hz and decimate with the anti-alias FIR (thesis).
     Decimated,
