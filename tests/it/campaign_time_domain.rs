@@ -131,6 +131,7 @@ fn shipped_continuous_model_is_the_embedded_model_made_continuous() {
 }
 
 #[test]
+#[ignore = "slow tier: Monte Carlo of 200 time-domain realizations against Fisher"]
 fn time_domain_campaign_scatter_matches_fisher() {
     // Oracle: Fisher errors. 200 time-domain realizations (campaigns/time_domain.toml: digital
     // loop at 10 Hz decimated to 1 Hz, fitted with the sampled-data model) must scatter as the

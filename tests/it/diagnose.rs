@@ -599,7 +599,7 @@ fn cli_end_to_end_writes_the_report() {
 }
 
 #[test]
-#[ignore]
+#[ignore = "slow tier: calibration printout of the pulls over 10 seeds x 3 effects (no oracle)"]
 fn pull_scan() {
     // Calibration aid (not an oracle): pulls after the diagnosis over seeds.
     for effect in [
