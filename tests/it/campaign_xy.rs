@@ -1,5 +1,5 @@
 //! Campaigns on the 7-DOF xy model (thesis sec. 3.5): the shipped campaigns/xy_crosstalk.toml at a
-//! reduced realization count, the x-only features refused for the xy model, and the singular
+//! reduced realization count (32 in the slow tier, 2 in the default one), the x-only features refused for the xy model, and the singular
 //! information of all 31 parameters reported instead of hidden.
 
 use std::path::{Path, PathBuf};
@@ -167,6 +167,61 @@ fn xy_crosstalk_scatter_matches_fisher() {
     assert_eq!((t("ds_1y1"), t("ds_2y2")), (0.005, -0.003));
 }
 
+// The default tier's version of `xy_crosstalk_scatter_matches_fisher` (slow tier): the same
+// campaign at 2 realizations. Oracle: the frequency-domain Fisher information of the design
+// (`fisher_sigmas`), which the fits' own sigma (J^T J at the estimate) must match within the
+// same 10 % as there: it is not a sampled quantity, so 2 realizations do not loosen it. The
+// Monte Carlo sd and the bias are sampled (the sd of 2 estimates is known to 71 %), so they are
+// left to the slow tier; instead each estimate must lie within 4.5 of its fit's sigma of the
+// truth (20 Gaussian pulls: a false alarm about once in 7000 runs). Every fit converges.
+#[test]
+fn xy_crosstalk_campaign_fits_with_the_design_fisher_errors() {
+    let tmp = tempfile::tempdir().unwrap();
+    let file = xy_campaign(tmp.path(), 2, None);
+    let out = tmp.path().join("out");
+    let m = run(&file, &out).unwrap();
+    assert_eq!((m.fits, m.failed), (2, 0));
+    assert_eq!(m.layout.parameters.len(), 31);
+    assert_eq!(m.model, "embedded lpf_xy");
+    let fixed = campaign::load(Some(&file)).unwrap().campaign.fit.fixed;
+    let fisher = fisher_sigmas(&SENSING, &fixed);
+    let s = read_parquet(out.join("summary.parquet")).unwrap();
+    let (p, mean_sigma, truth) = (
+        s.str_column("parameter").unwrap(),
+        s.f64_column("mean_sigma").unwrap(),
+        s.f64_column("truth").unwrap(),
+    );
+    let mut seen = 0;
+    for i in 0..s.num_rows() {
+        let Some(k) = SENSING.iter().position(|n| *n == p[i]) else {
+            continue;
+        };
+        seen += 1;
+        assert!(
+            (mean_sigma[i] / fisher[k] - 1.0).abs() < 0.1,
+            "{}: mean fit sigma {:.3e} vs Fisher sigma {:.3e}",
+            p[i],
+            mean_sigma[i],
+            fisher[k]
+        );
+    }
+    assert_eq!(seen, SENSING.len());
+    let r = read_parquet(out.join("realizations.parquet")).unwrap();
+    for (k, name) in SENSING.iter().enumerate() {
+        let t = truth[p.iter().position(|x| x == name).unwrap()];
+        let est = r.f64_column(name).unwrap();
+        let sig = r.f64_column(&format!("{name}_sigma")).unwrap();
+        assert_eq!(est.len(), 2);
+        for (j, (e, sg)) in est.iter().zip(sig.iter()).enumerate() {
+            assert!(
+                ((e - t) / sg).abs() < 4.5,
+                "{name} realization {j}: estimate {e:.3e}, truth {t:.3e}, sigma {sg:.3e} (Fisher {:.3e})",
+                fisher[k]
+            );
+        }
+    }
+}
+
 // Oracle: the Fisher information of the standard_xy design in all 31 parameters is singular
 // (campaigns/xy_crosstalk.toml's [fit] comment: ds_2* with d_sus_* and ds_1y1 + ds_1y2 with
 // d_df_ysc); without `fixed` the campaign must stop on it, naming the unconstrained direction,
@@ -278,7 +333,10 @@ fn x_only_features_are_refused_for_the_xy_model() {
 // Oracle: the campaign determinism contract (campaign module docs): realization i draws only
 // from stream(seed, i), so an xy campaign's tables are bit-identical whatever the thread count
 // and sharding (two shards on one thread each, merged, against one run on two threads).
+// Slow tier: three runs of the xy set-up; the default tier runs the xy campaign once in
+// `xy_crosstalk_campaign_fits_with_the_design_fisher_errors`.
 #[test]
+#[ignore = "slow tier: three xy campaigns (whole and two shards) compared bit for bit"]
 fn xy_campaign_is_deterministic_across_threads_and_shards() {
     let tmp = tempfile::tempdir().unwrap();
     let file = xy_campaign(tmp.path(), 2, None);

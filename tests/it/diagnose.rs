@@ -1,7 +1,7 @@
 //! End-to-end tests of the diagnosis on simulated data carrying an effect the fit model lacks.
 //! Data: the embedded LPF-x model with the thesis's continuous loop (the selection logic is the
 //! same for both loops; the digital one is diagnosed on time-domain data in
-//! tests/time_domain_diagnose.rs, at 2.3x the run time of the continuous one), monte_carlo truth, standard design, one noise
+//! tests/it/time_domain_diagnose.rs, at 2.3x the run time of the continuous one), monte_carlo truth, standard design, one noise
 //! run; the truth adds library effects through `simulate_with_effects` (the same operators the
 //! diagnosis tests, but the fit starts from the nominal model without them).
 //!
@@ -280,7 +280,7 @@ fn effects_degenerate_with_fitted_parameters_are_reported_not_claimed() {
             cand.identifiable_fraction
         );
         // The redesign verdict rides with the candidate: no single allowed stretch separates
-        // these (tests/redesign.rs checks the probe itself against a time-domain Jacobian).
+        // these (tests/it/redesign.rs checks the probe itself against a time-domain Jacobian).
         let r = cand
             .redesign
             .as_ref()

@@ -10,7 +10,7 @@ use freefall::model::{transfer, transfer_with_derivatives, ClosedLoopModel, LpfX
 const FD_REL_TOL: f64 = 1e-3;
 
 /// The thesis's continuous loop: the stability oracles below are its exact characteristic
-/// polynomial (the digital loop's are in tests/time_domain_effects.rs).
+/// polynomial (the digital loop's are in tests/it/time_domain_effects.rs).
 fn setup() -> (LpfX, Vec<f64>) {
     let spec = ModelSpec::embedded_continuous();
     (

@@ -181,7 +181,7 @@ fn lagged_loop_approaches_the_continuous_loop_with_the_library_lag() {
     // Oracle: the continuous T_{oi->o} of the reference model extended by the library's
     // actuation_lag_df (L(s) = 1 / (1 + s tau) on the drag-free column of A C). The digital
     // loop with the lag differs from it only by the hold and Tustin, O(w h), as without the lag
-    // (tests/time_domain.rs); the test allows 2 w h at the seven standard frequencies. A wrong
+    // (tests/it/time_domain.rs); the test allows 2 w h at the seven standard frequencies. A wrong
     // sign, gain or time constant of the lag is an O(1) error where w tau ~ 1 (0.4 Hz^-1 here).
     let setup = Setup::embedded_continuous();
     let p = setup.spec.scenario("monte_carlo").unwrap().truth;
