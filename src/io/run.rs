@@ -28,7 +28,9 @@ use std::io::{BufWriter, Write};
 use std::path::{Path, PathBuf};
 
 use super::atomic::AtomicFile;
-use super::table::{read_parquet_tolerant, write_parquet, Column, ReadReport, Table};
+use super::table::{
+    read_parquet_tolerant, read_parquet_tolerant_missing, write_parquet, Column, ReadReport, Table,
+};
 use super::{in_memory, IoError, DEBUG_MAX_ROWS};
 
 /// Name of the time column [s].
@@ -260,6 +262,15 @@ fn order_columns(mut columns: Vec<(String, Vec<f64>)>) -> Vec<(String, Vec<f64>)
 
 /// Unique names, required columns present, equal lengths >= MIN_ROWS, finite values.
 fn check_columns(path: &Path, columns: &[(String, Vec<f64>)]) -> Result<(), IoError> {
+    check_shape(path, columns)?;
+    for (name, values) in columns {
+        check_finite(path, name, values)?;
+    }
+    Ok(())
+}
+
+/// Unique names, required columns present, equal lengths >= MIN_ROWS.
+fn check_shape(path: &Path, columns: &[(String, Vec<f64>)]) -> Result<(), IoError> {
     for (i, (name, _)) in columns.iter().enumerate() {
         if columns[..i].iter().any(|(n, _)| n == name) {
             return Err(IoError::DuplicateColumn {
@@ -295,9 +306,6 @@ fn check_columns(path: &Path, columns: &[(String, Vec<f64>)]) -> Result<(), IoEr
             min: MIN_ROWS,
         });
     }
-    for (name, values) in columns {
-        check_finite(path, name, values)?;
-    }
     Ok(())
 }
 
@@ -314,10 +322,11 @@ fn check_finite(path: &Path, name: &str, values: &[f64]) -> Result<(), IoError> 
 }
 
 /// Checks that `t` (finite, at least 2 samples) strictly increases and is uniform; returns
-/// (t0, dt). Rows in errors are counted from `first_row` (a segment's place in its file).
-fn check_time(path: &Path, t: &[f64], first_row: usize) -> Result<(f64, f64), IoError> {
+/// (t0, dt). Errors name the file row `row(i)` of sample `i` (a segment's place in its file,
+/// rows left out before).
+fn check_time(path: &Path, t: &[f64], row: &dyn Fn(usize) -> usize) -> Result<(f64, f64), IoError> {
     let n = t.len();
-    check_increasing(path, t, first_row)?;
+    check_increasing(path, t, row)?;
     let t0 = t[0];
     let dt = (t[n - 1] - t0) / (n - 1) as f64;
     // Rounding of the stored time stamps themselves: a few ulps of the largest |t|.
@@ -334,7 +343,7 @@ fn check_time(path: &Path, t: &[f64], first_row: usize) -> Result<(f64, f64), Io
         if (t[i] - expected).abs() > 4.0 * (TIME_TOLERANCE * median + slack) {
             return Err(IoError::NonUniformTime {
                 path: path.to_path_buf(),
-                row: first_row + i,
+                row: row(i),
                 expected,
                 found: t[i],
                 dt: median,
@@ -347,7 +356,7 @@ fn check_time(path: &Path, t: &[f64], first_row: usize) -> Result<(f64, f64), Io
         if (ti - expected).abs() > tol {
             return Err(IoError::NonUniformTime {
                 path: path.to_path_buf(),
-                row: first_row + i,
+                row: row(i),
                 expected,
                 found: ti,
                 dt,
@@ -357,11 +366,11 @@ fn check_time(path: &Path, t: &[f64], first_row: usize) -> Result<(f64, f64), Io
     Ok((t0, dt))
 }
 
-fn check_increasing(path: &Path, t: &[f64], first_row: usize) -> Result<(), IoError> {
+fn check_increasing(path: &Path, t: &[f64], row: &dyn Fn(usize) -> usize) -> Result<(), IoError> {
     match (1..t.len()).find(|&i| t[i] <= t[i - 1]) {
         Some(i) => Err(IoError::TimeNotIncreasing {
             path: path.to_path_buf(),
-            row: first_row + i,
+            row: row(i),
             previous: t[i - 1],
             found: t[i],
         }),
@@ -390,7 +399,16 @@ fn find_gaps(t: &[f64]) -> Vec<usize> {
 }
 
 /// Builds a validated run from the columns of a file (including `t`).
-fn run_from_columns(path: &Path, mut columns: Vec<(String, Vec<f64>)>) -> Result<Run, IoError> {
+fn run_from_columns(path: &Path, columns: Vec<(String, Vec<f64>)>) -> Result<Run, IoError> {
+    run_from_rows(path, columns, &|i| i)
+}
+
+/// [`run_from_columns`] for columns whose sample `i` is row `row(i)` of the file.
+fn run_from_rows(
+    path: &Path,
+    mut columns: Vec<(String, Vec<f64>)>,
+    row: &dyn Fn(usize) -> usize,
+) -> Result<Run, IoError> {
     let Some(ti) = columns.iter().position(|(n, _)| n == TIME_COLUMN) else {
         return Err(IoError::MissingColumn {
             path: path.to_path_buf(),
@@ -401,7 +419,7 @@ fn run_from_columns(path: &Path, mut columns: Vec<(String, Vec<f64>)>) -> Result
     // Check everything (lengths, finiteness) with `t` in its file position, then take it out.
     check_columns(path, &columns)?;
     let (_, t) = columns.remove(ti);
-    let (t0, dt) = check_time(path, &t, 0)?;
+    let (t0, dt) = check_time(path, &t, row)?;
     Ok(Run {
         path: Some(path.to_path_buf()),
         t0,
@@ -412,26 +430,29 @@ fn run_from_columns(path: &Path, mut columns: Vec<(String, Vec<f64>)>) -> Result
 }
 
 /// Validated runs from the columns of a file (including `t`), one per contiguous segment
-/// between gaps (see the module docs).
+/// between gaps (see the module docs). Sample `i` is row `rows[i]` of the file (`None`: row
+/// `i`; rows left out as missing samples make the difference).
 fn segments_from_columns(
     path: &Path,
     mut columns: Vec<(String, Vec<f64>)>,
+    rows: Option<&[usize]>,
 ) -> Result<Vec<Run>, IoError> {
+    let row = |i: usize| rows.map_or(i, |r| r[i]);
     let Some(ti) = columns.iter().position(|(n, _)| n == TIME_COLUMN) else {
-        return run_from_columns(path, columns).map(|r| vec![r]);
+        return run_from_rows(path, columns, &row).map(|r| vec![r]);
     };
     check_columns(path, &columns)?;
-    check_increasing(path, &columns[ti].1, 0)?;
+    check_increasing(path, &columns[ti].1, &row)?;
     let gaps = find_gaps(&columns[ti].1);
     if gaps.is_empty() {
-        return run_from_columns(path, columns).map(|r| vec![r]);
+        return run_from_rows(path, columns, &row).map(|r| vec![r]);
     }
     let (_, t) = columns.remove(ti);
     let columns = order_columns(columns);
-    let gap_at = |row: usize| Gap {
-        row,
-        t_before: t[row - 1],
-        t_after: t[row],
+    let gap_at = |i: usize| Gap {
+        row: row(i),
+        t_before: t[i - 1],
+        t_after: t[i],
     };
     let mut bounds = vec![0];
     bounds.extend(&gaps);
@@ -443,7 +464,7 @@ fn segments_from_columns(
         let segment = Segment {
             index,
             count,
-            first_row: a,
+            first_row: row(a),
             gap_before: (index > 0).then(|| gap_at(a)),
             gap_after: (index + 1 < count).then(|| gap_at(b)),
         };
@@ -451,14 +472,15 @@ fn segments_from_columns(
             return Err(IoError::invalid(
                 path,
                 format!(
-                    "the segment at row {a} (t = {} s) next to {} has {} row(s), at least                      {MIN_ROWS} are needed (drop it from the file)",
+                    "the segment at row {} (t = {} s) next to {} has {} row(s), at least {MIN_ROWS} are needed (drop it from the file)",
+                    row(a),
                     super::fmt_short(t[a]),
                     segment.gap().expect("a split run has gaps"),
                     b - a
                 ),
             ));
         }
-        let (t0, dt) = check_time(path, &t[a..b], a)?;
+        let (t0, dt) = check_time(path, &t[a..b], &|i| row(a + i))?;
         runs.push(Run {
             path: Some(path.to_path_buf()),
             t0,
@@ -471,6 +493,275 @@ fn segments_from_columns(
         });
     }
     Ok(runs)
+}
+
+/// Most row ranges a note lists before it summarises the rest.
+const NOTE_MAX_RANGES: usize = 8;
+
+/// NaN (or null, or an empty CSV field) samples and repeated rows of a run file's columns
+/// (including `t`), for the readers that accept gaps. Returns the columns without those rows and
+/// the file row of every row kept; notes say what was left out.
+///
+/// - A NaN time, or an infinite value anywhere, is an error naming the file, column and row.
+/// - A row at a time already seen (a merge of overlapping telemetry files) is dropped if every
+///   column equals the earlier row's (NaN equal to NaN), with a note naming the rows; a row that
+///   differs is a one-line error naming both rows and the first differing column. A row earlier
+///   than one before it at a time not seen is the error "not strictly increasing".
+/// - A row with a NaN readout (`o1`, `o12`, a declared auxiliary column) or guidance sample
+///   (`oi1`, `oi12`: the guidance template needs the injection at every sample) is a missing
+///   sample: the row is left out, as if it were absent, so [`segments_from_columns`] sees a gap
+///   there. A note names the rows, times and length. Fewer than [`MIN_ROWS`] rows between two
+///   holes (or a hole and an end) cannot form a segment and are left out with them.
+/// - An undeclared extra column (not used by the model) with a NaN is left out with a note
+///   rather than making holes.
+fn missing_rows(
+    path: &Path,
+    mut columns: Columns,
+    declared: Option<&[String]>,
+    notes: &mut Vec<String>,
+) -> Result<(Columns, Vec<usize>), IoError> {
+    let n = columns.first().map_or(0, |(_, c)| c.len());
+    let Some(ti) = columns.iter().position(|(n, _)| n == TIME_COLUMN) else {
+        // No time column: the run builder reports it.
+        return Ok((columns, (0..n).collect()));
+    };
+    check_shape(path, &columns)?;
+    check_finite(path, TIME_COLUMN, &columns[ti].1)?;
+    for (name, values) in &columns {
+        if let Some(row) = values.iter().position(|v| v.is_infinite()) {
+            return Err(IoError::NonFinite {
+                path: path.to_path_buf(),
+                column: name.clone(),
+                row,
+                value: values[row],
+            });
+        }
+    }
+    let label = path.display();
+    let sample = |name: &str| {
+        REQUIRED.contains(&name) || declared.is_some_and(|d| d.iter().any(|x| x == name))
+    };
+    columns.retain(|(name, values)| {
+        if name == TIME_COLUMN || sample(name) {
+            return true;
+        }
+        match values.iter().position(|v| v.is_nan()) {
+            Some(row) => {
+                notes.push(format!(
+                    "{label}: column '{name}' left out: NaN or null at row {row} (not a declared \
+                     readout, so its missing samples do not make holes)"
+                ));
+                false
+            }
+            None => true,
+        }
+    });
+    let ti = columns
+        .iter()
+        .position(|(n, _)| n == TIME_COLUMN)
+        .expect("the time column is kept");
+    let t = &columns[ti].1;
+    let same = |a: f64, b: f64| a == b || (a.is_nan() && b.is_nan());
+
+    // Rows at a time already seen: exact repeats are dropped, others are errors.
+    let mut kept: Vec<usize> = Vec::with_capacity(n);
+    let mut repeats: Vec<usize> = Vec::new();
+    for i in 0..n {
+        match kept.last() {
+            Some(&last) if t[i] <= t[last] => {
+                let at = kept.partition_point(|&j| t[j] < t[i]);
+                let Some(&j) = kept.get(at).filter(|&&j| t[j] == t[i]) else {
+                    return Err(IoError::TimeNotIncreasing {
+                        path: path.to_path_buf(),
+                        row: i,
+                        previous: t[i - 1],
+                        found: t[i],
+                    });
+                };
+                if let Some((name, c)) = columns.iter().find(|(_, c)| !same(c[i], c[j])) {
+                    return Err(IoError::invalid(
+                        path,
+                        format!(
+                            "rows {j} and {i} are both at t = {} s but differ in column \
+                             '{name}' ({:?} and {:?}): a repeated row must repeat every column",
+                            super::fmt_short(t[i]),
+                            c[j],
+                            c[i]
+                        ),
+                    ));
+                }
+                repeats.push(i);
+            }
+            _ => kept.push(i),
+        }
+    }
+    if !repeats.is_empty() {
+        notes.push(format!(
+            "{label}: {} row(s) repeat an earlier row exactly (same time, every column equal) and \
+             are dropped: {}",
+            repeats.len(),
+            describe_rows(&repeats, &|i| t[i], None)
+        ));
+    }
+
+    // Holes: rows of `kept` with a NaN sample, and the too-short islands between them.
+    let nan_in = |i: usize| -> Vec<&str> {
+        columns
+            .iter()
+            .filter(|(name, c)| name != TIME_COLUMN && c[i].is_nan())
+            .map(|(name, _)| name.as_str())
+            .collect()
+    };
+    let mut hole: Vec<bool> = kept.iter().map(|&i| !nan_in(i).is_empty()).collect();
+    let mut k = 0;
+    while k < hole.len() {
+        let end = (k..hole.len()).find(|&e| hole[e]).unwrap_or(hole.len());
+        let touches_hole = (k > 0 && hole[k - 1]) || (end < hole.len() && hole[end]);
+        if end - k < MIN_ROWS && touches_hole {
+            hole[k..end].fill(true);
+        }
+        k = (end..hole.len())
+            .find(|&e| !hole[e])
+            .unwrap_or(hole.len());
+    }
+    if hole.iter().all(|&h| h) && !hole.is_empty() {
+        return Err(IoError::invalid(
+            path,
+            format!(
+                "every row has a NaN or null readout or guidance sample ({} rows)",
+                kept.len()
+            ),
+        ));
+    }
+    if hole.iter().any(|&h| h) {
+        let step = median_step(&kept.iter().map(|&i| t[i]).collect::<Vec<_>>());
+        let mut k = 0;
+        let mut stretches = 0;
+        while k < hole.len() {
+            if !hole[k] {
+                k += 1;
+                continue;
+            }
+            let end = (k..hole.len()).find(|&e| !hole[e]).unwrap_or(hole.len());
+            stretches += 1;
+            if stretches > NOTE_MAX_RANGES {
+                k = end;
+                continue;
+            }
+            let rows = &kept[k..end];
+            let mut names: Vec<&str> = Vec::new();
+            let mut islands = Vec::new();
+            for &i in rows {
+                let bad = nan_in(i);
+                if bad.is_empty() {
+                    islands.push(i);
+                }
+                for b in bad {
+                    if !names.contains(&b) {
+                        names.push(b);
+                    }
+                }
+            }
+            let order = |name: &&str| columns.iter().position(|(n, _)| n == name);
+            names.sort_by_key(order);
+            let guidance = names.iter().filter(|c| INPUT_COLUMNS.contains(c)).count();
+            let what = match (guidance, names.len() - guidance) {
+                (_, 0) => "guidance",
+                (0, _) => "readouts",
+                _ => "readouts and guidance",
+            };
+            let action = if k == 0 {
+                "left out (the run starts after them)"
+            } else if end == hole.len() {
+                "left out (the run ends before them)"
+            } else {
+                "treated as a gap"
+            };
+            let why = if guidance > 0 {
+                "; a guidance sample is needed at every sample by the guidance template"
+            } else {
+                ""
+            };
+            let islands = if islands.is_empty() {
+                String::new()
+            } else {
+                format!(
+                    "; {} row(s) between them are too few for a segment and are left out too: {}",
+                    islands.len(),
+                    describe_rows(&islands, &|i| t[i], None)
+                )
+            };
+            notes.push(format!(
+                "{label}: {} have NaN/null {what} ({}): {action}{why}{islands}",
+                describe_rows(rows, &|i| t[i], Some(step)),
+                names.join(", ")
+            ));
+            k = end;
+        }
+        if stretches > NOTE_MAX_RANGES {
+            notes.push(format!(
+                "{label}: {} more stretches of rows with NaN/null samples treated as gaps \
+                 ({} rows with NaN/null samples in all)",
+                stretches - NOTE_MAX_RANGES,
+                hole.iter().filter(|&&h| h).count()
+            ));
+        }
+    }
+    let rows: Vec<usize> = kept
+        .iter()
+        .zip(&hole)
+        .filter(|(_, &h)| !h)
+        .map(|(&i, _)| i)
+        .collect();
+    if rows.len() == n {
+        return Ok((columns, rows));
+    }
+    let columns = columns
+        .into_iter()
+        .map(|(name, c)| (name, rows.iter().map(|&i| c[i]).collect()))
+        .collect();
+    Ok((columns, rows))
+}
+
+/// The median step of a strictly increasing `t` (0 for fewer than 2 samples).
+fn median_step(t: &[f64]) -> f64 {
+    let mut steps: Vec<f64> = t.windows(2).map(|w| w[1] - w[0]).collect();
+    if steps.is_empty() {
+        return 0.0;
+    }
+    let mid = steps.len() / 2;
+    let (_, &mut median, _) = steps.select_nth_unstable_by(mid, f64::total_cmp);
+    median
+}
+
+/// `rows 6500-6599 (t = 6500-6599 s, 100 s)`: the file rows `rows` (increasing) as ranges of
+/// consecutive rows with their times, each with its length (samples times `step`) when given;
+/// at most [`NOTE_MAX_RANGES`] ranges, then how many more.
+fn describe_rows(rows: &[usize], t: &dyn Fn(usize) -> f64, step: Option<f64>) -> String {
+    let mut ranges: Vec<(usize, usize)> = Vec::new();
+    for &i in rows {
+        match ranges.last_mut() {
+            Some((_, b)) if *b + 1 == i => *b = i,
+            _ => ranges.push((i, i)),
+        }
+    }
+    let f = super::fmt_short;
+    let one = |&(a, b): &(usize, usize)| {
+        let len = step.map_or(String::new(), |s| {
+            let count = rows.iter().filter(|&&i| (a..=b).contains(&i)).count();
+            format!(", {} s", f(count as f64 * s))
+        });
+        if a == b {
+            format!("row {a} (t = {} s{len})", f(t(a)))
+        } else {
+            format!("rows {a}-{b} (t = {}-{} s{len})", f(t(a)), f(t(b)))
+        }
+    };
+    let mut text: Vec<String> = ranges.iter().take(NOTE_MAX_RANGES).map(one).collect();
+    if ranges.len() > NOTE_MAX_RANGES {
+        text.push(format!("and {} more ranges", ranges.len() - NOTE_MAX_RANGES));
+    }
+    text.join(", ")
 }
 
 enum Format {
@@ -511,7 +802,7 @@ pub const INTEGER_TIME_STEP_LIMIT: i64 = 1000;
 /// the first sample, float32 readouts, numeric columns the model does not use.
 pub fn read_run_noted(path: impl AsRef<Path>) -> Result<(Run, Vec<String>), IoError> {
     let path = path.as_ref();
-    let (columns, notes) = read_columns_noted(path, None)?;
+    let (columns, notes) = read_columns_noted(path, None, false)?;
     Ok((run_from_columns(path, columns)?, notes))
 }
 
@@ -519,8 +810,9 @@ pub fn read_run_noted(path: impl AsRef<Path>) -> Result<(Run, Vec<String>), IoEr
 /// segment (see the module docs), in time order.
 pub fn read_run_segments(path: impl AsRef<Path>) -> Result<(Vec<Run>, Vec<String>), IoError> {
     let path = path.as_ref();
-    let (columns, notes) = read_columns_noted(path, None)?;
-    Ok((segments_from_columns(path, columns)?, notes))
+    let (columns, mut notes) = read_columns_noted(path, None, true)?;
+    let (columns, rows) = missing_rows(path, columns, None, &mut notes)?;
+    Ok((segments_from_columns(path, columns, Some(&rows))?, notes))
 }
 
 /// [`read_run_segments`] for a run of a dataset that declares the auxiliary readouts
@@ -532,7 +824,7 @@ pub fn read_run_segments_declared(
     declared: &[String],
 ) -> Result<(Vec<Run>, Vec<String>), IoError> {
     let path = path.as_ref();
-    let (columns, notes) = read_columns_noted(path, Some(declared))?;
+    let (columns, mut notes) = read_columns_noted(path, Some(declared), true)?;
     if let Some(missing) = declared
         .iter()
         .find(|d| !columns.iter().any(|(n, _)| n == *d))
@@ -546,27 +838,36 @@ pub fn read_run_segments_declared(
             ),
         ));
     }
-    Ok((segments_from_columns(path, columns)?, notes))
+    let (columns, rows) = missing_rows(path, columns, Some(declared), &mut notes)?;
+    Ok((segments_from_columns(path, columns, Some(&rows))?, notes))
 }
 
 /// Named columns of a run file.
 type Columns = Vec<(String, Vec<f64>)>;
 
 /// The columns of a run file as `f64` (the time column converted to seconds), and the notes
-/// of what was read leniently.
+/// of what was read leniently. With `missing`, a null in a readout or guidance column (Parquet)
+/// or an empty field (CSV) reads as NaN, a missing sample ([`missing_rows`] makes it a hole).
 fn read_columns_noted(
     path: &Path,
     declared: Option<&[String]>,
+    missing: bool,
 ) -> Result<(Columns, Vec<String>), IoError> {
     let mut required = vec![TIME_COLUMN];
     required.extend(REQUIRED);
     let (mut table, report, mut notes) = match format_of(path)? {
+        Format::Parquet if missing => {
+            let mut samples: Vec<&str> = REQUIRED.to_vec();
+            samples.extend(declared.unwrap_or_default().iter().map(String::as_str));
+            let (table, report) = read_parquet_tolerant_missing(path, &required, &samples)?;
+            (table, report, Vec::new())
+        }
         Format::Parquet => {
             let (table, report) = read_parquet_tolerant(path, &required)?;
             (table, report, Vec::new())
         }
         Format::Csv => {
-            let (table, notes) = read_csv_noted(path)?;
+            let (table, notes) = read_csv_with(path, missing)?;
             (table, ReadReport::default(), notes)
         }
     };
@@ -764,7 +1065,12 @@ fn is_index_name(name: &str) -> bool {
 /// blank lines and lines starting with `#` are dropped first, keeping each line's number for the
 /// errors. Every field is parsed as an `f64` (surrounding spaces allowed).
 pub fn read_csv_noted(path: impl AsRef<Path>) -> Result<(Table, Vec<String>), IoError> {
-    let path = path.as_ref();
+    read_csv_with(path.as_ref(), false)
+}
+
+/// [`read_csv_noted`]; with `empty_as_nan` an empty field is a missing value (NaN, as pandas'
+/// `to_csv` writes one) instead of an error.
+fn read_csv_with(path: &Path, empty_as_nan: bool) -> Result<(Table, Vec<String>), IoError> {
     let text = super::atomic::read_text(path)?;
     let text = text.strip_prefix('\u{feff}').unwrap_or(&text);
     let csv_err = |line: usize, message: String| IoError::Csv {
@@ -806,7 +1112,14 @@ pub fn read_csv_noted(path: impl AsRef<Path>) -> Result<(Table, Vec<String>), Io
             });
         }
     }
-    let values = csv_values(path, &kept.join("\n"), &line_of, &names, delimiter, index)?;
+    let values = csv_values(
+        path,
+        &kept.join("\n"),
+        &line_of,
+        &names,
+        delimiter,
+        (index, empty_as_nan),
+    )?;
     let table = Table {
         columns: names
             .into_iter()
@@ -852,7 +1165,7 @@ fn csv_values(
     line_of: &[usize],
     names: &[String],
     delimiter: u8,
-    skip_index: bool,
+    (skip_index, empty_as_nan): (bool, bool),
 ) -> Result<Vec<Vec<f64>>, IoError> {
     use arrow::array::{Array, StringArray};
     let csv_err = |line: usize, message: String| IoError::Csv {
@@ -893,6 +1206,10 @@ fn csv_values(
                     strings.value(i).trim()
                 };
                 let r = row + i;
+                if field.is_empty() && empty_as_nan {
+                    values[j].push(f64::NAN);
+                    continue;
+                }
                 let value = field.parse::<f64>().map_err(|_| {
                     csv_err(
                         line_of.get(r + 1).copied().unwrap_or(0),

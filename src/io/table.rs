@@ -711,14 +711,14 @@ impl ParquetAppender {
 /// timestamps [`Column::I64`] nanoseconds since the Unix epoch. Other types and null values are
 /// errors naming the column (and row).
 pub fn read_parquet(path: impl AsRef<Path>) -> Result<Table, IoError> {
-    read_parquet_with(path.as_ref(), None, false).map(|(t, _)| t)
+    read_parquet_with(path.as_ref(), None, NullsAsNan::None).map(|(t, _)| t)
 }
 
 /// Like [`read_parquet`], but nulls in float columns (missing values, as freefall writes them
 /// with [`Table::with_nan_as_null`]) read as NaN, and those columns are marked to write back as
 /// nulls. Nulls in other columns are still errors.
 pub fn read_parquet_nulls_as_nan(path: impl AsRef<Path>) -> Result<Table, IoError> {
-    read_parquet_with(path.as_ref(), None, true).map(|(t, _)| t)
+    read_parquet_with(path.as_ref(), None, NullsAsNan::All).map(|(t, _)| t)
 }
 
 /// What [`read_parquet_tolerant`] did besides reading: columns it left out and why, and the
@@ -740,7 +740,36 @@ pub fn read_parquet_tolerant(
     path: impl AsRef<Path>,
     required: &[&str],
 ) -> Result<(Table, ReadReport), IoError> {
-    read_parquet_with(path.as_ref(), Some(required), false)
+    read_parquet_with(path.as_ref(), Some(required), NullsAsNan::None)
+}
+
+/// [`read_parquet_tolerant`], but nulls in the float columns named in `missing` (samples that
+/// were not recorded) read as NaN, and those columns are listed in the table's `nan_as_null`.
+/// Nulls elsewhere are treated as by [`read_parquet_tolerant`].
+pub fn read_parquet_tolerant_missing(
+    path: impl AsRef<Path>,
+    required: &[&str],
+    missing: &[&str],
+) -> Result<(Table, ReadReport), IoError> {
+    read_parquet_with(path.as_ref(), Some(required), NullsAsNan::Only(missing))
+}
+
+/// Which float columns read a null as NaN.
+#[derive(Clone, Copy)]
+enum NullsAsNan<'a> {
+    None,
+    All,
+    Only(&'a [&'a str]),
+}
+
+impl NullsAsNan<'_> {
+    fn applies(&self, name: &str) -> bool {
+        match self {
+            NullsAsNan::None => false,
+            NullsAsNan::All => true,
+            NullsAsNan::Only(names) => names.contains(&name),
+        }
+    }
 }
 
 /// The reader: strict when `required` is `None`, else tolerant of the other columns. A
@@ -750,7 +779,7 @@ pub fn read_parquet_tolerant(
 fn read_parquet_with(
     path: &Path,
     required: Option<&[&str]>,
-    float_nulls_as_nan: bool,
+    float_nulls_as_nan: NullsAsNan,
 ) -> Result<(Table, ReadReport), IoError> {
     std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
         read_parquet_unguarded(path, required, float_nulls_as_nan)
@@ -771,7 +800,7 @@ fn read_parquet_with(
 fn read_parquet_unguarded(
     path: &Path,
     required: Option<&[&str]>,
-    float_nulls_as_nan: bool,
+    float_nulls_as_nan: NullsAsNan,
 ) -> Result<(Table, ReadReport), IoError> {
     let file = File::open(path).map_err(|e| IoError::read(path, e))?;
     let parquet_err = |e: parquet::errors::ParquetError| match e {
@@ -859,7 +888,10 @@ fn read_parquet_unguarded(
             if dropped.contains(&k) {
                 continue;
             }
-            if array.null_count() > 0 && float_nulls_as_nan && matches!(column, Column::F64(_)) {
+            if array.null_count() > 0
+                && float_nulls_as_nan.applies(name)
+                && matches!(column, Column::F64(_))
+            {
                 let floats = arrow::compute::cast(array, &DataType::Float64)
                     .expect("a float32 or float64 column casts to float64");
                 if let Column::F64(v) = column {
