@@ -260,16 +260,19 @@ pub struct FitOutcome {
     /// The chi^2 line, one line per parameter (with truth and pull when the dataset has it)
     /// and one per fitted start-up transient.
     pub text: String,
-    /// Whether the optimiser stopped by a convergence test (the summary's `converged` also
-    /// asks for a chi^2 near its noise reference).
+    /// Whether the optimiser stopped by a convergence test (the summary's `converged`).
     pub terminated: bool,
 }
 
 impl FitOutcome {
-    /// Err when the fit did not converge, or converged to a chi^2 far above its reference.
+    /// Err when the fit did not converge, or converged to a chi^2/nu more than twice its
+    /// reference and failing the chi^2 test ([`crate::fit::Chi2Test::gross`]); a fit that only
+    /// fails the test carries a warning.
     pub fn check(&self) -> Result<(), JobError> {
         let s = &self.summary;
-        if self.terminated && !s.warnings.is_empty() {
+        if self.terminated
+            && crate::fit::Chi2Test::new(s.chi2_reduced, s.nu, 1.0).gross(s.chi2_reduced)
+        {
             return Err(JobError::Invalid(format!(
                 "the fit did not converge: {} but chi2/nu = {:.4e} (see the warning; are the \
                  readouts in metres?)",

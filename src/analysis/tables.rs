@@ -166,9 +166,14 @@ pub struct FitSummary {
     pub evaluations: usize,
     pub jacobian_evaluations: usize,
     pub termination: &'static str,
+    /// The optimiser's verdict: it stopped at a minimum (`fit::Termination::converged`).
     pub converged: bool,
-    /// Why the result should not be trusted even if converged (see
-    /// [`crate::fit::chi2_excess_warning`]).
+    /// Whether the chi^2 adequacy test passes ([`crate::fit::Chi2Test`], reference 1): a
+    /// converged fit that fails it describes the data badly.
+    pub chi2_test_passed: bool,
+    /// chi^2/nu above 1 in standard deviations `sqrt(2/nu)` of chi^2/nu.
+    pub chi2_excess_sd: f64,
+    /// Why the result should not be trusted even if converged (the failed chi^2 test).
     pub warnings: Vec<String>,
     pub seconds: f64,
     pub estimator: String,
@@ -196,7 +201,7 @@ impl FitSummary {
         poly_degree: usize,
         provenance: BTreeMap<String, String>,
     ) -> Self {
-        let excess = crate::fit::chi2_excess_warning(res.chi2_reduced, res.nu);
+        let test = crate::fit::Chi2Test::new(res.chi2_reduced, res.nu, 1.0);
         FitSummary {
             chi2: res.chi2,
             nu: res.nu,
@@ -206,9 +211,10 @@ impl FitSummary {
             evaluations: res.evaluations,
             jacobian_evaluations: res.jacobian_evaluations,
             termination: res.termination.as_str(),
-            // A fit far above its noise reference describes nothing, whatever stopped it.
-            converged: res.termination.converged() && excess.is_none(),
-            warnings: excess.into_iter().collect(),
+            converged: res.termination.converged(),
+            chi2_test_passed: test.passed,
+            chi2_excess_sd: test.excess_sd,
+            warnings: test.warning(res.chi2_reduced, res.nu).into_iter().collect(),
             seconds: res.seconds,
             estimator: estimator.to_string(),
             whitening,

@@ -18,7 +18,8 @@ pub struct Row {
     pub estimator: usize,
     pub realization: u64,
     pub converged: bool,
-    /// `fit::Termination::as_str`, or `error: ...` when the fit could not be carried out.
+    /// `fit::Termination::as_str`, or `error: ...` when the fit could not be carried out; a fit
+    /// that fails the chi^2 test against its noise reference ends in `+chi2_excess`.
     pub termination: String,
     pub iterations: u64,
     pub chi2: f64,
@@ -36,6 +37,14 @@ pub struct Row {
     /// readout noise converted with the fitted instead of the true parameters (NaN if the fit
     /// failed; empty when not recorded).
     pub accel_bias: Vec<f64>,
+}
+
+impl Row {
+    /// Whether the fit failed the chi^2 test against its noise reference
+    /// ([`crate::fit::Chi2Test`]), as its termination records.
+    pub fn fails_chi2_test(&self) -> bool {
+        self.termination.ends_with("+chi2_excess")
+    }
 }
 
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
@@ -166,7 +175,10 @@ impl Layout {
 #[derive(Debug, Clone)]
 pub(super) struct Group {
     pub(super) rows: u64,
+    /// Fits kept out of the statistics: not converged, errored, or failing the chi^2 test.
     pub(super) failed: u64,
+    /// Of those, converged fits that fail the chi^2 test.
+    pub(super) chi2_failed: u64,
     pub(super) nu: u64,
     pub(super) est: Vec<Moments>,
     /// Co-moments `sum (x_i - mean_i)(x_j - mean_j)` for the pairs of [`Layout::pairs`].
@@ -211,6 +223,7 @@ impl Aggregates {
         let g = Group {
             rows: 0,
             failed: 0,
+            chi2_failed: 0,
             nu: 0,
             est: vec![Moments::default(); np],
             co: vec![0.0; pairs.len()],
@@ -250,12 +263,14 @@ impl Aggregates {
     }
 
     pub fn add(&mut self, row: &Row) {
+        let chi2_failed = row.fails_chi2_test();
         let gi = self.layout.group(row.scenario, row.design, row.estimator);
         let truth = &self.layout.scenarios[row.scenario].truth;
         let g = &mut self.groups[gi];
         g.rows += 1;
-        if !row.converged {
+        if !row.converged || chi2_failed {
             g.failed += 1;
+            g.chi2_failed += u64::from(row.converged && chi2_failed);
             return;
         }
         g.nu = row.nu;

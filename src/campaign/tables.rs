@@ -226,6 +226,7 @@ impl Aggregates {
         .collect();
         let (mut sc, mut de, mut es, mut pa) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
         let (mut n, mut failed, mut unit) = (Vec::new(), Vec::new(), Vec::new());
+        let mut chi2_failed = Vec::new();
         for (gi, g) in self.groups.iter().enumerate() {
             let (s, d, e) = l.group_labels(gi);
             for (k, p) in l.parameters.iter().enumerate() {
@@ -236,6 +237,7 @@ impl Aggregates {
                 pa.push(p.clone());
                 n.push(g.est[k].n);
                 failed.push(g.failed);
+                chi2_failed.push(g.chi2_failed);
                 let m = &g.est[k];
                 let truth = l.scenarios[s].truth[k];
                 let bias = m.mean - truth;
@@ -268,7 +270,8 @@ impl Aggregates {
             .with_str("parameter", pa)?
             .with_str("unit", unit)?
             .with_counts("n", &n)?
-            .with_counts("failed", &failed)?;
+            .with_counts("failed", &failed)?
+            .with_counts("chi2_failed", &chi2_failed)?;
         for (name, v) in cols {
             t.push_column(name, v)?;
         }

@@ -90,43 +90,74 @@ impl Termination {
     }
 }
 
-/// How many standard deviations of chi^2/nu above 1 a fit may lie before it is flagged.
-pub const CHI2_EXCESS_SIGMAS: f64 = 10.0;
+/// How many standard deviations of chi^2/nu above its reference a fit may lie before its chi^2
+/// test fails.
+pub const CHI2_EXCESS_SIGMAS: f64 = 5.0;
 
-/// A warning when `chi2_reduced` is implausible for a fit that describes the data: under the
-/// model chi^2 follows a chi^2(nu) distribution, so chi^2/nu has mean 1 and standard deviation
-/// `sqrt(2/nu)`. The fit is flagged when chi^2/nu exceeds 1 by more than
-/// [`CHI2_EXCESS_SIGMAS`] of those standard deviations *and* by more than a factor 2: the
-/// first rule alone would flag the small misfits of an approximate whitening filter at large nu
-/// (nu = 40000 gives sqrt(2/nu) = 0.007), the second alone would pass anything at small nu.
+/// The chi^2 adequacy test of a fit: under the model chi^2 follows a chi^2(nu) distribution, so
+/// chi^2/nu has mean 1 and standard deviation `sqrt(2/nu)`; against a noise reference `r` (the
+/// chi^2/nu the same whitening gives on a noise-only run, what a good fit scatters around when
+/// the noise model is itself off) the mean is `r` and the standard deviation `r sqrt(2/nu)`.
+/// The test fails when chi^2/nu lies more than [`CHI2_EXCESS_SIGMAS`] standard deviations above
+/// the reference, whatever the ratio: at nu = 28000, chi^2/nu = 1.98 is 116 sd, a fit that
+/// describes nothing. One-sided at 5 sd, a correct model fails it with probability 3e-7.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Chi2Test {
+    /// The reference chi^2/nu (1, or a finite positive noise reference).
+    pub reference: f64,
+    /// `(chi2/nu - reference) / (reference sqrt(2/nu))` (NaN for a NaN chi^2).
+    pub excess_sd: f64,
+    pub passed: bool,
+}
+
+impl Chi2Test {
+    /// The test of `chi2_reduced` at `nu` degrees of freedom against `reference` (a reference
+    /// that is not finite and positive counts as 1).
+    pub fn new(chi2_reduced: f64, nu: usize, reference: f64) -> Self {
+        let reference = if reference.is_finite() && reference > 0.0 {
+            reference
+        } else {
+            1.0
+        };
+        let sd = reference * (2.0 / nu.max(1) as f64).sqrt();
+        let excess_sd = (chi2_reduced - reference) / sd;
+        Chi2Test {
+            reference,
+            excess_sd,
+            passed: excess_sd <= CHI2_EXCESS_SIGMAS,
+        }
+    }
+
+    /// A gross failure: the test fails and chi^2/nu is more than twice its reference, what
+    /// readouts in the wrong unit or a fit that never left a far guess give. `fit` exits with an
+    /// error on it; a failure short of it is a warning.
+    pub fn gross(&self, chi2_reduced: f64) -> bool {
+        !self.passed && !(chi2_reduced <= 2.0 * self.reference)
+    }
+
+    /// The warning of a failed test, naming the figures (none when it passed).
+    pub fn warning(&self, chi2_reduced: f64, nu: usize) -> Option<String> {
+        (!self.passed).then(|| {
+            format!(
+                "chi2/nu = {chi2_reduced:.4e} exceeds its reference {:.4} by {:.1e} standard \
+                 deviations of chi2/nu (nu = {nu}, the test fails above {CHI2_EXCESS_SIGMAS}): the \
+                 model and noise do not describe the data (an effect the model lacks, missing \
+                 samples, readouts in the wrong unit, or a guess far from the minimum?)",
+                self.reference, self.excess_sd
+            )
+        })
+    }
+}
+
+/// The warning of [`Chi2Test`] against the reference 1.
 pub fn chi2_excess_warning(chi2_reduced: f64, nu: usize) -> Option<String> {
     chi2_excess_over(chi2_reduced, nu, 1.0)
 }
 
-/// [`chi2_excess_warning`] against a noise reference: the chi^2/nu the same whitening gives on
-/// a noise-only run (a campaign's `noise_chi2_reduced`), which is what chi^2/nu of a good fit
-/// scatters around when the noise model is itself off. A reference that is not finite and
-/// positive counts as 1. The fit is flagged when chi^2/nu exceeds the reference by more than
-/// [`CHI2_EXCESS_SIGMAS`] standard deviations and by more than a factor 2.
+/// The warning of [`Chi2Test`] against a noise reference (a reference that is not finite and
+/// positive counts as 1).
 pub fn chi2_excess_over(chi2_reduced: f64, nu: usize, reference: f64) -> Option<String> {
-    let reference = if reference.is_finite() && reference > 0.0 {
-        reference
-    } else {
-        1.0
-    };
-    let sd = reference * (2.0 / nu.max(1) as f64).sqrt();
-    let threshold = (reference + CHI2_EXCESS_SIGMAS * sd).max(2.0 * reference);
-    if chi2_reduced.is_nan() || chi2_reduced > threshold {
-        Some(format!(
-            "chi2/nu = {chi2_reduced:.4e} exceeds its noise reference {reference:.4} by {:.1e} \
-             standard deviations of chi2/nu (nu = {nu}, flagged above {threshold:.3}): the model \
-             and noise do not describe the data (readouts in the wrong unit, or a guess far from \
-             the minimum?)",
-            (chi2_reduced - reference) / sd
-        ))
-    } else {
-        None
-    }
+    Chi2Test::new(chi2_reduced, nu, reference).warning(chi2_reduced, nu)
 }
 
 /// Bounds of one parameter (inclusive).

@@ -620,9 +620,7 @@ fn missing_rows(
         if end - k < MIN_ROWS && touches_hole {
             hole[k..end].fill(true);
         }
-        k = (end..hole.len())
-            .find(|&e| !hole[e])
-            .unwrap_or(hole.len());
+        k = (end..hole.len()).find(|&e| !hole[e]).unwrap_or(hole.len());
     }
     if hole.iter().all(|&h| h) && !hole.is_empty() {
         return Err(IoError::invalid(
@@ -759,7 +757,10 @@ fn describe_rows(rows: &[usize], t: &dyn Fn(usize) -> f64, step: Option<f64>) ->
     };
     let mut text: Vec<String> = ranges.iter().take(NOTE_MAX_RANGES).map(one).collect();
     if ranges.len() > NOTE_MAX_RANGES {
-        text.push(format!("and {} more ranges", ranges.len() - NOTE_MAX_RANGES));
+        text.push(format!(
+            "and {} more ranges",
+            ranges.len() - NOTE_MAX_RANGES
+        ));
     }
     text.join(", ")
 }

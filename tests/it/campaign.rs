@@ -281,6 +281,13 @@ fn quick_campaign_scatter_matches_fisher() {
     ] {
         assert!(!m[k].is_null(), "manifest lacks {k}");
     }
+    // Fits failing the chi^2 test are a part of those kept out of the statistics.
+    let s = freefall::io::read_parquet(out.join("summary.parquet")).unwrap();
+    let (failed, chi2_failed) = (
+        s.i64_column("failed").unwrap(),
+        s.i64_column("chi2_failed").unwrap(),
+    );
+    assert!(failed.iter().zip(chi2_failed.iter()).all(|(f, c)| c <= f));
 }
 
 // Oracle: the schema (spec.rs docs): unknown keys and bad values name file, key and reason.

@@ -372,6 +372,8 @@ fn a_fit_that_never_moved_is_not_converged_and_a_bad_chi2_is_flagged() {
         serde_json::from_str(&std::fs::read_to_string(out.join("fit.json")).unwrap()).unwrap();
     assert_eq!(json["converged"], false, "{json}");
     assert_eq!(json["termination"], "no_step_accepted", "{json}");
+    assert_eq!(json["chi2_test_passed"], false, "{json}");
+    assert!(json["chi2_excess_sd"].as_f64().unwrap() > 1e3, "{json}");
     assert_eq!(json["warnings"].as_array().unwrap().len(), 1, "{json}");
 }
 

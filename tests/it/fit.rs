@@ -453,15 +453,22 @@ fn whitened_draws_equal_the_whitened_raw_draws() {
 
 #[test]
 fn chi2_excess_warning_follows_the_spread_of_chi2_over_nu() {
-    // Oracle: under the model chi^2/nu has mean 1 and standard deviation sqrt(2/nu); the flag is
-    // documented as > 10 of those above 1 and > 2.
-    use freefall::fit::chi2_excess_warning;
-    // nu = 40000: sd = 0.00707; 10 sd = 1.07 is below the factor-2 floor.
-    assert!(chi2_excess_warning(1.5, 40_000).is_none());
-    assert!(chi2_excess_warning(2.01, 40_000).is_some());
-    // nu = 8: sd = 0.5; the flag starts at 1 + 10 * 0.5 = 6.
-    assert!(chi2_excess_warning(5.9, 8).is_none());
-    assert!(chi2_excess_warning(6.1, 8).is_some());
+    // Oracle: under the model chi^2/nu has mean 1 and standard deviation sqrt(2/nu); the test
+    // fails more than 5 of those above 1, whatever the ratio.
+    use freefall::fit::{chi2_excess_warning, Chi2Test};
+    // nu = 28000 (the cut run of the missing-samples reproducer): 1.98 is 116 sd above 1.
+    let t = Chi2Test::new(1.98, 28_000, 1.0);
+    assert!(!t.passed && (t.excess_sd - 115.9).abs() < 0.1, "{t:?}");
+    assert!(chi2_excess_warning(1.98, 28_000).is_some());
+    // 4 sd passes, 6 sd fails, at any nu.
+    for nu in [8usize, 1000, 40_000] {
+        let sd = (2.0 / nu as f64).sqrt();
+        assert!(chi2_excess_warning(1.0 + 4.0 * sd, nu).is_none(), "{nu}");
+        assert!(chi2_excess_warning(1.0 + 6.0 * sd, nu).is_some(), "{nu}");
+    }
+    // A failure short of twice the reference is a warning; beyond it, gross (an error in `fit`).
+    assert!(!Chi2Test::new(1.5, 40_000, 1.0).gross(1.5));
+    assert!(Chi2Test::new(2.01, 40_000, 1.0).gross(2.01));
     assert!(chi2_excess_warning(f64::NAN, 8).is_some());
     assert!(chi2_excess_warning(1.0, 1).is_none());
 }

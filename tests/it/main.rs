@@ -22,6 +22,7 @@ mod hostile;
 mod io;
 mod lengths;
 mod metadata;
+mod missing_rows;
 mod model;
 mod nyquist_null;
 mod plots;
