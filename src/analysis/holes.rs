@@ -47,9 +47,16 @@ use super::{guidance, AnalysisError};
 /// unknown start) while a smooth taper takes it to zero.
 pub const TAPER_SAMPLES: usize = 64;
 
-/// Samples kept out after the telemetry filter's reach at a running end, for the taper's
-/// start-up.
-pub const END_MARGIN: usize = 16;
+/// Samples kept out after the telemetry filter's reach at a running end. The continuation is
+/// C1 at the join; where the guidance curves more than it (a filtered stretch edge near the
+/// end), the mismatch rings at the Nyquist frequency as `1/k`. Measured on the sweep of
+/// `tests/it/holes.rs`: exp1 cut at the stretch end 5400 s gave dt1 7.3 sigma off with 16
+/// samples here, within 3 sigma with 300.
+pub const END_MARGIN: usize = 300;
+
+/// A piece whose guidance left rest within this many samples of its end is cut back to the
+/// rest (see `whole_clock`).
+pub const SETTLE_SAMPLES: usize = 96;
 
 /// How many of the closed loop's slowest time constants after a hole of unknown guidance its
 /// free response from the unknown state needs to fall below 1e-6 of itself (`ln 1e6 = 13.8`).
@@ -169,6 +176,29 @@ pub fn whole_clock(
             (ends.iter().all(|x| x.0), ends.iter().all(|x| x.1))
         })
         .collect();
+    // A piece that ends in the telemetry filter's pre-echo of a stretch start (or any
+    // change) after a pause: the samples after the pause's last `margin` samples at rest,
+    // when they are fewer than [`SETTLE_SAMPLES`]. Cut back to the pause, the piece ends at
+    // rest and its template needs no continuation (a continuation across the knee of a
+    // filtered stretch edge rings: measured 7 sigma on dt1 for exp1 cut at a stretch start).
+    let settle: Vec<Option<usize>> = ds
+        .experiments
+        .iter()
+        .map(|(_, r)| {
+            let cols = r.inputs();
+            let n = cols[0].len();
+            let peaks = cols.map(|c| c.iter().fold(0.0, |m: f64, v| m.max(v.abs())));
+            let quiet_until = |end: usize| {
+                cols.iter()
+                    .zip(&peaks)
+                    .all(|(c, &pk)| at_rest(&c[end - margin..end], pk))
+            };
+            (n.saturating_sub(SETTLE_SAMPLES).max(margin)..n)
+                .rev()
+                .find(|&end| quiet_until(end))
+                .map(|end| n - end)
+        })
+        .collect();
     let mut known_before = vec![false; n_exp];
     for e in 0..n_exp {
         let run = &ds.experiments[e].1;
@@ -275,7 +305,14 @@ pub fn whole_clock(
             continue;
         }
         // Unknown guidance beyond the recorded samples.
-        let rest_end = rest[e].1;
+        let mut rest_end = rest[e].1;
+        let mut settled = None;
+        if !rest_end {
+            if let Some(b) = settle[e] {
+                settled = Some(b);
+                rest_end = true;
+            }
+        }
         let rest_start = known_before[e];
         if !rest_start && lead > 0 {
             // A lead-in through a hole that was not a pause: its zeros are not the guidance.
@@ -300,7 +337,9 @@ pub fn whole_clock(
             };
             front = ((MEMORY_TIME_CONSTANTS * tau / dt).ceil() as usize).max(margin);
         }
-        if !rest_end {
+        if let Some(b) = settled {
+            back = b;
+        } else if !rest_end {
             back = end_exclusion(setup)?;
         }
         if front == 0 && back == 0 {
@@ -350,10 +389,16 @@ pub fn whole_clock(
                 from_s: t_of(n - back),
                 to_s: t_of(n),
                 seconds: back as f64 * dt,
-                reason: "the guidance after the piece is not known (no declared design) and \
-                         was running at its end: the telemetry's anti-alias filter reaches \
-                         into it"
-                    .into(),
+                reason: if settled.is_some() {
+                    "the guidance after the piece is not known (no declared design) and \
+                     changes within the telemetry's anti-alias filter's reach of its end: \
+                     cut back to the last sample at rest"
+                        .into()
+                } else {
+                    "the guidance after the piece is not known (no declared design) and was \
+                     running at its end: the telemetry's anti-alias filter reaches into it"
+                        .into()
+                },
             });
         }
         // Outputs and recorded columns lose the excluded samples; the inputs keep them as
@@ -369,6 +414,11 @@ pub fn whole_clock(
             c.drain(..front);
         }
         for c in &mut data.inputs[e] {
+            if settled.is_some() {
+                // The guidance after the rest is the unknown change: zero from there on, as
+                // the pause it leaves.
+                c.truncate(c.len() - back);
+            }
             let mut out = Vec::with_capacity(c.len() + 2 * TAPER_SAMPLES);
             if !rest_start {
                 // Backwards in time from the first sample.
@@ -385,8 +435,11 @@ pub fn whole_clock(
             }
             *c = out;
         }
-        let taper_back = if rest_end { 0 } else { TAPER_SAMPLES };
-        data.tails[e] = back + taper_back;
+        data.tails[e] = match settled {
+            Some(_) => 0,
+            None if rest_end => back,
+            None => back + TAPER_SAMPLES,
+        };
     }
     // Drop the experiments left without samples to fit.
     for e in (0..n_exp).rev().filter(|&e| drop[e]) {
