@@ -208,7 +208,7 @@ fn sweep(cases: Vec<Case>) {
                     .trim_end_matches(" s")
                     .parse()
                     .unwrap();
-                if at_stretch_end(at) && at != 7200 {
+                if at_stretch_end(at) {
                     continue;
                 }
             }
