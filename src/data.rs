@@ -10,13 +10,19 @@ pub type Series = Vec<Vec<Vec<f64>>>;
 /// Inputs and outputs of each experiment: `inputs[e][c]`, `outputs[e][c]`, the outputs of one
 /// experiment of its length `n_e`. The inputs may be longer: their first `l_e` samples are a
 /// lead-in, guidance known before the first output sample (the earlier segments of a run with
-/// gaps), whose response the templates carry. `inputs` may be empty (a noise-only set).
+/// gaps, or a declared design), whose response the templates carry, and their last `tails[e]`
+/// samples a lead-out, guidance known after the last output sample (a run cut while the
+/// injection went on), which keeps the templates' last samples free of the step a zero-padded
+/// end would put there. `inputs` may be empty (a noise-only set); `tails` may be empty (no
+/// lead-outs).
 #[derive(Debug, Clone)]
 pub struct ExperimentData {
     pub names: Vec<String>,
     pub inputs: Vec<Vec<Vec<f64>>>,
     pub outputs: Vec<Vec<Vec<f64>>>,
     pub dt: f64,
+    /// Lead-out `t_e` of every experiment (empty: none).
+    pub tails: Vec<usize>,
 }
 
 impl ExperimentData {
@@ -50,15 +56,25 @@ impl ExperimentData {
             .get(e)
             .and_then(|x| x.first())
             .map_or(0, |c| c.len());
-        inputs.saturating_sub(self.len_of(e))
+        inputs.saturating_sub(self.len_of(e) + self.tail(e))
     }
 
-    /// The inputs of experiment `e` over its outputs' samples (without the lead-in).
+    /// Lead-out `t_e` of experiment `e`: input samples after its last output sample.
+    pub fn tail(&self, e: usize) -> usize {
+        self.tails.get(e).copied().unwrap_or(0)
+    }
+
+    /// Lead-in of every experiment.
+    pub fn leads(&self) -> Vec<usize> {
+        (0..self.outputs.len()).map(|e| self.lead(e)).collect()
+    }
+
+    /// The inputs of experiment `e` over its outputs' samples (without lead-in and lead-out).
     pub fn inputs_of(&self, e: usize) -> Vec<&[f64]> {
-        let l = self.lead(e);
+        let (l, n) = (self.lead(e), self.len_of(e));
         self.inputs
             .get(e)
-            .map_or(Vec::new(), |x| x.iter().map(|c| &c[l..]).collect())
+            .map_or(Vec::new(), |x| x.iter().map(|c| &c[l..l + n]).collect())
     }
 
     pub fn is_empty(&self) -> bool {

@@ -10,9 +10,9 @@ use std::path::{Path, PathBuf};
 
 use super::transient::{clean_noise_run, fit_with_transients, TransientError, TransientReport};
 use super::{
-    correlation_table, dataset_whitener, decimated_telemetry, estimates_table, experiment_data,
-    outputs_of, parse_constraints, psd_table, residual_table, resolve_guess, truth_from_meta,
-    whitened_table, AnalysisError, FitSummary, Whitening,
+    correlation_table, dataset_whitener, decimated_telemetry, estimates_table, outputs_of,
+    parse_constraints, psd_table, residual_table, resolve_guess, truth_from_meta, whitened_table,
+    whole_clock_data, AnalysisError, FitSummary, Whitening,
 };
 use crate::data::ExperimentData;
 use crate::fit::{
@@ -191,6 +191,8 @@ pub struct Prepared {
     /// How the experiments' inputs were made (runs joined across gaps, guidance from a
     /// declared design, sharp stretch edges), for reports to carry.
     pub input_notes: Vec<String>,
+    /// Samples left out of the likelihood ([`crate::analysis::holes`]).
+    pub excluded: Vec<crate::analysis::holes::Exclusion>,
 }
 
 impl DatasetFit {
@@ -202,15 +204,16 @@ impl DatasetFit {
         path: &Path,
         notes: Notes<'_>,
     ) -> Result<Prepared, JobError> {
-        let ds = read_dataset(path)?;
+        let mut ds = read_dataset(path)?;
         for n in &ds.notes {
             notes(n);
         }
-        let (data, joined) = experiment_data(setup, &ds)?;
+        let names = setup.parameter_names();
+        let min_len = crate::fit::problem::min_length(self.order, self.poly_degree, names.len());
+        let (data, joined, excluded) = whole_clock_data(setup, &mut ds, min_len)?;
         for n in &joined {
             notes(n);
         }
-        let names = setup.parameter_names();
         // A segment of a run with gaps too short for the filter: one line naming file, row
         // and gap.
         ds.check_lengths(
@@ -226,6 +229,7 @@ impl DatasetFit {
             guess,
             constraints,
             input_notes: joined,
+            excluded,
         })
     }
 
@@ -348,6 +352,7 @@ impl FitJob {
         .with_constraints(&names, &cfg);
         let summary = FitSummary {
             transients,
+            excluded: prep.excluded.clone(),
             ..summary
         };
         write_fit(setup, &prep, &lik, &res, &summary, out)?;
@@ -371,15 +376,8 @@ impl FitJob {
         w: Whitener<2>,
         path: &Path,
     ) -> Result<Likelihood<'m, LpfX, 2>, JobError> {
-        Likelihood::with_lengths(
-            &setup.model,
-            &data.inputs,
-            &data.lengths(),
-            data.dt,
-            w,
-            self.dataset.poly_degree,
-        )
-        .map_err(context(path.display().to_string()))
+        Likelihood::for_data(&setup.model, data, w, self.dataset.poly_degree)
+            .map_err(context(path.display().to_string()))
     }
 
     /// The whitening filter and where it came from; with transients and a noise run, from the

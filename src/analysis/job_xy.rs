@@ -46,6 +46,7 @@ fn xy_series(setup: &SetupXy, ds: &Dataset) -> Result<XySeries, JobError> {
         .dt()
         .ok_or_else(|| JobError::Invalid("the dataset has no run".into()))?;
     let mut data = ExperimentData {
+        tails: Vec::new(),
         names: Vec::new(),
         inputs: Vec::new(),
         outputs: Vec::new(),

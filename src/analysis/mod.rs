@@ -6,6 +6,7 @@
 //! path; nothing here prints.
 
 pub mod guidance;
+pub mod holes;
 pub mod job;
 mod job_xy;
 pub mod model_tables;
@@ -67,12 +68,32 @@ pub fn experiment_data(setup: &Setup, ds: &Dataset) -> Result<(ExperimentData, V
     let (mut inputs, mut notes) = ds.inputs_with_lead_in();
     notes.extend(guidance::apply_declared_design(setup, ds, &mut inputs)?);
     let data = ExperimentData {
+        tails: Vec::new(),
         names: ds.experiments.iter().map(|(n, _)| n.clone()).collect(),
         inputs,
         outputs: ds.experiments.iter().map(|(_, r)| outputs_of(r)).collect(),
         dt,
     };
     Ok((data, notes))
+}
+
+/// [`experiment_data`] on the runs' whole clock ([`holes`]): pieces of runs with holes or
+/// cuts get the guidance known before and after them, and lose the samples whose template
+/// depends on guidance that is not known (trimmed from `ds` too, so that run times and
+/// lengths stay aligned with the data); pieces shorter than `min_len` are dropped. Returns
+/// the data, the notes and the exclusions.
+pub fn whole_clock_data(
+    setup: &Setup,
+    ds: &mut Dataset,
+    min_len: usize,
+) -> Result<(ExperimentData, Vec<String>, Vec<holes::Exclusion>)> {
+    let (mut data, mut notes) = experiment_data(setup, ds)?;
+    let (more, excluded) = holes::whole_clock(setup, ds, &mut data, min_len)?;
+    notes.extend(more);
+    if data.outputs.is_empty() {
+        return Err(AnalysisError::NoRuns);
+    }
+    Ok((data, notes, excluded))
 }
 
 /// The starting point `--guess`: a scenario name (its guess), a TOML file of

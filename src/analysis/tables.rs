@@ -189,6 +189,10 @@ pub struct FitSummary {
     /// Fitted start-up transients (`--transient`): noise run and experiments.
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub transients: Vec<super::transient::TransientReport>,
+    /// Samples left out because their template depends on guidance that is not known (a hole
+    /// or a cut of a run without a declared design, see [`super::holes`]).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub excluded: Vec<super::holes::Exclusion>,
 }
 
 impl FitSummary {
@@ -224,6 +228,7 @@ impl FitSummary {
             priors: BTreeMap::new(),
             provenance,
             transients: Vec::new(),
+            excluded: Vec::new(),
         }
     }
 

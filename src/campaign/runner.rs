@@ -233,6 +233,7 @@ impl<'s, M: CampaignModel<N>, const N: usize> Cell<'s, M, N> {
                 Source::Time(td) => td.noise_runs(rng),
             };
             let noise = ExperimentData {
+                tails: Vec::new(),
                 names: data.names.clone(),
                 inputs: Vec::new(),
                 outputs,

@@ -680,6 +680,7 @@ fn zero_series(data: &ExperimentData) -> Series {
 /// Whitened, cut and projected version of raw readout series `s` (as the data and templates).
 pub fn whiten(lik: &Likelihood<'_, Extended, 2>, data: &ExperimentData, s: Series) -> Series {
     let d = ExperimentData {
+        tails: data.tails.clone(),
         names: data.names.clone(),
         inputs: data.inputs.clone(),
         outputs: s,

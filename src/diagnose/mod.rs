@@ -478,12 +478,13 @@ pub fn diagnose_observed(
         .extend(coherence::table("after", last, &d.residuals_after.0));
     // The science product: the noise run's readouts (or the first experiment's, guidance
     // removed) through Delta before and after.
+    let own = data.inputs_of(0);
     let (source, o, oi) = match noise {
         Some(n) => ("noise run".to_string(), [&n[0][..], &n[1][..]], None),
         None => (
             data.names[0].clone(),
             [&data.outputs[0][0][..], &data.outputs[0][1][..]],
-            Some([&data.inputs[0][0][..], &data.inputs[0][1][..]]),
+            Some([own[0], own[1]]),
         ),
     };
     d.acceleration = science::compare(

@@ -326,11 +326,9 @@ impl<'a> DiagnosisProblem<'a> {
         // The shortest experiment sets the order: every experiment drops its own start-up.
         let order = whitening_order(data.min_len(), cfg.order, obs)?;
         let whitening = whitening(setup, data, noise, guess, cfg, order, obs)?;
-        let planned = Likelihood::with_lengths(
+        let planned = Likelihood::for_data(
             &setup.model,
-            &data.inputs,
-            &data.lengths(),
-            data.dt,
+            data,
             whitening.filter.clone(),
             cfg.poly_degree,
         )?;

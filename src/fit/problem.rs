@@ -123,9 +123,49 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> Likelihood<'m, M, N> {
         whitener: Whitener<N>,
         poly_degree: usize,
     ) -> Result<Self, FitError> {
+        let leads: Vec<usize> = lens
+            .iter()
+            .enumerate()
+            .map(|(e, &n)| {
+                let len = inputs.get(e).and_then(|x| x.first()).map_or(0, Vec::len);
+                len.saturating_sub(n)
+            })
+            .collect();
+        Self::with_leads(model, inputs, lens, &leads, dt, whitener, poly_degree)
+    }
+
+    /// The likelihood of `data`: its inputs with their lead-ins and lead-outs.
+    pub fn for_data(
+        model: &'m M,
+        data: &ExperimentData,
+        whitener: Whitener<N>,
+        poly_degree: usize,
+    ) -> Result<Self, FitError> {
+        Self::with_leads(
+            model,
+            &data.inputs,
+            &data.lengths(),
+            &data.leads(),
+            data.dt,
+            whitener,
+            poly_degree,
+        )
+    }
+
+    /// The same with every experiment's lead-in given: inputs longer than lead-in plus
+    /// outputs carry a lead-out (see [`TemplateEngine::with_leads`]).
+    pub fn with_leads(
+        model: &'m M,
+        inputs: &[Vec<Vec<f64>>],
+        lens: &[usize],
+        leads: &[usize],
+        dt: f64,
+        whitener: Whitener<N>,
+        poly_degree: usize,
+    ) -> Result<Self, FitError> {
         let lens = lens.to_vec();
         check_length(&lens, whitener.order(), poly_degree, model.n_params())?;
-        let engine = TemplateEngine::with_lengths(model, inputs, &lens, dt);
+        let engine = TemplateEngine::with_leads(model, inputs, &lens, leads, dt);
         let response = engine
             .padded_lens()
             .into_iter()

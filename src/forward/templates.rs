@@ -76,9 +76,6 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
     /// `inputs[e][c].len() - lens[e]` samples are then the experiment's lead-in (see the module
     /// docs).
     pub fn with_lengths(model: &'m M, inputs: &[Vec<Vec<f64>>], lens: &[usize], dt: f64) -> Self {
-        let mut planner = RealFftPlanner::<f64>::new();
-        let mut grids: Vec<Grid<M::Point>> = Vec::new();
-        let mut grid_of = Vec::with_capacity(lens.len());
         let leads: Vec<usize> = lens
             .iter()
             .enumerate()
@@ -87,8 +84,33 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
                 len.saturating_sub(n)
             })
             .collect();
-        for (&n, &lead) in lens.iter().zip(&leads) {
-            let m = fast_len(2 * (lead + n).max(1));
+        Self::with_leads(model, inputs, lens, &leads, dt)
+    }
+
+    /// The same with every experiment's lead-in `leads[e]` given: inputs longer than
+    /// `leads[e] + lens[e]` carry a lead-out, guidance after the last output sample, which
+    /// the padded grid holds too (`m_e = fast_len(2 (l_e + n_e + t_e))`).
+    pub fn with_leads(
+        model: &'m M,
+        inputs: &[Vec<Vec<f64>>],
+        lens: &[usize],
+        leads: &[usize],
+        dt: f64,
+    ) -> Self {
+        let mut planner = RealFftPlanner::<f64>::new();
+        let mut grids: Vec<Grid<M::Point>> = Vec::new();
+        let mut grid_of = Vec::with_capacity(lens.len());
+        let leads = leads.to_vec();
+        let spans: Vec<usize> = lens
+            .iter()
+            .enumerate()
+            .map(|(e, &n)| {
+                let len = inputs.get(e).and_then(|x| x.first()).map_or(0, |c| c.len());
+                len.max(leads[e] + n)
+            })
+            .collect();
+        for &span in &spans {
+            let m = fast_len(2 * span.max(1));
             let g = match grids.iter().position(|g| g.m == m) {
                 Some(g) => g,
                 None => {
@@ -116,10 +138,8 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
             };
             grid_of.push(g);
         }
-        let inputs_f = lens
-            .iter()
-            .enumerate()
-            .map(|(e, &n)| {
+        let inputs_f = (0..lens.len())
+            .map(|e| {
                 let grid = &grids[grid_of[e]];
                 (0..N)
                     .map(|c| {
@@ -128,7 +148,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
                             return None;
                         }
                         let mut buf = vec![0.0; grid.m];
-                        let len = x.len().min(leads[e] + n);
+                        let len = x.len().min(spans[e]);
                         buf[..len].copy_from_slice(&x[..len]);
                         let mut spec = grid.fwd.make_output_vec();
                         grid.fwd

@@ -272,6 +272,7 @@ mod tests {
         let aux = draw(&spec, &[64, 80], 100, 1.0, 7).unwrap();
         let k = aux.channels.iter().position(|c| c.column == "oy1").unwrap();
         let mut data = ExperimentData {
+            tails: Vec::new(),
             names: vec!["a".into(), "b".into()],
             inputs: vec![vec![vec![0.0; 64]; 2], vec![vec![0.0; 80]; 2]],
             outputs: vec![vec![vec![0.0; 64]; 2], vec![vec![0.0; 80]; 2]],

@@ -161,6 +161,7 @@ impl<const N: usize> DecimatedSimulator<N> {
                 .collect()
         };
         ExperimentData {
+            tails: Vec::new(),
             names: d.names,
             inputs: cut(&d.inputs),
             outputs: cut(&d.outputs),

@@ -202,6 +202,7 @@ impl<const N: usize> Simulator<N> {
             })
             .collect();
         ExperimentData {
+            tails: Vec::new(),
             names: self.names.clone(),
             inputs: self.inputs.clone(),
             outputs,

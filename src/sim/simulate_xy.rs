@@ -147,6 +147,7 @@ fn split_x<M: ClosedLoopModel<7>>(
         noise: Some([&noise[X_CHANNELS..], &quiet[..]].concat()),
     };
     let data = ExperimentData {
+        tails: Vec::new(),
         names: all.names,
         inputs: all
             .inputs

@@ -688,6 +688,7 @@ impl TimeDomainSimulator {
                 .collect()
         };
         ExperimentData {
+            tails: Vec::new(),
             names: self.names.clone(),
             inputs: cut(self.inputs.clone()),
             outputs: cut(outputs),

@@ -222,6 +222,7 @@ fn fits_scatter_as_the_closed_form_fisher_sigmas() {
             })
             .collect()]];
         let data = ExperimentData {
+            tails: Vec::new(),
             names: vec!["exp".into()],
             inputs: inputs.clone(),
             outputs,

@@ -476,6 +476,7 @@ fn odd_data_give_notes_or_errors_never_panics() {
     );
     // A very short run: the order is reduced with a note, or a clear error.
     let cut = |d: &ExperimentData, n: usize| ExperimentData {
+        tails: Vec::new(),
         names: d.names.clone(),
         inputs: d
             .inputs

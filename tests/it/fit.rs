@@ -422,6 +422,7 @@ fn whitened_draws_equal_the_whitened_raw_draws() {
         let (mut r1, mut r2) = (stream(5, 1), stream(5, 1));
         let data = sim.draw(&mut r1);
         let noise = ExperimentData {
+            tails: Vec::new(),
             outputs: (0..data.outputs.len())
                 .map(|_| sim.noise_series(&mut r1))
                 .collect(),

@@ -18,6 +18,7 @@ mod diagnose;
 mod diagnose_effects;
 mod fit;
 mod guidance_rate;
+mod holes;
 mod hostile;
 mod io;
 mod lengths;
