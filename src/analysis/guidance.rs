@@ -15,7 +15,7 @@
 //! the experiment, column and time); at the edges, the difference is the content the 1 Hz
 //! column could not carry, reported in a note.
 
-use crate::io::{read_toml, Dataset};
+use crate::io::{read_toml, Dataset, Run};
 use crate::model::ClosedLoopModel;
 use crate::setup::Setup;
 use crate::signal::Design;
@@ -65,20 +65,452 @@ fn bad(ds: &Dataset, reason: String) -> AnalysisError {
     }
 }
 
+/// How the design behind a dataset's guidance became known.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum DesignOrigin {
+    /// Declared in `[injections]`, with its `start_s`.
+    Declared,
+    /// Declared in `[injections]` without `start_s`: found by matching the recorded columns.
+    DeclaredStartFound,
+    /// Not declared: an injection table of the model file matched the recorded columns.
+    ModelTable,
+    /// Not declared: identified stretch by stretch from the recorded columns (least squares).
+    Reconstructed,
+}
+
+/// The design of a dataset's injections, with the design's `t = 0` on the runs' clock.
+#[derive(Debug, Clone, PartialEq)]
+pub struct KnownDesign {
+    pub design: Design,
+    /// The design's `t = 0` on the runs' time axis [s].
+    pub start_s: f64,
+    pub origin: DesignOrigin,
+    /// Largest difference between the recorded guidance columns and the design away from the
+    /// stretch edges, relative to the channel's peak.
+    pub residual: f64,
+}
+
+/// The recorded guidance of one experiment of the design: every run of that name (a segment
+/// `NAME.segK` too), on the runs' common clock.
+struct Recorded<'a> {
+    name: &'a str,
+    /// Index of the design's experiment.
+    e: usize,
+    runs: Vec<&'a Run>,
+}
+
+impl Recorded<'_> {
+    /// (time, channel values) of every recorded sample.
+    fn samples(&self) -> impl Iterator<Item = (f64, [f64; 2])> + '_ {
+        self.runs.iter().flat_map(|r| {
+            let [a, b] = r.inputs();
+            (0..r.len()).map(move |k| (r.t0 + k as f64 * r.dt, [a[k], b[k]]))
+        })
+    }
+}
+
+/// The dataset's experiments grouped by name (segments joined), each mapped to the design's
+/// experiment of that name.
+fn recorded<'a>(ds: &'a Dataset, design: &Design) -> Result<Vec<Recorded<'a>>, AnalysisError> {
+    let mut out: Vec<Recorded<'a>> = Vec::new();
+    for (name, run) in &ds.experiments {
+        let base = base_name(name);
+        if let Some(r) = out.iter_mut().find(|r| r.name == base) {
+            r.runs.push(run);
+            continue;
+        }
+        let Some(e) = design.experiments.iter().position(|x| x.name == base) else {
+            let known: Vec<&str> = design.experiments.iter().map(|x| x.name.as_str()).collect();
+            return Err(bad(
+                ds,
+                format!(
+                    "[injections]: experiment '{name}' is not in design '{}' (experiments: {})",
+                    design.name,
+                    known.join(", ")
+                ),
+            ));
+        };
+        out.push(Recorded {
+            name: base,
+            e,
+            runs: vec![run],
+        });
+    }
+    Ok(out)
+}
+
+fn base_name(name: &str) -> &str {
+    name.split(".seg").next().unwrap_or(name)
+}
+
+/// The worst difference between recorded columns and a design placed at `start_s`, away from
+/// the stretch edges (`half` samples either side).
+#[derive(Debug, Clone)]
+struct Mismatch {
+    /// Difference relative to the channel's peak.
+    rel: f64,
+    /// Where: experiment, column, time, recorded, designed, peak.
+    at: Option<(String, usize, f64, f64, f64, f64)>,
+}
+
+fn mismatch(design: &Design, recs: &[Recorded], start_s: f64, half: f64) -> Mismatch {
+    let mut worst = Mismatch { rel: 0.0, at: None };
+    for rec in recs {
+        let dt = rec.runs[0].dt;
+        for c in 0..2 {
+            let edges: Vec<f64> = edge_times(design, rec.e, c)
+                .into_iter()
+                .map(|t| t + start_s)
+                .collect();
+            let designed = |t: f64| design.value(rec.e, c, t - start_s);
+            let peak = rec
+                .samples()
+                .map(|(t, x)| x[c].abs().max(designed(t).abs()))
+                .fold(0.0, f64::max);
+            if peak == 0.0 {
+                continue;
+            }
+            for (t, x) in rec.samples() {
+                if edges.iter().any(|e| (t - e).abs() <= half * dt) {
+                    continue;
+                }
+                let d = designed(t);
+                let rel = (x[c] - d).abs() / peak;
+                if rel > worst.rel {
+                    worst = Mismatch {
+                        rel,
+                        at: Some((rec.name.to_string(), c, t, x[c], d, peak)),
+                    };
+                }
+            }
+        }
+    }
+    worst
+}
+
+/// Sum of squared differences between the recorded columns and the design at `start_s`.
+fn squares(design: &Design, recs: &[Recorded], start_s: f64) -> f64 {
+    recs.iter()
+        .flat_map(|rec| {
+            rec.samples().map(move |(t, x)| {
+                (0..2)
+                    .map(|c| (x[c] - design.value(rec.e, c, t - start_s)).powi(2))
+                    .sum::<f64>()
+            })
+        })
+        .sum()
+}
+
+/// Circular cross-correlation `c[j] = sum_k a[k] b[k + j]` for `j = 0..=b.len() - a.len()`.
+fn xcorr(a: &[f64], b: &[f64]) -> Vec<f64> {
+    use rustfft::{num_complex::Complex, FftPlanner};
+    let n = b.len().next_power_of_two();
+    let mut planner = FftPlanner::<f64>::new();
+    let fwd = planner.plan_fft_forward(n);
+    let inv = planner.plan_fft_inverse(n);
+    let pad = |x: &[f64]| {
+        let mut v: Vec<Complex<f64>> = x.iter().map(|&r| Complex::new(r, 0.0)).collect();
+        v.resize(n, Complex::new(0.0, 0.0));
+        v
+    };
+    let (mut fa, mut fb) = (pad(a), pad(b));
+    fwd.process(&mut fa);
+    fwd.process(&mut fb);
+    let mut prod: Vec<Complex<f64>> = fa.iter().zip(&fb).map(|(x, y)| x.conj() * y).collect();
+    inv.process(&mut prod);
+    (0..=b.len() - a.len())
+        .map(|j| prod[j].re / n as f64)
+        .collect()
+}
+
+/// The `start_s` whose design best matches the recorded columns: least squares over every
+/// offset on the runs' sampling grid (by FFT cross-correlation), then refined below one
+/// sample when that matches better. `None` when the recorded columns and the design carry no
+/// injection to match (every offset fits equally).
+fn best_start(design: &Design, recs: &[Recorded], half: f64) -> Option<(f64, Mismatch)> {
+    let dt = recs.first()?.runs[0].dt;
+    let origin = recs[0].runs[0].t0;
+    // Sum of squares per candidate offset index m (start_s = origin + m dt), per experiment.
+    let mut total: std::collections::BTreeMap<i64, f64> = Default::default();
+    let mut base = 0.0;
+    let mut per: Vec<(f64, Vec<(i64, f64)>)> = Vec::new();
+    for rec in recs {
+        let t_first = rec.runs.iter().map(|r| r.t0).fold(f64::INFINITY, f64::min);
+        let t_last = rec
+            .runs
+            .iter()
+            .map(|r| r.t0 + (r.len().max(1) - 1) as f64 * r.dt)
+            .fold(f64::NEG_INFINITY, f64::max);
+        let k_of = |t: f64| ((t - t_first) / dt).round() as usize;
+        let n = k_of(t_last) + 1;
+        let mut r = [vec![0.0; n], vec![0.0; n]];
+        let mut mask = vec![0.0; n];
+        for (t, x) in rec.samples() {
+            let k = k_of(t);
+            mask[k] = 1.0;
+            r[0][k] = x[0];
+            r[1][k] = x[1];
+        }
+        let r2: f64 = r.iter().flatten().map(|x| x * x).sum();
+        let span = design_span(design, rec.e);
+        let Some((a, b)) = span else {
+            base += r2;
+            continue;
+        };
+        // Design time u_i = u_lo + i dt; t_k - s = u_{k + j} gives s = t_first - u_lo - j dt.
+        let u_lo = a - (t_last - t_first) - 2.0 * dt;
+        let m = ((b - u_lo) / dt).ceil() as usize + n + 2;
+        let mut ss = vec![r2; m - n + 1];
+        for (c, rc) in r.iter().enumerate() {
+            let d: Vec<f64> = (0..m)
+                .map(|i| design.value(rec.e, c, u_lo + i as f64 * dt))
+                .collect();
+            if d.iter().all(|x| *x == 0.0) {
+                continue;
+            }
+            let d2: Vec<f64> = d.iter().map(|x| x * x).collect();
+            let cross = xcorr(rc, &d);
+            let energy = xcorr(&mask, &d2);
+            for (j, v) in ss.iter_mut().enumerate() {
+                *v += energy[j] - 2.0 * cross[j];
+            }
+        }
+        let keyed = ss
+            .iter()
+            .enumerate()
+            .map(|(j, v)| {
+                let s = t_first - u_lo - j as f64 * dt;
+                (((s - origin) / dt).round() as i64, *v)
+            })
+            .collect();
+        per.push((r2, keyed));
+    }
+    if per.is_empty() {
+        return None;
+    }
+    for (_, keyed) in &per {
+        for (key, _) in keyed {
+            total.entry(*key).or_insert(0.0);
+        }
+    }
+    for (r2, keyed) in &per {
+        let own: std::collections::HashMap<i64, f64> = keyed.iter().copied().collect();
+        for (key, v) in total.iter_mut() {
+            *v += own.get(key).copied().unwrap_or(*r2);
+        }
+    }
+    let floor: f64 = base + per.iter().map(|(r2, _)| r2).sum::<f64>();
+    let (&key, &best) = total
+        .iter()
+        .min_by(|x, y| x.1.total_cmp(y.1).then(x.0.abs().cmp(&y.0.abs())))?;
+    // No offset explains any recorded guidance better than none at all: nothing to match.
+    if floor == 0.0 || best >= floor {
+        return None;
+    }
+    let s0 = origin + key as f64 * dt;
+    let m0 = mismatch(design, recs, s0, half);
+    if m0.rel <= GUIDANCE_MATCH * 1e-3 {
+        return Some((s0, m0));
+    }
+    // Golden-section refinement of the sum of squares within one sample either side.
+    let (mut lo, mut hi) = (s0 - dt, s0 + dt);
+    let g = (5f64.sqrt() - 1.0) / 2.0;
+    let mut x1 = hi - g * (hi - lo);
+    let mut x2 = lo + g * (hi - lo);
+    let (mut f1, mut f2) = (squares(design, recs, x1), squares(design, recs, x2));
+    for _ in 0..40 {
+        if f1 < f2 {
+            hi = x2;
+            (x2, f2) = (x1, f1);
+            x1 = hi - g * (hi - lo);
+            f1 = squares(design, recs, x1);
+        } else {
+            lo = x1;
+            (x1, f1) = (x2, f2);
+            x2 = lo + g * (hi - lo);
+            f2 = squares(design, recs, x2);
+        }
+    }
+    let s1 = (0.5 * (lo + hi) / (1e-6 * dt)).round() * 1e-6 * dt;
+    let m1 = mismatch(design, recs, s1, half);
+    if m1.rel < 0.5 * m0.rel {
+        Some((s1, m1))
+    } else {
+        Some((s0, m0))
+    }
+}
+
+/// First stretch start and last stretch end of experiment `e` in design time, if any input
+/// has a stretch.
+fn design_span(design: &Design, e: usize) -> Option<(f64, f64)> {
+    let slots = design.experiments[e]
+        .inputs
+        .iter()
+        .flatten()
+        .map(Vec::len)
+        .max()
+        .filter(|n| *n > 0)?;
+    Some((
+        design.stretch_start(0),
+        design.stretch_start(slots - 1) + design.stretch_s,
+    ))
+}
+
+/// Design times of the stretch edges (starts and ends) of experiment `e`'s input `c`.
+fn edge_times(design: &Design, e: usize, c: usize) -> Vec<f64> {
+    let Some(Some(stretches)) = design.experiments[e].inputs.get(c) else {
+        return Vec::new();
+    };
+    (0..stretches.len())
+        .flat_map(|s| {
+            let t0 = design.stretch_start(s);
+            [t0, t0 + design.stretch_s]
+        })
+        .collect()
+}
+
+/// Where a mismatch is, for messages: "experiment 'exp1' column oi1: recorded .., designed ..
+/// at t = .. s (peak ..)".
+fn describe(m: &Mismatch, columns: [&str; 2]) -> String {
+    match &m.at {
+        Some((name, c, t, r, d, peak)) => format!(
+            "experiment '{name}' column {}: recorded {r:.6e}, designed {d:.6e} at t = {t} s \
+             (peak {peak:.3e})",
+            columns[*c]
+        ),
+        None => "no difference".into(),
+    }
+}
+
+/// Samples either side of a stretch edge where a recorded column may differ from the design
+/// (the anti-alias FIR's half-length at the telemetry rate, plus one).
+fn edge_half(setup: &Setup) -> Result<f64, AnalysisError> {
+    let decimator = setup.spec.decimator().map_err(crate::setup::Error::from)?;
+    Ok((decimator.edge_samples() + 1) as f64)
+}
+
+/// The design known for a dataset, with its `start_s` and how it was obtained: the declared
+/// design (`[injections]`), its `start_s` found by matching the recorded columns when the
+/// declaration leaves it out; without a declaration, a design reconstructed from the recorded
+/// columns. Returns the notes that say so. An explicit `start_s` that the recorded columns do
+/// not match is a one-line error giving the value they match.
+pub fn known_design(
+    setup: &Setup,
+    ds: &Dataset,
+) -> Result<(Option<KnownDesign>, Vec<String>), AnalysisError> {
+    let half = edge_half(setup)?;
+    let columns = setup.model.input_names();
+    let Some(design) = declared_design(setup, ds)? else {
+        return Ok((None, Vec::new()));
+    };
+    let recs = recorded(ds, &design)?;
+    let explicit = ds.injections.as_ref().and_then(|i| i.start_s);
+    let best = || best_start(&design, &recs, half);
+    let known = |start_s: f64, origin, residual| KnownDesign {
+        design: design.clone(),
+        start_s,
+        origin,
+        residual,
+    };
+    if let Some(start_s) = explicit {
+        let m = mismatch(&design, &recs, start_s, half);
+        if m.rel <= GUIDANCE_MATCH {
+            return Ok((
+                Some(known(start_s, DesignOrigin::Declared, m.rel)),
+                Vec::new(),
+            ));
+        }
+        let hint = match best() {
+            Some((s, b)) if b.rel <= GUIDANCE_MATCH => format!(
+                "the recorded columns match start_s = {s} (residual {:.1e} of the peak)",
+                b.rel
+            ),
+            Some((s, b)) => format!(
+                "no start_s matches: the best, start_s = {s}, leaves {:.1e} of the peak: check \
+                 the design",
+                b.rel
+            ),
+            None => "the recorded guidance columns carry no injection to match".into(),
+        };
+        return Err(bad(
+            ds,
+            format!(
+                "[injections] design '{}', start_s = {start_s} does not match ({}, away from \
+                 the stretch edges); {hint}",
+                design.name,
+                describe(&m, columns)
+            ),
+        ));
+    }
+    let Some((start_s, m)) = best() else {
+        return Err(bad(
+            ds,
+            format!(
+                "[injections] design '{}': start_s cannot be found, the recorded guidance \
+                 columns carry no injection to match: give start_s",
+                design.name
+            ),
+        ));
+    };
+    if m.rel > GUIDANCE_MATCH {
+        return Err(bad(
+            ds,
+            format!(
+                "[injections] design '{}' matches the recorded columns at no start_s: the \
+                 best, start_s = {start_s}, leaves {:.1e} of the peak ({}, away from the \
+                 stretch edges): check the design",
+                design.name,
+                m.rel,
+                describe(&m, columns)
+            ),
+        ));
+    }
+    let note = format!(
+        "[injections] start_s = {start_s} found by matching the recorded guidance columns to \
+         design '{}' (residual {:.1e} of the peak away from the stretch edges); declare it \
+         to skip the search",
+        design.name, m.rel
+    );
+    Ok((
+        Some(known(start_s, DesignOrigin::DeclaredStartFound, m.rel)),
+        vec![note],
+    ))
+}
+
 /// Replaces every experiment's guidance `inputs` (with their lead-ins, as
-/// `Dataset::inputs_with_lead_in` gives them) by the declared design's, decimated as the
-/// telemetry is; returns the notes. Without `[injections]`, leaves them and returns none.
+/// `Dataset::inputs_with_lead_in` gives them) by the known design's ([`known_design`]),
+/// decimated as the telemetry is; returns the notes. Without a known design, leaves them and
+/// returns notes on their sharp edges, if any.
 pub fn apply_declared_design(
     setup: &Setup,
     ds: &Dataset,
     inputs: &mut [Vec<Vec<f64>>],
 ) -> Result<Vec<String>, AnalysisError> {
-    let Some(design) = declared_design(setup, ds)? else {
-        return Ok(point_sampled_edges(ds, setup.model.input_names()));
-    };
-    let start_s = ds.injections.as_ref().map_or(0.0, |i| i.start_s);
+    let (known, mut notes) = known_design(setup, ds)?;
+    match known {
+        Some(k) => notes.extend(apply_design(setup, ds, &k, inputs)?),
+        None => notes.extend(point_sampled_edges(ds, setup.model.input_names())),
+    }
+    Ok(notes)
+}
+
+/// Replaces every experiment's guidance `inputs` (with their lead-ins) by `known`'s design at
+/// the control rate through the telemetry's anti-alias decimation; returns the notes.
+pub fn apply_design(
+    setup: &Setup,
+    ds: &Dataset,
+    known: &KnownDesign,
+    inputs: &mut [Vec<Vec<f64>>],
+) -> Result<Vec<String>, AnalysisError> {
+    let design = &known.design;
+    let start_s = known.start_s;
     let decimator = setup.spec.decimator().map_err(crate::setup::Error::from)?;
     let dt = setup.analysis_dt();
+    let how = match known.origin {
+        DesignOrigin::Declared | DesignOrigin::DeclaredStartFound => "the declared design",
+        DesignOrigin::ModelTable => "the model's design, matched to the recorded columns,",
+        DesignOrigin::Reconstructed => "the design reconstructed from the recorded columns,",
+    };
     let mut notes = Vec::new();
     for ((name, run), input) in ds.experiments.iter().zip(inputs.iter_mut()) {
         if !crate::numerics::tol::same_time(run.dt, dt) {
@@ -91,7 +523,7 @@ pub fn apply_declared_design(
                 ),
             ));
         }
-        let base = name.split(".seg").next().unwrap_or(name);
+        let base = base_name(name);
         let Some(e) = design.experiments.iter().position(|x| x.name == base) else {
             let known: Vec<&str> = design.experiments.iter().map(|x| x.name.as_str()).collect();
             return Err(bad(
@@ -113,7 +545,7 @@ pub fn apply_declared_design(
             .map(|x| grid.keep(x))
             .collect();
         let half = decimator.edge_samples() + 1;
-        let edges = stretch_edges(&design, e, first, dt, n_out);
+        let edges = stretch_edges(design, e, first, dt, n_out);
         let mut worst_edge: f64 = 0.0;
         for (c, (recorded, designed)) in run.inputs().iter().zip(&made).enumerate() {
             let column = setup.model.input_names()[c];
@@ -144,7 +576,7 @@ pub fn apply_declared_design(
         }
         let n_edges: usize = edges.iter().map(Vec::len).sum();
         notes.push(format!(
-            "{name}: guidance made from the declared design '{}' at {} Hz through the \
+            "{name}: guidance made from {how} '{}' at {} Hz through the \
              telemetry's anti-alias decimation; the recorded columns differ from it by up to \
              {worst_edge:.2e} at the {n_edges} stretch edges (content above the telemetry \
              Nyquist frequency that 1 Hz columns cannot carry), within {GUIDANCE_MATCH:e} of \

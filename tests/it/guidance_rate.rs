@@ -51,7 +51,7 @@ fn write_point_sampled(
 fn standard(start_s: f64) -> Option<DeclaredInjections> {
     Some(DeclaredInjections {
         design: "standard".into(),
-        start_s,
+        start_s: Some(start_s),
     })
 }
 
