@@ -18,7 +18,7 @@
 use crate::io::{read_toml, Dataset, Run};
 use crate::model::ClosedLoopModel;
 use crate::setup::Setup;
-use crate::signal::Design;
+use crate::signal::{Design, Experiment, Stretch};
 use crate::sim::decimated::DecimationGrid;
 
 use super::AnalysisError;
@@ -88,6 +88,26 @@ pub struct KnownDesign {
     /// Largest difference between the recorded guidance columns and the design away from the
     /// stretch edges, relative to the channel's peak.
     pub residual: f64,
+    /// A reconstructed design's stretches as fitted (empty otherwise).
+    pub fitted: Vec<FittedStretch>,
+}
+
+/// One stretch of a reconstructed design, as the least-squares fit found it on the runs'
+/// clock.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FittedStretch {
+    pub experiment: String,
+    /// Guidance input channel (0 = oi1, 1 = oi12).
+    pub channel: usize,
+    /// Start and end on the runs' clock [s].
+    pub start: f64,
+    pub end: f64,
+    pub f_hz: f64,
+    /// Amplitude of `sin(2 pi f (t - start))`.
+    pub amplitude: f64,
+    /// Phase at the start of a free sine fit `|A| sin(2 pi f (t - start) + phase)` with the
+    /// amplitude's sign taken out [rad]: zero for the design class.
+    pub phase: f64,
 }
 
 /// The recorded guidance of one experiment of the design: every run of that name (a segment
@@ -401,7 +421,20 @@ pub fn known_design(
     let half = edge_half(setup)?;
     let columns = setup.model.input_names();
     let Some(design) = declared_design(setup, ds)? else {
-        return Ok((None, Vec::new()));
+        return Ok(match reconstruct(setup, ds, half, true) {
+            Ok(None) => (None, Vec::new()),
+            Ok(Some(k)) => {
+                let note = k.note(columns);
+                (Some(k), vec![note])
+            }
+            Err(reason) => (
+                None,
+                vec![format!(
+                    "no [injections] declared and the guidance could not be reconstructed \
+                     from the recorded columns ({reason}): the columns are used as recorded"
+                )],
+            ),
+        });
     };
     let recs = recorded(ds, &design)?;
     let explicit = ds.injections.as_ref().and_then(|i| i.start_s);
@@ -411,6 +444,7 @@ pub fn known_design(
         start_s,
         origin,
         residual,
+        fitted: Vec::new(),
     };
     if let Some(start_s) = explicit {
         let m = mismatch(&design, &recs, start_s, half);
@@ -589,6 +623,481 @@ pub fn apply_design(
     Ok(notes)
 }
 
+/// File name of a reconstructed design that `fit` and `diagnose` write into their output
+/// folder.
+pub const RECONSTRUCTED_FILE_NAME: &str = "reconstructed_design.toml";
+
+impl KnownDesign {
+    /// One line on how the design became known and what it is, stretch by stretch when it was
+    /// reconstructed.
+    pub fn note(&self, columns: [&str; 2]) -> String {
+        let d = &self.design;
+        match self.origin {
+            DesignOrigin::Declared => format!(
+                "[injections] design '{}' at start_s = {} (residual {:.1e} of the peak)",
+                d.name, self.start_s, self.residual
+            ),
+            DesignOrigin::DeclaredStartFound => format!(
+                "[injections] start_s = {} found by matching the recorded guidance columns to \
+                 design '{}' (residual {:.1e} of the peak away from the stretch edges); \
+                 declare it to skip the search",
+                self.start_s, d.name, self.residual
+            ),
+            DesignOrigin::ModelTable => format!(
+                "no [injections] declared: the recorded guidance columns match the model's \
+                 design '{}' at start_s = {} (residual {:.1e} of the peak away from the stretch \
+                 edges); the guidance is made from it at the control rate; declare it next time \
+                 ([injections] design = \"{}\", start_s = {})",
+                d.name, self.start_s, self.residual, d.name, self.start_s
+            ),
+            DesignOrigin::Reconstructed => {
+                let mut parts: Vec<String> = Vec::new();
+                for f in &self.fitted {
+                    let head = format!("{} {}:", f.experiment, columns[f.channel]);
+                    let item = format!(
+                        "{}-{} s {:.6e} Hz {:.4e} phase {:.1e}",
+                        f.start, f.end, f.f_hz, f.amplitude, f.phase
+                    );
+                    match parts.last_mut() {
+                        Some(p) if p.starts_with(&head) => *p = format!("{p}, {item}"),
+                        _ => parts.push(format!("{head} {item}")),
+                    }
+                }
+                format!(
+                    "no [injections] declared: the guidance was reconstructed from the recorded \
+                     columns by least squares as a windowed sine-train design (stretches of {} s, \
+                     gaps of {} s; {}; residual {:.1e} of the peak away from the stretch edges) \
+                     and is made from it at the control rate; fit and diagnose write it as \
+                     {RECONSTRUCTED_FILE_NAME} into their output folder (other commands print \
+                     it), to declare next time with [injections] design = \"{RECONSTRUCTED_FILE_NAME}\", \
+                     start_s = {}",
+                    d.stretch_s,
+                    d.gap_s,
+                    parts.join("; "),
+                    self.residual,
+                    self.start_s
+                )
+            }
+        }
+    }
+
+    /// The design as a design TOML (the format `design optimize` writes).
+    pub fn to_toml(&self) -> String {
+        toml::to_string(&self.design).unwrap_or_default()
+    }
+
+    /// Writes a reconstructed design into `out` as [`RECONSTRUCTED_FILE_NAME`]; returns the
+    /// path written (none for a declared or model-table design).
+    pub fn write_reconstruction(
+        &self,
+        out: &std::path::Path,
+    ) -> Result<Option<std::path::PathBuf>, crate::io::IoError> {
+        if self.origin != DesignOrigin::Reconstructed {
+            return Ok(None);
+        }
+        let path = out.join(RECONSTRUCTED_FILE_NAME);
+        crate::io::write_text_atomic(&path, &self.to_toml())?;
+        Ok(Some(path))
+    }
+}
+
+/// The dataset's runs grouped by experiment name (a segment `NAME.segK` joins `NAME`), in
+/// time order.
+fn groups(ds: &Dataset) -> Vec<(&str, Vec<&Run>)> {
+    let mut out: Vec<(&str, Vec<&Run>)> = Vec::new();
+    for (name, run) in &ds.experiments {
+        let base = base_name(name);
+        match out.iter_mut().find(|(n, _)| *n == base) {
+            Some((_, runs)) => runs.push(run),
+            None => out.push((base, vec![run])),
+        }
+    }
+    out
+}
+
+/// Least-squares sine on samples `(t, x)`: `x = a sin(w (t - t0)) + b cos(w (t - t0))`;
+/// returns `(a, b, sum of squared residuals)`.
+fn sine_fit(samples: &[(f64, f64)], f_hz: f64, t0: f64) -> (f64, f64, f64) {
+    let w = 2.0 * std::f64::consts::PI * f_hz;
+    let (mut ss, mut sc, mut cc, mut xs, mut xc, mut xx) = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0);
+    for &(t, x) in samples {
+        let (sn, cs) = (w * (t - t0)).sin_cos();
+        ss += sn * sn;
+        sc += sn * cs;
+        cc += cs * cs;
+        xs += x * sn;
+        xc += x * cs;
+        xx += x * x;
+    }
+    let det = ss * cc - sc * sc;
+    if det.abs() <= 1e-12 * (ss * cc).max(f64::MIN_POSITIVE) {
+        // One basis function only (a single sample, or a frequency at which the other
+        // vanishes on every sample).
+        let a = if ss > 0.0 { xs / ss } else { 0.0 };
+        return (a, 0.0, xx - a * xs);
+    }
+    let a = (cc * xs - sc * xc) / det;
+    let b = (ss * xc - sc * xs) / det;
+    (a, b, (xx - a * xs - b * xc).max(0.0))
+}
+
+/// A stretch seen whole in a recorded column: its start and length from a free sine fit.
+struct Seen {
+    start: f64,
+    length: f64,
+}
+
+/// The start and length of one whole stretch whose non-zero samples are `active` (the
+/// first and last `trim` samples, which an anti-alias filter may have smeared, left out of
+/// the fit): the cycle count of most power at the rough length, the frequency refined by a
+/// golden-section search of the projected power, the start from the phase.
+fn seen_stretch(active: &[(f64, f64)], dt: f64, trim: usize) -> Option<Seen> {
+    if active.len() < 2 * trim + 8 {
+        return None;
+    }
+    let inner = &active[trim..active.len() - trim];
+    let (t_a, t_b) = (active[0].0, active[active.len() - 1].0);
+    let centre = 0.5 * (t_a + t_b);
+    let rough = t_b - t_a + dt;
+    let top = (rough / (2.0 * dt)).floor() as usize;
+    let energy: f64 = inner.iter().map(|p| p.1 * p.1).sum();
+    let power = |f: f64| energy - sine_fit(inner, f, centre).2;
+    let m = (1..=top.max(1))
+        .max_by(|&i, &j| power(i as f64 / rough).total_cmp(&power(j as f64 / rough)))?;
+    let (mut lo, mut hi) = ((m as f64 - 0.5) / rough, (m as f64 + 0.5) / rough);
+    let g = (5f64.sqrt() - 1.0) / 2.0;
+    let mut x1 = hi - g * (hi - lo);
+    let mut x2 = lo + g * (hi - lo);
+    let (mut f1, mut f2) = (power(x1), power(x2));
+    for _ in 0..80 {
+        if f1 > f2 {
+            hi = x2;
+            (x2, f2) = (x1, f1);
+            x1 = hi - g * (hi - lo);
+            f1 = power(x1);
+        } else {
+            lo = x1;
+            (x1, f1) = (x2, f2);
+            x2 = lo + g * (hi - lo);
+            f2 = power(x2);
+        }
+    }
+    let f = 0.5 * (lo + hi);
+    let (a, b, _) = sine_fit(inner, f, centre);
+    // a sin(w (t - c)) + b cos(w (t - c)) = A sin(w (t - c) + phi): the stretch starts where
+    // the phase is a whole number of half cycles, the one nearest half a stretch before the
+    // centre (the sign of the amplitude follows).
+    let phi = b.atan2(a);
+    let w = 2.0 * std::f64::consts::PI * f;
+    let near = centre - 0.5 * rough;
+    let j = ((w * (centre - near) - phi) / std::f64::consts::PI).round();
+    let start = centre - (phi + j * std::f64::consts::PI) / w;
+    let length = m as f64 / f;
+    Some(Seen { start, length })
+}
+
+/// The design reconstructed from the recorded guidance columns of a dataset, ignoring any
+/// declaration: with `tables`, an injection table of the model file when one matches, else (or
+/// without `tables`) identified stretch by stretch by least squares. `Ok(None)`: no guidance
+/// recorded; `Err`: why none matched.
+pub fn reconstructed_design(
+    setup: &Setup,
+    ds: &Dataset,
+    tables: bool,
+) -> Result<Option<KnownDesign>, String> {
+    let half = edge_half(setup).map_err(|e| e.to_string())?;
+    reconstruct(setup, ds, half, tables)
+}
+
+/// Rounds a time to 1e-6 s (values such as 1200 s come out of the fit within 1e-9 s).
+fn round_us(t: f64) -> f64 {
+    (t * 1e6).round() / 1e6
+}
+
+/// Without a declaration: the design behind the recorded guidance columns. First the model
+/// file's injection tables, each matched by correlation over every start ([`best_start`]),
+/// which is exact when one matches; else a windowed sine-train design identified from the
+/// columns: the stretches' common length, period and first start from the stretches seen
+/// whole, then every stretch's cycle count (an integer in the stretch, the design class),
+/// amplitude and phase by least squares. `Ok(None)`: no guidance recorded (or readouts that
+/// respond to the 1 Hz samples themselves, `meta.rate = "analysis"`); `Err`: why no design
+/// matched within [`GUIDANCE_MATCH`] of the peak.
+fn reconstruct(
+    setup: &Setup,
+    ds: &Dataset,
+    half: f64,
+    tables: bool,
+) -> Result<Option<KnownDesign>, String> {
+    if ds.meta.get("rate").and_then(|v| v.as_str()) == Some("analysis") {
+        return Ok(None);
+    }
+    let groups = groups(ds);
+    let any = groups.iter().any(|(_, runs)| {
+        runs.iter()
+            .any(|r| r.inputs().iter().any(|x| x.iter().any(|v| *v != 0.0)))
+    });
+    if !any {
+        return Ok(None);
+    }
+    for name in setup.spec.injections.keys().filter(|_| tables) {
+        let Ok(design) = setup.design(name) else {
+            continue;
+        };
+        let Ok(recs) = recorded(ds, &design) else {
+            continue;
+        };
+        if let Some((start_s, m)) = best_start(&design, &recs, half) {
+            if m.rel <= GUIDANCE_MATCH {
+                return Ok(Some(KnownDesign {
+                    design,
+                    start_s,
+                    origin: DesignOrigin::ModelTable,
+                    residual: m.rel,
+                    fitted: Vec::new(),
+                }));
+            }
+        }
+    }
+    let dt = groups[0].1[0].dt;
+    let trim = half as usize;
+    // Samples per experiment and channel, and the stretches seen whole.
+    let samples = |runs: &[&Run], c: usize| -> Vec<(f64, f64)> {
+        runs.iter()
+            .flat_map(|r| {
+                let x = r.inputs()[c];
+                (0..r.len()).map(move |k| (r.t0 + k as f64 * r.dt, x[k]))
+            })
+            .collect()
+    };
+    let mut seen = Vec::new();
+    for (_, runs) in &groups {
+        for c in 0..2 {
+            let xs = samples(runs, c);
+            // Clusters of non-zero samples, split by 3 zero samples or a hole.
+            let mut k = 0;
+            while k < xs.len() {
+                if xs[k].1 == 0.0 {
+                    k += 1;
+                    continue;
+                }
+                let first = k;
+                let mut last = k;
+                let mut zeros = 0;
+                let mut j = k + 1;
+                while j < xs.len() && xs[j].0 - xs[j - 1].0 < 1.5 * dt {
+                    if xs[j].1 == 0.0 {
+                        zeros += 1;
+                        if zeros >= 3 {
+                            break;
+                        }
+                    } else {
+                        zeros = 0;
+                        last = j;
+                    }
+                    j += 1;
+                }
+                // Whole: a zero sample recorded right before and right after.
+                let quiet_before = first > 0 && xs[first].0 - xs[first - 1].0 < 1.5 * dt;
+                let quiet_after = last + 1 < xs.len()
+                    && xs[last + 1].0 - xs[last].0 < 1.5 * dt
+                    && xs[last + 1].1 == 0.0;
+                if quiet_before && quiet_after {
+                    if let Some(s) = seen_stretch(&xs[first..=last], dt, trim) {
+                        seen.push(s);
+                    }
+                }
+                k = last + 1;
+            }
+        }
+    }
+    if seen.is_empty() {
+        return Err("no stretch is recorded whole, between two pauses".into());
+    }
+    let mut lengths: Vec<f64> = seen.iter().map(|s| s.length).collect();
+    lengths.sort_by(f64::total_cmp);
+    let length = round_us(lengths[lengths.len() / 2]);
+    let mut starts: Vec<f64> = seen.iter().map(|s| s.start).collect();
+    starts.sort_by(f64::total_cmp);
+    starts.dedup_by(|a, b| (*a - *b).abs() < 0.5 * dt);
+    let first = starts[0];
+    let period = starts
+        .windows(2)
+        .map(|w| w[1] - w[0])
+        .fold(f64::INFINITY, f64::min);
+    let (first, period) = if period.is_finite() {
+        // Least squares of start = first + n period over the stretches seen.
+        let ns: Vec<f64> = starts
+            .iter()
+            .map(|s| ((s - first) / period).round())
+            .collect();
+        for (s, n) in starts.iter().zip(&ns) {
+            if (s - first - n * period).abs() > 0.1 * dt {
+                return Err(format!(
+                    "the stretches seen start at {} s, not on a common period",
+                    starts
+                        .iter()
+                        .map(|s| format!("{:.3}", s))
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                ));
+            }
+        }
+        let k = ns.len() as f64;
+        let (sn, ss, snn, sns) = ns
+            .iter()
+            .zip(&starts)
+            .fold((0.0, 0.0, 0.0, 0.0), |a, (n, s)| {
+                (a.0 + n, a.1 + s, a.2 + n * n, a.3 + n * s)
+            });
+        let det = k * snn - sn * sn;
+        let p = (k * sns - sn * ss) / det;
+        (round_us((ss - p * sn) / k), round_us(p))
+    } else {
+        (round_us(first), length)
+    };
+    if period < length - 1e-6 {
+        return Err(format!(
+            "stretches of {length} s recur every {period} s: they would overlap"
+        ));
+    }
+    // Slots touching the recorded samples: from the earliest one with a sample inside.
+    let t_lo = groups
+        .iter()
+        .flat_map(|(_, runs)| runs.iter().map(|r| r.t0))
+        .fold(f64::INFINITY, f64::min);
+    let n_lo = ((t_lo - first - length) / period).floor() as i64;
+    let origin = first + n_lo as f64 * period;
+    let slot_start = |n: usize| origin + n as f64 * period;
+    let mut experiments = Vec::new();
+    let mut fitted = Vec::new();
+    let mut t_end: f64 = 0.0;
+    for (name, runs) in &groups {
+        let mut inputs = Vec::new();
+        for c in 0..2 {
+            let xs = samples(runs, c);
+            let t_last = xs.last().map_or(t_lo, |p| p.0);
+            t_end = t_end.max(t_last + dt);
+            let mut stretches = Vec::new();
+            let mut n = 0;
+            while slot_start(n) < t_last {
+                let (a, b) = (slot_start(n), slot_start(n) + length);
+                let inside: Vec<(f64, f64)> = xs
+                    .iter()
+                    .copied()
+                    .filter(|(t, _)| *t > a + half * dt && *t < b - half * dt)
+                    .collect();
+                let touches = xs.first().is_some_and(|p| p.0 < b) && t_last > a;
+                if inside.is_empty() {
+                    if touches && n > 0 && xs.iter().any(|(t, _)| *t > b) {
+                        return Err(format!(
+                            "stretch {a}-{b} s of {name} {} falls in a hole of the run",
+                            setup.model.input_names()[c]
+                        ));
+                    }
+                    stretches.push(Stretch {
+                        f_hz: 0.0,
+                        amplitude: 0.0,
+                    });
+                    n += 1;
+                    continue;
+                }
+                if inside.iter().all(|p| p.1 == 0.0) {
+                    stretches.push(Stretch {
+                        f_hz: 0.0,
+                        amplitude: 0.0,
+                    });
+                    n += 1;
+                    continue;
+                }
+                let top = (length / (2.0 * dt)).floor().max(1.0) as usize;
+                let best = (1..=top)
+                    .map(|m| {
+                        let f = m as f64 / length;
+                        let (amp, _, res) = sine_fit(&inside, f, a);
+                        (m, amp, res)
+                    })
+                    .min_by(|x, y| x.2.total_cmp(&y.2))
+                    .map(|(m, _, _)| m)
+                    .unwrap_or(1);
+                let f_hz = best as f64 / length;
+                // The design class has no phase: the amplitude of sin(w (t - start)) alone.
+                let w = 2.0 * std::f64::consts::PI * f_hz;
+                let (num, den) = inside.iter().fold((0.0, 0.0), |acc, (t, x)| {
+                    let s = (w * (t - a)).sin();
+                    (acc.0 + x * s, acc.1 + s * s)
+                });
+                let amp = if den > 0.0 { num / den } else { 0.0 };
+                let (sa, cb, _) = sine_fit(&inside, f_hz, a);
+                let phase = if sa < 0.0 {
+                    (-cb).atan2(-sa)
+                } else {
+                    cb.atan2(sa)
+                };
+                fitted.push(FittedStretch {
+                    experiment: name.to_string(),
+                    channel: c,
+                    start: a,
+                    end: b,
+                    f_hz,
+                    amplitude: amp,
+                    phase,
+                });
+                stretches.push(Stretch {
+                    f_hz,
+                    amplitude: amp,
+                });
+                n += 1;
+            }
+            while stretches.last().is_some_and(|s| s.amplitude == 0.0) {
+                stretches.pop();
+            }
+            inputs.push((!stretches.is_empty()).then_some(stretches));
+        }
+        experiments.push(Experiment {
+            name: name.to_string(),
+            inputs,
+            duration_s: None,
+        });
+    }
+    let (design_start, clock) = if origin >= 0.0 {
+        (origin, 0.0)
+    } else {
+        (0.0, origin)
+    };
+    let last_end = experiments
+        .iter()
+        .flat_map(|x| x.inputs.iter().flatten().map(Vec::len))
+        .max()
+        .map_or(0.0, |n| {
+            design_start + n as f64 * period - (period - length)
+        });
+    let design = Design {
+        name: "reconstructed".into(),
+        stretch_s: length,
+        gap_s: round_us(period - length).max(0.0),
+        start_s: design_start,
+        duration_s: (t_end - clock).max(last_end),
+        experiments,
+    };
+    design.validate().map_err(|e| e.to_string())?;
+    let recs = recorded(ds, &design).map_err(|e| e.to_string())?;
+    let m = mismatch(&design, &recs, clock, half);
+    if m.rel > GUIDANCE_MATCH {
+        return Err(format!(
+            "the best windowed sine-train design leaves {:.1e} of the peak ({})",
+            m.rel,
+            describe(&m, setup.model.input_names())
+        ));
+    }
+    Ok(Some(KnownDesign {
+        design,
+        start_s: clock,
+        origin: DesignOrigin::Reconstructed,
+        residual: m.rel,
+        fitted,
+    }))
+}
+
 /// Output-sample indices of the stretch edges (starts and ends) of experiment `e`'s inputs on
 /// the grid `first + k dt`, `k < n`, per input channel.
 fn stretch_edges(design: &Design, e: usize, first: f64, dt: f64, n: usize) -> Vec<Vec<usize>> {
@@ -612,6 +1121,47 @@ fn stretch_edges(design: &Design, e: usize, first: f64, dt: f64, n: usize) -> Ve
         .collect()
 }
 
+/// Times of the sharp stretch edges of every experiment's guidance columns (per experiment,
+/// per column, s from the run's first sample), as [`point_sampled_edges`] names them: none for
+/// data made at the analysis rate (`meta.rate = "analysis"`).
+pub fn sharp_edges(ds: &Dataset) -> Vec<[Vec<f64>; 2]> {
+    let analysis = ds.meta.get("rate").and_then(|v| v.as_str()) == Some("analysis");
+    ds.experiments
+        .iter()
+        .map(|(_, run)| {
+            run.inputs().map(|x| {
+                if analysis {
+                    return Vec::new();
+                }
+                let sharp = |k: usize, dir: isize| {
+                    // `k`: the first non-zero sample after (dir = 1) or before (dir = -1) rest.
+                    let at = |j: isize| x.get((k as isize + dir * j) as usize).copied();
+                    match (at(0), at(1), at(2)) {
+                        (Some(a), Some(b), Some(c2)) => {
+                            a != 0.0 && a.abs() >= EDGE_STEP_RATIO * (c2 - b).abs()
+                        }
+                        _ => false,
+                    }
+                };
+                // The edge is the sample at rest next to the jump: a stretch starts at `k - 1`
+                // and ends at `k + 1`.
+                (1..x.len().saturating_sub(1))
+                    .filter_map(|k| {
+                        if x[k - 1] == 0.0 && sharp(k, 1) {
+                            Some(k - 1)
+                        } else if x[k + 1] == 0.0 && k >= 2 && sharp(k, -1) {
+                            Some(k + 1)
+                        } else {
+                            None
+                        }
+                    })
+                    .map(|k| k as f64 * run.dt)
+                    .collect()
+            })
+        })
+        .collect()
+}
+
 /// A stretch edge of a point-sampled column: the column leaves (or returns to) exact zero with
 /// a first step at least this fraction of the slope just inside the stretch. A sampled sine
 /// starting at a sample gives `x_1 = A sin(w dt)` against a next step `A (sin 2w dt - sin w dt)`,
@@ -625,37 +1175,11 @@ const EDGE_STEP_RATIO: f64 = 0.5;
 /// full guidance; such a column lacks the edges' content above the telemetry Nyquist frequency,
 /// and so do the templates built from it. Data that `simulate --rate analysis` made
 /// (`meta.rate = "analysis"`) are exempt: their readouts respond to the same 1 Hz samples.
-fn point_sampled_edges(ds: &Dataset, columns: [&str; 2]) -> Vec<String> {
+pub fn point_sampled_edges(ds: &Dataset, columns: [&str; 2]) -> Vec<String> {
     let mut notes = Vec::new();
-    if ds.meta.get("rate").and_then(|v| v.as_str()) == Some("analysis") {
-        return notes;
-    }
-    for (name, run) in &ds.experiments {
-        for (c, x) in run.inputs().iter().enumerate() {
-            let sharp = |k: usize, dir: isize| {
-                // `k`: the first non-zero sample after (dir = 1) or before (dir = -1) rest.
-                let at = |j: isize| x.get((k as isize + dir * j) as usize).copied();
-                match (at(0), at(1), at(2)) {
-                    (Some(a), Some(b), Some(c2)) => {
-                        a != 0.0 && a.abs() >= EDGE_STEP_RATIO * (c2 - b).abs()
-                    }
-                    _ => false,
-                }
-            };
-            // The edge is the sample at rest next to the jump: a stretch starts at `k - 1`
-            // and ends at `k + 1`.
-            let times: Vec<f64> = (1..x.len().saturating_sub(1))
-                .filter_map(|k| {
-                    if x[k - 1] == 0.0 && sharp(k, 1) {
-                        Some(k - 1)
-                    } else if x[k + 1] == 0.0 && k >= 2 && sharp(k, -1) {
-                        Some(k + 1)
-                    } else {
-                        None
-                    }
-                })
-                .map(|k| run.t0 + k as f64 * run.dt)
-                .collect();
+    for ((name, run), per_column) in ds.experiments.iter().zip(sharp_edges(ds)) {
+        for (c, times) in per_column.into_iter().enumerate() {
+            let times: Vec<f64> = times.into_iter().map(|t| run.t0 + t).collect();
             if times.is_empty() {
                 continue;
             }

@@ -10,9 +10,9 @@ use std::path::{Path, PathBuf};
 
 use super::transient::{clean_noise_run, fit_with_transients, TransientError, TransientReport};
 use super::{
-    correlation_table, dataset_whitener, decimated_telemetry, estimates_table, experiment_data,
-    outputs_of, parse_constraints, psd_table, residual_table, resolve_guess, truth_from_meta,
-    whitened_table, AnalysisError, FitSummary, Whitening,
+    correlation_table, dataset_whitener, decimated_telemetry, estimates_table, outputs_of,
+    parse_constraints, psd_table, residual_table, resolve_guess, truth_from_meta, whitened_table,
+    AnalysisError, FitSummary, Whitening,
 };
 use crate::data::ExperimentData;
 use crate::fit::{
@@ -191,6 +191,8 @@ pub struct Prepared {
     /// How the experiments' inputs were made (runs joined across gaps, guidance from a
     /// declared design, sharp stretch edges), for reports to carry.
     pub input_notes: Vec<String>,
+    /// The design behind the guidance, declared or reconstructed ([`super::guidance`]).
+    pub design: Option<super::guidance::KnownDesign>,
 }
 
 impl DatasetFit {
@@ -206,7 +208,7 @@ impl DatasetFit {
         for n in &ds.notes {
             notes(n);
         }
-        let (data, joined) = experiment_data(setup, &ds)?;
+        let (data, joined, design) = super::experiment_data_known(setup, &ds)?;
         for n in &joined {
             notes(n);
         }
@@ -226,6 +228,7 @@ impl DatasetFit {
             guess,
             constraints,
             input_notes: joined,
+            design,
         })
     }
 
@@ -426,6 +429,7 @@ fn write_fit(
     let problem = lik.problem(data)?;
     let names = setup.parameter_names();
     create_output_dir(out)?;
+    write_reconstruction(prep, out)?;
     let meta = &summary.provenance;
     let est = estimates_table(&names, setup.parameter_units(), res, &prep.guess)?;
     write_parquet(out.join("estimates.parquet"), &est.with_meta_all(meta))?;
@@ -449,4 +453,21 @@ fn write_fit(
     )?;
     write_json_atomic(out.join("fit.json"), summary)?;
     Ok(())
+}
+
+/// Writes a design reconstructed from the recorded guidance columns into the output folder
+/// `out` ([`super::guidance::RECONSTRUCTED_FILE_NAME`]); returns a note naming it.
+pub fn write_reconstruction(prep: &Prepared, out: &Path) -> Result<Option<String>, JobError> {
+    let Some(k) = &prep.design else {
+        return Ok(None);
+    };
+    Ok(k.write_reconstruction(out)?.map(|path| {
+        format!(
+            "wrote the reconstructed design {} (declare it next time: [injections] design = \
+             \"{}\", start_s = {}, with the file beside dataset.toml)",
+            path.display(),
+            super::guidance::RECONSTRUCTED_FILE_NAME,
+            k.start_s
+        )
+    }))
 }

@@ -18,6 +18,7 @@ use std::path::{Path, PathBuf};
 use crate::data::ExperimentData;
 use crate::fit::Whitener;
 use crate::io::{read_toml, Dataset, IoError, Run};
+use crate::model::ClosedLoopModel;
 use crate::setup::Setup;
 
 pub use tables::{
@@ -62,17 +63,39 @@ pub fn outputs_of(run: &Run) -> Vec<Vec<f64>> {
 /// were joined (a segment carries the earlier segments' guidance as lead-in when the gap lies
 /// in an injection pause) and, when the dataset declares its design, on the guidance made from
 /// it at the control rate ([`guidance`]).
+/// A design reconstructed from the recorded columns is printed in a note as a design TOML.
 pub fn experiment_data(setup: &Setup, ds: &Dataset) -> Result<(ExperimentData, Vec<String>)> {
+    let (data, mut notes, known) = experiment_data_known(setup, ds)?;
+    if let Some(k) = known.filter(|k| k.origin == guidance::DesignOrigin::Reconstructed) {
+        notes.push(format!(
+            "the reconstructed design as a design TOML:\n{}",
+            k.to_toml().trim_end()
+        ));
+    }
+    Ok((data, notes))
+}
+
+/// [`experiment_data`] with the design known for the dataset ([`guidance::known_design`]),
+/// for a command to write a reconstructed one into its output folder.
+pub fn experiment_data_known(
+    setup: &Setup,
+    ds: &Dataset,
+) -> Result<(ExperimentData, Vec<String>, Option<guidance::KnownDesign>)> {
     let dt = ds.dt().ok_or(AnalysisError::NoRuns)?;
     let (mut inputs, mut notes) = ds.inputs_with_lead_in();
-    notes.extend(guidance::apply_declared_design(setup, ds, &mut inputs)?);
+    let (known, design_notes) = guidance::known_design(setup, ds)?;
+    notes.extend(design_notes);
+    match &known {
+        Some(k) => notes.extend(guidance::apply_design(setup, ds, k, &mut inputs)?),
+        None => notes.extend(guidance::point_sampled_edges(ds, setup.model.input_names())),
+    }
     let data = ExperimentData {
         names: ds.experiments.iter().map(|(n, _)| n.clone()).collect(),
         inputs,
         outputs: ds.experiments.iter().map(|(_, r)| outputs_of(r)).collect(),
         dt,
     };
-    Ok((data, notes))
+    Ok((data, notes, known))
 }
 
 /// The starting point `--guess`: a scenario name (its guess), a TOML file of
