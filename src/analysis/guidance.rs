@@ -741,6 +741,54 @@ fn sine_fit(samples: &[(f64, f64)], f_hz: f64, t0: f64) -> (f64, f64, f64) {
     (a, b, (xx - a * xs - b * xc).max(0.0))
 }
 
+/// A Gauss-Newton step of the frequency of the least-squares sine of [`sine_fit`]: the
+/// residual's projection on the derivative `(t - t0) (a cos - b sin)` [Hz].
+fn frequency_step(samples: &[(f64, f64)], f_hz: f64, t0: f64) -> f64 {
+    let (a, b, _) = sine_fit(samples, f_hz, t0);
+    let w = 2.0 * std::f64::consts::PI * f_hz;
+    let mut n = [[0.0; 3]; 3];
+    let mut r = [0.0; 3];
+    for &(t, x) in samples {
+        let (sn, cs) = (w * (t - t0)).sin_cos();
+        let basis = [sn, cs, (t - t0) * (a * cs - b * sn)];
+        for i in 0..3 {
+            r[i] += basis[i] * x;
+            for j in 0..3 {
+                n[i][j] += basis[i] * basis[j];
+            }
+        }
+    }
+    // Gaussian elimination with partial pivoting.
+    for col in 0..3 {
+        let p = (col..3)
+            .max_by(|&i, &j| n[i][col].abs().total_cmp(&n[j][col].abs()))
+            .unwrap_or(col);
+        n.swap(col, p);
+        r.swap(col, p);
+        if n[col][col] == 0.0 {
+            return 0.0;
+        }
+        for i in col + 1..3 {
+            let k = n[i][col] / n[col][col];
+            for j in col..3 {
+                n[i][j] -= k * n[col][j];
+            }
+            r[i] -= k * r[col];
+        }
+    }
+    let mut x = [0.0; 3];
+    for i in (0..3).rev() {
+        let tail: f64 = (i + 1..3).map(|j| n[i][j] * x[j]).sum();
+        x[i] = (r[i] - tail) / n[i][i];
+    }
+    let step = x[2] / (2.0 * std::f64::consts::PI);
+    if step.is_finite() {
+        step
+    } else {
+        0.0
+    }
+}
+
 /// A stretch seen whole in a recorded column: its start and length from a free sine fit.
 struct Seen {
     start: f64,
@@ -782,7 +830,13 @@ fn seen_stretch(active: &[(f64, f64)], dt: f64, trim: usize) -> Option<Seen> {
             f2 = power(x2);
         }
     }
-    let f = 0.5 * (lo + hi);
+    // The power is flat at its peak, so the bracket leaves f uncertain by sqrt(eps) of the
+    // lobe (a start wrong by 1e-8 of half a stretch); Gauss-Newton steps on the frequency
+    // (the sine's derivative as a third basis function) make it exact to rounding.
+    let mut f = 0.5 * (lo + hi);
+    for _ in 0..3 {
+        f += frequency_step(inner, f, centre);
+    }
     let (a, b, _) = sine_fit(inner, f, centre);
     // a sin(w (t - c)) + b cos(w (t - c)) = A sin(w (t - c) + phi): the stretch starts where
     // the phase is a whole number of half cycles, the one nearest half a stretch before the
@@ -965,7 +1019,7 @@ fn reconstruct(
         .iter()
         .flat_map(|(_, runs)| runs.iter().map(|r| r.t0))
         .fold(f64::INFINITY, f64::min);
-    let n_lo = ((t_lo - first - length) / period).floor() as i64;
+    let n_lo = ((t_lo - first - length) / period).floor() as i64 + 1;
     let origin = first + n_lo as f64 * period;
     let slot_start = |n: usize| origin + n as f64 * period;
     let mut experiments = Vec::new();
@@ -986,9 +1040,9 @@ fn reconstruct(
                     .copied()
                     .filter(|(t, _)| *t > a + half * dt && *t < b - half * dt)
                     .collect();
-                let touches = xs.first().is_some_and(|p| p.0 < b) && t_last > a;
                 if inside.is_empty() {
-                    if touches && n > 0 && xs.iter().any(|(t, _)| *t > b) {
+                    // Recorded before and after but not inside: the stretch is unknown.
+                    if xs.iter().any(|p| p.0 <= a) && xs.iter().any(|p| p.0 >= b) {
                         return Err(format!(
                             "stretch {a}-{b} s of {name} {} falls in a hole of the run",
                             setup.model.input_names()[c]
