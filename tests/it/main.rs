@@ -17,6 +17,7 @@ mod design_xy;
 mod diagnose;
 mod diagnose_effects;
 mod fit;
+mod guidance_design;
 mod guidance_rate;
 mod hostile;
 mod io;
