@@ -768,12 +768,13 @@ fn frequency_step(samples: &[(f64, f64)], f_hz: f64, t0: f64) -> f64 {
         if n[col][col] == 0.0 {
             return 0.0;
         }
+        let (pivot, pr) = (n[col], r[col]);
         for i in col + 1..3 {
-            let k = n[i][col] / n[col][col];
-            for j in col..3 {
-                n[i][j] -= k * n[col][j];
+            let k = n[i][col] / pivot[col];
+            for (x, p) in n[i].iter_mut().zip(pivot).skip(col) {
+                *x -= k * p;
             }
-            r[i] -= k * r[col];
+            r[i] -= k * pr;
         }
     }
     let mut x = [0.0; 3];
