@@ -682,8 +682,8 @@ impl KnownDesign {
     }
 
     /// The design as a design TOML (the format `design optimize` writes).
-    pub fn to_toml(&self) -> String {
-        toml::to_string(&self.design).unwrap_or_default()
+    pub fn to_toml(&self) -> Result<String, toml::ser::Error> {
+        toml::to_string(&self.design)
     }
 
     /// Writes a reconstructed design into `out` as [`RECONSTRUCTED_FILE_NAME`]; returns the
@@ -696,7 +696,10 @@ impl KnownDesign {
             return Ok(None);
         }
         let path = out.join(RECONSTRUCTED_FILE_NAME);
-        crate::io::write_text_atomic(&path, &self.to_toml())?;
+        let text = self
+            .to_toml()
+            .map_err(|e| crate::io::IoError::invalid(&path, e.to_string()))?;
+        crate::io::write_text_atomic(&path, &text)?;
         Ok(Some(path))
     }
 }
@@ -1106,7 +1109,8 @@ fn reconstruct(
             while stretches.last().is_some_and(|s| s.amplitude == 0.0) {
                 stretches.pop();
             }
-            inputs.push((!stretches.is_empty()).then_some(stretches));
+            // An input without stretches is an empty list, as `design optimize` writes it.
+            inputs.push(Some(stretches));
         }
         experiments.push(Experiment {
             name: name.to_string(),

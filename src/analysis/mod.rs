@@ -67,9 +67,13 @@ pub fn outputs_of(run: &Run) -> Vec<Vec<f64>> {
 pub fn experiment_data(setup: &Setup, ds: &Dataset) -> Result<(ExperimentData, Vec<String>)> {
     let (data, mut notes, known) = experiment_data_known(setup, ds)?;
     if let Some(k) = known.filter(|k| k.origin == guidance::DesignOrigin::Reconstructed) {
+        let text = k.to_toml().map_err(|e| AnalysisError::Guidance {
+            file: ds.path.clone().unwrap_or_else(|| "dataset".into()),
+            reason: format!("the reconstructed design cannot be written as TOML: {e}"),
+        })?;
         notes.push(format!(
             "the reconstructed design as a design TOML:\n{}",
-            k.to_toml().trim_end()
+            text.trim_end()
         ));
     }
     Ok((data, notes))

@@ -100,8 +100,8 @@ fn an_explicit_start_s_that_does_not_match_names_the_one_that_does() {
     for needle in [
         "start_s = 0 does not match",
         "the recorded columns match start_s = 450 (residual",
-        "exp1",
-        "oi1",
+        "experiment 'exp",
+        "column oi",
     ] {
         assert!(err.contains(needle), "missing '{needle}': {err}");
     }
@@ -204,7 +204,7 @@ fn the_standard_design_is_reconstructed_from_its_columns() {
         assert_recovers(&design, &k, shift, POINT_SAMPLED);
         assert!(k.residual <= 1e-9, "residual {}", k.residual);
         // The design TOML it writes reads back as a valid design with the same stretches.
-        let back: freefall::signal::Design = toml::from_str(&k.to_toml()).unwrap();
+        let back: freefall::signal::Design = toml::from_str(&k.to_toml().unwrap()).unwrap();
         back.validate().unwrap();
         assert_eq!(back, k.design);
     }

@@ -195,7 +195,12 @@ fn wrong_start_or_design_is_a_one_line_error() {
     let ds = read_dataset(tmp.path().join("dataset.toml")).unwrap();
     let err = experiment_data(&setup, &ds).unwrap_err().to_string();
     assert!(!err.contains('\n'), "{err}");
-    for needle in ["dataset.toml", "exp1", "oi1", "start_s = 1"] {
+    for needle in [
+        "dataset.toml",
+        "start_s = 1 does not match (experiment 'exp",
+        "column oi",
+        "the recorded columns match start_s = 0",
+    ] {
         assert!(err.contains(needle), "missing '{needle}': {err}");
     }
     let text = std::fs::read_to_string(tmp.path().join("dataset.toml")).unwrap();
