@@ -803,7 +803,14 @@ struct Seen {
 /// first and last `trim` samples, which an anti-alias filter may have smeared, left out of
 /// the fit): the cycle count of most power at the rough length, the frequency refined by a
 /// golden-section search of the projected power, the start from the phase.
-fn seen_stretch(active: &[(f64, f64)], dt: f64, trim: usize) -> Option<Seen> {
+fn seen_stretch(
+    window: &[(f64, f64)],
+    first: usize,
+    last: usize,
+    dt: f64,
+    trim: usize,
+) -> Option<Seen> {
+    let active = &window[first..=last];
     if active.len() < 2 * trim + 8 {
         return None;
     }
@@ -847,11 +854,45 @@ fn seen_stretch(active: &[(f64, f64)], dt: f64, trim: usize) -> Option<Seen> {
     // centre (the sign of the amplitude follows).
     let phi = b.atan2(a);
     let w = 2.0 * std::f64::consts::PI * f;
-    let near = centre - 0.5 * rough;
-    let j = ((w * (centre - near) - phi) / std::f64::consts::PI).round();
-    let start = centre - (phi + j * std::f64::consts::PI) / w;
-    let length = m as f64 / f;
-    Some(Seen { start, length })
+    let pi = std::f64::consts::PI;
+    let amp = a.hypot(b);
+    let sine = |t: f64| amp * (w * (t - centre) + phi).sin();
+    // The edges are zero crossings of the fitted sine, `centre - (phi + j pi) / w`, within
+    // `reach` of the first and last non-zero samples (an anti-alias filter smears an edge by
+    // up to `trim` samples); of those, the one whose windowed sine best fits the samples
+    // around it, zeros included.
+    let crossing = |j: i64| centre - (phi + j as f64 * pi) / w;
+    let j_of = |t: f64| (w * (centre - t) - phi) / pi;
+    let reach = (trim + 2) as f64 * dt;
+    let edge = |t: f64, left: bool| -> Option<f64> {
+        let (lo, hi) = (
+            j_of(t + reach).ceil() as i64,
+            j_of(t - reach).floor() as i64,
+        );
+        (lo..=hi).map(crossing).min_by(|&x, &y| {
+            let misfit = |e: f64| -> f64 {
+                window
+                    .iter()
+                    .filter(|p| (p.0 < centre) == left)
+                    .map(|&(t, v)| {
+                        let inside = if left { t > e } else { t < e };
+                        (v - if inside { sine(t) } else { 0.0 }).powi(2)
+                    })
+                    .sum()
+            };
+            misfit(x).total_cmp(&misfit(y))
+        })
+    };
+    let start = edge(t_a, true)?;
+    let end = edge(t_b, false)?;
+    let cycles = ((end - start) * f).round();
+    if cycles < 1.0 {
+        return None;
+    }
+    Some(Seen {
+        start,
+        length: cycles / f,
+    })
 }
 
 /// The design reconstructed from the recorded guidance columns of a dataset, ignoring any
@@ -960,7 +1001,19 @@ fn reconstruct(
                     && xs[last + 1].0 - xs[last].0 < 1.5 * dt
                     && xs[last + 1].1 == 0.0;
                 if quiet_before && quiet_after {
-                    if let Some(s) = seen_stretch(&xs[first..=last], dt, trim) {
+                    // The cluster with the quiet samples around it.
+                    let mut lo = first;
+                    while lo > 0 && first - lo < trim + 3 && xs[lo].0 - xs[lo - 1].0 < 1.5 * dt {
+                        lo -= 1;
+                    }
+                    let mut hi = last;
+                    while hi + 1 < xs.len()
+                        && hi - last < trim + 3
+                        && xs[hi + 1].0 - xs[hi].0 < 1.5 * dt
+                    {
+                        hi += 1;
+                    }
+                    if let Some(s) = seen_stretch(&xs[lo..=hi], first - lo, last - lo, dt, trim) {
                         seen.push(s);
                     }
                 }
