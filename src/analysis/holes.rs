@@ -9,7 +9,7 @@
 //! projection local to the samples the whitening treats as one series). What changes is the
 //! guidance its templates see:
 //!
-//! - Known guidance (a declared design, [`super::guidance::declared_design`]): the piece's
+//! - Known guidance (a declared or reconstructed design, [`super::guidance::known_design`]): the piece's
 //!   inputs are the design's guidance, decimated as the telemetry is, from the design's start
 //!   to its end on the run's clock: a lead-in through every earlier hole and a lead-out past
 //!   the piece's end ([`crate::data::ExperimentData::tails`]). The templates are then those
@@ -146,11 +146,12 @@ pub fn slowest_time_constant(setup: &Setup) -> Result<f64, AnalysisError> {
 pub fn whole_clock(
     setup: &Setup,
     ds: &mut Dataset,
+    known: Option<&guidance::KnownDesign>,
     data: &mut ExperimentData,
     min_len: usize,
 ) -> Result<(Vec<String>, Vec<Exclusion>), AnalysisError> {
-    let design = guidance::declared_design(setup, ds)?;
-    let start_s = ds.injections.as_ref().map_or(0.0, |i| i.start_s);
+    let design = known.map(|k| k.design.clone());
+    let start_s = known.map_or(0.0, |k| k.start_s);
     let decimator = setup.spec.decimator().map_err(crate::setup::Error::from)?;
     let margin = decimator.edge_samples() + 1;
     let dt = data.dt;

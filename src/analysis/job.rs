@@ -193,6 +193,8 @@ pub struct Prepared {
     pub input_notes: Vec<String>,
     /// Samples left out of the likelihood ([`crate::analysis::holes`]).
     pub excluded: Vec<crate::analysis::holes::Exclusion>,
+    /// The design behind the guidance, declared or reconstructed ([`super::guidance`]).
+    pub design: Option<super::guidance::KnownDesign>,
 }
 
 impl DatasetFit {
@@ -210,7 +212,7 @@ impl DatasetFit {
         }
         let names = setup.parameter_names();
         let min_len = crate::fit::problem::min_length(self.order, self.poly_degree, names.len());
-        let (data, joined, excluded) = whole_clock_data(setup, &mut ds, min_len)?;
+        let (data, joined, excluded, design) = whole_clock_data(setup, &mut ds, min_len)?;
         for n in &joined {
             notes(n);
         }
@@ -230,6 +232,7 @@ impl DatasetFit {
             constraints,
             input_notes: joined,
             excluded,
+            design,
         })
     }
 
@@ -427,6 +430,7 @@ fn write_fit(
     let problem = lik.problem(data)?;
     let names = setup.parameter_names();
     create_output_dir(out)?;
+    write_reconstruction(prep, out)?;
     let meta = &summary.provenance;
     let est = estimates_table(&names, setup.parameter_units(), res, &prep.guess)?;
     write_parquet(out.join("estimates.parquet"), &est.with_meta_all(meta))?;
@@ -450,4 +454,21 @@ fn write_fit(
     )?;
     write_json_atomic(out.join("fit.json"), summary)?;
     Ok(())
+}
+
+/// Writes a design reconstructed from the recorded guidance columns into the output folder
+/// `out` ([`super::guidance::RECONSTRUCTED_FILE_NAME`]); returns a note naming it.
+pub fn write_reconstruction(prep: &Prepared, out: &Path) -> Result<Option<String>, JobError> {
+    let Some(k) = &prep.design else {
+        return Ok(None);
+    };
+    Ok(k.write_reconstruction(out)?.map(|path| {
+        format!(
+            "wrote the reconstructed design {} (declare it next time: [injections] design = \
+             \"{}\", start_s = {}, with the file beside dataset.toml)",
+            path.display(),
+            super::guidance::RECONSTRUCTED_FILE_NAME,
+            k.start_s
+        )
+    }))
 }

@@ -19,6 +19,7 @@ use std::path::{Path, PathBuf};
 use crate::data::ExperimentData;
 use crate::fit::Whitener;
 use crate::io::{read_toml, Dataset, IoError, Run};
+use crate::model::ClosedLoopModel;
 use crate::setup::Setup;
 
 pub use tables::{
@@ -63,10 +64,36 @@ pub fn outputs_of(run: &Run) -> Vec<Vec<f64>> {
 /// were joined (a segment carries the earlier segments' guidance as lead-in when the gap lies
 /// in an injection pause) and, when the dataset declares its design, on the guidance made from
 /// it at the control rate ([`guidance`]).
+/// A design reconstructed from the recorded columns is printed in a note as a design TOML.
 pub fn experiment_data(setup: &Setup, ds: &Dataset) -> Result<(ExperimentData, Vec<String>)> {
+    let (data, mut notes, known) = experiment_data_known(setup, ds)?;
+    if let Some(k) = known.filter(|k| k.origin == guidance::DesignOrigin::Reconstructed) {
+        let text = k.to_toml().map_err(|e| AnalysisError::Guidance {
+            file: ds.path.clone().unwrap_or_else(|| "dataset".into()),
+            reason: format!("the reconstructed design cannot be written as TOML: {e}"),
+        })?;
+        notes.push(format!(
+            "the reconstructed design as a design TOML:\n{}",
+            text.trim_end()
+        ));
+    }
+    Ok((data, notes))
+}
+
+/// [`experiment_data`] with the design known for the dataset ([`guidance::known_design`]),
+/// for a command to write a reconstructed one into its output folder.
+pub fn experiment_data_known(
+    setup: &Setup,
+    ds: &Dataset,
+) -> Result<(ExperimentData, Vec<String>, Option<guidance::KnownDesign>)> {
     let dt = ds.dt().ok_or(AnalysisError::NoRuns)?;
     let (mut inputs, mut notes) = ds.inputs_with_lead_in();
-    notes.extend(guidance::apply_declared_design(setup, ds, &mut inputs)?);
+    let (known, design_notes) = guidance::known_design(setup, ds)?;
+    notes.extend(design_notes);
+    match &known {
+        Some(k) => notes.extend(guidance::apply_design(setup, ds, k, &mut inputs)?),
+        None => notes.extend(guidance::point_sampled_edges(ds, setup.model.input_names())),
+    }
     let data = ExperimentData {
         tails: Vec::new(),
         names: ds.experiments.iter().map(|(n, _)| n.clone()).collect(),
@@ -74,7 +101,7 @@ pub fn experiment_data(setup: &Setup, ds: &Dataset) -> Result<(ExperimentData, V
         outputs: ds.experiments.iter().map(|(_, r)| outputs_of(r)).collect(),
         dt,
     };
-    Ok((data, notes))
+    Ok((data, notes, known))
 }
 
 /// [`experiment_data`] on the runs' whole clock ([`holes`]): pieces of runs with holes or
@@ -86,14 +113,19 @@ pub fn whole_clock_data(
     setup: &Setup,
     ds: &mut Dataset,
     min_len: usize,
-) -> Result<(ExperimentData, Vec<String>, Vec<holes::Exclusion>)> {
-    let (mut data, mut notes) = experiment_data(setup, ds)?;
-    let (more, excluded) = holes::whole_clock(setup, ds, &mut data, min_len)?;
+) -> Result<(
+    ExperimentData,
+    Vec<String>,
+    Vec<holes::Exclusion>,
+    Option<guidance::KnownDesign>,
+)> {
+    let (mut data, mut notes, known) = experiment_data_known(setup, ds)?;
+    let (more, excluded) = holes::whole_clock(setup, ds, known.as_ref(), &mut data, min_len)?;
     notes.extend(more);
     if data.outputs.is_empty() {
         return Err(AnalysisError::NoRuns);
     }
-    Ok((data, notes, excluded))
+    Ok((data, notes, excluded, known))
 }
 
 /// The starting point `--guess`: a scenario name (its guess), a TOML file of

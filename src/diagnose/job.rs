@@ -87,6 +87,7 @@ impl DiagnoseJob {
             auxiliary: Some(ds.auxiliary_series())
                 .filter(|a| !a.is_empty())
                 .map(std::sync::Arc::new),
+            stretch_edges: stretch_edges(&prep),
             ..Default::default()
         };
         let mut d = diagnose_observed(
@@ -103,6 +104,10 @@ impl DiagnoseJob {
         // explains the residual a user then reads about).
         d.notes.splice(0..0, prep.input_notes.iter().cloned());
         create_output_dir(out)?;
+        if let Some(n) = crate::analysis::job::write_reconstruction(&prep, out)? {
+            notes(&n);
+            d.notes.push(n);
+        }
         let prov = Provenance::new("diagnose")
             .with_model(&setup.spec)
             .with_dataset(ds)?;
@@ -126,4 +131,16 @@ impl DiagnoseJob {
         write_text_atomic(out.join("report.md"), &md)?;
         Ok(d)
     }
+}
+
+/// The stretch edges the input notes name as not modelled: the sharp edges of point-sampled
+/// guidance columns, when no design (declared or reconstructed) makes the guidance.
+fn stretch_edges(prep: &crate::analysis::job::Prepared) -> Vec<Vec<f64>> {
+    if prep.design.is_some() {
+        return Vec::new();
+    }
+    crate::analysis::guidance::sharp_edges(&prep.ds)
+        .into_iter()
+        .map(|[a, b]| a.into_iter().chain(b).collect())
+        .collect()
 }

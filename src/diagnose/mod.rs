@@ -154,6 +154,11 @@ pub struct DiagnoseConfig {
     /// (`additive::Additive::AuxCrosstalk`), are candidates of every round, and a claimed one is
     /// removed from the noise run before its whitening filter is estimated again.
     pub auxiliary: Option<Arc<crate::data::Auxiliary>>,
+    /// Stretch edges the input notes name as not modelled (sharp edges of point-sampled
+    /// guidance columns, `analysis::guidance::sharp_edges`), per experiment, s from its first
+    /// sample: a time-localised candidate within [`selection::EDGE_TRANSIENT_S`] of one is not
+    /// claimed.
+    pub stretch_edges: Vec<Vec<f64>>,
 }
 
 impl Default for DiagnoseConfig {
@@ -175,6 +180,7 @@ impl Default for DiagnoseConfig {
             transients: true,
             constraints: crate::fit::Constraints::default(),
             auxiliary: None,
+            stretch_edges: Vec::new(),
         }
     }
 }

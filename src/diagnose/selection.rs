@@ -271,7 +271,34 @@ fn propose(
         );
     }
     if problem.cfg.glitches && open.contains(&Family::Glitch) {
-        let g = glitch_candidates(problem, &state.model, &state.fit.fit)?;
+        let mut g = glitch_candidates(problem, &state.model, &state.fit.fit)?;
+        g.retain(|a| {
+            let Additive::Glitch {
+                experiment,
+                experiment_name,
+                t0,
+                tau,
+                ..
+            } = a
+            else {
+                return true;
+            };
+            let edges = problem.cfg.stretch_edges.get(*experiment);
+            let Some(edge) = edges
+                .into_iter()
+                .flatten()
+                .find(|e| (t0 - *e).abs() <= EDGE_TRANSIENT_S + tau)
+            else {
+                return true;
+            };
+            obs.note(&format!(
+                "round {}: the glitch candidate in {experiment_name} at t = {t0:.1} s (width \
+                 {tau} s) is at a stretch edge ({edge} s) the input notes name: at a stretch \
+                 edge, not claimed",
+                state.round
+            ));
+            false
+        });
         if state.round == 1 {
             if let Some(a) = g.first() {
                 obs.note(&format!(
@@ -889,6 +916,11 @@ fn additive_candidates(
     }
     out
 }
+
+/// Half-width of a stretch edge's transient window [s]: the closed loop's fastest time
+/// constants settle in a few seconds, so an edge transient lives inside it (as the residual
+/// report's stretch windows).
+pub const EDGE_TRANSIENT_S: f64 = 20.0;
 
 /// Median of chi^2(1): the robust scale of a whitened residual is its median square over it.
 const CHI2_1_MEDIAN: f64 = 0.454_936_423_119_572_8;

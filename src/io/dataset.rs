@@ -10,7 +10,8 @@
 //! file = "exp2.parquet"
 //! [injections]                         # optional: the guidance as designed (see below)
 //! design = "standard"                  # a model-file injection table, or a design TOML file
-//! start_s = 0.0                        # the design's t = 0 on the runs' time axis (default 0)
+//! start_s = 450.0                      # optional: the design's t = 0 on the runs' time axis
+//!                                      # (default: found by matching the recorded oi columns)
 //! [[auxiliary]]                        # optional: recorded readouts of other degrees of freedom
 //! column = "oy1"                       # a column of every run (noise run included)
 //! kind = "displacement"                # or "angle"; a command: "acceleration", "angular_acceleration"
@@ -109,9 +110,10 @@ pub struct DeclaredInjections {
     /// A model-file injection table (`standard`) or a design TOML file as `design optimize`
     /// writes it, relative to the dataset file.
     pub design: String,
-    /// The design's `t = 0` on the runs' time axis [s].
-    #[serde(default)]
-    pub start_s: f64,
+    /// The design's `t = 0` on the runs' time axis [s]; `None`: found by matching the
+    /// recorded guidance columns to the design (`analysis::guidance::known_design`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub start_s: Option<f64>,
 }
 
 #[derive(Debug, Serialize, Deserialize)]
@@ -732,11 +734,11 @@ pub fn read_dataset(path: impl AsRef<Path>) -> Result<Dataset, IoError> {
     }
     check_consistency(path, noise.as_ref(), &experiments)?;
     if let Some(inj) = &spec.injections {
-        if inj.design.trim().is_empty() || !inj.start_s.is_finite() {
+        if inj.design.trim().is_empty() || inj.start_s.is_some_and(|s| !s.is_finite()) {
             return Err(IoError::invalid(
                 path,
                 format!(
-                    "[injections]: design = '{}', start_s = {}: the design must be named and \
+                    "[injections]: design = '{}', start_s = {:?}: the design must be named and \
                      start_s finite",
                     inj.design, inj.start_s
                 ),

@@ -5,17 +5,22 @@
 //! anti-alias filter would carry it. Those columns are exact between the stretch edges and
 //! miss the edges' content above the telemetry Nyquist frequency.
 //!
-//! Oracles: without the declaration the templates miss the loop's edge transients (chi^2/nu far
-//! above 1, the "before"); with `design = "standard"` the guidance made from the design at
-//! 10 Hz through the same decimation gives chi^2/nu within 3 sd of 1, nothing claimed and
-//! every parameter within 3 sigma of the scenario's truth. A wrong `start_s` is refused in one
-//! line naming the experiment, the column and `start_s`.
+//! Oracles: with `design = "standard"` the guidance made from the design at 10 Hz through the
+//! same decimation gives chi^2/nu within 3 sd of 1, nothing claimed and every parameter within
+//! 3 sigma of the scenario's truth; without the declaration the design is reconstructed from
+//! the columns (the model's table matches) and the same holds (before reconstruction, the
+//! templates missed the loop's edge transients and three glitches were claimed at stretch
+//! edges). With a thruster lag in the simulated plant, the claims without the declaration are
+//! the claims with it. A wrong `start_s` is refused in one line naming the experiment, the
+//! column and `start_s`.
 
 use freefall::analysis::{experiment_data, outputs_of};
 use freefall::diagnose::{diagnose, DiagnoseConfig};
 use freefall::io::{read_dataset, write_dataset, Dataset, DeclaredInjections};
+use freefall::model::effects::by_name;
 use freefall::setup::Setup;
 use freefall::sim::rng::stream;
+use freefall::sim::time_domain::PlantEffects;
 
 use crate::common;
 use common::loops::digital_setup;
@@ -33,9 +38,23 @@ fn write_point_sampled(
     dir: &std::path::Path,
     injections: Option<DeclaredInjections>,
 ) {
+    write_point_sampled_with(setup, dir, injections, &PlantEffects::default());
+}
+
+/// [`write_point_sampled`] with the library's operator effects `effects` in the plant.
+fn write_point_sampled_with(
+    setup: &Setup,
+    dir: &std::path::Path,
+    injections: Option<DeclaredInjections>,
+    effects: &PlantEffects,
+) {
     let truth = setup.spec.scenario("monte_carlo").unwrap().truth;
     let design = setup.design("standard").unwrap();
-    let sim = |d| setup.time_domain_simulator(d, &truth, None, None).unwrap();
+    let sim = |d| {
+        setup
+            .time_domain_simulator_with_effects(d, &truth, None, None, effects)
+            .unwrap()
+    };
     let mut data = sim(&design).draw(&mut stream(SEED, 0));
     let noise = sim(&design.noise_only(NOISE_RUN_S)).noise_run(&mut stream(SEED, 1));
     for (e, inputs) in data.inputs.iter_mut().enumerate() {
@@ -51,7 +70,7 @@ fn write_point_sampled(
 fn standard(start_s: f64) -> Option<DeclaredInjections> {
     Some(DeclaredInjections {
         design: "standard".into(),
-        start_s,
+        start_s: Some(start_s),
     })
 }
 
@@ -81,21 +100,18 @@ fn declared_design_models_the_stretch_edges_that_1_hz_columns_miss() {
         eprintln!("{sub}: chi2/nu {:.4}", d.after.chi2_reduced);
         chi2.push(d.after.chi2_reduced);
         if sub == "plain" {
-            // Named at the input: every sharp edge of exp1 oi1 and exp2 oi12 (7 stretches, a
-            // start and an end each).
-            for col in ["exp1 oi1", "exp2 oi12"] {
-                let note = notes.iter().find(|n| n.starts_with(col)).expect(col);
-                // The standard design's first stretch runs from 150 s to 1350 s.
-                assert!(
-                    note.contains("14 sharp stretch edges (t = 150, 1350, 1500, 2700"),
-                    "{note}"
-                );
-            }
-            continue;
+            // Reconstructed: the model's table matches the recorded columns.
+            assert!(
+                notes
+                    .iter()
+                    .any(|n| n.contains("match the model's design 'standard' at start_s = 0")),
+                "{notes:?}"
+            );
+            assert!(notes.iter().all(|n| !n.contains("sharp")), "{notes:?}");
         }
         assert!(notes
             .iter()
-            .any(|n| n.contains("declared design 'standard'")));
+            .any(|n| n.contains("design") && n.contains("'standard'")));
         let added: Vec<&str> = d.effects_added.iter().map(|e| e.name.as_str()).collect();
         assert!(added.is_empty(), "claimed {added:?}");
         assert!(d.unexplained.is_empty(), "unexplained: {:?}", d.unexplained);
@@ -126,12 +142,49 @@ fn declared_design_models_the_stretch_edges_that_1_hz_columns_miss() {
     let ds = read_dataset(dir.join("dataset.toml")).unwrap();
     let (_, notes) = experiment_data(&setup, &ds).unwrap();
     assert!(notes.iter().all(|n| !n.contains("sharp")), "{notes:?}");
-    // The "before": the same data without the declaration do not fit.
+    // Declared or reconstructed, the same design makes the same guidance: the same fit.
     assert!(
-        chi2[0] > 10.0,
-        "point-sampled guidance fitted: chi2/nu {}",
-        chi2[0]
+        (chi2[0] - chi2[1]).abs() <= 1e-9 * chi2[1],
+        "chi2/nu {chi2:?}"
     );
+}
+
+/// Diagnosis of the point-sampled time-domain dataset at `dir`.
+fn diagnose_dir(setup: &Setup, dir: &std::path::Path) -> freefall::diagnose::Diagnosis {
+    let truth = setup.spec.scenario("monte_carlo").unwrap().truth;
+    let ds = read_dataset(dir.join("dataset.toml")).unwrap();
+    let (data, _) = experiment_data(setup, &ds).unwrap();
+    let noise = outputs_of(ds.noise.as_ref().unwrap());
+    let cfg = DiagnoseConfig::default();
+    diagnose(
+        setup,
+        &data,
+        Some(&noise),
+        &setup.spec.nominal(),
+        Some(&truth),
+        &cfg,
+    )
+    .unwrap()
+}
+
+#[test]
+#[ignore = "slow tier: two time-domain simulations and diagnoses with a thruster lag"]
+fn a_thruster_lag_is_claimed_alike_with_the_design_reconstructed_or_declared() {
+    let setup = digital_setup();
+    let list = [(by_name("actuation_lag_df").unwrap(), vec![0.4])];
+    let lag = PlantEffects::from_library(&setup.model, &list).unwrap();
+    let tmp = tempfile::tempdir().unwrap();
+    let mut claims = Vec::new();
+    for (sub, injections) in [("plain", None), ("declared", standard(0.0))] {
+        let dir = tmp.path().join(sub);
+        write_point_sampled_with(&setup, &dir, injections, &lag);
+        let d = diagnose_dir(&setup, &dir);
+        let added: Vec<String> = d.effects_added.iter().map(|e| e.name.clone()).collect();
+        eprintln!("{sub}: claimed {added:?}, unexplained {:?}", d.unexplained);
+        claims.push((added, d.unexplained.len()));
+    }
+    assert_eq!(claims[0], claims[1]);
+    assert_eq!(claims[0].0, ["actuation_lag_df"]);
 }
 
 #[test]
@@ -142,7 +195,12 @@ fn wrong_start_or_design_is_a_one_line_error() {
     let ds = read_dataset(tmp.path().join("dataset.toml")).unwrap();
     let err = experiment_data(&setup, &ds).unwrap_err().to_string();
     assert!(!err.contains('\n'), "{err}");
-    for needle in ["dataset.toml", "exp1", "oi1", "start_s = 1"] {
+    for needle in [
+        "dataset.toml",
+        "start_s = 1 does not match (experiment 'exp",
+        "column oi",
+        "the recorded columns match start_s = 0",
+    ] {
         assert!(err.contains(needle), "missing '{needle}': {err}");
     }
     let text = std::fs::read_to_string(tmp.path().join("dataset.toml")).unwrap();

@@ -17,6 +17,7 @@ mod design_xy;
 mod diagnose;
 mod diagnose_effects;
 mod fit;
+mod guidance_design;
 mod guidance_rate;
 mod holes;
 mod hostile;
