@@ -104,21 +104,21 @@ pub fn experiment_data_known(
     Ok((data, notes, known))
 }
 
+/// What [`whole_clock_data`] returns: the data, the notes, the exclusions and the design known
+/// for the dataset.
+pub type WholeClock = (
+    ExperimentData,
+    Vec<String>,
+    Vec<holes::Exclusion>,
+    Option<guidance::KnownDesign>,
+);
+
 /// [`experiment_data`] on the runs' whole clock ([`holes`]): pieces of runs with holes or
 /// cuts get the guidance known before and after them, and lose the samples whose template
 /// depends on guidance that is not known (trimmed from `ds` too, so that run times and
 /// lengths stay aligned with the data); pieces shorter than `min_len` are dropped. Returns
 /// the data, the notes and the exclusions.
-pub fn whole_clock_data(
-    setup: &Setup,
-    ds: &mut Dataset,
-    min_len: usize,
-) -> Result<(
-    ExperimentData,
-    Vec<String>,
-    Vec<holes::Exclusion>,
-    Option<guidance::KnownDesign>,
-)> {
+pub fn whole_clock_data(setup: &Setup, ds: &mut Dataset, min_len: usize) -> Result<WholeClock> {
     let (mut data, mut notes, known) = experiment_data_known(setup, ds)?;
     let (more, excluded) = holes::whole_clock(setup, ds, known.as_ref(), &mut data, min_len)?;
     notes.extend(more);

@@ -132,7 +132,7 @@ impl Chi2Test {
     /// readouts in the wrong unit or a fit that never left a far guess give. `fit` exits with an
     /// error on it; a failure short of it is a warning.
     pub fn gross(&self, chi2_reduced: f64) -> bool {
-        !self.passed && !(chi2_reduced <= 2.0 * self.reference)
+        !self.passed && (chi2_reduced.is_nan() || chi2_reduced > 2.0 * self.reference)
     }
 
     /// The warning of a failed test, naming the figures (none when it passed).
