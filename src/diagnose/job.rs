@@ -59,6 +59,17 @@ impl DiagnoseJob {
         out: &Path,
         mut notes: Notes<'_>,
     ) -> Result<Diagnosis, JobError> {
+        // The settings' ranges before any data is read: a bad one is the only line printed.
+        DiagnoseConfig {
+            order: self.dataset.order,
+            poly_degree: self.dataset.poly_degree,
+            alpha: self.alpha,
+            max_effects: self.max_effects,
+            max_glitches: self.max_glitches,
+            ..Default::default()
+        }
+        .validate()
+        .map_err(context(path.display().to_string()))?;
         let prep = self.dataset.prepare(setup, path, notes)?;
         self.dataset.check_units(setup, &prep)?;
         let (ds, data) = (&prep.ds, &prep.data);
