@@ -142,9 +142,15 @@ pub type WholeClock = (
 /// the data, the notes and the exclusions.
 pub fn whole_clock_data(setup: &Setup, ds: &mut Dataset, min_len: usize) -> Result<WholeClock> {
     let (mut data, mut notes, known) = experiment_data_known(setup, ds)?;
+    let original = ds.clone();
     let (more, excluded) = holes::whole_clock(setup, ds, known.as_ref(), &mut data, min_len)?;
     notes.extend(more);
     if data.outputs.is_empty() {
+        // Every piece too short: the line that names the file, the rows and the gap.
+        original.check_lengths(
+            min_len,
+            "the fit (whitening filter, polynomial and parameters)",
+        )?;
         return Err(AnalysisError::NoRuns);
     }
     Ok((data, notes, excluded, known))
