@@ -448,16 +448,24 @@ impl Dataset {
         (inputs, notes)
     }
 
-    /// Refuses an experiment shorter than `min` samples that is a segment of a run with gaps,
-    /// with one line naming the file, the segment's first row, the gap and `what` needs the
-    /// samples (e.g. "a whitening filter of order 300"). Whole runs are left to the analysis's
-    /// own length check.
+    /// Refuses an experiment shorter than `min` samples with one line naming the file and
+    /// `what` needs the samples (e.g. "a whitening filter of order 300"); for a segment of a
+    /// run with gaps, also the segment's first row and the gap.
     pub fn check_lengths(&self, min: usize, what: &str) -> Result<(), IoError> {
         for (name, run) in &self.experiments {
-            let Some(seg) = &run.segment else { continue };
             if run.len() >= min {
                 continue;
             }
+            let Some(seg) = &run.segment else {
+                return Err(IoError::invalid(
+                    &run.label(),
+                    format!(
+                        "experiment '{name}' has {} samples, too short for {what} (needs at \
+                         least {min})",
+                        run.len()
+                    ),
+                ));
+            };
             let gap = seg.gap().map_or(String::new(), |g| format!(" next to {g}"));
             return Err(IoError::invalid(
                 &run.label(),

@@ -479,7 +479,7 @@ fn bad_datasets_name_the_file_row_and_column() {
     .unwrap();
     fails(
         &["fit", s(&short.join("dataset.toml")), "--out", s(&out)],
-        &["200", "300"],
+        &["e.parquet", "200 samples", "too short"],
     );
     // Unknown key in the dataset file.
     std::fs::write(

@@ -323,7 +323,16 @@ fn a_gap_splits_a_run_into_segments_fitted_jointly() {
                 names[k],
                 sb[k] / sa[k]
             );
-            assert!(shift.abs() < 0.5, "{}: moved by {shift} sigma", names[k]);
+            // Nested estimates (the gapped data are a subset): their difference has variance
+            // sigma_gap^2 - sigma_full^2 (Hausman), so the shift is judged on that scale.
+            let ratio = sb[k] / sa[k];
+            let scale = (ratio * ratio - 1.0).max(0.0).sqrt().max(0.05);
+            assert!(
+                shift.abs() < 4.0 * scale,
+                "{}: moved by {shift} sigma, {} sigma of the difference",
+                names[k],
+                shift / scale
+            );
             // Fewer samples: never smaller errors. Larger ones by what the hole costs: where the
             // guidance across it is not known, the samples whose template depends on it are
             // excluded (`analysis::holes`; measured dt12 1.62 for this gap).
@@ -354,7 +363,8 @@ fn a_gap_splits_a_run_into_segments_fitted_jointly() {
         }
     }
 
-    // A gap that leaves a last segment of 200 samples: too short for the order-300 filter.
+    // A gap that leaves a last segment of 200 samples: too short for the order-300 filter, so
+    // it is excluded, and fit.json says where, how long and why.
     let short = tmp.path().join("short");
     std::fs::create_dir_all(&short).unwrap();
     for f in ["exp1.parquet", "noise.parquet", "dataset.toml"] {
@@ -364,29 +374,25 @@ fn a_gap_splits_a_run_into_segments_fitted_jointly() {
         &short.join("exp2.csv"),
         &without_rows(&exp2, 10_500, 10_600),
     );
+    let out_short = tmp.path().join("x");
     let o = run_bin(&[
         "fit",
         "--quiet",
         s(&short.join("dataset.toml")),
         "--out",
-        s(&tmp.path().join("x")),
+        s(&out_short),
     ]);
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(!o.status.success());
-    assert_eq!(
-        err.trim().lines().count(),
-        1,
-        "one-line error expected: {err}"
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let fj: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out_short.join("fit.json")).unwrap())
+            .unwrap();
+    let excluded = fj["excluded"].as_array().expect("excluded");
+    assert!(
+        excluded.iter().any(|x| x["experiment"] == "exp2.seg2"
+            && (x["seconds"].as_f64().unwrap() - 200.0).abs() < 1e-9
+            && x["reason"].as_str().unwrap().contains("200 samples")),
+        "{excluded:?}"
     );
-    for needle in [
-        "exp2.csv",
-        "row 10500",
-        "t = 10499 s to 10600 s",
-        "200 samples",
-        "order 300",
-    ] {
-        assert!(err.contains(needle), "error lacks '{needle}': {err}");
-    }
 }
 
 #[test]
