@@ -5,8 +5,8 @@ use std::fmt::Write;
 
 use serde_json::{json, Map, Value};
 
-use super::redesign::{Probe, Redesign};
-use super::{Candidate, Diagnosis, Stage};
+use crate::design::redesign::{Probe, Redesign};
+use crate::diagnose::{Candidate, Diagnosis, Stage};
 
 fn num(v: f64) -> Value {
     if v.is_finite() {

@@ -19,8 +19,8 @@
 //! upper tail is below the Bonferroni threshold over every band and channel of its family's
 //! share of alpha, and its level is above the model's by more than [`MIN_EXCESS`].
 
-use super::excess::ExcessKind;
-use super::{Channel, Unexplained};
+use crate::diagnose::families::excess::ExcessKind;
+use crate::diagnose::{Channel, Unexplained};
 use crate::model::closed_loop::CMat;
 use crate::model::effects::Extended;
 use crate::numerics::stats::chi2_sf;
@@ -193,7 +193,10 @@ pub(crate) fn find(
 
 /// One note per channel with noise-run excess: its bands and levels, and what it means for the
 /// whitening (a filter estimated from that run learned the excess as noise).
-pub(crate) fn notes(found: &[Unexplained], source: super::WhiteningSource) -> Vec<String> {
+pub(crate) fn notes(
+    found: &[Unexplained],
+    source: crate::diagnose::WhiteningSource,
+) -> Vec<String> {
     let mut out = Vec::new();
     for ch in Channel::ALL {
         let mine: Vec<&Unexplained> = found.iter().filter(|u| u.channel == ch.as_str()).collect();
@@ -203,7 +206,7 @@ pub(crate) fn notes(found: &[Unexplained], source: super::WhiteningSource) -> Ve
         let (lo, hi) = mine.iter().fold((f64::INFINITY, 0.0_f64), |(a, b), u| {
             (a.min(1.0 + u.excess), b.max(1.0 + u.excess))
         });
-        let learned = if source == super::WhiteningSource::NoiseRun {
+        let learned = if source == crate::diagnose::WhiteningSource::NoiseRun {
             ": the whitening filter, estimated from that run, learned it as noise, so the residual tests cannot see it"
         } else {
             ""

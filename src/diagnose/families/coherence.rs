@@ -14,16 +14,16 @@
 //! Under independence a bin's coherence from `K` effective averages is about `chi^2(2) / 2K`
 //! (`K` less one per conditioning channel for the partial one), so `2 K n_B g^2 ~ chi^2(2 n_B)`
 //! for `n_B` effectively independent bins of the band (the window's bin correlation, as in
-//! [`super::noise_excess`]). The report gives, per run, stage, channel and auxiliary readout,
+//! [`crate::diagnose::families::noise_excess`]). The report gives, per run, stage, channel and auxiliary readout,
 //! the band of largest partial coherence with its tail probability.
 
 use nalgebra::DMatrix;
 use num_complex::Complex64;
 use serde::Serialize;
 
-use super::noise_excess::{bands, bin_correlation};
-use super::Channel;
 use crate::data::Auxiliary;
+use crate::diagnose::families::noise_excess::{bands, bin_correlation};
+use crate::diagnose::Channel;
 use crate::fit::Whitener;
 use crate::numerics::stats::chi2_sf;
 use crate::spectral::{welch_csd, WelchConfig};
@@ -182,7 +182,7 @@ pub(crate) fn run_coherence(
 /// readouts).
 pub(crate) fn table(
     stage: &'static str,
-    problem: &super::DiagnosisProblem<'_>,
+    problem: &crate::diagnose::DiagnosisProblem<'_>,
     residuals_w: &crate::sim::Series,
 ) -> Vec<AuxCoherence> {
     let Some(aux) = problem.cfg.auxiliary.as_deref().filter(|a| !a.is_empty()) else {
@@ -207,10 +207,14 @@ pub(crate) fn table(
         out.extend(run_coherence(&input, &names, &filters, data.dt));
     }
     if let (Some(nz), Some(a)) = (problem.whitening.usable_noise, aux.noise.as_ref()) {
-        let wn = super::problem::whitened_noise(problem.filter(), nz, problem.cfg.poly_degree);
+        let wn = crate::diagnose::search::problem::whitened_noise(
+            problem.filter(),
+            nz,
+            problem.cfg.poly_degree,
+        );
         let input = RunInput {
             stage,
-            run: super::noise_excess::NOISE_RUN.to_string(),
+            run: crate::diagnose::families::noise_excess::NOISE_RUN.to_string(),
             residual: &wn,
             aux: a,
             offset: problem.filter().order(),

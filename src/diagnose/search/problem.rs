@@ -7,10 +7,10 @@
 
 use nalgebra::DMatrix;
 
-use super::additive;
-use super::observer::Observer;
-use super::residuals;
-use super::{Channel, DiagnoseConfig, DiagnoseError, Stage, WhiteningSource};
+use crate::diagnose::families::additive;
+use crate::diagnose::families::residuals;
+use crate::diagnose::search::observer::Observer;
+use crate::diagnose::{Channel, DiagnoseConfig, DiagnoseError, Stage, WhiteningSource};
 use crate::fit::{fit, ExperimentData, FitConfig, FitResult, Likelihood, Whitener};
 use crate::model::effects::Extended;
 use crate::model::lpf_x::LpfX;

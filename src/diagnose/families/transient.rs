@@ -13,14 +13,14 @@
 //!    later fit of the diagnosis and the transients are reported, the noise run's with them.
 //!    When not, nothing is claimed and the diagnosis runs on the noise run as recorded.
 
-use super::additive::{Additive, DRIFT_PARAMETERS};
-use super::observer::Observer;
-use super::problem::{DiagnosisProblem, LinearFit};
-use super::{DiagnoseConfig, DiagnoseError};
 use crate::analysis::transient::{
     clean_noise_run, experiment_columns, fit_with_transients, TransientReport,
 };
 use crate::data::ExperimentData;
+use crate::diagnose::families::additive::{Additive, DRIFT_PARAMETERS};
+use crate::diagnose::search::observer::Observer;
+use crate::diagnose::search::problem::{DiagnosisProblem, LinearFit};
+use crate::diagnose::{DiagnoseConfig, DiagnoseError};
 use crate::fit::FitConfig;
 use crate::model::ClosedLoopModel;
 use crate::setup::Setup;

@@ -9,7 +9,7 @@
 //!   one experiment; `a`, `b` linear, the frequency `f` a non-linear parameter (started at the
 //!   narrow line found by the residual analysis, refined on a fine grid around its periodogram
 //!   bin, then fitted with the amplitudes).
-//! - `glitch` ([`super::glitch`]): a transient entering the loop at a force or readout entry of
+//! - `glitch` ([`crate::diagnose::families::glitch`]): a transient entering the loop at a force or readout entry of
 //!   one experiment; the amplitude linear, the time `t0` and width `tau` non-linear.
 //! - `aux_crosstalk` (thesis sec. 3.4, cross-talk from the other degrees of freedom): a
 //!   sensing cross-talk `k a(t)` of a recorded auxiliary readout `a` (a y or angle readout of

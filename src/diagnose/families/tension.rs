@@ -4,12 +4,12 @@
 //! operator imperfection degenerate with a fitted one is absorbed into it). Each such parameter
 //! is listed with the degenerate candidates that would explain its shift and their equivalent
 //! size, from the first-order absorption `b = I_nn^-1 I_ne` of the redesign probe
-//! ([`super::redesign::Absorbed`]): an omitted effect of size theta moves the parameter by
+//! ([`crate::design::redesign::Absorbed`]): an omitted effect of size theta moves the parameter by
 //! `b theta`, so the shift `Delta` corresponds to `theta = Delta / b`.
 
 use serde::Serialize;
 
-use super::{Candidate, Stage};
+use crate::diagnose::{Candidate, Stage};
 use crate::model::effects::by_name;
 use crate::numerics::stats::chi2_isf;
 use crate::setup::Setup;
