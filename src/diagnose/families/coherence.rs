@@ -206,7 +206,7 @@ pub(crate) fn table(
         };
         out.extend(run_coherence(&input, &names, &filters, data.dt));
     }
-    if let (Some(nz), Some(a)) = (problem.whitening.usable_noise, aux.noise.as_ref()) {
+    if let (Some(nz), Some(a)) = (problem.usable_noise(), aux.noise.as_ref()) {
         let wn = crate::diagnose::search::problem::whitened_noise(
             problem.filter(),
             nz,

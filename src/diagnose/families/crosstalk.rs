@@ -56,16 +56,16 @@ fn coefficients(state: &DiagnosisState) -> Vec<(f64, f64)> {
 }
 
 /// Remove the claimed cross-talks from the noise run and refit under the filter estimated
-/// again (module docs). Returns the cleaned noise run the final fit of `state` was whitened
-/// with (`None`, leaving `state` as it is, when nothing was claimed or the run has no
-/// auxiliary readouts).
-pub(crate) fn refine(
-    problem: &DiagnosisProblem<'_>,
+/// again (module docs). Returns the problem planned on the cleaned noise run the final fit of
+/// `state` was whitened with (`None`, leaving `state` as it is, when nothing was claimed or
+/// the run has no auxiliary readouts).
+pub(crate) fn refine<'a>(
+    problem: &DiagnosisProblem<'a>,
     state: &mut DiagnosisState,
     guess: &[f64],
     obs: &mut dyn Observer,
-) -> Result<Option<Vec<Vec<f64>>>, DiagnoseError> {
-    let Some(noise) = problem.noise else {
+) -> Result<Option<DiagnosisProblem<'a>>, DiagnoseError> {
+    let Some(noise) = problem.noise.as_deref() else {
         return Ok(None);
     };
     let mut result = None;
@@ -75,7 +75,7 @@ pub(crate) fn refine(
         };
         let before = coefficients(state);
         let mut quiet = ();
-        let p2 = problem.replanned(&clean, guess, &mut quiet)?;
+        let p2 = problem.replanned(clean, guess, &mut quiet)?;
         let fit = p2.fit_linear(&state.model, &state.fit.fit.estimate, &state.fit.linear)?;
         state.fit = fit;
         let moved = coefficients(state)
@@ -83,7 +83,7 @@ pub(crate) fn refine(
             .zip(&before)
             .map(|((a, s), (b, _))| (a - b).abs() / s.max(f64::MIN_POSITIVE))
             .fold(0.0, f64::max);
-        result = Some(clean);
+        result = Some(p2);
         if moved < SETTLED_SIGMA || pass == PASSES {
             obs.note(&format!(
                 "the claimed auxiliary cross-talk was removed from the noise run and the whitening filter estimated again ({pass} pass(es); last change of a coefficient {moved:.2} sigma)"

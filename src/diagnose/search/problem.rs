@@ -44,9 +44,9 @@ pub(crate) struct LinearFit {
 }
 
 /// The whitening of a diagnosis and the noise run's reference level under it.
-pub(crate) struct Whitening<'a> {
-    /// The noise run, when it can serve as a reference (no dead channel, long enough).
-    pub usable_noise: Option<&'a [Vec<f64>]>,
+pub(crate) struct Whitening {
+    /// The noise run can serve as a reference (no dead channel, long enough).
+    pub usable: bool,
     /// Akaike's final-prediction-error factor of the noise run's whitened level (1 if none).
     pub fpe: f64,
     pub filter: Whitener<2>,
@@ -56,15 +56,16 @@ pub(crate) struct Whitening<'a> {
     pub whitening_dof: Option<f64>,
 }
 
-/// Everything a round of the forward selection reads and never changes.
+/// Everything a round of the forward selection reads and never changes. It owns its noise
+/// run: a new noise run (cleaned of a transient or of a claimed cross-talk) is a new problem.
 pub struct DiagnosisProblem<'a> {
     pub setup: &'a Setup,
     pub data: &'a ExperimentData,
-    pub noise: Option<&'a [Vec<f64>]>,
+    pub noise: Option<Vec<Vec<f64>>>,
     pub cfg: &'a DiagnoseConfig,
     /// The whitening order (the configured one, reduced for a short run).
     pub order: usize,
-    pub(crate) whitening: Whitening<'a>,
+    pub(crate) whitening: Whitening,
     /// The likelihood planned once on the base model; [`Self::likelihood`] retargets it.
     planned: Likelihood<'a, LpfX, 2>,
     /// The whitened noise run that calibrates the glitch scan (with glitches and a usable run).
@@ -252,15 +253,15 @@ fn model_whitener(
 /// is an in-sample estimate, scaled by Akaike's final-prediction-error factor `(T + m) / (T - m)`,
 /// `m = 2 p` coefficients per equation of the two-channel autoregression, and the filter's
 /// spectrum carries `T / m` degrees of freedom.
-fn whitening<'a>(
+fn whitening(
     setup: &Setup,
     data: &ExperimentData,
-    noise: Option<&'a [Vec<f64>]>,
+    noise: Option<&[Vec<f64>]>,
     guess: &[f64],
     cfg: &DiagnoseConfig,
     order: usize,
     obs: &mut dyn Observer,
-) -> Result<Whitening<'a>, DiagnoseError> {
+) -> Result<Whitening, DiagnoseError> {
     let (filter, source) = match noise_run_filter(noise, cfg.whiten_from_model, order, obs)? {
         Some(w) => (w, WhiteningSource::NoiseRun),
         None => (
@@ -305,7 +306,7 @@ fn whitening<'a>(
         source,
         noise_ref,
         whitening_dof,
-        usable_noise,
+        usable: usable_noise.is_some(),
         fpe,
     })
 }
@@ -315,17 +316,17 @@ impl<'a> DiagnosisProblem<'a> {
     pub fn plan(
         setup: &'a Setup,
         data: &'a ExperimentData,
-        noise: Option<&'a [Vec<f64>]>,
+        noise: Option<Vec<Vec<f64>>>,
         guess: &[f64],
         cfg: &'a DiagnoseConfig,
         obs: &mut dyn Observer,
     ) -> Result<Self, DiagnoseError> {
         cfg.validate()?;
         check_data(data, obs)?;
-        check_auxiliary(data, noise, cfg)?;
+        check_auxiliary(data, noise.as_deref(), cfg)?;
         // The shortest experiment sets the order: every experiment drops its own start-up.
         let order = whitening_order(data.min_len(), cfg.order, obs)?;
-        let whitening = whitening(setup, data, noise, guess, cfg, order, obs)?;
+        let whitening = whitening(setup, data, noise.as_deref(), guess, cfg, order, obs)?;
         let planned = Likelihood::with_lengths(
             &setup.model,
             &data.inputs,
@@ -334,9 +335,9 @@ impl<'a> DiagnosisProblem<'a> {
             whitening.filter.clone(),
             cfg.poly_degree,
         )?;
-        let noise_w = whitening
-            .usable_noise
-            .filter(|_| cfg.glitches)
+        let noise_w = noise
+            .as_deref()
+            .filter(|_| whitening.usable && cfg.glitches)
             .map(|nz| whitened_noise(&whitening.filter, nz, cfg.poly_degree));
         Ok(DiagnosisProblem {
             setup,
@@ -356,6 +357,11 @@ impl<'a> DiagnosisProblem<'a> {
         self.whitening.source
     }
 
+    /// The noise run, when it can serve as a reference (no dead channel, long enough).
+    pub(crate) fn usable_noise(&self) -> Option<&[Vec<f64>]> {
+        self.noise.as_deref().filter(|_| self.whitening.usable)
+    }
+
     pub(crate) fn filter(&self) -> &Whitener<2> {
         &self.whitening.filter
     }
@@ -372,15 +378,12 @@ impl<'a> DiagnosisProblem<'a> {
 
     /// The problem planned again on another noise run (the same data, settings and start-up
     /// transient columns): its whitening filter and reference level are estimated afresh.
-    pub(crate) fn replanned<'b>(
+    pub(crate) fn replanned(
         &self,
-        noise: &'b [Vec<f64>],
+        noise: Vec<Vec<f64>>,
         guess: &[f64],
         obs: &mut dyn Observer,
-    ) -> Result<DiagnosisProblem<'b>, DiagnoseError>
-    where
-        'a: 'b,
-    {
+    ) -> Result<DiagnosisProblem<'a>, DiagnoseError> {
         let mut p =
             DiagnosisProblem::plan(self.setup, self.data, Some(noise), guess, self.cfg, obs)?;
         if let Some(raw) = &self.transient_raw {

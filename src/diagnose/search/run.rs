@@ -54,9 +54,9 @@ pub fn diagnose_observed(
     };
     // The noise run's columns are evaluated at the guess; when the transients are claimed, the
     // noise run is cleaned once more at the nominal fit's estimate and the diagnosis planned
-    // again (measured with fit --transient over 8 seeds: the v12 start scattered 2.7 sigma at
-    // the guess, 0.75 at the estimate).
-    let refined: Option<(Vec<Vec<f64>>, crate::analysis::transient::TransientReport)>;
+    // again on it (measured with fit --transient over 8 seeds: the v12 start scattered 2.7 sigma
+    // at the guess, 0.75 at the estimate). The problem is planned only when the noise run
+    // changes: when the second cleaning is not significant, the first plan stands.
     let mut first_notes = Notes::default();
     let first = transient::plan_and_fit(
         setup,
@@ -67,23 +67,26 @@ pub fn diagnose_observed(
         cfg,
         &mut first_notes,
     )?;
-    let (problem, fit0, transients) =
-        match noise.filter(|_| cleaned.is_some() && !first.2.is_empty()) {
-            Some(nz) => {
-                let p1 = first.1.fit.estimate.clone();
-                drop(first);
-                refined = transient::clean_noise(setup, nz, &p1, data.dt, cfg, &mut both);
-                let again = refined.as_ref().or(cleaned.as_ref());
-                transient::plan_and_fit(setup, data, noise, again, guess, cfg, &mut both)?
+    let refined = match noise.filter(|_| cleaned.is_some() && !first.2.is_empty()) {
+        Some(nz) => {
+            let p1 = &first.1.fit.estimate;
+            transient::clean_noise(setup, nz, p1, data.dt, cfg, &mut both)
+        }
+        None => None,
+    };
+    let (problem, fit0, transients) = match refined {
+        Some(r) => {
+            drop(first);
+            transient::plan_and_fit(setup, data, noise, Some(&r), guess, cfg, &mut both)?
+        }
+        None => {
+            for n in &first_notes.0 {
+                both.note(n);
             }
-            None => {
-                for n in &first_notes.0 {
-                    both.note(n);
-                }
-                first
-            }
-        };
-    let noise = problem.noise;
+            first
+        }
+    };
+    let noise = problem.noise.as_deref();
     if !fit0.fit.termination.converged() {
         both.note(&format!(
             "the nominal fit stopped without converging ({})",
@@ -94,12 +97,9 @@ pub fn diagnose_observed(
     let mut state = DiagnosisState::new(&problem, fit0.clone(), &before);
     while let Round::Added(_) = next_round(&problem, &mut state, &mut both)? {}
     let final_model = state.model.clone();
-    let xt_noise = crosstalk::refine(&problem, &mut state, guess, &mut both)?;
-    let replanned = match &xt_noise {
-        Some(clean) => Some(problem.replanned(clean, guess, &mut ())?),
-        None => None,
-    };
-    let last = replanned.as_ref().unwrap_or(&problem);
+    // The problem planned on the noise run less the claimed cross-talk, if any.
+    let refined = crosstalk::refine(&problem, &mut state, guess, &mut both)?;
+    let last = refined.as_ref().unwrap_or(&problem);
     let mut d = finish(last, state, &fit0, before, &mut both);
     d.aux_coherence = coherence::table("before", &problem, &d.residuals_before.0);
     d.aux_coherence
@@ -156,7 +156,7 @@ fn finish(
     }
     let after = problem.stage(&state.model, &state.fit);
     let mut unexplained = excess::find_unexplained(&after, cfg.alpha);
-    if let Some(nz) = problem.whitening.usable_noise {
+    if let Some(nz) = problem.usable_noise() {
         let found = noise_excess::find(
             problem.setup,
             &state.model,
@@ -260,6 +260,7 @@ fn spectra(
     }
     let reference = problem
         .noise
+        .as_deref()
         .filter(|_| problem.whitening.noise_ref.is_some());
     if let Some(nz) = reference {
         let wn = problem::whitened_noise(problem.filter(), nz, problem.cfg.poly_degree);
