@@ -59,7 +59,7 @@
 pub mod families;
 pub mod job;
 pub mod report;
-pub mod search;
+pub(crate) mod search;
 pub mod tables;
 pub mod types;
 

@@ -22,10 +22,11 @@ use num_complex::Complex64;
 use serde::Serialize;
 
 use crate::data::Auxiliary;
-use crate::diagnose::families::noise_excess::{bands, bin_correlation};
+use crate::diagnose::families::noise_excess::bands;
 use crate::diagnose::Channel;
 use crate::fit::Whitener;
 use crate::numerics::stats::chi2_sf;
+use crate::spectral::periodogram::{bin_correlation, conditioned};
 use crate::spectral::{welch_csd, WelchConfig};
 
 /// Bin lags over which the window's bin correlation is summed (as `noise_excess`).
@@ -76,20 +77,6 @@ pub(crate) fn aux_filters(
             Whitener::<1>::from_series(std::slice::from_ref(x), order).ok()
         })
         .collect()
-}
-
-/// Conditioned cross-spectrum `S_xy.z` of the spectral matrix `s` (one bin) on indices `z`.
-fn conditioned(s: &DMatrix<Complex64>, x: usize, y: usize, z: &[usize]) -> Complex64 {
-    if z.is_empty() {
-        return s[(x, y)];
-    }
-    let szz = DMatrix::<Complex64>::from_fn(z.len(), z.len(), |a, b| s[(z[a], z[b])]);
-    let Some(inv) = szz.try_inverse() else {
-        return s[(x, y)];
-    };
-    let sxz = DMatrix::<Complex64>::from_fn(1, z.len(), |_, b| s[(x, z[b])]);
-    let szy = DMatrix::<Complex64>::from_fn(z.len(), 1, |a, _| s[(z[a], y)]);
-    s[(x, y)] - (sxz * inv * szy)[(0, 0)]
 }
 
 /// The coherence rows of one run (module docs); `filters` whiten the auxiliary series.

@@ -25,6 +25,7 @@ use crate::model::closed_loop::CMat;
 use crate::model::effects::Extended;
 use crate::numerics::stats::chi2_sf;
 use crate::setup::Setup;
+use crate::spectral::periodogram::bin_correlation;
 use crate::spectral::{welch_csd, CrossSpectrum, WelchConfig};
 
 /// The model's noise levels are taken as known to this fraction: a smaller excess of the
@@ -59,20 +60,6 @@ pub struct BandLevel {
     pub excess: f64,
     pub dof: f64,
     pub p_value: f64,
-}
-
-/// Correlation of windowed periodogram bins `d` apart (module docs) for window `w`.
-pub(crate) fn bin_correlation(w: &[f64], d: usize) -> f64 {
-    let l = w.len() as f64;
-    let (mut re, mut im, mut s2) = (0.0, 0.0, 0.0);
-    for (t, v) in w.iter().enumerate() {
-        let v2 = v * v;
-        let ph = 2.0 * std::f64::consts::PI * d as f64 * t as f64 / l;
-        re += v2 * ph.cos();
-        im += v2 * ph.sin();
-        s2 += v2;
-    }
-    (re * re + im * im) / (s2 * s2)
 }
 
 /// The window's spectral kernel `|W(delta)|^2` at offsets `delta` (in bins) on the fine grid

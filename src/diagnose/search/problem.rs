@@ -15,6 +15,7 @@ use crate::fit::{fit, ExperimentData, FitConfig, FitResult, Likelihood, Whitener
 use crate::model::effects::Extended;
 use crate::model::lpf_x::LpfX;
 use crate::model::ClosedLoopModel;
+use crate::numerics::linalg::series_gram_pinv;
 use crate::setup::Setup;
 use crate::sim::Series;
 
@@ -626,7 +627,7 @@ impl DiagnosisProblem<'_> {
             let (r, jn) = prob.residuals_and_jacobian(&est);
             let (je, layout) = additive_jacobian(&lik, data, &lin, &est, pass == 0);
             let all: Vec<&Series> = jn.iter().chain(je.iter()).collect();
-            let (_, inv) = additive::gram_inverse(&all);
+            let (_, inv) = series_gram_pinv(&all);
             let inv = inv.ok_or_else(|| {
                 DiagnoseError::Numerical("singular joint information of the additive fit".into())
             })?;

@@ -14,9 +14,10 @@ use crate::diagnose::{Channel, DiagnoseError, DiagnosisState, Stage};
 use crate::fit::{ExperimentData, FitResult, Likelihood};
 use crate::model::effects::{Category, Effect, Extended};
 use crate::model::ClosedLoopModel;
-use crate::numerics::linalg::equilibrated_pinv;
+use crate::numerics::linalg::{equilibrated_pinv, series_gram, series_gram_pinv};
 use crate::numerics::tol::{DEGENERATE_FRACTION, PINV_RCOND};
 use crate::sim::Series;
+use crate::spectral::periodogram::refine_frequency;
 
 /// The score test of one candidate.
 pub(super) struct Score {
@@ -26,20 +27,6 @@ pub(super) struct Score {
     pub(super) most_correlated: Option<(usize, f64)>,
     /// The one-step estimate `S^+ U` from zero: where the data pull the effect's parameters.
     pub(super) step: Vec<f64>,
-}
-
-/// The symmetric information matrix `J^T J` of whitened columns `j`.
-pub(super) fn information(j: &[Series]) -> DMatrix<f64> {
-    let n = j.len();
-    let mut info = DMatrix::<f64>::zeros(n, n);
-    for a in 0..n {
-        for b in a..n {
-            let v = additive::dot(&j[a], &j[b]);
-            info[(a, b)] = v;
-            info[(b, a)] = v;
-        }
-    }
-    info
 }
 
 /// The fitted parameter (of the first `n_base` of `idx`) most correlated with the last entry
@@ -82,7 +69,7 @@ pub(super) fn score_operators(
     let np = full.n_params();
     j.extend(extra.iter().cloned());
     let nt = j.len();
-    let info = information(&j);
+    let info = series_gram(&j);
     let u: Vec<f64> = (0..nt).map(|a| additive::dot(&j[a], &r)).collect();
     let n_base = estimate.len();
     // Nuisance block: the fitted parameters, then the extra columns.
@@ -133,7 +120,7 @@ pub(super) fn score_additive(
     let n_base = jn.len();
     jn.extend(extra.iter().cloned());
     let nn = jn.len();
-    let (_, inn_inv) = additive::gram_inverse(&jn.iter().collect::<Vec<_>>());
+    let (_, inn_inv) = series_gram_pinv(&jn.iter().collect::<Vec<_>>());
     let inn_inv = inn_inv.ok_or_else(|| {
         DiagnoseError::Numerical("singular information of the fitted parameters".into())
     })?;
@@ -152,7 +139,7 @@ pub(super) fn score_additive(
         // Correlation of the first column with each fitted parameter.
         let mut cols: Vec<&Series> = jn.iter().collect();
         cols.push(&je[0]);
-        let corr = additive::gram_inverse(&cols).1.and_then(|cv| {
+        let corr = series_gram_pinv(&cols).1.and_then(|cv| {
             (0..n_base)
                 .map(|k| (k, cv[(k, nn)] / (cv[(k, k)] * cv[(nn, nn)]).sqrt()))
                 .filter(|(_, v)| v.is_finite())
@@ -307,7 +294,7 @@ pub(super) fn additive_candidates(
                 experiment: e,
                 experiment_name: data.names[e].clone(),
                 channel: c,
-                f_hz: additive::refine_frequency(r, data.dt, f),
+                f_hz: refine_frequency(r, data.dt, f),
             });
         }
     }
