@@ -12,6 +12,8 @@ use crate::model::effects::{library, Effect};
 use crate::setup::{DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 use crate::sim::Series;
 
+pub use crate::model::lpf_x::Channel;
+
 #[derive(Debug, thiserror::Error)]
 pub enum DiagnoseError {
     #[error("{0}")]
@@ -251,49 +253,6 @@ pub struct Diagnosis {
     /// readout, before and after, per run and channel ([`coherence`](super::families::coherence)).
     pub aux_coherence: Vec<super::families::coherence::AuxCoherence>,
     pub seconds: f64,
-}
-
-/// A readout channel of the LPF-x model (thesis ch. 3: the interferometer outputs o1, o12).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
-pub enum Channel {
-    #[serde(rename = "o1")]
-    O1,
-    #[serde(rename = "o12")]
-    O12,
-}
-
-impl Channel {
-    pub const ALL: [Channel; 2] = [Channel::O1, Channel::O12];
-
-    pub fn index(self) -> usize {
-        self as usize
-    }
-
-    /// The channel of readout index `c` (0: o1, 1: o12).
-    pub fn from_index(c: usize) -> Channel {
-        if c == 0 {
-            Channel::O1
-        } else {
-            Channel::O12
-        }
-    }
-
-    pub fn from_name(name: &str) -> Option<Channel> {
-        Channel::ALL.into_iter().find(|c| c.as_str() == name)
-    }
-
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Channel::O1 => "o1",
-            Channel::O12 => "o12",
-        }
-    }
-}
-
-impl std::fmt::Display for Channel {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(self.as_str())
-    }
 }
 
 /// Where the whitening filter of a diagnosis comes from.

@@ -631,19 +631,4 @@ pub fn whiten(lik: &Likelihood<'_, Extended, 2>, data: &ExperimentData, s: Serie
     lik.problem(&d).map(|p| p.data_w).unwrap_or_default()
 }
 
-/// `data` minus the additive contributions `columns[j] * amplitudes[j]`.
-pub fn subtract(data: &ExperimentData, columns: &[Series], amplitudes: &[f64]) -> ExperimentData {
-    let mut out = data.clone();
-    for (col, a) in columns.iter().zip(amplitudes) {
-        for (oe, ce) in out.outputs.iter_mut().zip(col) {
-            for (oc, cc) in oe.iter_mut().zip(ce) {
-                for (o, c) in oc.iter_mut().zip(cc) {
-                    *o -= a * c;
-                }
-            }
-        }
-    }
-    out
-}
-
 pub use crate::numerics::linalg::series_dot as dot;

@@ -7,6 +7,7 @@
 
 use nalgebra::DMatrix;
 
+use crate::data::check_finite;
 use crate::diagnose::families::additive;
 use crate::diagnose::families::residuals;
 use crate::diagnose::search::observer::Observer;
@@ -77,17 +78,6 @@ pub struct DiagnosisProblem<'a> {
     transient_raw: Option<Vec<Vec<Vec<Vec<f64>>>>>,
 }
 
-fn check_series(what: &str, s: &[Vec<f64>]) -> Result<(), DiagnoseError> {
-    for (c, x) in s.iter().enumerate() {
-        if let Some(i) = x.iter().position(|v| !v.is_finite()) {
-            return Err(DiagnoseError::Input(format!(
-                "{what}, channel {c}: non-finite value at sample {i}"
-            )));
-        }
-    }
-    Ok(())
-}
-
 /// The noise run whitened by `w`, cut and with the nuisance polynomial projected out.
 pub(crate) fn whitened_noise(
     w: &Whitener<2>,
@@ -112,68 +102,11 @@ fn check_data(data: &ExperimentData, obs: &mut dyn Observer) -> Result<(), Diagn
         ));
     }
     for (e, name) in data.names.iter().enumerate() {
-        check_series(&format!("experiment '{name}' outputs"), &data.outputs[e])?;
-        check_series(&format!("experiment '{name}' inputs"), &data.inputs[e])?;
-        for (c, x) in data.outputs[e].iter().enumerate() {
-            if x.iter().all(|v| *v == 0.0) {
-                return Err(DiagnoseError::Input(format!(
-                    "experiment '{name}': readout channel {} is all zeros (a dead or unrecorded channel); the whitened likelihood cannot use it",
-                    Channel::from_index(c)
-                )));
-            }
-        }
+        data.check_experiment(e).map_err(DiagnoseError::Input)?;
         if data.inputs[e].iter().all(|x| x.iter().all(|v| *v == 0.0)) {
             obs.note(&format!(
                 "experiment '{name}' has no injection: it constrains the noise only"
             ));
-        }
-    }
-    Ok(())
-}
-
-/// The auxiliary readouts, if any, cover every experiment sample for sample (and the noise
-/// run, when it has them).
-fn check_auxiliary(
-    data: &ExperimentData,
-    noise: Option<&[Vec<f64>]>,
-    cfg: &DiagnoseConfig,
-) -> Result<(), DiagnoseError> {
-    let Some(aux) = cfg.auxiliary.as_deref() else {
-        return Ok(());
-    };
-    let n_aux = aux.channels.len();
-    let bad = |what: String| DiagnoseError::Input(format!("auxiliary readouts: {what}"));
-    if aux.experiments.len() != data.outputs.len() {
-        return Err(bad(format!(
-            "{} experiments, the data have {}",
-            aux.experiments.len(),
-            data.outputs.len()
-        )));
-    }
-    for (e, x) in aux.experiments.iter().enumerate() {
-        if x.len() != n_aux || x.iter().any(|c| c.len() != data.len_of(e)) {
-            return Err(bad(format!(
-                "experiment '{}' does not carry every channel over its {} samples",
-                data.names[e],
-                data.len_of(e)
-            )));
-        }
-        for (k, c) in x.iter().enumerate() {
-            check_series(
-                &format!(
-                    "experiment '{}' auxiliary {}",
-                    data.names[e], aux.channels[k].column
-                ),
-                std::slice::from_ref(c),
-            )?;
-        }
-    }
-    if let (Some(nz), Some(an)) = (noise, aux.noise.as_ref()) {
-        let n = nz.first().map_or(0, Vec::len);
-        if an.len() != n_aux || an.iter().any(|c| c.len() != n) {
-            return Err(bad(format!(
-                "the noise run does not carry every channel over its {n} samples"
-            )));
         }
     }
     Ok(())
@@ -208,7 +141,7 @@ fn noise_run_filter(
         obs.note("the dataset has no noise-only run: whitening uses the model noise PSD at the starting point, and band excesses are judged against white unit noise");
         return Ok(None);
     };
-    check_series("noise run", nz)?;
+    check_finite("noise run", nz).map_err(DiagnoseError::Input)?;
     if nz.iter().any(|c| c.iter().all(|v| *v == 0.0)) {
         obs.note("a noise-run channel is all zeros: the noise run is ignored and the model noise is used");
     } else if from_model {
@@ -324,7 +257,10 @@ impl<'a> DiagnosisProblem<'a> {
     ) -> Result<Self, DiagnoseError> {
         cfg.validate()?;
         check_data(data, obs)?;
-        check_auxiliary(data, noise.as_deref(), cfg)?;
+        if let Some(aux) = cfg.auxiliary.as_deref() {
+            aux.check_covers(data, noise.as_deref())
+                .map_err(DiagnoseError::Input)?;
+        }
         // The shortest experiment sets the order: every experiment drops its own start-up.
         let order = whitening_order(data.min_len(), cfg.order, obs)?;
         let whitening = whitening(setup, data, noise.as_deref(), guess, cfg, order, obs)?;
@@ -475,7 +411,7 @@ impl<'a> DiagnosisProblem<'a> {
             return self.data.clone();
         }
         let (cols, amps) = self.linear_columns(lik, lin, p);
-        additive::subtract(self.data, &cols, &amps)
+        self.data.minus(&cols, &amps)
     }
 
     /// One fit's summary with the residual tests of every experiment and channel.

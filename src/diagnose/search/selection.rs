@@ -298,7 +298,7 @@ fn score(
         (problem.data.clone(), Vec::new())
     } else {
         let (cols, amps) = problem.linear_columns(&lik, lin, est);
-        let eff = additive::subtract(problem.data, &cols, &amps);
+        let eff = problem.data.minus(&cols, &amps);
         let extra: Vec<Series> = cols
             .into_iter()
             .map(|c| additive::whiten(&lik, problem.data, c))
