@@ -194,11 +194,9 @@ pub(crate) fn table(
         out.extend(run_coherence(&input, &names, &filters, data.dt));
     }
     if let (Some(nz), Some(a)) = (problem.usable_noise(), aux.noise.as_ref()) {
-        let wn = crate::diagnose::search::problem::whitened_noise(
-            problem.filter(),
-            nz,
-            problem.cfg.poly_degree,
-        );
+        let wn = problem
+            .filter()
+            .apply_projected(nz, problem.cfg.poly_degree);
         let input = RunInput {
             stage,
             run: crate::diagnose::families::noise_excess::NOISE_RUN.to_string(),

@@ -78,22 +78,6 @@ pub struct DiagnosisProblem<'a> {
     transient_raw: Option<Vec<Vec<Vec<Vec<f64>>>>>,
 }
 
-/// The noise run whitened by `w`, cut and with the nuisance polynomial projected out.
-pub(crate) fn whitened_noise(
-    w: &Whitener<2>,
-    noise: &[Vec<f64>],
-    poly_degree: usize,
-) -> Vec<Vec<f64>> {
-    let mut out = w.apply(noise);
-    if let Some(n) = out.first().map(|c| c.len()) {
-        let basis = crate::fit::whiten::poly_basis(n, poly_degree);
-        for c in &mut out {
-            crate::fit::whiten::project_out(c, &basis);
-        }
-    }
-    out
-}
-
 /// Every experiment finite, no dead readout; notes for experiments without injection.
 fn check_data(data: &ExperimentData, obs: &mut dyn Observer) -> Result<(), DiagnoseError> {
     if data.outputs.is_empty() {
@@ -223,7 +207,7 @@ fn whitening(
     // At least two degrees of freedom, so that the F tails stay defined.
     let whitening_dof = fitted_on.map(|(t, m)| (t / m).max(2.0));
     let noise_ref = usable_noise.and_then(|nz| {
-        residuals::NoiseReference::new(&whitened_noise(&filter, nz, cfg.poly_degree), data.dt, fpe)
+        residuals::NoiseReference::new(&filter.apply_projected(nz, cfg.poly_degree), data.dt, fpe)
     });
     if let Some(nr) = noise_ref
         .as_ref()
@@ -275,7 +259,7 @@ impl<'a> DiagnosisProblem<'a> {
         let noise_w = noise
             .as_deref()
             .filter(|_| whitening.usable && cfg.glitches)
-            .map(|nz| whitened_noise(&whitening.filter, nz, cfg.poly_degree));
+            .map(|nz| whitening.filter.apply_projected(nz, cfg.poly_degree));
         Ok(DiagnosisProblem {
             setup,
             data,

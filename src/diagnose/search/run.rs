@@ -263,7 +263,9 @@ fn spectra(
         .as_deref()
         .filter(|_| problem.whitening.noise_ref.is_some());
     if let Some(nz) = reference {
-        let wn = problem::whitened_noise(problem.filter(), nz, problem.cfg.poly_degree);
+        let wn = problem
+            .filter()
+            .apply_projected(nz, problem.cfg.poly_degree);
         for ch in Channel::ALL {
             out.push(residuals::spectrum_curve(
                 "noise_run",

@@ -14,7 +14,7 @@ use crate::diagnose::{Channel, DiagnoseError, DiagnosisState, Stage};
 use crate::fit::{ExperimentData, FitResult, Likelihood};
 use crate::model::effects::{Category, Effect, Extended};
 use crate::model::ClosedLoopModel;
-use crate::numerics::linalg::{equilibrated_pinv, series_gram, series_gram_pinv};
+use crate::numerics::linalg::{equilibrated_pinv, most_correlated, series_gram, series_gram_pinv};
 use crate::numerics::tol::{DEGENERATE_FRACTION, PINV_RCOND};
 use crate::sim::Series;
 use crate::spectral::periodogram::refine_frequency;
@@ -27,22 +27,6 @@ pub(super) struct Score {
     pub(super) most_correlated: Option<(usize, f64)>,
     /// The one-step estimate `S^+ U` from zero: where the data pull the effect's parameters.
     pub(super) step: Vec<f64>,
-}
-
-/// The fitted parameter (of the first `n_base` of `idx`) most correlated with the last entry
-/// of `idx`, in the joint covariance `info[idx, idx]^+`.
-pub(super) fn most_correlated(
-    info: &DMatrix<f64>,
-    idx: &[usize],
-    n_base: usize,
-) -> Option<(usize, f64)> {
-    let sub = DMatrix::<f64>::from_fn(idx.len(), idx.len(), |a, b| info[(idx[a], idx[b])]);
-    let cv = equilibrated_pinv(&sub)?;
-    let last = idx.len() - 1;
-    (0..n_base)
-        .map(|k| (k, cv[(k, last)] / (cv[(k, k)] * cv[(last, last)]).sqrt()))
-        .filter(|(_, v)| v.is_finite())
-        .max_by(|a, b| a.1.abs().total_cmp(&b.1.abs()))
 }
 
 /// Score tests of the operator candidates `pool` at the current fit. `extra` are whitened
