@@ -26,6 +26,38 @@ pub struct ExperimentData {
 }
 
 impl ExperimentData {
+    /// Experiment `e` finite, inputs and outputs, with no readout channel all zeros (a dead or
+    /// unrecorded channel, which a whitened likelihood cannot use).
+    pub fn check_experiment(&self, e: usize) -> Result<(), String> {
+        let name = &self.names[e];
+        check_finite(&format!("experiment '{name}' outputs"), &self.outputs[e])?;
+        check_finite(&format!("experiment '{name}' inputs"), &self.inputs[e])?;
+        for (c, x) in self.outputs[e].iter().enumerate() {
+            if x.iter().all(|v| *v == 0.0) {
+                return Err(format!(
+                    "experiment '{name}': readout channel {} is all zeros (a dead or unrecorded channel); the whitened likelihood cannot use it",
+                    if c == 0 { "o1" } else { "o12" }
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// The data minus the contributions `columns[j] * amplitudes[j]` (series like the outputs).
+    pub fn minus(&self, columns: &[Series], amplitudes: &[f64]) -> ExperimentData {
+        let mut out = self.clone();
+        for (col, a) in columns.iter().zip(amplitudes) {
+            for (oe, ce) in out.outputs.iter_mut().zip(col) {
+                for (oc, cc) in oe.iter_mut().zip(ce) {
+                    for (o, c) in oc.iter_mut().zip(cc) {
+                        *o -= a * c;
+                    }
+                }
+            }
+        }
+        out
+    }
+
     /// Length of the longest experiment (of every experiment when they are equal).
     pub fn len(&self) -> usize {
         self.lengths().into_iter().max().unwrap_or(0)
@@ -174,7 +206,7 @@ pub struct AuxChannel {
     pub role: AuxRole,
     /// The readout's own noise floor, a one-sided ASD in `unit`/sqrt(Hz) (`noise_asd` in
     /// dataset.toml), when known: the diagnosis then regresses on the series with that noise
-    /// filtered out (`diagnose::additive`, errors in the regressor).
+    /// filtered out (`diagnose::families::additive`, errors in the regressor).
     pub noise_asd: Option<f64>,
 }
 
@@ -192,4 +224,59 @@ impl Auxiliary {
     pub fn is_empty(&self) -> bool {
         self.channels.is_empty()
     }
+
+    /// The readouts cover every experiment of `data` sample for sample (and the noise run,
+    /// when they have it), finite.
+    pub fn check_covers(
+        &self,
+        data: &ExperimentData,
+        noise: Option<&[Vec<f64>]>,
+    ) -> Result<(), String> {
+        let n_aux = self.channels.len();
+        let bad = |what: String| format!("auxiliary readouts: {what}");
+        if self.experiments.len() != data.outputs.len() {
+            return Err(bad(format!(
+                "{} experiments, the data have {}",
+                self.experiments.len(),
+                data.outputs.len()
+            )));
+        }
+        for (e, x) in self.experiments.iter().enumerate() {
+            if x.len() != n_aux || x.iter().any(|c| c.len() != data.len_of(e)) {
+                return Err(bad(format!(
+                    "experiment '{}' does not carry every channel over its {} samples",
+                    data.names[e],
+                    data.len_of(e)
+                )));
+            }
+            for (k, c) in x.iter().enumerate() {
+                let what = format!(
+                    "experiment '{}' auxiliary {}",
+                    data.names[e], self.channels[k].column
+                );
+                check_finite(&what, std::slice::from_ref(c))?;
+            }
+        }
+        if let (Some(nz), Some(an)) = (noise, self.noise.as_ref()) {
+            let n = nz.first().map_or(0, Vec::len);
+            if an.len() != n_aux || an.iter().any(|c| c.len() != n) {
+                return Err(bad(format!(
+                    "the noise run does not carry every channel over its {n} samples"
+                )));
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Every channel of `s` finite; the error names `what`, the channel and the first bad sample.
+pub fn check_finite(what: &str, s: &[Vec<f64>]) -> Result<(), String> {
+    for (c, x) in s.iter().enumerate() {
+        if let Some(i) = x.iter().position(|v| !v.is_finite()) {
+            return Err(format!(
+                "{what}, channel {c}: non-finite value at sample {i}"
+            ));
+        }
+    }
+    Ok(())
 }

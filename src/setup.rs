@@ -196,7 +196,30 @@ impl<M: SpecModel<N>, const N: usize> SetupOf<M, N> {
     }
 }
 
+/// Prior width of a parameter whose model file gives none, relative to its nominal value: the
+/// nominal is taken as known to its order of magnitude.
+pub const DEFAULT_PRIOR_RELATIVE: f64 = 1.0;
+
 impl Setup {
+    /// The prior (centre, width) of each base parameter, when it has one: a prior of the
+    /// diagnosis's constraints (`--prior`), else the model file's.
+    pub fn priors(&self, constraints: &crate::fit::Constraints) -> Vec<Option<(f64, f64)>> {
+        self.spec
+            .parameters
+            .iter()
+            .enumerate()
+            .map(|(k, p)| {
+                if let Some((_, q)) = constraints.priors.iter().find(|(i, _)| *i == k) {
+                    return Some((q.mean, q.sigma));
+                }
+                let width = p
+                    .prior_sigma
+                    .unwrap_or(DEFAULT_PRIOR_RELATIVE * p.nominal.abs());
+                (width > 0.0).then_some((p.nominal, width))
+            })
+            .collect()
+    }
+
     /// The embedded x model with the thesis's continuous loop (its tables' comparisons).
     pub fn embedded_continuous() -> Self {
         Self::new(ModelSpec::embedded_continuous()).expect("embedded model is valid")

@@ -23,6 +23,7 @@
 //! Files are read and written only by [`job`] and [`compare::Reference::read`]; the rest takes
 //! runs as [`crate::io::Run`] values.
 
+pub mod change;
 pub mod compare;
 pub mod derivative;
 pub mod job;

@@ -32,6 +32,7 @@
 //! every constraint.
 
 pub mod criteria;
+pub mod redesign;
 pub mod report;
 pub mod search;
 pub mod space;

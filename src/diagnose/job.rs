@@ -1,14 +1,14 @@
 //! A diagnosis of a dataset from its files to its report folder: the dataset read and checked
-//! like a fit's ([`DatasetFit`]), the forward selection of [`super::diagnose_observed`], and
-//! the outputs: the tables of [`super::tables`], report.md and, when python3 can draw them,
+//! like a fit's ([`DatasetFit`]), the forward selection of [`crate::diagnose::diagnose_observed`], and
+//! the outputs: the tables of [`crate::diagnose::tables`], report.md and, when python3 can draw them,
 //! the residual spectra and time-resolved chi^2 plots.
 
 use std::path::Path;
 
-use super::tables::Timeline;
-use super::{diagnose_observed, DiagnoseConfig, Diagnosis, Observer};
 use crate::analysis::job::{context, DatasetFit, JobError, Notes};
 use crate::analysis::{decimated_telemetry, truth_from_meta};
+use crate::diagnose::tables::Timeline;
+use crate::diagnose::{diagnose_observed, DiagnoseConfig, Diagnosis, Observer};
 use crate::io::plot::run_plot_script;
 use crate::io::{create_output_dir, write_text_atomic, Provenance};
 use crate::setup::Setup;

@@ -5,8 +5,8 @@ use std::fmt::Write;
 
 use serde_json::{json, Map, Value};
 
-use super::redesign::{Probe, Redesign};
-use super::{Candidate, Diagnosis, Stage};
+use crate::design::redesign::{probe_md, redesign_verdict};
+use crate::diagnose::{Candidate, Diagnosis, Stage};
 
 fn num(v: f64) -> Value {
     if v.is_finite() {
@@ -670,36 +670,5 @@ The closed loop's free response to initial conditions (thesis sec. 3.2, 4.7), fi
              the whitened residual over every time, entry point (force on TM1, TM2, spacecraft; transient in o1, o12) and width; \
              their p-values include the scan's look-elsewhere factor (Bonferroni over every position, entry and width tried)."
         );
-    }
-}
-
-fn probe_md(p: Option<&Probe>) -> String {
-    p.map(|p| {
-        format!(
-            "{:.2e} at {:.2e} Hz on {} ({:.1e} m, {} bound)",
-            p.identifiable_fraction, p.frequency_hz, p.input, p.amplitude_m, p.binding
-        )
-    })
-    .unwrap_or_else(|| "-".into())
-}
-
-/// One-line reading of a redesign probe: separable (and how), or structural.
-fn redesign_verdict(r: &Redesign) -> String {
-    const SEPARABLE: f64 = 0.5;
-    let frac = |p: &Option<Probe>| p.as_ref().map_or(0.0, |p| p.identifiable_fraction);
-    if frac(&r.within_constraints) >= SEPARABLE {
-        let p = r.within_constraints.as_ref().expect("checked");
-        format!(
-            "separable: add a stretch at {:.2e} Hz on {}",
-            p.frequency_hz, p.input
-        )
-    } else if frac(&r.above_f_max) >= SEPARABLE {
-        let p = r.above_f_max.as_ref().expect("checked");
-        format!(
-            "separable only above f_max = {:.2e} Hz (at {:.2e} Hz on {})",
-            r.f_max_hz, p.frequency_hz, p.input
-        )
-    } else {
-        "structural: no single stretch separates it".into()
     }
 }

@@ -7,8 +7,8 @@ use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::Path;
 
-use super::Diagnosis;
 use crate::analysis::residual_table;
+use crate::diagnose::Diagnosis;
 use crate::io::{write_json_atomic, write_parquet, IoError, Table};
 
 /// Where the experiments sit in time: names, each run's first sample time and the spacing.
@@ -120,7 +120,7 @@ pub fn effect_list() -> String {
             &e.acts_on(),
         );
     }
-    for p in super::additive::DRIFT_PARAMETERS {
+    for p in crate::diagnose::families::additive::DRIFT_PARAMETERS {
         line(
             &format!("drift_{p}"),
             "drift",

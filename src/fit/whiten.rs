@@ -265,6 +265,19 @@ impl<const N: usize> Whitener<N> {
         out
     }
 
+    /// [`Self::apply`], then the nuisance polynomial of degree `poly_degree` projected out of
+    /// every channel (as the likelihood treats the data).
+    pub fn apply_projected(&self, x: &[Vec<f64>], poly_degree: usize) -> Vec<Vec<f64>> {
+        let mut out = self.apply(x);
+        if let Some(n) = out.first().map(|c| c.len()) {
+            let basis = poly_basis(n, poly_degree);
+            for c in &mut out {
+                project_out(c, &basis);
+            }
+        }
+        out
+    }
+
     /// Frequency response `W(f_k) = sum_j B_j exp(-2 pi i k j / m)` on the `m/2 + 1` bins of a
     /// uniform grid of `m` points (the template engine's padded grid), by FFT of the taps.
     pub fn response_on_grid(&self, m: usize) -> Vec<CMat<N>> {

@@ -30,6 +30,49 @@ fn m2(a: Complex64, b: Complex64, cc: Complex64, d: Complex64) -> CMat<2> {
     CMat::<2>::new(a, b, cc, d)
 }
 
+/// A readout channel of the LPF-x model (thesis ch. 3: the interferometer outputs o1, o12).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+pub enum Channel {
+    #[serde(rename = "o1")]
+    O1,
+    #[serde(rename = "o12")]
+    O12,
+}
+
+impl Channel {
+    pub const ALL: [Channel; 2] = [Channel::O1, Channel::O12];
+
+    pub fn index(self) -> usize {
+        self as usize
+    }
+
+    /// The channel of readout index `c` (0: o1, 1: o12).
+    pub fn from_index(c: usize) -> Channel {
+        if c == 0 {
+            Channel::O1
+        } else {
+            Channel::O12
+        }
+    }
+
+    pub fn from_name(name: &str) -> Option<Channel> {
+        Channel::ALL.into_iter().find(|c| c.as_str() == name)
+    }
+
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Channel::O1 => "o1",
+            Channel::O12 => "o12",
+        }
+    }
+}
+
+impl std::fmt::Display for Channel {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
 /// The two-dimensional x-axis model: readouts (o1, o12), guidance inputs (oi1, oi12).
 #[derive(Debug, Clone)]
 pub struct LpfX {

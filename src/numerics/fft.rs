@@ -90,3 +90,33 @@ pub fn filter_padded<const R: usize>(
         buf[..n].iter().map(|v| v / m as f64).collect()
     })
 }
+
+/// Cross-correlation `c[l] = sum_s k[s] r[s + l]` (negative lags wrapped to the end), by FFT.
+pub fn xcorr(
+    k: &[f64],
+    r: &[f64],
+    planner: &mut realfft::RealFftPlanner<f64>,
+    len: usize,
+) -> Vec<f64> {
+    let fwd = planner.plan_fft_forward(len);
+    let inv = planner.plan_fft_inverse(len);
+    let mut a = vec![0.0; len];
+    a[..k.len()].copy_from_slice(k);
+    let mut b = vec![0.0; len];
+    b[..r.len()].copy_from_slice(r);
+    let mut sa = fwd.make_output_vec();
+    let mut sb = fwd.make_output_vec();
+    fwd.process(&mut a, &mut sa).expect("FFT sizes match");
+    fwd.process(&mut b, &mut sb).expect("FFT sizes match");
+    let mut prod: Vec<Complex64> = sa.iter().zip(&sb).map(|(x, y)| x.conj() * y).collect();
+    prod[0].im = 0.0;
+    if len.is_multiple_of(2) {
+        let last = prod.len() - 1;
+        prod[last].im = 0.0;
+    }
+    let mut out = inv.make_output_vec();
+    inv.process(&mut prod, &mut out).expect("FFT sizes match");
+    let s = 1.0 / len as f64;
+    out.iter_mut().for_each(|v| *v *= s);
+    out
+}

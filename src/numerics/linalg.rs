@@ -138,3 +138,38 @@ pub fn marginal(info: &DMatrix<f64>) -> Vec<f64> {
     }
     out
 }
+
+/// The symmetric Gram matrix `J^T J` of series columns `j` (an information matrix of whitened
+/// columns).
+pub fn series_gram(j: &[Vec<Vec<Vec<f64>>>]) -> DMatrix<f64> {
+    let n = j.len();
+    let mut info = DMatrix::<f64>::zeros(n, n);
+    for a in 0..n {
+        for b in a..n {
+            let v = series_dot(&j[a], &j[b]);
+            info[(a, b)] = v;
+            info[(b, a)] = v;
+        }
+    }
+    info
+}
+
+/// Gram matrix of columns `j`, with its equilibrated pseudo-inverse.
+pub fn series_gram_pinv(j: &[&Vec<Vec<Vec<f64>>>]) -> (DMatrix<f64>, Option<DMatrix<f64>>) {
+    let m = j.len();
+    let g = DMatrix::<f64>::from_fn(m, m, |a, b| series_dot(j[a], j[b]));
+    let inv = equilibrated_pinv(&g);
+    (g, inv)
+}
+
+/// The fitted parameter (of the first `n_base` of `idx`) most correlated with the last entry
+/// of `idx`, in the joint covariance `info[idx, idx]^+`.
+pub fn most_correlated(info: &DMatrix<f64>, idx: &[usize], n_base: usize) -> Option<(usize, f64)> {
+    let sub = DMatrix::<f64>::from_fn(idx.len(), idx.len(), |a, b| info[(idx[a], idx[b])]);
+    let cv = equilibrated_pinv(&sub)?;
+    let last = idx.len() - 1;
+    (0..n_base)
+        .map(|k| (k, cv[(k, last)] / (cv[(k, k)] * cv[(last, last)]).sqrt()))
+        .filter(|(_, v)| v.is_finite())
+        .max_by(|a, b| a.1.abs().total_cmp(&b.1.abs()))
+}

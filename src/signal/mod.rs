@@ -294,3 +294,38 @@ impl Design {
             .collect()
     }
 }
+
+/// Windows of the time axis from the injection stretches: cut at the middle of every gap of
+/// at least `min_gap` samples where all inputs are zero. Falls back to 8 equal windows.
+pub fn stretch_windows(inputs: &[Vec<f64>], n: usize, min_gap: usize) -> Vec<(usize, usize)> {
+    let active: Vec<bool> = (0..n)
+        .map(|i| inputs.iter().any(|c| c.get(i).is_some_and(|v| *v != 0.0)))
+        .collect();
+    let mut cuts = Vec::new();
+    let mut i = 0;
+    while i < n {
+        if !active[i] {
+            let start = i;
+            while i < n && !active[i] {
+                i += 1;
+            }
+            if i - start >= min_gap && start > 0 && i < n {
+                cuts.push((start + i) / 2);
+            }
+        } else {
+            i += 1;
+        }
+    }
+    let mut bounds = vec![0];
+    bounds.extend(cuts);
+    bounds.push(n);
+    if bounds.len() < 3 {
+        let k = 8.min(n.max(1));
+        bounds = (0..=k).map(|j| j * n / k).collect();
+    }
+    bounds
+        .windows(2)
+        .filter(|w| w[1] > w[0])
+        .map(|w| (w[0], w[1]))
+        .collect()
+}

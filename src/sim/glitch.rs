@@ -17,7 +17,7 @@
 //!
 //! This is the synthesis half: the simulators inject glitches with [`add_glitch`], and the
 //! diagnosis fits the same responses ([`synthesize`]); its detection scan is
-//! `diagnose::glitch`.
+//! `diagnose::families::glitch`.
 
 use num_complex::Complex64;
 use realfft::RealFftPlanner;

@@ -28,6 +28,7 @@
 //! [`WelchConfig`] and of [`welch_csd`] / [`welch_psd`].
 
 pub mod decimate;
+pub mod periodogram;
 pub mod welch;
 pub mod window;
 

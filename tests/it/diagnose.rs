@@ -138,7 +138,7 @@ fn category_str(c: &str) -> &'static str {
 fn loss_angle_of_tm2_is_found() {
     // Oracle: the simulated truth (phi_tm2 = 0.01, chi2/nu before ~1.1x the noise level).
     let c = check_single("loss_angle_tm2", 0.01, "loss_angle", 104);
-    // The science product before and after (diagnose::science). Oracle: the model's projection
+    // The science product before and after (accel::change). Oracle: the model's projection
     // of the true readout noise through the two Delta estimates (accel::projection), whose
     // ratio at the reported frequency is what the data's ratio estimates.
     use freefall::accel::{projection, DeltaEstimator, Response, Stencil};

@@ -1,12 +1,12 @@
-//! The redesign probe of degenerate effects (`diagnose::redesign`). Oracles: the identifiable
+//! The redesign probe of degenerate effects (`design::redesign`). Oracles: the identifiable
 //! fraction of a two-parameter Gaussian (`1 - rho^2`); the time-domain whitened Jacobian of the
 //! fit, against the probe's frequency-domain information; monotonicity (information only adds);
 //! and the thesis's parameter table, which calls the gravity gradient "could be estimated from
 //! experiments with different actuation stiffness but difficult, considered fixed": no guidance
 //! injection separates it.
 
+use freefall::design::redesign::{identifiable_fraction, probe};
 use freefall::design::space::DesignSpace;
-use freefall::diagnose::redesign::{identifiable_fraction, probe};
 use freefall::fit::{Likelihood, Whitener};
 use freefall::model::effects::{by_name, Extended};
 use freefall::model::ClosedLoopModel;

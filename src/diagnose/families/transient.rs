@@ -13,14 +13,14 @@
 //!    later fit of the diagnosis and the transients are reported, the noise run's with them.
 //!    When not, nothing is claimed and the diagnosis runs on the noise run as recorded.
 
-use super::additive::{Additive, DRIFT_PARAMETERS};
-use super::observer::Observer;
-use super::problem::{DiagnosisProblem, LinearFit};
-use super::{DiagnoseConfig, DiagnoseError};
 use crate::analysis::transient::{
     clean_noise_run, experiment_columns, fit_with_transients, TransientReport,
 };
 use crate::data::ExperimentData;
+use crate::diagnose::families::additive::{Additive, DRIFT_PARAMETERS};
+use crate::diagnose::search::observer::Observer;
+use crate::diagnose::search::problem::{DiagnosisProblem, LinearFit};
+use crate::diagnose::{DiagnoseConfig, DiagnoseError};
 use crate::fit::FitConfig;
 use crate::model::ClosedLoopModel;
 use crate::setup::Setup;
@@ -75,13 +75,13 @@ pub(crate) fn clean_noise(
 pub(crate) fn plan_and_fit<'a>(
     setup: &'a Setup,
     data: &'a ExperimentData,
-    noise: Option<&'a [Vec<f64>]>,
-    cleaned: Option<&'a (Vec<Vec<f64>>, TransientReport)>,
+    noise: Option<&[Vec<f64>]>,
+    cleaned: Option<&(Vec<Vec<f64>>, TransientReport)>,
     guess: &[f64],
     cfg: &'a DiagnoseConfig,
     obs: &mut dyn Observer,
 ) -> Result<(DiagnosisProblem<'a>, LinearFit, Vec<TransientReport>), DiagnoseError> {
-    let first_noise = cleaned.map(|(c, _)| &c[..]).or(noise);
+    let first_noise = cleaned.map(|(c, _)| &c[..]).or(noise).map(<[_]>::to_vec);
     let mut problem = DiagnosisProblem::plan(setup, data, first_noise, guess, cfg, obs)?;
     let fit0 = problem.fit_plain(&problem.nominal, guess)?;
     if !cfg.transients {
@@ -106,7 +106,8 @@ pub(crate) fn plan_and_fit<'a>(
                     "the noise run's start alone looks like a transient (p = {:.2e}), the experiments' does not: no transient is claimed, and the noise run is used as recorded",
                     r.p_value
                 ));
-                let problem = DiagnosisProblem::plan(setup, data, noise, guess, cfg, obs)?;
+                let recorded = noise.map(<[_]>::to_vec);
+                let problem = DiagnosisProblem::plan(setup, data, recorded, guess, cfg, obs)?;
                 let fit0 = problem.fit_plain(&problem.nominal, guess)?;
                 Ok((problem, fit0, Vec::new()))
             }

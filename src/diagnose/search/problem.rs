@@ -7,14 +7,16 @@
 
 use nalgebra::DMatrix;
 
-use super::additive;
-use super::observer::Observer;
-use super::residuals;
-use super::{Channel, DiagnoseConfig, DiagnoseError, Stage, WhiteningSource};
+use crate::data::check_finite;
+use crate::diagnose::families::additive;
+use crate::diagnose::families::residuals;
+use crate::diagnose::search::observer::Observer;
+use crate::diagnose::{Channel, DiagnoseConfig, DiagnoseError, Stage, WhiteningSource};
 use crate::fit::{fit, ExperimentData, FitConfig, FitResult, Likelihood, Whitener};
 use crate::model::effects::Extended;
 use crate::model::lpf_x::LpfX;
 use crate::model::ClosedLoopModel;
+use crate::numerics::linalg::series_gram_pinv;
 use crate::setup::Setup;
 use crate::sim::Series;
 
@@ -44,9 +46,9 @@ pub(crate) struct LinearFit {
 }
 
 /// The whitening of a diagnosis and the noise run's reference level under it.
-pub(crate) struct Whitening<'a> {
-    /// The noise run, when it can serve as a reference (no dead channel, long enough).
-    pub usable_noise: Option<&'a [Vec<f64>]>,
+pub(crate) struct Whitening {
+    /// The noise run can serve as a reference (no dead channel, long enough).
+    pub usable: bool,
     /// Akaike's final-prediction-error factor of the noise run's whitened level (1 if none).
     pub fpe: f64,
     pub filter: Whitener<2>,
@@ -56,15 +58,16 @@ pub(crate) struct Whitening<'a> {
     pub whitening_dof: Option<f64>,
 }
 
-/// Everything a round of the forward selection reads and never changes.
+/// Everything a round of the forward selection reads and never changes. It owns its noise
+/// run: a new noise run (cleaned of a transient or of a claimed cross-talk) is a new problem.
 pub struct DiagnosisProblem<'a> {
     pub setup: &'a Setup,
     pub data: &'a ExperimentData,
-    pub noise: Option<&'a [Vec<f64>]>,
+    pub noise: Option<Vec<Vec<f64>>>,
     pub cfg: &'a DiagnoseConfig,
     /// The whitening order (the configured one, reduced for a short run).
     pub order: usize,
-    pub(crate) whitening: Whitening<'a>,
+    pub(crate) whitening: Whitening,
     /// The likelihood planned once on the base model; [`Self::likelihood`] retargets it.
     planned: Likelihood<'a, LpfX, 2>,
     /// The whitened noise run that calibrates the glitch scan (with glitches and a usable run).
@@ -75,33 +78,6 @@ pub struct DiagnosisProblem<'a> {
     transient_raw: Option<Vec<Vec<Vec<Vec<f64>>>>>,
 }
 
-fn check_series(what: &str, s: &[Vec<f64>]) -> Result<(), DiagnoseError> {
-    for (c, x) in s.iter().enumerate() {
-        if let Some(i) = x.iter().position(|v| !v.is_finite()) {
-            return Err(DiagnoseError::Input(format!(
-                "{what}, channel {c}: non-finite value at sample {i}"
-            )));
-        }
-    }
-    Ok(())
-}
-
-/// The noise run whitened by `w`, cut and with the nuisance polynomial projected out.
-pub(crate) fn whitened_noise(
-    w: &Whitener<2>,
-    noise: &[Vec<f64>],
-    poly_degree: usize,
-) -> Vec<Vec<f64>> {
-    let mut out = w.apply(noise);
-    if let Some(n) = out.first().map(|c| c.len()) {
-        let basis = crate::fit::whiten::poly_basis(n, poly_degree);
-        for c in &mut out {
-            crate::fit::whiten::project_out(c, &basis);
-        }
-    }
-    out
-}
-
 /// Every experiment finite, no dead readout; notes for experiments without injection.
 fn check_data(data: &ExperimentData, obs: &mut dyn Observer) -> Result<(), DiagnoseError> {
     if data.outputs.is_empty() {
@@ -110,68 +86,11 @@ fn check_data(data: &ExperimentData, obs: &mut dyn Observer) -> Result<(), Diagn
         ));
     }
     for (e, name) in data.names.iter().enumerate() {
-        check_series(&format!("experiment '{name}' outputs"), &data.outputs[e])?;
-        check_series(&format!("experiment '{name}' inputs"), &data.inputs[e])?;
-        for (c, x) in data.outputs[e].iter().enumerate() {
-            if x.iter().all(|v| *v == 0.0) {
-                return Err(DiagnoseError::Input(format!(
-                    "experiment '{name}': readout channel {} is all zeros (a dead or unrecorded channel); the whitened likelihood cannot use it",
-                    Channel::from_index(c)
-                )));
-            }
-        }
+        data.check_experiment(e).map_err(DiagnoseError::Input)?;
         if data.inputs[e].iter().all(|x| x.iter().all(|v| *v == 0.0)) {
             obs.note(&format!(
                 "experiment '{name}' has no injection: it constrains the noise only"
             ));
-        }
-    }
-    Ok(())
-}
-
-/// The auxiliary readouts, if any, cover every experiment sample for sample (and the noise
-/// run, when it has them).
-fn check_auxiliary(
-    data: &ExperimentData,
-    noise: Option<&[Vec<f64>]>,
-    cfg: &DiagnoseConfig,
-) -> Result<(), DiagnoseError> {
-    let Some(aux) = cfg.auxiliary.as_deref() else {
-        return Ok(());
-    };
-    let n_aux = aux.channels.len();
-    let bad = |what: String| DiagnoseError::Input(format!("auxiliary readouts: {what}"));
-    if aux.experiments.len() != data.outputs.len() {
-        return Err(bad(format!(
-            "{} experiments, the data have {}",
-            aux.experiments.len(),
-            data.outputs.len()
-        )));
-    }
-    for (e, x) in aux.experiments.iter().enumerate() {
-        if x.len() != n_aux || x.iter().any(|c| c.len() != data.len_of(e)) {
-            return Err(bad(format!(
-                "experiment '{}' does not carry every channel over its {} samples",
-                data.names[e],
-                data.len_of(e)
-            )));
-        }
-        for (k, c) in x.iter().enumerate() {
-            check_series(
-                &format!(
-                    "experiment '{}' auxiliary {}",
-                    data.names[e], aux.channels[k].column
-                ),
-                std::slice::from_ref(c),
-            )?;
-        }
-    }
-    if let (Some(nz), Some(an)) = (noise, aux.noise.as_ref()) {
-        let n = nz.first().map_or(0, Vec::len);
-        if an.len() != n_aux || an.iter().any(|c| c.len() != n) {
-            return Err(bad(format!(
-                "the noise run does not carry every channel over its {n} samples"
-            )));
         }
     }
     Ok(())
@@ -206,7 +125,7 @@ fn noise_run_filter(
         obs.note("the dataset has no noise-only run: whitening uses the model noise PSD at the starting point, and band excesses are judged against white unit noise");
         return Ok(None);
     };
-    check_series("noise run", nz)?;
+    check_finite("noise run", nz).map_err(DiagnoseError::Input)?;
     if nz.iter().any(|c| c.iter().all(|v| *v == 0.0)) {
         obs.note("a noise-run channel is all zeros: the noise run is ignored and the model noise is used");
     } else if from_model {
@@ -252,15 +171,15 @@ fn model_whitener(
 /// is an in-sample estimate, scaled by Akaike's final-prediction-error factor `(T + m) / (T - m)`,
 /// `m = 2 p` coefficients per equation of the two-channel autoregression, and the filter's
 /// spectrum carries `T / m` degrees of freedom.
-fn whitening<'a>(
+fn whitening(
     setup: &Setup,
     data: &ExperimentData,
-    noise: Option<&'a [Vec<f64>]>,
+    noise: Option<&[Vec<f64>]>,
     guess: &[f64],
     cfg: &DiagnoseConfig,
     order: usize,
     obs: &mut dyn Observer,
-) -> Result<Whitening<'a>, DiagnoseError> {
+) -> Result<Whitening, DiagnoseError> {
     let (filter, source) = match noise_run_filter(noise, cfg.whiten_from_model, order, obs)? {
         Some(w) => (w, WhiteningSource::NoiseRun),
         None => (
@@ -288,7 +207,7 @@ fn whitening<'a>(
     // At least two degrees of freedom, so that the F tails stay defined.
     let whitening_dof = fitted_on.map(|(t, m)| (t / m).max(2.0));
     let noise_ref = usable_noise.and_then(|nz| {
-        residuals::NoiseReference::new(&whitened_noise(&filter, nz, cfg.poly_degree), data.dt, fpe)
+        residuals::NoiseReference::new(&filter.apply_projected(nz, cfg.poly_degree), data.dt, fpe)
     });
     if let Some(nr) = noise_ref
         .as_ref()
@@ -305,7 +224,7 @@ fn whitening<'a>(
         source,
         noise_ref,
         whitening_dof,
-        usable_noise,
+        usable: usable_noise.is_some(),
         fpe,
     })
 }
@@ -315,27 +234,30 @@ impl<'a> DiagnosisProblem<'a> {
     pub fn plan(
         setup: &'a Setup,
         data: &'a ExperimentData,
-        noise: Option<&'a [Vec<f64>]>,
+        noise: Option<Vec<Vec<f64>>>,
         guess: &[f64],
         cfg: &'a DiagnoseConfig,
         obs: &mut dyn Observer,
     ) -> Result<Self, DiagnoseError> {
         cfg.validate()?;
         check_data(data, obs)?;
-        check_auxiliary(data, noise, cfg)?;
+        if let Some(aux) = cfg.auxiliary.as_deref() {
+            aux.check_covers(data, noise.as_deref())
+                .map_err(DiagnoseError::Input)?;
+        }
         // The shortest experiment sets the order: every experiment drops its own start-up.
         let order = whitening_order(data.min_len(), cfg.order, obs)?;
-        let whitening = whitening(setup, data, noise, guess, cfg, order, obs)?;
+        let whitening = whitening(setup, data, noise.as_deref(), guess, cfg, order, obs)?;
         let planned = Likelihood::for_data(
             &setup.model,
             data,
             whitening.filter.clone(),
             cfg.poly_degree,
         )?;
-        let noise_w = whitening
-            .usable_noise
-            .filter(|_| cfg.glitches)
-            .map(|nz| whitened_noise(&whitening.filter, nz, cfg.poly_degree));
+        let noise_w = noise
+            .as_deref()
+            .filter(|_| whitening.usable && cfg.glitches)
+            .map(|nz| whitening.filter.apply_projected(nz, cfg.poly_degree));
         Ok(DiagnosisProblem {
             setup,
             data,
@@ -354,6 +276,11 @@ impl<'a> DiagnosisProblem<'a> {
         self.whitening.source
     }
 
+    /// The noise run, when it can serve as a reference (no dead channel, long enough).
+    pub(crate) fn usable_noise(&self) -> Option<&[Vec<f64>]> {
+        self.noise.as_deref().filter(|_| self.whitening.usable)
+    }
+
     pub(crate) fn filter(&self) -> &Whitener<2> {
         &self.whitening.filter
     }
@@ -370,15 +297,12 @@ impl<'a> DiagnosisProblem<'a> {
 
     /// The problem planned again on another noise run (the same data, settings and start-up
     /// transient columns): its whitening filter and reference level are estimated afresh.
-    pub(crate) fn replanned<'b>(
+    pub(crate) fn replanned(
         &self,
-        noise: &'b [Vec<f64>],
+        noise: Vec<Vec<f64>>,
         guess: &[f64],
         obs: &mut dyn Observer,
-    ) -> Result<DiagnosisProblem<'b>, DiagnoseError>
-    where
-        'a: 'b,
-    {
+    ) -> Result<DiagnosisProblem<'a>, DiagnoseError> {
         let mut p =
             DiagnosisProblem::plan(self.setup, self.data, Some(noise), guess, self.cfg, obs)?;
         if let Some(raw) = &self.transient_raw {
@@ -469,7 +393,7 @@ impl<'a> DiagnosisProblem<'a> {
             return self.data.clone();
         }
         let (cols, amps) = self.linear_columns(lik, lin, p);
-        additive::subtract(self.data, &cols, &amps)
+        self.data.minus(&cols, &amps)
     }
 
     /// One fit's summary with the residual tests of every experiment and channel.
@@ -621,7 +545,7 @@ impl DiagnosisProblem<'_> {
             let (r, jn) = prob.residuals_and_jacobian(&est);
             let (je, layout) = additive_jacobian(&lik, data, &lin, &est, pass == 0);
             let all: Vec<&Series> = jn.iter().chain(je.iter()).collect();
-            let (_, inv) = additive::gram_inverse(&all);
+            let (_, inv) = series_gram_pinv(&all);
             let inv = inv.ok_or_else(|| {
                 DiagnoseError::Numerical("singular joint information of the additive fit".into())
             })?;

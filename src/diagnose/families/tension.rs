@@ -1,22 +1,18 @@
 //! Prior tension: a fitted base parameter far outside its prior (the model file's `nominal`
-//! with width `prior_sigma`, or [`DEFAULT_PRIOR_RELATIVE`] of a non-zero nominal) is the mark
+//! with width `prior_sigma`, or [`DEFAULT_PRIOR_RELATIVE`](crate::setup::DEFAULT_PRIOR_RELATIVE) of a non-zero nominal) is the mark
 //! of an omitted effect the data cannot tell from that parameter (thesis sec. 3.4-3.5: an
 //! operator imperfection degenerate with a fitted one is absorbed into it). Each such parameter
 //! is listed with the degenerate candidates that would explain its shift and their equivalent
 //! size, from the first-order absorption `b = I_nn^-1 I_ne` of the redesign probe
-//! ([`super::redesign::Absorbed`]): an omitted effect of size theta moves the parameter by
+//! ([`crate::design::redesign::Absorbed`]): an omitted effect of size theta moves the parameter by
 //! `b theta`, so the shift `Delta` corresponds to `theta = Delta / b`.
 
 use serde::Serialize;
 
-use super::{Candidate, Stage};
+use crate::diagnose::{Candidate, Stage};
 use crate::model::effects::by_name;
 use crate::numerics::stats::chi2_isf;
 use crate::setup::Setup;
-
-/// Prior width of a parameter whose model file gives none, relative to its nominal value: the
-/// nominal is taken as known to its order of magnitude.
-pub const DEFAULT_PRIOR_RELATIVE: f64 = 1.0;
 
 /// A degenerate candidate that would explain a parameter's shift.
 #[derive(Debug, Clone, Serialize)]
@@ -44,26 +40,6 @@ pub struct PriorTension {
     /// The shift over `sqrt(prior_sigma^2 + sigma^2)`.
     pub tension_sigma: f64,
     pub explained_by: Vec<Explanation>,
-}
-
-/// The prior (centre, width) of each base parameter, when it has one: a prior of the
-/// diagnosis's constraints (`--prior`), else the model file's.
-pub fn priors(setup: &Setup, constraints: &crate::fit::Constraints) -> Vec<Option<(f64, f64)>> {
-    setup
-        .spec
-        .parameters
-        .iter()
-        .enumerate()
-        .map(|(k, p)| {
-            if let Some((_, q)) = constraints.priors.iter().find(|(i, _)| *i == k) {
-                return Some((q.mean, q.sigma));
-            }
-            let width = p
-                .prior_sigma
-                .unwrap_or(DEFAULT_PRIOR_RELATIVE * p.nominal.abs());
-            (width > 0.0).then_some((p.nominal, width))
-        })
-        .collect()
 }
 
 /// The degenerate candidates (with a redesign probe) whose absorption moves `parameter`, with
@@ -114,7 +90,7 @@ pub fn prior_tension(
     alpha: f64,
     candidates: &[Candidate],
 ) -> Vec<PriorTension> {
-    let priors = priors(setup, constraints);
+    let priors = setup.priors(constraints);
     let n = priors.len().max(1);
     let z = chi2_isf(1.0, alpha / n as f64).sqrt();
     let mut out = Vec::new();

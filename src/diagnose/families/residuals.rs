@@ -11,14 +11,14 @@
 //! compared with the same band of the noise run whitened by the same filter, an F test (this
 //! cancels what the whitening filter does not model); without one, with the unit level.
 
-use num_complex::Complex64;
-use realfft::RealFftPlanner;
 use serde::Serialize;
 use statrs::distribution::{ChiSquared, ContinuousCDF};
 
 pub use crate::numerics::stats::{chi2_sf, f_sf, ks_two_sample};
 use crate::numerics::stats::{ljung_box, mean};
 
+use crate::signal::stretch_windows;
+use crate::spectral::periodogram::{band_edges, periodogram, variance_inflation};
 use crate::spectral::{welch_csd, WelchConfig};
 
 /// Significance of one band of one channel.
@@ -109,85 +109,6 @@ pub struct SpectrumCurve {
     pub hi: Vec<f64>,
 }
 
-/// Periodogram ordinates `z_k = |X_k|^2 / L`, k = 1..L/2 (DC and Nyquist dropped), and their
-/// frequencies.
-pub fn periodogram(x: &[f64], dt: f64) -> (Vec<f64>, Vec<f64>) {
-    let l = x.len();
-    if l < 4 {
-        return (Vec::new(), Vec::new());
-    }
-    let mut planner = RealFftPlanner::<f64>::new();
-    let fft = planner.plan_fft_forward(l);
-    let mut buf = x.to_vec();
-    let mut spec: Vec<Complex64> = fft.make_output_vec();
-    if fft.process(&mut buf, &mut spec).is_err() {
-        return (Vec::new(), Vec::new());
-    }
-    let kmax = (l - 1) / 2;
-    let f = (1..=kmax).map(|k| k as f64 / (l as f64 * dt)).collect();
-    let z = (1..=kmax).map(|k| spec[k].norm_sqr() / l as f64).collect();
-    (f, z)
-}
-
-/// Band edges: three per decade from the lowest resolved frequency to Nyquist.
-pub fn band_edges(f_lo: f64, f_nyq: f64) -> Vec<f64> {
-    // Finiteness guard: the loop below stops on reaching f_nyq, which NaN never is.
-    if !(f_lo.is_finite() && f_nyq.is_finite() && f_lo > 0.0 && f_nyq > f_lo) {
-        return vec![f_lo, f_nyq];
-    }
-    let mut edges = vec![f_lo];
-    let mut k = (3.0 * f_lo.log10()).floor() as i32 + 1;
-    loop {
-        let e = 10f64.powf(k as f64 / 3.0);
-        // A third-decade edge within 0.1 % of Nyquist would leave an empty last band.
-        if e >= f_nyq * 0.999 {
-            break;
-        }
-        // Merge a first band narrower than half a third-decade (10^(1/3) = 2.15) into the next.
-        if e > f_lo * 1.5 {
-            edges.push(e);
-        }
-        k += 1;
-    }
-    edges.push(f_nyq);
-    edges
-}
-
-/// Windows of the time axis from the injection stretches: cut at the middle of every gap of
-/// at least `min_gap` samples where all inputs are zero. Falls back to 8 equal windows.
-pub fn stretch_windows(inputs: &[Vec<f64>], n: usize, min_gap: usize) -> Vec<(usize, usize)> {
-    let active: Vec<bool> = (0..n)
-        .map(|i| inputs.iter().any(|c| c.get(i).is_some_and(|v| *v != 0.0)))
-        .collect();
-    let mut cuts = Vec::new();
-    let mut i = 0;
-    while i < n {
-        if !active[i] {
-            let start = i;
-            while i < n && !active[i] {
-                i += 1;
-            }
-            if i - start >= min_gap && start > 0 && i < n {
-                cuts.push((start + i) / 2);
-            }
-        } else {
-            i += 1;
-        }
-    }
-    let mut bounds = vec![0];
-    bounds.extend(cuts);
-    bounds.push(n);
-    if bounds.len() < 3 {
-        let k = 8.min(n.max(1));
-        bounds = (0..=k).map(|j| j * n / k).collect();
-    }
-    bounds
-        .windows(2)
-        .filter(|w| w[1] > w[0])
-        .map(|w| (w[0], w[1]))
-        .collect()
-}
-
 /// The whitened noise run's periodogram, per channel, for the band references.
 pub struct NoiseReference {
     pub f: Vec<f64>,
@@ -201,43 +122,6 @@ pub struct NoiseReference {
     pub vif: Vec<f64>,
     /// Samples of the noise run.
     pub n: usize,
-}
-
-/// `1 + 2 sum_{k=1}^{L} rho_k^2` from the sample autocorrelation `rho_k` of `x`,
-/// `L = min(N / 8, 2000)`, at least 1. Each `rho_k^2` carries a bias of about `vif / N`
-/// (Bartlett's variance of a sample autocorrelation), so the raw sum is divided by
-/// `1 + 2 L / N`.
-pub fn variance_inflation(x: &[f64]) -> f64 {
-    let n = x.len();
-    // Lags up to N/8 (the Bartlett estimate's variance grows as L/N) and at most 2000 s-scale
-    // lags at 1 Hz: the whitened residual's correlation has died out well before.
-    let lags = (n / 8).min(2000);
-    if lags < 2 {
-        return 1.0;
-    }
-    let m = 2 * n;
-    let mut planner = RealFftPlanner::<f64>::new();
-    let fwd = planner.plan_fft_forward(m);
-    let inv = planner.plan_fft_inverse(m);
-    let mu = mean(x);
-    let mut buf: Vec<f64> = x
-        .iter()
-        .map(|v| v - mu)
-        .chain(std::iter::repeat_n(0.0, n))
-        .collect();
-    let mut spec = fwd.make_output_vec();
-    if fwd.process(&mut buf, &mut spec).is_err() {
-        return 1.0;
-    }
-    for c in &mut spec {
-        *c = Complex64::new(c.norm_sqr(), 0.0);
-    }
-    let mut acov = inv.make_output_vec();
-    if inv.process(&mut spec, &mut acov).is_err() || acov[0] <= 0.0 {
-        return 1.0;
-    }
-    let sum: f64 = (1..=lags).map(|k| (acov[k] / acov[0]).powi(2)).sum();
-    ((1.0 + 2.0 * sum) / (1.0 + 2.0 * lags as f64 / n as f64)).max(1.0)
 }
 
 impl NoiseReference {
@@ -627,36 +511,4 @@ pub fn spectrum_curve(
         i = j;
     }
     out
-}
-
-#[cfg(test)]
-mod tests {
-    use super::variance_inflation;
-    use rand::SeedableRng;
-    use rand_distr::{Distribution, StandardNormal};
-    use rand_xoshiro::Xoshiro256PlusPlus;
-
-    fn ar1(phi: f64, n: usize, seed: u64) -> Vec<f64> {
-        let mut rng = Xoshiro256PlusPlus::seed_from_u64(seed);
-        let mut x = 0.0;
-        (0..n + 100)
-            .map(|_| {
-                let e: f64 = StandardNormal.sample(&mut rng);
-                x = phi * x + e;
-                x
-            })
-            .skip(100)
-            .collect()
-    }
-
-    #[test]
-    fn variance_inflation_matches_bartlett_for_ar1() {
-        // Oracle: for AR(1) with coefficient phi, rho_k = phi^k and
-        // 1 + 2 sum_k rho_k^2 = (1 + phi^2) / (1 - phi^2); white noise gives 1.
-        let white = variance_inflation(&ar1(0.0, 20_000, 1));
-        assert!((white - 1.0).abs() < 0.05, "white: {white}");
-        let v = variance_inflation(&ar1(0.5, 20_000, 2));
-        let exact = (1.0 + 0.25) / (1.0 - 0.25);
-        assert!((v - exact).abs() < 0.1, "AR(1) 0.5: {v} vs {exact}");
-    }
 }

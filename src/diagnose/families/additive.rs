@@ -9,7 +9,7 @@
 //!   one experiment; `a`, `b` linear, the frequency `f` a non-linear parameter (started at the
 //!   narrow line found by the residual analysis, refined on a fine grid around its periodogram
 //!   bin, then fitted with the amplitudes).
-//! - `glitch` ([`super::glitch`]): a transient entering the loop at a force or readout entry of
+//! - `glitch` ([`crate::diagnose::families::glitch`]): a transient entering the loop at a force or readout entry of
 //!   one experiment; the amplitude linear, the time `t0` and width `tau` non-linear.
 //! - `aux_crosstalk` (thesis sec. 3.4, cross-talk from the other degrees of freedom): a
 //!   sensing cross-talk `k a(t)` of a recorded auxiliary readout `a` (a y or angle readout of
@@ -41,10 +41,10 @@ use nalgebra::DMatrix;
 use crate::fit::{ExperimentData, Likelihood};
 use crate::model::effects::{Category, Extended};
 use crate::model::ClosedLoopModel;
-use crate::numerics::linalg::equilibrated_pinv;
 use crate::sim::auxiliary::{through_loop, Leak};
 use crate::sim::glitch::{self, Entry, Grid, Part};
 use crate::sim::Series;
+use crate::spectral::periodogram::denoised;
 
 /// Name prefix of a force cross-talk from a recorded command (`aux_force_COLUMN_CHANNEL`).
 pub const AUX_FORCE_PREFIX: &str = "aux_force_";
@@ -603,14 +603,6 @@ impl Additive {
     }
 }
 
-/// Half-width, in bins of the record's own resolution, of the smoothing of the periodogram that
-/// [`denoised`] compares with the noise floor (17 bins: a 12 % scatter of the smoothed PSD).
-const DENOISE_HALF_WIDTH: usize = 8;
-
-/// Where the smoothed periodogram exceeds this many times the noise floor, the series is kept
-/// as it is (gain 1 instead of `1 - S_n / S_x`, at least 0.75).
-const DENOISE_KEEP: f64 = 4.0;
-
 /// The regressor of a cross-talk from a recorded readout `x`: `x` itself, or, when its noise
 /// floor is declared, `x` with that noise filtered out ([`denoised`]).
 fn regressor(x: &[f64], noise_asd: Option<f64>, dt: f64) -> Vec<f64> {
@@ -618,55 +610,6 @@ fn regressor(x: &[f64], noise_asd: Option<f64>, dt: f64) -> Vec<f64> {
         Some(a) => denoised(x, a * a, dt),
         None => x.to_vec(),
     }
-}
-
-/// A recorded readout `x = q + n` with its own white noise `n` (one-sided PSD `noise_psd`)
-/// filtered out: `W x` with the Wiener gain `W(f) = max(0, 1 - S_n / S_x(f))`, `S_x` the
-/// periodogram of `x` smoothed over `2 DENOISE_HALF_WIDTH + 1` bins of the record's
-/// resolution. A cross-talk `k q` regressed on `x` itself is biased towards zero by the
-/// regressor's noise (errors in variables: where `x` is mostly its readout noise, the data
-/// hold no `k n`); on `W x` the cross-spectrum with the data is `k W S_q` and the template's
-/// power `W^2 S_x = W S_q`, so the estimate is `k` again.
-pub fn denoised(x: &[f64], noise_psd: f64, dt: f64) -> Vec<f64> {
-    let n = x.len();
-    if n < 4 {
-        return x.to_vec();
-    }
-    // One-sided periodogram of the n-sample record on the padded grid, smoothed.
-    let m = (2 * n).next_power_of_two();
-    let spec = padded_spectrum(x, m);
-    let pgram: Vec<f64> = spec
-        .iter()
-        .map(|z| 2.0 * dt * z.norm_sqr() / n as f64)
-        .collect();
-    let half = DENOISE_HALF_WIDTH * m / n;
-    let mut prefix = vec![0.0; pgram.len() + 1];
-    for (i, p) in pgram.iter().enumerate() {
-        prefix[i + 1] = prefix[i] + p;
-    }
-    let gain = |k: usize| {
-        let (lo, hi) = (k.saturating_sub(half), (k + half + 1).min(pgram.len()));
-        let smooth = (prefix[hi] - prefix[lo]) / (hi - lo) as f64;
-        if smooth > DENOISE_KEEP * noise_psd {
-            1.0
-        } else if smooth > 0.0 {
-            (1.0 - noise_psd / smooth).max(0.0)
-        } else {
-            0.0
-        }
-    };
-    let [y] = crate::numerics::fft::filter_padded(x, dt, |k, _| [gain(k).into()]);
-    y
-}
-
-/// The transform of `x` zero-padded to `m` samples.
-fn padded_spectrum(x: &[f64], m: usize) -> Vec<num_complex::Complex64> {
-    let fwd = realfft::RealFftPlanner::<f64>::new().plan_fft_forward(m);
-    let mut buf = vec![0.0; m];
-    buf[..x.len()].copy_from_slice(x);
-    let mut spec = fwd.make_output_vec();
-    fwd.process(&mut buf, &mut spec).expect("FFT sizes match");
-    spec
 }
 
 /// Zero series of the shape of `data`'s outputs (every experiment of its own length).
@@ -689,49 +632,4 @@ pub fn whiten(lik: &Likelihood<'_, Extended, 2>, data: &ExperimentData, s: Serie
     lik.problem(&d).map(|p| p.data_w).unwrap_or_default()
 }
 
-/// `data` minus the additive contributions `columns[j] * amplitudes[j]`.
-pub fn subtract(data: &ExperimentData, columns: &[Series], amplitudes: &[f64]) -> ExperimentData {
-    let mut out = data.clone();
-    for (col, a) in columns.iter().zip(amplitudes) {
-        for (oe, ce) in out.outputs.iter_mut().zip(col) {
-            for (oc, cc) in oe.iter_mut().zip(ce) {
-                for (o, c) in oc.iter_mut().zip(cc) {
-                    *o -= a * c;
-                }
-            }
-        }
-    }
-    out
-}
-
 pub use crate::numerics::linalg::series_dot as dot;
-
-/// Gram matrix of columns `j`, with its equilibrated pseudo-inverse.
-pub fn gram_inverse(j: &[&Series]) -> (DMatrix<f64>, Option<DMatrix<f64>>) {
-    let m = j.len();
-    let g = DMatrix::<f64>::from_fn(m, m, |a, b| dot(j[a], j[b]));
-    let inv = equilibrated_pinv(&g);
-    (g, inv)
-}
-
-/// Refine a periodogram-bin frequency on a grid of 81 points over +-1 bin of whitened series `r`.
-pub fn refine_frequency(r: &[f64], dt: f64, f0: f64) -> f64 {
-    let n = r.len().max(1) as f64;
-    let bin = 1.0 / (n * dt);
-    let power = |f: f64| {
-        let w = 2.0 * std::f64::consts::PI * f * dt;
-        let (mut s, mut c) = (0.0, 0.0);
-        for (i, v) in r.iter().enumerate() {
-            let (si, ci) = (w * i as f64).sin_cos();
-            s += v * si;
-            c += v * ci;
-        }
-        s * s + c * c
-    };
-    // A 1/40-bin grid over f0 +- one bin: the line's peak to 1.3 % of a bin.
-    (0..=80)
-        .map(|k| f0 + bin * (k as f64 / 40.0 - 1.0))
-        .filter(|f| *f > 0.0)
-        .max_by(|a, b| power(*a).total_cmp(&power(*b)))
-        .unwrap_or(f0)
-}

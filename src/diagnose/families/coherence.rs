@@ -14,18 +14,19 @@
 //! Under independence a bin's coherence from `K` effective averages is about `chi^2(2) / 2K`
 //! (`K` less one per conditioning channel for the partial one), so `2 K n_B g^2 ~ chi^2(2 n_B)`
 //! for `n_B` effectively independent bins of the band (the window's bin correlation, as in
-//! [`super::noise_excess`]). The report gives, per run, stage, channel and auxiliary readout,
+//! [`crate::diagnose::families::noise_excess`]). The report gives, per run, stage, channel and auxiliary readout,
 //! the band of largest partial coherence with its tail probability.
 
 use nalgebra::DMatrix;
 use num_complex::Complex64;
 use serde::Serialize;
 
-use super::noise_excess::{bands, bin_correlation};
-use super::Channel;
 use crate::data::Auxiliary;
+use crate::diagnose::families::noise_excess::bands;
+use crate::diagnose::Channel;
 use crate::fit::Whitener;
 use crate::numerics::stats::chi2_sf;
+use crate::spectral::periodogram::{bin_correlation, conditioned};
 use crate::spectral::{welch_csd, WelchConfig};
 
 /// Bin lags over which the window's bin correlation is summed (as `noise_excess`).
@@ -76,20 +77,6 @@ pub(crate) fn aux_filters(
             Whitener::<1>::from_series(std::slice::from_ref(x), order).ok()
         })
         .collect()
-}
-
-/// Conditioned cross-spectrum `S_xy.z` of the spectral matrix `s` (one bin) on indices `z`.
-fn conditioned(s: &DMatrix<Complex64>, x: usize, y: usize, z: &[usize]) -> Complex64 {
-    if z.is_empty() {
-        return s[(x, y)];
-    }
-    let szz = DMatrix::<Complex64>::from_fn(z.len(), z.len(), |a, b| s[(z[a], z[b])]);
-    let Some(inv) = szz.try_inverse() else {
-        return s[(x, y)];
-    };
-    let sxz = DMatrix::<Complex64>::from_fn(1, z.len(), |_, b| s[(x, z[b])]);
-    let szy = DMatrix::<Complex64>::from_fn(z.len(), 1, |a, _| s[(z[a], y)]);
-    s[(x, y)] - (sxz * inv * szy)[(0, 0)]
 }
 
 /// The coherence rows of one run (module docs); `filters` whiten the auxiliary series.
@@ -182,7 +169,7 @@ pub(crate) fn run_coherence(
 /// readouts).
 pub(crate) fn table(
     stage: &'static str,
-    problem: &super::DiagnosisProblem<'_>,
+    problem: &crate::diagnose::DiagnosisProblem<'_>,
     residuals_w: &crate::sim::Series,
 ) -> Vec<AuxCoherence> {
     let Some(aux) = problem.cfg.auxiliary.as_deref().filter(|a| !a.is_empty()) else {
@@ -206,11 +193,13 @@ pub(crate) fn table(
         };
         out.extend(run_coherence(&input, &names, &filters, data.dt));
     }
-    if let (Some(nz), Some(a)) = (problem.whitening.usable_noise, aux.noise.as_ref()) {
-        let wn = super::problem::whitened_noise(problem.filter(), nz, problem.cfg.poly_degree);
+    if let (Some(nz), Some(a)) = (problem.usable_noise(), aux.noise.as_ref()) {
+        let wn = problem
+            .filter()
+            .apply_projected(nz, problem.cfg.poly_degree);
         let input = RunInput {
             stage,
-            run: super::noise_excess::NOISE_RUN.to_string(),
+            run: crate::diagnose::families::noise_excess::NOISE_RUN.to_string(),
             residual: &wn,
             aux: a,
             offset: problem.filter().order(),

@@ -19,12 +19,13 @@
 //! upper tail is below the Bonferroni threshold over every band and channel of its family's
 //! share of alpha, and its level is above the model's by more than [`MIN_EXCESS`].
 
-use super::excess::ExcessKind;
-use super::{Channel, Unexplained};
+use crate::diagnose::families::excess::ExcessKind;
+use crate::diagnose::{Channel, Unexplained};
 use crate::model::closed_loop::CMat;
 use crate::model::effects::Extended;
 use crate::numerics::stats::chi2_sf;
 use crate::setup::Setup;
+use crate::spectral::periodogram::bin_correlation;
 use crate::spectral::{welch_csd, CrossSpectrum, WelchConfig};
 
 /// The model's noise levels are taken as known to this fraction: a smaller excess of the
@@ -59,20 +60,6 @@ pub struct BandLevel {
     pub excess: f64,
     pub dof: f64,
     pub p_value: f64,
-}
-
-/// Correlation of windowed periodogram bins `d` apart (module docs) for window `w`.
-pub(crate) fn bin_correlation(w: &[f64], d: usize) -> f64 {
-    let l = w.len() as f64;
-    let (mut re, mut im, mut s2) = (0.0, 0.0, 0.0);
-    for (t, v) in w.iter().enumerate() {
-        let v2 = v * v;
-        let ph = 2.0 * std::f64::consts::PI * d as f64 * t as f64 / l;
-        re += v2 * ph.cos();
-        im += v2 * ph.sin();
-        s2 += v2;
-    }
-    (re * re + im * im) / (s2 * s2)
 }
 
 /// The window's spectral kernel `|W(delta)|^2` at offsets `delta` (in bins) on the fine grid
@@ -193,7 +180,10 @@ pub(crate) fn find(
 
 /// One note per channel with noise-run excess: its bands and levels, and what it means for the
 /// whitening (a filter estimated from that run learned the excess as noise).
-pub(crate) fn notes(found: &[Unexplained], source: super::WhiteningSource) -> Vec<String> {
+pub(crate) fn notes(
+    found: &[Unexplained],
+    source: crate::diagnose::WhiteningSource,
+) -> Vec<String> {
     let mut out = Vec::new();
     for ch in Channel::ALL {
         let mine: Vec<&Unexplained> = found.iter().filter(|u| u.channel == ch.as_str()).collect();
@@ -203,7 +193,7 @@ pub(crate) fn notes(found: &[Unexplained], source: super::WhiteningSource) -> Ve
         let (lo, hi) = mine.iter().fold((f64::INFINITY, 0.0_f64), |(a, b), u| {
             (a.min(1.0 + u.excess), b.max(1.0 + u.excess))
         });
-        let learned = if source == super::WhiteningSource::NoiseRun {
+        let learned = if source == crate::diagnose::WhiteningSource::NoiseRun {
             ": the whitening filter, estimated from that run, learned it as noise, so the residual tests cannot see it"
         } else {
             ""

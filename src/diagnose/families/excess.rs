@@ -5,8 +5,8 @@
 
 use serde::Serialize;
 
-use super::residuals::TimeReport;
-use super::{Stage, Unexplained};
+use crate::diagnose::families::residuals::TimeReport;
+use crate::diagnose::{Stage, Unexplained};
 
 /// The test family an unexplained excess comes from (`report.json` field `kind`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
@@ -21,7 +21,7 @@ pub enum ExcessKind {
     /// Samples beyond 5 sigma (excess: count over the Gaussian expectation, minus one).
     Outliers,
     /// A band of the noise run above the model's noise PSD (excess: level over the model's,
-    /// minus one; [`super::noise_excess`]).
+    /// minus one; [`crate::diagnose::families::noise_excess`]).
     NoiseModel,
 }
 

@@ -229,3 +229,35 @@ pub fn probe(
         f_max_hz: space.f_max_hz,
     })
 }
+
+/// A probe in one table cell: identifiable fraction, frequency, input, amplitude, binding.
+pub fn probe_md(p: Option<&Probe>) -> String {
+    p.map(|p| {
+        format!(
+            "{:.2e} at {:.2e} Hz on {} ({:.1e} m, {} bound)",
+            p.identifiable_fraction, p.frequency_hz, p.input, p.amplitude_m, p.binding
+        )
+    })
+    .unwrap_or_else(|| "-".into())
+}
+
+/// One-line reading of a redesign probe: separable (and how), or structural.
+pub fn redesign_verdict(r: &Redesign) -> String {
+    const SEPARABLE: f64 = 0.5;
+    let frac = |p: &Option<Probe>| p.as_ref().map_or(0.0, |p| p.identifiable_fraction);
+    if frac(&r.within_constraints) >= SEPARABLE {
+        let p = r.within_constraints.as_ref().expect("checked");
+        format!(
+            "separable: add a stretch at {:.2e} Hz on {}",
+            p.frequency_hz, p.input
+        )
+    } else if frac(&r.above_f_max) >= SEPARABLE {
+        let p = r.above_f_max.as_ref().expect("checked");
+        format!(
+            "separable only above f_max = {:.2e} Hz (at {:.2e} Hz on {})",
+            r.f_max_hz, p.frequency_hz, p.input
+        )
+    } else {
+        "structural: no single stretch separates it".into()
+    }
+}

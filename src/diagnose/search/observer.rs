@@ -57,7 +57,7 @@ pub enum StopReason {
 /// The outcome of one round.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Round {
-    /// An effect was added (its index in [`super::DiagnosisState::added`]).
+    /// An effect was added (its index in [`crate::diagnose::DiagnosisState::added`]).
     Added(usize),
     Stop(StopReason),
 }

@@ -1,17 +1,17 @@
 //! Sensing cross-talk from recorded auxiliary readouts (thesis sec. 3.4) in a diagnosis: once
 //! the selection has claimed couplings `k a + k' da/dt` of auxiliary readouts `a` into the
 //! sensor of o1 or o12 (through the loop, `sim::auxiliary::in_loop`; a regression on measured
-//! series, [`super::additive`]), the same couplings are in the noise
+//! series, [`crate::diagnose::families::additive`]), the same couplings are in the noise
 //! run, whose whitening filter (and reference level) learned them as noise. They are removed
 //! from the noise run with the fitted coefficients, the filter is estimated again, and the
 //! final model is refitted under it; the coefficients move with the filter, so this alternates
 //! until they move by less than [`SETTLED_SIGMA`] of their sigma (at most [`PASSES`] times).
 
-use super::additive::Additive;
-use super::observer::Observer;
-use super::problem::DiagnosisProblem;
-use super::selection::DiagnosisState;
-use super::DiagnoseError;
+use crate::diagnose::families::additive::Additive;
+use crate::diagnose::search::observer::Observer;
+use crate::diagnose::search::problem::DiagnosisProblem;
+use crate::diagnose::search::selection::DiagnosisState;
+use crate::diagnose::DiagnoseError;
 
 /// Most alternations of cleaning the noise run and refitting.
 const PASSES: usize = 3;
@@ -56,16 +56,16 @@ fn coefficients(state: &DiagnosisState) -> Vec<(f64, f64)> {
 }
 
 /// Remove the claimed cross-talks from the noise run and refit under the filter estimated
-/// again (module docs). Returns the cleaned noise run the final fit of `state` was whitened
-/// with (`None`, leaving `state` as it is, when nothing was claimed or the run has no
-/// auxiliary readouts).
-pub(crate) fn refine(
-    problem: &DiagnosisProblem<'_>,
+/// again (module docs). Returns the problem planned on the cleaned noise run the final fit of
+/// `state` was whitened with (`None`, leaving `state` as it is, when nothing was claimed or
+/// the run has no auxiliary readouts).
+pub(crate) fn refine<'a>(
+    problem: &DiagnosisProblem<'a>,
     state: &mut DiagnosisState,
     guess: &[f64],
     obs: &mut dyn Observer,
-) -> Result<Option<Vec<Vec<f64>>>, DiagnoseError> {
-    let Some(noise) = problem.noise else {
+) -> Result<Option<DiagnosisProblem<'a>>, DiagnoseError> {
+    let Some(noise) = problem.noise.as_deref() else {
         return Ok(None);
     };
     let mut result = None;
@@ -75,7 +75,7 @@ pub(crate) fn refine(
         };
         let before = coefficients(state);
         let mut quiet = ();
-        let p2 = problem.replanned(&clean, guess, &mut quiet)?;
+        let p2 = problem.replanned(clean, guess, &mut quiet)?;
         let fit = p2.fit_linear(&state.model, &state.fit.fit.estimate, &state.fit.linear)?;
         state.fit = fit;
         let moved = coefficients(state)
@@ -83,7 +83,7 @@ pub(crate) fn refine(
             .zip(&before)
             .map(|((a, s), (b, _))| (a - b).abs() / s.max(f64::MIN_POSITIVE))
             .fold(0.0, f64::max);
-        result = Some(clean);
+        result = Some(p2);
         if moved < SETTLED_SIGMA || pass == PASSES {
             obs.note(&format!(
                 "the claimed auxiliary cross-talk was removed from the noise run and the whitening filter estimated again ({pass} pass(es); last change of a coefficient {moved:.2} sigma)"

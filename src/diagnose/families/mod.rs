@@ -1,0 +1,16 @@
+//! The tests of a diagnosis, one file per family of model errors: the residual tests of a fit
+//! ([`residuals`]) and the unexplained excess they leave ([`excess`]), the noise run against
+//! the model ([`noise_excess`]), the additive effects ([`additive`]: lines, drifts, glitches,
+//! auxiliary cross-talk) with the glitch scan ([`glitch`]) and the cross-talk refinement
+//! ([`crosstalk`]), the coherence with auxiliary readouts ([`coherence`]), start-up transients
+//! ([`transient`]) and prior tension ([`tension`]).
+
+pub mod additive;
+pub mod coherence;
+pub(crate) mod crosstalk;
+pub mod excess;
+pub mod glitch;
+pub mod noise_excess;
+pub mod residuals;
+pub mod tension;
+pub(crate) mod transient;
