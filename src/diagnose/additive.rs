@@ -661,7 +661,7 @@ pub fn denoised(x: &[f64], noise_psd: f64, dt: f64) -> Vec<f64> {
 
 /// The transform of `x` zero-padded to `m` samples.
 fn padded_spectrum(x: &[f64], m: usize) -> Vec<num_complex::Complex64> {
-    let fwd = realfft::RealFftPlanner::<f64>::new().plan_fft_forward(m);
+    let fwd = crate::numerics::fft::real_forward(m);
     let mut buf = vec![0.0; m];
     buf[..x.len()].copy_from_slice(x);
     let mut spec = fwd.make_output_vec();

@@ -12,7 +12,6 @@
 //! cancels what the whitening filter does not model); without one, with the unit level.
 
 use num_complex::Complex64;
-use realfft::RealFftPlanner;
 use serde::Serialize;
 use statrs::distribution::{ChiSquared, ContinuousCDF};
 
@@ -116,8 +115,7 @@ pub fn periodogram(x: &[f64], dt: f64) -> (Vec<f64>, Vec<f64>) {
     if l < 4 {
         return (Vec::new(), Vec::new());
     }
-    let mut planner = RealFftPlanner::<f64>::new();
-    let fft = planner.plan_fft_forward(l);
+    let fft = crate::numerics::fft::real_forward(l);
     let mut buf = x.to_vec();
     let mut spec: Vec<Complex64> = fft.make_output_vec();
     if fft.process(&mut buf, &mut spec).is_err() {
@@ -216,9 +214,8 @@ pub fn variance_inflation(x: &[f64]) -> f64 {
         return 1.0;
     }
     let m = 2 * n;
-    let mut planner = RealFftPlanner::<f64>::new();
-    let fwd = planner.plan_fft_forward(m);
-    let inv = planner.plan_fft_inverse(m);
+    let fwd = crate::numerics::fft::real_forward(m);
+    let inv = crate::numerics::fft::real_inverse(m);
     let mu = mean(x);
     let mut buf: Vec<f64> = x
         .iter()

@@ -1,12 +1,62 @@
-//! FFT sizing and scratch: fast transform lengths, and per-thread scratch buffers for the
-//! FFT-heavy inner loops (templates, noise generation), so that a fit or a campaign worker does
-//! not allocate and zero megabytes per evaluation. The buffers only ever grow; callers
-//! overwrite what they read. Plans are made once by their owners (RustFFT's plan-once,
-//! execute-many) and scratch is passed explicitly to the kernels.
+//! FFT plans, sizing and scratch: one process-wide cache of plans per transform length, fast
+//! transform lengths, and per-thread scratch buffers for the FFT-heavy inner loops (templates,
+//! noise generation), so that a fit or a campaign worker does not allocate and zero megabytes
+//! per evaluation. The buffers only ever grow; callers overwrite what they read.
+//!
+//! Every transform of the crate is planned here ([`real_forward`], [`real_inverse`],
+//! [`forward`], [`inverse`]): a length is planned once per process and the plan (an `Arc`,
+//! immutable, `Send + Sync`) is shared by every caller and every rayon worker. A plan depends
+//! only on its length (and the CPU's instruction set, fixed for the process), so a cached plan
+//! computes bit for bit what a freshly made one would.
 
 use std::cell::RefCell;
+use std::sync::{Arc, Mutex, MutexGuard, OnceLock};
 
 use num_complex::Complex64;
+use realfft::{ComplexToReal, RealFftPlanner, RealToComplex};
+use rustfft::{Fft, FftPlanner};
+
+/// The planners, which keep every plan they made in a map per length and direction and hand
+/// out clones of the same `Arc` for a length planned before.
+struct Planners {
+    real: RealFftPlanner<f64>,
+    complex: FftPlanner<f64>,
+}
+
+fn planners() -> MutexGuard<'static, Planners> {
+    static PLANNERS: OnceLock<Mutex<Planners>> = OnceLock::new();
+    // A panic while planning leaves the maps consistent (an insert is the last step), so a
+    // poisoned lock is still usable.
+    PLANNERS
+        .get_or_init(|| {
+            Mutex::new(Planners {
+                real: RealFftPlanner::new(),
+                complex: FftPlanner::new(),
+            })
+        })
+        .lock()
+        .unwrap_or_else(|poisoned| poisoned.into_inner())
+}
+
+/// The cached real-to-complex forward plan of length `n`.
+pub fn real_forward(n: usize) -> Arc<dyn RealToComplex<f64>> {
+    planners().real.plan_fft_forward(n)
+}
+
+/// The cached complex-to-real inverse (unnormalised) plan of length `n`.
+pub fn real_inverse(n: usize) -> Arc<dyn ComplexToReal<f64>> {
+    planners().real.plan_fft_inverse(n)
+}
+
+/// The cached complex forward plan of length `n`.
+pub fn forward(n: usize) -> Arc<dyn Fft<f64>> {
+    planners().complex.plan_fft_forward(n)
+}
+
+/// The cached complex inverse (unnormalised) plan of length `n`.
+pub fn inverse(n: usize) -> Arc<dyn Fft<f64>> {
+    planners().complex.plan_fft_inverse(n)
+}
 
 thread_local! {
     static BUFFERS: RefCell<(Vec<Complex64>, Vec<f64>)> = const { RefCell::new((Vec::new(), Vec::new())) };
@@ -66,8 +116,7 @@ pub fn filter_padded<const R: usize>(
         return std::array::from_fn(|_| Vec::new());
     }
     let m = (2 * n).next_power_of_two();
-    let mut planner = realfft::RealFftPlanner::<f64>::new();
-    let (fwd, inv) = (planner.plan_fft_forward(m), planner.plan_fft_inverse(m));
+    let (fwd, inv) = (real_forward(m), real_inverse(m));
     let mut buf = vec![0.0; m];
     buf[..n].copy_from_slice(x);
     let spec = {
