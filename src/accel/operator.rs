@@ -63,7 +63,6 @@
 //! `D S^-1 o_n`. In a noise run (`o_i = 0`) it is `Delta o`.
 
 use num_complex::Complex64;
-use realfft::RealFftPlanner;
 
 use super::derivative::{Stencil, HALF_WIDTH};
 use super::AccelError;
@@ -276,9 +275,8 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> DeltaEstimator<'m, M, N> {
     ) -> Result<(Vec<Vec<f64>>, Vec<Vec<Vec<f64>>>), AccelError> {
         let m = fast_len(PAD_FACTOR * n);
         let nb = m / 2 + 1;
-        let mut planner = RealFftPlanner::<f64>::new();
-        let fwd = planner.plan_fft_forward(m);
-        let inv = planner.plan_fft_inverse(m);
+        let fwd = crate::numerics::fft::real_forward(m);
+        let inv = crate::numerics::fft::real_inverse(m);
         let mut buf = vec![0.0; m];
         let mut spectrum = |x: &[f64]| {
             buf[..n].copy_from_slice(x);

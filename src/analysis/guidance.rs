@@ -223,11 +223,10 @@ fn squares(design: &Design, recs: &[Recorded], start_s: f64) -> f64 {
 
 /// Circular cross-correlation `c[j] = sum_k a[k] b[k + j]` for `j = 0..=b.len() - a.len()`.
 fn xcorr(a: &[f64], b: &[f64]) -> Vec<f64> {
-    use rustfft::{num_complex::Complex, FftPlanner};
+    use rustfft::num_complex::Complex;
     let n = b.len().next_power_of_two();
-    let mut planner = FftPlanner::<f64>::new();
-    let fwd = planner.plan_fft_forward(n);
-    let inv = planner.plan_fft_inverse(n);
+    let fwd = crate::numerics::fft::forward(n);
+    let inv = crate::numerics::fft::inverse(n);
     let pad = |x: &[f64]| {
         let mut v: Vec<Complex<f64>> = x.iter().map(|&r| Complex::new(r, 0.0)).collect();
         v.resize(n, Complex::new(0.0, 0.0));

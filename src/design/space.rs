@@ -16,7 +16,6 @@
 
 use nalgebra::DMatrix;
 use num_complex::Complex64;
-use realfft::RealFftPlanner;
 
 use super::DesignError;
 use crate::model::{transfer, transfer_with_derivatives, CMat, ClosedLoopModel};
@@ -924,8 +923,7 @@ pub fn unit_information_pairs<M: SpecModel<N>, const N: usize>(
             }
         }
     }
-    let mut planner = RealFftPlanner::<f64>::new();
-    let fft = planner.plan_fft_forward(n);
+    let fft = crate::numerics::fft::real_forward(n);
     let mut spec = fft.make_output_vec();
     let i0 = (timing.start_s / dt).round() as usize;
     (1..=m_max)

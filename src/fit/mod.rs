@@ -30,7 +30,7 @@ pub use whiten::Whitener;
 
 use crate::data::Series;
 use crate::model::closed_loop::{check_stability, ClosedLoopModel};
-use crate::numerics::linalg::{dot, series_dot};
+use crate::numerics::linalg::{dot, series_dot, series_gram, spd_inverse};
 
 #[derive(Debug, thiserror::Error)]
 pub enum FitError {
@@ -381,12 +381,12 @@ impl JacobianCache {
             .iter()
             .map(|p| {
                 let (templates, j) = lik.templates_and_jacobian(p);
-                let information = gram(&j);
+                let information = series_gram(&j);
                 let free: Vec<usize> = (0..p.len()).filter(|k| !fixed.contains(k)).collect();
                 let restricted = DMatrix::from_fn(free.len(), free.len(), |a, b| {
                     information[(free[a], free[b])]
                 });
-                let cov = invert_spd(&restricted).ok_or_else(|| {
+                let cov = spd_inverse(&restricted).ok_or_else(|| {
                     let names = lik.engine.model().parameter_names();
                     FitError::Singular(explain_singular(
                         "Fisher information at a cached Jacobian point",
@@ -427,20 +427,6 @@ impl JacobianCache {
             .min_by(|a, b| a.0.total_cmp(&b.0))
             .map(|(_, e)| e)
     }
-}
-
-/// `J^T J` of whitened derivative series.
-fn gram(j: &[Series]) -> DMatrix<f64> {
-    let np = j.len();
-    let mut a = DMatrix::<f64>::zeros(np, np);
-    for k in 0..np {
-        for l in 0..=k {
-            let v = series_dot(&j[k], &j[l]);
-            a[(k, l)] = v;
-            a[(l, k)] = v;
-        }
-    }
-    a
 }
 
 /// Result of one fit.
@@ -609,17 +595,6 @@ pub fn explain_singular(stage: &str, info: &DMatrix<f64>, names: &[String]) -> S
     }
 }
 
-fn invert_spd(a: &DMatrix<f64>) -> Option<DMatrix<f64>> {
-    let n = a.nrows();
-    let d: Vec<f64> = (0..n).map(|k| a[(k, k)].sqrt()).collect();
-    if d.iter().any(|v| !(v.is_finite() && *v > 0.0)) {
-        return None;
-    }
-    let m = DMatrix::<f64>::from_fn(n, n, |i, j| a[(i, j)] / (d[i] * d[j]));
-    let inv = m.cholesky()?.inverse();
-    Some(DMatrix::from_fn(n, n, |i, j| inv[(i, j)] / (d[i] * d[j])))
-}
-
 /// Huber's sandwich factor `mean(psi^2) / mean(psi')^2` for the robust estimators.
 fn robust_scale(est: Estimator, r: &Series) -> f64 {
     let all = || r.iter().flatten().flatten().copied();
@@ -696,7 +671,7 @@ fn covariance<M: ClosedLoopModel<N>, const N: usize>(
 ) -> Result<(DMatrix<f64>, DMatrix<f64>), FitError> {
     let np = p.len();
     let (info, _) = cfg.constrain(info, DVector::zeros(np), p);
-    let mut base = invert_spd(&info).ok_or_else(|| {
+    let mut base = spd_inverse(&info).ok_or_else(|| {
         FitError::Singular(explain_singular(
             "Fisher information at the estimate",
             &info,
@@ -770,7 +745,7 @@ pub fn fit<M: ClosedLoopModel<N>, const N: usize>(
             iterations = it;
             let (a, g) = normal_equations_with(est, &r, &j, known);
             let (a, g) = cfg.constrain(a, g, &p);
-            let sigma: Vec<f64> = match invert_spd(&a) {
+            let sigma: Vec<f64> = match spd_inverse(&a) {
                 Some(c) => (0..np).map(|k| c[(k, k)].sqrt()).collect(),
                 None => vec![0.0; np],
             };
@@ -812,7 +787,7 @@ pub fn fit<M: ClosedLoopModel<N>, const N: usize>(
     // Only `J^T J` is needed here: reuse a cached one, or form it without the gradient.
     let info = match known {
         Some(a) => a.clone(),
-        None => gram(&j),
+        None => series_gram(&j),
     };
     let scale = match est {
         Estimator::Squared => chi2_reduced,

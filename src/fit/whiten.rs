@@ -21,7 +21,6 @@
 
 use nalgebra::{DMatrix, SMatrix};
 use num_complex::Complex64;
-use realfft::RealFftPlanner;
 
 use super::FitError;
 use crate::model::closed_loop::CMat;
@@ -282,8 +281,7 @@ impl<const N: usize> Whitener<N> {
     /// uniform grid of `m` points (the template engine's padded grid), by FFT of the taps.
     pub fn response_on_grid(&self, m: usize) -> Vec<CMat<N>> {
         assert!(m > self.order(), "grid shorter than the whitening filter");
-        let mut planner = RealFftPlanner::<f64>::new();
-        let fft = planner.plan_fft_forward(m);
+        let fft = crate::numerics::fft::real_forward(m);
         let mut out = vec![CMat::<N>::zeros(); m / 2 + 1];
         for o in 0..N {
             for i in 0..N {
@@ -386,9 +384,8 @@ pub fn sample_autocovariance<const N: usize>(
 ) -> Vec<SMatrix<f64, N, N>> {
     let n = x[0].len();
     let m = crate::numerics::fft::fast_len(2 * n);
-    let mut planner = rustfft::FftPlanner::<f64>::new();
-    let fwd = planner.plan_fft_forward(m);
-    let inv = planner.plan_fft_inverse(m);
+    let fwd = crate::numerics::fft::forward(m);
+    let inv = crate::numerics::fft::inverse(m);
     let specs: Vec<Vec<Complex64>> = x
         .iter()
         .map(|c| {
@@ -437,8 +434,7 @@ pub fn psd_autocovariance<const N: usize>(
             }
         })
         .collect();
-    let mut planner = rustfft::FftPlanner::<f64>::new();
-    let inv = planner.plan_fft_inverse(len);
+    let inv = crate::numerics::fft::inverse(len);
     let mut out = vec![SMatrix::<f64, N, N>::zeros(); max_lag + 1];
     for i in 0..N {
         for j in 0..N {

@@ -9,7 +9,6 @@
 
 use nalgebra::DMatrix;
 use num_complex::Complex64;
-use realfft::RealFftPlanner;
 
 use crate::model::closed_loop::{transfer_with_derivatives, CMat, ClosedLoopModel};
 
@@ -29,12 +28,11 @@ impl<const N: usize> InputSpectra<N> {
             .iter()
             .map(|exp| exp.first().map_or(0, |c| c.len()))
             .collect();
-        let mut planner = RealFftPlanner::<f64>::new();
         let spectra = inputs
             .iter()
             .zip(&lens)
             .map(|(exp, &n)| {
-                let fft = planner.plan_fft_forward(n);
+                let fft = crate::numerics::fft::real_forward(n);
                 std::array::from_fn(|c| {
                     let mut buf = exp.get(c).cloned().unwrap_or_else(|| vec![0.0; n]);
                     let mut spec = fft.make_output_vec();

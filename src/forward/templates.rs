@@ -21,7 +21,7 @@
 use std::sync::Arc;
 
 use num_complex::Complex64;
-use realfft::{ComplexToReal, RealFftPlanner, RealToComplex};
+use realfft::{ComplexToReal, RealToComplex};
 
 use crate::data::Series;
 use crate::model::closed_loop::{CMat, ClosedLoopModel};
@@ -97,7 +97,6 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
         leads: &[usize],
         dt: f64,
     ) -> Self {
-        let mut planner = RealFftPlanner::<f64>::new();
         let mut grids: Vec<Grid<M::Point>> = Vec::new();
         let mut grid_of = Vec::with_capacity(lens.len());
         let leads = leads.to_vec();
@@ -130,8 +129,8 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> TemplateEngine<'m, M, N> {
                     grids.push(Grid {
                         m,
                         points,
-                        fwd: planner.plan_fft_forward(m),
-                        inv: planner.plan_fft_inverse(m),
+                        fwd: crate::numerics::fft::real_forward(m),
+                        inv: crate::numerics::fft::real_inverse(m),
                     });
                     grids.len() - 1
                 }

@@ -14,7 +14,7 @@ use std::sync::Arc;
 use num_complex::Complex64;
 use rand::{Rng, RngExt};
 use rand_distr::StandardNormal;
-use realfft::{ComplexToReal, RealFftPlanner, RealToComplex};
+use realfft::{ComplexToReal, RealToComplex};
 
 use super::NoiseError;
 use crate::model::closed_loop::CMat;
@@ -101,7 +101,6 @@ impl<const N: usize> ColoredNoise<N> {
             }
             *fac = hermitian_cholesky(&s) * scale;
         }
-        let mut planner = RealFftPlanner::<f64>::new();
         Ok(ColoredNoise {
             n,
             m,
@@ -109,8 +108,8 @@ impl<const N: usize> ColoredNoise<N> {
             offset: (m - n) / 2,
             factors,
             lower: true,
-            fwd: planner.plan_fft_forward(m),
-            inv: planner.plan_fft_inverse(m),
+            fwd: crate::numerics::fft::real_forward(m),
+            inv: crate::numerics::fft::real_inverse(m),
         })
     }
 

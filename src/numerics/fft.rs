@@ -1,12 +1,62 @@
-//! FFT sizing and scratch: fast transform lengths, and per-thread scratch buffers for the
-//! FFT-heavy inner loops (templates, noise generation), so that a fit or a campaign worker does
-//! not allocate and zero megabytes per evaluation. The buffers only ever grow; callers
-//! overwrite what they read. Plans are made once by their owners (RustFFT's plan-once,
-//! execute-many) and scratch is passed explicitly to the kernels.
+//! FFT plans, sizing and scratch: one process-wide cache of plans per transform length, fast
+//! transform lengths, and per-thread scratch buffers for the FFT-heavy inner loops (templates,
+//! noise generation), so that a fit or a campaign worker does not allocate and zero megabytes
+//! per evaluation. The buffers only ever grow; callers overwrite what they read.
+//!
+//! Every transform of the crate is planned here ([`real_forward`], [`real_inverse`],
+//! [`forward`], [`inverse`]): a length is planned once per process and the plan (an `Arc`,
+//! immutable, `Send + Sync`) is shared by every caller and every rayon worker. A plan depends
+//! only on its length (and the CPU's instruction set, fixed for the process), so a cached plan
+//! computes bit for bit what a freshly made one would.
 
 use std::cell::RefCell;
+use std::sync::{Arc, Mutex, MutexGuard, OnceLock};
 
 use num_complex::Complex64;
+use realfft::{ComplexToReal, RealFftPlanner, RealToComplex};
+use rustfft::{Fft, FftPlanner};
+
+/// The planners, which keep every plan they made in a map per length and direction and hand
+/// out clones of the same `Arc` for a length planned before.
+struct Planners {
+    real: RealFftPlanner<f64>,
+    complex: FftPlanner<f64>,
+}
+
+fn planners() -> MutexGuard<'static, Planners> {
+    static PLANNERS: OnceLock<Mutex<Planners>> = OnceLock::new();
+    // A panic while planning leaves the maps consistent (an insert is the last step), so a
+    // poisoned lock is still usable.
+    PLANNERS
+        .get_or_init(|| {
+            Mutex::new(Planners {
+                real: RealFftPlanner::new(),
+                complex: FftPlanner::new(),
+            })
+        })
+        .lock()
+        .unwrap_or_else(|poisoned| poisoned.into_inner())
+}
+
+/// The cached real-to-complex forward plan of length `n`.
+pub fn real_forward(n: usize) -> Arc<dyn RealToComplex<f64>> {
+    planners().real.plan_fft_forward(n)
+}
+
+/// The cached complex-to-real inverse (unnormalised) plan of length `n`.
+pub fn real_inverse(n: usize) -> Arc<dyn ComplexToReal<f64>> {
+    planners().real.plan_fft_inverse(n)
+}
+
+/// The cached complex forward plan of length `n`.
+pub fn forward(n: usize) -> Arc<dyn Fft<f64>> {
+    planners().complex.plan_fft_forward(n)
+}
+
+/// The cached complex inverse (unnormalised) plan of length `n`.
+pub fn inverse(n: usize) -> Arc<dyn Fft<f64>> {
+    planners().complex.plan_fft_inverse(n)
+}
 
 thread_local! {
     static BUFFERS: RefCell<(Vec<Complex64>, Vec<f64>)> = const { RefCell::new((Vec::new(), Vec::new())) };
@@ -66,8 +116,7 @@ pub fn filter_padded<const R: usize>(
         return std::array::from_fn(|_| Vec::new());
     }
     let m = (2 * n).next_power_of_two();
-    let mut planner = realfft::RealFftPlanner::<f64>::new();
-    let (fwd, inv) = (planner.plan_fft_forward(m), planner.plan_fft_inverse(m));
+    let (fwd, inv) = (real_forward(m), real_inverse(m));
     let mut buf = vec![0.0; m];
     buf[..n].copy_from_slice(x);
     let spec = {
@@ -92,14 +141,8 @@ pub fn filter_padded<const R: usize>(
 }
 
 /// Cross-correlation `c[l] = sum_s k[s] r[s + l]` (negative lags wrapped to the end), by FFT.
-pub fn xcorr(
-    k: &[f64],
-    r: &[f64],
-    planner: &mut realfft::RealFftPlanner<f64>,
-    len: usize,
-) -> Vec<f64> {
-    let fwd = planner.plan_fft_forward(len);
-    let inv = planner.plan_fft_inverse(len);
+pub fn xcorr(k: &[f64], r: &[f64], len: usize) -> Vec<f64> {
+    let (fwd, inv) = (real_forward(len), real_inverse(len));
     let mut a = vec![0.0; len];
     a[..k.len()].copy_from_slice(k);
     let mut b = vec![0.0; len];
@@ -119,4 +162,87 @@ pub fn xcorr(
     let s = 1.0 / len as f64;
     out.iter_mut().for_each(|v| *v *= s);
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Closed form: the transform of `cos(2 pi k0 j / n)` is `n / 2` at bin `k0` and zero
+    /// elsewhere; the inverse (unnormalised) gives back `n` times the series.
+    #[test]
+    fn a_cosine_lands_in_its_bin_and_comes_back() {
+        let (n, k0) = (96, 7);
+        let x: Vec<f64> = (0..n)
+            .map(|j| (2.0 * std::f64::consts::PI * (k0 * j) as f64 / n as f64).cos())
+            .collect();
+        let (fwd, inv) = (real_forward(n), real_inverse(n));
+        let mut buf = x.clone();
+        let mut spec = fwd.make_output_vec();
+        fwd.process(&mut buf, &mut spec).unwrap();
+        for (k, z) in spec.iter().enumerate() {
+            let want = if k == k0 { n as f64 / 2.0 } else { 0.0 };
+            assert!((z.re - want).abs() < 1e-12 && z.im.abs() < 1e-12, "bin {k}: {z}");
+        }
+        let mut back = inv.make_output_vec();
+        inv.process(&mut spec, &mut back).unwrap();
+        for (a, b) in back.iter().zip(&x) {
+            assert!((a / n as f64 - b).abs() < 1e-14);
+        }
+    }
+
+    /// The cache hands out the same plan for a length, to every thread.
+    #[test]
+    fn a_length_is_planned_once_per_process() {
+        let a = real_forward(1000);
+        let b = std::thread::spawn(|| real_forward(1000)).join().unwrap();
+        assert!(Arc::ptr_eq(&a, &b));
+        assert!(Arc::ptr_eq(&forward(48), &forward(48)));
+        assert!(Arc::ptr_eq(&inverse(48), &inverse(48)));
+        assert!(Arc::ptr_eq(&real_inverse(64), &real_inverse(64)));
+        assert!(!Arc::ptr_eq(&forward(48), &inverse(48)));
+    }
+
+    #[test]
+    fn fast_lengths_are_the_next_5_smooth_number() {
+        // 5-smooth numbers: 1 2 3 4 5 6 8 9 10 12 15 16 ... 1000 1024 1080.
+        for (min, want) in [(0, 2), (7, 8), (11, 12), (13, 15), (1001, 1024), (1025, 1080)] {
+            assert_eq!(fast_len(min), want, "min {min}");
+        }
+    }
+
+    /// Oracle: the direct sums `c[l] = sum_s k[s] r[s + l]`, negative lags at the end.
+    #[test]
+    fn cross_correlation_matches_the_direct_sum() {
+        let k = [1.0, -2.0, 0.5];
+        let r = [0.3, 1.0, -1.0, 2.0, 0.0, 4.0];
+        let len = 16;
+        let c = xcorr(&k, &r, len);
+        for l in -2i64..6 {
+            let direct: f64 = (0..k.len() as i64)
+                .filter(|s| (0..r.len() as i64).contains(&(s + l)))
+                .map(|s| k[s as usize] * r[(s + l) as usize])
+                .sum();
+            let idx = l.rem_euclid(len as i64) as usize;
+            assert!((c[idx] - direct).abs() < 1e-12, "lag {l}: {} vs {direct}", c[idx]);
+        }
+    }
+
+    /// A unit gain is the identity; a gain `exp(-i 2 pi f d dt)` with an integer `d` is a
+    /// linear (not circular) delay by `d` samples.
+    #[test]
+    fn padded_filtering_is_linear_not_circular() {
+        let x: Vec<f64> = (0..50).map(|j| ((j * j) % 7) as f64 - 3.0).collect();
+        let dt = 0.5;
+        let d = 3;
+        let [same, delayed] = filter_padded(&x, dt, |_, f| {
+            let phase = -2.0 * std::f64::consts::PI * f * d as f64 * dt;
+            [Complex64::new(1.0, 0.0), Complex64::from_polar(1.0, phase)]
+        });
+        for j in 0..x.len() {
+            assert!((same[j] - x[j]).abs() < 1e-12);
+            let want = if j >= d { x[j - d] } else { 0.0 };
+            assert!((delayed[j] - want).abs() < 1e-12, "sample {j}");
+        }
+    }
 }

@@ -6,6 +6,8 @@
 //! `D^-1/2 M D^-1/2` (unit diagonal) and scaled back: the cuts in `tol` are then relative
 //! to a matrix whose entries are correlations.
 
+use std::borrow::Borrow;
+
 use nalgebra::DMatrix;
 
 use super::tol::PINV_RCOND;
@@ -60,20 +62,18 @@ pub fn equilibrated_pinv(m: &DMatrix<f64>) -> Option<DMatrix<f64>> {
 }
 
 /// Inverse of a symmetric positive definite matrix, equilibrated against the parameters' very
-/// different units; None if not positive definite.
+/// different units: `M^-1 = D^-1 (D^-1 M D^-1)^-1 D^-1` with `D = diag(sqrt(M_ii))`, the inner
+/// inverse by Cholesky. None if a diagonal entry is not positive and finite, the Cholesky
+/// factorisation fails (not positive definite) or the inverse has a non-finite entry.
 pub fn spd_inverse(m: &DMatrix<f64>) -> Option<DMatrix<f64>> {
     let n = m.nrows();
-    let mut d = vec![0.0; n];
-    for i in 0..n {
-        let v = m[(i, i)];
-        if !(v.is_finite() && v > 0.0) {
-            return None;
-        }
-        d[i] = 1.0 / v.sqrt();
+    let d: Vec<f64> = (0..n).map(|k| m[(k, k)].sqrt()).collect();
+    if d.iter().any(|v| !(v.is_finite() && *v > 0.0)) {
+        return None;
     }
-    let a = DMatrix::from_fn(n, n, |i, j| m[(i, j)] * d[i] * d[j]);
+    let a = DMatrix::from_fn(n, n, |i, j| m[(i, j)] / (d[i] * d[j]));
     let inv = a.cholesky()?.inverse();
-    let out = DMatrix::from_fn(n, n, |i, j| inv[(i, j)] * d[i] * d[j]);
+    let out = DMatrix::from_fn(n, n, |i, j| inv[(i, j)] / (d[i] * d[j]));
     out.iter().all(|v| v.is_finite()).then_some(out)
 }
 
@@ -140,13 +140,14 @@ pub fn marginal(info: &DMatrix<f64>) -> Vec<f64> {
 }
 
 /// The symmetric Gram matrix `J^T J` of series columns `j` (an information matrix of whitened
-/// columns).
-pub fn series_gram(j: &[Vec<Vec<Vec<f64>>>]) -> DMatrix<f64> {
+/// columns). The one builder of the crate: each entry is computed once, in [`series_dot`]'s
+/// order, and mirrored.
+pub fn series_gram<S: Borrow<Vec<Vec<Vec<f64>>>>>(j: &[S]) -> DMatrix<f64> {
     let n = j.len();
     let mut info = DMatrix::<f64>::zeros(n, n);
     for a in 0..n {
         for b in a..n {
-            let v = series_dot(&j[a], &j[b]);
+            let v = series_dot(j[a].borrow(), j[b].borrow());
             info[(a, b)] = v;
             info[(b, a)] = v;
         }
@@ -156,8 +157,7 @@ pub fn series_gram(j: &[Vec<Vec<Vec<f64>>>]) -> DMatrix<f64> {
 
 /// Gram matrix of columns `j`, with its equilibrated pseudo-inverse.
 pub fn series_gram_pinv(j: &[&Vec<Vec<Vec<f64>>>]) -> (DMatrix<f64>, Option<DMatrix<f64>>) {
-    let m = j.len();
-    let g = DMatrix::<f64>::from_fn(m, m, |a, b| series_dot(j[a], j[b]));
+    let g = series_gram(j);
     let inv = equilibrated_pinv(&g);
     (g, inv)
 }
@@ -172,4 +172,108 @@ pub fn most_correlated(info: &DMatrix<f64>, idx: &[usize], n_base: usize) -> Opt
         .map(|k| (k, cv[(k, last)] / (cv[(k, k)] * cv[(last, last)]).sqrt()))
         .filter(|(_, v)| v.is_finite())
         .max_by(|a, b| a.1.abs().total_cmp(&b.1.abs()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Closed form: `[[4, 2], [2, 3]]^-1 = [[3, -2], [-2, 4]] / 8`.
+    #[test]
+    fn spd_inverse_of_a_2x2() {
+        let m = DMatrix::from_row_slice(2, 2, &[4.0, 2.0, 2.0, 3.0]);
+        let inv = spd_inverse(&m).unwrap();
+        let want = DMatrix::from_row_slice(2, 2, &[3.0, -2.0, -2.0, 4.0]) / 8.0;
+        assert!((inv - want).abs().max() < 1e-15);
+    }
+
+    /// Units ten decades apart (w^2 against a delay): the product with the matrix is the
+    /// identity to rounding, which an unequilibrated inverse of this condition would not give.
+    #[test]
+    fn spd_inverse_survives_ten_decades_of_units() {
+        let s = [1e-6, 1.0, 1e5];
+        let c = DMatrix::from_row_slice(3, 3, &[1.0, 0.9, -0.3, 0.9, 1.0, 0.1, -0.3, 0.1, 1.0]);
+        let m = DMatrix::from_fn(3, 3, |i, j| c[(i, j)] * s[i] * s[j]);
+        let inv = spd_inverse(&m).unwrap();
+        // (M M^-1)_ij carries the scale s_i / s_j: compared in equilibrated units.
+        let id = &m * &inv;
+        let eq = DMatrix::from_fn(3, 3, |i, j| id[(i, j)] * s[j] / s[i]);
+        assert!((eq - DMatrix::identity(3, 3)).abs().max() < 1e-12);
+        // The closed form in those units: inv_ij = (c^-1)_ij / (s_i s_j).
+        let c_inv = c.clone().try_inverse().unwrap();
+        for i in 0..3 {
+            for j in 0..3 {
+                let want = c_inv[(i, j)] / (s[i] * s[j]);
+                assert!((inv[(i, j)] - want).abs() < 1e-12 * want.abs().max(1e-300));
+            }
+        }
+    }
+
+    #[test]
+    fn spd_inverse_refuses_what_is_not_positive_definite() {
+        let indefinite = DMatrix::from_row_slice(2, 2, &[1.0, 2.0, 2.0, 1.0]);
+        assert!(spd_inverse(&indefinite).is_none());
+        let zero_diagonal = DMatrix::from_row_slice(2, 2, &[0.0, 0.0, 0.0, 1.0]);
+        assert!(spd_inverse(&zero_diagonal).is_none());
+        let nan = DMatrix::from_row_slice(1, 1, &[f64::NAN]);
+        assert!(spd_inverse(&nan).is_none());
+    }
+
+    /// Oracle: the Gram matrix of explicit columns, entry by entry.
+    #[test]
+    fn series_gram_is_the_matrix_of_dot_products() {
+        let col = |a: f64, b: f64, c: f64| vec![vec![vec![a, b, c], vec![a - b]], vec![vec![c]]];
+        let j = vec![
+            col(1.0, 0.0, 0.5),
+            col(-2.0, 1.0, 0.0),
+            col(0.0, 3.0, -1.0),
+        ];
+        let g = series_gram(&j);
+        for a in 0..3 {
+            for b in 0..3 {
+                let direct: f64 = j[a]
+                    .iter()
+                    .flatten()
+                    .flatten()
+                    .zip(j[b].iter().flatten().flatten())
+                    .map(|(x, y)| x * y)
+                    .sum();
+                assert_eq!(g[(a, b)], direct);
+            }
+        }
+        let refs: Vec<&Vec<Vec<Vec<f64>>>> = j.iter().collect();
+        let (g2, pinv) = series_gram_pinv(&refs);
+        assert_eq!(g, g2);
+        // The pseudo-inverse is an inverse here (the columns are independent).
+        assert!((&g * pinv.unwrap() - DMatrix::identity(3, 3)).abs().max() < 1e-10);
+    }
+
+    /// Closed forms: a diagonal information gives `1 / sqrt(I_ii)`; two parameters that enter
+    /// only as their sum are not identified (infinite sigma) while a third, independent one
+    /// keeps its sigma.
+    #[test]
+    fn marginal_sigmas_and_unidentified_directions() {
+        let diag = DMatrix::from_row_slice(2, 2, &[4.0, 0.0, 0.0, 1e-8]);
+        let s = marginal(&diag);
+        assert!((s[0] - 0.5).abs() < 1e-15 && (s[1] - 1e4).abs() < 1e-8);
+        let singular =
+            DMatrix::from_row_slice(3, 3, &[1.0, 1.0, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0, 9.0]);
+        let s = marginal(&singular);
+        assert!(s[0].is_infinite() && s[1].is_infinite());
+        assert!((s[2] - 1.0 / 3.0).abs() < 1e-14);
+        let (lambda, v) = weakest_direction(&singular).unwrap();
+        assert!(lambda.abs() < 1e-12);
+        assert!((v[0] + v[1]).abs() < 1e-12 && v[2].abs() < 1e-12);
+    }
+
+    /// Closed form: in the covariance `[[1, r], [r, 1]]^-1` scaled, the correlation of the two
+    /// parameters is `-r`.
+    #[test]
+    fn most_correlated_reads_the_joint_covariance() {
+        let r = 0.6;
+        let info = DMatrix::from_row_slice(3, 3, &[1.0, r, 0.0, r, 1.0, 0.0, 0.0, 0.0, 1.0]);
+        let (k, c) = most_correlated(&info, &[0, 2, 1], 2).unwrap();
+        assert_eq!(k, 0);
+        assert!((c + r).abs() < 1e-12, "{c}");
+    }
 }

@@ -115,8 +115,70 @@ pub fn ks_two_sample(a: &[f64], b: &[f64]) -> (f64, f64) {
         let term = 2.0 * (-1f64).powi(k - 1) * (-2.0 * (k as f64).powi(2) * lambda * lambda).exp();
         p += term;
         if term.abs() < KS_SERIES_TERM {
-            break;
+            return (d, p.clamp(0.0, 1.0));
         }
     }
-    (d, p.clamp(0.0, 1.0))
+    // The alternating series converges only slowly as lambda -> 0, where Q_KS -> 1 (at
+    // lambda = 0.05 the 100th term is still exp(-50)): the samples are indistinguishable.
+    (d, 1.0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Closed forms: chi^2 with 2 degrees of freedom has `P(X > x) = exp(-x / 2)`, and the
+    /// upper quantile inverts it; chi^2(1) at 3.841 is the 5 % point.
+    #[test]
+    fn chi2_tails_match_their_closed_forms() {
+        for x in [0.1, 1.0, 5.0, 30.0] {
+            assert!((chi2_sf(2.0, x) - (-x / 2.0).exp()).abs() < 1e-12);
+        }
+        assert!((chi2_isf(2.0, 0.01) - (-2.0 * 0.01f64.ln())).abs() < 1e-8);
+        assert!((chi2_isf(1.0, 0.05) - 3.841_458_820_694_124).abs() < 1e-8);
+        assert_eq!(chi2_sf(3.0, f64::INFINITY), 0.0);
+        assert!(chi2_isf(1.0, 1.5).is_nan());
+        // F(d1, inf) -> chi^2(d1)/d1: at large d2 the tails agree.
+        assert!((f_sf(2.0, 1e7, 1.5) - chi2_sf(2.0, 3.0)).abs() < 1e-5);
+    }
+
+    #[test]
+    fn moments_of_a_symmetric_two_point_series() {
+        // +-1 alternating: mean 0, sd 1, skewness 0, excess kurtosis 1 - 3 = -2.
+        let x: Vec<f64> = (0..1000).map(|j| if j % 2 == 0 { 1.0 } else { -1.0 }).collect();
+        let m = moments(&x);
+        assert!(m.mean.abs() < 1e-15 && (m.sd - 1.0).abs() < 1e-15);
+        assert!(m.skewness.abs() < 1e-12 && (m.excess_kurtosis + 2.0).abs() < 1e-12);
+        assert!((m.sd_err - 1.0 / 2000f64.sqrt()).abs() < 1e-15);
+    }
+
+    /// Closed form: an alternating series has lag-k autocorrelation `(-1)^k (l - k) / l`, so the
+    /// Ljung-Box statistic is `l (l + 2) sum_k (l - k) / l^2`.
+    #[test]
+    fn ljung_box_of_an_alternating_series() {
+        let l = 400;
+        let x: Vec<f64> = (0..l).map(|j| if j % 2 == 0 { 1.0 } else { -1.0 }).collect();
+        let (q, h, p) = ljung_box(&x, 5);
+        let lf = l as f64;
+        let want: f64 = (1..=5)
+            .map(|k| ((lf - k as f64) / lf).powi(2) / (lf - k as f64))
+            .sum::<f64>()
+            * lf
+            * (lf + 2.0);
+        assert_eq!(h, 5);
+        assert!((q - want).abs() < 1e-9 * want && p < 1e-100);
+    }
+
+    /// Identical samples have D = 0 (p = 1); disjoint ones D = 1 (p -> 0).
+    #[test]
+    fn ks_extremes() {
+        let a: Vec<f64> = (0..200).map(f64::from).collect();
+        let (d, p) = ks_two_sample(&a, &a);
+        assert_eq!(d, 0.0);
+        assert!((p - 1.0).abs() < 1e-12);
+        let b: Vec<f64> = (1000..1200).map(f64::from).collect();
+        let (d, p) = ks_two_sample(&a, &b);
+        assert_eq!(d, 1.0);
+        assert!(p < 1e-20);
+    }
 }

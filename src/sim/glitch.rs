@@ -20,7 +20,6 @@
 //! `diagnose::families::glitch`.
 
 use num_complex::Complex64;
-use realfft::RealFftPlanner;
 
 use crate::model::closed_loop::{transfer, CMat, ClosedLoopModel, NoiseEntry};
 use crate::model::effects::Extended;
@@ -205,8 +204,7 @@ pub fn synthesize(
         specs[0][k] = v[0] * p;
         specs[1][k] = v[1] * p;
     }
-    let mut planner = RealFftPlanner::<f64>::new();
-    let inv = planner.plan_fft_inverse(grid.m);
+    let inv = crate::numerics::fft::real_inverse(grid.m);
     let mut scratch = inv.make_output_vec();
     let mut out = [Vec::new(), Vec::new()];
     for (o, mut spec) in out.iter_mut().zip(specs) {

@@ -5,7 +5,6 @@
 
 use nalgebra::DMatrix;
 use num_complex::Complex64;
-use realfft::RealFftPlanner;
 
 use crate::numerics::stats::mean;
 
@@ -16,8 +15,7 @@ pub fn periodogram(x: &[f64], dt: f64) -> (Vec<f64>, Vec<f64>) {
     if l < 4 {
         return (Vec::new(), Vec::new());
     }
-    let mut planner = RealFftPlanner::<f64>::new();
-    let fft = planner.plan_fft_forward(l);
+    let fft = crate::numerics::fft::real_forward(l);
     let mut buf = x.to_vec();
     let mut spec: Vec<Complex64> = fft.make_output_vec();
     if fft.process(&mut buf, &mut spec).is_err() {
@@ -66,9 +64,8 @@ pub fn variance_inflation(x: &[f64]) -> f64 {
         return 1.0;
     }
     let m = 2 * n;
-    let mut planner = RealFftPlanner::<f64>::new();
-    let fwd = planner.plan_fft_forward(m);
-    let inv = planner.plan_fft_inverse(m);
+    let fwd = crate::numerics::fft::real_forward(m);
+    let inv = crate::numerics::fft::real_inverse(m);
     let mu = mean(x);
     let mut buf: Vec<f64> = x
         .iter()
@@ -189,7 +186,7 @@ pub fn denoised(x: &[f64], noise_psd: f64, dt: f64) -> Vec<f64> {
 
 /// The transform of `x` zero-padded to `m` samples.
 pub fn padded_spectrum(x: &[f64], m: usize) -> Vec<num_complex::Complex64> {
-    let fwd = realfft::RealFftPlanner::<f64>::new().plan_fft_forward(m);
+    let fwd = crate::numerics::fft::real_forward(m);
     let mut buf = vec![0.0; m];
     buf[..x.len()].copy_from_slice(x);
     let mut spec = fwd.make_output_vec();

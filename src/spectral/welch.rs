@@ -19,7 +19,6 @@
 //! floors are not used.
 
 use num_complex::Complex64;
-use realfft::RealFftPlanner;
 use statrs::distribution::{ChiSquared, ContinuousCDF};
 
 use super::window::{Window, WindowSums};
@@ -516,8 +515,7 @@ fn welch_of_pieces(
     let w = window.samples(l);
     let sums = WindowSums::of(&w);
 
-    let mut planner = RealFftPlanner::<f64>::new();
-    let fft = planner.plan_fft_forward(l);
+    let fft = crate::numerics::fft::real_forward(l);
     let mut buf = fft.make_input_vec();
     let mut scratch = fft.make_scratch_vec();
     let mut spectra: Vec<Vec<Complex64>> = (0..m).map(|_| fft.make_output_vec()).collect();

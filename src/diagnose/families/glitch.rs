@@ -10,7 +10,6 @@
 //! whitened kernels are a few samples long, so positions are close to independent) the
 //! threshold is barely conservative.
 
-use realfft::RealFftPlanner;
 
 use crate::model::closed_loop::CMat;
 use crate::model::effects::Extended;
@@ -50,13 +49,12 @@ fn zscan(
     p0: usize,
     r: &[Vec<f64>],
     order: usize,
-    planner: &mut RealFftPlanner<f64>,
 ) -> Vec<(usize, f64)> {
     let n = kern[0].len();
     let nr = r[0].len();
     let len = crate::numerics::fft::fast_len(n + nr + 1);
-    let c0 = xcorr(&kern[0], &r[0], planner, len);
-    let c1 = xcorr(&kern[1], &r[1], planner, len);
+    let c0 = xcorr(&kern[0], &r[0], len);
+    let c1 = xcorr(&kern[1], &r[1], len);
     let mut out = Vec::with_capacity(nr);
     for t0 in order..order + nr {
         // Lag l = t0 - p0 - order.
@@ -104,7 +102,6 @@ pub fn scan(
 ) -> Scan {
     let n = grid.n;
     let nr = n.saturating_sub(order);
-    let mut planner = RealFftPlanner::<f64>::new();
     let mut peaks = Vec::new();
     let mut n_kernels = 0usize;
     for entry in ENTRIES {
@@ -135,7 +132,7 @@ pub fn scan(
             let noise_var = noise
                 .filter(|(r, _)| r.len() >= 2 && r[0].len() > 1 && r[1].len() == r[0].len())
                 .map(|(r, factor)| {
-                    let z = zscan(&kern, &q, p0, r, order, &mut planner);
+                    let z = zscan(&kern, &q, p0, r, order);
                     factor * z.iter().map(|x| x.1).sum::<f64>() / z.len().max(1) as f64
                 })
                 .filter(|v| v.is_finite())
@@ -145,7 +142,7 @@ pub fn scan(
                 if r.len() < 2 || r[0].len() != nr || r[1].len() != nr {
                     continue;
                 }
-                for (t0, z2) in zscan(&kern, &q, p0, r, order, &mut planner) {
+                for (t0, z2) in zscan(&kern, &q, p0, r, order) {
                     let z2 = z2 / scale / noise_var;
                     if best.as_ref().is_none_or(|b| z2 > b.z2) {
                         best = Some(Peak {
