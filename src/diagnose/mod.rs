@@ -63,8 +63,8 @@ pub(crate) mod search;
 pub mod tables;
 pub mod types;
 
+pub use crate::analysis::residuals::{ChannelReport, SpectrumCurve};
 pub use families::excess::ExcessKind;
-pub use families::residuals::{ChannelReport, SpectrumCurve};
 pub use families::tension::{Explanation, PriorTension};
 pub use search::observer::{Notes, Observer, Round, StopReason};
 pub use search::problem::DiagnosisProblem;

@@ -7,9 +7,9 @@
 
 use nalgebra::DMatrix;
 
+use crate::analysis::residuals;
 use crate::data::check_finite;
 use crate::diagnose::families::additive;
-use crate::diagnose::families::residuals;
 use crate::diagnose::search::observer::Observer;
 use crate::diagnose::{Channel, DiagnoseConfig, DiagnoseError, Stage, WhiteningSource};
 use crate::fit::{fit, ExperimentData, FitConfig, FitResult, Likelihood, Whitener};
