@@ -6,11 +6,13 @@
 //! are in excess ([`residuals`]). Measured and simulated data take the same path; nothing here
 //! prints.
 
+pub mod coherence;
 pub mod guidance;
 pub mod holes;
 pub mod job;
 mod job_xy;
 pub mod model_tables;
+pub mod noise_bands;
 pub mod residuals;
 pub mod tables;
 pub mod transient;

@@ -261,7 +261,7 @@ pub struct Diagnosis {
     pub acceleration: Option<crate::accel::change::AccelChange>,
     /// Coherence and partial coherence of the whitened residuals with each whitened auxiliary
     /// readout, before and after, per run and channel ([`coherence`](super::families::coherence)).
-    pub aux_coherence: Vec<super::families::coherence::AuxCoherence>,
+    pub aux_coherence: Vec<crate::analysis::coherence::AuxCoherence>,
     pub seconds: f64,
 }
 
