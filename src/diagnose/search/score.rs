@@ -14,7 +14,9 @@ use crate::diagnose::{Channel, DiagnoseError, DiagnosisState, Stage};
 use crate::fit::{ExperimentData, FitResult, Likelihood};
 use crate::model::effects::{Category, Effect, Extended};
 use crate::model::ClosedLoopModel;
-use crate::numerics::linalg::{equilibrated_pinv, most_correlated, series_gram, series_gram_pinv};
+use crate::numerics::linalg::{
+    equilibrated_pinv, most_correlated, series_dot, series_gram, series_gram_pinv,
+};
 use crate::numerics::tol::{DEGENERATE_FRACTION, PINV_RCOND};
 use crate::sim::Series;
 use crate::spectral::periodogram::refine_frequency;
@@ -54,7 +56,7 @@ pub(super) fn score_operators(
     j.extend(extra.iter().cloned());
     let nt = j.len();
     let info = series_gram(&j);
-    let u: Vec<f64> = (0..nt).map(|a| additive::dot(&j[a], &r)).collect();
+    let u: Vec<f64> = (0..nt).map(|a| series_dot(&j[a], &r)).collect();
     let n_base = estimate.len();
     // Nuisance block: the fitted parameters, then the extra columns.
     let n_idx: Vec<usize> = (0..n_base).chain(np..nt).collect();
@@ -113,13 +115,13 @@ pub(super) fn score_additive(
         let je: Vec<Series> = a
             .columns(current, lik, data, estimate)
             .into_iter()
-            .map(|c| additive::whiten(lik, data, c))
+            .map(|c| lik.whiten_series(data, c))
             .collect();
         let m = je.len();
-        let iee = DMatrix::<f64>::from_fn(m, m, |x, y| additive::dot(&je[x], &je[y]));
-        let ien = DMatrix::<f64>::from_fn(m, nn, |x, y| additive::dot(&je[x], &jn[y]));
+        let iee = DMatrix::<f64>::from_fn(m, m, |x, y| series_dot(&je[x], &je[y]));
+        let ien = DMatrix::<f64>::from_fn(m, nn, |x, y| series_dot(&je[x], &jn[y]));
         let schur = &iee - &ien * &inn_inv * ien.transpose();
-        let ue = DMatrix::<f64>::from_fn(m, 1, |x, _| additive::dot(&je[x], &r));
+        let ue = DMatrix::<f64>::from_fn(m, 1, |x, _| series_dot(&je[x], &r));
         // Correlation of the first column with each fitted parameter.
         let mut cols: Vec<&Series> = jn.iter().collect();
         cols.push(&je[0]);
@@ -209,8 +211,8 @@ pub(super) fn calibrate_aux(
         else {
             continue;
         };
-        let c = additive::whiten(&lik, problem.data, col);
-        let norm = additive::dot(&c, &c);
+        let c = lik.whiten_series(problem.data, col);
+        let norm = series_dot(&c, &c);
         if norm <= 0.0 {
             continue;
         }

@@ -24,7 +24,7 @@ use std::sync::Arc;
 use rayon::prelude::*;
 use serde::Serialize;
 
-use crate::diagnose::families::additive::{self, Additive};
+use crate::diagnose::families::additive::Additive;
 use crate::diagnose::families::glitch;
 use crate::diagnose::search::observer::{Observer, Round, StopReason};
 use crate::diagnose::search::problem::{DiagnosisProblem, LinearFit};
@@ -329,7 +329,7 @@ fn score(
         let eff = problem.data.minus(&cols, &amps);
         let extra: Vec<Series> = cols
             .into_iter()
-            .map(|c| additive::whiten(&lik, problem.data, c))
+            .map(|c| lik.whiten_series(problem.data, c))
             .collect();
         (eff, extra)
     };
