@@ -29,10 +29,11 @@ use crate::diagnose::families::glitch;
 use crate::diagnose::search::observer::{Observer, Round, StopReason};
 use crate::diagnose::search::problem::{DiagnosisProblem, LinearFit};
 use crate::diagnose::search::score::{
-    additive_candidates, calibrate_aux, glitch_candidates, score_additive, score_operators, Score,
+    additive_candidates, calibrate_aux, glitch_candidates, score_additive, score_operators,
 };
 use crate::diagnose::types::EDGE_TRANSIENT_S;
 use crate::diagnose::{AddedEffect, Alternative, Candidate, DiagnoseConfig, DiagnoseError, Stage};
+use crate::fit::score::Score;
 
 use crate::model::effects::{Category, Effect, Extended};
 use crate::model::ClosedLoopModel;
