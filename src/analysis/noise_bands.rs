@@ -41,7 +41,7 @@ const MAX_LAG: usize = 8;
 const DOF_SAFETY: f64 = 0.7;
 /// Half width, in bins, of the window kernel the model PSD is smoothed with, and the kernel's
 /// samples per bin.
-const KERNEL_HALF: usize = 4;
+pub const KERNEL_HALF: usize = 4;
 const KERNEL_SUB: usize = 8;
 /// One band of one channel.
 #[derive(Debug, Clone)]
