@@ -2,14 +2,18 @@
 //! `accel`. It turns a measured-data [`Dataset`] (reference README, "measured-data format")
 //! into fit input, resolves the starting point, chooses the whitening filter (thesis sec.
 //! "whitening": from a noise-only run by least squares, or from the model's noise cross-PSD),
-//! and lays the results out as tables ([`tables`]). Measured and simulated data take the same
-//! path; nothing here prints.
+//! lays the results out as tables ([`tables`]), and tests where the whitened residuals of a fit
+//! are in excess ([`residuals`]). Measured and simulated data take the same path; nothing here
+//! prints.
 
+pub mod coherence;
 pub mod guidance;
 pub mod holes;
 pub mod job;
 mod job_xy;
 pub mod model_tables;
+pub mod noise_bands;
+pub mod residuals;
 pub mod tables;
 pub mod transient;
 

@@ -47,14 +47,19 @@
 //! (static and rate) is an additive candidate whose column is the measured series itself, as is
 //! the force cross-talk of each recorded command (sec. 3.5, `aux_force_...`); a
 //! claimed one is removed from the noise run and the whitening filter estimated again
-//! (`crosstalk`). [`coherence`](families::coherence) reports the coherence and partial coherence of the whitened
-//! residuals with each auxiliary readout. Without auxiliary readouts, a coupling the noise-run
+//! (`crosstalk`). [`coherence`](families::coherence) reports the coherence and partial coherence
+//! of the whitened residuals with each auxiliary readout ([`crate::analysis::coherence`]). Without auxiliary readouts, a coupling the noise-run
 //! whitening learned still shows as the noise run's level above the model's noise PSD
 //! ([`noise_excess`](families::noise_excess)), reported as unexplained with its channel and band.
 //!
 //! Layout by role: the search ([`search`]: the problem, the forward selection, the run), the
 //! tests of each family of model errors ([`families`]), the report ([`report`], [`tables`],
-//! [`job`]), and the shared types ([`types`]).
+//! [`job`]), and the shared types ([`types`]). What is not the diagnosis's own lives in the
+//! layers below: the residual tests of a fit ([`crate::analysis::residuals`]), the noise run's
+//! band levels against a model PSD ([`crate::analysis::noise_bands`]), the coherence with
+//! auxiliary readouts ([`crate::analysis::coherence`]), the score test
+//! ([`crate::fit::score`]) and the whitening of a raw series like the data
+//! ([`crate::fit::Likelihood::whiten_series`]).
 
 pub mod families;
 pub mod job;
@@ -63,8 +68,8 @@ pub(crate) mod search;
 pub mod tables;
 pub mod types;
 
+pub use crate::analysis::residuals::{ChannelReport, SpectrumCurve};
 pub use families::excess::ExcessKind;
-pub use families::residuals::{ChannelReport, SpectrumCurve};
 pub use families::tension::{Explanation, PriorTension};
 pub use search::observer::{Notes, Observer, Round, StopReason};
 pub use search::problem::DiagnosisProblem;

@@ -260,8 +260,8 @@ pub struct Diagnosis {
     /// no run is long enough for the estimate.
     pub acceleration: Option<crate::accel::change::AccelChange>,
     /// Coherence and partial coherence of the whitened residuals with each whitened auxiliary
-    /// readout, before and after, per run and channel ([`coherence`](super::families::coherence)).
-    pub aux_coherence: Vec<super::families::coherence::AuxCoherence>,
+    /// readout, before and after, per run and channel ([`crate::analysis::coherence`]).
+    pub aux_coherence: Vec<crate::analysis::coherence::AuxCoherence>,
     pub seconds: f64,
 }
 

@@ -1,6 +1,7 @@
 //! Estimation (thesis sec. 4.4): the whitening-based MIMO multi-experiment likelihood
 //! (`problem`), the whitening filter (`whiten`), robust L-estimators (`estimator`), the
-//! frequency-domain Fisher information (`fisher`) and the optimiser (this module).
+//! frequency-domain Fisher information (`fisher`), the score test of extra parameters at zero
+//! (`score`) and the optimiser (this module).
 //!
 //! The optimiser is a bounded Levenberg-Marquardt on the whitened residuals with the analytic
 //! Jacobian (iteratively reweighted for the robust estimators). argmin offers Gauss-Newton but
@@ -14,6 +15,7 @@
 
 pub mod estimator;
 pub mod problem;
+pub mod score;
 pub mod telemetry_psd;
 pub mod transient;
 pub mod whiten;

@@ -347,6 +347,19 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> Likelihood<'m, M, N> {
         Ok(self.bind(data_w))
     }
 
+    /// Whitened, cut and projected version of raw readout series `s` of the shape of `data`'s
+    /// outputs, as the data and templates are (empty when the shapes do not match).
+    pub fn whiten_series(&self, data: &ExperimentData, s: Series) -> Series {
+        let d = ExperimentData {
+            tails: data.tails.clone(),
+            names: data.names.clone(),
+            inputs: data.inputs.clone(),
+            outputs: s,
+            dt: data.dt,
+        };
+        self.problem(&d).map(|p| p.data_w).unwrap_or_default()
+    }
+
     /// Bind whitened, cut, polynomial-projected data: keep their transient coordinates, then
     /// project the transient columns out.
     fn bind<'a>(&'a self, mut data_w: Series) -> Problem<'a, 'm, M, N> {

@@ -619,17 +619,3 @@ fn zero_series(data: &ExperimentData) -> Series {
         .map(|n| vec![vec![0.0; n]; 2])
         .collect()
 }
-
-/// Whitened, cut and projected version of raw readout series `s` (as the data and templates).
-pub fn whiten(lik: &Likelihood<'_, Extended, 2>, data: &ExperimentData, s: Series) -> Series {
-    let d = ExperimentData {
-        tails: data.tails.clone(),
-        names: data.names.clone(),
-        inputs: data.inputs.clone(),
-        outputs: s,
-        dt: data.dt,
-    };
-    lik.problem(&d).map(|p| p.data_w).unwrap_or_default()
-}
-
-pub use crate::numerics::linalg::series_dot as dot;

@@ -5,7 +5,7 @@
 
 use serde::Serialize;
 
-use crate::diagnose::families::residuals::TimeReport;
+use crate::analysis::residuals::TimeReport;
 use crate::diagnose::{Stage, Unexplained};
 
 /// The test family an unexplained excess comes from (`report.json` field `kind`).

@@ -1,6 +1,6 @@
-//! The tests of a diagnosis, one file per family of model errors: the residual tests of a fit
-//! ([`residuals`]) and the unexplained excess they leave ([`excess`]), the noise run against
-//! the model ([`noise_excess`]), the additive effects ([`additive`]: lines, drifts, glitches,
+//! The tests of a diagnosis, one file per family of model errors: the unexplained excess the
+//! residual tests of a fit ([`crate::analysis::residuals`]) leave ([`excess`]), the noise run's
+//! excess over the model ([`noise_excess`]), the additive effects ([`additive`]: lines, drifts, glitches,
 //! auxiliary cross-talk) with the glitch scan ([`glitch`]) and the cross-talk refinement
 //! ([`crosstalk`]), the coherence with auxiliary readouts ([`coherence`]), start-up transients
 //! ([`transient`]) and prior tension ([`tension`]).
@@ -11,6 +11,5 @@ pub(crate) mod crosstalk;
 pub mod excess;
 pub mod glitch;
 pub mod noise_excess;
-pub mod residuals;
 pub mod tension;
 pub(crate) mod transient;

@@ -7,16 +7,16 @@
 
 use nalgebra::DMatrix;
 
+use crate::analysis::residuals;
 use crate::data::check_finite;
 use crate::diagnose::families::additive;
-use crate::diagnose::families::residuals;
 use crate::diagnose::search::observer::Observer;
 use crate::diagnose::{Channel, DiagnoseConfig, DiagnoseError, Stage, WhiteningSource};
 use crate::fit::{fit, ExperimentData, FitConfig, FitResult, Likelihood, Whitener};
 use crate::model::effects::Extended;
 use crate::model::lpf_x::LpfX;
 use crate::model::ClosedLoopModel;
-use crate::numerics::linalg::series_gram_pinv;
+use crate::numerics::linalg::{series_dot, series_gram_pinv};
 use crate::setup::Setup;
 use crate::sim::Series;
 
@@ -469,12 +469,12 @@ fn additive_jacobian(
             0
         };
         layout.push((v.len(), n_nl));
-        je.extend(cols.into_iter().map(|c| additive::whiten(lik, data, c)));
+        je.extend(cols.into_iter().map(|c| lik.whiten_series(data, c)));
         if n_nl > 0 {
             je.extend(
                 a.nonlinear_columns(model, lik, data, est, v)
                     .into_iter()
-                    .map(|c| additive::whiten(lik, data, c)),
+                    .map(|c| lik.whiten_series(data, c)),
             );
         }
     }
@@ -564,7 +564,7 @@ impl DiagnosisProblem<'_> {
                     covariances,
                 });
             }
-            let g = DMatrix::<f64>::from_fn(all.len(), 1, |a, _| additive::dot(all[a], &r));
+            let g = DMatrix::<f64>::from_fn(all.len(), 1, |a, _| series_dot(all[a], &r));
             let step = &inv * g;
             let mut j = nn;
             for ((a, v), (_, n_nl)) in lin.iter_mut().zip(&layout) {

@@ -7,10 +7,9 @@ use rayon::prelude::*;
 
 use super::observer;
 use super::problem::{self, DiagnosisProblem};
+use crate::analysis::residuals;
 use crate::design::redesign;
-use crate::diagnose::families::{
-    coherence, crosstalk, excess, noise_excess, residuals, tension, transient,
-};
+use crate::diagnose::families::{coherence, crosstalk, excess, noise_excess, tension, transient};
 use crate::diagnose::{
     next_round, Candidate, Channel, DiagnoseConfig, DiagnoseError, Diagnosis, DiagnosisState,
     ExcessKind, Notes, Observer, RobustCheck, Round, SpectrumCurve, Stage, Unexplained,

@@ -1,6 +1,7 @@
-//! The score tests of the forward selection ([`crate::diagnose::search::selection`]): the information of whitened
-//! columns, the score statistics of operator and additive candidates at the current fit, and
-//! the additive and glitch candidates each round proposes.
+//! The score tests of the forward selection ([`crate::diagnose::search::selection`]): the
+//! information of whitened columns and the score statistics ([`crate::fit::score`]) of operator
+//! and additive candidates at the current fit, and the additive and glitch candidates each
+//! round proposes.
 
 use std::sync::Arc;
 
@@ -11,23 +12,15 @@ use crate::diagnose::families::glitch;
 use crate::diagnose::search::problem::DiagnosisProblem;
 use crate::diagnose::search::selection::{Described, Proposal};
 use crate::diagnose::{Channel, DiagnoseError, DiagnosisState, Stage};
+use crate::fit::score::{score_test, Score};
 use crate::fit::{ExperimentData, FitResult, Likelihood};
 use crate::model::effects::{Category, Effect, Extended};
 use crate::model::ClosedLoopModel;
-use crate::numerics::linalg::{equilibrated_pinv, most_correlated, series_gram, series_gram_pinv};
-use crate::numerics::tol::{DEGENERATE_FRACTION, PINV_RCOND};
+use crate::numerics::linalg::{
+    equilibrated_pinv, most_correlated, series_dot, series_gram, series_gram_pinv,
+};
 use crate::sim::Series;
 use crate::spectral::periodogram::refine_frequency;
-
-/// The score test of one candidate.
-pub(super) struct Score {
-    pub(super) statistic: f64,
-    pub(super) identifiable_fraction: f64,
-    /// The fitted parameter it correlates with most, and the correlation.
-    pub(super) most_correlated: Option<(usize, f64)>,
-    /// The one-step estimate `S^+ U` from zero: where the data pull the effect's parameters.
-    pub(super) step: Vec<f64>,
-}
 
 /// Score tests of the operator candidates `pool` at the current fit. `extra` are whitened
 /// columns of further fitted nuisance parameters (the amplitudes of the additive effects
@@ -54,7 +47,7 @@ pub(super) fn score_operators(
     j.extend(extra.iter().cloned());
     let nt = j.len();
     let info = series_gram(&j);
-    let u: Vec<f64> = (0..nt).map(|a| additive::dot(&j[a], &r)).collect();
+    let u: Vec<f64> = (0..nt).map(|a| series_dot(&j[a], &r)).collect();
     let n_base = estimate.len();
     // Nuisance block: the fitted parameters, then the extra columns.
     let n_idx: Vec<usize> = (0..n_base).chain(np..nt).collect();
@@ -69,15 +62,15 @@ pub(super) fn score_operators(
         let e_idx: Vec<usize> = full.range(current.effects.len() + i).collect();
         let iee = sub(&e_idx, &e_idx);
         let ien = sub(&e_idx, &n_idx);
-        let schur = &iee - &ien * &inn_inv * ien.transpose();
         // At the fit the nuisance parameters' score vanishes, so the effect's own score is
         // the efficient one.
         let ue = DMatrix::<f64>::from_fn(e_idx.len(), 1, |a, _| u[e_idx[a]]);
         let mut idx = n_idx.clone();
         idx.push(e_idx[0]);
-        out.push(score_statistic(
-            &schur,
+        out.push(score_test(
             &iee,
+            &ien,
+            &inn_inv,
             &ue,
             most_correlated(&info, &idx, n_base),
         ));
@@ -113,13 +106,12 @@ pub(super) fn score_additive(
         let je: Vec<Series> = a
             .columns(current, lik, data, estimate)
             .into_iter()
-            .map(|c| additive::whiten(lik, data, c))
+            .map(|c| lik.whiten_series(data, c))
             .collect();
         let m = je.len();
-        let iee = DMatrix::<f64>::from_fn(m, m, |x, y| additive::dot(&je[x], &je[y]));
-        let ien = DMatrix::<f64>::from_fn(m, nn, |x, y| additive::dot(&je[x], &jn[y]));
-        let schur = &iee - &ien * &inn_inv * ien.transpose();
-        let ue = DMatrix::<f64>::from_fn(m, 1, |x, _| additive::dot(&je[x], &r));
+        let iee = DMatrix::<f64>::from_fn(m, m, |x, y| series_dot(&je[x], &je[y]));
+        let ien = DMatrix::<f64>::from_fn(m, nn, |x, y| series_dot(&je[x], &jn[y]));
+        let ue = DMatrix::<f64>::from_fn(m, 1, |x, _| series_dot(&je[x], &r));
         // Correlation of the first column with each fitted parameter.
         let mut cols: Vec<&Series> = jn.iter().collect();
         cols.push(&je[0]);
@@ -129,45 +121,9 @@ pub(super) fn score_additive(
                 .filter(|(_, v)| v.is_finite())
                 .max_by(|x, y| x.1.abs().total_cmp(&y.1.abs()))
         });
-        out.push(score_statistic(&schur, &iee, &ue, corr));
+        out.push(score_test(&iee, &ien, &inn_inv, &ue, corr));
     }
     Ok(out)
-}
-
-/// The score (Lagrange-multiplier) statistic `U^T S^+ U` of effect parameters with score `ue`, information `iee` and Schur complement `schur` (information left after the
-/// fitted parameters), the identifiable fraction `min_k S_kk / I_kk`, and the one-step estimate
-/// `S^+ U`. Below [`DEGENERATE_FRACTION`] the Schur complement is rounding noise: the effect is
-/// indistinguishable from the fitted parameters and the statistic is reported as 0.
-pub(super) fn score_statistic(
-    schur: &DMatrix<f64>,
-    iee: &DMatrix<f64>,
-    ue: &DMatrix<f64>,
-    most_correlated: Option<(usize, f64)>,
-) -> Score {
-    let (lm, step) = match schur.clone().pseudo_inverse(PINV_RCOND * iee.norm()) {
-        Ok(si) => {
-            let step = &si * ue;
-            (
-                (ue.transpose() * &step)[(0, 0)],
-                step.iter().copied().collect(),
-            )
-        }
-        Err(_) => (f64::NAN, vec![f64::NAN; ue.nrows()]),
-    };
-    let frac = (0..schur.nrows())
-        .map(|k| schur[(k, k)] / iee[(k, k)].max(f64::MIN_POSITIVE))
-        .fold(1.0, f64::min);
-    let statistic = if frac < DEGENERATE_FRACTION || !lm.is_finite() {
-        0.0
-    } else {
-        lm.max(0.0)
-    };
-    Score {
-        statistic,
-        identifiable_fraction: frac,
-        most_correlated,
-        step,
-    }
 }
 
 /// Circular shifts of the whitened residual that calibrate an auxiliary cross-talk's score.
@@ -209,8 +165,8 @@ pub(super) fn calibrate_aux(
         else {
             continue;
         };
-        let c = additive::whiten(&lik, problem.data, col);
-        let norm = additive::dot(&c, &c);
+        let c = lik.whiten_series(problem.data, col);
+        let norm = series_dot(&c, &c);
         if norm <= 0.0 {
             continue;
         }

@@ -24,15 +24,16 @@ use std::sync::Arc;
 use rayon::prelude::*;
 use serde::Serialize;
 
-use crate::diagnose::families::additive::{self, Additive};
+use crate::diagnose::families::additive::Additive;
 use crate::diagnose::families::glitch;
 use crate::diagnose::search::observer::{Observer, Round, StopReason};
 use crate::diagnose::search::problem::{DiagnosisProblem, LinearFit};
 use crate::diagnose::search::score::{
-    additive_candidates, calibrate_aux, glitch_candidates, score_additive, score_operators, Score,
+    additive_candidates, calibrate_aux, glitch_candidates, score_additive, score_operators,
 };
 use crate::diagnose::types::EDGE_TRANSIENT_S;
 use crate::diagnose::{AddedEffect, Alternative, Candidate, DiagnoseConfig, DiagnoseError, Stage};
+use crate::fit::score::Score;
 
 use crate::model::effects::{Category, Effect, Extended};
 use crate::model::ClosedLoopModel;
@@ -329,7 +330,7 @@ fn score(
         let eff = problem.data.minus(&cols, &amps);
         let extra: Vec<Series> = cols
             .into_iter()
-            .map(|c| additive::whiten(&lik, problem.data, c))
+            .map(|c| lik.whiten_series(problem.data, c))
             .collect();
         (eff, extra)
     };
