@@ -41,8 +41,9 @@ fn write_point_sampled(
     write_point_sampled_with(setup, dir, injections, &PlantEffects::default());
 }
 
-/// [`write_point_sampled`] with the library's operator effects `effects` in the plant.
-fn write_point_sampled_with(
+/// [`write_point_sampled`] with the library's operator effects `effects` in the plant. The
+/// scenario's truth goes into `[meta.truth]`, as `freefall simulate` writes it.
+pub(crate) fn write_point_sampled_with(
     setup: &Setup,
     dir: &std::path::Path,
     injections: Option<DeclaredInjections>,
@@ -60,7 +61,14 @@ fn write_point_sampled_with(
     for (e, inputs) in data.inputs.iter_mut().enumerate() {
         *inputs = design.sample(e, 2, 0.0, data.dt, inputs[0].len());
     }
-    let mut ds = Dataset::simulated(&data, &noise, toml::Table::new()).unwrap();
+    let truth_table: toml::Table = setup
+        .parameter_names()
+        .into_iter()
+        .zip(&truth)
+        .map(|(n, v)| (n, toml::Value::Float(*v)))
+        .collect();
+    let meta = toml::Table::from_iter([("truth".to_string(), toml::Value::Table(truth_table))]);
+    let mut ds = Dataset::simulated(&data, &noise, meta).unwrap();
     if let Some(inj) = injections {
         ds = ds.with_injections(inj);
     }
@@ -221,4 +229,135 @@ fn wrong_start_or_design_is_a_one_line_error() {
         err.contains("start") && err.contains("[injections]"),
         "{err}"
     );
+}
+
+/// `freefall simulate --engine time-domain` with `extra` arguments into `dir`, its guidance
+/// columns then replaced by the standard design sampled at 1 Hz (no `[injections]`); and a copy
+/// that declares the design (`dir` + "_declared").
+fn simulate_point_sampled_cli(dir: &std::path::Path, extra: &[&str]) -> std::path::PathBuf {
+    use freefall::io::{read_parquet, write_parquet, Table};
+    let mut args = vec![
+        "-q",
+        "simulate",
+        "--engine",
+        "time-domain",
+        "--seed",
+        "5",
+        "--noise-duration",
+        "10800",
+        "--out",
+        dir.to_str().unwrap(),
+    ];
+    args.extend(extra);
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_freefall"))
+        .args(&args)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let design = digital_setup().design("standard").unwrap();
+    for (e, name) in ["exp1", "exp2"].iter().enumerate() {
+        let file = dir.join(format!("{name}.parquet"));
+        let t = read_parquet(&file).unwrap();
+        let time = t.f64_column("t").unwrap();
+        let (t0, dt, n) = (time[0], time[1] - time[0], time.len());
+        let sampled = design.sample(e, 2, t0, dt, n);
+        let mut out = Table::new();
+        for col in t.names() {
+            let v = match col {
+                "oi1" => sampled[0].clone(),
+                "oi12" => sampled[1].clone(),
+                _ => t.f64_column(col).unwrap().to_vec(),
+            };
+            out = out.with_f64(col, v).unwrap();
+        }
+        std::fs::remove_file(&file).unwrap();
+        write_parquet(&file, &out).unwrap();
+    }
+    let declared = dir.with_file_name(format!(
+        "{}_declared",
+        dir.file_name().unwrap().to_str().unwrap()
+    ));
+    std::fs::create_dir_all(&declared).unwrap();
+    for f in std::fs::read_dir(dir).unwrap() {
+        let f = f.unwrap().path();
+        std::fs::copy(&f, declared.join(f.file_name().unwrap())).unwrap();
+    }
+    let toml = declared.join("dataset.toml");
+    let text = std::fs::read_to_string(&toml).unwrap().replacen(
+        "[[experiment]]",
+        "[injections]\ndesign = \"standard\"\nstart_s = 0.0\n\n[[experiment]]",
+        1,
+    );
+    std::fs::write(&toml, text).unwrap();
+    declared
+}
+
+/// `freefall diagnose` on `dir`: the effects added (sorted), the transients reported and the
+/// number of unexplained excesses.
+fn cli_claims(dir: &std::path::Path) -> (Vec<String>, Vec<String>, usize) {
+    let out = dir.with_extension("diag");
+    let o = std::process::Command::new(env!("CARGO_BIN_EXE_freefall"))
+        .args(["-q", "diagnose", "--no-plots", "--out"])
+        .arg(&out)
+        .arg(dir.join("dataset.toml"))
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let r: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap();
+    let names = |v: &serde_json::Value, key: &str| -> Vec<String> {
+        let mut n: Vec<String> = v
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|e| e[key].to_string())
+            .collect();
+        n.sort();
+        n
+    };
+    (
+        names(&r["effects_added"], "name"),
+        names(&r["transient"], "run"),
+        r["unexplained"].as_array().unwrap().len(),
+    )
+}
+
+/// A start-up transient (the loop started from non-zero initial conditions) and a sensing
+/// cross-talk from a recorded auxiliary readout, each in time-domain data with point-sampled
+/// guidance: the same claims with the design found from the columns as with it declared, and
+/// the claims the simulation put there.
+#[test]
+#[ignore = "slow tier: two time-domain simulations and four diagnoses"]
+fn a_transient_and_a_crosstalk_are_claimed_alike_with_the_design_reconstructed_or_declared() {
+    let tmp = tempfile::tempdir().unwrap();
+    let transient = tmp.path().join("transient");
+    let declared = simulate_point_sampled_cli(
+        &transient,
+        &["--initial", "o1=2.4e-7,o12=3.6e-7,v1=-5e-10,v12=-4e-12"],
+    );
+    let (plain, with) = (cli_claims(&transient), cli_claims(&declared));
+    eprintln!("transient: {plain:?} / declared {with:?}");
+    assert_eq!(plain, with);
+    assert!(!plain.1.is_empty(), "no transient reported: {plain:?}");
+    assert!(plain.0.is_empty(), "claimed {:?}", plain.0);
+
+    let leak = tmp.path().join("leak");
+    let declared = simulate_point_sampled_cli(
+        &leak,
+        &[
+            "--effect",
+            "aux_crosstalk_oy1_o1=5e-3",
+            "--effect",
+            "aux_crosstalk_oy1_o12=-3e-3",
+        ],
+    );
+    let (plain, with) = (cli_claims(&leak), cli_claims(&declared));
+    eprintln!("cross-talk: {plain:?} / declared {with:?}");
+    // Alike, but not yet the simulation's claims: on time-domain data the leak is reported as
+    // the noise run's o12 excess over the model PSD (6 bands, "unexplained"), not claimed
+    // (score p of aux_crosstalk_oy1_o12 0.002, against 1e-25 on the frequency-domain engine's
+    // data of the same seed and leak); a limitation of the diagnosis on decimated data that
+    // the guidance does not cause.
+    assert_eq!(plain, with);
+    assert!(plain.2 > 0, "the leak is neither claimed nor reported: {plain:?}");
 }
