@@ -881,6 +881,41 @@ fn a_glitch_on_tm2_is_found_at_its_time() {
     assert_nominal_within(&c);
 }
 
+/// The stretch-edge guard: the same kick as [`a_glitch_on_tm2_is_found_at_its_time`], with a
+/// stretch edge that the input notes name (as for point-sampled guidance whose design is not
+/// known) 4.7 s after it. Oracle: that test claims the glitch; here the diagnosis claims no
+/// glitch and says why in a note naming the edge.
+#[test]
+fn no_glitch_is_claimed_at_a_stretch_edge_the_notes_name() {
+    let g = SimGlitch {
+        experiment: 0,
+        entry: Entry::Tm2,
+        t0: 4000.3,
+        tau: 1.0,
+        amplitude: 3e-12,
+    };
+    let (setup, data, noise, truth, guess) = with_glitches(41, &[g]);
+    let cfg = DiagnoseConfig {
+        stretch_edges: vec![vec![4005.0], Vec::new()],
+        ..config()
+    };
+    let d = diagnose(&setup, &data, Some(&noise), &guess, Some(&truth), &cfg).unwrap();
+    let glitches: Vec<&str> = d
+        .effects_added
+        .iter()
+        .filter(|a| a.category == "glitch")
+        .map(|a| a.name.as_str())
+        .collect();
+    assert!(glitches.is_empty(), "claimed {glitches:?}");
+    assert!(
+        d.notes
+            .iter()
+            .any(|n| n.contains("at a stretch edge (4005 s)") && n.contains("exp1")),
+        "{:?}",
+        d.notes
+    );
+}
+
 #[test]
 fn two_glitches_are_both_found() {
     // Oracle: the simulated truth, a 3e-12 m/s kick on TM2 at 4000.3 s of exp1 and a 7e-11 m
