@@ -5,16 +5,16 @@
 //! For each seed: the embedded model with the thesis's continuous loop (the README's calibration
 //! figures were measured on it), monte_carlo truth, standard design and one noise run, then a
 //! diagnosis with the command-line defaults (`noise`: noise-run whitening, order 300) or with
-//! model-noise whitening at order 200 (`model`, as in tests/diagnose.rs). Prints every claimed
+//! model-noise whitening at order 200 (`model`, as in tests/it/diagnose.rs). Prints every claimed
 //! effect and every unexplained excess, then the rates. At alpha = 0.01 a calibrated diagnosis
 //! claims something on about 1% of the seeds. With `aux`, every run also carries the model
 //! file's auxiliary readouts (`[auxiliary]`, no cross-talk), which the diagnosis tests
 //! (sensing cross-talk into o1 and o12, static and rate). With `xy`, each control dataset is
 //! the xy model's (`simulate --model lpf_xy --scenario nominal --design standard_xy`: no
 //! cross-talk), diagnosed by the x model with the recorded y/phi readouts (and their declared
-//! noise floors) as auxiliary readouts, as `tests/xy_diagnose.rs` does. `xycmd` is `xy` with
+//! noise floors) as auxiliary readouts, as `tests/it/xy_diagnose.rs` does. `xycmd` is `xy` with
 //! the y/phi loops' commands recorded too (`simulate --commands`), which the diagnosis tests
-//! for force cross-talk into o1 and o12, as `tests/xy_commands.rs` does.
+//! for force cross-talk into o1 and o12, as `tests/it/xy_commands.rs` does.
 
 use freefall::diagnose::{diagnose, DiagnoseConfig};
 use freefall::setup::Setup;

@@ -11,7 +11,7 @@
 //! the exact FFT formula on a one-stretch series of the experiment's length. Two inputs
 //! injecting at the same frequency in the same stretch (Exp. 3) add the cross blocks
 //! `a_1 a_2 (J_12 + J_21)`. The neglected terms (different stretches, or two inputs at different
-//! frequencies in one stretch) are checked against the full formula in `tests/design.rs`.
+//! frequencies in one stretch) are checked against the full formula in `tests/it/design.rs`.
 //! A design evaluation is then a handful of 7x7 additions.
 
 use nalgebra::DMatrix;

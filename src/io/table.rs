@@ -775,7 +775,7 @@ impl NullsAsNan<'_> {
 /// The reader: strict when `required` is `None`, else tolerant of the other columns. A
 /// corrupt file can make the parquet crate's decoder panic (seen: "column start and length
 /// should not be negative" on a file with mutated page headers, by the fuzz test of
-/// tests/hostile.rs); the panic is caught and reported as an error naming the file.
+/// tests/it/hostile.rs); the panic is caught and reported as an error naming the file.
 fn read_parquet_with(
     path: &Path,
     required: Option<&[&str]>,

@@ -16,7 +16,7 @@
 //! the recorded readouts as `Delta^-1 D S^-1 e_c (k a + k' da/dt)` ([`in_loop`]): suppressed by
 //! the loop in its band, additive above it (thesis sec. 3.4, the readout-noise cross-talk
 //! operator). The xy model (sec. 3.5) simulates the same physics with the auxiliary degrees of
-//! freedom in its loop, an independent path (`tests/xy_diagnose.rs`).
+//! freedom in its loop, an independent path (`tests/it/xy_diagnose.rs`).
 //!
 //! A force cross-talk leaks `k u(t)` of a recorded command `u` (the acceleration another
 //! degree of freedom's loop asks its actuator for) into the acceleration of x1 or x12, the

@@ -442,7 +442,7 @@ fn bad_datasets_name_the_file_row_and_column() {
         &["exp1.csv", "o1"],
     );
     // Runs of different lengths are no error: each experiment is fitted on its own length
-    // (tests/lengths.rs checks the estimates).
+    // (tests/it/lengths.rs checks the estimates).
     let ds = dataset(&d.path().join("e"));
     rewrite(&ds.join("exp2.parquet"), |c, t| {
         t.truncate(5000);

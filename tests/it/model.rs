@@ -8,7 +8,7 @@ use freefall::model::{
 use proptest::prelude::*;
 
 /// The thesis's continuous loop: its expected features and its characteristic polynomial
-/// are the oracles here (the digital loop's are in tests/time_domain.rs).
+/// are the oracles here (the digital loop's are in tests/it/time_domain.rs).
 fn lpf() -> (ModelSpec, LpfX) {
     let spec = ModelSpec::embedded_continuous();
     let m = LpfX::from_spec(&spec);
