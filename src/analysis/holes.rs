@@ -150,45 +150,124 @@ pub fn whole_clock(
     data: &mut ExperimentData,
     min_len: usize,
 ) -> Result<(Vec<String>, Vec<Exclusion>), AnalysisError> {
-    let design = known.map(|k| k.design.clone());
-    let start_s = known.map_or(0.0, |k| k.start_s);
     let decimator = setup.spec.decimator().map_err(crate::setup::Error::from)?;
     let margin = decimator.edge_samples() + 1;
-    let dt = data.dt;
+    let mut clock = Clock {
+        setup,
+        decimator,
+        margin,
+        dt: data.dt,
+        min_len,
+        memory: None,
+        notes: Vec::new(),
+        excluded: Vec::new(),
+    };
     let n_exp = data.outputs.len();
     data.tails.resize(n_exp, 0);
-    let mut notes = Vec::new();
-    let mut excluded = Vec::new();
     let mut drop = vec![false; n_exp];
-    let mut memory: Option<f64> = None;
-    // Whether each piece's recorded guidance is at rest over the telemetry filter's reach at
-    // its start and at its end (a pause; a zero crossing of a running sine is not one), and
-    // whether the guidance before it is known: a piece after a hole only when the hole lies
-    // in a pause (at rest on both sides) and the guidance before the previous piece is known.
-    let rest: Vec<(bool, bool)> = ds
-        .experiments
+    let rest = rest_at_ends(ds, margin);
+    let settle = settle_samples(ds, margin);
+    let known_before = known_before(ds, &rest);
+    for e in 0..n_exp {
+        if data.inputs.get(e).map_or(0, Vec::len) == 0 {
+            continue;
+        }
+        let n = data.len_of(e);
+        if n < min_len {
+            drop[e] = true;
+            let (name, t0) = (data.names[e].clone(), ds.experiments[e].1.t0);
+            clock.excluded.push(Exclusion {
+                experiment: name,
+                from_s: t0,
+                to_s: t0 + n as f64 * clock.dt,
+                seconds: n as f64 * clock.dt,
+                reason: format!(
+                    "{n} samples between holes, fewer than the {min_len} the whitening filter, \
+                     the nuisance polynomial and the parameters need"
+                ),
+            });
+            continue;
+        }
+        let name = &data.names[e];
+        let base = name.split(".seg").next().unwrap_or(name);
+        let of_design = known.and_then(|k| {
+            k.design
+                .experiments
+                .iter()
+                .position(|x| x.name == base)
+                .map(|i| (k, i))
+        });
+        drop[e] = match of_design {
+            Some((k, i)) => {
+                clock.with_design(ds, data, e, k, i);
+                false
+            }
+            None => {
+                let ends = Ends {
+                    rest_start: known_before[e],
+                    rest_end: rest[e].1,
+                    settle: settle[e],
+                };
+                clock.without_design(ds, data, e, ends)?
+            }
+        };
+    }
+    // Drop the experiments left without samples to fit.
+    for e in (0..n_exp).rev().filter(|&e| drop[e]) {
+        ds.experiments.remove(e);
+        data.names.remove(e);
+        data.inputs.remove(e);
+        data.outputs.remove(e);
+        data.tails.remove(e);
+    }
+    let Clock {
+        mut notes,
+        excluded,
+        ..
+    } = clock;
+    for x in &excluded {
+        notes.push(x.note());
+    }
+    if data.tails.iter().all(|&t| t == 0) {
+        data.tails.clear();
+    }
+    Ok((notes, excluded))
+}
+
+/// The peak magnitude of a guidance column.
+fn peak(c: &[f64]) -> f64 {
+    c.iter().fold(0.0, |m: f64, v| m.max(v.abs()))
+}
+
+/// Whether each piece's recorded guidance is at rest over the telemetry filter's reach
+/// (`margin` samples) at its start and at its end (a pause; a zero crossing of a running sine
+/// is not one).
+fn rest_at_ends(ds: &Dataset, margin: usize) -> Vec<(bool, bool)> {
+    ds.experiments
         .iter()
         .map(|(_, r)| {
             let ends = r.inputs().map(|c| {
-                let peak = c.iter().fold(0.0, |m: f64, v| m.max(v.abs()));
+                let pk = peak(c);
                 let k = margin.min(c.len());
-                (at_rest(&c[..k], peak), at_rest(&c[c.len() - k..], peak))
+                (at_rest(&c[..k], pk), at_rest(&c[c.len() - k..], pk))
             });
             (ends.iter().all(|x| x.0), ends.iter().all(|x| x.1))
         })
-        .collect();
-    // A piece that ends in the telemetry filter's pre-echo of a stretch start (or any
-    // change) after a pause: the samples after the pause's last `margin` samples at rest,
-    // when they are fewer than [`SETTLE_SAMPLES`]. Cut back to the pause, the piece ends at
-    // rest and its template needs no continuation (a continuation across the knee of a
-    // filtered stretch edge rings: measured 7 sigma on dt1 for exp1 cut at a stretch start).
-    let settle: Vec<Option<usize>> = ds
-        .experiments
+        .collect()
+}
+
+/// For a piece that ends in the telemetry filter's pre-echo of a stretch start (or any change)
+/// after a pause: the samples after the pause's last `margin` samples at rest, when they are
+/// fewer than [`SETTLE_SAMPLES`]. Cut back to the pause, the piece ends at rest and its
+/// template needs no continuation (a continuation across the knee of a filtered stretch edge
+/// rings: measured 7 sigma on dt1 for exp1 cut at a stretch start).
+fn settle_samples(ds: &Dataset, margin: usize) -> Vec<Option<usize>> {
+    ds.experiments
         .iter()
         .map(|(_, r)| {
             let cols = r.inputs();
             let n = cols[0].len();
-            let peaks = cols.map(|c| c.iter().fold(0.0, |m: f64, v| m.max(v.abs())));
+            let peaks = cols.map(|c| peak(c));
             let quiet_until = |end: usize| {
                 cols.iter()
                     .zip(&peaks)
@@ -199,11 +278,17 @@ pub fn whole_clock(
                 .find(|&end| quiet_until(end))
                 .map(|end| n - end)
         })
-        .collect();
-    let mut known_before = vec![false; n_exp];
-    for e in 0..n_exp {
+        .collect()
+}
+
+/// Whether the guidance before each piece is known to be at rest: a whole run's when its
+/// guidance starts at rest; a piece after a hole only when the hole lies in a pause (at rest on
+/// both sides) and the guidance before the previous piece of the same run is known.
+fn known_before(ds: &Dataset, rest: &[(bool, bool)]) -> Vec<bool> {
+    let mut known = vec![false; ds.experiments.len()];
+    for e in 0..known.len() {
         let run = &ds.experiments[e].1;
-        known_before[e] = match run.segment.as_ref().filter(|s| s.index > 0) {
+        known[e] = match run.segment.as_ref().filter(|s| s.index > 0) {
             Some(seg) => {
                 e > 0
                     && ds.experiments[e - 1].1.path == run.path
@@ -212,115 +297,141 @@ pub fn whole_clock(
                         .segment
                         .as_ref()
                         .is_some_and(|p| p.index + 1 == seg.index)
-                    && known_before[e - 1]
+                    && known[e - 1]
                     && rest[e - 1].1
                     && rest[e].0
             }
             None => rest[e].0,
         };
     }
-    for e in 0..n_exp {
+    known
+}
+
+/// What is known at a piece's ends when no design is: whether its guidance is at rest before
+/// its start and at its end, and the samples to cut back to a pause ([`settle_samples`]).
+struct Ends {
+    rest_start: bool,
+    rest_end: bool,
+    settle: Option<usize>,
+}
+
+/// The settings and the running results of [`whole_clock`].
+struct Clock<'a> {
+    setup: &'a Setup,
+    decimator: crate::spectral::decimate::Decimator,
+    margin: usize,
+    dt: f64,
+    min_len: usize,
+    /// The closed loop's slowest time constant, computed when first needed.
+    memory: Option<f64>,
+    notes: Vec<String>,
+    excluded: Vec<Exclusion>,
+}
+
+impl Clock<'_> {
+    /// Experiment `e`'s inputs made from experiment `k` of the known design, from the
+    /// design's start to its end on the run's clock (a lead-in and a lead-out where the run
+    /// has none).
+    fn with_design(
+        &mut self,
+        ds: &Dataset,
+        data: &mut ExperimentData,
+        e: usize,
+        known: &guidance::KnownDesign,
+        k: usize,
+    ) {
+        let (design, start_s, dt, margin) = (&known.design, known.start_s, self.dt, self.margin);
+        let run_t0 = ds.experiments[e].1.t0;
+        let (n, lead) = (data.len_of(e), data.lead(e));
+        let n_in = data.inputs[e].len();
+        // The design's guidance is zero before its start and after its end; the decimated
+        // column reaches `margin` samples beyond either.
+        let first_s = start_s - margin as f64 * dt;
+        let last_s = start_s + design.duration_of(k) + margin as f64 * dt;
+        let t_in0 = run_t0 - lead as f64 * dt;
+        let t_last = run_t0 + (n - 1) as f64 * dt;
+        let mut new_lead = lead;
+        if first_s < t_in0 {
+            new_lead += ((t_in0 - first_s) / dt).ceil() as usize;
+        }
+        let mut tail = 0;
+        if last_s > t_last {
+            tail = ((last_s - t_last) / dt).ceil() as usize;
+        }
+        if new_lead == lead && tail == 0 {
+            return;
+        }
+        let total = new_lead + n + tail;
+        let grid = DecimationGrid::with_decimator_samples(total, self.decimator.clone());
+        let first = run_t0 - new_lead as f64 * dt - start_s;
+        let mut made: Vec<Vec<f64>> = design
+            .sample(k, n_in, first + grid.t0, grid.dt_sim, grid.n_sim)
+            .iter()
+            .map(|x| grid.keep(x))
+            .collect();
+        // Leading and trailing samples at exact rest beyond the run add nothing.
+        let zero_at = |i: usize| made.iter().all(|c| c[i] == 0.0);
+        let mut cut_front = 0;
+        while cut_front < new_lead - lead && zero_at(cut_front) {
+            cut_front += 1;
+        }
+        let mut cut_back = 0;
+        while cut_back < tail && zero_at(total - 1 - cut_back) {
+            cut_back += 1;
+        }
+        let (new_lead, tail) = (new_lead - cut_front, tail - cut_back);
+        if new_lead == lead && tail == 0 {
+            return;
+        }
+        for c in &mut made {
+            c.truncate(total - cut_back);
+            c.drain(..cut_front);
+        }
+        data.inputs[e] = made;
+        data.tails[e] = tail;
+        self.notes.push(format!(
+            "{}: guidance of the declared design '{}' on the run's whole clock: {} s before \
+             the first sample and {} s after the last (through the holes and past the end), \
+             so the templates carry the loop's response to it",
+            data.names[e],
+            design.name,
+            (new_lead - lead) as f64 * dt,
+            tail as f64 * dt
+        ));
+    }
+
+    /// Experiment `e` without a known design: the samples whose template depends on unknown
+    /// guidance before or after it are excluded (trimmed from `ds` and `data`), and its inputs
+    /// continued smoothly into the unknown. Returns whether the whole piece is excluded.
+    fn without_design(
+        &mut self,
+        ds: &mut Dataset,
+        data: &mut ExperimentData,
+        e: usize,
+        ends: Ends,
+    ) -> Result<bool, AnalysisError> {
+        let (dt, margin, min_len) = (self.dt, self.margin, self.min_len);
         let name = data.names[e].clone();
         let run_t0 = ds.experiments[e].1.t0;
-        let n = data.len_of(e);
-        let lead = data.lead(e);
-        let n_in = data.inputs.get(e).map_or(0, Vec::len);
-        if n_in == 0 {
-            continue;
-        }
-        if n < min_len {
-            drop[e] = true;
-            excluded.push(Exclusion {
-                experiment: name.clone(),
-                from_s: run_t0,
-                to_s: run_t0 + n as f64 * dt,
-                seconds: n as f64 * dt,
-                reason: format!(
-                    "{n} samples between holes, fewer than the {min_len} the whitening filter, \
-                     the nuisance polynomial and the parameters need"
-                ),
-            });
-            continue;
-        }
-        let base = name.split(".seg").next().unwrap_or(&name);
-        let known = design.as_ref().and_then(|d| {
-            d.experiments
-                .iter()
-                .position(|x| x.name == base)
-                .map(|k| (d, k))
-        });
-        if let Some((design, k)) = known {
-            // The design's guidance is zero before its start and after its end; the
-            // decimated column reaches `margin` samples beyond either.
-            let first_s = start_s - margin as f64 * dt;
-            let last_s = start_s + design.duration_of(k) + margin as f64 * dt;
-            let t_in0 = run_t0 - lead as f64 * dt;
-            let t_last = run_t0 + (n - 1) as f64 * dt;
-            let mut new_lead = lead;
-            if first_s < t_in0 {
-                new_lead += ((t_in0 - first_s) / dt).ceil() as usize;
-            }
-            let mut tail = 0;
-            if last_s > t_last {
-                tail = ((last_s - t_last) / dt).ceil() as usize;
-            }
-            if new_lead == lead && tail == 0 {
-                continue;
-            }
-            let total = new_lead + n + tail;
-            let grid = DecimationGrid::with_decimator_samples(total, decimator.clone());
-            let first = run_t0 - new_lead as f64 * dt - start_s;
-            let mut made: Vec<Vec<f64>> = design
-                .sample(k, n_in, first + grid.t0, grid.dt_sim, grid.n_sim)
-                .iter()
-                .map(|x| grid.keep(x))
-                .collect();
-            // Leading and trailing samples at exact rest beyond the run add nothing.
-            let zero_at = |i: usize| made.iter().all(|c| c[i] == 0.0);
-            let mut cut_front = 0;
-            while cut_front < new_lead - lead && zero_at(cut_front) {
-                cut_front += 1;
-            }
-            let mut cut_back = 0;
-            while cut_back < tail && zero_at(total - 1 - cut_back) {
-                cut_back += 1;
-            }
-            let (new_lead, tail) = (new_lead - cut_front, tail - cut_back);
-            if new_lead == lead && tail == 0 {
-                continue;
-            }
-            for c in &mut made {
-                c.truncate(total - cut_back);
-                c.drain(..cut_front);
-            }
-            data.inputs[e] = made;
-            data.tails[e] = tail;
-            notes.push(format!(
-                "{name}: guidance of the declared design '{}' on the run's whole clock: {} s \
-                 before the first sample and {} s after the last (through the holes and past \
-                 the end), so the templates carry the loop's response to it",
-                design.name,
-                (new_lead - lead) as f64 * dt,
-                tail as f64 * dt
-            ));
-            continue;
-        }
-        // Unknown guidance beyond the recorded samples.
-        let mut rest_end = rest[e].1;
+        let (n, lead) = (data.len_of(e), data.lead(e));
+        let Ends {
+            rest_start,
+            mut rest_end,
+            settle,
+        } = ends;
         let mut settled = None;
         if !rest_end {
-            if let Some(b) = settle[e] {
+            if let Some(b) = settle {
                 settled = Some(b);
                 rest_end = true;
             }
         }
-        let rest_start = known_before[e];
         if !rest_start && lead > 0 {
             // A lead-in through a hole that was not a pause: its zeros are not the guidance.
             for c in &mut data.inputs[e] {
                 c.drain(..lead);
             }
-            notes.push(format!(
+            self.notes.push(format!(
                 "{name}: the guidance is not at rest on both sides of the hole before it, so \
                  the hole is not taken as an injection pause (no lead-in)"
             ));
@@ -328,11 +439,11 @@ pub fn whole_clock(
         let mut front = 0;
         let mut back = 0;
         if !rest_start {
-            let tau = match memory {
+            let tau = match self.memory {
                 Some(t) => t,
                 None => {
-                    let t = slowest_time_constant(setup)?;
-                    memory = Some(t);
+                    let t = slowest_time_constant(self.setup)?;
+                    self.memory = Some(t);
                     t
                 }
             };
@@ -341,17 +452,15 @@ pub fn whole_clock(
         if let Some(b) = settled {
             back = b;
         } else if !rest_end {
-            back = end_exclusion(setup)?;
+            back = end_exclusion(self.setup)?;
         }
         if front == 0 && back == 0 {
-            continue;
+            return Ok(false);
         }
         let t_of = |i: usize| run_t0 + i as f64 * dt;
-        let whole = front + back + min_len > n;
-        if whole {
-            drop[e] = true;
-            excluded.push(Exclusion {
-                experiment: name.clone(),
+        if front + back + min_len > n {
+            self.excluded.push(Exclusion {
+                experiment: name,
                 from_s: t_of(0),
                 to_s: t_of(n),
                 seconds: n as f64 * dt,
@@ -368,10 +477,10 @@ pub fn whole_clock(
                     front as f64 * dt
                 ),
             });
-            continue;
+            return Ok(true);
         }
         if front > 0 {
-            excluded.push(Exclusion {
+            self.excluded.push(Exclusion {
                 experiment: name.clone(),
                 from_s: t_of(0),
                 to_s: t_of(front),
@@ -380,13 +489,13 @@ pub fn whole_clock(
                     "the guidance before the piece is not known (no declared design) and was \
                      running at its start: the loop's memory of it, {MEMORY_TIME_CONSTANTS} of \
                      its slowest time constant ({:.0} s)",
-                    memory.unwrap_or(0.0)
+                    self.memory.unwrap_or(0.0)
                 ),
             });
         }
         if back > 0 {
-            excluded.push(Exclusion {
-                experiment: name.clone(),
+            self.excluded.push(Exclusion {
+                experiment: name,
                 from_s: t_of(n - back),
                 to_s: t_of(n),
                 seconds: back as f64 * dt,
@@ -420,41 +529,33 @@ pub fn whole_clock(
                 // the pause it leaves.
                 c.truncate(c.len() - back);
             }
-            let mut out = Vec::with_capacity(c.len() + 2 * TAPER_SAMPLES);
-            if !rest_start {
-                // Backwards in time from the first sample.
-                let head: Vec<f64> = c[..c.len().min(2)].iter().rev().copied().collect();
-                out = continue_smoothly(&head, TAPER_SAMPLES);
-                out.reverse();
-            }
-            out.extend_from_slice(c);
-            if !rest_end {
-                out.extend(continue_smoothly(
-                    &c[c.len().saturating_sub(2)..],
-                    TAPER_SAMPLES,
-                ));
-            }
-            *c = out;
+            *c = continued(c, !rest_start, !rest_end);
         }
         data.tails[e] = match settled {
             Some(_) => 0,
             None if rest_end => back,
             None => back + TAPER_SAMPLES,
         };
+        Ok(false)
     }
-    // Drop the experiments left without samples to fit.
-    for e in (0..n_exp).rev().filter(|&e| drop[e]) {
-        ds.experiments.remove(e);
-        data.names.remove(e);
-        data.inputs.remove(e);
-        data.outputs.remove(e);
-        data.tails.remove(e);
+}
+
+/// Column `c` continued smoothly ([`continue_smoothly`]) backwards before its first sample
+/// and forwards after its last, as asked.
+fn continued(c: &[f64], before: bool, after: bool) -> Vec<f64> {
+    let mut out = Vec::with_capacity(c.len() + 2 * TAPER_SAMPLES);
+    if before {
+        // Backwards in time from the first sample.
+        let head: Vec<f64> = c[..c.len().min(2)].iter().rev().copied().collect();
+        out = continue_smoothly(&head, TAPER_SAMPLES);
+        out.reverse();
     }
-    for x in &excluded {
-        notes.push(x.note());
+    out.extend_from_slice(c);
+    if after {
+        out.extend(continue_smoothly(
+            &c[c.len().saturating_sub(2)..],
+            TAPER_SAMPLES,
+        ));
     }
-    if data.tails.iter().all(|&t| t == 0) {
-        data.tails.clear();
-    }
-    Ok((notes, excluded))
+    out
 }

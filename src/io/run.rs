@@ -537,7 +537,33 @@ fn missing_rows(
             });
         }
     }
-    let label = path.display();
+    drop_incomplete_extras(path, &mut columns, declared, notes);
+    let kept = without_repeats(path, &columns, notes)?;
+    let hole = hole_rows(path, &columns, &kept, notes)?;
+    let rows: Vec<usize> = kept
+        .iter()
+        .zip(&hole)
+        .filter(|(_, &h)| !h)
+        .map(|(&i, _)| i)
+        .collect();
+    if rows.len() == n {
+        return Ok((columns, rows));
+    }
+    let columns = columns
+        .into_iter()
+        .map(|(name, c)| (name, rows.iter().map(|&i| c[i]).collect()))
+        .collect();
+    Ok((columns, rows))
+}
+
+/// Leaves out, with a note, every extra column (not a readout, guidance or declared
+/// auxiliary column) that has a NaN: its missing samples do not make holes.
+fn drop_incomplete_extras(
+    path: &Path,
+    columns: &mut Columns,
+    declared: Option<&[String]>,
+    notes: &mut Vec<String>,
+) {
     let sample = |name: &str| {
         REQUIRED.contains(&name) || declared.is_some_and(|d| d.iter().any(|x| x == name))
     };
@@ -548,22 +574,36 @@ fn missing_rows(
         match values.iter().position(|v| v.is_nan()) {
             Some(row) => {
                 notes.push(format!(
-                    "{label}: column '{name}' left out: NaN or null at row {row} (not a declared \
-                     readout, so its missing samples do not make holes)"
+                    "{}: column '{name}' left out: NaN or null at row {row} (not a declared \
+                     readout, so its missing samples do not make holes)",
+                    path.display()
                 ));
                 false
             }
             None => true,
         }
     });
+}
+
+/// The time column of `columns`.
+fn time_of(columns: &Columns) -> &[f64] {
     let ti = columns
         .iter()
         .position(|(n, _)| n == TIME_COLUMN)
         .expect("the time column is kept");
-    let t = &columns[ti].1;
-    let same = |a: f64, b: f64| a == b || (a.is_nan() && b.is_nan());
+    &columns[ti].1
+}
 
-    // Rows at a time already seen: exact repeats are dropped, others are errors.
+/// The rows kept after rows at a time already seen: exact repeats are dropped (with a note),
+/// others are errors.
+fn without_repeats(
+    path: &Path,
+    columns: &Columns,
+    notes: &mut Vec<String>,
+) -> Result<Vec<usize>, IoError> {
+    let t = time_of(columns);
+    let n = t.len();
+    let same = |a: f64, b: f64| a == b || (a.is_nan() && b.is_nan());
     let mut kept: Vec<usize> = Vec::with_capacity(n);
     let mut repeats: Vec<usize> = Vec::new();
     for i in 0..n {
@@ -597,22 +637,38 @@ fn missing_rows(
     }
     if !repeats.is_empty() {
         notes.push(format!(
-            "{label}: {} row(s) repeat an earlier row exactly (same time, every column equal) and \
+            "{}: {} row(s) repeat an earlier row exactly (same time, every column equal) and \
              are dropped: {}",
+            path.display(),
             repeats.len(),
             describe_rows(&repeats, &|i| t[i], None)
         ));
     }
+    Ok(kept)
+}
 
-    // Holes: rows of `kept` with a NaN sample, and the too-short islands between them.
-    let nan_in = |i: usize| -> Vec<&str> {
-        columns
-            .iter()
-            .filter(|(name, c)| name != TIME_COLUMN && c[i].is_nan())
-            .map(|(name, _)| name.as_str())
-            .collect()
-    };
-    let mut hole: Vec<bool> = kept.iter().map(|&i| !nan_in(i).is_empty()).collect();
+/// The columns with a NaN at file row `i` (the time column apart).
+fn nan_columns(columns: &Columns, i: usize) -> Vec<&str> {
+    columns
+        .iter()
+        .filter(|(name, c)| name != TIME_COLUMN && c[i].is_nan())
+        .map(|(name, _)| name.as_str())
+        .collect()
+}
+
+/// Which rows of `kept` are holes: a NaN sample, or one of fewer than [`MIN_ROWS`] rows
+/// between holes (or a hole and an end). Every row a hole is an error; each stretch of holes
+/// gets a note (at most [`NOTE_MAX_RANGES`], then a count).
+fn hole_rows(
+    path: &Path,
+    columns: &Columns,
+    kept: &[usize],
+    notes: &mut Vec<String>,
+) -> Result<Vec<bool>, IoError> {
+    let mut hole: Vec<bool> = kept
+        .iter()
+        .map(|&i| !nan_columns(columns, i).is_empty())
+        .collect();
     let mut k = 0;
     while k < hole.len() {
         let end = (k..hole.len()).find(|&e| hole[e]).unwrap_or(hole.len());
@@ -631,94 +687,89 @@ fn missing_rows(
             ),
         ));
     }
-    if hole.iter().any(|&h| h) {
-        let step = median_step(&kept.iter().map(|&i| t[i]).collect::<Vec<_>>());
-        let mut k = 0;
-        let mut stretches = 0;
-        while k < hole.len() {
-            if !hole[k] {
-                k += 1;
-                continue;
-            }
-            let end = (k..hole.len()).find(|&e| !hole[e]).unwrap_or(hole.len());
-            stretches += 1;
-            if stretches > NOTE_MAX_RANGES {
-                k = end;
-                continue;
-            }
-            let rows = &kept[k..end];
-            let mut names: Vec<&str> = Vec::new();
-            let mut islands = Vec::new();
-            for &i in rows {
-                let bad = nan_in(i);
-                if bad.is_empty() {
-                    islands.push(i);
-                }
-                for b in bad {
-                    if !names.contains(&b) {
-                        names.push(b);
-                    }
-                }
-            }
-            let order = |name: &&str| columns.iter().position(|(n, _)| n == name);
-            names.sort_by_key(order);
-            let guidance = names.iter().filter(|c| INPUT_COLUMNS.contains(c)).count();
-            let what = match (guidance, names.len() - guidance) {
-                (_, 0) => "guidance",
-                (0, _) => "readouts",
-                _ => "readouts and guidance",
-            };
-            let action = if k == 0 {
+    if !hole.iter().any(|&h| h) {
+        return Ok(hole);
+    }
+    let t = time_of(columns);
+    let step = median_step(&kept.iter().map(|&i| t[i]).collect::<Vec<_>>());
+    let mut k = 0;
+    let mut stretches = 0;
+    while k < hole.len() {
+        if !hole[k] {
+            k += 1;
+            continue;
+        }
+        let end = (k..hole.len()).find(|&e| !hole[e]).unwrap_or(hole.len());
+        stretches += 1;
+        if stretches <= NOTE_MAX_RANGES {
+            let position = if k == 0 {
                 "left out (the run starts after them)"
             } else if end == hole.len() {
                 "left out (the run ends before them)"
             } else {
                 "treated as a gap"
             };
-            let why = if guidance > 0 {
-                "; a guidance sample is needed at every sample by the guidance template"
-            } else {
-                ""
-            };
-            let islands = if islands.is_empty() {
-                String::new()
-            } else {
-                format!(
-                    "; {} row(s) between them are too few for a segment and are left out too: {}",
-                    islands.len(),
-                    describe_rows(&islands, &|i| t[i], None)
-                )
-            };
-            notes.push(format!(
-                "{label}: {} have NaN/null {what} ({}): {action}{why}{islands}",
-                describe_rows(rows, &|i| t[i], Some(step)),
-                names.join(", ")
-            ));
-            k = end;
+            notes.push(hole_note(path, columns, &kept[k..end], position, step));
         }
-        if stretches > NOTE_MAX_RANGES {
-            notes.push(format!(
-                "{label}: {} more stretches of rows with NaN/null samples treated as gaps \
-                 ({} rows with NaN/null samples in all)",
-                stretches - NOTE_MAX_RANGES,
-                hole.iter().filter(|&&h| h).count()
-            ));
+        k = end;
+    }
+    if stretches > NOTE_MAX_RANGES {
+        notes.push(format!(
+            "{}: {} more stretches of rows with NaN/null samples treated as gaps ({} rows with \
+             NaN/null samples in all)",
+            path.display(),
+            stretches - NOTE_MAX_RANGES,
+            hole.iter().filter(|&&h| h).count()
+        ));
+    }
+    Ok(hole)
+}
+
+/// The note of one stretch of hole rows `rows` (file rows): where, which columns, what is done
+/// with them (`action`), and the rows between them too few for a segment.
+fn hole_note(path: &Path, columns: &Columns, rows: &[usize], action: &str, step: f64) -> String {
+    let t = time_of(columns);
+    let mut names: Vec<&str> = Vec::new();
+    let mut islands = Vec::new();
+    for &i in rows {
+        let bad = nan_columns(columns, i);
+        if bad.is_empty() {
+            islands.push(i);
+        }
+        for b in bad {
+            if !names.contains(&b) {
+                names.push(b);
+            }
         }
     }
-    let rows: Vec<usize> = kept
-        .iter()
-        .zip(&hole)
-        .filter(|(_, &h)| !h)
-        .map(|(&i, _)| i)
-        .collect();
-    if rows.len() == n {
-        return Ok((columns, rows));
-    }
-    let columns = columns
-        .into_iter()
-        .map(|(name, c)| (name, rows.iter().map(|&i| c[i]).collect()))
-        .collect();
-    Ok((columns, rows))
+    let order = |name: &&str| columns.iter().position(|(n, _)| n == name);
+    names.sort_by_key(order);
+    let guidance = names.iter().filter(|c| INPUT_COLUMNS.contains(c)).count();
+    let what = match (guidance, names.len() - guidance) {
+        (_, 0) => "guidance",
+        (0, _) => "readouts",
+        _ => "readouts and guidance",
+    };
+    let why = if guidance > 0 {
+        "; a guidance sample is needed at every sample by the guidance template"
+    } else {
+        ""
+    };
+    let islands = if islands.is_empty() {
+        String::new()
+    } else {
+        format!(
+            "; {} row(s) between them are too few for a segment and are left out too: {}",
+            islands.len(),
+            describe_rows(&islands, &|i| t[i], None)
+        )
+    };
+    format!(
+        "{}: {} have NaN/null {what} ({}): {action}{why}{islands}",
+        path.display(),
+        describe_rows(rows, &|i| t[i], Some(step)),
+        names.join(", ")
+    )
 }
 
 /// The median step of a strictly increasing `t` (0 for fewer than 2 samples).

@@ -389,27 +389,19 @@ fn rewrite(path: &Path, f: impl FnOnce(&mut Vec<(String, Vec<f64>)>, &mut Vec<f6
     let mut t = run.time();
     f(&mut cols, &mut t);
     // Write through CSV so that any time column can be expressed.
-    let csv = path.with_extension("csv");
-    let mut text = String::from("t");
-    for (n, _) in &cols {
-        text.push(',');
-        text.push_str(n);
-    }
-    text.push('\n');
-    for (i, ti) in t.iter().enumerate() {
-        text.push_str(&format!("{ti}"));
-        for (_, c) in &cols {
-            text.push_str(&format!(",{:e}", c.get(i).copied().unwrap_or(0.0)));
-        }
-        text.push('\n');
-    }
-    std::fs::write(&csv, text).unwrap();
-    let toml = path.parent().unwrap().join("dataset.toml");
-    let name = path.file_name().unwrap().to_str().unwrap();
-    let body = std::fs::read_to_string(&toml)
-        .unwrap()
-        .replace(name, csv.file_name().unwrap().to_str().unwrap());
-    std::fs::write(&toml, body).unwrap();
+    let names: Vec<&str> = cols.iter().map(|(n, _)| n.as_str()).collect();
+    let rows: Vec<String> = t
+        .iter()
+        .enumerate()
+        .map(|(i, ti)| {
+            let mut line = format!("{ti}");
+            for (_, c) in &cols {
+                line.push_str(&format!(",{:e}", c.get(i).copied().unwrap_or(0.0)));
+            }
+            line
+        })
+        .collect();
+    crate::common::replace_with_csv(path, &names, &rows);
 }
 
 #[test]

@@ -13,35 +13,21 @@ use crate::common::{freefall, ok};
 /// cell's text (None drops the row), and dataset.toml pointed at the CSV.
 fn to_csv(path: &Path, edit: impl Fn(usize, &str, f64) -> Option<String>) {
     let run = read_run(path).unwrap();
-    let t = run.time();
-    let mut text = String::from("t");
-    for (n, _) in &run.columns {
-        text.push(',');
-        text.push_str(n);
-    }
-    text.push('\n');
-    'rows: for (i, ti) in t.iter().enumerate() {
-        let mut line = format!("{ti}");
-        for (n, c) in &run.columns {
-            match edit(i, n, c[i]) {
-                Some(cell) => {
-                    line.push(',');
-                    line.push_str(&cell);
-                }
-                None => continue 'rows,
-            }
-        }
-        text.push_str(&line);
-        text.push('\n');
-    }
-    let csv = path.with_extension("csv");
-    std::fs::write(&csv, text).unwrap();
-    let toml = path.parent().unwrap().join("dataset.toml");
-    let name = path.file_name().unwrap().to_str().unwrap();
-    let body = std::fs::read_to_string(&toml)
-        .unwrap()
-        .replace(name, csv.file_name().unwrap().to_str().unwrap());
-    std::fs::write(&toml, body).unwrap();
+    let names: Vec<&str> = run.columns.iter().map(|(n, _)| n.as_str()).collect();
+    let rows: Vec<String> = run
+        .time()
+        .iter()
+        .enumerate()
+        .filter_map(|(i, ti)| {
+            let cells: Option<Vec<String>> = run
+                .columns
+                .iter()
+                .map(|(n, c)| edit(i, n, c[i]))
+                .collect();
+            cells.map(|c| std::iter::once(format!("{ti}")).chain(c).collect::<Vec<_>>().join(","))
+        })
+        .collect();
+    crate::common::replace_with_csv(path, &names, &rows);
 }
 
 fn copy_dataset(from: &Path, to: &Path) {

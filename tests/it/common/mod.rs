@@ -92,3 +92,26 @@ pub fn added(r: &serde_json::Value) -> Vec<(String, f64, f64, String)> {
         })
         .collect()
 }
+
+/// Replaces the run file `path` of a dataset by a CSV file of the same stem: `t` and the
+/// columns `names`, then `rows` (one line each, without the newline); `dataset.toml` beside it
+/// then names the CSV file. CSV can express any time column and empty (null) fields.
+pub fn replace_with_csv(path: &std::path::Path, names: &[&str], rows: &[String]) {
+    let mut text = std::iter::once("t")
+        .chain(names.iter().copied())
+        .collect::<Vec<_>>()
+        .join(",");
+    text.push('\n');
+    for r in rows {
+        text.push_str(r);
+        text.push('\n');
+    }
+    let csv = path.with_extension("csv");
+    std::fs::write(&csv, text).unwrap();
+    let toml = path.parent().unwrap().join("dataset.toml");
+    let name = path.file_name().unwrap().to_str().unwrap();
+    let body = std::fs::read_to_string(&toml)
+        .unwrap()
+        .replace(name, csv.file_name().unwrap().to_str().unwrap());
+    std::fs::write(&toml, body).unwrap();
+}
