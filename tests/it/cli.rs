@@ -712,3 +712,31 @@ fn completions_and_man_page_are_printed() {
         String::from_utf8_lossy(&o.stderr)
     );
 }
+
+/// An error that carries its cause says it once: a noise run too short for the whitening
+/// filter names the file and the lengths in one line, without repeating itself.
+#[test]
+fn an_error_names_its_cause_once() {
+    let d = tmp();
+    let ds = d.path().join("ds");
+    ok(&[
+        "-q",
+        "simulate",
+        "--seed",
+        "3",
+        "--noise-duration",
+        "5000",
+        "--out",
+        s(&ds),
+    ]);
+    let o = run(&[
+        "fit",
+        s(&ds.join("dataset.toml")),
+        "--out",
+        s(&d.path().join("fit")),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr).to_string();
+    assert!(!o.status.success());
+    assert!(err.contains("noise.parquet"), "{err}");
+    assert_eq!(err.matches("need at least 6000").count(), 1, "{err}");
+}

@@ -177,3 +177,65 @@ fn nan_and_null_rows_fit_like_absent_rows_and_repeats_are_dropped() {
         "{err}"
     );
 }
+
+/// Another library's writer: pyarrow writes the noise run and exp2 twice, once with the rows of
+/// [`HOLE`] removed and once with them kept but null in o1 and o12 (zstd, as a resampling
+/// pipeline would leave them), and pandas writes exp1 with NaN readouts in its first 50 rows
+/// (a late start). Oracle: the fit of the rows-removed files; the null and NaN rows must give it
+/// value for value.
+#[test]
+fn nulls_written_by_pyarrow_and_nan_written_by_pandas_are_holes() {
+    let d = tempfile::tempdir().unwrap();
+    let base = d.path().join("ds");
+    let s = |p: &Path| p.to_str().unwrap().to_string();
+    ok(&["simulate", "--seed", "3", "--out", &s(&base)]);
+    let (absent, null) = (d.path().join("absent"), d.path().join("null"));
+    copy_dataset(&base, &absent);
+    copy_dataset(&base, &null);
+    let script = format!(
+        r#"
+import sys, numpy as np, pandas as pd, pyarrow as pa, pyarrow.compute as pc, pyarrow.parquet as pq
+base, absent, null = sys.argv[1:4]
+lo, hi = {lo}, {hi}
+for run in ["noise", "exp2"]:
+    t = pq.read_table(f"{{base}}/{{run}}.parquet")
+    rows = np.arange(t.num_rows)
+    inside = pa.array((rows >= lo) & (rows < hi))
+    pq.write_table(t.filter(pc.invert(inside)), f"{{absent}}/{{run}}.parquet")
+    for c in ["o1", "o12"]:
+        i = t.schema.get_field_index(c)
+        t = t.set_column(i, c, pc.if_else(inside, pa.scalar(None, pa.float64()), t.column(c)))
+    pq.write_table(t, f"{{null}}/{{run}}.parquet", compression="zstd")
+df = pd.read_parquet(f"{{base}}/exp1.parquet")
+df.iloc[50:].to_parquet(f"{{absent}}/exp1.parquet")
+df.loc[:49, ["o1", "o12"]] = np.nan
+df.to_parquet(f"{{null}}/exp1.parquet")
+"#,
+        lo = HOLE.start,
+        hi = HOLE.end
+    );
+    let o = std::process::Command::new("python3")
+        .args(["-c", &script, &s(&base), &s(&absent), &s(&null)])
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let fit = |ds: &Path, out: &str| {
+        let o = freefall(&[
+            "fit",
+            &s(&ds.join("dataset.toml")),
+            "--out",
+            &s(&d.path().join(out)),
+        ]);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        String::from_utf8_lossy(&o.stderr).to_string()
+    };
+    fit(&absent, "fa");
+    let notes = fit(&null, "fn");
+    for needle in ["noise.parquet", "exp2.parquet", "rows 5000-5099", "exp1.parquet", "rows 0-49"] {
+        assert!(notes.contains(needle), "notes lack '{needle}': {notes}");
+    }
+    assert_eq!(
+        estimates(&d.path().join("fa")),
+        estimates(&d.path().join("fn"))
+    );
+}
