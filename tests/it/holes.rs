@@ -244,6 +244,19 @@ fn sweep_on(src: &Path, work: &Path, cases: Vec<Case>) {
 
 /// The issue's table: a cut at a stretch end, inside a stretch and in a pause; a hole inside a
 /// stretch and one across a stretch edge.
+/// The time-domain dataset of `guidance_rate` (seed 5, guidance point-sampled at 1 Hz, no
+/// `[injections]`), written to `dir/td`.
+fn time_domain_point_sampled(dir: &Path) -> PathBuf {
+    let src = dir.join("td");
+    crate::guidance_rate::write_point_sampled_with(
+        &crate::common::loops::digital_setup(),
+        &src,
+        None,
+        &freefall::sim::time_domain::PlantEffects::default(),
+    );
+    src
+}
+
 fn issue_cases() -> Vec<Case> {
     vec![
         cut("exp1", 7200),
@@ -267,14 +280,7 @@ fn cuts_and_holes_of_the_issue_fit_like_the_full_run() {
 #[test]
 fn cuts_and_holes_of_the_issue_on_time_domain_data_with_point_sampled_guidance() {
     let tmp = tempfile::tempdir().unwrap();
-    let src = tmp.path().join("td");
-    let setup = crate::common::loops::digital_setup();
-    crate::guidance_rate::write_point_sampled_with(
-        &setup,
-        &src,
-        None,
-        &freefall::sim::time_domain::PlantEffects::default(),
-    );
+    let src = time_domain_point_sampled(tmp.path());
     sweep_on(&src, tmp.path(), issue_cases());
 }
 
@@ -292,14 +298,7 @@ fn cuts_every_100_s_and_holes_at_20_places_fit_like_the_full_run() {
 #[ignore = "slow tier: about 400 fits"]
 fn cuts_every_100_s_and_holes_at_20_places_on_time_domain_data() {
     let tmp = tempfile::tempdir().unwrap();
-    let src = tmp.path().join("td");
-    let setup = crate::common::loops::digital_setup();
-    crate::guidance_rate::write_point_sampled_with(
-        &setup,
-        &src,
-        None,
-        &freefall::sim::time_domain::PlantEffects::default(),
-    );
+    let src = time_domain_point_sampled(tmp.path());
     sweep_on(&src, tmp.path(), sweep_cases());
 }
 

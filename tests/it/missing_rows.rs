@@ -45,6 +45,18 @@ fn estimates(dir: &Path) -> Vec<f64> {
     v
 }
 
+/// `freefall fit` of the dataset in `ds` into `out`; its notes (stderr).
+fn fit_notes(ds: &Path, out: &Path) -> String {
+    let o = freefall(&[
+        "fit",
+        ds.join("dataset.toml").to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    String::from_utf8_lossy(&o.stderr).to_string()
+}
+
 const HOLE: std::ops::Range<usize> = 5000..5100;
 fn cell(x: f64) -> String {
     format!("{x:e}")
@@ -97,16 +109,7 @@ fn nan_and_null_rows_fit_like_absent_rows_and_repeats_are_dropped() {
     }
     std::fs::write(&one, doubled).unwrap();
 
-    let fit = |ds: &Path, out: &str| {
-        let o = freefall(&[
-            "fit",
-            &s(&ds.join("dataset.toml")),
-            "--out",
-            &s(&d.path().join(out)),
-        ]);
-        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-        String::from_utf8_lossy(&o.stderr).to_string()
-    };
+    let fit = |ds: &Path, out: &str| fit_notes(ds, &d.path().join(out));
     fit(&absent, "fa");
     let notes = fit(&nan, "fn");
     assert!(
@@ -219,16 +222,7 @@ df.to_parquet(f"{{null}}/exp1.parquet")
         .output()
         .unwrap();
     assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    let fit = |ds: &Path, out: &str| {
-        let o = freefall(&[
-            "fit",
-            &s(&ds.join("dataset.toml")),
-            "--out",
-            &s(&d.path().join(out)),
-        ]);
-        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-        String::from_utf8_lossy(&o.stderr).to_string()
-    };
+    let fit = |ds: &Path, out: &str| fit_notes(ds, &d.path().join(out));
     fit(&absent, "fa");
     let notes = fit(&null, "fn");
     for needle in ["noise.parquet", "exp2.parquet", "rows 5000-5099", "exp1.parquet", "rows 0-49"] {
