@@ -277,11 +277,27 @@ pub fn design_fisher<M: SpecModel<N>, const N: usize>(
     fisher_information(&setup.model, &spectra, p, setup.psd(p))
 }
 
-/// A model file of either kind, for the commands that take both (`--model lpf_xy`).
+/// A model file of any kind, for the commands that take every model (`--model lpf_xy`). Code
+/// that works on it is generic in the model ([`SetupOf`]) and reaches it through
+/// [`with_setup!`](crate::with_setup), the one place that dispatches on the model file's
+/// `model = "..."`.
 #[derive(Debug, Clone)]
 pub enum AnySetup {
     X(Box<Setup>),
     Xy(Box<SetupXy>),
+}
+
+/// `with_setup!(any, s => body)`: `body` with `s` bound to the model's `Box<SetupOf<M, N>>`
+/// (or a reference to it when `any` is a reference), for every kind of model file; `body` is
+/// generic code, compiled once per model. The only match on the model's kind.
+#[macro_export]
+macro_rules! with_setup {
+    ($any:expr, $s:ident => $body:expr) => {
+        match $any {
+            $crate::setup::AnySetup::X($s) => $body,
+            $crate::setup::AnySetup::Xy($s) => $body,
+        }
+    };
 }
 
 impl AnySetup {
@@ -304,43 +320,44 @@ impl AnySetup {
 
     /// A named injection design of the model file ([`SetupOf::design`]).
     pub fn design(&self, name: &str) -> Result<Design, Error> {
-        match self {
-            AnySetup::X(s) => s.design(name),
-            AnySetup::Xy(s) => s.design(name),
-        }
+        with_setup!(self, s => s.design(name))
     }
 
     /// The model's guidance inputs, in column order.
     pub fn input_names(&self) -> Vec<&'static str> {
-        match self {
-            AnySetup::X(s) => s.model.input_names().to_vec(),
-            AnySetup::Xy(s) => s.model.input_names().to_vec(),
-        }
+        with_setup!(self, s => s.model.input_names().to_vec())
     }
 
     /// The same with its loop `kind` instead of the file's.
     pub fn with_loop(self, kind: crate::model::spec::LoopKind) -> Result<Self, Error> {
-        Ok(match self {
-            AnySetup::X(s) => AnySetup::X(Box::new(s.with_loop(kind)?)),
-            AnySetup::Xy(s) => AnySetup::Xy(Box::new(s.with_loop(kind)?)),
-        })
+        Ok(with_setup!(self, s => Box::new(s.with_loop(kind)?).into()))
     }
 
     pub fn spec(&self) -> &ModelSpec {
-        match self {
-            AnySetup::X(s) => &s.spec,
-            AnySetup::Xy(s) => &s.spec,
-        }
+        with_setup!(self, s => &s.spec)
     }
 
-    /// The x model, or an error naming `what` (a command) and the file for the xy model.
+    /// The x model, or an error naming `what` (a command) and the file for another model.
     pub fn x(self, what: &str) -> Result<Setup, Error> {
         match self {
             AnySetup::X(s) => Ok(*s),
-            AnySetup::Xy(s) => Err(Error::Other(format!(
-                "{what} takes the lpf_x model; {} describes lpf_xy",
-                s.spec.origin
+            other => Err(Error::Other(format!(
+                "{what} takes the lpf_x model; {} describes {}",
+                other.spec().origin,
+                other.spec().model.name()
             ))),
         }
+    }
+}
+
+impl From<Box<Setup>> for AnySetup {
+    fn from(s: Box<Setup>) -> Self {
+        AnySetup::X(s)
+    }
+}
+
+impl From<Box<SetupXy>> for AnySetup {
+    fn from(s: Box<SetupXy>) -> Self {
+        AnySetup::Xy(s)
     }
 }

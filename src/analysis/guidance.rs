@@ -16,8 +16,7 @@
 //! column could not carry, reported in a note.
 
 use crate::io::{read_toml, Dataset, Run};
-use crate::model::ClosedLoopModel;
-use crate::setup::Setup;
+use crate::setup::{SetupOf, SpecModel};
 use crate::signal::{Design, Experiment, Stretch};
 use crate::sim::decimated::DecimationGrid;
 
@@ -32,7 +31,10 @@ pub const GUIDANCE_MATCH: f64 = 1e-3;
 
 /// The design a dataset declares: an injection table of the model file, or a design TOML
 /// relative to the dataset file.
-pub fn declared_design(setup: &Setup, ds: &Dataset) -> Result<Option<Design>, AnalysisError> {
+pub fn declared_design<M: SpecModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
+    ds: &Dataset,
+) -> Result<Option<Design>, AnalysisError> {
     let Some(inj) = &ds.injections else {
         return Ok(None);
     };
@@ -117,21 +119,27 @@ struct Recorded<'a> {
     /// Index of the design's experiment.
     e: usize,
     runs: Vec<&'a Run>,
+    /// The model's guidance columns, in its order.
+    columns: &'a [&'a str],
 }
 
 impl Recorded<'_> {
     /// (time, channel values) of every recorded sample.
-    fn samples(&self) -> impl Iterator<Item = (f64, [f64; 2])> + '_ {
+    fn samples(&self) -> impl Iterator<Item = (f64, Vec<f64>)> + '_ {
         self.runs.iter().flat_map(|r| {
-            let [a, b] = r.inputs();
-            (0..r.len()).map(move |k| (r.t0 + k as f64 * r.dt, [a[k], b[k]]))
+            let cols = r.named(self.columns);
+            (0..r.len()).map(move |k| (r.t0 + k as f64 * r.dt, cols.iter().map(|x| x[k]).collect()))
         })
     }
 }
 
 /// The dataset's experiments grouped by name (segments joined), each mapped to the design's
 /// experiment of that name.
-fn recorded<'a>(ds: &'a Dataset, design: &Design) -> Result<Vec<Recorded<'a>>, AnalysisError> {
+fn recorded<'a>(
+    ds: &'a Dataset,
+    design: &Design,
+    columns: &'a [&'a str],
+) -> Result<Vec<Recorded<'a>>, AnalysisError> {
     let mut out: Vec<Recorded<'a>> = Vec::new();
     for (name, run) in &ds.experiments {
         let base = base_name(name);
@@ -154,6 +162,7 @@ fn recorded<'a>(ds: &'a Dataset, design: &Design) -> Result<Vec<Recorded<'a>>, A
             name: base,
             e,
             runs: vec![run],
+            columns,
         });
     }
     Ok(out)
@@ -177,7 +186,7 @@ fn mismatch(design: &Design, recs: &[Recorded], start_s: f64, half: f64) -> Mism
     let mut worst = Mismatch { rel: 0.0, at: None };
     for rec in recs {
         let dt = rec.runs[0].dt;
-        for c in 0..2 {
+        for c in 0..rec.columns.len() {
             let edges: Vec<f64> = edge_times(design, rec.e, c)
                 .into_iter()
                 .map(|t| t + start_s)
@@ -213,7 +222,7 @@ fn squares(design: &Design, recs: &[Recorded], start_s: f64) -> f64 {
     recs.iter()
         .flat_map(|rec| {
             rec.samples().map(move |(t, x)| {
-                (0..2)
+                (0..x.len())
                     .map(|c| (x[c] - design.value(rec.e, c, t - start_s)).powi(2))
                     .sum::<f64>()
             })
@@ -262,13 +271,14 @@ fn best_start(design: &Design, recs: &[Recorded], half: f64) -> Option<(f64, Mis
             .fold(f64::NEG_INFINITY, f64::max);
         let k_of = |t: f64| ((t - t_first) / dt).round() as usize;
         let n = k_of(t_last) + 1;
-        let mut r = [vec![0.0; n], vec![0.0; n]];
+        let mut r = vec![vec![0.0; n]; rec.columns.len()];
         let mut mask = vec![0.0; n];
         for (t, x) in rec.samples() {
             let k = k_of(t);
             mask[k] = 1.0;
-            r[0][k] = x[0];
-            r[1][k] = x[1];
+            for (rc, v) in r.iter_mut().zip(x) {
+                rc[k] = v;
+            }
         }
         let r2: f64 = r.iter().flatten().map(|x| x * x).sum();
         let span = design_span(design, rec.e);
@@ -390,7 +400,7 @@ fn edge_times(design: &Design, e: usize, c: usize) -> Vec<f64> {
 
 /// Where a mismatch is, for messages: "experiment 'exp1' column oi1: recorded .., designed ..
 /// at t = .. s (peak ..)".
-fn describe(m: &Mismatch, columns: [&str; 2]) -> String {
+fn describe(m: &Mismatch, columns: &[&str]) -> String {
     match &m.at {
         Some((name, c, t, r, d, peak)) => format!(
             "experiment '{name}' column {}: recorded {r:.6e}, designed {d:.6e} at t = {t} s \
@@ -403,7 +413,7 @@ fn describe(m: &Mismatch, columns: [&str; 2]) -> String {
 
 /// Samples either side of a stretch edge where a recorded column may differ from the design
 /// (the anti-alias FIR's half-length at the telemetry rate, plus one).
-fn edge_half(setup: &Setup) -> Result<f64, AnalysisError> {
+fn edge_half<M: SpecModel<N>, const N: usize>(setup: &SetupOf<M, N>) -> Result<f64, AnalysisError> {
     let decimator = setup.spec.decimator().map_err(crate::setup::Error::from)?;
     Ok((decimator.edge_samples() + 1) as f64)
 }
@@ -413,12 +423,12 @@ fn edge_half(setup: &Setup) -> Result<f64, AnalysisError> {
 /// declaration leaves it out; without a declaration, a design reconstructed from the recorded
 /// columns. Returns the notes that say so. An explicit `start_s` that the recorded columns do
 /// not match is a one-line error giving the value they match.
-pub fn known_design(
-    setup: &Setup,
+pub fn known_design<M: SpecModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
     ds: &Dataset,
 ) -> Result<(Option<KnownDesign>, Vec<String>), AnalysisError> {
     let half = edge_half(setup)?;
-    let columns = setup.model.input_names();
+    let columns = &setup.model.input_names()[..];
     let Some(design) = declared_design(setup, ds)? else {
         return Ok(match reconstruct(setup, ds, half, true) {
             Ok(None) => (None, Vec::new()),
@@ -435,7 +445,7 @@ pub fn known_design(
             ),
         });
     };
-    let recs = recorded(ds, &design)?;
+    let recs = recorded(ds, &design, columns)?;
     let explicit = ds.injections.as_ref().and_then(|i| i.start_s);
     let best = || best_start(&design, &recs, half);
     let known = |start_s: f64, origin, residual| KnownDesign {
@@ -514,23 +524,23 @@ pub fn known_design(
 /// `Dataset::inputs_with_lead_in` gives them) by the known design's ([`known_design`]),
 /// decimated as the telemetry is; returns the notes. Without a known design, leaves them and
 /// returns notes on their sharp edges, if any.
-pub fn apply_declared_design(
-    setup: &Setup,
+pub fn apply_declared_design<M: SpecModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
     ds: &Dataset,
     inputs: &mut [Vec<Vec<f64>>],
 ) -> Result<Vec<String>, AnalysisError> {
     let (known, mut notes) = known_design(setup, ds)?;
     match known {
         Some(k) => notes.extend(apply_design(setup, ds, &k, inputs)?),
-        None => notes.extend(point_sampled_edges(ds, setup.model.input_names())),
+        None => notes.extend(point_sampled_edges(ds, &setup.model.input_names())),
     }
     Ok(notes)
 }
 
 /// Replaces every experiment's guidance `inputs` (with their lead-ins) by `known`'s design at
 /// the control rate through the telemetry's anti-alias decimation; returns the notes.
-pub fn apply_design(
-    setup: &Setup,
+pub fn apply_design<M: SpecModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
     ds: &Dataset,
     known: &KnownDesign,
     inputs: &mut [Vec<Vec<f64>>],
@@ -580,8 +590,9 @@ pub fn apply_design(
         let half = decimator.edge_samples() + 1;
         let edges = stretch_edges(design, e, first, dt, n_out);
         let mut worst_edge: f64 = 0.0;
-        for (c, (recorded, designed)) in run.inputs().iter().zip(&made).enumerate() {
-            let column = setup.model.input_names()[c];
+        let columns = setup.model.input_names();
+        for (c, (recorded, designed)) in run.named(&columns).iter().zip(&made).enumerate() {
+            let column = columns[c];
             let peak = designed
                 .iter()
                 .chain(recorded.iter())
@@ -629,7 +640,7 @@ pub const RECONSTRUCTED_FILE_NAME: &str = "reconstructed_design.toml";
 impl KnownDesign {
     /// One line on how the design became known and what it is, stretch by stretch when it was
     /// reconstructed.
-    pub fn note(&self, columns: [&str; 2]) -> String {
+    pub fn note(&self, columns: &[&str]) -> String {
         let d = &self.design;
         match self.origin {
             DesignOrigin::Declared => format!(
@@ -898,8 +909,8 @@ fn seen_stretch(
 /// declaration: with `tables`, an injection table of the model file when one matches, else (or
 /// without `tables`) identified stretch by stretch by least squares. `Ok(None)`: no guidance
 /// recorded; `Err`: why none matched.
-pub fn reconstructed_design(
-    setup: &Setup,
+pub fn reconstructed_design<M: SpecModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
     ds: &Dataset,
     tables: bool,
 ) -> Result<Option<KnownDesign>, String> {
@@ -920,19 +931,20 @@ fn round_us(t: f64) -> f64 {
 /// amplitude and phase by least squares. `Ok(None)`: no guidance recorded (or readouts that
 /// respond to the 1 Hz samples themselves, `meta.rate = "analysis"`); `Err`: why no design
 /// matched within [`GUIDANCE_MATCH`] of the peak.
-fn reconstruct(
-    setup: &Setup,
+fn reconstruct<M: SpecModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
     ds: &Dataset,
     half: f64,
     tables: bool,
 ) -> Result<Option<KnownDesign>, String> {
+    let columns = &setup.model.input_names()[..];
     if ds.meta.get("rate").and_then(|v| v.as_str()) == Some("analysis") {
         return Ok(None);
     }
     let groups = groups(ds);
     let any = groups.iter().any(|(_, runs)| {
         runs.iter()
-            .any(|r| r.inputs().iter().any(|x| x.iter().any(|v| *v != 0.0)))
+            .any(|r| r.named(columns).iter().any(|x| x.iter().any(|v| *v != 0.0)))
     });
     if !any {
         return Ok(None);
@@ -941,7 +953,7 @@ fn reconstruct(
         let Ok(design) = setup.design(name) else {
             continue;
         };
-        let Ok(recs) = recorded(ds, &design) else {
+        let Ok(recs) = recorded(ds, &design, columns) else {
             continue;
         };
         if let Some((start_s, m)) = best_start(&design, &recs, half) {
@@ -962,14 +974,14 @@ fn reconstruct(
     let samples = |runs: &[&Run], c: usize| -> Vec<(f64, f64)> {
         runs.iter()
             .flat_map(|r| {
-                let x = r.inputs()[c];
+                let x = r.named(&columns[c..=c])[0];
                 (0..r.len()).map(move |k| (r.t0 + k as f64 * r.dt, x[k]))
             })
             .collect()
     };
     let mut seen = Vec::new();
     for (_, runs) in &groups {
-        for c in 0..2 {
+        for c in 0..columns.len() {
             let xs = samples(runs, c);
             // Clusters of non-zero samples, split by 3 zero samples or a hole.
             let mut k = 0;
@@ -1083,7 +1095,7 @@ fn reconstruct(
     let mut t_end: f64 = 0.0;
     for (name, runs) in &groups {
         let mut inputs = Vec::new();
-        for c in 0..2 {
+        for (c, &column) in columns.iter().enumerate() {
             let xs = samples(runs, c);
             let t_last = xs.last().map_or(t_lo, |p| p.0);
             t_end = t_end.max(t_last + dt);
@@ -1101,7 +1113,7 @@ fn reconstruct(
                     if xs.iter().any(|p| p.0 <= a) && xs.iter().any(|p| p.0 >= b) {
                         return Err(format!(
                             "stretch {a}-{b} s of {name} {} falls in a hole of the run",
-                            setup.model.input_names()[c]
+                            column
                         ));
                     }
                     stretches.push(Stretch {
@@ -1191,13 +1203,13 @@ fn reconstruct(
         experiments,
     };
     design.validate().map_err(|e| e.to_string())?;
-    let recs = recorded(ds, &design).map_err(|e| e.to_string())?;
+    let recs = recorded(ds, &design, columns).map_err(|e| e.to_string())?;
     let m = mismatch(&design, &recs, clock, half);
     if m.rel > GUIDANCE_MATCH {
         return Err(format!(
             "the best windowed sine-train design leaves {:.1e} of the peak ({})",
             m.rel,
-            describe(&m, setup.model.input_names())
+            describe(&m, columns)
         ));
     }
     Ok(Some(KnownDesign {
@@ -1235,40 +1247,48 @@ fn stretch_edges(design: &Design, e: usize, first: f64, dt: f64, n: usize) -> Ve
 /// Times of the sharp stretch edges of every experiment's guidance columns (per experiment,
 /// per column, s from the run's first sample), as [`point_sampled_edges`] names them: none for
 /// data made at the analysis rate (`meta.rate = "analysis"`).
-pub fn sharp_edges(ds: &Dataset) -> Vec<[Vec<f64>; 2]> {
+pub fn sharp_edges(ds: &Dataset) -> Vec<Vec<Vec<f64>>> {
+    sharp_edges_of(ds, &crate::io::run::INPUT_COLUMNS)
+}
+
+/// [`sharp_edges`] of the guidance columns `columns` (a model's, in its order).
+pub fn sharp_edges_of(ds: &Dataset, columns: &[&str]) -> Vec<Vec<Vec<f64>>> {
     let analysis = ds.meta.get("rate").and_then(|v| v.as_str()) == Some("analysis");
     ds.experiments
         .iter()
         .map(|(_, run)| {
-            run.inputs().map(|x| {
-                if analysis {
-                    return Vec::new();
-                }
-                let sharp = |k: usize, dir: isize| {
-                    // `k`: the first non-zero sample after (dir = 1) or before (dir = -1) rest.
-                    let at = |j: isize| x.get((k as isize + dir * j) as usize).copied();
-                    match (at(0), at(1), at(2)) {
-                        (Some(a), Some(b), Some(c2)) => {
-                            a != 0.0 && a.abs() >= EDGE_STEP_RATIO * (c2 - b).abs()
-                        }
-                        _ => false,
+            run.named(columns)
+                .into_iter()
+                .map(|x| {
+                    if analysis {
+                        return Vec::new();
                     }
-                };
-                // The edge is the sample at rest next to the jump: a stretch starts at `k - 1`
-                // and ends at `k + 1`.
-                (1..x.len().saturating_sub(1))
-                    .filter_map(|k| {
-                        if x[k - 1] == 0.0 && sharp(k, 1) {
-                            Some(k - 1)
-                        } else if x[k + 1] == 0.0 && k >= 2 && sharp(k, -1) {
-                            Some(k + 1)
-                        } else {
-                            None
+                    let sharp = |k: usize, dir: isize| {
+                        // `k`: the first non-zero sample after (dir = 1) or before (dir = -1) rest.
+                        let at = |j: isize| x.get((k as isize + dir * j) as usize).copied();
+                        match (at(0), at(1), at(2)) {
+                            (Some(a), Some(b), Some(c2)) => {
+                                a != 0.0 && a.abs() >= EDGE_STEP_RATIO * (c2 - b).abs()
+                            }
+                            _ => false,
                         }
-                    })
-                    .map(|k| k as f64 * run.dt)
-                    .collect()
-            })
+                    };
+                    // The edge is the sample at rest next to the jump: a stretch starts at `k - 1`
+                    // and ends at `k + 1`.
+                    (1..x.len().saturating_sub(1))
+                        .filter_map(|k| {
+                            if x[k - 1] == 0.0 && sharp(k, 1) {
+                                Some(k - 1)
+                            } else if x[k + 1] == 0.0 && k >= 2 && sharp(k, -1) {
+                                Some(k + 1)
+                            } else {
+                                None
+                            }
+                        })
+                        .map(|k| k as f64 * run.dt)
+                        .collect()
+                })
+                .collect()
         })
         .collect()
 }
@@ -1286,9 +1306,9 @@ const EDGE_STEP_RATIO: f64 = 0.5;
 /// full guidance; such a column lacks the edges' content above the telemetry Nyquist frequency,
 /// and so do the templates built from it. Data that `simulate --rate analysis` made
 /// (`meta.rate = "analysis"`) are exempt: their readouts respond to the same 1 Hz samples.
-pub fn point_sampled_edges(ds: &Dataset, columns: [&str; 2]) -> Vec<String> {
+pub fn point_sampled_edges(ds: &Dataset, columns: &[&str]) -> Vec<String> {
     let mut notes = Vec::new();
-    for ((name, run), per_column) in ds.experiments.iter().zip(sharp_edges(ds)) {
+    for ((name, run), per_column) in ds.experiments.iter().zip(sharp_edges_of(ds, columns)) {
         for (c, times) in per_column.into_iter().enumerate() {
             let times: Vec<f64> = times.into_iter().map(|t| run.t0 + t).collect();
             if times.is_empty() {

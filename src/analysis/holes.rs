@@ -37,8 +37,7 @@ use serde::Serialize;
 
 use crate::data::ExperimentData;
 use crate::io::Dataset;
-use crate::model::ClosedLoopModel;
-use crate::setup::Setup;
+use crate::setup::{SetupOf, SpecModel};
 use crate::sim::decimated::DecimationGrid;
 
 use super::{guidance, AnalysisError};
@@ -117,13 +116,17 @@ pub fn continue_smoothly(x: &[f64], n: usize) -> Vec<f64> {
 }
 
 /// Samples excluded at a running end: the anti-alias filter's reach plus [`END_MARGIN`].
-pub fn end_exclusion(setup: &Setup) -> Result<usize, AnalysisError> {
+pub fn end_exclusion<M: SpecModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
+) -> Result<usize, AnalysisError> {
     let decimator = setup.spec.decimator().map_err(crate::setup::Error::from)?;
     Ok(decimator.edge_samples() + 1 + END_MARGIN)
 }
 
 /// The closed loop's slowest time constant [s] at the model's nominal parameters.
-pub fn slowest_time_constant(setup: &Setup) -> Result<f64, AnalysisError> {
+pub fn slowest_time_constant<M: SpecModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
+) -> Result<f64, AnalysisError> {
     let p = setup.spec.nominal();
     let poles = setup.model.poles(&p).map_err(|e| AnalysisError::Guidance {
         file: "model".into(),
@@ -143,8 +146,8 @@ pub fn slowest_time_constant(setup: &Setup) -> Result<f64, AnalysisError> {
 /// `t0` and length stays aligned) and drops experiments left shorter than `min_len`. Returns
 /// the notes and the exclusions. A complete run whose guidance is at rest at both ends is left
 /// as it was.
-pub fn whole_clock(
-    setup: &Setup,
+pub fn whole_clock<M: SpecModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
     ds: &mut Dataset,
     known: Option<&guidance::KnownDesign>,
     data: &mut ExperimentData,
@@ -165,8 +168,9 @@ pub fn whole_clock(
     let n_exp = data.outputs.len();
     data.tails.resize(n_exp, 0);
     let mut drop = vec![false; n_exp];
-    let rest = rest_at_ends(ds, margin);
-    let settle = settle_samples(ds, margin);
+    let columns = setup.model.input_names();
+    let rest = rest_at_ends(ds, &columns, margin);
+    let settle = settle_samples(ds, &columns, margin);
     let known_before = known_before(ds, &rest);
     for e in 0..n_exp {
         if data.inputs.get(e).map_or(0, Vec::len) == 0 {
@@ -242,15 +246,19 @@ fn peak(c: &[f64]) -> f64 {
 /// Whether each piece's recorded guidance is at rest over the telemetry filter's reach
 /// (`margin` samples) at its start and at its end (a pause; a zero crossing of a running sine
 /// is not one).
-fn rest_at_ends(ds: &Dataset, margin: usize) -> Vec<(bool, bool)> {
+fn rest_at_ends(ds: &Dataset, columns: &[&str], margin: usize) -> Vec<(bool, bool)> {
     ds.experiments
         .iter()
         .map(|(_, r)| {
-            let ends = r.inputs().map(|c| {
-                let pk = peak(c);
-                let k = margin.min(c.len());
-                (at_rest(&c[..k], pk), at_rest(&c[c.len() - k..], pk))
-            });
+            let ends: Vec<(bool, bool)> = r
+                .named(columns)
+                .into_iter()
+                .map(|c| {
+                    let pk = peak(c);
+                    let k = margin.min(c.len());
+                    (at_rest(&c[..k], pk), at_rest(&c[c.len() - k..], pk))
+                })
+                .collect();
             (ends.iter().all(|x| x.0), ends.iter().all(|x| x.1))
         })
         .collect()
@@ -261,13 +269,13 @@ fn rest_at_ends(ds: &Dataset, margin: usize) -> Vec<(bool, bool)> {
 /// fewer than [`SETTLE_SAMPLES`]. Cut back to the pause, the piece ends at rest and its
 /// template needs no continuation (a continuation across the knee of a filtered stretch edge
 /// rings: measured 7 sigma on dt1 for exp1 cut at a stretch start).
-fn settle_samples(ds: &Dataset, margin: usize) -> Vec<Option<usize>> {
+fn settle_samples(ds: &Dataset, columns: &[&str], margin: usize) -> Vec<Option<usize>> {
     ds.experiments
         .iter()
         .map(|(_, r)| {
-            let cols = r.inputs();
-            let n = cols[0].len();
-            let peaks = cols.map(|c| peak(c));
+            let cols = r.named(columns);
+            let n = r.len();
+            let peaks: Vec<f64> = cols.iter().map(|c| peak(c)).collect();
             let quiet_until = |end: usize| {
                 cols.iter()
                     .zip(&peaks)
@@ -316,8 +324,8 @@ struct Ends {
 }
 
 /// The settings and the running results of [`whole_clock`].
-struct Clock<'a> {
-    setup: &'a Setup,
+struct Clock<'a, M, const N: usize> {
+    setup: &'a SetupOf<M, N>,
     decimator: crate::spectral::decimate::Decimator,
     margin: usize,
     dt: f64,
@@ -328,7 +336,7 @@ struct Clock<'a> {
     excluded: Vec<Exclusion>,
 }
 
-impl Clock<'_> {
+impl<M: SpecModel<N>, const N: usize> Clock<'_, M, N> {
     /// Experiment `e`'s inputs made from experiment `k` of the known design, from the
     /// design's start to its end on the run's clock (a lead-in and a lead-out where the run
     /// has none).

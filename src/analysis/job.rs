@@ -22,8 +22,8 @@ use crate::io::{
     create_output_dir, ensure_parent, read_dataset, read_run, write_json_atomic, write_parquet,
     Dataset, IoError, Provenance,
 };
-use crate::model::{check_stability, LpfX, ModelError};
-use crate::setup::{Error as SetupError, Setup};
+use crate::model::{check_stability, LpfX, LpfXy, ModelError};
+use crate::setup::{AnySetup, Error as SetupError, Setup, SetupOf, SpecModel};
 use crate::spectral::CrossSpectrum;
 use crate::units::UnitsError;
 
@@ -200,9 +200,9 @@ pub struct Prepared {
 impl DatasetFit {
     /// Reads the dataset at `path` and checks its runs' lengths against the filter; resolves
     /// the starting point and the constraints. The units check is [`DatasetFit::check_units`].
-    pub fn prepare(
+    pub fn prepare<M: SpecModel<N>, const N: usize>(
         &self,
-        setup: &Setup,
+        setup: &SetupOf<M, N>,
         path: &Path,
         notes: Notes<'_>,
     ) -> Result<Prepared, JobError> {
@@ -471,4 +471,132 @@ pub fn write_reconstruction(prep: &Prepared, out: &Path) -> Result<Option<String
             k.start_s
         )
     }))
+}
+
+/// What a fit needs of its model beyond [`SpecModel`]: [`FitModel::fit_job`] runs a
+/// [`FitJob`] on the model. The default is the fit every model has ([`FitJob::run_model`]); the
+/// x model adds start-up transients, the units check, decimated telemetry and the residual
+/// table ([`FitJob::run`]).
+pub trait FitModel<const N: usize>: SpecModel<N> {
+    fn fit_job(
+        job: &FitJob,
+        setup: &SetupOf<Self, N>,
+        path: &Path,
+        out: &Path,
+        notes: Notes<'_>,
+    ) -> Result<FitOutcome, JobError> {
+        job.run_model(setup, path, out, notes)
+    }
+}
+
+impl FitModel<2> for LpfX {
+    fn fit_job(
+        job: &FitJob,
+        setup: &SetupOf<Self, 2>,
+        path: &Path,
+        out: &Path,
+        notes: Notes<'_>,
+    ) -> Result<FitOutcome, JobError> {
+        job.run(setup, path, out, notes)
+    }
+}
+
+impl FitModel<7> for LpfXy {}
+
+impl FitJob {
+    /// Fits the dataset at `path` by the model of `setup` ([`FitModel::fit_job`]).
+    pub fn run_any(
+        &self,
+        setup: &AnySetup,
+        path: &Path,
+        out: &Path,
+        notes: Notes<'_>,
+    ) -> Result<FitOutcome, JobError> {
+        crate::with_setup!(setup, s => FitModel::fit_job(self, &**s, path, out, notes))
+    }
+
+    /// Fits the dataset at `path` by any model and writes estimates.parquet,
+    /// correlation.parquet and fit.json to `out`: the model's readouts and guidance by column
+    /// name (the auxiliary columns of a model with more than the x channels), the MIMO fit and
+    /// whitening in the model's dimension. Start-up transients are refused; the units check,
+    /// decimated telemetry and residuals.parquet (whose table has the x model's two channels)
+    /// are the x model's ([`Self::run`]).
+    pub fn run_model<M: SpecModel<N>, const N: usize>(
+        &self,
+        setup: &SetupOf<M, N>,
+        path: &Path,
+        out: &Path,
+        notes: Notes<'_>,
+    ) -> Result<FitOutcome, JobError> {
+        if self.transient {
+            return Err(JobError::Invalid(format!(
+                "--transient: start-up transients are fitted by the lpf_x model only; \
+                     this is the {} model",
+                M::KIND.name()
+            )));
+        }
+        let prep = self.dataset.prepare(setup, path, notes)?;
+        let (ds, data, guess) = (&prep.ds, &prep.data, &prep.guess);
+        let names = setup.parameter_names();
+        let (order, poly_degree) = (self.dataset.order, self.dataset.poly_degree);
+        check_stability(&setup.model, guess, Some(&setup.spec.nominal()))
+            .map_err(context("the starting point"))?;
+        let readouts = setup.model.readout_names();
+        let noise: Option<Vec<Vec<f64>>> = ds
+            .noise
+            .as_ref()
+            .map(|r| r.named(&readouts).iter().map(|c| c.to_vec()).collect());
+        let (w, source) = match (&noise, self.whitening) {
+            (Some(n), Whitening::Auto | Whitening::Noise) => (
+                Whitener::<N>::from_series(n, order).map_err(context("the noise run"))?,
+                "noise-only run",
+            ),
+            (None, Whitening::Noise) => {
+                return Err(JobError::Invalid(format!(
+                    "--whitening noise: {} has no noise run",
+                    path.display()
+                )))
+            }
+            _ => (
+                setup.whitener_from_model(guess, data.len(), data.dt, order)?,
+                "model noise PSD at the guess",
+            ),
+        };
+        let lik = Likelihood::for_data(&setup.model, data, w, poly_degree)
+            .map_err(context(path.display().to_string()))?;
+        let constraints = &prep.constraints;
+        let mut cfg = constraints.apply(FitConfig::new(&setup.model));
+        cfg.estimator = self.estimator;
+        let res = run_fit(&setup.model, &lik.problem(data)?, guess, &cfg)?;
+        let meta = Provenance::new("fit")
+            .with_model(&setup.spec)
+            .with_dataset(ds)?
+            .meta;
+        let summary = FitSummary::new(
+            &res,
+            self.estimator,
+            source.to_string(),
+            order,
+            poly_degree,
+            meta.clone(),
+        )
+        .with_constraints(&names, &cfg);
+        let summary = FitSummary {
+            excluded: prep.excluded.clone(),
+            ..summary
+        };
+        create_output_dir(out)?;
+        write_reconstruction(&prep, out)?;
+        let est = estimates_table(&names, setup.parameter_units(), &res, guess)?;
+        write_parquet(out.join("estimates.parquet"), &est.with_meta_all(&meta))?;
+        let corr = correlation_table(&names, |i, j| res.correlation[(i, j)])?;
+        write_parquet(out.join("correlation.parquet"), &corr.with_meta_all(&meta))?;
+        write_json_atomic(out.join("fit.json"), &summary)?;
+        let truth = truth_from_meta(ds, &names);
+        Ok(FitOutcome {
+            text: summary.text(&names, &res, guess, truth.as_deref()),
+            summary,
+            terminated: res.termination.converged(),
+        })
+    }
 }

@@ -10,7 +10,6 @@ pub mod coherence;
 pub mod guidance;
 pub mod holes;
 pub mod job;
-mod job_xy;
 pub mod model_tables;
 pub mod noise_bands;
 pub mod residuals;
@@ -23,8 +22,7 @@ use std::path::{Path, PathBuf};
 use crate::data::ExperimentData;
 use crate::fit::Whitener;
 use crate::io::{read_toml, Dataset, IoError, Run};
-use crate::model::ClosedLoopModel;
-use crate::setup::Setup;
+use crate::setup::{Setup, SetupOf, SpecModel};
 
 pub use tables::{
     correlation_table, estimates_table, psd_table, residual_table, whitened_table, FitSummary,
@@ -69,7 +67,10 @@ pub fn outputs_of(run: &Run) -> Vec<Vec<f64>> {
 /// in an injection pause) and, when the dataset declares its design, on the guidance made from
 /// it at the control rate ([`guidance`]).
 /// A design reconstructed from the recorded columns is printed in a note as a design TOML.
-pub fn experiment_data(setup: &Setup, ds: &Dataset) -> Result<(ExperimentData, Vec<String>)> {
+pub fn experiment_data<M: SpecModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
+    ds: &Dataset,
+) -> Result<(ExperimentData, Vec<String>)> {
     let (data, mut notes, known) = experiment_data_known(setup, ds)?;
     if let Some(k) = known.filter(|k| k.origin == guidance::DesignOrigin::Reconstructed) {
         let text = k.to_toml().map_err(|e| AnalysisError::Guidance {
@@ -86,12 +87,15 @@ pub fn experiment_data(setup: &Setup, ds: &Dataset) -> Result<(ExperimentData, V
 
 /// [`experiment_data`] with the design known for the dataset ([`guidance::known_design`]),
 /// for a command to write a reconstructed one into its output folder.
-pub fn experiment_data_known(
-    setup: &Setup,
+pub fn experiment_data_known<M: SpecModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
     ds: &Dataset,
 ) -> Result<(ExperimentData, Vec<String>, Option<guidance::KnownDesign>)> {
     let dt = ds.dt().ok_or(AnalysisError::NoRuns)?;
-    let (mut inputs, mut notes) = ds.inputs_with_lead_in();
+    let (columns, readouts) = (setup.model.input_names(), setup.model.readout_names());
+    ds.require_columns(&columns, M::KIND.name(), false)?;
+    ds.require_columns(&readouts, M::KIND.name(), true)?;
+    let (mut inputs, mut notes) = ds.inputs_with_lead_in_of(&columns);
     let (mut known, design_notes) = guidance::known_design(setup, ds)?;
     notes.extend(design_notes);
     if let Some(k) = &known {
@@ -118,13 +122,17 @@ pub fn experiment_data_known(
         }
     }
     if known.is_none() {
-        notes.extend(guidance::point_sampled_edges(ds, setup.model.input_names()));
+        notes.extend(guidance::point_sampled_edges(ds, &columns));
     }
     let data = ExperimentData {
         tails: Vec::new(),
         names: ds.experiments.iter().map(|(n, _)| n.clone()).collect(),
         inputs,
-        outputs: ds.experiments.iter().map(|(_, r)| outputs_of(r)).collect(),
+        outputs: ds
+            .experiments
+            .iter()
+            .map(|(_, r)| r.named(&readouts).iter().map(|c| c.to_vec()).collect())
+            .collect(),
         dt,
     };
     Ok((data, notes, known))
@@ -144,7 +152,11 @@ pub type WholeClock = (
 /// depends on guidance that is not known (trimmed from `ds` too, so that run times and
 /// lengths stay aligned with the data); pieces shorter than `min_len` are dropped. Returns
 /// the data, the notes and the exclusions.
-pub fn whole_clock_data(setup: &Setup, ds: &mut Dataset, min_len: usize) -> Result<WholeClock> {
+pub fn whole_clock_data<M: SpecModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
+    ds: &mut Dataset,
+    min_len: usize,
+) -> Result<WholeClock> {
     let (mut data, mut notes, known) = experiment_data_known(setup, ds)?;
     let original = ds.clone();
     let (more, excluded) = holes::whole_clock(setup, ds, known.as_ref(), &mut data, min_len)?;

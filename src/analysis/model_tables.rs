@@ -224,10 +224,7 @@ pub struct GridJob {
 impl GridJob {
     /// [`Self::run`] on either model.
     pub fn run_any(&self, setup: &AnySetup, out: &Path) -> Result<usize, JobError> {
-        match setup {
-            AnySetup::X(s) => self.run(&**s, out),
-            AnySetup::Xy(s) => self.run(&**s, out),
-        }
+        crate::with_setup!(setup, s => self.run(&**s, out))
     }
 
     /// Writes the table, with its provenance, to `out`; returns the number of frequencies.
@@ -266,10 +263,7 @@ pub struct FisherJob {
 impl FisherJob {
     /// [`Self::run`] on either model.
     pub fn run_any(&self, setup: &AnySetup, out: &Path) -> Result<(String, PathBuf), JobError> {
-        match setup {
-            AnySetup::X(s) => self.run(&**s, out),
-            AnySetup::Xy(s) => self.run(&**s, out),
-        }
+        crate::with_setup!(setup, s => self.run(&**s, out))
     }
 
     /// Writes the errors to `out` and the correlations to `<stem>_corr.parquet` beside it;

@@ -534,10 +534,12 @@ pub fn run(
 /// The runner of a loaded campaign, for its model (x or xy).
 fn prepare(loaded: &Loaded) -> Result<Box<dyn Jobs + '_>, CampaignError> {
     let (c, scenarios, designs) = (&loaded.campaign, &loaded.scenarios, &loaded.designs);
-    Ok(match &loaded.setup {
-        AnySetup::X(s) => Box::new(Runner::new(s.as_ref(), c, scenarios.clone(), designs)?),
-        AnySetup::Xy(s) => Box::new(Runner::new(s.as_ref(), c, scenarios.clone(), designs)?),
-    })
+    Ok(crate::with_setup!(&loaded.setup, s => Box::new(Runner::new(
+        s.as_ref(),
+        c,
+        scenarios.clone(),
+        designs
+    )?)))
 }
 
 /// What `opts.out` already holds, checked under the lock: a finished run of this campaign and

@@ -43,16 +43,18 @@ use crate::sim::WhitenedSimulator;
 
 use super::spec::Engine;
 
-/// A time-domain cell's parts: the simulator, the decimated guidance telemetry (the
-/// likelihood's inputs), the analysis interval, the whitening filter through the decimator and
-/// a note if it needed a floor.
-pub type TimeDomainParts<const N: usize> = (
-    Box<TimeDomainSimulator>,
-    Vec<Vec<Vec<f64>>>,
-    f64,
-    Whitener<N>,
-    Option<String>,
-);
+/// A time-domain cell's parts, built once per cell.
+pub struct TimeDomainParts<const N: usize> {
+    pub simulator: Box<TimeDomainSimulator>,
+    /// The decimated guidance telemetry: the likelihood's inputs, per experiment and input.
+    pub inputs: Vec<Vec<Vec<f64>>>,
+    /// The analysis interval (s).
+    pub dt: f64,
+    /// The whitening filter of the model PSD folded through the decimator.
+    pub whitener: Whitener<N>,
+    /// A note if the whitening filter needed a white floor at a null of the FIR.
+    pub floor_note: Option<String>,
+}
 
 /// What a campaign needs of its model beyond [`SpecModel`]: the simulators of its cells. The
 /// x model has them all; the xy model has the frequency-domain simulator without glitches (its
@@ -101,7 +103,13 @@ impl CampaignModel<2> for LpfX {
         );
         let (whitener, floor) =
             setup.whitener_through_decimator(p_w, n, dt, order, &td.grid.decimator)?;
-        Ok((Box::new(td), inputs, dt, whitener, floor.map(|f| f.note())))
+        Ok(TimeDomainParts {
+            simulator: Box::new(td),
+            inputs,
+            dt,
+            whitener,
+            floor_note: floor.map(|f| f.note()),
+        })
     }
 }
 
@@ -721,10 +729,14 @@ fn build_cell<'s, M: CampaignModel<N>, const N: usize>(
             (source, inputs, dt, whitener)
         }
         Engine::TimeDomain => {
-            let (td, inputs, dt, whitener, floor) =
-                M::time_domain_parts(setup, d, sc, p_w, order).map_err(ctx)?;
-            note = floor;
-            (Source::Time(td), inputs, dt, whitener)
+            let parts = M::time_domain_parts(setup, d, sc, p_w, order).map_err(ctx)?;
+            note = parts.floor_note;
+            (
+                Source::Time(parts.simulator),
+                parts.inputs,
+                parts.dt,
+                parts.whitener,
+            )
         }
     };
     let lik = Likelihood::new(

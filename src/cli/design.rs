@@ -9,8 +9,9 @@ use super::values::{Choice, Layout, Matrix, Scaling};
 use super::ModelOpt;
 use crate::design::report::{evaluate_design, write_validation};
 use crate::design::validate::{validate as run_validation, Study, ValidationConfig};
-use crate::design::AnyStudy;
+use crate::design::DesignModel;
 use crate::io::{ensure_dir, ensure_parent, read_toml, write_parquet};
+use crate::setup::SetupOf;
 use crate::signal::Design;
 
 #[derive(Debug, Subcommand)]
@@ -97,13 +98,21 @@ pub fn run(c: DesignCmd) -> Result<()> {
 }
 
 fn optimize(a: OptimizeArgs) -> Result<()> {
+    crate::with_setup!(a.study.model.any_setup()?, s => optimize_model(&*s, &a))
+}
+
+/// `design optimize` on the model of `setup`.
+fn optimize_model<M: DesignModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
+    a: &OptimizeArgs,
+) -> Result<()> {
     let (o, out) = (&a.study, &a.out);
     let (sc, pars) = (o.scenario.as_deref(), o.parameters.as_deref());
-    let st = AnyStudy::new(o.model.any_setup()?, sc, o.scaling.into(), pars)?;
+    let st = M::study(setup, sc, o.scaling.into(), pars)?;
     ensure_dir(out)?;
     let crits = crate::design::criteria::Choice::from(a.criterion).criteria(a.on.into());
     let (report, files) = super::working("optimising", |_| {
-        st.write_optimization(a.layout.into(), &crits, out)
+        M::write_optimization(setup, &st, a.layout.into(), &crits, out)
     })?;
     // Printed only once every file is written.
     out!("{report}");

@@ -41,7 +41,8 @@ pub mod xy;
 
 use std::path::Path;
 
-use crate::setup::{AnySetup, Setup, SetupXy};
+use crate::model::{LpfX, LpfXy};
+use crate::setup::{Setup, SetupOf, SetupXy, SpecModel};
 
 pub use criteria::{Criterion, CriterionValues, Evaluation, Matrix, Scaling, Target};
 pub use search::{optimize, Certificate, MethodResult, OptimizeConfig, Optimized};
@@ -100,57 +101,87 @@ pub enum DesignError {
     Io(#[from] crate::io::IoError),
 }
 
-/// A design study of either model (`design optimize --model lpf_x|lpf_xy`).
-pub enum AnyStudy {
-    X(Box<Setup>, Box<validate::Study>),
-    Xy(Box<SetupXy>, Box<xy::XyStudy>),
-}
+/// What a design study needs of its model beyond [`SpecModel`]: its study at a scenario's truth
+/// and the optimisation of every criterion over the model's candidate injections
+/// (`design optimize --model ...`). The x model's study is [`validate::Study`] (the thesis's
+/// experiments, in a [`Layout`]); the xy model's is [`xy::XyStudy`] (y/phi experiments over the
+/// standard x ones).
+pub trait DesignModel<const N: usize>: SpecModel<N> {
+    type Study;
 
-impl AnyStudy {
-    /// The study at `scenario`'s truth (default: [`validate::DEFAULT_SCENARIO`] for the x model,
-    /// [`xy::DEFAULT_SCENARIO`] for the xy model).
-    pub fn new(
-        setup: AnySetup,
+    /// The study at `scenario`'s truth (default: the model's design scenario).
+    fn study(
+        setup: &SetupOf<Self, N>,
         scenario: Option<&str>,
         scaling: Scaling,
         parameters: Option<&[String]>,
-    ) -> Result<AnyStudy, DesignError> {
-        Ok(match setup {
-            AnySetup::X(s) => {
-                let st = validate::Study::at_scenario(&s, scenario, scaling, parameters)?;
-                AnyStudy::X(s, Box::new(st))
-            }
-            AnySetup::Xy(s) => {
-                let st = xy::XyStudy::at_scenario(&s, scenario, scaling, parameters)?;
-                AnyStudy::Xy(s, Box::new(st))
-            }
-        })
+    ) -> Result<Self::Study, DesignError>;
+
+    /// Optimise every criterion of `criteria` and write the study's files to `out` (which must
+    /// exist): the printable report and the main files written.
+    fn write_optimization(
+        setup: &SetupOf<Self, N>,
+        study: &Self::Study,
+        layout: Layout,
+        criteria: &[Criterion],
+        out: &Path,
+    ) -> Result<(String, &'static str), DesignError>;
+}
+
+impl DesignModel<2> for LpfX {
+    type Study = validate::Study;
+
+    fn study(
+        setup: &Setup,
+        scenario: Option<&str>,
+        scaling: Scaling,
+        parameters: Option<&[String]>,
+    ) -> Result<validate::Study, DesignError> {
+        validate::Study::at_scenario(setup, scenario, scaling, parameters)
     }
 
-    /// Optimise every criterion of `criteria` (the x model in `layout`; the xy model over the
-    /// y/phi experiments) and write the study's files to `out` (which must exist): the
-    /// printable report and the main files written.
-    pub fn write_optimization(
-        &self,
+    fn write_optimization(
+        setup: &Setup,
+        study: &validate::Study,
         layout: Layout,
         criteria: &[Criterion],
         out: &Path,
     ) -> Result<(String, &'static str), DesignError> {
-        Ok(match self {
-            AnyStudy::X(s, st) => (
-                report::write_optimization(s, st, layout, criteria, out)?,
-                "designs.parquet and designs/*.toml",
-            ),
-            AnyStudy::Xy(_, _) if layout != Layout::Separate => {
-                return Err(DesignError::Config(format!(
-                    "--layout {} is for the lpf_x model; the lpf_xy design has one experiment per y/phi input",
-                    layout.name()
-                )))
-            }
-            AnyStudy::Xy(s, st) => (
-                xy::write_optimization(s, st, criteria, out)?,
-                "sigmas.parquet and designs/*.toml",
-            ),
-        })
+        Ok((
+            report::write_optimization(setup, study, layout, criteria, out)?,
+            "designs.parquet and designs/*.toml",
+        ))
+    }
+}
+
+impl DesignModel<7> for LpfXy {
+    type Study = xy::XyStudy;
+
+    fn study(
+        setup: &SetupXy,
+        scenario: Option<&str>,
+        scaling: Scaling,
+        parameters: Option<&[String]>,
+    ) -> Result<xy::XyStudy, DesignError> {
+        xy::XyStudy::at_scenario(setup, scenario, scaling, parameters)
+    }
+
+    fn write_optimization(
+        setup: &SetupXy,
+        study: &xy::XyStudy,
+        layout: Layout,
+        criteria: &[Criterion],
+        out: &Path,
+    ) -> Result<(String, &'static str), DesignError> {
+        if layout != Layout::Separate {
+            return Err(DesignError::Config(format!(
+                "--layout {} is for the lpf_x model; the lpf_xy design has one experiment per y/phi input",
+                layout.name()
+            )));
+        }
+        Ok((
+            xy::write_optimization(setup, study, criteria, out)?,
+            "sigmas.parquet and designs/*.toml",
+        ))
     }
 }

@@ -152,6 +152,6 @@ fn stretch_edges(prep: &crate::analysis::job::Prepared) -> Vec<Vec<f64>> {
     }
     crate::analysis::guidance::sharp_edges(&prep.ds)
         .into_iter()
-        .map(|[a, b]| a.into_iter().chain(b).collect())
+        .map(|per_column| per_column.into_iter().flatten().collect())
         .collect()
 }

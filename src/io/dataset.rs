@@ -383,16 +383,22 @@ impl Dataset {
     /// second value) naming the gap; zero-filling it instead would put a step into the modelled
     /// guidance that the loop never saw.
     pub fn inputs_with_lead_in(&self) -> (Vec<Vec<Vec<f64>>>, Vec<String>) {
+        self.inputs_with_lead_in_of(&crate::io::run::INPUT_COLUMNS)
+    }
+
+    /// [`Self::inputs_with_lead_in`] of the guidance columns `names` (a model's, in its
+    /// order); the runs have them ([`Self::require_columns`]).
+    pub fn inputs_with_lead_in_of(&self, names: &[&str]) -> (Vec<Vec<Vec<f64>>>, Vec<String>) {
         let mut notes = Vec::new();
         // The guidance reaches zero at an edge sample `x` (next to the gap) whose neighbour is
         // `y` when it is zero or within about one sample's change of zero (a sine ending at the
         // next sample has `|x| = |x - y| (1 + O(step^2))`; 1.5 leaves room for that).
         let at_rest = |x: f64, y: f64| x == 0.0 || x.abs() <= 1.5 * (x - y).abs();
         let quiet = |a: &Run, b: &Run| {
-            a.inputs().iter().all(|x| match x {
+            a.named(names).iter().all(|x| match x {
                 [.., y, x] => at_rest(*x, *y),
                 _ => false,
-            }) && b.inputs().iter().all(|x| match x {
+            }) && b.named(names).iter().all(|x| match x {
                 [x, y, ..] => at_rest(*x, *y),
                 _ => false,
             })
@@ -402,7 +408,7 @@ impl Dataset {
             .iter()
             .enumerate()
             .map(|(i, (name, run))| {
-                let own = || run.inputs().iter().map(|c| c.to_vec()).collect();
+                let own = || run.named(names).iter().map(|c| c.to_vec()).collect();
                 let Some(seg) = run.segment.as_ref().filter(|s| s.index > 0 && s.index <= i) else {
                     return own();
                 };
@@ -434,10 +440,10 @@ impl Dataset {
                 let start = chain[0].t0;
                 let at = |t0: f64| ((t0 - start) / run.dt).round().max(0.0) as usize;
                 let total = at(run.t0) + run.len();
-                let mut out = vec![vec![0.0; total]; 2];
+                let mut out = vec![vec![0.0; total]; names.len()];
                 for r in chain {
                     let from = at(r.t0);
-                    for (o, x) in out.iter_mut().zip(r.inputs()) {
+                    for (o, x) in out.iter_mut().zip(r.named(names)) {
                         let end = (from + x.len()).min(total);
                         o[from..end].copy_from_slice(&x[..end - from]);
                     }
@@ -446,6 +452,29 @@ impl Dataset {
             })
             .collect();
         (inputs, notes)
+    }
+
+    /// Refuses an experiment (and with `noise`, the noise run) without one of the columns
+    /// `names` that the model `model` reads, with one line naming the run file and the column.
+    pub fn require_columns(&self, names: &[&str], model: &str, noise: bool) -> Result<(), IoError> {
+        let noise = self.noise.iter().filter(|_| noise);
+        let runs = self.experiments.iter().map(|(_, r)| r).chain(noise);
+        for run in runs {
+            for c in names {
+                if run.column(c).is_err() {
+                    return Err(IoError::invalid(
+                        &run.label(),
+                        format!(
+                            "missing column '{c}' (found: {}): the {model} model reads it; \
+                             declare the other degrees of freedom's readouts and guidance in \
+                             [[auxiliary]], as `freefall simulate --model {model}` writes them",
+                            run.column_names().join(", ")
+                        ),
+                    ));
+                }
+            }
+        }
+        Ok(())
     }
 
     /// Refuses an experiment shorter than `min` samples with one line naming the file and

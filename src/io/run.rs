@@ -179,6 +179,14 @@ impl Run {
         INPUT_COLUMNS.map(|n| self.required(n))
     }
 
+    /// The columns `names`, in that order (a model's guidance or readouts by name).
+    ///
+    /// # Panics
+    /// If the run lacks one; [`super::Dataset::require_columns`] refuses such a dataset first.
+    pub fn named(&self, names: &[&str]) -> Vec<&[f64]> {
+        names.iter().map(|n| self.required(n)).collect()
+    }
+
     /// The readouts (o1, o12) [m].
     ///
     /// # Panics
