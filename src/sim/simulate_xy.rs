@@ -25,7 +25,8 @@ use crate::data::{AuxChannel, AuxKind, AuxRole, Auxiliary, ExperimentData};
 use crate::model::closed_loop::{transfer, CMat};
 use crate::model::lpf_xy::LpfXy;
 use crate::model::ClosedLoopModel;
-use crate::setup::{AnySetup, SetupXy};
+use crate::model::LpfX;
+use crate::setup::{AnySetup, SetupOf, SetupXy, SpecModel};
 use crate::sim::experiment::Simulator;
 use crate::sim::rng::stream;
 use crate::sim::{Engine, Rate};
@@ -49,13 +50,29 @@ fn readout_floors(setup: &SetupXy) -> [f64; 7] {
     psd.map(f64::sqrt)
 }
 
+/// What `simulate` needs of its model beyond [`SpecModel`]: the draw of a [`SimulateJob`]'s
+/// dataset. The x model has every engine and effect ([`SimulateJob::run`]); the xy model the
+/// frequency-domain engine at the analysis rate ([`SimulateJob::run_xy`]).
+pub trait SimulateModel<const N: usize>: SpecModel<N> {
+    fn simulate(job: &SimulateJob, setup: &SetupOf<Self, N>) -> Result<Simulated, SimulateError>;
+}
+
+impl SimulateModel<2> for LpfX {
+    fn simulate(job: &SimulateJob, setup: &SetupOf<Self, 2>) -> Result<Simulated, SimulateError> {
+        job.run(setup)
+    }
+}
+
+impl SimulateModel<7> for LpfXy {
+    fn simulate(job: &SimulateJob, setup: &SetupOf<Self, 7>) -> Result<Simulated, SimulateError> {
+        job.run_xy(setup)
+    }
+}
+
 impl SimulateJob {
-    /// Draws the dataset of either model.
+    /// Draws the dataset of the model of `setup` ([`SimulateModel::simulate`]).
     pub fn run_any(&self, setup: &AnySetup) -> Result<Simulated, SimulateError> {
-        match setup {
-            AnySetup::X(s) => self.run(s),
-            AnySetup::Xy(s) => self.run_xy(s),
-        }
+        crate::with_setup!(setup, s => SimulateModel::simulate(self, &**s))
     }
 
     /// Draws the dataset of the xy model; refuses what only the x model simulates.
