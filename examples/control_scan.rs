@@ -61,7 +61,7 @@ fn main() {
                     auxiliary: false,
                     commands,
                 };
-                let s = job.run_xy(&xy_setup).unwrap();
+                let s = job.run_plain(&xy_setup).unwrap();
                 let readouts = s.dataset().unwrap().auxiliary_series();
                 cfg.auxiliary = Some(std::sync::Arc::new(readouts));
                 (s.data, s.noise)

@@ -7,10 +7,11 @@
 //! `decimated_simulator`, `time_domain_simulator`, `SetupOf::plain_simulator`). What the nominal
 //! model lacks is switched on here too: library effects, drifts and glitches in the truth
 //! ([`simulate_with_effects`] and its kin), glitches and lines added to the readouts
-//! ([`inject`], [`glitch`]); [`simulate_job`] (with [`simulate_xy`] for the xy model) is the
-//! `simulate` command's job, a dataset with its `[meta]`.
+//! ([`inject`], [`glitch`]); [`simulate_job`] is the `simulate` command's job, a dataset with
+//! its `[meta]`, for every model (the xy model's loop commands: [`commands`]).
 
 pub mod auxiliary;
+pub mod commands;
 pub mod decimated;
 pub mod experiment;
 mod from_setup;
@@ -19,7 +20,6 @@ pub mod inject;
 pub mod rng;
 mod simulate;
 pub mod simulate_job;
-pub mod simulate_xy;
 pub mod time_domain;
 pub mod transient;
 pub mod whitened;

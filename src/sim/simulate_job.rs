@@ -8,12 +8,14 @@
 
 use super::inject::{apply, EffectSet, Injected};
 use super::{simulate_effect_set, EffectsError};
-use crate::data::ExperimentData;
+use crate::data::{AuxChannel, AuxKind, AuxRole, Auxiliary, ExperimentData};
 use crate::model::effects::Extended;
 use crate::model::spec::{ModelSpec, Scenario};
 use crate::model::{check_stability, ModelError};
-use crate::setup::{Error as SetupError, Setup, SetupOf, SpecModel};
+use crate::model::{ClosedLoopModel, LpfX};
+use crate::setup::{AnySetup, Error as SetupError, Setup, SetupOf, SpecModel};
 use crate::signal::Design;
+use crate::sim::experiment::Simulator;
 use crate::sim::rng::stream;
 use crate::sim::time_domain::{InitialConditions, PlantEffects, TimeDomainError};
 use crate::sim::{Engine, Rate};
@@ -79,8 +81,8 @@ pub struct SimulateJob {
     /// Write the model file's auxiliary readouts (`[auxiliary]`) as extra columns of every run
     /// (implied by an `aux_crosstalk_...` effect).
     pub auxiliary: bool,
-    /// Record the y/phi loops' commands as auxiliary columns of role command (xy model only;
-    /// `simulate_xy`).
+    /// Record the commands of the model's loops beyond the runs' channels as auxiliary columns
+    /// of role command (the xy model's y/phi loops, [`super::commands`]).
     pub commands: bool,
 }
 
@@ -366,4 +368,188 @@ pub(super) fn draw_all(
     seed: u64,
 ) -> Runs {
     (draw(&mut stream(seed, 0)), noise(&mut stream(seed, 1)))
+}
+
+/// The runs' own channels (o1, o12; oi1, oi12): a model's first readouts and inputs. A model's
+/// other readouts and guidance are recorded as auxiliary columns ([`SimulateJob::run_plain`]).
+pub const RUN_CHANNELS: usize = 2;
+
+/// The commands of a model's loops beyond the runs' channels, with their auxiliary channels:
+/// the channels, then every experiment's commands and the noise run's, loop by loop.
+pub type LoopCommands = (Vec<AuxChannel>, crate::sim::commands::Commands);
+
+/// What `simulate` needs of its model beyond [`SpecModel`]: the draw of a [`SimulateJob`]'s
+/// dataset. Every model has the frequency-domain draw at the analysis rate, its channels beyond
+/// the runs' recorded as auxiliary columns ([`SimulateJob::run_plain`], the default); the x
+/// model adds the time-domain engine, the decimated rate, effects and initial conditions
+/// ([`SimulateJob::run`]); a model with loops beyond the runs' channels records their commands
+/// ([`SimulateModel::commands`], `--commands`).
+pub trait SimulateModel<const N: usize>: SpecModel<N> {
+    fn simulate(job: &SimulateJob, setup: &SetupOf<Self, N>) -> Result<Simulated, SimulateError> {
+        job.run_plain(setup)
+    }
+
+    /// The commands of the loops beyond the runs' channels, drawn with the random streams of
+    /// `sim` (experiments) and `nsim` (noise run) at seed `seed`; `None`: the model has none.
+    fn commands(
+        _setup: &SetupOf<Self, N>,
+        _truth: &[f64],
+        _sim: &Simulator<N>,
+        _nsim: &Simulator<N>,
+        _seed: u64,
+    ) -> Result<Option<LoopCommands>, SimulateError> {
+        Ok(None)
+    }
+}
+
+impl SimulateModel<2> for LpfX {
+    fn simulate(job: &SimulateJob, setup: &SetupOf<Self, 2>) -> Result<Simulated, SimulateError> {
+        job.run(setup)
+    }
+}
+
+/// Each readout's own noise floor (one-sided ASD at the analysis Nyquist frequency) from the
+/// model's readout noise sources, declared as the auxiliary readouts' `noise_asd`.
+fn readout_floors<M: SpecModel<N>, const N: usize>(setup: &SetupOf<M, N>) -> [f64; N] {
+    let f = 0.5 * setup.spec.sampling.analyse_hz;
+    let mut psd = [0.0; N];
+    for (_, src, entry) in &setup.noise.sources {
+        if let crate::model::NoiseEntry::Readout(w) = entry {
+            let s = crate::noise::shapes::psd(src, f);
+            for (p, w) in psd.iter_mut().zip(w) {
+                *p += w * w * s;
+            }
+        }
+    }
+    psd.map(f64::sqrt)
+}
+
+/// The runs' channels as the runs, every other readout and guidance input as an auxiliary
+/// channel (metres for a displacement, radians for an angle).
+fn split_runs<M: ClosedLoopModel<N>, const N: usize>(
+    model: &M,
+    floors: [f64; N],
+    all: ExperimentData,
+    noise: &[Vec<f64>],
+) -> (ExperimentData, Auxiliary) {
+    let channel = |name: &str, guidance: bool, noise_asd: Option<f64>| {
+        let kind = if name.contains("phi") {
+            AuxKind::Angle
+        } else {
+            AuxKind::Displacement
+        };
+        AuxChannel {
+            column: name.to_string(),
+            kind,
+            unit: kind.unit().to_string(),
+            role: if guidance {
+                AuxRole::Guidance
+            } else {
+                AuxRole::Readout
+            },
+            noise_asd,
+        }
+    };
+    let channels = (model.readout_names()[RUN_CHANNELS..].iter().enumerate())
+        .map(|(k, n)| channel(n, false, Some(floors[RUN_CHANNELS + k])))
+        .chain((model.input_names()[RUN_CHANNELS..].iter()).map(|n| channel(n, true, None)))
+        .collect();
+    let n_noise = noise.first().map_or(0, Vec::len);
+    let quiet = vec![vec![0.0; n_noise]; N - RUN_CHANNELS];
+    let aux = Auxiliary {
+        channels,
+        experiments: all
+            .outputs
+            .iter()
+            .zip(&all.inputs)
+            .map(|(o, i)| [&o[RUN_CHANNELS..], &i[RUN_CHANNELS..]].concat())
+            .collect(),
+        noise: Some([&noise[RUN_CHANNELS..], &quiet[..]].concat()),
+    };
+    let data = ExperimentData {
+        tails: Vec::new(),
+        names: all.names,
+        inputs: all
+            .inputs
+            .into_iter()
+            .map(|i| i[..RUN_CHANNELS].to_vec())
+            .collect(),
+        outputs: all
+            .outputs
+            .into_iter()
+            .map(|o| o[..RUN_CHANNELS].to_vec())
+            .collect(),
+        dt: all.dt,
+    };
+    (data, aux)
+}
+
+impl SimulateJob {
+    /// Draws the dataset of the model of `setup` ([`SimulateModel::simulate`]).
+    pub fn run_any(&self, setup: &AnySetup) -> Result<Simulated, SimulateError> {
+        crate::with_setup!(setup, s => SimulateModel::simulate(self, &**s))
+    }
+
+    /// Draws the dataset of any model by the frequency-domain engine at the analysis rate
+    /// (`SetupOf::plain_simulator`): the runs' channels as the runs, the model's other readouts
+    /// and guidance as auxiliary columns (`[[auxiliary]]` of dataset.toml), experiments and
+    /// noise run alike, and with `commands` the commands of the model's other loops
+    /// ([`SimulateModel::commands`]). Refuses the engines, rates, effects and initial
+    /// conditions that only the x model's draw has ([`SimulateJob::run`]).
+    pub fn run_plain<M: SimulateModel<N>, const N: usize>(
+        &self,
+        setup: &SetupOf<M, N>,
+    ) -> Result<Simulated, SimulateError> {
+        let refuse = |what: &str| {
+            Err(SimulateError::Effect(format!(
+                "{what}: the {} model ({}) is simulated by the frequency-domain engine at the \
+                 analysis rate, without effects or initial conditions",
+                M::KIND.name(),
+                setup.spec.origin
+            )))
+        };
+        if self.engine == Engine::TimeDomain {
+            return refuse("--engine time-domain");
+        }
+        if self.rate == Some(Rate::Decimated) {
+            return refuse("--rate decimated");
+        }
+        if !self.effects.is_empty() {
+            return refuse("--effect");
+        }
+        if self.initial.is_some() {
+            return refuse("--initial");
+        }
+        let (sc, design, noise_design) = self.plan(setup)?;
+        let sim = setup.plain_simulator(&design, &sc.truth)?;
+        let nsim = setup.plain_simulator(&noise_design, &sc.truth)?;
+        let (all, noise) = draw_all(|r| sim.draw(r), |r| nsim.noise_series(r), self.seed);
+        let (data, mut aux) = split_runs(&setup.model, readout_floors(setup), all, &noise);
+        if self.commands {
+            let Some((channels, (exps, noise_cmd))) =
+                M::commands(setup, &sc.truth, &sim, &nsim, self.seed)?
+            else {
+                return Err(SimulateError::Effect(format!(
+                    "--commands: the {} model ({}) has no loops of other degrees of freedom to \
+                     record commands from",
+                    M::KIND.name(),
+                    setup.spec.origin
+                )));
+            };
+            aux.channels.extend(channels);
+            for (a, c) in aux.experiments.iter_mut().zip(exps) {
+                a.extend(c);
+            }
+            if let Some(n) = aux.noise.as_mut() {
+                n.extend(noise_cmd);
+            }
+        }
+        let noise = noise[..RUN_CHANNELS].to_vec();
+        Ok(Simulated {
+            data,
+            noise,
+            aux,
+            meta: self.meta(&setup.spec, &sc, Rate::Analysis),
+        })
+    }
 }

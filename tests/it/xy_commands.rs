@@ -13,8 +13,8 @@ use freefall::model::lpf_xy::LpfXy;
 use freefall::model::ClosedLoopModel;
 use freefall::setup::{Setup, SetupXy};
 use freefall::sim::auxiliary::{through_loop, Leak};
+use freefall::sim::commands::{command_coefficients, command_response};
 use freefall::sim::simulate_job::SimulateJob;
-use freefall::sim::simulate_xy::{command_coefficients, command_response};
 use freefall::sim::Engine;
 use freefall::spectral::welch::{welch_csd, Detrend, WelchConfig};
 
@@ -114,7 +114,7 @@ fn a_recorded_command_is_its_law_applied_to_its_readout() {
     // shrinks with the bin: worst 1.5 % (uphi1 near 1.4 mHz) with bins of 31 uHz, 7 % with
     // bins of 230 uHz.
     let xy = SetupXy::embedded();
-    let s = job("nominal").run_xy(&xy).unwrap();
+    let s = job("nominal").run_plain(&xy).unwrap();
     let aux_noise = s.aux.noise.as_ref().unwrap();
     // Four segments of 32000 s: bins of 31 uHz, fine against the phi laws' corners (0.4 and
     // 2.4 mHz), across which coarser bins mix the readout's steep spectrum with the law.
