@@ -13,8 +13,9 @@
 //!   grid node, a Fedorov-type exchange, and the multiplicative algorithm for the approximate
 //!   design with its equivalence-theorem certificate (Pukelsheim, "Optimal Design of
 //!   Experiments", Wiley 1993, ch. 5-7 and 12);
-//! - the design on the 7-DOF xy model ([`xy`]): injections on the y and phi inputs ranked for
-//!   the cross-talk coefficients, the standard x experiments held fixed as known information.
+//! - designs added to a fixed design, generic in the model ([`added`]): on the 7-DOF xy model,
+//!   injections on the y and phi inputs ranked for the cross-talk coefficients, the standard x
+//!   experiments held fixed as known information.
 //!
 //! # Amplitude bound: a ratio, not a product
 //! The thesis's eq. "constraints" prints `a = min{T_{oi->o} o_max, T_{oi->fc} f_max}`. A response
@@ -31,13 +32,13 @@
 //! (triangle inequality) and both amplitudes are scaled by the largest common factor that keeps
 //! every constraint.
 
+pub mod added;
 pub mod criteria;
 pub mod redesign;
 pub mod report;
 pub mod search;
 pub mod space;
 pub mod validate;
-pub mod xy;
 
 use std::path::Path;
 
@@ -104,8 +105,8 @@ pub enum DesignError {
 /// What a design study needs of its model beyond [`SpecModel`]: its study at a scenario's truth
 /// and the optimisation of every criterion over the model's candidate injections
 /// (`design optimize --model ...`). The x model's study is [`validate::Study`] (the thesis's
-/// experiments, in a [`Layout`]); the xy model's is [`xy::XyStudy`] (y/phi experiments over the
-/// standard x ones).
+/// experiments, in a [`Layout`]); the xy model's is [`added::AddedStudy`] (y/phi experiments
+/// over the standard x ones).
 pub trait DesignModel<const N: usize>: SpecModel<N> {
     type Study;
 
@@ -155,20 +156,20 @@ impl DesignModel<2> for LpfX {
 }
 
 impl DesignModel<7> for LpfXy {
-    type Study = xy::XyStudy;
+    type Study = added::AddedStudy<LpfXy, 7, { added::XY_CONSTRAINTS }>;
 
     fn study(
         setup: &SetupXy,
         scenario: Option<&str>,
         scaling: Scaling,
         parameters: Option<&[String]>,
-    ) -> Result<xy::XyStudy, DesignError> {
-        xy::XyStudy::at_scenario(setup, scenario, scaling, parameters)
+    ) -> Result<Self::Study, DesignError> {
+        added::AddedStudy::at_scenario(setup, scenario, scaling, parameters)
     }
 
     fn write_optimization(
         setup: &SetupXy,
-        study: &xy::XyStudy,
+        study: &Self::Study,
         layout: Layout,
         criteria: &[Criterion],
         out: &Path,
@@ -180,7 +181,7 @@ impl DesignModel<7> for LpfXy {
             )));
         }
         Ok((
-            xy::write_optimization(setup, study, criteria, out)?,
+            added::write_optimization(setup, study, criteria, out)?,
             "sigmas.parquet and designs/*.toml",
         ))
     }

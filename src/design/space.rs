@@ -30,7 +30,7 @@ pub const CONSTRAINTS: usize = 4;
 
 /// An operating constraint (thesis ch. 5 list; `[constraints]` of the model file). The first
 /// [`CONSTRAINTS`] are the x model's ([`Constraint::ALL`]); the xy model's design adds the y/phi
-/// ones ([`Constraint::ALL_XY`], see [`crate::design::xy`]). The variant order is the index.
+/// ones ([`Constraint::ALL_XY`], see [`crate::design::added`]). The variant order is the index.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Constraint {
     /// `|T_{oi->o1}| a <= o_max_m`.

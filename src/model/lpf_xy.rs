@@ -671,3 +671,12 @@ impl LpfXy {
         out
     }
 }
+
+/// The cross-talk coefficients of thesis sec. 3.5 among the parameter names `all` (the xy
+/// design's default targets).
+pub fn crosstalk_names(all: &[String]) -> Vec<String> {
+    all.iter()
+        .filter(|n| LPF_XY_PARAMETERS[D1_XY..].contains(&n.as_str()))
+        .cloned()
+        .collect()
+}

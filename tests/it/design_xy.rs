@@ -4,9 +4,13 @@
 
 use crate::common;
 
+use freefall::design::added::{marginal, AddedStudy};
 use freefall::design::search::phi_flat;
 use freefall::design::space::ExactDesign;
-use freefall::design::xy::{crosstalk_names, marginal, XyStudy};
+use freefall::model::lpf_xy::crosstalk_names;
+
+/// The xy model's study (y/phi experiments over the standard x ones).
+type XyStudy = AddedStudy<freefall::model::LpfXy, 7, { freefall::design::added::XY_CONSTRAINTS }>;
 use freefall::design::{Criterion, Scaling};
 use freefall::model::ModelSpec;
 use freefall::setup::SetupXy;

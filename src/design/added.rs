@@ -1,5 +1,8 @@
-//! Optimal design (thesis ch. 5) on the 7-DOF xy model (sec. 3.5): injections on the y and phi inputs ranked
-//! for the cross-talk coefficients, with the standard x experiments held fixed.
+//! Designs that add experiments on some of a model's inputs to a fixed design, ranked over the
+//! fixed design's information (thesis ch. 5), generic in the model ([`AddedDesignModel`]: the
+//! inputs, tables, constraints and default targets). The xy model's (sec. 3.5) is the one:
+//! injections on the y and phi inputs ranked for the cross-talk coefficients, with the standard
+//! x experiments held fixed; the rest of these docs describe it.
 //!
 //! # Design space
 //! - **Fixed part** `M0 = P + M_std` ([`CandidateSet::base`]): the model file's priors
@@ -33,7 +36,7 @@
 //!   cross-talk is 0, so `max(|p|, sigma)` is that sigma).
 //!
 //! # Sigmas
-//! [`XyStudy::sigma_table`] gives each parameter's marginal sigma (full formula) for the standard
+//! [`AddedStudy::sigma_table`] gives each parameter's marginal sigma (full formula) for the standard
 //! design alone, standard + `y_phi` and standard + an optimum, from the data alone (Fisher) and
 //! with the priors. The x injections do not move y or phi (the cross-talk acts on x only), so
 //! with the standard design alone the y/phi and cross-talk parameters have *zero* Fisher
@@ -55,39 +58,55 @@ use super::space::{
 };
 use super::{DesignError, Violation};
 use crate::io::{write_parquet, write_toml_atomic, Table};
-use crate::model::lpf_xy::{LpfXy, D1_XY, LPF_XY_PARAMETERS, PHI1, PHI2, PHISC, Y1, Y2};
+use crate::model::lpf_xy::{crosstalk_names, LpfXy, PHI1, PHI2, PHISC, Y1, Y2};
 use crate::model::{check_stability, transfer, ClosedLoopModel};
 use crate::numerics::tol::SAME_TIME;
-use crate::setup::{design_fisher, SetupXy};
+use crate::setup::{design_fisher, SetupOf, SetupXy, SpecModel};
 use crate::signal::Design;
-
-/// Inputs of the xy model.
-pub const XY_INPUTS: usize = 7;
-/// The candidate inputs: y1, y2, phi1, phi2, phiSC.
-pub const AUX_INPUTS: [usize; 5] = [Y1, Y2, PHI1, PHI2, PHISC];
-/// Number of constraints of the xy design.
-pub const XY_CONSTRAINTS: usize = Constraint::ALL_XY.len();
-/// The model file's reference y/phi injections.
-pub const REFERENCE: &str = "y_phi";
-/// Default scenario of the xy design (every kind of cross-talk at 1e-3).
-pub const DEFAULT_SCENARIO: &str = "crosstalk";
 
 type Result<T> = std::result::Result<T, DesignError>;
 
-/// The cross-talk coefficients of thesis sec. 3.5 among `all` (the default targets).
-pub fn crosstalk_names(all: &[String]) -> Vec<String> {
-    all.iter()
-        .filter(|n| LPF_XY_PARAMETERS[D1_XY..].contains(&n.as_str()))
-        .cloned()
-        .collect()
+/// What a study that adds experiments to a fixed design needs of its model: which inputs get
+/// candidate experiments, the model file's tables (the fixed design and the reference), the
+/// operating constraints of a stretch (`R` of them) and the default targets.
+pub trait AddedDesignModel<const N: usize, const R: usize>: SpecModel<N> {
+    /// Short name of the study in reports and design ids (`d-information/<TAG>`).
+    const TAG: &'static str;
+    /// The model file's injection table held fixed, and what its experiments are.
+    const FIXED: &'static str;
+    const FIXED_WHAT: &'static str;
+    /// The model file's table on the added inputs: the candidates' timing and stretch count,
+    /// and the design an optimum must beat.
+    const REFERENCE: &'static str;
+    /// Default scenario of the study.
+    const DEFAULT_SCENARIO: &'static str;
+    /// The inputs that get candidate experiments, one experiment each.
+    const ADDED_INPUTS: &'static [usize];
+    /// The operating constraints, in the order of a [`StretchLimit`]'s gains.
+    const CONSTRAINTS: [Constraint; R];
+    /// What the parameters held known are (the default targets not among a study's targets).
+    const HELD_WHAT: &'static str;
+    /// The constraints' bounds with the constants the responses need.
+    type Bounds: Clone + std::fmt::Debug;
+
+    fn bounds(setup: &SetupOf<Self, N>) -> Result<Self::Bounds>;
+    fn bound(b: &Self::Bounds) -> &[f64; R];
+    /// The limit of a unit stretch on input `c` at `f_hz`, at parameters `p`.
+    fn limit(b: &Self::Bounds, model: &Self, p: &[f64], c: usize, f_hz: f64) -> StretchLimit<R>;
+    /// The default targets among the model's parameters `all`; those that are not a study's
+    /// targets are held at the scenario's values.
+    fn default_targets(all: &[String]) -> Vec<String>;
 }
 
-/// The fitted parameters (indices into `all`): every parameter but the cross-talk coefficients
-/// that are not among `targets`, which are held at the scenario's values.
-pub fn fitted(all: &[String], targets: &[String]) -> Vec<usize> {
-    let crosstalk = crosstalk_names(all);
+/// The fitted parameters (indices into `all`): every parameter but the model's default
+/// targets that are not among `targets`, which are held at the scenario's values.
+pub fn fitted<M: AddedDesignModel<N, R>, const N: usize, const R: usize>(
+    all: &[String],
+    targets: &[String],
+) -> Vec<usize> {
+    let held = M::default_targets(all);
     (0..all.len())
-        .filter(|&i| !crosstalk.contains(&all[i]) || targets.contains(&all[i]))
+        .filter(|&i| !held.contains(&all[i]) || targets.contains(&all[i]))
         .collect()
 }
 
@@ -96,112 +115,44 @@ fn block(m: &DMatrix<f64>, keep: &[usize]) -> DMatrix<f64> {
     DMatrix::from_fn(keep.len(), keep.len(), |a, b| m[(keep[a], keep[b])])
 }
 
-/// The bounds of [`Constraint::ALL_XY`] and the constants the responses need.
-#[derive(Debug, Clone, Copy)]
-struct Bounds {
-    bound: [f64; XY_CONSTRAINTS],
-    m_sc: f64,
-    m_tm: f64,
-    i_sc: f64,
-    i_tm: f64,
-}
-
-impl Bounds {
-    fn of(setup: &SetupXy) -> Result<Bounds> {
-        let spec = &setup.spec;
-        let (c, k) = (&spec.constraints, &spec.constants);
-        let need = |key: &str, v: Option<f64>| {
-            v.filter(|v| v.is_finite() && *v > 0.0).ok_or_else(|| {
-                DesignError::Config(format!(
-                    "{}: key '{key}': required by the xy design, a finite limit > 0 (see src/model/lpf_xy.toml), got {v:?}",
-                    spec.origin
-                ))
-            })
-        };
-        let o_y = need("constraints.o_y_max_m", c.o_y_max_m)?;
-        let o_phi = need("constraints.o_phi_max_rad", c.o_phi_max_rad)?;
-        let o_phisc = need("constraints.o_phisc_max_rad", c.o_phisc_max_rad)?;
-        let torque = need(
-            "constraints.thruster_torque_max_nm",
-            c.thruster_torque_max_nm,
-        )?;
-        let tm_torque = need("constraints.tm_torque_max_nm", c.tm_torque_max_nm)?;
-        let (thr, sus) = (c.thruster_force_max_n, c.suspension_force_max_n);
-        Ok(Bounds {
-            bound: [
-                c.o_max_m, c.o_max_m, thr, sus, o_y, o_y, o_phi, o_phi, o_phisc, thr, torque,
-                tm_torque, tm_torque, sus,
-            ],
-            m_sc: k.m_sc,
-            m_tm: k.m_tm,
-            i_sc: need("constants.sc_inertia_kg_m2", k.sc_inertia_kg_m2)?,
-            i_tm: need("constants.tm_inertia_kg_m2", k.tm_inertia_kg_m2)?,
-        })
-    }
-
-    /// The limit of a unit stretch on input `c` at `f_hz` (responses in [`Constraint::ALL_XY`]
-    /// order; module docs).
-    fn limit(&self, model: &LpfXy, p: &[f64], c: usize, f_hz: f64) -> StretchLimit<XY_CONSTRAINTS> {
-        let pt = model.prepare(f_hz);
-        let tr = transfer(model, &pt, p);
-        let kron = |j: usize| if j == c { 1.0 } else { 0.0 };
-        let u = |j: usize| LpfXy::law_at(&pt, j) * (kron(j) - tr.oi_o[(j, c)]);
-        let t = |r: usize| tr.oi_o[(r, c)].norm();
-        let l = model.big_l;
-        let gain = [
-            t(0),
-            t(1),
-            self.m_sc * tr.oi_fc[(0, c)].norm(),
-            self.m_tm * tr.oi_fc[(1, c)].norm(),
-            t(Y1),
-            t(Y2),
-            t(PHI1),
-            t(PHI2),
-            t(PHISC),
-            self.m_sc * (u(Y1) + u(Y2)).norm() / 2.0,
-            self.i_sc * (u(Y1) - u(Y2)).norm() / l,
-            self.i_tm * u(PHI1).norm(),
-            self.i_tm * u(PHI2).norm(),
-            self.m_tm * 0.5 * l * u(PHISC).norm(),
-        ];
-        StretchLimit::new(f_hz, gain, &self.bound, &Constraint::ALL_XY)
-    }
-}
-
-impl Bounds {
-    /// `design` with each stretch's amplitudes scaled by the largest factor `<= 1` that keeps
-    /// every constraint (triangle bound over the inputs sharing the stretch); frequencies are
-    /// kept, even above `f_max_hz`.
-    fn clip(&self, model: &LpfXy, p: &[f64], design: &Design) -> Design {
-        let mut d = design.clone();
-        d.name = format!("{}_clipped", design.name);
-        for e in &mut d.experiments {
-            for k in 0..e.slots() {
-                let lims: Vec<_> = (e.active_at(k).into_iter())
-                    .map(|(c, s)| (self.limit(model, p, c, s.f_hz), s.amplitude.abs()))
-                    .collect();
-                let lambda = (0..XY_CONSTRAINTS)
-                    .map(|r| {
-                        let resp: f64 = lims.iter().map(|(l, a)| l.gain[r] * a).sum();
-                        self.bound[r] / resp
-                    })
-                    .fold(1.0, f64::min);
-                for s in e.inputs.iter_mut().flatten().filter_map(|v| v.get_mut(k)) {
-                    s.amplitude *= lambda;
-                }
+/// `design` with each stretch's amplitudes scaled by the largest factor `<= 1` that keeps every
+/// constraint (triangle bound over the inputs sharing the stretch); frequencies are kept, even
+/// above `f_max_hz`.
+fn clip<M: AddedDesignModel<N, R>, const N: usize, const R: usize>(
+    bounds: &M::Bounds,
+    model: &M,
+    p: &[f64],
+    design: &Design,
+) -> Design {
+    let bound = M::bound(bounds);
+    let mut d = design.clone();
+    d.name = format!("{}_clipped", design.name);
+    for e in &mut d.experiments {
+        for k in 0..e.slots() {
+            let lims: Vec<_> = (e.active_at(k).into_iter())
+                .map(|(c, s)| (M::limit(bounds, model, p, c, s.f_hz), s.amplitude.abs()))
+                .collect();
+            let lambda = (0..R)
+                .map(|r| {
+                    let resp: f64 = lims.iter().map(|(l, a)| l.gain[r] * a).sum();
+                    bound[r] / resp
+                })
+                .fold(1.0, f64::min);
+            for s in e.inputs.iter_mut().flatten().filter_map(|v| v.get_mut(k)) {
+                s.amplitude *= lambda;
             }
         }
-        d
     }
+    d
 }
 
-/// Everything the xy design needs at one parameter point.
+/// Everything a design added to a fixed design needs at one parameter point.
 #[derive(Debug, Clone)]
-pub struct XyStudy {
+pub struct AddedStudy<M: AddedDesignModel<N, R>, const N: usize, const R: usize> {
     pub p: Vec<f64>,
     pub timing: Timing,
     /// The fitted parameters' names and their indices among the model's parameters: every
-    /// parameter but the cross-talk coefficients that are not targets ([`fitted`]). Every
+    /// parameter but the default targets that are not targets ([`fitted`]). Every
     /// matrix of the study is over these.
     pub parameter_names: Vec<String>,
     pub fitted: Vec<usize>,
@@ -209,49 +160,50 @@ pub struct XyStudy {
     pub f_max_hz: f64,
     /// Highest number of cycles per stretch.
     pub m_max: usize,
-    /// `limits[k][m - 1]`: the limit of `AUX_INPUTS[k]` at `m` cycles.
-    pub limits: Vec<Vec<StretchLimit<XY_CONSTRAINTS>>>,
-    /// `unit[m - 1][k]`: information of a unit stretch of `m` cycles on `AUX_INPUTS[k]`.
+    /// `limits[k][m - 1]`: the limit of `M::ADDED_INPUTS[k]` at `m` cycles.
+    pub limits: Vec<Vec<StretchLimit<R>>>,
+    /// `unit[m - 1][k]`: information of a unit stretch of `m` cycles on `M::ADDED_INPUTS[k]`.
     unit: Vec<Vec<DMatrix<f64>>>,
-    bounds: Bounds,
-    /// The fixed x experiments (`standard`) and their information (full formula).
+    bounds: M::Bounds,
+    /// The fixed experiments (`M::FIXED`) and their information (full formula).
     pub standard: Design,
     pub standard_information: DMatrix<f64>,
     /// The priors' information `diag(prior_sigma^-2)` (0 without a prior).
     pub prior: DMatrix<f64>,
-    /// The model file's y/phi injections (`y_phi`) and the same with every stretch scaled into
-    /// the constraints ([`XyStudy::clip`]): the reference the optimum must beat.
+    /// The model file's injections on the added inputs (`M::REFERENCE`) and the same with every
+    /// stretch scaled into the constraints ([`clip`]): the reference the optimum must beat.
     pub reference: Design,
     pub reference_clipped: Design,
     pub target: Target,
     pub scaling: Scaling,
 }
 
-impl XyStudy {
-    /// The study at a scenario's truth (default [`DEFAULT_SCENARIO`]).
+impl<M: AddedDesignModel<N, R>, const N: usize, const R: usize> AddedStudy<M, N, R> {
+    /// The study at a scenario's truth (default `M::DEFAULT_SCENARIO`).
     pub fn at_scenario(
-        setup: &SetupXy,
+        setup: &SetupOf<M, N>,
         scenario: Option<&str>,
         scaling: Scaling,
         parameters: Option<&[String]>,
-    ) -> Result<XyStudy> {
+    ) -> Result<Self> {
         let p = setup
             .spec
-            .scenario(scenario.unwrap_or(DEFAULT_SCENARIO))?
+            .scenario(scenario.unwrap_or(M::DEFAULT_SCENARIO))?
             .truth;
-        XyStudy::new(setup, &p, scaling, parameters)
+        Self::new(setup, &p, scaling, parameters)
     }
 
-    /// The design space with the `y_phi` table's timing and stretch count, at parameters `p`.
+    /// The design space with the reference table's timing and stretch count, at parameters
+    /// `p`.
     pub fn new(
-        setup: &SetupXy,
+        setup: &SetupOf<M, N>,
         p: &[f64],
         scaling: Scaling,
         parameters: Option<&[String]>,
-    ) -> Result<XyStudy> {
-        let bounds = Bounds::of(setup)?;
-        let standard = setup.design("standard")?;
-        let reference = setup.design(REFERENCE)?;
+    ) -> Result<Self> {
+        let bounds = M::bounds(setup)?;
+        let standard = setup.design(M::FIXED)?;
+        let reference = setup.design(M::REFERENCE)?;
         let slots = reference
             .experiments
             .iter()
@@ -270,21 +222,21 @@ impl XyStudy {
                 setup.spec.origin, f_max_hz, timing.stretch_s
             )));
         }
-        let limits = AUX_INPUTS
+        let limits = M::ADDED_INPUTS
             .iter()
             .map(|&c| {
                 (1..=m_max)
-                    .map(|m| bounds.limit(&setup.model, p, c, m as f64 / timing.stretch_s))
+                    .map(|m| M::limit(&bounds, &setup.model, p, c, m as f64 / timing.stretch_s))
                     .collect()
             })
             .collect();
-        let pairs: Vec<(usize, usize)> = AUX_INPUTS.iter().map(|&c| (c, c)).collect();
+        let pairs: Vec<(usize, usize)> = M::ADDED_INPUTS.iter().map(|&c| (c, c)).collect();
         let all = setup.parameter_names();
         let targets = match parameters {
             Some(t) => t.to_vec(),
-            None => crosstalk_names(&all),
+            None => M::default_targets(&all),
         };
-        let fitted = fitted(&all, &targets);
+        let fitted = fitted::<M, N, R>(&all, &targets);
         let names: Vec<String> = fitted.iter().map(|&i| all[i].clone()).collect();
         let unit = unit_information_pairs(setup, p, &timing, m_max, &pairs)
             .iter()
@@ -306,11 +258,14 @@ impl XyStudy {
         };
         let target = Target::new(&names, &targets, &scales).map_err(|e| {
             DesignError::Config(format!(
-                "{e} (scaling {}: the sigmas of standard + {REFERENCE}; try --scaling natural)",
-                scaling.name()
+                "{e} (scaling {}: the sigmas of {} + {}; try --scaling natural)",
+                scaling.name(),
+                M::FIXED,
+                M::REFERENCE
             ))
         })?;
-        Ok(XyStudy {
+        let reference_clipped = clip(&bounds, &setup.model, p, &reference);
+        Ok(AddedStudy {
             p: p.to_vec(),
             timing,
             parameter_names: names,
@@ -329,18 +284,18 @@ impl XyStudy {
             standard,
             standard_information,
             prior,
-            reference_clipped: bounds.clip(&setup.model, p, &reference),
+            reference_clipped,
             reference,
             target,
             scaling,
         })
     }
 
-    /// One group per y/phi input (`exp_<input>`), each of `timing.slots` stretches drawn from
-    /// the grid at the largest allowed amplitudes, over the fixed standard information.
-    pub fn candidates(&self) -> CandidateSet<XY_INPUTS> {
+    /// One group per added input (`exp_<input>`), each of `timing.slots` stretches drawn from
+    /// the grid at the largest allowed amplitudes, over the fixed information.
+    pub fn candidates(&self) -> CandidateSet<N> {
         let np = self.parameter_names.len();
-        let groups = AUX_INPUTS
+        let groups = M::ADDED_INPUTS
             .iter()
             .enumerate()
             .map(|(k, &c)| Group {
@@ -349,9 +304,9 @@ impl XyStudy {
                 candidates: (1..=self.m_max)
                     .map(|m| {
                         let lim = &self.limits[k][m - 1];
-                        let mut cycles = [None; XY_INPUTS];
+                        let mut cycles = [None; N];
                         cycles[c] = Some(m);
-                        let mut amplitude = [0.0; XY_INPUTS];
+                        let mut amplitude = [0.0; N];
                         amplitude[c] = lim.a_max;
                         let u = &self.unit[m - 1][k];
                         let a2 = lim.a_max * lim.a_max;
@@ -374,9 +329,9 @@ impl XyStudy {
     }
 
     /// The reference's cycles (clamped to the grid) as the starting exact design.
-    pub fn start(&self, set: &CandidateSet<XY_INPUTS>) -> Result<ExactDesign> {
+    pub fn start(&self, set: &CandidateSet<N>) -> Result<ExactDesign> {
         let t = self.timing.stretch_s;
-        let cycles: Vec<Vec<[Option<usize>; XY_INPUTS]>> = AUX_INPUTS
+        let cycles: Vec<Vec<[Option<usize>; N]>> = M::ADDED_INPUTS
             .iter()
             .map(|&c| {
                 let e = self
@@ -392,7 +347,7 @@ impl XyStudy {
                 cyc.resize(self.timing.slots, 1);
                 cyc.iter()
                     .map(|&m| {
-                        let mut a = [None; XY_INPUTS];
+                        let mut a = [None; N];
                         a[c] = Some(m);
                         a
                     })
@@ -402,8 +357,8 @@ impl XyStudy {
         set.choice_of(&cycles)
     }
 
-    /// Optimise `criterion` over the y/phi candidates.
-    pub fn optimize(&self, criterion: Criterion) -> Result<(CandidateSet<XY_INPUTS>, Optimized)> {
+    /// Optimise `criterion` over the added inputs' candidates.
+    pub fn optimize(&self, criterion: Criterion) -> Result<(CandidateSet<N>, Optimized)> {
         let set = self.candidates();
         let start = self.start(&set)?;
         let opt = optimize(&set, &self.target, &OptimizeConfig::new(criterion), &start)?;
@@ -412,7 +367,8 @@ impl XyStudy {
 
     /// Every constraint violation of `design`'s stretches (f above `f_max_hz`, or a response
     /// above its bound under the triangle bound over the inputs sharing a stretch).
-    pub fn violations(&self, setup: &SetupXy, design: &Design) -> Vec<DesignError> {
+    pub fn violations(&self, setup: &SetupOf<M, N>, design: &Design) -> Vec<DesignError> {
+        let bound = M::bound(&self.bounds);
         let mut out = Vec::new();
         for e in &design.experiments {
             for k in 0..e.slots() {
@@ -449,28 +405,29 @@ impl XyStudy {
                     .iter()
                     .map(|(c, s)| {
                         (
-                            self.bounds.limit(&setup.model, &self.p, *c, s.f_hz),
+                            M::limit(&self.bounds, &setup.model, &self.p, *c, s.f_hz),
                             s.amplitude.abs(),
                         )
                     })
                     .collect();
-                let worst = Constraint::ALL_XY
+                let worst = M::CONSTRAINTS
                     .iter()
-                    .map(|r| {
-                        let resp: f64 = lims.iter().map(|(l, a)| l.gain[r.index()] * a).sum();
-                        (resp / self.bounds.bound[r.index()], *r, resp)
+                    .enumerate()
+                    .map(|(k, r)| {
+                        let resp: f64 = lims.iter().map(|(l, a)| l.gain[k] * a).sum();
+                        (resp / bound[k], *r, resp, k)
                     })
                     .max_by(|a, b| a.0.total_cmp(&b.0))
                     .expect("constraints");
                 // Beyond the 1e-6 rounding of the scaled amplitudes.
                 if worst.0 > 1.0 + 1e-6 {
-                    let (ratio, r, resp) = worst;
+                    let (ratio, r, resp, k) = worst;
                     v.constraint = r.name().into();
                     v.detail = format!(
                         "response {resp:.4e} {} exceeds {} = {:.4e} {} by a factor {ratio:.3}; the largest amplitude of {} alone here is {:.4e}",
                         r.unit(),
                         r.key(),
-                        self.bounds.bound[r.index()],
+                        bound[k],
                         r.unit(),
                         self.input_names[c0],
                         lims[0].0.a_max
@@ -485,8 +442,8 @@ impl XyStudy {
 
 pub use crate::numerics::linalg::{marginal, NULL_EIGENVALUE};
 
-/// Per parameter, in the order (a) the standard x design alone, (b) with the `y_phi` table,
-/// (b') with the table clipped to the constraints, (c) with an optimum: the marginal sigmas of
+/// Per parameter, in the order (a) the fixed design alone, (b) with the reference table, (b')
+/// with the table clipped to the constraints, (c) with an optimum: the marginal sigmas of
 /// the data alone ([`marginal`] of the Fisher information, full formula) and with the priors.
 pub struct SigmaTable {
     pub names: Vec<String>,
@@ -494,18 +451,28 @@ pub struct SigmaTable {
     pub posterior: [Vec<f64>; 4],
 }
 
-/// The designs of a [`SigmaTable`], in its order.
-pub const SIGMA_COLUMNS: [&str; 4] = ["standard", "y_phi", "y_phi_clipped", "optimum"];
+/// The designs of a [`SigmaTable`], in its order: the fixed table, the reference, the
+/// reference clipped and the optimum (`standard`, `y_phi`, `y_phi_clipped`, `optimum` for the
+/// xy model).
+pub fn sigma_columns<M: AddedDesignModel<N, R>, const N: usize, const R: usize>() -> [String; 4] {
+    [
+        M::FIXED.to_string(),
+        M::REFERENCE.to_string(),
+        format!("{}_clipped", M::REFERENCE),
+        "optimum".to_string(),
+    ]
+}
 
-impl XyStudy {
-    /// The fixed information `M0`: the priors and the standard x experiments (row-major order
+impl<M: AddedDesignModel<N, R>, const N: usize, const R: usize> AddedStudy<M, N, R> {
+    /// The fixed information `M0`: the priors and the fixed experiments (row-major order
     /// is column-major order: `M0` is symmetric).
     pub fn fixed(&self) -> DMatrix<f64> {
         &self.prior + &self.standard_information
     }
 
-    /// The sigmas of the standard design alone and with `y_phi`, `y_phi` clipped and `optimum`.
-    pub fn sigma_table(&self, setup: &SetupXy, optimum: &Design) -> SigmaTable {
+    /// The sigmas of the fixed design alone and with the reference, the reference clipped and
+    /// `optimum`.
+    pub fn sigma_table(&self, setup: &SetupOf<M, N>, optimum: &Design) -> SigmaTable {
         let with = |d: &Design| {
             &self.standard_information + block(&design_fisher(setup, d, &self.p), &self.fitted)
         };
@@ -522,19 +489,19 @@ impl XyStudy {
         }
     }
 
-    /// `phi(c)` of the priors, standard and `design` (full formula), 0 when singular.
-    pub fn phi_full(&self, setup: &SetupXy, design: &Design, c: Criterion) -> f64 {
+    /// `phi(c)` of the priors, the fixed design and `design` (full formula), 0 when singular.
+    pub fn phi_full(&self, setup: &SetupOf<M, N>, design: &Design, c: Criterion) -> f64 {
         let info = self.fixed() + block(&design_fisher(setup, design, &self.p), &self.fitted);
         Evaluation::new(&info, &self.target).map_or(0.0, |e| e.phi(c))
     }
 }
 
-/// The optimum of every criterion: designs/*.toml (the y/phi experiments), `sigmas.parquet`
+/// The optimum of every criterion: designs/*.toml (the added experiments), `sigmas.parquet`
 /// (per criterion and parameter: the sigmas of [`SigmaTable`] and the certificate) and
 /// the printable report (certificate, methods, injections, the target parameters' sigmas).
-pub fn write_optimization(
-    setup: &SetupXy,
-    st: &XyStudy,
+pub fn write_optimization<M: AddedDesignModel<N, R>, const N: usize, const R: usize>(
+    setup: &SetupOf<M, N>,
+    st: &AddedStudy<M, N, R>,
     criteria: &[Criterion],
     out: &Path,
 ) -> Result<String> {
@@ -543,19 +510,28 @@ pub fn write_optimization(
     let ref_violations = st.violations(setup, &st.reference);
     let _ = writeln!(
         report,
-        "xy design at p = scenario truth; {} fitted parameters (cross-talk not among the targets held known); fixed: priors and standard ({} x experiments); candidates: {} experiments of {} stretches on {}; targets ({}, scaling {}): {}",
+        "{} design at p = scenario truth; {} fitted parameters ({} not among the targets held known); fixed: priors and {} ({} {}); candidates: {} experiments of {} stretches on {}; targets ({}, scaling {}): {}",
+        M::TAG,
         st.fitted.len(),
+        M::HELD_WHAT,
+        M::FIXED,
         st.standard.experiments.len(),
-        AUX_INPUTS.len(),
+        M::FIXED_WHAT,
+        M::ADDED_INPUTS.len(),
         st.timing.slots,
-        AUX_INPUTS.map(|c| st.input_names[c].as_str()).join(", "),
+        M::ADDED_INPUTS
+            .iter()
+            .map(|&c| st.input_names[c].as_str())
+            .collect::<Vec<_>>()
+            .join(", "),
         st.target.s(),
         st.scaling.name(),
         st.target.names.join(", ")
     );
     let _ = writeln!(
         report,
-        "reference {REFERENCE}: {} constraint violation(s){}; clipped to the constraints: {} (frequencies above f_max_hz are kept)",
+        "reference {}: {} constraint violation(s){}; clipped to the constraints: {} (frequencies above f_max_hz are kept)",
+        M::REFERENCE,
         ref_violations.len(),
         ref_violations
             .first()
@@ -565,7 +541,7 @@ pub fn write_optimization(
     let mut rows: Vec<Row> = Vec::new();
     for &c in criteria {
         let (set, opt) = st.optimize(c)?;
-        let id = format!("{}/xy", c.name());
+        let id = format!("{}/{}", c.name(), M::TAG);
         let d = set.to_design_timed(&st.timing, &opt.design, &id);
         write_toml_atomic(
             out.join("designs").join(format!("{}.toml", file_id(&id))),
@@ -574,10 +550,12 @@ pub fn write_optimization(
         let cert = opt.certificate;
         let _ = writeln!(
             report,
-            "{id}: phi = {:.6e} (full formula: optimum {:.6e}, {REFERENCE} {:.6e}, {REFERENCE} clipped {:.6e}); certificate: upper bound {:.6e}, max directional derivative {:.6}, efficiency >= {:.4}; {} violation(s)",
+            "{id}: phi = {:.6e} (full formula: optimum {:.6e}, {} {:.6e}, {} clipped {:.6e}); certificate: upper bound {:.6e}, max directional derivative {:.6}, efficiency >= {:.4}; {} violation(s)",
             opt.phi,
             st.phi_full(setup, &d, c),
+            M::REFERENCE,
             st.phi_full(setup, &st.reference, c),
+            M::REFERENCE,
             st.phi_full(setup, &st.reference_clipped, c),
             cert.upper_bound,
             cert.max_directional_derivative,
@@ -616,7 +594,7 @@ pub fn write_optimization(
                 .map(|r| st.target.indices.contains(&r.1))
                 .collect(),
         )?;
-    for (j, col) in SIGMA_COLUMNS.iter().enumerate() {
+    for (j, col) in sigma_columns::<M, N, R>().iter().enumerate() {
         table = table
             .with_f64(
                 format!("fisher_sigma_{col}"),
@@ -633,22 +611,23 @@ pub fn write_optimization(
 }
 
 /// A row of `sigmas.parquet`: design id, parameter index, Fisher and with-prior sigmas in
-/// [`SIGMA_COLUMNS`] order, efficiency bound.
+/// [`sigma_columns`] order, efficiency bound.
 type Row = (String, usize, [f64; 4], [f64; 4], f64);
 
 /// The targets' lines of the report for the optimum `id`; every parameter's row into `rows`.
-fn sigma_lines(
-    st: &XyStudy,
+fn sigma_lines<M: AddedDesignModel<N, R>, const N: usize, const R: usize>(
+    st: &AddedStudy<M, N, R>,
     tab: &SigmaTable,
     id: &str,
     rows: &mut Vec<Row>,
     cert: super::Certificate,
 ) -> String {
     let mut s = String::new();
+    let plus_ref = format!("+ {}", M::REFERENCE);
     let _ = writeln!(
         s,
         "  {:<11} | Fisher (inf: not identified): {:>8} {:>9} {:>9} {:>9} | with priors: {:>8} {:>9} {:>9} {:>9} | gain",
-        "parameter", "standard", "+ y_phi", "+ clipped", "+ optimum", "standard", "+ y_phi", "+ clipped", "+ optimum"
+        "parameter", M::FIXED, plus_ref, "+ clipped", "+ optimum", M::FIXED, plus_ref, "+ clipped", "+ optimum"
     );
     for (k, n) in tab.names.iter().enumerate() {
         let f = [0, 1, 2, 3].map(|j| tab.fisher[j][k]);
@@ -665,8 +644,11 @@ fn sigma_lines(
     s
 }
 
-/// The y/phi injections of `d`, one line per input (mHz, cycles, amplitude in m or rad).
-fn describe(st: &XyStudy, d: &Design) -> String {
+/// The added injections of `d`, one line per input (mHz, cycles, amplitude in m or rad).
+fn describe<M: AddedDesignModel<N, R>, const N: usize, const R: usize>(
+    st: &AddedStudy<M, N, R>,
+    d: &Design,
+) -> String {
     let mut s = String::new();
     for e in &d.experiments {
         for (c, inp) in e.inputs.iter().enumerate() {
@@ -694,4 +676,120 @@ fn describe(st: &XyStudy, d: &Design) -> String {
         }
     }
     s
+}
+
+/// Inputs of the xy model.
+pub const XY_INPUTS: usize = 7;
+/// The xy model's candidate inputs: y1, y2, phi1, phi2, phiSC.
+pub const AUX_INPUTS: [usize; 5] = [Y1, Y2, PHI1, PHI2, PHISC];
+/// Number of constraints of the xy design.
+pub const XY_CONSTRAINTS: usize = Constraint::ALL_XY.len();
+
+/// The xy model's design (thesis sec. 3.5, module docs): y/phi experiments over the standard x
+/// ones, ranked for the cross-talk coefficients.
+impl AddedDesignModel<XY_INPUTS, XY_CONSTRAINTS> for LpfXy {
+    const TAG: &'static str = "xy";
+    const FIXED: &'static str = "standard";
+    const FIXED_WHAT: &'static str = "x experiments";
+    const REFERENCE: &'static str = "y_phi";
+    /// Every kind of cross-talk at 1e-3.
+    const DEFAULT_SCENARIO: &'static str = "crosstalk";
+    const ADDED_INPUTS: &'static [usize] = &AUX_INPUTS;
+    const CONSTRAINTS: [Constraint; XY_CONSTRAINTS] = Constraint::ALL_XY;
+    const HELD_WHAT: &'static str = "cross-talk";
+    type Bounds = XyBounds;
+
+    fn bounds(setup: &SetupXy) -> Result<XyBounds> {
+        XyBounds::of(setup)
+    }
+
+    fn bound(b: &XyBounds) -> &[f64; XY_CONSTRAINTS] {
+        &b.bound
+    }
+
+    fn limit(
+        b: &XyBounds,
+        model: &LpfXy,
+        p: &[f64],
+        c: usize,
+        f_hz: f64,
+    ) -> StretchLimit<XY_CONSTRAINTS> {
+        b.limit(model, p, c, f_hz)
+    }
+
+    fn default_targets(all: &[String]) -> Vec<String> {
+        crosstalk_names(all)
+    }
+}
+
+/// The xy model's bounds of [`Constraint::ALL_XY`] and the constants the responses need.
+#[derive(Debug, Clone, Copy)]
+pub struct XyBounds {
+    bound: [f64; XY_CONSTRAINTS],
+    m_sc: f64,
+    m_tm: f64,
+    i_sc: f64,
+    i_tm: f64,
+}
+
+impl XyBounds {
+    fn of(setup: &SetupXy) -> Result<XyBounds> {
+        let spec = &setup.spec;
+        let (c, k) = (&spec.constraints, &spec.constants);
+        let need = |key: &str, v: Option<f64>| {
+            v.filter(|v| v.is_finite() && *v > 0.0).ok_or_else(|| {
+                DesignError::Config(format!(
+                    "{}: key '{key}': required by the xy design, a finite limit > 0 (see src/model/lpf_xy.toml), got {v:?}",
+                    spec.origin
+                ))
+            })
+        };
+        let o_y = need("constraints.o_y_max_m", c.o_y_max_m)?;
+        let o_phi = need("constraints.o_phi_max_rad", c.o_phi_max_rad)?;
+        let o_phisc = need("constraints.o_phisc_max_rad", c.o_phisc_max_rad)?;
+        let torque = need(
+            "constraints.thruster_torque_max_nm",
+            c.thruster_torque_max_nm,
+        )?;
+        let tm_torque = need("constraints.tm_torque_max_nm", c.tm_torque_max_nm)?;
+        let (thr, sus) = (c.thruster_force_max_n, c.suspension_force_max_n);
+        Ok(XyBounds {
+            bound: [
+                c.o_max_m, c.o_max_m, thr, sus, o_y, o_y, o_phi, o_phi, o_phisc, thr, torque,
+                tm_torque, tm_torque, sus,
+            ],
+            m_sc: k.m_sc,
+            m_tm: k.m_tm,
+            i_sc: need("constants.sc_inertia_kg_m2", k.sc_inertia_kg_m2)?,
+            i_tm: need("constants.tm_inertia_kg_m2", k.tm_inertia_kg_m2)?,
+        })
+    }
+
+    /// The limit of a unit stretch on input `c` at `f_hz` (responses in [`Constraint::ALL_XY`]
+    /// order; module docs).
+    fn limit(&self, model: &LpfXy, p: &[f64], c: usize, f_hz: f64) -> StretchLimit<XY_CONSTRAINTS> {
+        let pt = model.prepare(f_hz);
+        let tr = transfer(model, &pt, p);
+        let kron = |j: usize| if j == c { 1.0 } else { 0.0 };
+        let u = |j: usize| LpfXy::law_at(&pt, j) * (kron(j) - tr.oi_o[(j, c)]);
+        let t = |r: usize| tr.oi_o[(r, c)].norm();
+        let l = model.big_l;
+        let gain = [
+            t(0),
+            t(1),
+            self.m_sc * tr.oi_fc[(0, c)].norm(),
+            self.m_tm * tr.oi_fc[(1, c)].norm(),
+            t(Y1),
+            t(Y2),
+            t(PHI1),
+            t(PHI2),
+            t(PHISC),
+            self.m_sc * (u(Y1) + u(Y2)).norm() / 2.0,
+            self.i_sc * (u(Y1) - u(Y2)).norm() / l,
+            self.i_tm * u(PHI1).norm(),
+            self.i_tm * u(PHI2).norm(),
+            self.m_tm * 0.5 * l * u(PHISC).norm(),
+        ];
+        StretchLimit::new(f_hz, gain, &self.bound, &Constraint::ALL_XY)
+    }
 }
