@@ -537,8 +537,40 @@ pub fn apply_declared_design<M: SpecModel<N>, const N: usize>(
     Ok(notes)
 }
 
+/// Whether `ds` was simulated at the analysis rate (`[meta] rate = "analysis"`): its readouts
+/// respond to the guidance sampled at the analysis rate itself, not to a control-rate guidance
+/// through the telemetry's anti-alias filter.
+pub fn analysis_rate(ds: &Dataset) -> bool {
+    ds.meta.get("rate").and_then(|v| v.as_str()) == Some("analysis")
+}
+
+/// Experiment `e` of `design` as the dataset's readouts saw it: `n` samples every `dt` from
+/// `first` s on the design's clock, `inputs` columns; at the control rate through the
+/// telemetry's anti-alias decimation, or sampled at `dt` itself for data simulated at the
+/// analysis rate ([`analysis_rate`]).
+pub fn design_guidance(
+    design: &Design,
+    e: usize,
+    inputs: usize,
+    first: f64,
+    (dt, n): (f64, usize),
+    decimator: &crate::spectral::decimate::Decimator,
+    analysis: bool,
+) -> Vec<Vec<f64>> {
+    if analysis {
+        return design.sample(e, inputs, first, dt, n);
+    }
+    let grid = DecimationGrid::with_decimator_samples(n, decimator.clone());
+    design
+        .sample(e, inputs, first + grid.t0, grid.dt_sim, grid.n_sim)
+        .iter()
+        .map(|x| grid.keep(x))
+        .collect()
+}
+
 /// Replaces every experiment's guidance `inputs` (with their lead-ins) by `known`'s design at
-/// the control rate through the telemetry's anti-alias decimation; returns the notes.
+/// the control rate through the telemetry's anti-alias decimation (at the analysis rate for
+/// data simulated there); returns the notes.
 pub fn apply_design<M: SpecModel<N>, const N: usize>(
     setup: &SetupOf<M, N>,
     ds: &Dataset,
@@ -581,12 +613,16 @@ pub fn apply_design<M: SpecModel<N>, const N: usize>(
         let n_out = input.first().map_or(run.len(), Vec::len);
         let lead = n_out - run.len();
         let first = run.t0 - lead as f64 * dt - start_s;
-        let grid = DecimationGrid::with_decimator_samples(n_out, decimator.clone());
-        let made: Vec<Vec<f64>> = design
-            .sample(e, input.len(), first + grid.t0, grid.dt_sim, grid.n_sim)
-            .iter()
-            .map(|x| grid.keep(x))
-            .collect();
+        let analysis = analysis_rate(ds);
+        let made = design_guidance(
+            design,
+            e,
+            input.len(),
+            first,
+            (dt, n_out),
+            &decimator,
+            analysis,
+        );
         let half = decimator.edge_samples() + 1;
         let edges = stretch_edges(design, e, first, dt, n_out);
         let mut worst_edge: f64 = 0.0;
@@ -619,15 +655,24 @@ pub fn apply_design<M: SpecModel<N>, const N: usize>(
             }
         }
         let n_edges: usize = edges.iter().map(Vec::len).sum();
-        notes.push(format!(
-            "{name}: guidance made from {how} '{}' at {} Hz through the \
-             telemetry's anti-alias decimation; the recorded columns differ from it by up to \
-             {worst_edge:.2e} at the {n_edges} stretch edges (content above the telemetry \
-             Nyquist frequency that 1 Hz columns cannot carry), within {GUIDANCE_MATCH:e} of \
-             the peak elsewhere",
-            design.name,
-            1.0 / grid.dt_sim
-        ));
+        notes.push(if analysis {
+            format!(
+                "{name}: guidance made from {how} '{}' at the analysis rate, as the data were \
+                 simulated; the recorded columns differ from it by up to {worst_edge:.2e} at \
+                 the {n_edges} stretch edges, within {GUIDANCE_MATCH:e} of the peak elsewhere",
+                design.name
+            )
+        } else {
+            format!(
+                "{name}: guidance made from {how} '{}' at {} Hz through the \
+                 telemetry's anti-alias decimation; the recorded columns differ from it by up \
+                 to {worst_edge:.2e} at the {n_edges} stretch edges (content above the \
+                 telemetry Nyquist frequency that 1 Hz columns cannot carry), within \
+                 {GUIDANCE_MATCH:e} of the peak elsewhere",
+                design.name,
+                decimator.fs_in()
+            )
+        });
         *input = made;
     }
     Ok(notes)

@@ -38,7 +38,6 @@ use serde::Serialize;
 use crate::data::ExperimentData;
 use crate::io::Dataset;
 use crate::setup::{SetupOf, SpecModel};
-use crate::sim::decimated::DecimationGrid;
 
 use super::{guidance, AnalysisError};
 
@@ -370,13 +369,16 @@ impl<M: SpecModel<N>, const N: usize> Clock<'_, M, N> {
             return;
         }
         let total = new_lead + n + tail;
-        let grid = DecimationGrid::with_decimator_samples(total, self.decimator.clone());
         let first = run_t0 - new_lead as f64 * dt - start_s;
-        let mut made: Vec<Vec<f64>> = design
-            .sample(k, n_in, first + grid.t0, grid.dt_sim, grid.n_sim)
-            .iter()
-            .map(|x| grid.keep(x))
-            .collect();
+        let mut made = guidance::design_guidance(
+            design,
+            k,
+            n_in,
+            first,
+            (dt, total),
+            &self.decimator,
+            guidance::analysis_rate(ds),
+        );
         // Leading and trailing samples at exact rest beyond the run add nothing.
         let zero_at = |i: usize| made.iter().all(|c| c[i] == 0.0);
         let mut cut_front = 0;

@@ -182,7 +182,10 @@ mod tests {
         fwd.process(&mut buf, &mut spec).unwrap();
         for (k, z) in spec.iter().enumerate() {
             let want = if k == k0 { n as f64 / 2.0 } else { 0.0 };
-            assert!((z.re - want).abs() < 1e-12 && z.im.abs() < 1e-12, "bin {k}: {z}");
+            assert!(
+                (z.re - want).abs() < 1e-12 && z.im.abs() < 1e-12,
+                "bin {k}: {z}"
+            );
         }
         let mut back = inv.make_output_vec();
         inv.process(&mut spec, &mut back).unwrap();
@@ -206,7 +209,14 @@ mod tests {
     #[test]
     fn fast_lengths_are_the_next_5_smooth_number() {
         // 5-smooth numbers: 1 2 3 4 5 6 8 9 10 12 15 16 ... 1000 1024 1080.
-        for (min, want) in [(0, 2), (7, 8), (11, 12), (13, 15), (1001, 1024), (1025, 1080)] {
+        for (min, want) in [
+            (0, 2),
+            (7, 8),
+            (11, 12),
+            (13, 15),
+            (1001, 1024),
+            (1025, 1080),
+        ] {
             assert_eq!(fast_len(min), want, "min {min}");
         }
     }
@@ -224,7 +234,11 @@ mod tests {
                 .map(|s| k[s as usize] * r[(s + l) as usize])
                 .sum();
             let idx = l.rem_euclid(len as i64) as usize;
-            assert!((c[idx] - direct).abs() < 1e-12, "lag {l}: {} vs {direct}", c[idx]);
+            assert!(
+                (c[idx] - direct).abs() < 1e-12,
+                "lag {l}: {} vs {direct}",
+                c[idx]
+            );
         }
     }
 

@@ -223,11 +223,7 @@ mod tests {
     #[test]
     fn series_gram_is_the_matrix_of_dot_products() {
         let col = |a: f64, b: f64, c: f64| vec![vec![vec![a, b, c], vec![a - b]], vec![vec![c]]];
-        let j = vec![
-            col(1.0, 0.0, 0.5),
-            col(-2.0, 1.0, 0.0),
-            col(0.0, 3.0, -1.0),
-        ];
+        let j = vec![col(1.0, 0.0, 0.5), col(-2.0, 1.0, 0.0), col(0.0, 3.0, -1.0)];
         let g = series_gram(&j);
         for a in 0..3 {
             for b in 0..3 {

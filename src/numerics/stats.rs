@@ -145,7 +145,9 @@ mod tests {
     #[test]
     fn moments_of_a_symmetric_two_point_series() {
         // +-1 alternating: mean 0, sd 1, skewness 0, excess kurtosis 1 - 3 = -2.
-        let x: Vec<f64> = (0..1000).map(|j| if j % 2 == 0 { 1.0 } else { -1.0 }).collect();
+        let x: Vec<f64> = (0..1000)
+            .map(|j| if j % 2 == 0 { 1.0 } else { -1.0 })
+            .collect();
         let m = moments(&x);
         assert!(m.mean.abs() < 1e-15 && (m.sd - 1.0).abs() < 1e-15);
         assert!(m.skewness.abs() < 1e-12 && (m.excess_kurtosis + 2.0).abs() < 1e-12);
@@ -157,7 +159,9 @@ mod tests {
     #[test]
     fn ljung_box_of_an_alternating_series() {
         let l = 400;
-        let x: Vec<f64> = (0..l).map(|j| if j % 2 == 0 { 1.0 } else { -1.0 }).collect();
+        let x: Vec<f64> = (0..l)
+            .map(|j| if j % 2 == 0 { 1.0 } else { -1.0 })
+            .collect();
         let (q, h, p) = ljung_box(&x, 5);
         let lf = l as f64;
         let want: f64 = (1..=5)

@@ -359,5 +359,8 @@ fn a_transient_and_a_crosstalk_are_claimed_alike_with_the_design_reconstructed_o
     // data of the same seed and leak); a limitation of the diagnosis on decimated data that
     // the guidance does not cause.
     assert_eq!(plain, with);
-    assert!(plain.2 > 0, "the leak is neither claimed nor reported: {plain:?}");
+    assert!(
+        plain.2 > 0,
+        "the leak is neither claimed nor reported: {plain:?}"
+    );
 }

@@ -127,7 +127,12 @@ fn fit(ds: &Path, out: &Path) -> Fit {
     // the rest of `excluded` is guidance that is not known.
     let excluded_s = json["excluded"].as_array().map_or(0.0, |a| {
         a.iter()
-            .filter(|x| !x["reason"].as_str().unwrap().contains("samples between holes"))
+            .filter(|x| {
+                !x["reason"]
+                    .as_str()
+                    .unwrap()
+                    .contains("samples between holes")
+            })
             .map(|x| x["seconds"].as_f64().unwrap())
             .sum::<f64>()
             + 0.0 // an empty sum is -0

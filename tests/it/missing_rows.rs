@@ -19,12 +19,14 @@ fn to_csv(path: &Path, edit: impl Fn(usize, &str, f64) -> Option<String>) {
         .iter()
         .enumerate()
         .filter_map(|(i, ti)| {
-            let cells: Option<Vec<String>> = run
-                .columns
-                .iter()
-                .map(|(n, c)| edit(i, n, c[i]))
-                .collect();
-            cells.map(|c| std::iter::once(format!("{ti}")).chain(c).collect::<Vec<_>>().join(","))
+            let cells: Option<Vec<String>> =
+                run.columns.iter().map(|(n, c)| edit(i, n, c[i])).collect();
+            cells.map(|c| {
+                std::iter::once(format!("{ti}"))
+                    .chain(c)
+                    .collect::<Vec<_>>()
+                    .join(",")
+            })
         })
         .collect();
     crate::common::replace_with_csv(path, &names, &rows);
@@ -225,7 +227,13 @@ df.to_parquet(f"{{null}}/exp1.parquet")
     let fit = |ds: &Path, out: &str| fit_notes(ds, &d.path().join(out));
     fit(&absent, "fa");
     let notes = fit(&null, "fn");
-    for needle in ["noise.parquet", "exp2.parquet", "rows 5000-5099", "exp1.parquet", "rows 0-49"] {
+    for needle in [
+        "noise.parquet",
+        "exp2.parquet",
+        "rows 5000-5099",
+        "exp1.parquet",
+        "rows 0-49",
+    ] {
         assert!(notes.contains(needle), "notes lack '{needle}': {notes}");
     }
     assert_eq!(

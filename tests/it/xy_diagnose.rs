@@ -159,3 +159,63 @@ fn xy_control_with_auxiliary_readouts_claims_nothing() {
     let r = diagnose(&ds, &dir.path().join("d"));
     assert!(added(&r).is_empty(), "control claims {:?}", added(&r));
 }
+
+/// An xy dataset may declare a design of its own model: `[injections] design = "standard_xy"`
+/// (no `start_s`: found by matching) is looked up in lpf_xy.toml's tables, not the x model's.
+/// Oracle: the fit of the same files without the declaration, whose guidance is the recorded
+/// columns. The data were simulated at the analysis rate, so the declared design's guidance is
+/// made at that rate too, which is what the columns hold: the same estimates, value for value
+/// (made through the telemetry's anti-alias filter instead, as for measured data, it moved
+/// a_df by 0.8 sigma and gave dt12 3.2 sigma from the truth). A design of another model's
+/// A design the model's tables lack is refused naming the ones they have.
+#[test]
+fn an_xy_dataset_may_declare_its_models_design() {
+    let dir = tempfile::tempdir().unwrap();
+    let ds = simulate(dir.path(), "sensing_crosstalk", "3", &[]);
+    let fit = |ds: &std::path::Path, out: &str| -> (Vec<f64>, Vec<f64>) {
+        let out = dir.path().join(out);
+        let mut args = vec![
+            "fit",
+            ds.to_str().unwrap(),
+            "--model",
+            "lpf_xy",
+            "--guess",
+            "sensing_crosstalk",
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        for h in HELD {
+            args.extend(["--fix", h]);
+        }
+        ok(&args);
+        let t = freefall::io::read_parquet(out.join("estimates.parquet")).unwrap();
+        let col = |c: &str| t.f64_column(c).unwrap().to_vec();
+        (col("estimate"), col("sigma"))
+    };
+    let plain = fit(&ds, "plain");
+    let text = std::fs::read_to_string(&ds).unwrap();
+    let declare = |design: &str| {
+        text.replacen(
+            "[[experiment]]",
+            &format!("[injections]\ndesign = \"{design}\"\n\n[[experiment]]"),
+            1,
+        )
+    };
+    std::fs::write(&ds, declare("standard_xy")).unwrap();
+    assert_eq!(fit(&ds, "declared"), plain);
+    std::fs::write(&ds, declare("nonesuch")).unwrap();
+    let o = common::freefall(&[
+        "fit",
+        ds.to_str().unwrap(),
+        "--model",
+        "lpf_xy",
+        "--out",
+        dir.path().join("wrong").to_str().unwrap(),
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success());
+    assert!(
+        err.contains("nonesuch") && err.contains("standard_xy"),
+        "{err}"
+    );
+}

@@ -10,7 +10,6 @@
 //! whitened kernels are a few samples long, so positions are close to independent) the
 //! threshold is barely conservative.
 
-
 use crate::model::closed_loop::CMat;
 use crate::model::effects::Extended;
 use crate::numerics::fft::xcorr;
