@@ -994,139 +994,14 @@ fn reconstruct<M: SpecModel<N>, const N: usize>(
     if !any {
         return Ok(None);
     }
-    for name in setup.spec.injections.keys().filter(|_| tables) {
-        let Ok(design) = setup.design(name) else {
-            continue;
-        };
-        let Ok(recs) = recorded(ds, &design, columns) else {
-            continue;
-        };
-        if let Some((start_s, m)) = best_start(&design, &recs, half) {
-            if m.rel <= GUIDANCE_MATCH {
-                return Ok(Some(KnownDesign {
-                    design,
-                    start_s,
-                    origin: DesignOrigin::ModelTable,
-                    residual: m.rel,
-                    fitted: Vec::new(),
-                }));
-            }
+    if tables {
+        if let Some(k) = model_table_match(setup, ds, half) {
+            return Ok(Some(k));
         }
     }
     let dt = groups[0].1[0].dt;
-    let trim = half as usize;
-    // Samples per experiment and channel, and the stretches seen whole.
-    let samples = |runs: &[&Run], c: usize| -> Vec<(f64, f64)> {
-        runs.iter()
-            .flat_map(|r| {
-                let x = r.named(&columns[c..=c])[0];
-                (0..r.len()).map(move |k| (r.t0 + k as f64 * r.dt, x[k]))
-            })
-            .collect()
-    };
-    let mut seen = Vec::new();
-    for (_, runs) in &groups {
-        for c in 0..columns.len() {
-            let xs = samples(runs, c);
-            // Clusters of non-zero samples, split by 3 zero samples or a hole.
-            let mut k = 0;
-            while k < xs.len() {
-                if xs[k].1 == 0.0 {
-                    k += 1;
-                    continue;
-                }
-                let first = k;
-                let mut last = k;
-                let mut zeros = 0;
-                let mut j = k + 1;
-                while j < xs.len() && xs[j].0 - xs[j - 1].0 < 1.5 * dt {
-                    if xs[j].1 == 0.0 {
-                        zeros += 1;
-                        if zeros >= 3 {
-                            break;
-                        }
-                    } else {
-                        zeros = 0;
-                        last = j;
-                    }
-                    j += 1;
-                }
-                // Whole: a zero sample recorded right before and right after.
-                let quiet_before = first > 0 && xs[first].0 - xs[first - 1].0 < 1.5 * dt;
-                let quiet_after = last + 1 < xs.len()
-                    && xs[last + 1].0 - xs[last].0 < 1.5 * dt
-                    && xs[last + 1].1 == 0.0;
-                if quiet_before && quiet_after {
-                    // The cluster with the quiet samples around it.
-                    let mut lo = first;
-                    while lo > 0 && first - lo < trim + 3 && xs[lo].0 - xs[lo - 1].0 < 1.5 * dt {
-                        lo -= 1;
-                    }
-                    let mut hi = last;
-                    while hi + 1 < xs.len()
-                        && hi - last < trim + 3
-                        && xs[hi + 1].0 - xs[hi].0 < 1.5 * dt
-                    {
-                        hi += 1;
-                    }
-                    if let Some(s) = seen_stretch(&xs[lo..=hi], first - lo, last - lo, dt, trim) {
-                        seen.push(s);
-                    }
-                }
-                k = last + 1;
-            }
-        }
-    }
-    if seen.is_empty() {
-        return Err("no stretch is recorded whole, between two pauses".into());
-    }
-    let mut lengths: Vec<f64> = seen.iter().map(|s| s.length).collect();
-    lengths.sort_by(f64::total_cmp);
-    let length = round_us(lengths[lengths.len() / 2]);
-    let mut starts: Vec<f64> = seen.iter().map(|s| s.start).collect();
-    starts.sort_by(f64::total_cmp);
-    starts.dedup_by(|a, b| (*a - *b).abs() < 0.5 * dt);
-    let first = starts[0];
-    let period = starts
-        .windows(2)
-        .map(|w| w[1] - w[0])
-        .fold(f64::INFINITY, f64::min);
-    let (first, period) = if period.is_finite() {
-        // Least squares of start = first + n period over the stretches seen.
-        let ns: Vec<f64> = starts
-            .iter()
-            .map(|s| ((s - first) / period).round())
-            .collect();
-        for (s, n) in starts.iter().zip(&ns) {
-            if (s - first - n * period).abs() > 0.1 * dt {
-                return Err(format!(
-                    "the stretches seen start at {} s, not on a common period",
-                    starts
-                        .iter()
-                        .map(|s| format!("{:.3}", s))
-                        .collect::<Vec<_>>()
-                        .join(", ")
-                ));
-            }
-        }
-        let k = ns.len() as f64;
-        let (sn, ss, snn, sns) = ns
-            .iter()
-            .zip(&starts)
-            .fold((0.0, 0.0, 0.0, 0.0), |a, (n, s)| {
-                (a.0 + n, a.1 + s, a.2 + n * n, a.3 + n * s)
-            });
-        let det = k * snn - sn * sn;
-        let p = (k * sns - sn * ss) / det;
-        (round_us((ss - p * sn) / k), round_us(p))
-    } else {
-        (round_us(first), length)
-    };
-    if period < length - 1e-6 {
-        return Err(format!(
-            "stretches of {length} s recur every {period} s: they would overlap"
-        ));
-    }
+    let seen = stretches_seen(&groups, columns, dt, half as usize);
+    let (first, period, length) = common_timing(&seen, dt)?;
     // Slots touching the recorded samples: from the earliest one with a sample inside.
     let t_lo = groups
         .iter()
@@ -1141,13 +1016,14 @@ fn reconstruct<M: SpecModel<N>, const N: usize>(
     for (name, runs) in &groups {
         let mut inputs = Vec::new();
         for (c, &column) in columns.iter().enumerate() {
-            let xs = samples(runs, c);
+            let xs = channel_samples(runs, columns, c);
             let t_last = xs.last().map_or(t_lo, |p| p.0);
             t_end = t_end.max(t_last + dt);
             let mut stretches = Vec::new();
             let mut n = 0;
             while slot_start(n) < t_last {
                 let (a, b) = (slot_start(n), slot_start(n) + length);
+                n += 1;
                 let inside: Vec<(f64, f64)> = xs
                     .iter()
                     .copied()
@@ -1161,59 +1037,25 @@ fn reconstruct<M: SpecModel<N>, const N: usize>(
                             column
                         ));
                     }
-                    stretches.push(Stretch {
-                        f_hz: 0.0,
-                        amplitude: 0.0,
-                    });
-                    n += 1;
-                    continue;
                 }
                 if inside.iter().all(|p| p.1 == 0.0) {
                     stretches.push(Stretch {
                         f_hz: 0.0,
                         amplitude: 0.0,
                     });
-                    n += 1;
                     continue;
                 }
-                let top = (length / (2.0 * dt)).floor().max(1.0) as usize;
-                let best = (1..=top)
-                    .map(|m| {
-                        let f = m as f64 / length;
-                        let (amp, _, res) = sine_fit(&inside, f, a);
-                        (m, amp, res)
-                    })
-                    .min_by(|x, y| x.2.total_cmp(&y.2))
-                    .map(|(m, _, _)| m)
-                    .unwrap_or(1);
-                let f_hz = best as f64 / length;
-                // The design class has no phase: the amplitude of sin(w (t - start)) alone.
-                let w = 2.0 * std::f64::consts::PI * f_hz;
-                let (num, den) = inside.iter().fold((0.0, 0.0), |acc, (t, x)| {
-                    let s = (w * (t - a)).sin();
-                    (acc.0 + x * s, acc.1 + s * s)
-                });
-                let amp = if den > 0.0 { num / den } else { 0.0 };
-                let (sa, cb, _) = sine_fit(&inside, f_hz, a);
-                let phase = if sa < 0.0 {
-                    (-cb).atan2(-sa)
-                } else {
-                    cb.atan2(sa)
-                };
+                let (stretch, phase) = fit_stretch(&inside, a, length, dt);
                 fitted.push(FittedStretch {
                     experiment: name.to_string(),
                     channel: c,
                     start: a,
                     end: b,
-                    f_hz,
-                    amplitude: amp,
+                    f_hz: stretch.f_hz,
+                    amplitude: stretch.amplitude,
                     phase,
                 });
-                stretches.push(Stretch {
-                    f_hz,
-                    amplitude: amp,
-                });
-                n += 1;
+                stretches.push(stretch);
             }
             while stretches.last().is_some_and(|s| s.amplitude == 0.0) {
                 stretches.pop();
@@ -1264,6 +1106,195 @@ fn reconstruct<M: SpecModel<N>, const N: usize>(
         residual: m.rel,
         fitted,
     }))
+}
+
+/// The first design of the model file's injection tables that matches the recorded columns
+/// within [`GUIDANCE_MATCH`] at its best start ([`best_start`]).
+fn model_table_match<M: SpecModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
+    ds: &Dataset,
+    half: f64,
+) -> Option<KnownDesign> {
+    let columns = &setup.model.input_names()[..];
+    for name in setup.spec.injections.keys() {
+        let Ok(design) = setup.design(name) else {
+            continue;
+        };
+        let Ok(recs) = recorded(ds, &design, columns) else {
+            continue;
+        };
+        if let Some((start_s, m)) = best_start(&design, &recs, half) {
+            if m.rel <= GUIDANCE_MATCH {
+                return Some(KnownDesign {
+                    design,
+                    start_s,
+                    origin: DesignOrigin::ModelTable,
+                    residual: m.rel,
+                    fitted: Vec::new(),
+                });
+            }
+        }
+    }
+    None
+}
+
+/// `(t, x)` of column `c` of `columns` over every piece of an experiment.
+fn channel_samples(runs: &[&Run], columns: &[&str], c: usize) -> Vec<(f64, f64)> {
+    runs.iter()
+        .flat_map(|r| {
+            let x = r.named(&columns[c..=c])[0];
+            (0..r.len()).map(move |k| (r.t0 + k as f64 * r.dt, x[k]))
+        })
+        .collect()
+}
+
+/// The stretches recorded whole (a zero sample right before and right after), in every
+/// experiment and channel: clusters of non-zero samples split by 3 zero samples or a hole.
+fn stretches_seen(
+    groups: &[(&str, Vec<&Run>)],
+    columns: &[&str],
+    dt: f64,
+    trim: usize,
+) -> Vec<Seen> {
+    let mut seen = Vec::new();
+    for (_, runs) in groups {
+        for c in 0..columns.len() {
+            let xs = channel_samples(runs, columns, c);
+            let mut k = 0;
+            while k < xs.len() {
+                if xs[k].1 == 0.0 {
+                    k += 1;
+                    continue;
+                }
+                let first = k;
+                let mut last = k;
+                let mut zeros = 0;
+                let mut j = k + 1;
+                while j < xs.len() && xs[j].0 - xs[j - 1].0 < 1.5 * dt {
+                    if xs[j].1 == 0.0 {
+                        zeros += 1;
+                        if zeros >= 3 {
+                            break;
+                        }
+                    } else {
+                        zeros = 0;
+                        last = j;
+                    }
+                    j += 1;
+                }
+                // Whole: a zero sample recorded right before and right after.
+                let quiet_before = first > 0 && xs[first].0 - xs[first - 1].0 < 1.5 * dt;
+                let quiet_after = last + 1 < xs.len()
+                    && xs[last + 1].0 - xs[last].0 < 1.5 * dt
+                    && xs[last + 1].1 == 0.0;
+                if quiet_before && quiet_after {
+                    // The cluster with the quiet samples around it.
+                    let mut lo = first;
+                    while lo > 0 && first - lo < trim + 3 && xs[lo].0 - xs[lo - 1].0 < 1.5 * dt {
+                        lo -= 1;
+                    }
+                    let mut hi = last;
+                    while hi + 1 < xs.len()
+                        && hi - last < trim + 3
+                        && xs[hi + 1].0 - xs[hi].0 < 1.5 * dt
+                    {
+                        hi += 1;
+                    }
+                    if let Some(s) = seen_stretch(&xs[lo..=hi], first - lo, last - lo, dt, trim) {
+                        seen.push(s);
+                    }
+                }
+                k = last + 1;
+            }
+        }
+    }
+    seen
+}
+
+/// The stretches' common length, and the first start and period of the starts seen (least
+/// squares of `start = first + n period`), to the microsecond.
+fn common_timing(seen: &[Seen], dt: f64) -> Result<(f64, f64, f64), String> {
+    if seen.is_empty() {
+        return Err("no stretch is recorded whole, between two pauses".into());
+    }
+    let mut lengths: Vec<f64> = seen.iter().map(|s| s.length).collect();
+    lengths.sort_by(f64::total_cmp);
+    let length = round_us(lengths[lengths.len() / 2]);
+    let mut starts: Vec<f64> = seen.iter().map(|s| s.start).collect();
+    starts.sort_by(f64::total_cmp);
+    starts.dedup_by(|a, b| (*a - *b).abs() < 0.5 * dt);
+    let first = starts[0];
+    let period = starts
+        .windows(2)
+        .map(|w| w[1] - w[0])
+        .fold(f64::INFINITY, f64::min);
+    let (first, period) = if period.is_finite() {
+        // Least squares of start = first + n period over the stretches seen.
+        let ns: Vec<f64> = starts
+            .iter()
+            .map(|s| ((s - first) / period).round())
+            .collect();
+        for (s, n) in starts.iter().zip(&ns) {
+            if (s - first - n * period).abs() > 0.1 * dt {
+                return Err(format!(
+                    "the stretches seen start at {} s, not on a common period",
+                    starts
+                        .iter()
+                        .map(|s| format!("{:.3}", s))
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                ));
+            }
+        }
+        let k = ns.len() as f64;
+        let (sn, ss, snn, sns) = ns
+            .iter()
+            .zip(&starts)
+            .fold((0.0, 0.0, 0.0, 0.0), |a, (n, s)| {
+                (a.0 + n, a.1 + s, a.2 + n * n, a.3 + n * s)
+            });
+        let det = k * snn - sn * sn;
+        let p = (k * sns - sn * ss) / det;
+        (round_us((ss - p * sn) / k), round_us(p))
+    } else {
+        (round_us(first), length)
+    };
+    if period < length - 1e-6 {
+        return Err(format!(
+            "stretches of {length} s recur every {period} s: they would overlap"
+        ));
+    }
+    Ok((first, period, length))
+}
+
+/// One stretch from the samples `inside` it (starting at `a`, `length` s long): the integer
+/// cycle count whose sine fits best, the amplitude of `sin(w (t - a))` alone (the design class
+/// has no phase), and the fitted phase, which the reconstruction note reports.
+fn fit_stretch(inside: &[(f64, f64)], a: f64, length: f64, dt: f64) -> (Stretch, f64) {
+    let top = (length / (2.0 * dt)).floor().max(1.0) as usize;
+    let best = (1..=top)
+        .map(|m| {
+            let f = m as f64 / length;
+            let (amp, _, res) = sine_fit(inside, f, a);
+            (m, amp, res)
+        })
+        .min_by(|x, y| x.2.total_cmp(&y.2))
+        .map(|(m, _, _)| m)
+        .unwrap_or(1);
+    let f_hz = best as f64 / length;
+    let w = 2.0 * std::f64::consts::PI * f_hz;
+    let (num, den) = inside.iter().fold((0.0, 0.0), |acc, (t, x)| {
+        let s = (w * (t - a)).sin();
+        (acc.0 + x * s, acc.1 + s * s)
+    });
+    let amplitude = if den > 0.0 { num / den } else { 0.0 };
+    let (sa, cb, _) = sine_fit(inside, f_hz, a);
+    let phase = if sa < 0.0 {
+        (-cb).atan2(-sa)
+    } else {
+        cb.atan2(sa)
+    };
+    (Stretch { f_hz, amplitude }, phase)
 }
 
 /// Output-sample indices of the stretch edges (starts and ends) of experiment `e`'s inputs on
