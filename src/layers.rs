@@ -160,6 +160,11 @@ fn code_only(text: &str) -> String {
     out
 }
 
+/// A block's delimiters, named so that a brace-counting reader of this file is not misled by
+/// the character literals.
+const OPEN: char = '\u{7b}';
+const CLOSE: char = '\u{7d}';
+
 /// `code` (from [`code_only`]) without the items marked `#[cfg(test)]`: from the attribute to
 /// the end of the item's block, or to its `;` when it has none. Newlines are kept.
 fn strip_cfg_test(code: &str) -> String {
@@ -169,31 +174,8 @@ fn strip_cfg_test(code: &str) -> String {
     let mut i = 0;
     while i < c.len() {
         if c[i..].starts_with(&marker) {
-            let mut j = i + marker.len();
-            while j < c.len() && c[j] != '{' && c[j] != ';' {
-                j += 1;
-            }
-            if j < c.len() && c[j] == '{' {
-                let mut depth = 0;
-                while j < c.len() {
-                    match c[j] {
-                        '{' => depth += 1,
-                        '}' => {
-                            depth -= 1;
-                            if depth == 0 {
-                                break;
-                            }
-                        }
-                        _ => {}
-                    }
-                    j += 1;
-                }
-            }
-            for &ch in &c[i..(j + 1).min(c.len())] {
-                if ch == '\n' {
-                    out.push('\n');
-                }
-            }
+            let j = item_end(&c, i + marker.len());
+            out.extend(c[i..(j + 1).min(c.len())].iter().filter(|&&ch| ch == '\n'));
             i = j + 1;
         } else {
             out.push(c[i]);
@@ -201,6 +183,31 @@ fn strip_cfg_test(code: &str) -> String {
         }
     }
     out
+}
+
+/// The index of the last character of the item starting at `c[j]`: its `;`, or the end of its
+/// block (`c.len()` when unterminated).
+fn item_end(c: &[char], mut j: usize) -> usize {
+    while j < c.len() && c[j] != OPEN && c[j] != ';' {
+        j += 1;
+    }
+    if j < c.len() && c[j] == OPEN {
+        let mut depth = 0;
+        while j < c.len() {
+            match c[j] {
+                OPEN => depth += 1,
+                CLOSE => {
+                    depth -= 1;
+                    if depth == 0 {
+                        break;
+                    }
+                }
+                _ => {}
+            }
+            j += 1;
+        }
+    }
+    j
 }
 
 fn is_ident(ch: char) -> bool {
@@ -225,7 +232,7 @@ fn targets_at(c: &[char], i: usize) -> Vec<String> {
     while j < c.len() && c[j].is_whitespace() {
         j += 1;
     }
-    if c.get(j) != Some(&'{') {
+    if c.get(j) != Some(&OPEN) {
         let (id, _) = ident_at(c, j);
         return vec![id];
     }
@@ -235,13 +242,13 @@ fn targets_at(c: &[char], i: usize) -> Vec<String> {
     let mut expect = false;
     while j < c.len() {
         match c[j] {
-            '{' => {
+            OPEN => {
                 depth += 1;
                 if depth == 1 {
                     expect = true;
                 }
             }
-            '}' => {
+            CLOSE => {
                 depth -= 1;
                 if depth == 0 {
                     break;
