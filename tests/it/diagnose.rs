@@ -841,6 +841,15 @@ fn assert_glitch_at(c: &Case, g: &SimGlitch, experiment: &str) {
     );
 }
 
+/// A velocity kick of 3e-12 m/s on TM2 (Gaussian force pulse of 1 s) at t = 4000.3 s of exp1.
+const TM2_KICK: SimGlitch = SimGlitch {
+    experiment: 0,
+    entry: Entry::Tm2,
+    t0: 4000.3,
+    tau: 1.0,
+    amplitude: 3e-12,
+};
+
 #[test]
 fn a_glitch_on_tm2_is_found_at_its_time() {
     // Oracle: the simulated truth, a velocity kick of 3e-12 m/s on TM2 (Gaussian force pulse of
@@ -850,13 +859,7 @@ fn a_glitch_on_tm2_is_found_at_its_time() {
     // (the loop shows a kick on TM1 as one of opposite sign on TM2, up to the o1 response, which
     // the thruster noise hides); chi^2/nu back at the noise level; the nominal parameters within
     // 3 sigma of the truth.
-    let g = SimGlitch {
-        experiment: 0,
-        entry: Entry::Tm2,
-        t0: 4000.3,
-        tau: 1.0,
-        amplitude: 3e-12,
-    };
+    let g = TM2_KICK;
     let (setup, data, noise, truth, guess) = with_glitches(41, &[g]);
     let d = diagnose(&setup, &data, Some(&noise), &guess, Some(&truth), &config()).unwrap();
     let c = Case { d, truth };
@@ -887,13 +890,7 @@ fn a_glitch_on_tm2_is_found_at_its_time() {
 /// glitch and says why in a note naming the edge.
 #[test]
 fn no_glitch_is_claimed_at_a_stretch_edge_the_notes_name() {
-    let g = SimGlitch {
-        experiment: 0,
-        entry: Entry::Tm2,
-        t0: 4000.3,
-        tau: 1.0,
-        amplitude: 3e-12,
-    };
+    let g = TM2_KICK;
     let (setup, data, noise, truth, guess) = with_glitches(41, &[g]);
     let cfg = DiagnoseConfig {
         stretch_edges: vec![vec![4005.0], Vec::new()],

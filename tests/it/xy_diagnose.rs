@@ -29,6 +29,24 @@ const HELD: [&str; 10] = [
     "d_sus_phi2",
 ];
 
+/// `fit --model lpf_xy --guess sensing_crosstalk` of `ds` into `out`, with [`HELD`] fixed.
+fn fit_xy(ds: &std::path::Path, out: &std::path::Path) {
+    let mut args = vec![
+        "fit",
+        ds.to_str().unwrap(),
+        "--model",
+        "lpf_xy",
+        "--guess",
+        "sensing_crosstalk",
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    for h in HELD {
+        args.extend(["--fix", h]);
+    }
+    ok(&args);
+}
+
 #[test]
 fn xy_sensing_crosstalk_is_found_by_the_xy_fit_and_by_the_diagnosis() {
     // Oracle: the simulated truth (ds_1y1 = 5e-3, ds_2y2 = -3e-3 in the xy model's sensing
@@ -41,20 +59,7 @@ fn xy_sensing_crosstalk_is_found_by_the_xy_fit_and_by_the_diagnosis() {
     let ds = simulate(dir.path(), "sensing_crosstalk", "3", &[]);
 
     let fit_out = dir.path().join("fit");
-    let mut args = vec![
-        "fit",
-        ds.to_str().unwrap(),
-        "--model",
-        "lpf_xy",
-        "--guess",
-        "sensing_crosstalk",
-        "--out",
-        fit_out.to_str().unwrap(),
-    ];
-    for h in HELD {
-        args.extend(["--fix", h]);
-    }
-    ok(&args);
+    fit_xy(&ds, &fit_out);
     let fit: Value =
         serde_json::from_str(&std::fs::read_to_string(fit_out.join("fit.json")).unwrap()).unwrap();
     let (chi2, nu) = (
@@ -174,20 +179,7 @@ fn an_xy_dataset_may_declare_its_models_design() {
     let ds = simulate(dir.path(), "sensing_crosstalk", "3", &[]);
     let fit = |ds: &std::path::Path, out: &str| -> (Vec<f64>, Vec<f64>) {
         let out = dir.path().join(out);
-        let mut args = vec![
-            "fit",
-            ds.to_str().unwrap(),
-            "--model",
-            "lpf_xy",
-            "--guess",
-            "sensing_crosstalk",
-            "--out",
-            out.to_str().unwrap(),
-        ];
-        for h in HELD {
-            args.extend(["--fix", h]);
-        }
-        ok(&args);
+        fit_xy(ds, &out);
         let t = freefall::io::read_parquet(out.join("estimates.parquet")).unwrap();
         let col = |c: &str| t.f64_column(c).unwrap().to_vec();
         (col("estimate"), col("sigma"))
