@@ -60,12 +60,9 @@ impl AccelReport {
 /// Errors: the estimate's, or a table's.
 #[derive(Debug, thiserror::Error)]
 pub enum AccelReportError {
-    #[error("segment {segment}: {source}")]
-    Segment {
-        segment: String,
-        #[source]
-        source: AccelError,
-    },
+    /// The cause is part of the message (not also a `source`, which would print it twice).
+    #[error("segment {segment}: {cause}")]
+    Segment { segment: String, cause: AccelError },
     #[error(transparent)]
     Accel(#[from] AccelError),
     #[error(transparent)]
@@ -133,7 +130,7 @@ pub fn analyse<M: ClosedLoopModel<2>>(
             welch_psd_pieces(&channels, dt, &req.welch, req.level).map_err(|e| {
                 AccelReportError::Segment {
                     segment: name.clone(),
-                    source: e,
+                    cause: e,
                 }
             })?;
         let proj = projection_of_telemetry(

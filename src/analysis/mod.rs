@@ -41,11 +41,11 @@ pub enum AnalysisError {
     Guidance { file: PathBuf, reason: String },
     #[error("--whitening noise: the dataset has no noise run")]
     NoNoiseRun,
-    #[error("{}: {source}", what)]
+    /// The cause is part of the message (not also a `source`, which would print it twice).
+    #[error("{what}: {cause}")]
     Whitening {
         what: String,
-        #[source]
-        source: crate::fit::FitError,
+        cause: crate::fit::FitError,
     },
     #[error(transparent)]
     Io(#[from] IoError),
@@ -267,7 +267,7 @@ pub fn dataset_whitener(
             let w = Whitener::<2>::from_series(&outputs_of(noise), order).map_err(|e| {
                 AnalysisError::Whitening {
                     what: label.clone(),
-                    source: e,
+                    cause: e,
                 }
             })?;
             Ok((w, format!("noise run {label}")))

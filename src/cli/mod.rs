@@ -343,15 +343,10 @@ fn refuse_overwrite(cmd: &Command, outputs: &[Named<'_>]) -> Result<()> {
 
 /// The error chain on one line.
 pub fn one_line(e: &anyhow::Error) -> String {
-    // An error that prints its source (`"{what}: {source}"`) and also returns it as the
-    // source would say the source twice: a cause already at the end of the line is skipped.
-    let mut text = String::new();
-    for c in e.chain().map(|c| c.to_string()) {
-        if text.is_empty() {
-            text = c;
-        } else if !text.ends_with(&c) {
-            text = format!("{text}: {c}");
-        }
-    }
+    let text = e
+        .chain()
+        .map(|c| c.to_string())
+        .collect::<Vec<_>>()
+        .join(": ");
     text.split_whitespace().collect::<Vec<_>>().join(" ")
 }
