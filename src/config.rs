@@ -69,10 +69,36 @@ pub const DEFAULT_MEMORY_BUDGET: u64 = 8 << 30;
 static MEMORY_BUDGET: std::sync::atomic::AtomicU64 =
     std::sync::atomic::AtomicU64::new(DEFAULT_MEMORY_BUDGET);
 
+/// Where the memory budget came from, for the size checks' errors (None: the default, or a
+/// caller of [`set_memory_budget`] that did not say).
+static MEMORY_BUDGET_ORIGIN: std::sync::Mutex<Option<String>> = std::sync::Mutex::new(None);
+
 /// Sets the memory the size checks compare their estimates with (bytes; the CLI passes the
 /// machine's available memory). The numeric core reads it, it never asks the system itself.
 pub fn set_memory_budget(bytes: u64) {
+    set_memory_budget_from(bytes, None);
+}
+
+/// [`set_memory_budget`] with where the figure comes from (e.g. "half of the cgroup limit
+/// (...)"), which the size checks' errors name.
+pub fn set_memory_budget_from(bytes: u64, origin: Option<String>) {
     MEMORY_BUDGET.store(bytes.max(1), std::sync::atomic::Ordering::Relaxed);
+    if let Ok(mut o) = MEMORY_BUDGET_ORIGIN.lock() {
+        *o = origin;
+    }
+}
+
+/// Where the memory budget comes from, for messages.
+fn memory_budget_origin() -> String {
+    let set = MEMORY_BUDGET_ORIGIN.lock().ok().and_then(|o| o.clone());
+    set.unwrap_or_else(|| {
+        if memory_budget() == DEFAULT_MEMORY_BUDGET {
+            "the default when the machine's memory is not known; FREEFALL_MEMORY_BUDGET sets it"
+                .to_string()
+        } else {
+            "set by the caller".to_string()
+        }
+    })
 }
 
 /// The memory the size checks allow (see [`set_memory_budget`]).
@@ -106,9 +132,10 @@ pub fn fits_in_memory(
         value,
         bytes.is_finite() && bytes <= budget,
         format!(
-            "smaller: {what} would need an estimated {} ({bytes:.3e} bytes), more than the memory budget of {} (half the available memory; FREEFALL_MEMORY_BUDGET sets it)",
+            "smaller: {what} would need an estimated {} ({bytes:.3e} bytes), more than the memory budget of {} ({})",
             fmt_bytes(bytes),
-            fmt_bytes(budget)
+            fmt_bytes(budget),
+            memory_budget_origin()
         ),
     )
 }

@@ -8,7 +8,15 @@
 //! batch of realizations `start..end`; `--resume` refuses a chunk of another config hash. A killed run keeps every finished chunk; `--resume` replays them
 //! through the aggregators (same order, same numbers) and continues with the next realization.
 //! At the end the chunks are streamed into `realizations.parquet`, the aggregate tables and
-//! `manifest.json` are written, and `.partial` is removed.
+//! `manifest.json` are written, and `.partial` is removed. A folder holding `.partial` is an
+//! unfinished run whatever else it holds; it is a finished campaign when it holds
+//! `manifest.json` and no `.partial`.
+//!
+//! `--force` runs the campaign afresh over whatever `--out` holds: the old output stays in place
+//! while the new run computes (an interrupted run's checkpoints are discarded only once the
+//! new run's cells are prepared), each table is then replaced atomically, the old campaign's
+//! tables this run does not write are removed, and the new `manifest.json` is written last. A
+//! forced run that is killed is an interrupted run like any other: `--resume` finishes it.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -273,6 +281,8 @@ pub struct RunOptions {
     pub out: PathBuf,
     pub shard: Shard,
     pub resume: bool,
+    /// Run afresh over a finished or interrupted run in `out` (`--force`).
+    pub force: bool,
     /// Worker threads (default: rayon's, i.e. the number of cores or `RAYON_NUM_THREADS`).
     pub threads: Option<usize>,
 }
@@ -423,7 +433,14 @@ pub fn run(
     let partial = out.join(PARTIAL);
     // Held until this function returns (the file is closed on drop, releasing the lock).
     let _lock = lock_out(out)?;
-    if let Some(manifest) = check_out_state(loaded, opts, start, end)? {
+    let state = State {
+        config_hash: loaded.config_hash.clone(),
+        shard: opts.shard,
+        range_start: start,
+        range_end: end,
+    };
+    let begin = check_out_state(loaded, opts, &state)?;
+    if let Begin::Complete(manifest) = begin {
         return Ok(RunReport {
             manifest,
             already_complete: true,
@@ -432,6 +449,10 @@ pub fn run(
     }
     let pool = worker_pool(out, opts.threads)?;
     let runner = prepare(loaded)?;
+    if let Begin::Fresh = begin {
+        // The cells are prepared: only now are an earlier run's checkpoints discarded.
+        fresh_partial(&partial, &state)?;
+    }
     let layout = runner.layout().clone();
     let mut agg = Aggregates::new(layout.clone());
     let (mut next, mut fit_seconds) =
@@ -491,6 +512,7 @@ pub fn run(
         app.finish()?;
     }
     write_aggregates(out, &agg, &outputs.names(), &meta)?;
+    remove_stale_tables(out, &outputs.names(), &layout)?;
     let (fits, failed) = agg.counts();
     let wall = clock.elapsed().as_secs_f64();
     let manifest = Manifest {
@@ -542,66 +564,128 @@ fn prepare(loaded: &Loaded) -> Result<Box<dyn Jobs + '_>, CampaignError> {
     )?)))
 }
 
-/// What `opts.out` already holds, checked under the lock: a finished run of this campaign and
-/// shard (returned with `--resume`), an interrupted one (continued with `--resume`), nothing
-/// (the run's state file is written), or another run (refused, naming the hashes).
+/// How a run begins in its output directory ([`check_out_state`]).
+enum Begin {
+    /// A finished run of this campaign and shard, reported with `--resume`.
+    Complete(Manifest),
+    /// The interrupted run in `.partial` is continued (`--resume`).
+    Continue,
+    /// A fresh run: `.partial` is (re)created by [`fresh_partial`] once the cells are prepared.
+    Fresh,
+}
+
+/// What `opts.out` already holds, checked under the lock: an interrupted run (`.partial`,
+/// continued with `--resume` if it is this campaign and shard), a finished run (reported with
+/// `--resume` if it is this one), nothing, or, with `--force`, anything (a fresh run over it).
+/// A refusal is one line naming the folder and saying which flag would go on: `--resume` only
+/// where it would succeed, `--force` always.
 fn check_out_state(
     loaded: &Loaded,
     opts: &RunOptions,
-    start: u64,
-    end: u64,
-) -> Result<Option<Manifest>, CampaignError> {
+    state: &State,
+) -> Result<Begin, CampaignError> {
     let out = &opts.out;
+    if opts.force && opts.resume {
+        return Err(store_err(
+            out,
+            "--force starts the campaign afresh and --resume continues the one in this folder: give one of them",
+        ));
+    }
+    if opts.force {
+        return Ok(Begin::Fresh);
+    }
     let manifest_path = out.join(MANIFEST);
     let partial = out.join(PARTIAL);
-    let state = State {
-        config_hash: loaded.config_hash.clone(),
-        shard: opts.shard,
-        range_start: start,
-        range_end: end,
-    };
+    let state_path = partial.join(STATE);
+    let this = format!(
+        "this is config hash {}, shard {}",
+        short(&loaded.config_hash),
+        opts.shard
+    );
+    if partial.exists() {
+        if opts.resume {
+            let old: State = read_json(&state_path)?;
+            if old != *state {
+                return Err(store_err(
+                    &state_path,
+                    format!(
+                        "the interrupted run is a different campaign or shard (config hash {}, shard {}); {this}; give --force to run this one afresh over it, or choose another --out",
+                        short(&old.config_hash),
+                        old.shard,
+                    ),
+                ));
+            }
+            return Ok(Begin::Continue);
+        }
+        return Err(store_err(
+            out,
+            match read_json::<State>(&state_path) {
+                Ok(old) if old != *state => format!(
+                    "holds an interrupted run of another campaign or shard (.partial: config hash {}, shard {}); {this}; give --force to run this one afresh over it, or choose another --out",
+                    short(&old.config_hash),
+                    old.shard
+                ),
+                _ => "holds an interrupted run of this campaign (.partial); continue it with --resume, start it afresh with --force, or choose another --out".to_string(),
+            },
+        ));
+    }
     if manifest_path.exists() {
         let m: Manifest = read_json(&manifest_path)?;
-        if !opts.resume {
-            return Err(store_err(out, "already holds a finished campaign (manifest.json); use --resume to check it, or another --out"));
-        }
-        if m.config_hash != loaded.config_hash || m.shard != opts.shard {
-            return Err(store_err(
+        let same = m.config_hash == loaded.config_hash && m.shard == opts.shard;
+        return match (same, opts.resume) {
+            (true, true) => Ok(Begin::Complete(m)),
+            (true, false) => Err(store_err(
+                out,
+                "already holds this campaign, finished (manifest.json); give --resume to report it, --force to run it afresh over it, or choose another --out",
+            )),
+            (false, _) => Err(store_err(
                 &manifest_path,
                 format!(
-                    "holds a different run (config hash {}, shard {}), not this one (config hash {}, shard {})",
+                    "holds a finished run of another campaign or shard (config hash {}, shard {}); {this}; give --force to run this one afresh over it, or choose another --out",
                     short(&m.config_hash),
                     m.shard,
-                    short(&loaded.config_hash),
-                    opts.shard
                 ),
-            ));
-        }
-        return Ok(Some(m));
+            )),
+        };
     }
-    let state_path = partial.join(STATE);
+    Ok(Begin::Fresh)
+}
+
+/// A fresh `.partial` holding only the run's state: an earlier run's checkpoints (an
+/// interrupted run that `--force` replaces) are removed first.
+fn fresh_partial(partial: &Path, state: &State) -> Result<(), CampaignError> {
     if partial.exists() {
-        if !opts.resume {
-            return Err(store_err(out, "holds an interrupted run (.partial); continue it with --resume, or use another --out"));
-        }
-        let old: State = read_json(&state_path)?;
-        if old != state {
-            return Err(store_err(
-                &state_path,
-                format!(
-                    "the interrupted run is a different campaign or shard (config hash {}, shard {}); this is config hash {}, shard {}",
-                    short(&old.config_hash),
-                    old.shard,
-                    short(&loaded.config_hash),
-                    opts.shard
-                ),
-            ));
-        }
-    } else {
-        io::ensure_dir(&partial)?;
-        write_json_atomic(&state_path, &state)?;
+        std::fs::remove_dir_all(partial).map_err(|e| IoError::write(partial, e))?;
     }
-    Ok(None)
+    io::ensure_dir(partial)?;
+    write_json_atomic(partial.join(STATE), state)?;
+    Ok(())
+}
+
+/// Every table a campaign folder can hold, by name (`<name>.parquet`).
+const CAMPAIGN_TABLES: [&str; 5] = ["realizations", "summary", "correlation", "chi2", "accel"];
+
+/// In a folder that held a campaign (it has a `manifest.json`, about to be replaced), removes
+/// the campaign tables the new run or merge did not write (`written`, plus `accel` when the
+/// layout has bands), so that the folder holds only the new campaign's tables. Called after the
+/// new tables are in place and before the new manifest is written.
+fn remove_stale_tables(
+    out: &Path,
+    written: &[String],
+    layout: &Layout,
+) -> Result<(), CampaignError> {
+    if !out.join(MANIFEST).exists() {
+        return Ok(());
+    }
+    for t in CAMPAIGN_TABLES {
+        let kept =
+            written.iter().any(|w| w == t) || (t == "accel" && !layout.accel_bands.is_empty());
+        let path = out.join(format!("{t}.parquet"));
+        if !kept && path.exists() {
+            std::fs::remove_file(&path).map_err(|e| IoError::write(&path, e))?;
+        }
+    }
+    Ok(())
 }
 
 /// The worker pool: `threads` workers, at most the machine's cores (more only add switching:
@@ -759,6 +843,13 @@ fn load_parts(parts: &[PathBuf], out: &Path) -> Result<Vec<(Manifest, PathBuf)>,
     let mut ms: Vec<(Manifest, PathBuf)> = Vec::new();
     for p in parts {
         let mp = p.join(MANIFEST);
+        if p.join(PARTIAL).exists() && mp.exists() {
+            // A run forced over a finished one and interrupted: the manifest is the old run's.
+            return Err(store_err(
+                p,
+                "unfinished part (interrupted over an earlier run; rerun it with --resume)",
+            ));
+        }
         if !mp.exists() {
             let why = if p.join(PARTIAL).exists() {
                 "unfinished part (interrupted; rerun it with --resume)"
@@ -867,7 +958,8 @@ pub fn merge(parts: &[PathBuf], out: &Path) -> Result<Manifest, CampaignError> {
             ),
         ));
     }
-    io::ensure_dir(out)?;
+    // Held until this function returns: no run or merge writes into `out` meanwhile.
+    let _lock = lock_out(out)?;
     let layout = first.layout.clone();
     let per = layout.groups() as u64;
     let mut agg = Aggregates::new(layout.clone());
@@ -901,6 +993,7 @@ pub fn merge(parts: &[PathBuf], out: &Path) -> Result<Manifest, CampaignError> {
         &first.config_hash,
     );
     write_aggregates(out, &agg, &first.outputs, &meta)?;
+    remove_stale_tables(out, &first.outputs, &layout)?;
     let (fits, failed) = agg.counts();
     let manifest = Manifest {
         shard: Shard::WHOLE,
@@ -922,5 +1015,11 @@ pub fn merge(parts: &[PathBuf], out: &Path) -> Result<Manifest, CampaignError> {
         ..first
     };
     write_json_atomic(out.join(MANIFEST), &manifest)?;
+    // A merge written (with --force) over an interrupted run: its checkpoints are not this
+    // campaign's, and a `.partial` would mark the folder unfinished.
+    let partial = out.join(PARTIAL);
+    if partial.exists() {
+        std::fs::remove_dir_all(&partial).map_err(|e| IoError::write(&partial, e))?;
+    }
     Ok(manifest)
 }

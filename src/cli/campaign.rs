@@ -30,6 +30,9 @@ pub struct RunArgs {
     #[arg(long, value_name = "K/N")]
     pub shard: Option<Shard>,
     /// Continue an interrupted run in --out (finished batches are kept, nothing is redone).
+    /// The global --force instead runs the campaign afresh over what --out holds (a finished
+    /// or interrupted run, of this campaign or another), replacing it once the new tables are
+    /// written.
     #[arg(long)]
     pub resume: bool,
     /// Worker threads (default: all cores).
@@ -119,6 +122,7 @@ fn run_campaign(a: RunArgs) -> Result<()> {
         out: a.out.clone(),
         shard: a.shard.unwrap_or(Shard::WHOLE),
         resume: a.resume,
+        force: super::force(),
         threads: a.threads,
     };
     if let Some(n) = opts.threads_note() {

@@ -169,8 +169,8 @@ pub fn run() -> i32 {
     let cli = Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());
     QUIET.store(cli.quiet, std::sync::atomic::Ordering::Relaxed);
     FORCE.store(cli.force, std::sync::atomic::Ordering::Relaxed);
-    if let Some(bytes) = crate::io::memory_budget_from_env() {
-        crate::config::set_memory_budget(bytes);
+    if let Some(budget) = crate::io::memory_budget() {
+        crate::config::set_memory_budget_from(budget.bytes, Some(budget.origin));
     }
     let (inputs, outputs) = command_paths(&command, &matches);
     let refused = crate::io::check_output_not_input(&inputs, &outputs)
@@ -327,8 +327,9 @@ impl Drop for Working {
 
 /// The one overwrite policy of every command ([`crate::io::check_output`]): an existing output
 /// file or a non-empty output folder is refused unless `--force`. `campaign run` checks its own
-/// folder when it is a campaign's (it continues one with `--resume` and never overwrites a
-/// finished one); any other non-empty folder is refused here like everywhere else.
+/// folder when it is a campaign's, under the folder's lock (`--resume` continues or reports the
+/// run there, `--force` runs afresh over it, neither is refused naming the flag that would go
+/// on); any other non-empty folder is refused here like everywhere else.
 fn refuse_overwrite(cmd: &Command, outputs: &[Named<'_>]) -> Result<()> {
     if let Command::Campaign(campaign::CampaignCmd::Run(a)) = cmd {
         if a.resume || crate::campaign::io_store::is_campaign_folder(&a.out) {

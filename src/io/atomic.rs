@@ -256,25 +256,205 @@ pub fn check_output(path: &Path, flag: &str, force: bool) -> Result<(), IoError>
     ))
 }
 
-/// The machine's available memory in bytes (`MemAvailable` of `/proc/meminfo`), None where it
-/// cannot be read (not Linux). The size checks of the library compare their estimates with it.
+/// How much memory the process may still use, and which limit says so.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct AvailableMemory {
+    /// Bytes.
+    pub bytes: u64,
+    /// The limit that applied: the lowest of the machine's and the cgroups'.
+    pub limit: MemoryLimit,
+}
+
+/// Which limit [`AvailableMemory`] comes from.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum MemoryLimit {
+    /// The machine's `MemAvailable` (`/proc/meminfo`).
+    Machine,
+    /// A cgroup's limit less its usage (without the reclaimable page cache,
+    /// `inactive_file`): `memory.max - memory.current` (v2) or `memory.limit_in_bytes -
+    /// memory.usage_in_bytes` (v1) of the cgroup directory `dir`, the process's own or one of
+    /// its ancestors (a SLURM job's `--mem`, a container's limit).
+    Cgroup { version: u8, dir: PathBuf },
+}
+
+impl std::fmt::Display for MemoryLimit {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            MemoryLimit::Machine => write!(f, "the machine's available memory (MemAvailable)"),
+            MemoryLimit::Cgroup { version: 2, dir } => write!(
+                f,
+                "the cgroup limit (memory.max - memory.current of {}), below the machine's available memory",
+                dir.display()
+            ),
+            MemoryLimit::Cgroup { dir, .. } => write!(
+                f,
+                "the cgroup limit (memory.limit_in_bytes - memory.usage_in_bytes of {}), below the machine's available memory",
+                dir.display()
+            ),
+        }
+    }
+}
+
+/// The memory available to this process in bytes: the machine's `MemAvailable`, or a cgroup's
+/// limit less its usage where that is lower ([`available_memory_under`] of `/`); None where
+/// neither can be read (not Linux). The size checks of the library compare their estimates
+/// with it.
 pub fn available_memory() -> Option<u64> {
-    let text = fs::read_to_string("/proc/meminfo").ok()?;
+    available_memory_under(Path::new("/")).map(|a| a.bytes)
+}
+
+/// [`available_memory`] read from the file system under `root` (`/` for this machine; a
+/// directory with `proc/meminfo`, `proc/self/cgroup` and `sys/fs/cgroup/...` in tests): the
+/// lowest of `MemAvailable` of `proc/meminfo` and, for the process's cgroup and each of its
+/// ancestors, of
+/// - cgroup v2 (the `0::PATH` line of `proc/self/cgroup`, hierarchy at `sys/fs/cgroup`, or
+///   `sys/fs/cgroup/unified` on a hybrid system): `memory.max` - `memory.current`; `max` is no
+///   limit;
+/// - cgroup v1 (the line whose controllers include `memory`, hierarchy at
+///   `sys/fs/cgroup/memory`): `memory.limit_in_bytes` - `memory.usage_in_bytes`;
+///
+/// the usage counted without the page cache the kernel reclaims before it kills
+/// (`inactive_file`, `total_inactive_file` in v1, of `memory.stat`), as `MemAvailable` counts it.
+pub fn available_memory_under(root: &Path) -> Option<AvailableMemory> {
+    let machine = meminfo_available(&root.join("proc/meminfo")).map(|bytes| AvailableMemory {
+        bytes,
+        limit: MemoryLimit::Machine,
+    });
+    let cgroup = cgroup_available(root);
+    match (machine, cgroup) {
+        (Some(m), Some(c)) => Some(if c.bytes < m.bytes { c } else { m }),
+        (m, c) => m.or(c),
+    }
+}
+
+/// `MemAvailable` of a meminfo file, in bytes.
+fn meminfo_available(path: &Path) -> Option<u64> {
+    let text = fs::read_to_string(path).ok()?;
     let line = text.lines().find(|l| l.starts_with("MemAvailable:"))?;
     let kb: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
     kb.checked_mul(1024)
 }
 
+/// The lowest limit-less-usage of the memory cgroups (v2 and v1) of this process and their
+/// ancestors under `root`; None where no cgroup has a memory limit.
+fn cgroup_available(root: &Path) -> Option<AvailableMemory> {
+    let text = fs::read_to_string(root.join("proc/self/cgroup")).ok()?;
+    let mut best: Option<AvailableMemory> = None;
+    for line in text.lines() {
+        let mut fields = line.splitn(3, ':');
+        let (Some(id), Some(controllers), Some(path)) =
+            (fields.next(), fields.next(), fields.next())
+        else {
+            continue;
+        };
+        let (version, base) = if id == "0" && controllers.is_empty() {
+            let unified = root.join("sys/fs/cgroup/unified");
+            let base = if unified.join("cgroup.controllers").exists() {
+                unified
+            } else {
+                root.join("sys/fs/cgroup")
+            };
+            (2, base)
+        } else if controllers.split(',').any(|c| c == "memory") {
+            (1, root.join("sys/fs/cgroup/memory"))
+        } else {
+            continue;
+        };
+        // The process's cgroup first, then its ancestors up to the hierarchy's root (a
+        // container sees its own cgroup there; a path of the host's is then absent).
+        let rel = Path::new(path.trim().trim_start_matches('/'));
+        if rel
+            .components()
+            .any(|c| !matches!(c, std::path::Component::Normal(_)))
+        {
+            continue;
+        }
+        for dir in rel.ancestors() {
+            let dir = base.join(dir);
+            let Some(bytes) = cgroup_level_available(&dir, version) else {
+                continue;
+            };
+            if best.as_ref().is_none_or(|b| bytes < b.bytes) {
+                best = Some(AvailableMemory {
+                    bytes,
+                    limit: MemoryLimit::Cgroup { version, dir },
+                });
+            }
+        }
+    }
+    best
+}
+
+/// A v1 limit this large is no limit (the kernel's `PAGE_COUNTER_MAX` pages, about 2^63).
+const CGROUP_V1_NO_LIMIT: u64 = 1 << 62;
+
+/// Limit less usage (without `inactive_file`) of one cgroup directory; None without a limit.
+fn cgroup_level_available(dir: &Path, version: u8) -> Option<u64> {
+    let (limit_file, usage_file, inactive_key) = match version {
+        2 => ("memory.max", "memory.current", "inactive_file"),
+        _ => (
+            "memory.limit_in_bytes",
+            "memory.usage_in_bytes",
+            "total_inactive_file",
+        ),
+    };
+    let read_u64 = |name: &str| -> Option<u64> {
+        fs::read_to_string(dir.join(name)).ok()?.trim().parse().ok()
+    };
+    let limit = read_u64(limit_file)?; // "max" does not parse: no limit
+    if version == 1 && limit >= CGROUP_V1_NO_LIMIT {
+        return None;
+    }
+    let usage = read_u64(usage_file).unwrap_or(0);
+    let inactive = fs::read_to_string(dir.join("memory.stat"))
+        .ok()
+        .and_then(|stat| {
+            stat.lines().find_map(|l| {
+                let (key, value) = l.split_once(' ')?;
+                (key == inactive_key).then(|| value.trim().parse::<u64>().ok())?
+            })
+        })
+        .unwrap_or(0);
+    Some(limit.saturating_sub(usage.saturating_sub(inactive)))
+}
+
+/// The memory budget of the size checks: its size and where it comes from, for the error of a
+/// check that exceeds it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MemoryBudget {
+    /// Bytes.
+    pub bytes: u64,
+    /// `FREEFALL_MEMORY_BUDGET`, or half of which available memory ([`MemoryLimit`]).
+    pub origin: String,
+}
+
 /// The memory budget of the size checks (bytes): FREEFALL_MEMORY_BUDGET when it is a positive
-/// number, else half the available memory (the rest is the process's other data and the
-/// machine's other users); None when neither is known.
+/// number, else half the available memory ([`available_memory`]: the rest is the process's
+/// other data and the machine's other users); None when neither is known.
 pub fn memory_budget_from_env() -> Option<u64> {
-    std::env::var("FREEFALL_MEMORY_BUDGET")
+    memory_budget().map(|b| b.bytes)
+}
+
+/// [`memory_budget_from_env`] with its origin.
+pub fn memory_budget() -> Option<MemoryBudget> {
+    let from_env = std::env::var("FREEFALL_MEMORY_BUDGET")
         .ok()
         .and_then(|v| v.trim().parse::<f64>().ok())
-        .filter(|b| b.is_finite() && *b > 0.0)
-        .map(|b| b as u64)
-        .or_else(|| available_memory().map(|b| b / 2))
+        .filter(|b| b.is_finite() && *b > 0.0);
+    if let Some(b) = from_env {
+        return Some(MemoryBudget {
+            bytes: b as u64,
+            origin: "set by FREEFALL_MEMORY_BUDGET".to_string(),
+        });
+    }
+    let available = available_memory_under(Path::new("/"))?;
+    Some(MemoryBudget {
+        bytes: available.bytes / 2,
+        origin: format!(
+            "half of {}; FREEFALL_MEMORY_BUDGET sets it",
+            available.limit
+        ),
+    })
 }
 
 /// Err when one of the `outputs` is one of the `inputs` (`psd run.parquet --out run.parquet`

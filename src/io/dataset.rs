@@ -54,7 +54,7 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use super::atomic::{ensure_dir, parent_dir, read_text, toml_error, write_toml_atomic};
+use super::atomic::{ensure_dir, parent_dir, toml_error, write_toml_atomic};
 use super::run::{read_run_segments_declared, write_run, Run, TIME_TOLERANCE};
 use super::{in_memory, IoError};
 use crate::data::{AuxChannel, AuxKind, AuxRole, Auxiliary};
@@ -685,11 +685,68 @@ fn check_distinct_files(path: &Path, files: &[(String, PathBuf)]) -> Result<(), 
     Ok(())
 }
 
+/// The dataset file's text; a file that cannot be one (a run file given where the dataset is
+/// expected: Parquet, CSV, any non-UTF-8 file) is refused with [`not_a_dataset`].
+fn read_dataset_text(path: &Path) -> Result<String, IoError> {
+    let bytes = std::fs::read(path).map_err(|e| IoError::read(path, e))?;
+    let ext = extension(path);
+    if bytes.starts_with(PARQUET_MAGIC) || matches!(ext.as_deref(), Some("parquet" | "pq")) {
+        return Err(not_a_dataset(path, "a Parquet file (a run)"));
+    }
+    if ext.as_deref() == Some("csv") {
+        return Err(not_a_dataset(path, "a CSV file (a run)"));
+    }
+    String::from_utf8(bytes).map_err(|_| not_a_dataset(path, "not a text file (not UTF-8)"))
+}
+
+/// The first bytes of every Parquet file.
+const PARQUET_MAGIC: &[u8] = b"PAR1";
+
+/// The lower-case extension of `path`, if any.
+fn extension(path: &Path) -> Option<String> {
+    path.extension()
+        .map(|e| e.to_string_lossy().to_ascii_lowercase())
+}
+
+/// What a file that does not parse as TOML is, when its name says it was not meant to be a
+/// TOML file (another extension, or none); None for a `.toml` file, whose syntax error (line,
+/// column) is the better message.
+fn not_toml(path: &Path) -> Option<String> {
+    match extension(path).as_deref() {
+        Some("toml") => None,
+        Some(ext) => Some(format!("a '.{ext}' file that is not TOML")),
+        None => Some("a file that is not TOML".to_string()),
+    }
+}
+
+/// The one-line error on a file given where a dataset description is expected: what it is,
+/// and the dataset format in its minimal form (one line of TOML per `|`), naming a run file
+/// given in its place as the experiment's run.
+fn not_a_dataset(path: &Path, what: &str) -> IoError {
+    let is_run = matches!(extension(path).as_deref(), Some("parquet" | "pq" | "csv"));
+    let name = match path.file_name() {
+        Some(n) if is_run => n.to_string_lossy(),
+        _ => "exp1.parquet".into(),
+    };
+    IoError::invalid(
+        path,
+        format!(
+            "is {what}, not a dataset description; a dataset is a TOML file naming its runs, \
+             e.g. dataset.toml with the lines: noise = \"noise.parquet\" | [[experiment]] | \
+             name = \"exp1\" | file = \"{name}\" (noise optional; one [[experiment]] per run; \
+             see \"The dataset format\" in docs/user-guide.md)"
+        ),
+    )
+}
+
 /// Reads a dataset TOML file and loads and validates all its runs (see the module docs).
 pub fn read_dataset(path: impl AsRef<Path>) -> Result<Dataset, IoError> {
     let path = path.as_ref();
-    let text = read_text(path)?;
-    let raw: toml::Table = toml::from_str(&text).map_err(|e| toml_error(path, &text, &e))?;
+    let text = read_dataset_text(path)?;
+    let raw: toml::Table = toml::from_str(&text).map_err(|e| match not_toml(path) {
+        Some(what) => not_a_dataset(path, &what),
+        None => toml_error(path, &text, &e),
+    })?;
     check_keys(path, &raw)?;
     let spec: DatasetFile = toml::from_str(&text).map_err(|e| toml_error(path, &text, &e))?;
     check_names(path, spec.experiment.iter().map(|e| e.name.as_str()))?;

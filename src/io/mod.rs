@@ -32,10 +32,11 @@ pub mod table;
 use std::path::{Path, PathBuf};
 
 pub use atomic::{
-    available_memory, check_output, check_output_not_input, create_output_dir, ensure_dir,
-    ensure_parent, file_sha256, memory_budget_from_env, read_json, read_text, read_toml,
-    sha256_hex, write_bytes_atomic, write_json_atomic, write_text_atomic, write_toml_atomic,
-    AtomicFile,
+    available_memory, available_memory_under, check_output, check_output_not_input,
+    create_output_dir, ensure_dir, ensure_parent, file_sha256, memory_budget,
+    memory_budget_from_env, read_json, read_text, read_toml, sha256_hex, write_bytes_atomic,
+    write_json_atomic, write_text_atomic, write_toml_atomic, AtomicFile, AvailableMemory,
+    MemoryBudget, MemoryLimit,
 };
 pub use dataset::{read_dataset, write_dataset, Dataset, DeclaredInjections, DATASET_FILE_NAME};
 pub use provenance::Provenance;

@@ -927,7 +927,12 @@ fn read_columns_noted(
             (table, report, Vec::new())
         }
         Format::Csv => {
-            let (table, notes) = read_csv_with(path, missing)?;
+            // A text column the model does not need is read as text (utf8) and left out below
+            // with the note a utf8 column of a Parquet file gets; the time, guidance, readout
+            // and declared auxiliary columns must be numbers (the error gives line and row).
+            let mut numeric = required.clone();
+            numeric.extend(declared.unwrap_or_default().iter().map(String::as_str));
+            let (table, notes) = read_csv_with(path, missing, Some(&numeric))?;
             (table, ReadReport::default(), notes)
         }
     };
@@ -1125,12 +1130,18 @@ fn is_index_name(name: &str) -> bool {
 /// blank lines and lines starting with `#` are dropped first, keeping each line's number for the
 /// errors. Every field is parsed as an `f64` (surrounding spaces allowed).
 pub fn read_csv_noted(path: impl AsRef<Path>) -> Result<(Table, Vec<String>), IoError> {
-    read_csv_with(path.as_ref(), false)
+    read_csv_with(path.as_ref(), false, None)
 }
 
 /// [`read_csv_noted`]; with `empty_as_nan` an empty field is a missing value (NaN, as pandas'
-/// `to_csv` writes one) instead of an error.
-fn read_csv_with(path: &Path, empty_as_nan: bool) -> Result<(Table, Vec<String>), IoError> {
+/// `to_csv` writes one) instead of an error. With `numeric`, only the columns it names must be
+/// numbers: any other column with a field that is not one becomes a text column
+/// ([`Column::Str`], its numeric fields in their shortest decimal form).
+fn read_csv_with(
+    path: &Path,
+    empty_as_nan: bool,
+    numeric: Option<&[&str]>,
+) -> Result<(Table, Vec<String>), IoError> {
     let text = super::atomic::read_text(path)?;
     let text = text.strip_prefix('\u{feff}').unwrap_or(&text);
     let csv_err = |line: usize, message: String| IoError::Csv {
@@ -1172,20 +1183,23 @@ fn read_csv_with(path: &Path, empty_as_nan: bool) -> Result<(Table, Vec<String>)
             });
         }
     }
+    let lenient: Vec<bool> = names
+        .iter()
+        .map(|n| numeric.is_some_and(|strict| !strict.contains(&n.as_str())))
+        .collect();
     let values = csv_values(
         path,
         &kept.join("\n"),
         &line_of,
         &names,
         delimiter,
-        (index, empty_as_nan),
+        (index, empty_as_nan, &lenient),
     )?;
     let table = Table {
         columns: names
             .into_iter()
             .zip(values)
             .skip(usize::from(index))
-            .map(|(n, v)| (n, Column::F64(v)))
             .collect(),
         source: Some(path.to_path_buf()),
         ..Table::default()
@@ -1217,16 +1231,19 @@ fn csv_header(
         .collect())
 }
 
-/// The values of every column of the CSV body `text` (header first), as f64; `line_of` gives
-/// each line's number in the file. The index column (`skip_index`) is read but not parsed.
+/// The values of every column of the CSV body `text` (header first), as f64 ([`Column::F64`]);
+/// `line_of` gives each line's number in the file. The index column (`skip_index`) is read but
+/// not parsed. A `lenient` column with a field that is not a number becomes [`Column::Str`]
+/// (the fields before it in their shortest decimal form); any other column's such field is an
+/// error naming the line, row and column.
 fn csv_values(
     path: &Path,
     text: &str,
     line_of: &[usize],
     names: &[String],
     delimiter: u8,
-    (skip_index, empty_as_nan): (bool, bool),
-) -> Result<Vec<Vec<f64>>, IoError> {
+    (skip_index, empty_as_nan, lenient): (bool, bool, &[bool]),
+) -> Result<Vec<Column>, IoError> {
     use arrow::array::{Array, StringArray};
     let csv_err = |line: usize, message: String| IoError::Csv {
         path: path.to_path_buf(),
@@ -1245,7 +1262,7 @@ fn csv_values(
         .with_batch_size(1 << 16)
         .build(std::io::Cursor::new(text.as_bytes()))
         .map_err(|e| csv_err(line_of[0], e.to_string()))?;
-    let mut values: Vec<Vec<f64>> = vec![Vec::new(); names.len()];
+    let mut values: Vec<Column> = vec![Column::F64(Vec::new()); names.len()];
     let mut row = 0usize;
     for batch in reader {
         let batch = batch.map_err(|e| csv_record_error(path, line_of, names.len(), &e))?;
@@ -1266,11 +1283,7 @@ fn csv_values(
                     strings.value(i).trim()
                 };
                 let r = row + i;
-                if field.is_empty() && empty_as_nan {
-                    values[j].push(f64::NAN);
-                    continue;
-                }
-                let value = field.parse::<f64>().map_err(|_| {
+                let cannot_parse = || {
                     csv_err(
                         line_of.get(r + 1).copied().unwrap_or(0),
                         format!(
@@ -1283,8 +1296,22 @@ fn csv_values(
                             }
                         ),
                     )
-                })?;
-                values[j].push(value);
+                };
+                match &mut values[j] {
+                    Column::Str(v) => v.push(field.to_string()),
+                    Column::F64(v) if field.is_empty() && empty_as_nan => v.push(f64::NAN),
+                    Column::F64(v) => match field.parse::<f64>() {
+                        Ok(x) => v.push(x),
+                        Err(_) if lenient.get(j) == Some(&true) && !field.is_empty() => {
+                            let mut text: Vec<String> =
+                                v.iter().map(|x| format!("{x:?}")).collect();
+                            text.push(field.to_string());
+                            values[j] = Column::Str(text);
+                        }
+                        Err(_) => return Err(cannot_parse()),
+                    },
+                    _ => unreachable!("CSV columns are read as F64 or Str"),
+                }
             }
         }
         row += batch.num_rows();

@@ -33,6 +33,7 @@ fn run_lib(file: &Path, out: &Path, shard: Shard, threads: usize) -> campaign::M
         out: out.to_path_buf(),
         shard,
         resume: false,
+        force: false,
         threads: Some(threads),
     };
     std::fs::create_dir_all(out).unwrap();
@@ -597,6 +598,7 @@ fn fit_fixed_and_prior_keys_reach_every_fit() {
         out: dir.path().join("bad"),
         shard: Shard::WHOLE,
         resume: false,
+        force: false,
         threads: Some(1),
     };
     std::fs::create_dir_all(&opts.out).unwrap();

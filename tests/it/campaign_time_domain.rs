@@ -23,6 +23,7 @@ fn run_lib(file: &Path, out: &Path, shard: Shard, threads: usize) -> campaign::M
         out: out.to_path_buf(),
         shard,
         resume: false,
+        force: false,
         threads: Some(threads),
     };
     std::fs::create_dir_all(out).unwrap();
@@ -97,6 +98,7 @@ fn engine_key_is_validated_in_one_line() {
                     out,
                     shard: Shard::WHOLE,
                     resume: false,
+                    force: false,
                     threads: Some(1),
                 };
                 campaign::run(&loaded, &opts, &mut |_: Progress| {})

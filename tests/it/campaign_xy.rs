@@ -65,6 +65,7 @@ fn run_shard(
         out: out.to_path_buf(),
         shard,
         resume: false,
+        force: false,
         threads: Some(threads),
     };
     campaign::run(&loaded, &opts, &mut |_: Progress| {}).map(|r| r.manifest)

@@ -138,6 +138,7 @@ fn campaign_of_unequal_lengths_scatters_as_its_fisher_errors() {
         out: out.clone(),
         shard: Shard::WHOLE,
         resume: false,
+        force: false,
         threads: None,
     };
     campaign::run(&loaded, &opts, &mut |_: Progress| {}).unwrap();
