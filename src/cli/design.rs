@@ -139,7 +139,15 @@ fn evaluate(a: EvaluateArgs) -> Result<()> {
 fn validate(a: ValidateArgs) -> Result<()> {
     let setup = a.model.setup()?;
     let cfg = ValidationConfig::from_file(&a.campaign, a.realizations)?;
-    let out = a.out.clone().unwrap_or_else(|| cfg.out.clone());
+    let out = match &a.out {
+        Some(out) => out.clone(),
+        None => {
+            // The campaign file's folder: the overwrite policy of --out (checked before the
+            // command ran) applies to it too.
+            crate::io::check_output(&cfg.out, "[design_validation] out", super::force())?;
+            cfg.out.clone()
+        }
+    };
     ensure_dir(&out)?;
     let (designs, realizations) = (cfg.designs(), cfg.realizations);
     info!("validating {designs} designs x {realizations} realizations ...");

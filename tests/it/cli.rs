@@ -740,3 +740,38 @@ fn an_error_names_its_cause_once() {
     assert!(err.contains("noise.parquet"), "{err}");
     assert_eq!(err.matches("need at least 6000").count(), 1, "{err}");
 }
+
+// Oracle: the dataset format (a TOML file naming its runs). A run file where a dataset is
+// expected is refused by fit and diagnose in one line that says so and shows that format,
+// instead of "stream did not contain valid UTF-8".
+#[test]
+fn a_run_file_given_to_fit_or_diagnose_is_named_as_one() {
+    let d = tmp();
+    let run_path = d.path().join("RUN.parquet");
+    let t: Vec<f64> = (0..64).map(|i| i as f64).collect();
+    let col: Vec<f64> = t.iter().map(|x| (0.1 * x).sin() * 1e-9).collect();
+    let r = Run::new(
+        0.0,
+        1.0,
+        ["oi1", "oi12", "o1", "o12"]
+            .iter()
+            .map(|n| (n.to_string(), col.clone()))
+            .collect(),
+    )
+    .unwrap();
+    write_run(&run_path, &r).unwrap();
+    for cmd in ["fit", "diagnose"] {
+        let out = d.path().join(format!("out-{cmd}"));
+        fails(
+            &[cmd, s(&run_path), "--out", s(&out)],
+            &[
+                "RUN.parquet",
+                "is a Parquet file (a run), not a dataset description",
+                "[[experiment]]",
+                "file = \"RUN.parquet\"",
+            ],
+        );
+        let o = run(&[cmd, s(&run_path), "--out", s(&out)]);
+        assert!(!String::from_utf8_lossy(&o.stderr).contains("UTF-8"));
+    }
+}

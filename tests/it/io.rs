@@ -1219,3 +1219,142 @@ fn integer_time_in_nanoseconds_or_milliseconds_is_refused_with_the_unit() {
     );
     assert_eq!(read_run(&path).unwrap().dt, 1.0);
 }
+
+/// The rows of `columns` as CSV text with the extra text column `status` (values `status(i)`).
+fn csv_with_status(columns: &[(&str, Vec<f64>)], status: impl Fn(usize) -> String) -> String {
+    let mut text = columns
+        .iter()
+        .map(|(n, _)| *n)
+        .collect::<Vec<_>>()
+        .join(",")
+        + ",status\n";
+    for i in 0..columns[0].1.len() {
+        let row: Vec<String> = columns.iter().map(|(_, v)| format!("{:?}", v[i])).collect();
+        text += &format!("{},{}\n", row.join(","), status(i));
+    }
+    text
+}
+
+#[test]
+fn a_text_column_in_csv_is_ignored_with_the_parquet_note() {
+    // Oracle: the note the same column gets in a Parquet file (one code path reads both), with
+    // the file name changed; the run read from either file is the same.
+    let dir = tmp();
+    let cols = good_columns(12);
+    let status = |i: usize| {
+        if i % 3 == 0 {
+            "ok".to_string()
+        } else {
+            "slew".to_string()
+        }
+    };
+    let pq = dir.path().join("status.parquet");
+    let mut table = Table::new();
+    for (n, v) in &cols {
+        table.push_column(*n, v.clone()).unwrap();
+    }
+    let table = table.with_str("status", (0..12).map(status)).unwrap();
+    write_parquet(&pq, &table).unwrap();
+    let (run_pq, notes_pq) = freefall::io::read_run_noted(&pq).unwrap();
+
+    let csv = dir.path().join("status.csv");
+    fs::write(&csv, csv_with_status(&cols, status)).unwrap();
+    let (run_csv, notes_csv) = freefall::io::read_run_noted(&csv).unwrap();
+    assert_eq!(
+        notes_csv,
+        notes_pq
+            .iter()
+            .map(|n| n.replace("status.parquet", "status.csv"))
+            .collect::<Vec<_>>()
+    );
+    assert_contains(
+        &notes_csv.join(" "),
+        &["status.csv", "'status' ignored (type utf8)"],
+    );
+    assert!(!run_csv.has_column("status"));
+    assert_eq!(run_csv.columns, run_pq.columns);
+
+    // Numbers first, text later (a status code that turns into a word): still text, and the
+    // segment reader of datasets (empty fields are missing samples) ignores it too.
+    let late = |i: usize| {
+        if i < 10 {
+            i.to_string()
+        } else {
+            "fault".to_string()
+        }
+    };
+    fs::write(&csv, csv_with_status(&cols, late)).unwrap();
+    let (runs, notes) = freefall::io::read_run_segments(&csv).unwrap();
+    assert_eq!(runs.len(), 1);
+    assert!(!runs[0].has_column("status"));
+    assert_contains(&notes.join(" "), &["'status' ignored (type utf8)"]);
+
+    // A readout with text is still refused, naming the line, the row and the column.
+    let mut text = csv_with_status(&cols, status);
+    text = text.replacen(&format!(",{:?},", cols[3].1[4]), ",n/a,", 1);
+    fs::write(&csv, &text).unwrap();
+    let err = read_run(&csv).unwrap_err().to_string();
+    assert_contains(&err, &["status.csv", "line 6", "row 4", "'o1'", "'n/a'"]);
+    // So is a declared auxiliary column (the dataset says it is a readout).
+    let err = freefall::io::read_run_segments_declared(&csv, &["status".to_string()])
+        .unwrap_err()
+        .to_string();
+    assert_contains(&err, &["status.csv", "column 'status'", "cannot parse"]);
+}
+
+#[test]
+fn a_run_file_given_as_a_dataset_says_so_and_shows_the_format() {
+    // Oracle: the dataset format of the reference docs (a TOML file naming its runs): a run
+    // file (Parquet, CSV) or any non-TOML file is refused in one line that says what it is and
+    // shows the minimal dataset, not a decoder's message.
+    let dir = tmp();
+    let pq = dir.path().join("RUN.parquet");
+    write_run(&pq, &sample_run(16, 1.0, 0.0)).unwrap();
+    let csv = dir.path().join("run.csv");
+    write_run(&csv, &sample_run(16, 1.0, 0.0)).unwrap();
+    let renamed = dir.path().join("data.bin");
+    fs::copy(&pq, &renamed).unwrap();
+    let binary = dir.path().join("image.dat");
+    fs::write(&binary, [0xffu8, 0xfe, 0x00, 0x80, 0x81]).unwrap();
+    let json = dir.path().join("notes.json");
+    fs::write(&json, "{\"experiment\": [1, 2]}\n").unwrap();
+    for (path, what, file) in [
+        (&pq, "is a Parquet file (a run)", "file = \"RUN.parquet\""),
+        (&csv, "is a CSV file (a run)", "file = \"run.csv\""),
+        (
+            &renamed,
+            "is a Parquet file (a run)",
+            "file = \"exp1.parquet\"",
+        ),
+        (
+            &binary,
+            "is not a text file (not UTF-8)",
+            "file = \"exp1.parquet\"",
+        ),
+        (
+            &json,
+            "is a '.json' file that is not TOML",
+            "file = \"exp1.parquet\"",
+        ),
+    ] {
+        let err = read_dataset(path).unwrap_err().to_string();
+        assert_contains(
+            &err,
+            &[
+                path.file_name().unwrap().to_str().unwrap(),
+                what,
+                "not a dataset description",
+                "[[experiment]]",
+                "name = \"exp1\"",
+                file,
+            ],
+        );
+        assert!(!err.contains("UTF-8") || what.contains("UTF-8"), "{err}");
+    }
+    // A .toml file with a syntax error keeps the line and column of the error.
+    let bad = dir.path().join("dataset.toml");
+    fs::write(&bad, "noise = \"noise.parquet\"\n[[experiment]\n").unwrap();
+    let err = read_dataset(&bad).unwrap_err().to_string();
+    assert_contains(&err, &["dataset.toml", "line 2"]);
+    assert!(!err.contains("not a dataset description"), "{err}");
+}

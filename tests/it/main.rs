@@ -28,6 +28,7 @@ mod metadata;
 mod missing_rows;
 mod model;
 mod nyquist_null;
+mod overwrite;
 mod plots;
 mod redesign;
 mod simulation;
