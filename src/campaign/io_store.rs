@@ -442,7 +442,7 @@ pub fn run(
     let begin = check_out_state(loaded, opts, &state)?;
     if let Begin::Complete(manifest) = begin {
         return Ok(RunReport {
-            manifest,
+            manifest: *manifest,
             already_complete: true,
             notes: Vec::new(),
         });
@@ -567,7 +567,7 @@ fn prepare(loaded: &Loaded) -> Result<Box<dyn Jobs + '_>, CampaignError> {
 /// How a run begins in its output directory ([`check_out_state`]).
 enum Begin {
     /// A finished run of this campaign and shard, reported with `--resume`.
-    Complete(Manifest),
+    Complete(Box<Manifest>),
     /// The interrupted run in `.partial` is continued (`--resume`).
     Continue,
     /// A fresh run: `.partial` is (re)created by [`fresh_partial`] once the cells are prepared.
@@ -633,7 +633,7 @@ fn check_out_state(
         let m: Manifest = read_json(&manifest_path)?;
         let same = m.config_hash == loaded.config_hash && m.shard == opts.shard;
         return match (same, opts.resume) {
-            (true, true) => Ok(Begin::Complete(m)),
+            (true, true) => Ok(Begin::Complete(Box::new(m))),
             (true, false) => Err(store_err(
                 out,
                 "already holds this campaign, finished (manifest.json); give --resume to report it, --force to run it afresh over it, or choose another --out",

@@ -260,7 +260,11 @@ fn huge_whitening_orders_are_refused_with_the_estimated_bytes() {
             "--out",
             s(&d.path().join("w.parquet")),
         ],
-        &["order = 20000", "12.8 GB", "memory budget of 4.0 GB"],
+        &[
+            "order = 20000",
+            "12.8 GB",
+            "memory budget of 4.0 GB (set by FREEFALL_MEMORY_BUDGET)",
+        ],
     );
     // From a noise run too short for the order: refused by length, before any allocation.
     fails_within(

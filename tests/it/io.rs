@@ -1242,7 +1242,7 @@ fn a_text_column_in_csv_is_ignored_with_the_parquet_note() {
     let dir = tmp();
     let cols = good_columns(12);
     let status = |i: usize| {
-        if i % 3 == 0 {
+        if i.is_multiple_of(3) {
             "ok".to_string()
         } else {
             "slew".to_string()
@@ -1296,10 +1296,19 @@ fn a_text_column_in_csv_is_ignored_with_the_parquet_note() {
     let err = read_run(&csv).unwrap_err().to_string();
     assert_contains(&err, &["status.csv", "line 6", "row 4", "'o1'", "'n/a'"]);
     // So is a declared auxiliary column (the dataset says it is a readout).
+    fs::write(&csv, csv_with_status(&cols, status)).unwrap();
     let err = freefall::io::read_run_segments_declared(&csv, &["status".to_string()])
         .unwrap_err()
         .to_string();
-    assert_contains(&err, &["status.csv", "column 'status'", "cannot parse"]);
+    assert_contains(
+        &err,
+        &[
+            "status.csv",
+            "line 2",
+            "column 'status'",
+            "cannot parse 'ok'",
+        ],
+    );
 }
 
 #[test]
