@@ -704,10 +704,12 @@ pub fn max_threads() -> usize {
     std::thread::available_parallelism().map_or(1, |n| n.get())
 }
 
-/// Whether `out` holds a campaign's run (finished, or interrupted with checkpoints), which a
-/// `campaign run` continues or reports complete instead of refusing it as a non-empty folder.
+/// Whether `out` holds a campaign's run (finished, interrupted with checkpoints, or one that
+/// holds or held its lock), which `campaign run` checks itself under the lock (continues,
+/// reports complete, runs afresh with `--force`, or refuses naming the run) instead of refusing
+/// it as a non-empty folder.
 pub fn is_campaign_folder(out: &Path) -> bool {
-    out.join(MANIFEST).exists() || out.join(PARTIAL).exists()
+    out.join(MANIFEST).exists() || out.join(PARTIAL).exists() || out.join(LOCK).exists()
 }
 
 impl RunOptions {
