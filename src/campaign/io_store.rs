@@ -625,7 +625,10 @@ fn check_out_state(
                     short(&old.config_hash),
                     old.shard
                 ),
-                _ => "holds an interrupted run of this campaign (.partial); continue it with --resume, start it afresh with --force, or choose another --out".to_string(),
+                Ok(_) => "holds an interrupted run of this campaign (.partial); continue it with --resume, start it afresh with --force, or choose another --out".to_string(),
+                Err(e) => format!(
+                    "holds an interrupted run whose state cannot be read ({e}); give --force to run this campaign afresh over it, or choose another --out"
+                ),
             },
         ));
     }

@@ -332,7 +332,7 @@ impl Drop for Working {
 /// on); any other non-empty folder is refused here like everywhere else.
 fn refuse_overwrite(cmd: &Command, outputs: &[Named<'_>]) -> Result<()> {
     if let Command::Campaign(campaign::CampaignCmd::Run(a)) = cmd {
-        if a.resume || crate::campaign::io_store::is_campaign_folder(&a.out) {
+        if crate::campaign::io_store::is_campaign_folder(&a.out) {
             return Ok(());
         }
     }

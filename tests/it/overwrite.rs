@@ -399,6 +399,16 @@ fn campaign_run_force_over_a_finished_campaign_writes_a_fresh_one() {
     ok(&["-q", "campaign", "run", s(&new), "--out", s(&fresh_new)]);
     assert!(fresh_old.join("accel.parquet").exists() && fresh_old.join("chi2.parquet").exists());
 
+    // --resume finds no run to continue in a folder of other files: the policy of every command.
+    let other = dir.join("other");
+    std::fs::create_dir_all(&other).unwrap();
+    std::fs::write(other.join("old.txt"), b"keep me").unwrap();
+    let err = refused(&["campaign", "run", s(&new), "--resume", "--out", s(&other)]);
+    assert!(
+        err.contains("is a non-empty directory") && err.contains("--force"),
+        "{err}"
+    );
+
     let out = dir.join("out");
     ok(&["-q", "campaign", "run", s(&old), "--out", s(&out)]);
     // Another campaign over it: refused, pointing at --force (not at --resume, which would fail).
