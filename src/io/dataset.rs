@@ -687,17 +687,37 @@ fn check_distinct_files(path: &Path, files: &[(String, PathBuf)]) -> Result<(), 
 
 /// The dataset file's text; a file that cannot be one (a run file given where the dataset is
 /// expected: Parquet, CSV, any non-UTF-8 file) is refused with [`not_a_dataset`].
+/// Only the file's first [`SNIFF_BYTES`] are read before it is known to be text, so that a
+/// large data file is refused without reading it whole.
 fn read_dataset_text(path: &Path) -> Result<String, IoError> {
-    let bytes = std::fs::read(path).map_err(|e| IoError::read(path, e))?;
+    use std::io::Read;
     let ext = extension(path);
-    if bytes.starts_with(PARQUET_MAGIC) || matches!(ext.as_deref(), Some("parquet" | "pq")) {
+    match ext.as_deref() {
+        Some("parquet" | "pq") => return Err(not_a_dataset(path, "a Parquet file (a run)")),
+        Some("csv") => return Err(not_a_dataset(path, "a CSV file (a run)")),
+        _ => {}
+    }
+    let read_err = |e| IoError::read(path, e);
+    let mut file = std::fs::File::open(path).map_err(read_err)?;
+    let mut bytes = Vec::new();
+    (&mut file)
+        .take(SNIFF_BYTES)
+        .read_to_end(&mut bytes)
+        .map_err(read_err)?;
+    if bytes.starts_with(PARQUET_MAGIC) {
         return Err(not_a_dataset(path, "a Parquet file (a run)"));
     }
-    if ext.as_deref() == Some("csv") {
-        return Err(not_a_dataset(path, "a CSV file (a run)"));
+    let not_text = || not_a_dataset(path, "not a text file (not UTF-8)");
+    // An invalid byte in the first bytes (a character cut at their end is not one).
+    if std::str::from_utf8(&bytes).is_err_and(|e| e.error_len().is_some()) {
+        return Err(not_text());
     }
-    String::from_utf8(bytes).map_err(|_| not_a_dataset(path, "not a text file (not UTF-8)"))
+    file.read_to_end(&mut bytes).map_err(read_err)?;
+    String::from_utf8(bytes).map_err(|_| not_text())
 }
+
+/// Bytes of a would-be dataset file read to tell a data file from text.
+const SNIFF_BYTES: u64 = 1 << 16;
 
 /// The first bytes of every Parquet file.
 const PARQUET_MAGIC: &[u8] = b"PAR1";
