@@ -467,28 +467,43 @@ pub fn run(
         failed: x,
     });
 
+    // Chunk k is written (encode, fsync, rename: ~2 ms) by a writer thread while chunk k+1 is
+    // computed, so the pool does not idle on the disk (docs/architecture.md, "The writer
+    // pipeline"). The channel holds one chunk: memory stays at two chunks in flight. Chunks
+    // are written in order, so `--resume` sees a prefix of them, as before.
     let batch = c.batch as u64;
-    while next < end {
-        let stop = (next + batch).min(end);
-        let rows = pool.install(|| runner.run_range(next, stop));
-        let table = layout.rows_table(&rows, c.seed)?.with_meta_all(&meta);
-        write_parquet(
-            chunk_path(&partial, next, stop, &loaded.config_hash),
-            &table,
-        )?;
-        for r in &rows {
-            agg.add(r);
-            fit_seconds += r.seconds;
-        }
-        next = stop;
-        let (f, x) = agg.counts();
-        progress(Progress {
-            done: next - start,
-            total,
-            fits: f,
-            failed: x,
+    std::thread::scope(|scope| -> Result<(), CampaignError> {
+        let (send, receive) = std::sync::mpsc::sync_channel::<(PathBuf, Table)>(1);
+        let writer = scope.spawn(move || -> Result<(), CampaignError> {
+            for (path, table) in receive {
+                write_parquet(path, &table)?;
+            }
+            Ok(())
         });
-    }
+        while next < end {
+            let stop = (next + batch).min(end);
+            let rows = pool.install(|| runner.run_range(next, stop));
+            let table = layout.rows_table(&rows, c.seed)?.with_meta_all(&meta);
+            let path = chunk_path(&partial, next, stop, &loaded.config_hash);
+            if send.send((path, table)).is_err() {
+                break; // the writer stopped on an error, returned by its join below
+            }
+            for r in &rows {
+                agg.add(r);
+                fit_seconds += r.seconds;
+            }
+            next = stop;
+            let (f, x) = agg.counts();
+            progress(Progress {
+                done: next - start,
+                total,
+                fits: f,
+                failed: x,
+            });
+        }
+        drop(send);
+        writer.join().expect("the chunk writer does not panic")
+    })?;
     let threads = pool.current_num_threads();
 
     // Finalize: stream the chunks into realizations.parquet, write the aggregates.
