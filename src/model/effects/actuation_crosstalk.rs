@@ -3,9 +3,9 @@
 //! suspension force leaking onto x1: `AC[x1, sus] += k C_sus` (on top of the modelled
 //! back-reaction `mt a_sus C_sus`). Parameter: the leak fraction k.
 
-use super::{c, zero, Category, Effect};
+use super::{c, zero_n, Actuator, Category, Effect, Roles};
 use crate::model::closed_loop::{OperatorDerivative, Operators};
-use crate::model::lpf_x::{LpfPoint, LpfX};
+use crate::model::lpf_x::Channel;
 
 #[derive(Debug, Clone, Copy)]
 pub enum ActuationCrosstalk {
@@ -14,21 +14,21 @@ pub enum ActuationCrosstalk {
 }
 
 impl ActuationCrosstalk {
-    fn element(&self) -> (usize, usize) {
+    /// The leaking actuator and the x coordinate its force leaks onto.
+    fn roles(&self) -> (Actuator, Channel) {
         match self {
-            ActuationCrosstalk::DragFreeOnX12 => (1, 0),
-            ActuationCrosstalk::SuspensionOnX1 => (0, 1),
+            ActuationCrosstalk::DragFreeOnX12 => (Actuator::DragFree, Channel::O12),
+            ActuationCrosstalk::SuspensionOnX1 => (Actuator::Suspension, Channel::O1),
         }
     }
-    fn law(&self, pt: &LpfPoint) -> num_complex::Complex64 {
-        match self {
-            ActuationCrosstalk::DragFreeOnX12 => pt.c_df,
-            ActuationCrosstalk::SuspensionOnX1 => pt.c_sus,
-        }
+    /// `AC[leak coordinate, actuator column]`.
+    fn element<const N: usize>(&self, r: &dyn Roles<N>) -> (usize, usize) {
+        let (a, onto) = self.roles();
+        (r.coordinate(onto), r.actuator_column(a))
     }
 }
 
-impl Effect for ActuationCrosstalk {
+impl<const N: usize> Effect<N> for ActuationCrosstalk {
     fn name(&self) -> String {
         match self {
             ActuationCrosstalk::DragFreeOnX12 => "actuation_crosstalk_df_x12".into(),
@@ -62,26 +62,12 @@ impl Effect for ActuationCrosstalk {
             ActuationCrosstalk::SuspensionOnX1 => vec![1e-2],
         }
     }
-    fn perturb(
-        &self,
-        _base: &LpfX,
-        pt: &LpfPoint,
-        _p: &[f64],
-        theta: &[f64],
-        ops: &mut Operators<2>,
-    ) {
-        ops.ac[self.element()] += self.law(pt) * theta[0];
+    fn perturb(&self, r: &dyn Roles<N>, theta: &[f64], ops: &mut Operators<N>) {
+        ops.ac[self.element(r)] += r.law(self.roles().0) * theta[0];
     }
-    fn derivative(
-        &self,
-        _base: &LpfX,
-        pt: &LpfPoint,
-        _p: &[f64],
-        _theta: &[f64],
-        _k: usize,
-    ) -> OperatorDerivative<2> {
-        let mut m = zero();
-        m[self.element()] = self.law(pt) * c(1.0);
+    fn derivative(&self, r: &dyn Roles<N>, _theta: &[f64], _k: usize) -> OperatorDerivative<N> {
+        let mut m = zero_n::<N>();
+        m[self.element(r)] = r.law(self.roles().0) * c(1.0);
         OperatorDerivative {
             ac: Some(m),
             ..Default::default()

@@ -5,9 +5,8 @@
 
 use num_complex::Complex64;
 
-use super::{c, zero, Category, Effect};
+use super::{c, Actuator, Category, Effect, Roles};
 use crate::model::closed_loop::{CMat, OperatorDerivative, Operators};
-use crate::model::lpf_x::{LpfPoint, LpfX, A_DF, A_SUS};
 
 #[derive(Debug, Clone, Copy)]
 pub enum ActuationLag {
@@ -16,20 +15,17 @@ pub enum ActuationLag {
 }
 
 impl ActuationLag {
-    /// The actuator's column of `A C` and its derivative with respect to the actuator gain.
-    fn column(&self, base: &LpfX, pt: &LpfPoint, p: &[f64]) -> (CMat<2>, CMat<2>) {
-        let mut unit = zero();
+    fn actuator(&self) -> Actuator {
         match self {
-            ActuationLag::DragFree => unit[(0, 0)] = pt.c_df,
-            ActuationLag::Suspension => {
-                unit[(0, 1)] = pt.c_sus * base.mt;
-                unit[(1, 1)] = pt.c_sus;
-            }
+            ActuationLag::DragFree => Actuator::DragFree,
+            ActuationLag::Suspension => Actuator::Suspension,
         }
-        let gain = match self {
-            ActuationLag::DragFree => p[A_DF],
-            ActuationLag::Suspension => p[A_SUS],
-        };
+    }
+    /// The actuator's column of `A C` and its derivative with respect to the actuator gain.
+    fn column<const N: usize>(&self, r: &dyn Roles<N>) -> (CMat<N>, CMat<N>) {
+        let a = self.actuator();
+        let unit = r.actuation_unit(a);
+        let gain = r.base_parameters()[r.gain_index(a)];
         (unit * c(gain), unit)
     }
 }
@@ -38,7 +34,7 @@ fn lag_minus_one(s: Complex64, tau: f64) -> Complex64 {
     1.0 / (1.0 + s * tau) - 1.0
 }
 
-impl Effect for ActuationLag {
+impl<const N: usize> Effect<N> for ActuationLag {
     fn name(&self) -> String {
         match self {
             ActuationLag::DragFree => "actuation_lag_df".into(),
@@ -69,50 +65,26 @@ impl Effect for ActuationLag {
     fn lower_bounds(&self) -> Vec<Option<f64>> {
         vec![Some(0.0)]
     }
-    fn perturb(
-        &self,
-        base: &LpfX,
-        pt: &LpfPoint,
-        p: &[f64],
-        theta: &[f64],
-        ops: &mut Operators<2>,
-    ) {
-        let (col, _) = self.column(base, pt, p);
-        ops.ac += col * lag_minus_one(pt.s, theta[0]);
+    fn perturb(&self, r: &dyn Roles<N>, theta: &[f64], ops: &mut Operators<N>) {
+        let (col, _) = self.column(r);
+        ops.ac += col * lag_minus_one(r.s(), theta[0]);
     }
-    fn derivative(
-        &self,
-        base: &LpfX,
-        pt: &LpfPoint,
-        p: &[f64],
-        theta: &[f64],
-        _k: usize,
-    ) -> OperatorDerivative<2> {
-        let (col, _) = self.column(base, pt, p);
-        let den = 1.0 + pt.s * theta[0];
+    fn derivative(&self, r: &dyn Roles<N>, theta: &[f64], _k: usize) -> OperatorDerivative<N> {
+        let (col, _) = self.column(r);
+        let s = r.s();
+        let den = 1.0 + s * theta[0];
         OperatorDerivative {
-            ac: Some(col * (-pt.s / (den * den))),
+            ac: Some(col * (-s / (den * den))),
             ..Default::default()
         }
     }
-    fn base_derivative(
-        &self,
-        base: &LpfX,
-        pt: &LpfPoint,
-        p: &[f64],
-        theta: &[f64],
-        k: usize,
-    ) -> OperatorDerivative<2> {
-        let own = match self {
-            ActuationLag::DragFree => A_DF,
-            ActuationLag::Suspension => A_SUS,
-        };
-        if k != own {
+    fn base_derivative(&self, r: &dyn Roles<N>, theta: &[f64], k: usize) -> OperatorDerivative<N> {
+        if k != r.gain_index(self.actuator()) {
             return OperatorDerivative::default();
         }
-        let (_, unit) = self.column(base, pt, p);
+        let (_, unit) = self.column(r);
         OperatorDerivative {
-            ac: Some(unit * lag_minus_one(pt.s, theta[0])),
+            ac: Some(unit * lag_minus_one(r.s(), theta[0])),
             ..Default::default()
         }
     }

@@ -1,18 +1,18 @@
 //! Viscous / gas damping of a TM (thesis sec. 4.1.1): a velocity-proportional force
 //! `-gamma_k dx_k/dt` per unit mass, i.e. `w_k^2 -> w_k^2 + gamma_k s` in `D`:
-//! `dD = gamma_k s M_k` (see [`super::stiffness_map`]). Parameter: gamma (s^-1).
+//! `dD = gamma_k s M_k`, with `M_k` the TM's stiffness map along x ([`Roles::stiffness_map`]).
+//! Parameter: gamma (s^-1).
 
 use super::loss_angle::Tm;
-use super::{stiffness_map, Category, Effect};
+use super::{Category, Effect, Roles};
 use crate::model::closed_loop::{OperatorDerivative, Operators};
-use crate::model::lpf_x::{LpfPoint, LpfX};
 
 #[derive(Debug, Clone, Copy)]
 pub struct Damping {
     pub tm: Tm,
 }
 
-impl Effect for Damping {
+impl<const N: usize> Effect<N> for Damping {
     fn name(&self) -> String {
         format!("damping_{}", self.tm.label())
     }
@@ -35,26 +35,12 @@ impl Effect for Damping {
     fn lower_bounds(&self) -> Vec<Option<f64>> {
         vec![Some(0.0)]
     }
-    fn perturb(
-        &self,
-        base: &LpfX,
-        pt: &LpfPoint,
-        _p: &[f64],
-        theta: &[f64],
-        ops: &mut Operators<2>,
-    ) {
-        ops.d += stiffness_map(base, self.tm == Tm::Two) * (pt.s * theta[0]);
+    fn perturb(&self, r: &dyn Roles<N>, theta: &[f64], ops: &mut Operators<N>) {
+        ops.d += r.stiffness_map(self.tm) * (r.s() * theta[0]);
     }
-    fn derivative(
-        &self,
-        base: &LpfX,
-        pt: &LpfPoint,
-        _p: &[f64],
-        _theta: &[f64],
-        _k: usize,
-    ) -> OperatorDerivative<2> {
+    fn derivative(&self, r: &dyn Roles<N>, _theta: &[f64], _k: usize) -> OperatorDerivative<N> {
         OperatorDerivative {
-            d: Some(stiffness_map(base, self.tm == Tm::Two) * pt.s),
+            d: Some(r.stiffness_map(self.tm) * r.s()),
             ..Default::default()
         }
     }

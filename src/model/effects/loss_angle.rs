@@ -1,12 +1,11 @@
 //! Anelasticity (thesis sec. 4.1.1): a loss angle phi makes a TM's stiffness complex,
 //! `w^2 -> w^2 (1 + i phi)`. With the per-TM stiffnesses w1 = w1_sq and w2 = w1_sq + w12_sq,
-//! `dD = i phi_k w_k M_k` (see [`super::stiffness_map`]). Parameter: the loss angle phi (rad).
+//! `dD = i phi_k w_k M_k` (see [`Roles::stiffness_map`]). Parameter: the loss angle phi (rad).
 
 use num_complex::Complex64;
 
-use super::{stiffness_map, Category, Effect};
+use super::{Category, Effect, Roles};
 use crate::model::closed_loop::{OperatorDerivative, Operators};
-use crate::model::lpf_x::{LpfPoint, LpfX, W1, W12};
 
 const I: Complex64 = Complex64 { re: 0.0, im: 1.0 };
 
@@ -31,16 +30,7 @@ pub struct LossAngle {
     pub tm: Tm,
 }
 
-impl LossAngle {
-    fn stiffness(&self, p: &[f64]) -> f64 {
-        match self.tm {
-            Tm::One => p[W1],
-            Tm::Two => p[W1] + p[W12],
-        }
-    }
-}
-
-impl Effect for LossAngle {
+impl<const N: usize> Effect<N> for LossAngle {
     fn name(&self) -> String {
         format!("loss_angle_{}", self.tm.label())
     }
@@ -63,45 +53,22 @@ impl Effect for LossAngle {
     fn lower_bounds(&self) -> Vec<Option<f64>> {
         vec![Some(0.0)]
     }
-    fn perturb(
-        &self,
-        base: &LpfX,
-        _pt: &LpfPoint,
-        p: &[f64],
-        theta: &[f64],
-        ops: &mut Operators<2>,
-    ) {
-        let m = stiffness_map(base, self.tm == Tm::Two);
-        ops.d += m * (I * (theta[0] * self.stiffness(p)));
+    fn perturb(&self, r: &dyn Roles<N>, theta: &[f64], ops: &mut Operators<N>) {
+        let m = r.stiffness_map(self.tm);
+        ops.d += m * (I * (theta[0] * r.stiffness(self.tm)));
     }
-    fn derivative(
-        &self,
-        base: &LpfX,
-        _pt: &LpfPoint,
-        p: &[f64],
-        _theta: &[f64],
-        _k: usize,
-    ) -> OperatorDerivative<2> {
-        let m = stiffness_map(base, self.tm == Tm::Two);
+    fn derivative(&self, r: &dyn Roles<N>, _theta: &[f64], _k: usize) -> OperatorDerivative<N> {
+        let m = r.stiffness_map(self.tm);
         OperatorDerivative {
-            d: Some(m * (I * self.stiffness(p))),
+            d: Some(m * (I * r.stiffness(self.tm))),
             ..Default::default()
         }
     }
-    fn base_derivative(
-        &self,
-        base: &LpfX,
-        _pt: &LpfPoint,
-        _p: &[f64],
-        theta: &[f64],
-        k: usize,
-    ) -> OperatorDerivative<2> {
-        let dw = match (self.tm, k) {
-            (_, W1) => 1.0,
-            (Tm::Two, W12) => 1.0,
-            _ => return OperatorDerivative::default(),
+    fn base_derivative(&self, r: &dyn Roles<N>, theta: &[f64], k: usize) -> OperatorDerivative<N> {
+        let Some(dw) = r.stiffness_derivative(self.tm, k) else {
+            return OperatorDerivative::default();
         };
-        let m = stiffness_map(base, self.tm == Tm::Two);
+        let m = r.stiffness_map(self.tm);
         OperatorDerivative {
             d: Some(m * (I * (theta[0] * dw))),
             ..Default::default()

@@ -7,7 +7,8 @@
 //!
 //! Adding an effect means adding one file here and one line in [`library`].
 //!
-//! [`Extended`] wraps the reference model with any subset of effects and implements
+//! [`Extended`] wraps any model that exposes the operator roles ([`EffectHost`]: the x and xy
+//! models) with any subset of effects and implements
 //! [`ClosedLoopModel`], so templates, whitened likelihood, fit and simulator work unchanged on it.
 //!
 //! Stability: the extended model is not polynomial in `s` (a loss angle is a frequency-independent
@@ -22,6 +23,7 @@ mod actuation_lag;
 mod damping;
 mod gravity_gradient;
 mod loss_angle;
+mod roles;
 mod sensing_crosstalk;
 mod sensing_gain;
 mod stability;
@@ -35,14 +37,15 @@ pub use actuation_crosstalk::ActuationCrosstalk;
 pub use actuation_lag::ActuationLag;
 pub use damping::Damping;
 pub use gravity_gradient::GravityGradient;
-pub use loss_angle::LossAngle;
+pub use loss_angle::{LossAngle, Tm};
+pub use roles::{Actuator, EffectHost, Roles, XRoles, XyRoles};
 pub use sensing_crosstalk::SensingCrosstalk;
 pub use sensing_gain::SensingGain;
 
 use super::closed_loop::{
     CMat, ClosedLoopModel, Instability, NoiseEntry, OperatorDerivative, Operators,
 };
-use super::lpf_x::{LpfPoint, LpfX};
+use super::lpf_x::LpfX;
 use super::poly::Poly;
 use super::poly::RootsError;
 
@@ -83,8 +86,9 @@ impl Category {
     }
 }
 
-/// One named effect acting on the LPF-x operators.
-pub trait Effect: Send + Sync + std::fmt::Debug {
+/// One named effect, defined on operator elements named by role (see [`Roles`]), so that it acts
+/// on any model of dimension `N` that exposes those roles ([`EffectHost`]).
+pub trait Effect<const N: usize = 2>: Send + Sync + std::fmt::Debug {
     /// Unique name, e.g. `loss_angle_tm2`.
     fn name(&self) -> String;
     fn category(&self) -> Category;
@@ -101,33 +105,29 @@ pub trait Effect: Send + Sync + std::fmt::Debug {
     fn lower_bounds(&self) -> Vec<Option<f64>> {
         vec![None; self.parameter_names().len()]
     }
-    /// Add the perturbation at parameters `theta` to `ops` (base parameters `p`).
-    fn perturb(&self, base: &LpfX, pt: &LpfPoint, p: &[f64], theta: &[f64], ops: &mut Operators<2>);
+    /// Add the perturbation at parameters `theta` to `ops` (the roles carry the point and the
+    /// base parameters).
+    fn perturb(&self, roles: &dyn Roles<N>, theta: &[f64], ops: &mut Operators<N>);
     /// Derivative of the perturbation with respect to its own parameter `k`.
-    fn derivative(
-        &self,
-        base: &LpfX,
-        pt: &LpfPoint,
-        p: &[f64],
-        theta: &[f64],
-        k: usize,
-    ) -> OperatorDerivative<2>;
+    fn derivative(&self, roles: &dyn Roles<N>, theta: &[f64], k: usize) -> OperatorDerivative<N>;
     /// Derivative of the perturbation with respect to base parameter `k` (zero by default).
     fn base_derivative(
         &self,
-        _base: &LpfX,
-        _pt: &LpfPoint,
-        _p: &[f64],
+        _roles: &dyn Roles<N>,
         _theta: &[f64],
         _k: usize,
-    ) -> OperatorDerivative<2> {
+    ) -> OperatorDerivative<N> {
         OperatorDerivative::default()
     }
 }
 
-/// Every effect of the library, one instance per element it can act on.
+/// Every effect of the library, one instance per element it can act on, for the x model.
 pub fn library() -> Vec<Arc<dyn Effect>> {
-    use loss_angle::Tm;
+    library_for::<2>()
+}
+
+/// The library for models of dimension `N` (the same effects: each acts through [`Roles`]).
+pub fn library_for<const N: usize>() -> Vec<Arc<dyn Effect<N>>> {
     vec![
         Arc::new(LossAngle { tm: Tm::One }),
         Arc::new(LossAngle { tm: Tm::Two }),
@@ -146,7 +146,12 @@ pub fn library() -> Vec<Arc<dyn Effect>> {
 
 /// The library effect called `name`.
 pub fn by_name(name: &str) -> Option<Arc<dyn Effect>> {
-    library().into_iter().find(|e| e.name() == name)
+    by_name_for::<2>(name)
+}
+
+/// The library effect called `name`, for models of dimension `N`.
+pub fn by_name_for<const N: usize>(name: &str) -> Option<Arc<dyn Effect<N>>> {
+    library_for::<N>().into_iter().find(|e| e.name() == name)
 }
 
 pub(crate) fn c(re: f64) -> Complex64 {
@@ -161,6 +166,10 @@ pub(crate) fn zero() -> CMat<2> {
     CMat::<2>::zeros()
 }
 
+pub(crate) fn zero_n<const N: usize>() -> CMat<N> {
+    CMat::<N>::zeros()
+}
+
 /// Stiffness maps in the (x1, x12) coordinates of `reference/README.md`: with the per-TM
 /// stiffnesses w1 = w1_sq and w2 = w1_sq + w12_sq, `D = s^2 + w1 M1 + w2 M2 + gamma terms`.
 pub(crate) fn stiffness_map(base: &LpfX, tm2: bool) -> CMat<2> {
@@ -172,7 +181,7 @@ pub(crate) fn stiffness_map(base: &LpfX, tm2: bool) -> CMat<2> {
     }
 }
 
-fn add_opt(a: Option<CMat<2>>, b: Option<CMat<2>>) -> Option<CMat<2>> {
+fn add_opt<const N: usize>(a: Option<CMat<N>>, b: Option<CMat<N>>) -> Option<CMat<N>> {
     match (a, b) {
         (Some(x), Some(y)) => Some(x + y),
         (x, None) => x,
@@ -180,7 +189,10 @@ fn add_opt(a: Option<CMat<2>>, b: Option<CMat<2>>) -> Option<CMat<2>> {
     }
 }
 
-fn merge(a: OperatorDerivative<2>, b: OperatorDerivative<2>) -> OperatorDerivative<2> {
+fn merge<const N: usize>(
+    a: OperatorDerivative<N>,
+    b: OperatorDerivative<N>,
+) -> OperatorDerivative<N> {
     OperatorDerivative {
         d: add_opt(a.d, b.d),
         s: add_opt(a.s, b.s),
@@ -189,20 +201,20 @@ fn merge(a: OperatorDerivative<2>, b: OperatorDerivative<2>) -> OperatorDerivati
     }
 }
 
-/// The reference model extended by a set of effects. Parameters: the base parameters, then each
-/// effect's parameters in order.
+/// A base model extended by a set of effects (by default the x model). Parameters: the base
+/// parameters, then each effect's parameters in order.
 #[derive(Debug, Clone)]
-pub struct Extended {
-    pub base: LpfX,
-    pub effects: Vec<Arc<dyn Effect>>,
+pub struct Extended<M = LpfX, const N: usize = 2> {
+    pub base: M,
+    pub effects: Vec<Arc<dyn Effect<N>>>,
     names: Vec<String>,
     n_base: usize,
     /// `offsets[i]..offsets[i + 1]`: effect i's parameters.
     offsets: Vec<usize>,
 }
 
-impl Extended {
-    pub fn new(base: LpfX, effects: Vec<Arc<dyn Effect>>) -> Self {
+impl<M: EffectHost<N>, const N: usize> Extended<M, N> {
+    pub fn new(base: M, effects: Vec<Arc<dyn Effect<N>>>) -> Self {
         let mut names: Vec<String> = base.parameter_names().to_vec();
         let n_base = names.len();
         let mut offsets = vec![n_base];
@@ -236,8 +248,8 @@ impl Extended {
     }
 }
 
-impl ClosedLoopModel<2> for Extended {
-    type Point = LpfPoint;
+impl<M: EffectHost<N>, const N: usize> ClosedLoopModel<N> for Extended<M, N> {
+    type Point = M::Point;
 
     fn parameter_names(&self) -> &[String] {
         &self.names
@@ -252,38 +264,40 @@ impl ClosedLoopModel<2> for Extended {
         b
     }
 
-    fn readout_names(&self) -> [&'static str; 2] {
+    fn readout_names(&self) -> [&'static str; N] {
         self.base.readout_names()
     }
 
-    fn input_names(&self) -> [&'static str; 2] {
+    fn input_names(&self) -> [&'static str; N] {
         self.base.input_names()
     }
 
-    fn prepare(&self, f_hz: f64) -> LpfPoint {
+    fn prepare(&self, f_hz: f64) -> M::Point {
         self.base.prepare(f_hz)
     }
 
-    fn operators(&self, pt: &LpfPoint, p: &[f64]) -> Operators<2> {
+    fn operators(&self, pt: &M::Point, p: &[f64]) -> Operators<N> {
         let pb = &p[..self.n_base];
         let mut ops = self.base.operators(pt, pb);
+        let roles = self.base.roles(pt, pb);
         for (i, e) in self.effects.iter().enumerate() {
             let th = &p[self.range(i)];
             if th.iter().any(|v| *v != 0.0) {
-                e.perturb(&self.base, pt, pb, th, &mut ops);
+                e.perturb(&roles, th, &mut ops);
             }
         }
         ops
     }
 
-    fn derivative(&self, pt: &LpfPoint, p: &[f64], k: usize) -> OperatorDerivative<2> {
+    fn derivative(&self, pt: &M::Point, p: &[f64], k: usize) -> OperatorDerivative<N> {
         let pb = &p[..self.n_base];
+        let roles = self.base.roles(pt, pb);
         if k < self.n_base {
             let mut der = self.base.derivative(pt, pb, k);
             for (i, e) in self.effects.iter().enumerate() {
                 let th = &p[self.range(i)];
                 if th.iter().any(|v| *v != 0.0) {
-                    der = merge(der, e.base_derivative(&self.base, pt, pb, th, k));
+                    der = merge(der, e.base_derivative(&roles, th, k));
                 }
             }
             return der;
@@ -294,7 +308,7 @@ impl ClosedLoopModel<2> for Extended {
             .rposition(|&o| o <= k)
             .expect("offsets start at n_base");
         let r = self.range(i);
-        self.effects[i].derivative(&self.base, pt, pb, &p[r.clone()], k - r.start)
+        self.effects[i].derivative(&roles, &p[r.clone()], k - r.start)
     }
 
     /// The base model's polynomial: the effects are not polynomial in `s`, see
@@ -312,7 +326,7 @@ impl ClosedLoopModel<2> for Extended {
         self.base.inertia_advance()
     }
 
-    fn noise_entry(&self, name: &str) -> Option<NoiseEntry<2>> {
+    fn noise_entry(&self, name: &str) -> Option<NoiseEntry<N>> {
         self.base.noise_entry(name)
     }
 }

@@ -1,9 +1,9 @@
-//! Sensing miscalibration of one readout channel (thesis sec. 3.5): the channel's gain is
+//! Sensing miscalibration of one x readout channel (thesis sec. 3.5): the channel's gain is
 //! `1 + eps`, `S[c, c] = 1 + eps`. Parameter: eps (relative gain error).
 
-use super::{c, zero, Category, Effect};
+use super::{c, zero_n, Category, Effect, Roles};
 use crate::model::closed_loop::{OperatorDerivative, Operators};
-use crate::model::lpf_x::{LpfPoint, LpfX};
+use crate::model::lpf_x::Channel;
 
 #[derive(Debug, Clone, Copy)]
 pub struct SensingGain {
@@ -19,9 +19,14 @@ impl SensingGain {
             "o12"
         }
     }
+    /// `S[c, c]`.
+    fn element<const N: usize>(&self, r: &dyn Roles<N>) -> (usize, usize) {
+        let ch = Channel::from_index(self.channel);
+        (r.readout(ch), r.coordinate(ch))
+    }
 }
 
-impl Effect for SensingGain {
+impl<const N: usize> Effect<N> for SensingGain {
     fn name(&self) -> String {
         format!("sensing_gain_{}", self.label())
     }
@@ -37,26 +42,12 @@ impl Effect for SensingGain {
     fn typical(&self) -> Vec<f64> {
         vec![1e-3] // a 0.1 % calibration error
     }
-    fn perturb(
-        &self,
-        _base: &LpfX,
-        _pt: &LpfPoint,
-        _p: &[f64],
-        theta: &[f64],
-        ops: &mut Operators<2>,
-    ) {
-        ops.s[(self.channel, self.channel)] += c(theta[0]);
+    fn perturb(&self, r: &dyn Roles<N>, theta: &[f64], ops: &mut Operators<N>) {
+        ops.s[self.element(r)] += c(theta[0]);
     }
-    fn derivative(
-        &self,
-        _base: &LpfX,
-        _pt: &LpfPoint,
-        _p: &[f64],
-        _theta: &[f64],
-        _k: usize,
-    ) -> OperatorDerivative<2> {
-        let mut m = zero();
-        m[(self.channel, self.channel)] = c(1.0);
+    fn derivative(&self, r: &dyn Roles<N>, _theta: &[f64], _k: usize) -> OperatorDerivative<N> {
+        let mut m = zero_n::<N>();
+        m[self.element(r)] = c(1.0);
         OperatorDerivative {
             s: Some(m),
             ..Default::default()

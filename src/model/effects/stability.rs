@@ -25,11 +25,9 @@
 
 use num_complex::Complex64;
 
-use super::Extended;
-use crate::model::closed_loop::{ClosedLoopModel, Instability};
-use crate::model::lpf_x::LpfPoint;
+use super::{EffectHost, Extended};
+use crate::model::closed_loop::{CMat, ClosedLoopModel, Instability};
 use crate::model::poly::RootsError;
-use crate::model::sampled::z_and_zm1;
 
 /// Log-spaced frequency range of the phase tracking (Hz), and the starting density.
 const F_LO: f64 = 1e-9;
@@ -43,50 +41,71 @@ const MAX_DEPTH: usize = 40;
 const NYQUIST_MARGIN: f64 = 1e-6;
 
 /// The top of the frequency band the phase is tracked over (see the module docs).
-fn band_top(model: &Extended) -> f64 {
-    model
-        .base
-        .digital
-        .as_ref()
-        .map_or(F_HI, |dl| (1.0 - NYQUIST_MARGIN) / (2.0 * dl.h))
+fn band_top<M: EffectHost<N>, const N: usize>(model: &Extended<M, N>) -> f64 {
+    model.base.stability_band_top(F_HI, NYQUIST_MARGIN)
 }
 
-/// The base loop's characteristic polynomial at `s` (continuous, or the digital one in
-/// `w = z - 1`): `det Delta_base` with the controllers' poles cleared.
-fn base_polynomial_at(model: &Extended, s: Complex64, q: &[f64]) -> Complex64 {
-    match &model.base.digital {
-        Some(dl) => model
-            .base
-            .digital_characteristic_polynomial(q)
-            .map_or(Complex64::new(f64::NAN, 0.0), |poly| {
-                poly.eval(z_and_zm1(s, dl.h).1)
-            }),
-        None => model.base.characteristic_polynomial(q).eval(s),
+/// The determinant: the closed form for 2x2, else LU with partial pivoting.
+fn det<const N: usize>(m: &CMat<N>) -> Complex64 {
+    if N == 2 {
+        return m[(0, 0)] * m[(1, 1)] - m[(0, 1)] * m[(1, 0)];
     }
-}
-
-fn det2(m: &crate::model::closed_loop::CMat<2>) -> Complex64 {
-    m[(0, 0)] * m[(1, 1)] - m[(0, 1)] * m[(1, 0)]
+    let mut a = *m;
+    let mut d = Complex64::new(1.0, 0.0);
+    for k in 0..N {
+        let piv = (k..N)
+            .max_by(|&i, &j| a[(i, k)].norm().total_cmp(&a[(j, k)].norm()))
+            .unwrap_or(k);
+        if a[(piv, k)].norm() == 0.0 {
+            return Complex64::new(0.0, 0.0);
+        }
+        if piv != k {
+            a.swap_rows(piv, k);
+            d = -d;
+        }
+        let pk = a[(k, k)];
+        d *= pk;
+        for i in k + 1..N {
+            let f = a[(i, k)] / pk;
+            for j in k..N {
+                let v = a[(k, j)];
+                a[(i, j)] -= f * v;
+            }
+        }
+    }
+    d
 }
 
 /// `det Delta` of the model at the point `pt` and parameters `p` (base, then effects).
-fn det_delta(model: &Extended, pt: &LpfPoint, p: &[f64]) -> Complex64 {
+fn det_delta<M: EffectHost<N>, const N: usize>(
+    model: &Extended<M, N>,
+    pt: &M::Point,
+    p: &[f64],
+) -> Complex64 {
     let ops = model.operators(pt, p);
     match ops.s.try_inverse() {
-        Some(s_inv) => det2(&(ops.d * s_inv + ops.ac)),
+        Some(s_inv) => det(&(ops.d * s_inv + ops.ac)),
         None => Complex64::new(f64::NAN, 0.0),
     }
 }
 
 /// `det Delta_ext / det Delta_base` at `s`.
-fn ratio(model: &Extended, s: Complex64, p: &[f64], nominal: &[f64]) -> Complex64 {
-    let pt = model.base.prepare_s(s);
+fn ratio<M: EffectHost<N>, const N: usize>(
+    model: &Extended<M, N>,
+    s: Complex64,
+    p: &[f64],
+    nominal: &[f64],
+) -> Complex64 {
+    let pt = model.base.point_at(s);
     det_delta(model, &pt, p) / det_delta(model, &pt, nominal)
 }
 
 /// Extra right-half-plane zeros of `det Delta` brought by the effects at `p`, by the argument
 /// principle (see the module docs). `None` if the ratio is not finite somewhere on the axis.
-pub(super) fn extra_rhp_zeros(model: &Extended, p: &[f64]) -> Option<usize> {
+pub(super) fn extra_rhp_zeros<M: EffectHost<N>, const N: usize>(
+    model: &Extended<M, N>,
+    p: &[f64],
+) -> Option<usize> {
     let nominal = model.nested(&p[..model.n_base()]);
     let at = |f: f64| {
         ratio(
@@ -144,16 +163,19 @@ fn phase_change(
 /// followed by continuation in the effects' size, then Newton's method is also started from a
 /// grid over the right half plane (continuation loses a pole where a complex pair meets on the
 /// real axis and splits).
-pub(super) fn locate(model: &Extended, p: &[f64]) -> Option<Complex64> {
+pub(super) fn locate<M: EffectHost<N>, const N: usize>(
+    model: &Extended<M, N>,
+    p: &[f64],
+) -> Option<Complex64> {
     let n_base = model.n_base();
     // The base poles were computable when `instability` got here.
     let base_poles = model.base.poles(&p[..n_base]).unwrap_or_default();
     let char_fn = |s: Complex64, q: &[f64]| {
-        let pt = model.base.prepare_s(s);
+        let pt = model.base.point_at(s);
         let nominal = model.nested(&q[..n_base]);
         // det Delta_ext = r * det Delta_base, and the base polynomial is det Delta_base times
         // the controllers' denominators: multiply r by it to clear the controllers' poles.
-        let poly = base_polynomial_at(model, s, &q[..n_base]);
+        let poly = model.base.characteristic_at(s, &q[..n_base]);
         det_delta(model, &pt, q) / det_delta(model, &pt, &nominal) * poly
     };
     const STEPS: usize = 20;
@@ -210,7 +232,10 @@ fn newton(f: &dyn Fn(Complex64) -> Complex64, mut z: Complex64) -> Option<Comple
 }
 
 /// The extended model's [`ClosedLoopModel::instability`].
-pub(super) fn instability(model: &Extended, p: &[f64]) -> Result<Option<Instability>, RootsError> {
+pub(super) fn instability<M: EffectHost<N>, const N: usize>(
+    model: &Extended<M, N>,
+    p: &[f64],
+) -> Result<Option<Instability>, RootsError> {
     let n_base = model.n_base();
     if let Some(i) = model.base.instability(&p[..n_base])? {
         return Ok(Some(i));
