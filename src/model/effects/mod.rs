@@ -330,3 +330,6 @@ impl<M: EffectHost<N>, const N: usize> ClosedLoopModel<N> for Extended<M, N> {
         self.base.noise_entry(name)
     }
 }
+
+#[cfg(test)]
+mod tests;

@@ -46,7 +46,7 @@ fn band_top<M: EffectHost<N>, const N: usize>(model: &Extended<M, N>) -> f64 {
 }
 
 /// The determinant: the closed form for 2x2, else LU with partial pivoting.
-fn det<const N: usize>(m: &CMat<N>) -> Complex64 {
+pub(super) fn det<const N: usize>(m: &CMat<N>) -> Complex64 {
     if N == 2 {
         return m[(0, 0)] * m[(1, 1)] - m[(0, 1)] * m[(1, 0)];
     }
