@@ -191,10 +191,16 @@ fn the_generic_determinant_matches_closed_forms() {
         }
     }
     let got = super::stability::det(&m);
-    assert!((got - expect).norm() <= 1e-12 * expect.norm(), "{got} vs {expect}");
+    assert!(
+        (got - expect).norm() <= 1e-12 * expect.norm(),
+        "{got} vs {expect}"
+    );
     m.swap_rows(0, 3);
     let got = super::stability::det(&m);
-    assert!((got + expect).norm() <= 1e-12 * expect.norm(), "{got} vs -{expect}");
+    assert!(
+        (got + expect).norm() <= 1e-12 * expect.norm(),
+        "{got} vs -{expect}"
+    );
 }
 
 /// A stable xy loop with a dissipative effect stays stable; a large negative loss angle (an
