@@ -36,6 +36,34 @@ impl SimulateModel<7> for LpfXy {
         let drawn = commands(&setup.model, truth, sim, nsim, seed)?;
         Ok(Some((command_channels(&setup.model), drawn)))
     }
+
+    /// The library's operator effects act on the xy model through its x block
+    /// (`model::effects::roles`).
+    fn effect_simulators(
+        setup: &SetupXy,
+        truth: &[f64],
+        (design, noise_design): (&crate::signal::Design, &crate::signal::Design),
+        set: &crate::sim::inject::EffectSet,
+    ) -> Result<Option<(Simulator<7>, Simulator<7>)>, SimulateError> {
+        let mut effects = Vec::with_capacity(set.effects.len());
+        let mut p = truth.to_vec();
+        for (e, v) in &set.effects {
+            let name = e.name();
+            let e7 = crate::model::effects::by_name_for::<7>(&name).ok_or_else(|| {
+                SimulateError::Effect(format!("--effect {name}: not in the library"))
+            })?;
+            effects.push(e7);
+            p.extend(v);
+        }
+        let model = crate::model::effects::Extended::new(setup.model.clone(), effects);
+        // The loop must stay closed with the effects switched on; the culprits are named
+        // against the truth without them.
+        crate::model::check_stability(&model, &p, Some(&model.nested(truth)))?;
+        Ok(Some((
+            setup.plain_simulator_of(&model, design, truth, &p)?,
+            setup.plain_simulator_of(&model, noise_design, truth, &p)?,
+        )))
+    }
 }
 
 /// The recorded command columns of the y/phi loops: `u` and the readout's name without its

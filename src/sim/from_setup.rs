@@ -34,6 +34,28 @@ impl<M: SpecModel<N>, const N: usize> SetupOf<M, N> {
             None,
         )?)
     }
+
+    /// [`Self::plain_simulator`] of `model` (the setup's model extended, for example by
+    /// effects) at its parameters `p`; the noise is the setup's at the base parameters
+    /// `truth` (the effects perturb operators, not noise sources).
+    pub fn plain_simulator_of<Q: crate::model::ClosedLoopModel<N>>(
+        &self,
+        model: &Q,
+        design: &Design,
+        truth: &[f64],
+        p: &[f64],
+    ) -> Result<Simulator<N>, Error> {
+        self.check_simulation_size(design, "duration_s")?;
+        Ok(Simulator::new(
+            model,
+            design,
+            p,
+            self.psd(truth),
+            self.analysis_dt(),
+            NOISE_OVERSAMPLE,
+            None,
+        )?)
+    }
 }
 
 impl Setup {

@@ -400,6 +400,18 @@ pub trait SimulateModel<const N: usize>: SpecModel<N> {
     ) -> Result<Option<LoopCommands>, SimulateError> {
         Ok(None)
     }
+
+    /// The simulators of the experiments (`design`) and of the noise run (`noise_design`) of
+    /// the model extended by the library's operator effects `set.effects` at the truth `truth`
+    /// plus their values; `None`: the model takes no effects in this draw.
+    fn effect_simulators(
+        _setup: &SetupOf<Self, N>,
+        _truth: &[f64],
+        _designs: (&Design, &Design),
+        _set: &EffectSet,
+    ) -> Result<Option<(Simulator<N>, Simulator<N>)>, SimulateError> {
+        Ok(None)
+    }
 }
 
 impl SimulateModel<2> for LpfX {
@@ -514,15 +526,29 @@ impl SimulateJob {
         if self.rate == Some(Rate::Decimated) {
             return refuse("--rate decimated");
         }
-        if !self.effects.is_empty() {
-            return refuse("--effect");
-        }
         if self.initial.is_some() {
             return refuse("--initial");
         }
         let (sc, design, noise_design) = self.plan(setup)?;
-        let sim = setup.plain_simulator(&design, &sc.truth)?;
-        let nsim = setup.plain_simulator(&noise_design, &sc.truth)?;
+        let set = EffectSet::parse(&self.effects, &setup.parameter_names())
+            .map_err(SimulateError::Effect)?;
+        let (sim, nsim) = if set.is_empty() {
+            (
+                setup.plain_simulator(&design, &sc.truth)?,
+                setup.plain_simulator(&noise_design, &sc.truth)?,
+            )
+        } else {
+            if !(set.drifts.is_empty() && set.injected.is_empty() && set.crosstalk.is_empty()) {
+                return refuse("--effect other than the library's operator effects");
+            }
+            if self.commands {
+                return refuse("--commands with --effect");
+            }
+            match M::effect_simulators(setup, &sc.truth, (&design, &noise_design), &set)? {
+                Some(sims) => sims,
+                None => return refuse("--effect"),
+            }
+        };
         let (all, noise) = draw_all(|r| sim.draw(r), |r| nsim.noise_series(r), self.seed);
         let (data, mut aux) = split_runs(&setup.model, readout_floors(setup), all, &noise);
         if self.commands {
@@ -545,11 +571,15 @@ impl SimulateJob {
             }
         }
         let noise = noise[..RUN_CHANNELS].to_vec();
+        let mut meta = self.meta(&setup.spec, &sc, Rate::Analysis);
+        if !set.is_empty() {
+            meta.insert("effects".into(), toml::Value::Table(set.meta));
+        }
         Ok(Simulated {
             data,
             noise,
             aux,
-            meta: self.meta(&setup.spec, &sc, Rate::Analysis),
+            meta,
         })
     }
 }

@@ -211,3 +211,85 @@ fn an_xy_dataset_may_declare_its_models_design() {
         "{err}"
     );
 }
+
+/// The x-block effects of the library on the xy model (`simulate --model lpf_xy --effect`).
+#[test]
+fn an_effect_simulated_on_the_xy_model_is_claimed_by_the_diagnosis() {
+    // Oracle: the simulated truth (phi_tm2 = 0.02 on the xy model's TM2 stiffness along x,
+    // scenario nominal: no xy cross-talk, so the x block is the x model's). The x model's
+    // diagnosis of the dataset claims loss_angle_tm2 within 3 sigma of 0.02 and no other
+    // operator effect; the dataset records the effect in [meta.effects].
+    let dir = tempfile::tempdir().unwrap();
+    let ds = simulate(
+        dir.path(),
+        "nominal",
+        "6",
+        &["--effect", "loss_angle_tm2=0.02"],
+    );
+    let text = std::fs::read_to_string(&ds).unwrap();
+    assert!(text.contains("loss_angle_tm2 = 0.02"), "{text}");
+    let r = diagnose(&ds, &dir.path().join("d"));
+    let a = added(&r);
+    let (_, phi, s, _) = a
+        .iter()
+        .find(|(n, ..)| n == "loss_angle_tm2")
+        .unwrap_or_else(|| panic!("loss_angle_tm2 not claimed: {a:?}"));
+    assert!(((phi - 0.02) / s).abs() < 3.0, "phi_tm2 = {phi:e} +- {s:e}");
+    let others: Vec<_> = a
+        .iter()
+        .filter(|(n, _, _, f)| n != "loss_angle_tm2" && f != "glitch" && f != "line")
+        .collect();
+    assert!(others.is_empty(), "claimed {others:?}");
+}
+
+#[test]
+fn an_xy_effect_at_zero_draws_the_plain_dataset_and_x_only_kinds_are_refused() {
+    // Oracle: nesting. The extended xy model at zero is the xy model, so the same seed draws
+    // the same experiment and noise files; only dataset.toml differs (its [meta.effects]).
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::create_dir_all(dir.path().join("a")).unwrap();
+    std::fs::create_dir_all(dir.path().join("b")).unwrap();
+    let plain = simulate(&dir.path().join("a"), "crosstalk", "2", &[]);
+    let zero = simulate(
+        &dir.path().join("b"),
+        "crosstalk",
+        "2",
+        &["--effect", "actuation_lag_sus=0"],
+    );
+    let mut files = 0;
+    for entry in std::fs::read_dir(plain.parent().unwrap()).unwrap() {
+        let path = entry.unwrap().path();
+        let name = path.file_name().unwrap().to_owned();
+        if name == "dataset.toml" || path.is_dir() {
+            continue;
+        }
+        let other = zero.parent().unwrap().join(&name);
+        assert_eq!(
+            std::fs::read(&path).unwrap(),
+            std::fs::read(&other).unwrap(),
+            "{name:?} differs"
+        );
+        files += 1;
+    }
+    assert!(files >= 2, "{files} data files compared");
+    // A drift is the x model's draw only: one line naming it and the model.
+    let out = crate::common::freefall(&[
+        "simulate",
+        "--model",
+        "lpf_xy",
+        "--scenario",
+        "nominal",
+        "--effect",
+        "drift_w1_sq=1e-9",
+        "--out",
+        dir.path().join("c").to_str().unwrap(),
+    ]);
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        err.contains("--effect other than the library's operator effects")
+            && err.contains("lpf_xy")
+            && err.trim().lines().count() == 1,
+        "{err}"
+    );
+}
