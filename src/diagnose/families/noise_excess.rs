@@ -7,7 +7,7 @@
 //! the Bonferroni threshold over every band and channel of its family's share of alpha, and its
 //! level is above the model's by more than [`MIN_EXCESS`].
 
-use crate::analysis::noise_bands::band_levels;
+use crate::analysis::noise_bands::{band_levels, band_levels_on_grid};
 use crate::diagnose::families::excess::ExcessKind;
 use crate::diagnose::{Channel, Unexplained};
 use crate::model::effects::Extended;
@@ -32,7 +32,9 @@ pub(crate) fn find(
 ) -> Vec<Unexplained> {
     let psd = |f: f64| setup.noise.readout_csd(model, f, p);
     let levels = match setup.spec.decimator().ok().filter(|_| decimated) {
-        Some(dec) => band_levels(noise, dt, crate::fit::telemetry_psd::folded(psd, &dec)),
+        Some(dec) => band_levels_on_grid(noise, dt, |step, range| {
+            crate::fit::telemetry_psd::folded_on_grid(psd, &dec, step, range)
+        }),
         None => band_levels(noise, dt, psd),
     };
     let n = levels.len().max(1) as f64;
