@@ -1340,7 +1340,11 @@ fn the_stages_are_reported_in_order() {
     assert_eq!(d.effects_added.len(), 1, "{:?}", d.effects_added);
     let s = &seen.0;
     assert_eq!(&s[..2], &[Step::NoiseTransients, Step::Whitening], "{s:?}");
-    assert_eq!(&s[s.len() - 2..], &[Step::Report, Step::Acceleration], "{s:?}");
+    assert_eq!(
+        &s[s.len() - 2..],
+        &[Step::Report, Step::Acceleration],
+        "{s:?}"
+    );
     // The rounds: each opens with its scoring, numbered from 1, and its refits count 0..=of.
     let mut round = 0;
     let mut expect_done = None;
@@ -1361,9 +1365,13 @@ fn the_stages_are_reported_in_order() {
         }
     }
     assert_eq!(expect_done, None, "the last round left unfinished: {s:?}");
-    assert!(round >= 2, "an effect added in round 1 opens round 2: {s:?}");
     assert!(
-        s.iter().any(|st| matches!(st, Step::Refit { round: 1, of, .. } if *of >= 1)),
+        round >= 2,
+        "an effect added in round 1 opens round 2: {s:?}"
+    );
+    assert!(
+        s.iter()
+            .any(|st| matches!(st, Step::Refit { round: 1, of, .. } if *of >= 1)),
         "round 1 refits the damping candidate: {s:?}"
     );
 }

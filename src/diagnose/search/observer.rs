@@ -30,7 +30,11 @@ pub enum Step {
     /// Round `round` (from 1): proposing and scoring the candidates.
     Scoring { round: usize },
     /// Round `round`: `done` of the `of` best candidates refitted.
-    Refit { round: usize, done: usize, of: usize },
+    Refit {
+        round: usize,
+        done: usize,
+        of: usize,
+    },
     /// Refining the claimed auxiliary cross-talk (whitening again without it).
     CrossTalk,
     /// The report's tests: unexplained excess, robust check, redesign probes, spectra.

@@ -474,7 +474,11 @@ fn refit(
                 .collect()
         });
         for (k, ()) in rx.iter().enumerate() {
-            obs.step(&Step::Refit { round, done: k + 1, of });
+            obs.step(&Step::Refit {
+                round,
+                done: k + 1,
+                of,
+            });
         }
         work.join()
             .unwrap_or_else(|panic| std::panic::resume_unwind(panic))
