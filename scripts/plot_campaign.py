@@ -139,7 +139,7 @@ def estimate_panel(ax, v, truth, sigma, name, unit):
     _, bins, _ = ax.hist(d, bins=nbins(v.size), color="0.8", edgecolor="0.45", label="estimates - truth")
     mean = float(d.mean())
     gauss(ax, bins, v.size, mean, sd * scale, color="tab:red", lw=1.3, label="Monte Carlo N(mean, sd)")
-    gauss(ax, bins, v.size, 0.0, sigma * scale, color="tab:blue", lw=1.3, ls="--", label="Fisher N(truth, mean sigma)")
+    gauss(ax, bins, v.size, 0.0, sigma * scale, color="tab:blue", lw=1.3, ls="--", label="Fisher N(truth, mean $\\sigma_F$)")
     ax.axvline(0.0, color="k", lw=1, label="truth")
     ax.axvline(mean, color="tab:red", lw=1, ls=":", label="Monte Carlo mean")
     tu = tex_unit(unit)
@@ -147,7 +147,7 @@ def estimate_panel(ax, v, truth, sigma, name, unit):
     # the bias over its standard error sd / sqrt(n)).
     bias = (mean / scale) / sigma if sigma > 0 else float("nan")
     ax.set_title(
-        f"{name}, truth {truth:.6g} {tu}\nMC sd {fmt_num(sd)}, Fisher $\\sigma_F$ {fmt_num(sigma)}{' ' + tu if tu else ''}, "
+        f"{name}, truth {truth:.6g} {tu}\nMC sd {fmt_num(sd)}, $\\sigma_F$ {fmt_num(sigma)}{' ' + tu if tu else ''}, "
         f"sd/$\\sigma_F$ {sd / sigma:.2f}, bias/$\\sigma_F$ {bias:+.2f}",
         fontsize=7,
     )
