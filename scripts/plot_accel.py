@@ -30,9 +30,9 @@ import numpy as np  # noqa: E402
 import pyarrow.parquet as pq  # noqa: E402
 
 DPI = 100
-# Budget colours: none blue (the estimates) nor grey or black (the reference and the model), so that
+# Budget colours: none of the estimates' (C0-C2) nor grey or black (the reference, the model), so that
 # a term lying on the estimate (the thruster's in g1) still shows.
-BUDGET_COLORS = ["tab:red", "tab:purple", "tab:brown", "tab:pink", "tab:orange", "tab:olive", "tab:cyan", "tab:green"]
+BUDGET_COLORS = ["tab:red", "tab:purple", "tab:brown", "tab:pink", "gold", "tab:olive", "tab:cyan", "darkviolet"]
 BUDGET_STYLES = [(0, (1, 1.5)), (0, (4, 1.5, 1, 1.5)), (0, (6, 2)), (0, (2, 2))]
 # The units freefall writes, for tables written before they carried them.
 DEFAULT_UNITS = {"f": "Hz", "S_g1": "m^2 s^-4 Hz^-1", "S_g12": "m^2 s^-4 Hz^-1"}
