@@ -10,7 +10,9 @@ variable FREEFALL_PLOT_SCRIPT names another) as `python3 SCRIPT ACCEL_DIR`.
   accel.png  amplitude spectral densities of the total equivalent acceleration g12 (top) and g1
              (bottom) of the whole run and of each --segment, with their confidence bands, the
              model's projection Delta S_o Delta^H and (for the whole run) the noise budget per
-             source; with compare.parquet (`freefall accel --compare REF`), the reference's
+             source (drawn on top: the dominant term lies on the estimate); the title names
+             the parameters of Delta and of the noise model (metadata freefall.delta_parameters,
+             freefall.noise_parameters); with compare.parquet (`freefall accel --compare REF`), the reference's
              whole-run g12 and its band in grey.
 Units come from the tables (Parquet field metadata "unit", key-value "freefall.units"); a table
 without them is read in the units freefall writes (f in Hz, S_* in m^2 s^-4 Hz^-1).
@@ -28,6 +30,9 @@ import numpy as np  # noqa: E402
 import pyarrow.parquet as pq  # noqa: E402
 
 DPI = 100
+# Budget colours: none of the estimates' (C0-C2) nor grey or black (the reference, the model), so that
+# a term lying on the estimate (the thruster's in g1) still shows.
+BUDGET_COLORS = ["tab:red", "tab:purple", "tab:brown", "tab:pink", "gold", "tab:olive", "tab:cyan", "darkviolet"]
 BUDGET_STYLES = [(0, (1, 1.5)), (0, (4, 1.5, 1, 1.5)), (0, (6, 2)), (0, (2, 2))]
 # The units freefall writes, for tables written before they carried them.
 DEFAULT_UNITS = {"f": "Hz", "S_g1": "m^2 s^-4 Hz^-1", "S_g12": "m^2 s^-4 Hz^-1"}
@@ -68,6 +73,16 @@ def asd_unit(psd_unit):
     """The unit of sqrt(S) for the PSD units freefall writes ('m^2 s^-4 Hz^-1')."""
     known = {"m^2 s^-4 Hz^-1": "m s^-2 Hz^-1/2", "m^2 Hz^-1": "m Hz^-1/2", "1": "1"}
     return known.get(psd_unit, f"({psd_unit})^1/2")
+
+
+def parameters_line(meta):
+    """Which parameters made the tables: key-value metadata "freefall.delta_parameters" and
+    "freefall.noise_parameters" (written by `freefall accel`)."""
+    def get(key):
+        v = meta.get(key.encode())
+        return v.decode() if v else "not recorded"
+    return (f"p of $\\Delta$: {get('freefall.delta_parameters')}; "
+            f"readout noise model: {get('freefall.noise_parameters')}")
 
 
 def main():
@@ -119,8 +134,10 @@ def main():
         src = np.array(bud["source"])
         for j, name in enumerate(dict.fromkeys(src)):
             m = src == name
-            ax.loglog(np.array(bud["f"])[m], np.sqrt(np.array(bud[f"S_{ch}"])[m]), lw=1.1,
-                      ls=BUDGET_STYLES[j % len(BUDGET_STYLES)], color=f"C{(j + 3) % 10}", zorder=1,
+            # On top of the estimate and the model: the dominant term (the thruster's in g1)
+            # lies on them and would be hidden underneath.
+            ax.loglog(np.array(bud["f"])[m], np.sqrt(np.array(bud[f"S_{ch}"])[m]), lw=1.8,
+                      ls=BUDGET_STYLES[j % len(BUDGET_STYLES)], color=BUDGET_COLORS[j % len(BUDGET_COLORS)], zorder=5,
                       label=f"budget: {name}")
         unit = tex_unit(asd_unit(units.get(f"S_{ch}", DEFAULT_UNITS[f"S_{ch}"])))
         ax.set_ylabel(f"$\\sqrt{{S_{{{ch}}}}}$ [{unit}]")
@@ -131,7 +148,8 @@ def main():
     # One legend for both panels, right of them: it never covers a trace.
     h, lab = axes[0].get_legend_handles_labels()
     fig.legend(h, lab, loc="center left", bbox_to_anchor=(0.74, 0.5), fontsize=8, frameon=False)
-    fig.suptitle("Total equivalent acceleration through $\\Delta(p)$: amplitude spectral densities")
+    fig.suptitle("Total equivalent acceleration through $\\Delta(p)$: amplitude spectral densities\n"
+                 + parameters_line(psd_t.schema.metadata or {}), fontsize=11)
     fig.tight_layout(rect=(0, 0, 0.74, 1))
     if args.png:
         png = args.png

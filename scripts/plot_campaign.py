@@ -10,7 +10,9 @@ scripts/plot_*.py). For every (scenario, design, estimator) group it writes four
 `<scenario>_<design>_<estimator>_<figure>.png`:
   parameters   per-parameter histograms of estimate - truth (converged fits), in the parameter's
                unit times a stated power of ten, with the Gaussian of the Monte Carlo mean and sd
-               and the Gaussian of the mean Fisher sigma centred at the truth;
+               and the Gaussian of the mean Fisher sigma centred at the truth; the title gives
+               bias/sigma_F, the bias over the mean Fisher sigma (not the summary table's
+               bias_in_sigma, which is the bias over its standard error sd / sqrt(n));
   variances    histograms of the fit variances sigma^2 relative to their mean, with the Monte
                Carlo variance of the estimates marked;
   chi2         fit chi^2/nu next to the noise-only chi^2/nu, with N(1, sqrt(2/nu));
@@ -137,14 +139,16 @@ def estimate_panel(ax, v, truth, sigma, name, unit):
     _, bins, _ = ax.hist(d, bins=nbins(v.size), color="0.8", edgecolor="0.45", label="estimates - truth")
     mean = float(d.mean())
     gauss(ax, bins, v.size, mean, sd * scale, color="tab:red", lw=1.3, label="Monte Carlo N(mean, sd)")
-    gauss(ax, bins, v.size, 0.0, sigma * scale, color="tab:blue", lw=1.3, ls="--", label="Fisher N(truth, mean sigma)")
+    gauss(ax, bins, v.size, 0.0, sigma * scale, color="tab:blue", lw=1.3, ls="--", label="Fisher N(truth, mean $\\sigma_F$)")
     ax.axvline(0.0, color="k", lw=1, label="truth")
     ax.axvline(mean, color="tab:red", lw=1, ls=":", label="Monte Carlo mean")
     tu = tex_unit(unit)
+    # The bias over the mean Fisher sigma (the summary table's bias_in_sigma is another quantity:
+    # the bias over its standard error sd / sqrt(n)).
     bias = (mean / scale) / sigma if sigma > 0 else float("nan")
     ax.set_title(
-        f"{name}, truth {truth:.6g} {tu}\nMC sd {fmt_num(sd)}, Fisher $\\sigma$ {fmt_num(sigma)}{' ' + tu if tu else ''}, "
-        f"sd/$\\sigma$ {sd / sigma:.2f}, bias {bias:+.2f}$\\sigma$",
+        f"{name}, truth {truth:.6g} {tu}\nMC sd {fmt_num(sd)}, $\\sigma_F$ {fmt_num(sigma)}{' ' + tu if tu else ''}, "
+        f"sd/$\\sigma_F$ {sd / sigma:.2f}, bias/$\\sigma_F$ {bias:+.2f}",
         fontsize=7,
     )
     ax.set_xlabel(f"{name} - truth {bracket(unit, power)}", fontsize=8)

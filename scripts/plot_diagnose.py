@@ -7,12 +7,14 @@ Figures go to DIAGNOSE_DIR/plots/ unless --out DIR is given (the convention of e
 scripts/plot_*.py). `freefall diagnose` runs this script (embedded in the binary; the environment
 variable FREEFALL_PLOT_SCRIPT names another) as `python3 SCRIPT DIAGNOSE_DIR`.
 
-  psd.png        whitened residual spectra of each experiment and channel before (thick, red) and
-                 after (thin, blue) the added effects, the whitened noise run (grey) and the 90 %
+  psd.png        whitened residual spectra of each experiment and channel before (wide, light) and
+                 after (thin, dark, on top) the added effects, the whitened noise run (grey) and the 90 %
                  band of white noise;
   time_chi2.png  chi^2/n of each injection stretch over the noise run's level, before and after,
                  with the +-1 and +-2 sigma bands a chi^2 with the window's n samples gives
                  (white noise).
+Both titles say what the diagnosis found ("nothing added" or "added: X, Y"), read from
+report.json like report.md.
 Units come from the tables (Parquet field metadata "unit", key-value "freefall.units").
 Needs numpy, matplotlib and pyarrow.
 """
@@ -29,11 +31,33 @@ import numpy as np  # noqa: E402
 import pyarrow.parquet as pq  # noqa: E402
 
 DPI = 100
+# "before" wide and light underneath, "after" thin and dark on top: where they coincide (nothing
+# added, or an effect that changes little) the dark line runs inside the light one and both show.
 STYLE = {
     "noise_run": dict(color="0.55", lw=1.0, ls="-", alpha=0.9, zorder=2, label="noise run"),
-    "before": dict(color="tab:red", lw=2.6, ls="-", alpha=0.55, zorder=3, label="before"),
-    "after": dict(color="tab:blue", lw=1.1, ls="-", alpha=1.0, zorder=4, label="after"),
+    "before": dict(color="#f4a582", lw=4.0, ls="-", alpha=1.0, zorder=3, label="before (nominal model)"),
+    "after": dict(color="#08306b", lw=1.0, ls="-", alpha=1.0, zorder=4, label="after"),
 }
+
+
+def verdict(out):
+    """What the diagnosis found, from report.json (the source of report.md): "nothing added" or
+    "added: X, Y" (the effects' names, in the order added)."""
+    try:
+        rep = json.loads((out / "report.json").read_text())
+    except (OSError, ValueError):
+        return None
+    added = rep.get("effects_added") or []
+    if not added:
+        return "nothing added"
+    return "added: " + ", ".join(str(a.get("name", "?")) for a in added)
+
+
+def after_label(found):
+    """The legend's name of "after": with nothing added it is the same fit as "before"."""
+    if found == "nothing added":
+        return "after (= before: nothing added)"
+    return "after (with the added effects)" if found else "after"
 
 
 def column_units(table):
@@ -86,14 +110,15 @@ def window_samples(out, tc):
 def header(fig, title, handles, labels, ncol):
     """Title and legend above the panels, in a fixed height that does not depend on the figure's."""
     rows = math.ceil(len(handles) / ncol)
-    top = 1.0 - (0.45 + 0.22 * rows) / fig.get_figheight()
+    extra = 0.19 * title.count("\n")  # inches per further title line
+    top = 1.0 - (0.45 + extra + 0.22 * rows) / fig.get_figheight()
     fig.tight_layout(rect=(0, 0, 1, top))
     fig.suptitle(title, fontsize=10, y=1.0 - 0.08 / fig.get_figheight(), va="top")
     fig.legend(handles, labels, loc="upper center", ncol=ncol, fontsize=8, frameon=False,
-               bbox_to_anchor=(0.5, 1.0 - 0.35 / fig.get_figheight()))
+               bbox_to_anchor=(0.5, 1.0 - (0.35 + extra) / fig.get_figheight()))
 
 
-def plot_psd(out, png):
+def plot_psd(out, png, found):
     table = pq.read_table(out / "spectra.parquet")
     u = column_units(table)
     sp = table.to_pydict()
@@ -111,19 +136,23 @@ def plot_psd(out, png):
         for s in ("noise_run", "before", "after"):
             sel = (stage == s) & (exp == ("noise" if s == "noise_run" else e)) & (chan == c)
             if sel.any():
-                ax.loglog(f[sel], level[sel], **STYLE[s])
+                st = dict(STYLE[s])
+                if s == "after":
+                    st["label"] = after_label(found)
+                ax.loglog(f[sel], level[sel], **st)
         ax.axhline(1.0, color="k", lw=0.6, ls="--", zorder=1, label="white level (1)")
         ax.set_ylabel(f"{e} {c}\nwhitened PSD [{u.get('level', '1')}]", fontsize=8)
         ax.grid(True, which="major", alpha=0.3)
         ax.tick_params(labelsize=7)
     axes[-1, 0].set_xlabel(f"f [{u.get('f', 'Hz')}]")
     h, lab = axes[0, 0].get_legend_handles_labels()
-    header(fig, "whitened residual PSD (1 = the whitened noise run's level)", h, lab, len(h))
+    title = "whitened residual PSD (1 = the whitened noise run's level)"
+    header(fig, f"{title}\ndiagnosis: {found}" if found else title, h, lab, 3)
     fig.savefig(png, dpi=DPI)
     plt.close(fig)
 
 
-def plot_time_chi2(out, png):
+def plot_time_chi2(out, png, found):
     table = pq.read_table(out / "time_chi2.parquet")
     u = column_units(table)
     tc = table.to_pydict()
@@ -147,11 +176,16 @@ def plot_time_chi2(out, png):
                 if tc["stage"][i] != s:
                     continue
                 st = dict(STYLE[s])
-                st["lw"] = 5 if s == "before" else 2
-                st["label"] = st["label"] if first else None
+                st["lw"] = 7 if s == "before" else 2
+                st["label"] = (after_label(found) if s == "after" else st["label"]) if first else None
                 ax.plot([tc["t_lo"][i], tc["t_hi"][i]], [tc["excess"][i] + 1.0] * 2, solid_capstyle="butt", **st)
                 first = False
         ax.axhline(1.0, color="k", lw=0.6, ls="--", zorder=1, label="noise run level (1)")
+        # A loud stretch (a missing effect's chi^2/n of 50) would flatten the others on a linear
+        # axis: a log axis when the levels span more than a decade.
+        levels = [tc["excess"][i] + 1.0 for i in rows if tc["excess"][i] + 1.0 > 0]
+        if levels and max(levels) / min(levels) > 10:
+            ax.set_yscale("log")
         ax.set_ylabel(f"{e} {c}\n$\\chi^2/n$ / noise [{u.get('excess', '1')}]", fontsize=8)
         ax.grid(True, alpha=0.3)
         ax.tick_params(labelsize=7)
@@ -160,7 +194,8 @@ def plot_time_chi2(out, png):
     for ax in axes[:, 0]:
         for h, lab in zip(*ax.get_legend_handles_labels()):
             handles.setdefault(lab, h)
-    header(fig, "$\\chi^2/n$ per injection stretch over the noise run's level", list(handles.values()), list(handles.keys()), 3)
+    title = "$\\chi^2/n$ per injection stretch over the noise run's level"
+    header(fig, f"{title}\ndiagnosis: {found}" if found else title, list(handles.values()), list(handles.keys()), 3)
     fig.savefig(png, dpi=DPI)
     plt.close(fig)
 
@@ -178,8 +213,9 @@ def main():
         ap.exit(1, f"error: {a.input / 'spectra.parquet'}: not found (run `freefall diagnose DATASET.toml --out {a.input}` first)\n")
     png_dir = a.out or a.input / "plots"
     png_dir.mkdir(parents=True, exist_ok=True)
-    plot_psd(a.input, png_dir / "psd.png")
-    plot_time_chi2(a.input, png_dir / "time_chi2.png")
+    found = verdict(a.input)
+    plot_psd(a.input, png_dir / "psd.png", found)
+    plot_time_chi2(a.input, png_dir / "time_chi2.png", found)
     print(png_dir / "psd.png")
     print(png_dir / "time_chi2.png")
 

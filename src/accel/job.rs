@@ -21,6 +21,14 @@ use crate::spectral::WelchConfig;
 /// The plot script, embedded so that an installed binary plots without the source tree.
 const PLOT_SCRIPT: &str = include_str!("../../scripts/plot_accel.py");
 
+/// Key-value metadata of accel.parquet, accel_psd.parquet and budget.parquet: where Delta's
+/// parameters came from (`estimates PATH`, `SCENARIO guess`, `SCENARIO truth` or `nominal`).
+pub const DELTA_PARAMETERS_KEY: &str = "freefall.delta_parameters";
+/// Key-value metadata of the same tables: the parameters of the readout noise model of the
+/// projection and budget (`the dataset's [meta.truth]`, `the scenario's truth` or `the Delta
+/// parameters`).
+pub const NOISE_PARAMETERS_KEY: &str = "freefall.noise_parameters";
+
 /// Which parameter set of a scenario.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum ScenarioSet {
@@ -136,7 +144,7 @@ impl AccelJob {
             .unwrap_or(input)
             .display()
             .to_string();
-        let r = analyse(&setup.model, &setup.noise, &p, &p_noise, &runs, &req)
+        let mut r = analyse(&setup.model, &setup.noise, &p, &p_noise, &runs, &req)
             .map_err(context(label.clone()))?;
         if runs.len() > 1 {
             let used: Vec<String> = runs
@@ -164,6 +172,13 @@ impl AccelJob {
             "cannot create output directory '{}'",
             out.display()
         )))?;
+        // Which parameters made the tables, for a reader (and accel.png's title): Delta's and the
+        // readout noise model's.
+        for t in [&mut r.series, &mut r.spectra, &mut r.budget] {
+            *t = std::mem::take(t)
+                .with_meta(DELTA_PARAMETERS_KEY, p_label.clone())
+                .with_meta(NOISE_PARAMETERS_KEY, noise_label);
+        }
         write_parquet(out.join("accel.parquet"), &r.series)?;
         write_parquet(out.join("accel_psd.parquet"), &r.spectra)?;
         write_parquet(out.join("budget.parquet"), &r.budget)?;

@@ -203,7 +203,10 @@ impl Layout {
 }
 
 impl Aggregates {
-    /// `summary`: one row per scenario x design x estimator x parameter.
+    /// `summary`: one row per scenario x design x estimator x parameter. `bias_in_sigma` is the
+    /// bias in standard errors of the Monte Carlo mean, `bias / (sd / sqrt(n))` (a t statistic:
+    /// is the bias resolved by this many fits?); the bias over the mean Fisher sigma, which the
+    /// campaign plots show as `bias/sigma_F`, is `bias / mean_sigma`.
     pub fn summary_table(&self) -> Result<Table, IoError> {
         let l = &self.layout;
         let mut cols: Vec<(&str, Vec<f64>)> = [
@@ -278,7 +281,8 @@ impl Aggregates {
         Ok(t.with_meta(
             "freefall.units_note",
             "truth, mean, bias, sd, mean_sigma and sd_of_sigma are in the row's unit; the other \
-             statistics are dimensionless",
+             statistics are dimensionless; bias_in_sigma is the bias in standard errors of the \
+             mean, bias / (sd / sqrt(n)); the bias over the Fisher sigma is bias / mean_sigma",
         ))
     }
 

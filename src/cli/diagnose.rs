@@ -104,9 +104,12 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
         transients: !a.no_transients,
         plots: !a.no_plots,
     };
-    let d = super::working("diagnosing", |notes| {
-        job.run(&setup, &dataset, &a.out, notes)
-    })?;
+    let w = super::Working::new("diagnosing");
+    let d = job.run(&setup, &dataset, &a.out, &mut |n| w.note(n), &mut |step| {
+        w.message(format!("diagnosing: {step}"))
+    });
+    drop(w);
+    let d = d?;
     outln!("{}", d.summary_line());
     info!("wrote {}", a.out.display());
     Ok(())

@@ -299,6 +299,13 @@ impl Working {
         }
     }
 
+    /// Replaces the spinner's or bar's message (a command's current stage).
+    pub fn message(&self, msg: String) {
+        if let Some(pb) = &self.0 {
+            pb.set_message(msg);
+        }
+    }
+
     /// Prints `note: {text}` (unless `--quiet`) without breaking the spinner's line.
     pub fn note(&self, text: &str) {
         match &self.0 {

@@ -8,7 +8,7 @@ use std::path::Path;
 use crate::analysis::job::{context, DatasetFit, JobError, Notes};
 use crate::analysis::{decimated_telemetry, truth_from_meta};
 use crate::diagnose::tables::Timeline;
-use crate::diagnose::{diagnose_observed, DiagnoseConfig, Diagnosis, Observer};
+use crate::diagnose::{diagnose_observed, DiagnoseConfig, Diagnosis, Observer, Step};
 use crate::io::plot::run_plot_script;
 use crate::io::{create_output_dir, write_text_atomic, Provenance};
 use crate::setup::Setup;
@@ -41,23 +41,35 @@ pub struct DiagnoseJob {
     pub plots: bool,
 }
 
-/// Hands each note of the diagnosis to the caller as it is made.
-struct Forward<'a, 'b>(&'a mut Notes<'b>);
+/// A receiver of the named stages of a diagnosis as each starts (the command line shows them
+/// on its spinner).
+pub type Progress<'a> = &'a mut dyn FnMut(Step);
 
-impl Observer for Forward<'_, '_> {
+/// Hands each note and each stage of the diagnosis to the caller as it is made.
+struct Forward<'a, 'b, 'c> {
+    notes: &'a mut Notes<'b>,
+    progress: Progress<'c>,
+}
+
+impl Observer for Forward<'_, '_, '_> {
     fn note(&mut self, text: &str) {
-        (self.0)(text);
+        (self.notes)(text);
+    }
+    fn step(&mut self, step: &Step) {
+        (self.progress)(*step);
     }
 }
 
 impl DiagnoseJob {
-    /// Diagnoses the dataset at `path` and writes the report folder `out`.
+    /// Diagnoses the dataset at `path` and writes the report folder `out`, handing each note to
+    /// `notes` and each stage ([`Step`], in its documented order) to `progress` as it starts.
     pub fn run(
         &self,
         setup: &Setup,
         path: &Path,
         out: &Path,
         mut notes: Notes<'_>,
+        progress: Progress<'_>,
     ) -> Result<Diagnosis, JobError> {
         // The settings' ranges before any data is read: a bad one is the only line printed.
         DiagnoseConfig {
@@ -70,6 +82,7 @@ impl DiagnoseJob {
         }
         .validate()
         .map_err(context(path.display().to_string()))?;
+        progress(Step::Reading);
         let prep = self.dataset.prepare(setup, path, notes)?;
         self.dataset.check_units(setup, &prep)?;
         let (ds, data) = (&prep.ds, &prep.data);
@@ -108,12 +121,16 @@ impl DiagnoseJob {
             &prep.guess,
             truth.as_deref(),
             &cfg,
-            &mut Forward(&mut notes),
+            &mut Forward {
+                notes: &mut notes,
+                progress: &mut *progress,
+            },
         )
         .map_err(context(path.display().to_string()))?;
         // The report carries how the inputs were made, first (a design or sharp-edge note
         // explains the residual a user then reads about).
         d.notes.splice(0..0, prep.input_notes.iter().cloned());
+        progress(Step::Writing);
         create_output_dir(out)?;
         if let Some(n) = crate::analysis::job::write_reconstruction(&prep, out)? {
             notes(&n);
@@ -131,6 +148,7 @@ impl DiagnoseJob {
         d.write_tables(out, &runs, &prov.meta)?;
         let mut md = d.to_markdown(&path.display().to_string());
         if self.plots {
+            progress(Step::Plotting);
             match run_plot_script(out, PLOT_SCRIPT, "plot_diagnose.py") {
                 Ok(()) => md.push_str("\n## Plots\n\n![residual spectra](plots/psd.png)\n\n![time-resolved chi2](plots/time_chi2.png)\n"),
                 Err(e) => {

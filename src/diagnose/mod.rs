@@ -71,7 +71,7 @@ pub mod types;
 pub use crate::analysis::residuals::{ChannelReport, SpectrumCurve};
 pub use families::excess::ExcessKind;
 pub use families::tension::{Explanation, PriorTension};
-pub use search::observer::{Notes, Observer, Round, StopReason};
+pub use search::observer::{Notes, Observer, Round, Step, StopReason};
 pub use search::problem::DiagnosisProblem;
 pub use search::run::{diagnose, diagnose_observed};
 pub use search::selection::{next_round, DiagnosisState, Family};

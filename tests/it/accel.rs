@@ -463,6 +463,7 @@ fn short_noise_dataset(dir: &std::path::Path) -> std::path::PathBuf {
 /// reversed segment is a one-line error naming it.
 #[test]
 fn cli_writes_the_documented_tables() {
+    use freefall::accel::job::{DELTA_PARAMETERS_KEY, NOISE_PARAMETERS_KEY};
     use freefall::io::read_parquet;
     let dir = tempfile::tempdir().unwrap();
     let dataset = short_noise_dataset(dir.path());
@@ -501,6 +502,21 @@ fn cli_writes_the_documented_tables() {
             (sum / model[k] - 1.0).abs() < 0.01,
             "f = {fk}: {sum:e} vs {:e}",
             model[k]
+        );
+    }
+    // Which parameters made them: --scenario under_performing (the default --use guess) for
+    // Delta, and the simulated dataset's [meta.truth] for the readout noise model.
+    for (name, t) in [("accel", &acc), ("accel_psd", &psd), ("budget", &bud)] {
+        let get = |k: &str| t.meta.get(k).map(String::as_str);
+        assert_eq!(
+            get(DELTA_PARAMETERS_KEY),
+            Some("under_performing guess"),
+            "{name}"
+        );
+        assert_eq!(
+            get(NOISE_PARAMETERS_KEY),
+            Some("the dataset's [meta.truth]"),
+            "{name}"
         );
     }
     // --force: the folder holds the tables above (a non-empty --out is refused first).

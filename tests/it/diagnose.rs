@@ -12,7 +12,7 @@
 
 use std::sync::Arc;
 
-use freefall::diagnose::{diagnose, DiagnoseConfig, Diagnosis};
+use freefall::diagnose::{diagnose, diagnose_observed, DiagnoseConfig, Diagnosis, Observer, Step};
 use freefall::fit::ExperimentData;
 use freefall::model::effects::{by_name, Effect, Extended};
 use freefall::setup::Setup;
@@ -1305,5 +1305,73 @@ fn a_command_line_prior_drives_the_prior_tension() {
         (x.equivalent - leak).abs() < 0.1 * leak,
         "equivalent {:e} vs {leak:e}",
         x.equivalent
+    );
+}
+
+/// Collects the stages a diagnosis reports, in order.
+#[derive(Default)]
+struct Stages(Vec<Step>);
+
+impl Observer for Stages {
+    fn note(&mut self, _text: &str) {}
+    fn step(&mut self, step: &Step) {
+        self.0.push(*step);
+    }
+}
+
+#[test]
+fn the_stages_are_reported_in_order() {
+    // Oracle: the order Step documents (noise-run transients, whitening, per round scoring then
+    // refit 0..=n of n, report, acceleration), on data with one effect the model lacks
+    // (gas damping of TM1, which gas_damping_is_found shows is added in round 1): round 1
+    // refits at least one candidate and a second round follows it.
+    let (setup, data, noise, truth, guess) = simulate(&[("damping_tm1", 1e-6)], 13);
+    let mut seen = Stages::default();
+    let d = diagnose_observed(
+        &setup,
+        &data,
+        Some(&noise),
+        &guess,
+        Some(&truth),
+        &config(),
+        &mut seen,
+    )
+    .unwrap();
+    assert_eq!(d.effects_added.len(), 1, "{:?}", d.effects_added);
+    let s = &seen.0;
+    assert_eq!(&s[..2], &[Step::NoiseTransients, Step::Whitening], "{s:?}");
+    assert_eq!(
+        &s[s.len() - 2..],
+        &[Step::Report, Step::Acceleration],
+        "{s:?}"
+    );
+    // The rounds: each opens with its scoring, numbered from 1, and its refits count 0..=of.
+    let mut round = 0;
+    let mut expect_done = None;
+    for st in &s[2..s.len() - 2] {
+        match *st {
+            Step::Scoring { round: r } => {
+                assert_eq!(expect_done, None, "round {round} left unfinished: {s:?}");
+                assert_eq!(r, round + 1, "{s:?}");
+                round = r;
+            }
+            Step::Refit { round: r, done, of } => {
+                assert_eq!(r, round, "{s:?}");
+                assert_eq!(done, expect_done.unwrap_or(0), "{s:?}");
+                expect_done = (done < of).then_some(done + 1);
+            }
+            Step::CrossTalk => {}
+            other => panic!("{other:?} between the rounds: {s:?}"),
+        }
+    }
+    assert_eq!(expect_done, None, "the last round left unfinished: {s:?}");
+    assert!(
+        round >= 2,
+        "an effect added in round 1 opens round 2: {s:?}"
+    );
+    assert!(
+        s.iter()
+            .any(|st| matches!(st, Step::Refit { round: 1, of, .. } if *of >= 1)),
+        "round 1 refits the damping candidate: {s:?}"
     );
 }

@@ -73,6 +73,9 @@ pub(crate) fn refine<'a>(
         let Some(clean) = cleaned(problem, state, noise) else {
             return Ok(result);
         };
+        if pass == 1 {
+            obs.step(&crate::diagnose::Step::CrossTalk);
+        }
         let before = coefficients(state);
         let mut quiet = ();
         let p2 = problem.replanned(clean, guess, &mut quiet)?;

@@ -9,6 +9,61 @@ pub trait Observer {
     fn note(&mut self, text: &str);
     /// The outcome of a selection round (`round` counts from 1).
     fn round(&mut self, _round: usize, _outcome: &Round) {}
+    /// A named stage of the work starts (for a progress display; the report ignores it).
+    fn step(&mut self, _step: &Step) {}
+}
+
+/// A named stage of a diagnosis, reported to [`Observer::step`] as it starts, in this order:
+/// [`Step::Reading`] (by [`crate::diagnose::job::DiagnoseJob`]), [`Step::NoiseTransients`] (with a
+/// noise run and the transient test), [`Step::Whitening`], per round [`Step::Scoring`] then
+/// [`Step::Refit`] (`done` of `of` candidates refitted, from 0), [`Step::CrossTalk`] (with
+/// auxiliary readouts), [`Step::Report`], [`Step::Acceleration`], and the job's
+/// [`Step::Writing`] and [`Step::Plotting`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Step {
+    /// Reading and checking the dataset.
+    Reading,
+    /// Fitting the start-up transients of the noise run.
+    NoiseTransients,
+    /// Estimating the whitening filter and fitting the nominal model.
+    Whitening,
+    /// Round `round` (from 1): proposing and scoring the candidates.
+    Scoring { round: usize },
+    /// Round `round`: `done` of the `of` best candidates refitted.
+    Refit {
+        round: usize,
+        done: usize,
+        of: usize,
+    },
+    /// Refining the claimed auxiliary cross-talk (whitening again without it).
+    CrossTalk,
+    /// The report's tests: unexplained excess, robust check, redesign probes, spectra.
+    Report,
+    /// The acceleration noise through the model before and after.
+    Acceleration,
+    /// Writing the tables and report.md.
+    Writing,
+    /// Drawing the plots.
+    Plotting,
+}
+
+impl std::fmt::Display for Step {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Step::Reading => write!(f, "reading the dataset"),
+            Step::NoiseTransients => write!(f, "start-up transients of the noise run"),
+            Step::Whitening => write!(f, "whitening and nominal fit"),
+            Step::Scoring { round } => write!(f, "round {round}: scoring the candidates"),
+            Step::Refit { round, done, of } => {
+                write!(f, "round {round}: refit {done} of {of} candidates")
+            }
+            Step::CrossTalk => write!(f, "refining the cross-talk"),
+            Step::Report => write!(f, "report: unexplained excess, robust check, spectra"),
+            Step::Acceleration => write!(f, "acceleration noise before and after"),
+            Step::Writing => write!(f, "writing the tables"),
+            Step::Plotting => write!(f, "plotting"),
+        }
+    }
 }
 
 /// The report's notes list.
@@ -37,6 +92,10 @@ impl Observer for Both<'_, '_> {
     fn round(&mut self, round: usize, outcome: &Round) {
         self.0.round(round, outcome);
         self.1.round(round, outcome);
+    }
+    fn step(&mut self, step: &Step) {
+        self.0.step(step);
+        self.1.step(step);
     }
 }
 

@@ -48,7 +48,10 @@ pub fn diagnose_observed(
     // Settings first: the noise run's transient fit below reads them.
     cfg.validate()?;
     let cleaned = match noise.filter(|_| cfg.transients) {
-        Some(nz) => transient::clean_noise(setup, nz, guess, data.dt, cfg, &mut both),
+        Some(nz) => {
+            both.step(&observer::Step::NoiseTransients);
+            transient::clean_noise(setup, nz, guess, data.dt, cfg, &mut both)
+        }
         None => None,
     };
     // The noise run's columns are evaluated at the guess; when the transients are claimed, the
@@ -57,6 +60,7 @@ pub fn diagnose_observed(
     // at the guess, 0.75 at the estimate). The problem is planned only when the noise run
     // changes: when the second cleaning is not significant, the first plan stands.
     let mut first_notes = Notes::default();
+    both.step(&observer::Step::Whitening);
     let first = transient::plan_and_fit(
         setup,
         data,
@@ -99,12 +103,14 @@ pub fn diagnose_observed(
     // The problem planned on the noise run less the claimed cross-talk, if any.
     let refined = crosstalk::refine(&problem, &mut state, guess, &mut both)?;
     let last = refined.as_ref().unwrap_or(&problem);
+    both.step(&observer::Step::Report);
     let mut d = finish(last, state, &fit0, before, &mut both);
     d.aux_coherence = coherence::table("before", &problem, &d.residuals_before.0);
     d.aux_coherence
         .extend(coherence::table("after", last, &d.residuals_after.0));
     // The science product: the noise run's readouts (or the first experiment's, guidance
     // removed) through Delta before and after.
+    both.step(&observer::Step::Acceleration);
     let own = data.inputs_of(0);
     let (source, o, oi) = match noise {
         Some(n) => ("noise run".to_string(), [&n[0][..], &n[1][..]], None),

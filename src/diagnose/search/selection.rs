@@ -26,7 +26,7 @@ use serde::Serialize;
 
 use crate::diagnose::families::additive::Additive;
 use crate::diagnose::families::glitch;
-use crate::diagnose::search::observer::{Observer, Round, StopReason};
+use crate::diagnose::search::observer::{Observer, Round, Step, StopReason};
 use crate::diagnose::search::problem::{DiagnosisProblem, LinearFit};
 use crate::diagnose::search::score::{
     additive_candidates, calibrate_aux, glitch_candidates, score_additive, score_operators,
@@ -183,6 +183,7 @@ pub fn next_round(
         return Ok(Round::Stop(StopReason::Limits));
     }
     state.round += 1;
+    obs.step(&Step::Scoring { round: state.round });
     let mut described = propose(problem, state, &open, obs)?;
     if described.is_empty() {
         return Ok(Round::Stop(StopReason::NoCandidates));
@@ -455,10 +456,33 @@ fn refit(
         idx.truncate(problem.cfg.confirm_top);
         chosen.extend(idx);
     }
-    let results: Vec<(usize, Result<Refit, DiagnoseError>)> = chosen
-        .par_iter()
-        .map(|&i| (i, refit_one(problem, state, &described[i])))
-        .collect();
+    // The refits run in parallel on a scoped thread while this one reports each as it ends
+    // (the observer stays on the caller's thread).
+    let (round, of) = (state.round, chosen.len());
+    obs.step(&Step::Refit { round, done: 0, of });
+    let (tx, rx) = std::sync::mpsc::channel::<()>();
+    let results: Vec<(usize, Result<Refit, DiagnoseError>)> = std::thread::scope(|s| {
+        let work = s.spawn(move || {
+            chosen
+                .par_iter()
+                .map(|&i| {
+                    let r = refit_one(problem, state, &described[i]);
+                    // The receiver outlives the senders; a failed send only loses a report.
+                    let _ = tx.send(());
+                    (i, r)
+                })
+                .collect()
+        });
+        for (k, ()) in rx.iter().enumerate() {
+            obs.step(&Step::Refit {
+                round,
+                done: k + 1,
+                of,
+            });
+        }
+        work.join()
+            .unwrap_or_else(|panic| std::panic::resume_unwind(panic))
+    });
     let mut out = Vec::new();
     for (i, res) in results {
         match res {
