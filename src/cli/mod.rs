@@ -49,7 +49,7 @@ use crate::setup::Setup;
 #[derive(Debug, Parser)]
 #[command(
     name = "freefall",
-    version,
+    version = crate::VERSION,
     about = "System identification of drag-free closed-loop experiments (LISA Pathfinder kind)"
 )]
 pub struct Cli {

@@ -30,6 +30,7 @@ use arrow::datatypes::{
 use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
 use parquet::arrow::ArrowWriter;
 use parquet::basic::Compression;
+use parquet::file::metadata::KeyValue;
 use parquet::file::properties::WriterProperties;
 
 use super::atomic::AtomicFile;
@@ -496,7 +497,7 @@ impl Table {
             .iter()
             .map(|(k, v)| (k.clone(), v.clone()))
             .collect();
-        meta.insert(VERSION_KEY.into(), env!("CARGO_PKG_VERSION").into());
+        meta.insert(VERSION_KEY.into(), crate::VERSION.into());
         let units: BTreeMap<&str, &str> = self
             .columns
             .iter()
@@ -557,9 +558,21 @@ fn check_same_schema(path: &Path, a: &Table, b: &Table) -> Result<(), IoError> {
     }
 }
 
-fn writer_properties() -> WriterProperties {
+/// Snappy compression, and the schema's metadata (`freefall.version`, `freefall.units`, the
+/// hashes) copied into the Parquet footer's key-value metadata, sorted by key, where readers
+/// that do not decode the Arrow schema (DuckDB's `parquet_kv_metadata()`, polars'
+/// `read_parquet_metadata()`) find it. The writer adds `ARROW:schema` after these.
+fn writer_properties(schema: &Schema) -> WriterProperties {
+    let kv: Vec<KeyValue> = schema
+        .metadata()
+        .iter()
+        .collect::<BTreeMap<_, _>>()
+        .into_iter()
+        .map(|(k, v)| KeyValue::new(k.clone(), v.clone()))
+        .collect();
     WriterProperties::builder()
         .set_compression(Compression::SNAPPY)
+        .set_key_value_metadata(Some(kv))
         .build()
 }
 
@@ -654,9 +667,12 @@ impl ParquetAppender {
                 .take()
                 .ok_or_else(|| IoError::invalid(&self.dest, "appender already finished"))?;
             let arrow_schema = batch.arrow_schema();
-            let writer =
-                ArrowWriter::try_new(file, arrow_schema.clone(), Some(writer_properties()))
-                    .map_err(|e| parquet_write_error(&self.dest, e))?;
+            let writer = ArrowWriter::try_new(
+                file,
+                arrow_schema.clone(),
+                Some(writer_properties(&arrow_schema)),
+            )
+            .map_err(|e| parquet_write_error(&self.dest, e))?;
             self.writer = Some(writer);
             self.arrow_schema = Some(arrow_schema);
             self.schema = Some(Table {
