@@ -7,9 +7,11 @@
 //! whose columns are float32/float64, (unsigned) integers, boolean or utf8 without nulls.
 //!
 //! Written tables describe themselves: the Parquet key-value metadata carries
-//! `freefall.version` (the crate version), whatever the caller added with [`Table::with_meta`]
+//! `freefall.version` ([`crate::VERSION`]: crate version, git commit, build profile), whatever the caller added with [`Table::with_meta`]
 //! (model, dataset and campaign hashes) and `freefall.units`, a JSON object of the units set with
-//! [`Table::with_unit`]; each field's Arrow metadata carries its `unit` too. Columns marked with
+//! [`Table::with_unit`] (`{}` when there are none); each field's Arrow metadata carries its
+//! `unit` too. The same key-value pairs are in the Arrow schema and in the Parquet footer's
+//! key-value metadata. Columns marked with
 //! [`Table::with_nan_as_null`] store NaN (a value that does not exist, such as a whitened
 //! residual inside the filter's start-up) as a Parquet null.
 
@@ -503,12 +505,12 @@ impl Table {
             .iter()
             .filter_map(|(n, _)| Some((n.as_str(), self.units.get(n)?.as_str())))
             .collect();
-        if !units.is_empty() {
-            meta.insert(
-                UNITS_KEY.into(),
-                serde_json::to_string(&units).expect("a map of strings serialises"),
-            );
-        }
+        // Always present, `{}` when no column has one unit (tables whose rows mix parameters
+        // carry a `unit` column instead), so a reader can rely on the key.
+        meta.insert(
+            UNITS_KEY.into(),
+            serde_json::to_string(&units).expect("a map of strings serialises"),
+        );
         Arc::new(Schema::new_with_metadata(fields, meta))
     }
 
