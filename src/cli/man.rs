@@ -123,21 +123,29 @@ pub const ENVIRONMENT: &[(&str, &str)] = &[
 
 /// Renders the page of `cmd` (a built command: its display name is the page name) with the
 /// EXAMPLES and ENVIRONMENT sections appended.
-fn render(cmd: &clap::Command) -> Result<Vec<u8>> {
+fn render(cmd: &clap::Command, parent: Option<&clap::Command>) -> Result<Vec<u8>> {
     let man = clap_mangen::Man::new(cmd.clone());
     let mut out = Vec::new();
     man.render(&mut out)?;
     let page = cmd.get_display_name().unwrap_or(cmd.get_name());
+    let mut lines: Vec<(String, String)> = examples(page)
+        .iter()
+        .map(|(w, l)| (w.to_string(), l.to_string()))
+        .collect();
+    if let (true, Some(parent)) = (cmd.get_name() == "help", parent) {
+        // clap's `help` subcommand: the help of the parent's first other subcommand.
+        let path = page.trim_end_matches("-help").replace('-', " ");
+        if let Some(sub) = parent.get_subcommands().find(|s| s.get_name() != "help") {
+            lines.push((
+                format!("The help of {path} {}", sub.get_name()),
+                format!("{path} help {}", sub.get_name()),
+            ));
+        }
+    }
     out.extend_from_slice(b".SH EXAMPLES\n");
-    for (what, line) in examples(page) {
-        out.extend_from_slice(
-            format!(
-                ".PP\n{}\n.PP\n.RS 4\n\\fB{}\\fR\n.RE\n",
-                roff_text(what),
-                roff_text(line)
-            )
-            .as_bytes(),
-        );
+    for (what, line) in &lines {
+        let (what, line) = (roff_text(what), roff_text(line));
+        out.extend_from_slice(format!(".PP\n{what}\n.PP\n.RS 4\n\\fB{line}\\fR\n.RE\n").as_bytes());
     }
     out.extend_from_slice(b".SH ENVIRONMENT\n");
     for (name, what) in ENVIRONMENT {
@@ -157,20 +165,22 @@ fn roff_text(s: &str) -> String {
     }
 }
 
-/// The built command and its subcommands, depth first (clap's own `help` subcommands and hidden
-/// ones left out), with their page names.
-fn pages(mut cmd: clap::Command) -> Vec<clap::Command> {
+/// The built command and its subcommands, depth first (hidden ones left out; clap's own `help`
+/// subcommands kept, since the parent pages list them), each with its parent.
+fn pages(mut cmd: clap::Command) -> Vec<(clap::Command, Option<clap::Command>)> {
     cmd.build();
-    fn walk(cmd: &clap::Command, acc: &mut Vec<clap::Command>) {
-        acc.push(cmd.clone());
-        for sub in cmd.get_subcommands() {
-            if sub.get_name() != "help" && !sub.is_hide_set() {
-                walk(sub, acc);
-            }
+    fn walk(
+        cmd: &clap::Command,
+        parent: Option<&clap::Command>,
+        acc: &mut Vec<(clap::Command, Option<clap::Command>)>,
+    ) {
+        acc.push((cmd.clone(), parent.cloned()));
+        for sub in cmd.get_subcommands().filter(|s| !s.is_hide_set()) {
+            walk(sub, Some(cmd), acc);
         }
     }
     let mut acc = Vec::new();
-    walk(&cmd, &mut acc);
+    walk(&cmd, None, &mut acc);
     acc
 }
 
@@ -178,15 +188,15 @@ fn pages(mut cmd: clap::Command) -> Vec<clap::Command> {
 pub fn run(command: clap::Command, out: Option<&Path>) -> Result<()> {
     let pages = pages(command);
     let Some(dir) = out else {
-        let top = render(&pages[0])?;
+        let top = render(&pages[0].0, None)?;
         out!("{}", String::from_utf8_lossy(&top));
         return Ok(());
     };
     crate::io::ensure_dir(dir)?;
-    for cmd in &pages {
+    for (cmd, parent) in &pages {
         let name = format!("{}.1", cmd.get_display_name().unwrap_or(cmd.get_name()));
         let path = dir.join(&name);
-        crate::io::write_bytes_atomic(&path, &render(cmd)?)?;
+        crate::io::write_bytes_atomic(&path, &render(cmd, parent.as_ref())?)?;
         info!("wrote {}", path.display());
     }
     Ok(())

@@ -181,9 +181,16 @@ fn footer_key_value_metadata_equals_the_arrow_schema_metadata() {
     let tables = outputs(tmp.path());
     for path in &tables {
         let t = freefall::io::read_parquet_nulls_as_nan(path).unwrap();
-        let footer = footer_kv(path);
-        assert_eq!(footer, t.meta, "{}", path.display());
+        let mut footer = footer_kv(path);
         assert!(footer.contains_key(VERSION_KEY), "{}", path.display());
+        // The reader moves freefall.units out of `meta` into `units`.
+        let units = footer
+            .remove(UNITS_KEY)
+            .expect("freefall.units in the footer");
+        let units: std::collections::BTreeMap<String, String> =
+            serde_json::from_str(&units).unwrap();
+        assert_eq!(footer, t.meta, "{}", path.display());
+        assert_eq!(units, t.units, "{}", path.display());
     }
 }
 
