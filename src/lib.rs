@@ -6,6 +6,11 @@
 //! architecture; "thesis" in the docs is the LISA Pathfinder system-identification thesis whose
 //! chapters 3-5 give the equations.
 
+/// The version of this build, `<crate version> (<commit>[-dirty], <profile>)`, e.g.
+/// `0.1.0 (a1b2c3d, release)`, or `0.1.0 (commit unknown, release)` when built without git (see
+/// build.rs): what `--version` prints and every written table's `freefall.version` holds.
+pub const VERSION: &str = env!("FF_VERSION_LONG");
+
 pub mod accel;
 pub mod analysis;
 pub mod campaign;

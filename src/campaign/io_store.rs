@@ -531,7 +531,7 @@ pub fn run(
     let (fits, failed) = agg.counts();
     let wall = clock.elapsed().as_secs_f64();
     let manifest = Manifest {
-        freefall_version: env!("CARGO_PKG_VERSION").to_string(),
+        freefall_version: crate::VERSION.to_string(),
         campaign: c.name.clone(),
         campaign_file: c.file.display().to_string(),
         campaign_sha256: loaded.campaign_sha256.clone(),

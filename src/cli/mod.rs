@@ -35,6 +35,7 @@ pub mod analysis;
 pub mod campaign;
 pub mod design;
 pub mod diagnose;
+pub mod man;
 pub mod model;
 pub mod simulate;
 pub mod values;
@@ -49,7 +50,7 @@ use crate::setup::Setup;
 #[derive(Debug, Parser)]
 #[command(
     name = "freefall",
-    version,
+    version = crate::VERSION,
     about = "System identification of drag-free closed-loop experiments (LISA Pathfinder kind)"
 )]
 pub struct Cli {
@@ -90,8 +91,9 @@ pub enum Command {
         /// Shell to complete for.
         shell: clap_complete::Shell,
     },
-    /// Print the man page (roff) of freefall (e.g. `freefall man | man -l -`).
-    Man,
+    /// Print the man page (roff) of freefall (e.g. `freefall man | man -l -`), or with --out write
+    /// every page: freefall.1 and freefall-<subcommand>.1 (e.g. freefall-campaign-run.1).
+    Man(man::ManArgs),
     /// Total equivalent acceleration: readouts through Delta(p), spectra, model, noise budget.
     Accel(accel::AccelArgs),
 }
@@ -189,8 +191,8 @@ pub fn run() -> i32 {
         Command::Campaign(c) => campaign::run(c),
         Command::Design(c) => design::run(c),
         Command::Diagnose(a) => diagnose::run(a),
-        Command::Completions { shell } => generated(command, Some(shell)),
-        Command::Man => generated(command, None),
+        Command::Completions { shell } => completions(command, shell),
+        Command::Man(a) => man::run(command, a.out.as_deref()),
         Command::Accel(a) => accel::run(a),
     };
     match res {
@@ -202,13 +204,10 @@ pub fn run() -> i32 {
     }
 }
 
-/// Prints the completion script for `shell`, or without one the man page, of `command`.
-fn generated(mut command: clap::Command, shell: Option<clap_complete::Shell>) -> Result<()> {
+/// Prints the completion script for `shell` of `command`.
+fn completions(mut command: clap::Command, shell: clap_complete::Shell) -> Result<()> {
     let mut out = Vec::new();
-    match shell {
-        Some(shell) => clap_complete::generate(shell, &mut command, "freefall", &mut out),
-        None => clap_mangen::Man::new(command).render(&mut out)?,
-    }
+    clap_complete::generate(shell, &mut command, "freefall", &mut out);
     out!("{}", String::from_utf8_lossy(&out));
     Ok(())
 }

@@ -26,10 +26,7 @@ impl Provenance {
     /// The crate version and the command that wrote the output.
     pub fn new(command: &str) -> Provenance {
         let mut meta = BTreeMap::new();
-        meta.insert(
-            VERSION_KEY.to_string(),
-            env!("CARGO_PKG_VERSION").to_string(),
-        );
+        meta.insert(VERSION_KEY.to_string(), crate::VERSION.to_string());
         meta.insert("freefall.command".to_string(), command.to_string());
         Provenance { meta }
     }

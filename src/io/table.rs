@@ -7,9 +7,11 @@
 //! whose columns are float32/float64, (unsigned) integers, boolean or utf8 without nulls.
 //!
 //! Written tables describe themselves: the Parquet key-value metadata carries
-//! `freefall.version` (the crate version), whatever the caller added with [`Table::with_meta`]
+//! `freefall.version` ([`crate::VERSION`]: crate version, git commit, build profile), whatever the caller added with [`Table::with_meta`]
 //! (model, dataset and campaign hashes) and `freefall.units`, a JSON object of the units set with
-//! [`Table::with_unit`]; each field's Arrow metadata carries its `unit` too. Columns marked with
+//! [`Table::with_unit`] (`{}` when there are none); each field's Arrow metadata carries its
+//! `unit` too. The same key-value pairs are in the Arrow schema and in the Parquet footer's
+//! key-value metadata. Columns marked with
 //! [`Table::with_nan_as_null`] store NaN (a value that does not exist, such as a whitened
 //! residual inside the filter's start-up) as a Parquet null.
 
@@ -30,6 +32,7 @@ use arrow::datatypes::{
 use parquet::arrow::arrow_reader::ParquetRecordBatchReaderBuilder;
 use parquet::arrow::ArrowWriter;
 use parquet::basic::Compression;
+use parquet::file::metadata::KeyValue;
 use parquet::file::properties::WriterProperties;
 
 use super::atomic::AtomicFile;
@@ -496,18 +499,18 @@ impl Table {
             .iter()
             .map(|(k, v)| (k.clone(), v.clone()))
             .collect();
-        meta.insert(VERSION_KEY.into(), env!("CARGO_PKG_VERSION").into());
+        meta.insert(VERSION_KEY.into(), crate::VERSION.into());
         let units: BTreeMap<&str, &str> = self
             .columns
             .iter()
             .filter_map(|(n, _)| Some((n.as_str(), self.units.get(n)?.as_str())))
             .collect();
-        if !units.is_empty() {
-            meta.insert(
-                UNITS_KEY.into(),
-                serde_json::to_string(&units).expect("a map of strings serialises"),
-            );
-        }
+        // Always present, `{}` when no column has one unit (tables whose rows mix parameters
+        // carry a `unit` column instead), so a reader can rely on the key.
+        meta.insert(
+            UNITS_KEY.into(),
+            serde_json::to_string(&units).expect("a map of strings serialises"),
+        );
         Arc::new(Schema::new_with_metadata(fields, meta))
     }
 
@@ -557,9 +560,21 @@ fn check_same_schema(path: &Path, a: &Table, b: &Table) -> Result<(), IoError> {
     }
 }
 
-fn writer_properties() -> WriterProperties {
+/// Snappy compression, and the schema's metadata (`freefall.version`, `freefall.units`, the
+/// hashes) copied into the Parquet footer's key-value metadata, sorted by key, where readers
+/// that do not decode the Arrow schema (DuckDB's `parquet_kv_metadata()`, polars'
+/// `read_parquet_metadata()`) find it. The writer adds `ARROW:schema` after these.
+fn writer_properties(schema: &Schema) -> WriterProperties {
+    let kv: Vec<KeyValue> = schema
+        .metadata()
+        .iter()
+        .collect::<BTreeMap<_, _>>()
+        .into_iter()
+        .map(|(k, v)| KeyValue::new(k.clone(), v.clone()))
+        .collect();
     WriterProperties::builder()
         .set_compression(Compression::SNAPPY)
+        .set_key_value_metadata(Some(kv))
         .build()
 }
 
@@ -654,9 +669,12 @@ impl ParquetAppender {
                 .take()
                 .ok_or_else(|| IoError::invalid(&self.dest, "appender already finished"))?;
             let arrow_schema = batch.arrow_schema();
-            let writer =
-                ArrowWriter::try_new(file, arrow_schema.clone(), Some(writer_properties()))
-                    .map_err(|e| parquet_write_error(&self.dest, e))?;
+            let writer = ArrowWriter::try_new(
+                file,
+                arrow_schema.clone(),
+                Some(writer_properties(&arrow_schema)),
+            )
+            .map_err(|e| parquet_write_error(&self.dest, e))?;
             self.writer = Some(writer);
             self.arrow_schema = Some(arrow_schema);
             self.schema = Some(Table {

@@ -313,7 +313,7 @@ impl SimulateJob {
         let mut meta = toml::Table::new();
         meta.insert(
             "generator".into(),
-            format!("freefall {}", env!("CARGO_PKG_VERSION")).into(),
+            format!("freefall {}", crate::VERSION).into(),
         );
         meta.insert("model".into(), setup.origin.clone().into());
         meta.insert("scenario".into(), self.scenario.clone().into());

@@ -23,6 +23,7 @@ mod holes;
 mod hostile;
 mod io;
 mod lengths;
+mod man;
 mod memory;
 mod metadata;
 mod missing_rows;

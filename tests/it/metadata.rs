@@ -1,8 +1,10 @@
 //! Self-describing outputs: every table freefall writes carries its version, its provenance
 //! hashes and the units of its columns in the Parquet key-value metadata, missing values are
 //! nulls, counts are int64, and the campaign summary's true value is the column `truth` (not
-//! `true`, an SQL keyword). Checked twice: through freefall's own reader, and through pyarrow
-//! and DuckDB as an analyst would read them.
+//! `true`, an SQL keyword). Checked twice: through freefall's own reader, and through pyarrow,
+//! DuckDB and polars as an analyst would read them. The same keys are in the Arrow schema
+//! (pyarrow) and in the Parquet footer's key-value metadata (DuckDB's `parquet_kv_metadata()`,
+//! polars' `read_parquet_metadata()`). The version names the git commit of the build.
 
 use crate::common;
 
@@ -67,7 +69,7 @@ fn every_output_table_describes_itself() {
         let t = freefall::io::read_parquet_nulls_as_nan(path).unwrap();
         assert_eq!(
             t.meta.get(VERSION_KEY).map(String::as_str),
-            Some(env!("CARGO_PKG_VERSION")),
+            Some(freefall::VERSION),
             "{}",
             path.display()
         );
@@ -102,7 +104,7 @@ fn every_output_table_describes_itself() {
     let json: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(tmp.path().join("fit/fit.json")).unwrap())
             .unwrap();
-    assert_eq!(json["provenance"][VERSION_KEY], env!("CARGO_PKG_VERSION"));
+    assert_eq!(json["provenance"][VERSION_KEY], freefall::VERSION);
     assert!(json["provenance"]["freefall.model_sha256"].is_string());
 }
 
@@ -152,5 +154,137 @@ fn pyarrow_and_duckdb_see_units_versions_nulls_and_truth() {
         "{}{}",
         String::from_utf8_lossy(&o.stdout),
         String::from_utf8_lossy(&o.stderr)
+    );
+}
+
+/// The Parquet footer's key-value metadata of `path` (what readers that do not decode the Arrow
+/// schema see), without the encoded `ARROW:schema`.
+fn footer_kv(path: &Path) -> std::collections::BTreeMap<String, String> {
+    use parquet::file::reader::{FileReader, SerializedFileReader};
+    let reader = SerializedFileReader::new(std::fs::File::open(path).unwrap()).unwrap();
+    reader
+        .metadata()
+        .file_metadata()
+        .key_value_metadata()
+        .into_iter()
+        .flatten()
+        .filter(|kv| kv.key != "ARROW:schema")
+        .map(|kv| (kv.key.clone(), kv.value.clone().unwrap_or_default()))
+        .collect()
+}
+
+#[test]
+fn footer_key_value_metadata_equals_the_arrow_schema_metadata() {
+    // Oracle: the Arrow schema's metadata as freefall's reader (and pyarrow) decode it; the
+    // footer must carry exactly those keys and values, for every table of every command.
+    let tmp = tempfile::tempdir().unwrap();
+    let tables = outputs(tmp.path());
+    for path in &tables {
+        let t = freefall::io::read_parquet_nulls_as_nan(path).unwrap();
+        let mut footer = footer_kv(path);
+        assert!(footer.contains_key(VERSION_KEY), "{}", path.display());
+        // The reader moves freefall.units out of `meta` into `units`.
+        let units = footer
+            .remove(UNITS_KEY)
+            .expect("freefall.units in the footer");
+        let units: std::collections::BTreeMap<String, String> =
+            serde_json::from_str(&units).unwrap();
+        assert_eq!(footer, t.meta, "{}", path.display());
+        assert_eq!(units, t.units, "{}", path.display());
+    }
+}
+
+/// Lists the footer metadata of argv[1] with DuckDB and polars; checks both see the version
+/// argv[2] and the units of `sigma`.
+const FOOTER: &str = r#"
+import json, sys
+import duckdb, polars as pl
+
+path, version = sys.argv[1], sys.argv[2]
+rows = duckdb.sql(f"SELECT key, value FROM parquet_kv_metadata('{path}')").fetchall()
+dk = {bytes(k).decode(): bytes(v).decode() for k, v in rows}
+pk = pl.read_parquet_metadata(path)
+for name, kv in (("duckdb", dk), ("polars", pk)):
+    assert kv.get("freefall.version") == version, (name, kv.get("freefall.version"), version)
+    units = json.loads(kv["freefall.units"])
+    assert isinstance(units, dict), (name, units)
+print(json.dumps({"duckdb": sorted(dk), "polars": sorted(pk)}))
+"#;
+
+#[test]
+fn duckdb_and_polars_list_units_and_version_from_the_footer() {
+    if common::skip_without_python(
+        "duckdb_and_polars_list_units_and_version_from_the_footer",
+        &["duckdb", "polars"],
+    ) {
+        return;
+    }
+    // Oracle: DuckDB's parquet_kv_metadata() and polars' read_parquet_metadata(), which read the
+    // Parquet footer only; the version they see is the binary's own.
+    let tmp = tempfile::tempdir().unwrap();
+    let fisher = tmp.path().join("fisher.parquet");
+    ok(&["model", "fisher", "--out", s(&fisher)]);
+    let o = Command::new("python3")
+        .arg("-c")
+        .arg(FOOTER)
+        .arg(&fisher)
+        .arg(freefall::VERSION)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&o.stdout);
+    assert!(
+        o.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    for reader in ["duckdb", "polars"] {
+        let keys: Vec<String> = serde_json::from_str::<serde_json::Value>(&stdout).unwrap()[reader]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|k| k.as_str().unwrap().to_string())
+            .collect();
+        for key in [UNITS_KEY, VERSION_KEY] {
+            assert!(keys.iter().any(|k| k == key), "{reader} lists {keys:?}");
+        }
+    }
+}
+
+#[test]
+fn version_names_the_git_commit_and_tables_carry_it() {
+    // Oracle: git itself (`git rev-parse --short HEAD` of the source tree the binary was built
+    // from); the table's freefall.version is the string --version prints.
+    let root = env!("CARGO_MANIFEST_DIR");
+    let head = Command::new("git")
+        .args(["rev-parse", "--short", "HEAD"])
+        .current_dir(root)
+        .output();
+    let Some(head) = head
+        .ok()
+        .filter(|o| o.status.success())
+        .map(|o| String::from_utf8_lossy(&o.stdout).trim().to_string())
+    else {
+        common::visible(
+            "SKIPPED version_names_the_git_commit_and_tables_carry_it: no git or no repository",
+        );
+        return;
+    };
+    let o = common::ok(&["--version"]);
+    let printed = String::from_utf8_lossy(&o.stdout).trim().to_string();
+    let version = printed
+        .strip_prefix("freefall ")
+        .unwrap_or_else(|| panic!("--version printed {printed:?}"));
+    assert!(
+        version.starts_with(&format!("{} ({head}", env!("CARGO_PKG_VERSION"))),
+        "--version {printed:?} does not name HEAD {head}"
+    );
+    let profile = version.trim_end_matches(')').rsplit(", ").next().unwrap();
+    assert!(!profile.is_empty() && !profile.contains('('), "{printed:?}");
+    let tmp = tempfile::tempdir().unwrap();
+    let fisher = tmp.path().join("fisher.parquet");
+    ok(&["model", "fisher", "--out", s(&fisher)]);
+    assert_eq!(
+        footer_kv(&fisher).get(VERSION_KEY).map(String::as_str),
+        Some(version)
     );
 }
