@@ -166,7 +166,8 @@ fn roff_text(s: &str) -> String {
 }
 
 /// The built command and its subcommands, depth first (hidden ones left out; clap's own `help`
-/// subcommands kept, since the parent pages list them), each with its parent.
+/// subcommands kept as one page each, since the parent pages list them, but not the copy of
+/// the command tree under them), each with its parent.
 fn pages(mut cmd: clap::Command) -> Vec<(clap::Command, Option<clap::Command>)> {
     cmd.build();
     fn walk(
@@ -175,6 +176,9 @@ fn pages(mut cmd: clap::Command) -> Vec<(clap::Command, Option<clap::Command>)> 
         acc: &mut Vec<(clap::Command, Option<clap::Command>)>,
     ) {
         acc.push((cmd.clone(), parent.cloned()));
+        if parent.is_some() && cmd.get_name() == "help" {
+            return; // one page for `help`, not one per copy of the tree under it
+        }
         for sub in cmd.get_subcommands().filter(|s| !s.is_hide_set()) {
             walk(sub, Some(cmd), acc);
         }

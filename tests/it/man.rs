@@ -99,6 +99,9 @@ fn man_out_writes_every_page_with_examples_and_environment() {
             );
         }
     }
+    // clap's `help` subcommand gets one page per level, not a copy of the whole tree.
+    let under_help: Vec<_> = written.iter().filter(|f| f.contains("-help-")).collect();
+    assert!(under_help.is_empty(), "pages under help: {under_help:?}");
     let top = std::fs::read_to_string(dir.join("freefall.1")).unwrap();
     assert!(listed_pages(&top).contains("freefall-accel"), "{top}");
     // Plain `freefall man` prints the same top page.
