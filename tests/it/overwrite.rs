@@ -195,6 +195,7 @@ fn cases(f: &Fixture, design_toml: &Path) -> Vec<Case> {
             st(&["accel", s(&run), "--no-plots"]),
             Out::Dir("accel.parquet"),
         ),
+        case("man", st(&["man"]), Out::Dir("freefall-campaign-run.1")),
     ]
 }
 
