@@ -411,6 +411,70 @@ fn chunk_path(partial: &Path, start: u64, end: u64, config_hash: &str) -> PathBu
     ))
 }
 
+/// Where a run's checkpoint chunks go and what they carry.
+struct ChunkSink<'a> {
+    partial: &'a Path,
+    config_hash: &'a str,
+    seed: u64,
+    /// Realizations per chunk.
+    batch: u64,
+    meta: &'a BTreeMap<String, String>,
+}
+
+/// Computes realizations `next..end` of the shard `start..end` chunk by chunk on `pool`, adds
+/// their rows to `agg`, reports progress after each chunk, and returns the fits' seconds.
+/// Chunk k is written (encode, fsync, rename: ~2 ms) by a writer thread while chunk k+1 is
+/// computed, so the pool does not idle on the disk (docs/architecture.md, "Dependencies we
+/// measured and did not take, and the writer pipeline"). The channel holds one chunk: memory
+/// stays at two chunks in flight. Chunks are written in order, so `--resume` sees a prefix of
+/// them, as before.
+fn run_chunks(
+    sink: &ChunkSink<'_>,
+    runner: &dyn Jobs,
+    pool: &rayon::ThreadPool,
+    (start, mut next, end): (u64, u64, u64),
+    agg: &mut Aggregates,
+    progress: &mut dyn FnMut(Progress),
+) -> Result<f64, CampaignError> {
+    let layout = runner.layout();
+    let mut fit_seconds = 0.0;
+    std::thread::scope(|scope| -> Result<(), CampaignError> {
+        let (send, receive) = std::sync::mpsc::sync_channel::<(PathBuf, Table)>(1);
+        let writer = scope.spawn(move || -> Result<(), CampaignError> {
+            for (path, table) in receive {
+                write_parquet(path, &table)?;
+            }
+            Ok(())
+        });
+        while next < end {
+            let stop = (next + sink.batch).min(end);
+            let rows = pool.install(|| runner.run_range(next, stop));
+            let table = layout
+                .rows_table(&rows, sink.seed)?
+                .with_meta_all(sink.meta);
+            let path = chunk_path(sink.partial, next, stop, sink.config_hash);
+            if send.send((path, table)).is_err() {
+                break; // the writer stopped on an error, returned by its join below
+            }
+            for r in &rows {
+                agg.add(r);
+                fit_seconds += r.seconds;
+            }
+            next = stop;
+            let (f, x) = agg.counts();
+            progress(Progress {
+                done: next - start,
+                total: end - start,
+                fits: f,
+                failed: x,
+            });
+        }
+        drop(send);
+        writer.join().expect("the chunk writer does not panic")
+    })?;
+    Ok(fit_seconds)
+}
+
 /// Run (or resume) a campaign or one shard of it into `opts.out`. `progress` is called after each
 /// batch. Returns the manifest written.
 pub fn run(
@@ -455,7 +519,7 @@ pub fn run(
     }
     let layout = runner.layout().clone();
     let mut agg = Aggregates::new(layout.clone());
-    let (mut next, mut fit_seconds) =
+    let (next, mut fit_seconds) =
         replay_chunks(loaded, runner.as_ref(), &partial, start, end, &mut agg)?;
     let resumed = next - start;
     let total = end - start;
@@ -467,43 +531,21 @@ pub fn run(
         failed: x,
     });
 
-    // Chunk k is written (encode, fsync, rename: ~2 ms) by a writer thread while chunk k+1 is
-    // computed, so the pool does not idle on the disk (docs/architecture.md, "The writer
-    // pipeline"). The channel holds one chunk: memory stays at two chunks in flight. Chunks
-    // are written in order, so `--resume` sees a prefix of them, as before.
-    let batch = c.batch as u64;
-    std::thread::scope(|scope| -> Result<(), CampaignError> {
-        let (send, receive) = std::sync::mpsc::sync_channel::<(PathBuf, Table)>(1);
-        let writer = scope.spawn(move || -> Result<(), CampaignError> {
-            for (path, table) in receive {
-                write_parquet(path, &table)?;
-            }
-            Ok(())
-        });
-        while next < end {
-            let stop = (next + batch).min(end);
-            let rows = pool.install(|| runner.run_range(next, stop));
-            let table = layout.rows_table(&rows, c.seed)?.with_meta_all(&meta);
-            let path = chunk_path(&partial, next, stop, &loaded.config_hash);
-            if send.send((path, table)).is_err() {
-                break; // the writer stopped on an error, returned by its join below
-            }
-            for r in &rows {
-                agg.add(r);
-                fit_seconds += r.seconds;
-            }
-            next = stop;
-            let (f, x) = agg.counts();
-            progress(Progress {
-                done: next - start,
-                total,
-                fits: f,
-                failed: x,
-            });
-        }
-        drop(send);
-        writer.join().expect("the chunk writer does not panic")
-    })?;
+    let sink = ChunkSink {
+        partial: &partial,
+        config_hash: &loaded.config_hash,
+        seed: c.seed,
+        batch: c.batch as u64,
+        meta: &meta,
+    };
+    fit_seconds += run_chunks(
+        &sink,
+        runner.as_ref(),
+        &pool,
+        (start, next, end),
+        &mut agg,
+        progress,
+    )?;
     let threads = pool.current_num_threads();
 
     // Finalize: stream the chunks into realizations.parquet, write the aggregates.
