@@ -1,7 +1,8 @@
 //! Best-of-N wall time of a dense SPD solve `G X = H` by nalgebra and by faer (sequential),
 //! on the sizes freefall meets: the fit's normal equations (31 parameters of the xy model),
-//! the x whitening filter's block normal equations (order 300 x 2 channels) and the xy one
-//! (order 300 x 6). `G` is an AR(1) Toeplitz covariance, as the noise's autocovariance is.
+//! the x whitening filter's block normal equations (order 300 x 2 channels) and a system of
+//! 1800 (order 300 x 6; the xy model's seven readouts make 2100). `G` is an AR(1) Toeplitz
+//! covariance, as the noise's autocovariance is.
 use std::time::Instant;
 
 use faer::linalg::solvers::Solve;
