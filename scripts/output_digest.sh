@@ -28,7 +28,9 @@ exec 3>&1 >commands.log   # the commands' own printing (timings vary) stays out 
 "$bin" $q psd ds/noise.parquet --out psd.parquet
 exec 1>&3
 python3 - <<'PY'
-import hashlib, json, pathlib, pyarrow.parquet as pq
+import hashlib, json, pathlib, re, pyarrow.parquet as pq
+# the build's version string ("0.1.0 (COMMIT, PROFILE)") is run-dependent metadata too
+VERSION = re.compile(rb'\d+\.\d+\.\d+ \([0-9a-f]+(-dirty)?, \w+\)')
 for p in sorted(pathlib.Path('.').rglob('*')):
     if p.suffix == '.parquet':
         t = pq.read_table(p)
@@ -48,7 +50,7 @@ for p in sorted(pathlib.Path('.').rglob('*')):
             if isinstance(x, list):
                 return [strip(v) for v in x]
             return x
-        print(f"{hashlib.sha256(json.dumps(strip(d), sort_keys=True).encode()).hexdigest()[:16]}  {p}")
+        print(f"{hashlib.sha256(VERSION.sub(b'VERSION', json.dumps(strip(d), sort_keys=True).encode())).hexdigest()[:16]}  {p}")
     elif p.suffix in ('.toml', '.csv', '.md') and 'plots' not in p.parts:
-        print(f"{hashlib.sha256(p.read_bytes()).hexdigest()[:16]}  {p}")
+        print(f"{hashlib.sha256(VERSION.sub(b'VERSION', p.read_bytes())).hexdigest()[:16]}  {p}")
 PY
