@@ -19,8 +19,11 @@
 //! sampled-data one.
 //!
 //! The runner is generic in the model ([`CampaignModel`]): the x model (`lpf_x`) and the 7-DOF
-//! xy model (`lpf_xy`). The time-domain engine, glitches and the `[accel]` statistics are the
-//! x model's only; [`check_x_only`] refuses them for another model in one line.
+//! xy model (`lpf_xy`). The `[accel]` statistics are every model's: the bias of `S_g12`, the
+//! second readout's total equivalent acceleration (x12 on both models). The time-domain engine
+//! and glitches are the x model's only (the digital loop of `sim::time_domain` and the glitch
+//! synthesis act on the x model's two channels); [`check_x_only`] refuses them for another
+//! model in one line.
 
 use rayon::prelude::*;
 
@@ -144,8 +147,8 @@ fn x_only_error(spec: &ModelSpec, what: &str) -> crate::setup::Error {
     ))
 }
 
-/// Refuse the x-only features (time-domain engine, glitches, `[accel]`) in a campaign on a
-/// model of another `kind`, naming the campaign file and key.
+/// Refuse the x-only features (time-domain engine, glitches) in a campaign on a model of
+/// another `kind`, naming the campaign file and key.
 pub fn check_x_only(
     campaign: &Campaign,
     scenarios: &[Scenario],
@@ -167,9 +170,6 @@ pub fn check_x_only(
     }
     if let Some(i) = scenarios.iter().position(|s| s.glitch.is_some()) {
         return Err(bad(format!("scenario[{i}].glitch"), "a glitch"));
-    }
-    if !campaign.accel_bands.is_empty() {
-        return Err(bad("accel.bands_hz".into(), "the acceleration-noise bias"));
     }
     Ok(())
 }
@@ -298,7 +298,8 @@ impl<const N: usize> AccelReference<N> {
         Ok(r)
     }
 
-    /// Mean S_g12 per band of the readout noise converted with parameters `p`.
+    /// Mean S_g12 per band of the readout noise converted with parameters `p` (channel 1: the
+    /// readout o12 is the second of both models' readouts).
     fn levels<M: SpecModel<N>>(
         &self,
         setup: &SetupOf<M, N>,

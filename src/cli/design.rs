@@ -7,8 +7,8 @@ use clap::{Args, Subcommand};
 
 use super::values::{Choice, Layout, Matrix, Scaling};
 use super::ModelOpt;
-use crate::design::report::{evaluate_design, write_validation};
-use crate::design::validate::{validate as run_validation, Study, ValidationConfig};
+use crate::design::report::write_validation;
+use crate::design::validate::{validate as run_validation, ValidationConfig};
 use crate::design::DesignModel;
 use crate::io::{ensure_dir, ensure_parent, read_toml, write_parquet};
 use crate::setup::SetupOf;
@@ -121,11 +121,19 @@ fn optimize_model<M: DesignModel<N>, const N: usize>(
 }
 
 fn evaluate(a: EvaluateArgs) -> Result<()> {
-    let (o, setup) = (&a.study, a.study.model.setup()?);
+    crate::with_setup!(a.study.model.any_setup()?, s => evaluate_model(&*s, &a))
+}
+
+/// `design evaluate` on the model of `setup`.
+fn evaluate_model<M: DesignModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
+    a: &EvaluateArgs,
+) -> Result<()> {
+    let o = &a.study;
     let (sc, pars) = (o.scenario.as_deref(), o.parameters.as_deref());
-    let st = Study::at_scenario(&setup, sc, o.scaling.into(), pars)?;
+    let st = M::study(setup, sc, o.scaling.into(), pars)?;
     let design: Design = read_toml(&a.design)?;
-    let ev = evaluate_design(&setup, &st, &design, &a.design)?;
+    let ev = M::evaluate(setup, &st, &design, &a.design)?;
     for n in ev.violation_notes(&a.design, a.allow_violations)? {
         info!("note: {n}");
     }

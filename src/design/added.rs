@@ -50,7 +50,7 @@ use std::path::Path;
 use nalgebra::DMatrix;
 
 use super::criteria::{Criterion, Evaluation, Scaling, Target};
-use super::report::{file_id, toml_design};
+use super::report::{file_id, toml_design, DesignEvaluation};
 use super::search::{optimize, OptimizeConfig, Optimized};
 use super::space::{
     unit_information_pairs, Candidate, CandidateSet, Constraint, ExactDesign, Group, Layout,
@@ -494,6 +494,102 @@ impl<M: AddedDesignModel<N, R>, const N: usize, const R: usize> AddedStudy<M, N,
         let info = self.fixed() + block(&design_fisher(setup, design, &self.p), &self.fitted);
         Evaluation::new(&info, &self.target).map_or(0.0, |e| e.phi(c))
     }
+}
+
+/// `design` (read from `origin`, named in errors) added to the fixed design, scored against the
+/// study `st`: its constraint violations, the six criteria of priors + fixed + `design` beside
+/// priors + fixed + reference (full formula), and per fitted parameter the marginal sigmas of
+/// [`SigmaTable`] (Fisher and with priors) of the fixed design alone, with the reference and with
+/// `design`. Columns of the table: parameter, unit, target, then `fisher_sigma_*` and
+/// `prior_sigma_*` of `M::FIXED`, `M::REFERENCE` and `design` (the fixed experiments plus it).
+pub fn evaluate_design<M: AddedDesignModel<N, R>, const N: usize, const R: usize>(
+    setup: &SetupOf<M, N>,
+    st: &AddedStudy<M, N, R>,
+    design: &Design,
+    origin: &Path,
+) -> Result<DesignEvaluation> {
+    let at_file = |reason: String| DesignError::Config(format!("{}: {reason}", origin.display()));
+    design.validate().map_err(|e| at_file(e.to_string()))?;
+    if let Some(e) = design.experiments.iter().find(|e| e.inputs.len() > N) {
+        return Err(at_file(format!(
+            "experiment '{}' lists {} inputs; the {} model has {N} ({})",
+            e.name,
+            e.inputs.len(),
+            M::KIND.name(),
+            st.input_names.join(", ")
+        )));
+    }
+    let violations = st.violations(setup, design);
+    let scores = |d: &Design| {
+        let info = st.fixed() + block(&design_fisher(setup, d, &st.p), &st.fitted);
+        Evaluation::new(&info, &st.target)
+            .map(|e| e.values())
+            .ok_or_else(|| {
+                DesignError::Singular(format!("{}: design '{}'", origin.display(), d.name))
+            })
+    };
+    let (values, reference) = (scores(design)?, scores(&st.reference)?);
+    let tab = st.sigma_table(setup, design);
+    let mut text = String::new();
+    let _ = writeln!(
+        text,
+        "design '{}' added to {} and the priors ({} violation(s)); scaling {}; targets {}",
+        design.name,
+        M::FIXED,
+        violations.len(),
+        st.scaling.name(),
+        st.target.names.join(", ")
+    );
+    let _ = writeln!(
+        text,
+        "{:<24} {:>14} {:>14}",
+        "criterion",
+        "design",
+        M::REFERENCE
+    );
+    for ((n, v), (_, r)) in values.named().iter().zip(reference.named().iter()) {
+        let _ = writeln!(text, "{n:<24} {v:>14.6e} {r:>14.6e}");
+    }
+    let _ = writeln!(
+        text,
+        "{:<11} {:>12} {:>12} {:>12} {:>12} (sigmas with the priors; *: target)",
+        "parameter",
+        M::FIXED,
+        M::REFERENCE,
+        "design",
+        "ratio"
+    );
+    let units = setup.parameter_units();
+    let target: Vec<bool> = (0..tab.names.len())
+        .map(|k| st.target.indices.contains(&k))
+        .collect();
+    for (k, n) in tab.names.iter().enumerate() {
+        let q = [0, 1, 3].map(|j| tab.posterior[j][k]);
+        let mark = if target[k] { "*" } else { "" };
+        let _ = writeln!(
+            text,
+            "{:<11} {:>12.3e} {:>12.3e} {:>12.3e} {:>12.3}",
+            format!("{n}{mark}"),
+            q[0],
+            q[1],
+            q[2],
+            q[2] / q[1]
+        );
+    }
+    let mut table = Table::new()
+        .with_str("parameter", tab.names.clone())?
+        .with_str("unit", st.fitted.iter().map(|&i| units[i].clone()))?
+        .with_bool("target", target)?;
+    for (j, col) in [(0, M::FIXED), (1, M::REFERENCE), (3, "design")] {
+        table = table
+            .with_f64(format!("fisher_sigma_{col}"), tab.fisher[j].clone())?
+            .with_f64(format!("prior_sigma_{col}"), tab.posterior[j].clone())?;
+    }
+    Ok(DesignEvaluation {
+        violations,
+        text,
+        table,
+    })
 }
 
 /// The optimum of every criterion: designs/*.toml (the added experiments), `sigmas.parquet`

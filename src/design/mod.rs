@@ -44,6 +44,7 @@ use std::path::Path;
 
 use crate::model::{LpfX, LpfXy};
 use crate::setup::{Setup, SetupOf, SetupXy, SpecModel};
+use crate::signal::Design;
 
 pub use criteria::{Criterion, CriterionValues, Evaluation, Matrix, Scaling, Target};
 pub use search::{optimize, Certificate, MethodResult, OptimizeConfig, Optimized};
@@ -127,6 +128,16 @@ pub trait DesignModel<const N: usize>: SpecModel<N> {
         criteria: &[Criterion],
         out: &Path,
     ) -> Result<(String, &'static str), DesignError>;
+
+    /// Score the design file `design` (read from `origin`, named in errors) against the study
+    /// (`design evaluate --model ...`): its constraint violations, the criteria and the
+    /// sigmas beside the model's reference design.
+    fn evaluate(
+        setup: &SetupOf<Self, N>,
+        study: &Self::Study,
+        design: &Design,
+        origin: &Path,
+    ) -> Result<report::DesignEvaluation, DesignError>;
 }
 
 impl DesignModel<2> for LpfX {
@@ -152,6 +163,15 @@ impl DesignModel<2> for LpfX {
             report::write_optimization(setup, study, layout, criteria, out)?,
             "designs.parquet and designs/*.toml",
         ))
+    }
+
+    fn evaluate(
+        setup: &Setup,
+        study: &validate::Study,
+        design: &Design,
+        origin: &Path,
+    ) -> Result<report::DesignEvaluation, DesignError> {
+        report::evaluate_design(setup, study, design, origin)
     }
 }
 
@@ -184,5 +204,14 @@ impl DesignModel<7> for LpfXy {
             added::write_optimization(setup, study, criteria, out)?,
             "sigmas.parquet and designs/*.toml",
         ))
+    }
+
+    fn evaluate(
+        setup: &SetupXy,
+        study: &Self::Study,
+        design: &Design,
+        origin: &Path,
+    ) -> Result<report::DesignEvaluation, DesignError> {
+        added::evaluate_design(setup, study, design, origin)
     }
 }

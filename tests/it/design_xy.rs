@@ -188,3 +188,91 @@ fn cli_designs_on_the_xy_model() {
         .join("d-information_xy.toml")
         .exists());
 }
+
+#[test]
+fn xy_design_file_evaluates_to_the_optimizers_sigmas() {
+    // Oracle: `design optimize --model lpf_xy` (sigmas.parquet, computed from the optimum in
+    // memory). `design evaluate` reads the optimum back from its TOML and must give the same
+    // marginal sigmas of every fitted parameter, with the priors and without, for the design
+    // and the y_phi reference (1e-6 relative: the TOML keeps every digit of the amplitudes,
+    // the rest is the same formula). The optimum sits at the largest amplitudes the constraints
+    // allow, so the same design at twice its amplitudes must break them: refused in one line
+    // naming the file, scored with --allow-violations.
+    let dir = tempfile::tempdir().unwrap();
+    let d = |p: &str| dir.path().join(p).to_str().unwrap().to_string();
+    let targets = ["--parameters", "ds_1y1,ds_2y2", "--model", "lpf_xy"];
+    let run = |args: &[&str]| {
+        let o = common::freefall(args);
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        String::from_utf8_lossy(&o.stdout).to_string()
+    };
+    let opt = d("opt");
+    run(&[
+        &["design", "optimize", "--criterion", "d", "--out", &opt][..],
+        &targets,
+    ]
+    .concat());
+    let design = d("opt/designs/d-information_xy.toml");
+    let text = run(&[
+        &["design", "evaluate", &design, "--out", &d("e.parquet")][..],
+        &targets,
+    ]
+    .concat());
+    assert!(
+        text.contains("0 violation(s)") && text.contains("y_phi"),
+        "{text}"
+    );
+    let sig = freefall::io::read_parquet(dir.path().join("opt/sigmas.parquet")).unwrap();
+    let ev = freefall::io::read_parquet(dir.path().join("e.parquet")).unwrap();
+    let ids = sig.str_column("design_id").unwrap();
+    let rows: Vec<usize> = (0..sig.num_rows())
+        .filter(|&i| ids[i] == "d-information/xy")
+        .collect();
+    assert_eq!(rows.len(), ev.num_rows());
+    let names = ev.str_column("parameter").unwrap();
+    for (k, &i) in rows.iter().enumerate() {
+        assert_eq!(sig.str_column("parameter").unwrap()[i], names[k]);
+        for (from, to) in [
+            ("fisher_sigma_optimum", "fisher_sigma_design"),
+            ("prior_sigma_optimum", "prior_sigma_design"),
+            ("fisher_sigma_y_phi", "fisher_sigma_y_phi"),
+            ("prior_sigma_y_phi", "prior_sigma_y_phi"),
+            ("prior_sigma_standard", "prior_sigma_standard"),
+        ] {
+            let (a, b) = (
+                sig.f64_column(from).unwrap()[i],
+                ev.f64_column(to).unwrap()[k],
+            );
+            // Infinite and NaN Fisher sigmas (no information, a singular block) agree as such.
+            let same = a == b || (a.is_nan() && b.is_nan()) || (a - b).abs() <= 1e-6 * a.abs();
+            assert!(same, "{}: {to} {b:e} against {from} {a:e}", names[k]);
+        }
+    }
+    // Twice the amplitudes.
+    let mut twice: freefall::signal::Design =
+        toml::from_str(&std::fs::read_to_string(&design).unwrap()).unwrap();
+    let stretches = twice
+        .experiments
+        .iter_mut()
+        .flat_map(|e| e.inputs.iter_mut().flatten().flatten());
+    let n = stretches.map(|s| s.amplitude *= 2.0).count();
+    assert!(n > 0);
+    let doubled = toml::to_string(&twice).unwrap();
+    let big = d("big.toml");
+    std::fs::write(&big, &doubled).unwrap();
+    let o = common::freefall(&[&["design", "evaluate", &big][..], &targets].concat());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "twice the amplitudes accepted");
+    assert!(
+        err.contains("big.toml")
+            && err.contains("--allow-violations")
+            && err.trim().lines().count() == 1,
+        "{err}"
+    );
+    let text = run(&[
+        &["design", "evaluate", &big, "--allow-violations"][..],
+        &targets,
+    ]
+    .concat());
+    assert!(!text.contains(" 0 violation(s)"), "{text}");
+}
