@@ -103,17 +103,18 @@ pub struct WhitenJob {
 }
 
 impl WhitenJob {
-    /// Whitens `run_path` into `out`; `setup` loads the model when its noise PSD is asked for.
-    /// Returns the report: the filter, where it came from, and the whitened moments with their
-    /// uncertainties.
+    /// Whitens `run_path` into `out`; `setup` loads the model when its noise PSD is asked for
+    /// (any model: its readouts, by name, are whitened with its noise cross-PSD; a noise run
+    /// whitens o1 and o12). Returns the report: the filter, where it came from, and the
+    /// whitened moments with their uncertainties.
     pub fn run(
         &self,
-        setup: impl FnOnce() -> Result<Setup, SetupError>,
+        setup: impl FnOnce() -> Result<AnySetup, SetupError>,
         run_path: &Path,
         out: &Path,
     ) -> Result<String, JobError> {
         let run = read_run(run_path)?;
-        let (whitener, source) = match (&self.noise, self.model_psd) {
+        match (&self.noise, self.model_psd) {
             (Some(path), _) => {
                 let noise = read_run(path)?;
                 if !crate::numerics::tol::same_time(noise.dt, run.dt) {
@@ -127,31 +128,56 @@ impl WhitenJob {
                 }
                 let w = Whitener::<2>::from_series(&outputs_of(&noise), self.order)
                     .map_err(context(path.display().to_string()))?;
-                (w, format!("noise run {}", path.display()))
+                let source = format!("noise run {}", path.display());
+                self.write(&run, run_path, &super::tables::CHANNELS, &w, &source, out)
             }
             (None, true) => {
-                let setup = setup()?;
-                let p = match &self.scenario {
-                    Some(s) => setup.spec.scenario(s)?.truth,
-                    None => setup.spec.nominal(),
-                };
-                let w = setup.whitener_from_model(&p, run.len(), run.dt, self.order)?;
-                (w, "model noise PSD".to_string())
+                crate::with_setup!(setup()?, s => self.by_model(&*s, &run, run_path, out))
             }
-            (None, false) => return Err(JobError::Invalid(
+            (None, false) => Err(JobError::Invalid(
                 "give --noise NOISE.parquet or --model-psd to choose where the whitening filter comes from".into(),
             )),
+        }
+    }
+
+    /// [`Self::run`] with the noise cross-PSD of `setup`'s model at the scenario's truth (or
+    /// the nominal parameters): the model's readouts, by name.
+    fn by_model<M: SpecModel<N>, const N: usize>(
+        &self,
+        setup: &SetupOf<M, N>,
+        run: &crate::io::Run,
+        run_path: &Path,
+        out: &Path,
+    ) -> Result<String, JobError> {
+        let p = match &self.scenario {
+            Some(s) => setup.spec.scenario(s)?.truth,
+            None => setup.spec.nominal(),
         };
-        if run.len() < whitener.order() + 10 {
+        let w = setup.whitener_from_model(&p, run.len(), run.dt, self.order)?;
+        let channels = setup.model.readout_names();
+        self.write(run, run_path, &channels, &w, "model noise PSD", out)
+    }
+
+    /// Whitens the `channels` of `run` with `w` (from `source`) into `out`; the report.
+    fn write<const N: usize>(
+        &self,
+        run: &crate::io::Run,
+        run_path: &Path,
+        channels: &[&str],
+        w: &Whitener<N>,
+        source: &str,
+        out: &Path,
+    ) -> Result<String, JobError> {
+        if run.len() < w.order() + 10 {
             return Err(JobError::Invalid(format!(
                 "{}: {} samples, fewer than the whitening filter needs ({} + 10)",
                 run_path.display(),
                 run.len(),
-                whitener.order()
+                w.order()
             )));
         }
-        let (table, moments) = whitened_table(&run, &whitener, self.poly_degree)?;
-        let p = whitener.order();
+        let (table, moments) = whitened_table(run, channels, w, self.poly_degree)?;
+        let p = w.order();
         let report = format!(
             "whitening filter: order {p}, from {source}; first {p} samples dropped\n{moments}"
         );

@@ -41,16 +41,23 @@ pub fn psd_table(run: &Run) -> Result<(Table, CrossSpectrum), super::AnalysisErr
     Ok((table, cs))
 }
 
-/// A run whitened by `whitener`, with a polynomial of `poly_degree` projected out: the table
-/// t, o1_w, o12_w (after the filter's start-up samples) and a report of the moments of each
-/// channel before and after the projection (white unit-variance noise: mean 0, sd 1, skewness
-/// 0, excess kurtosis 0, each with its standard error).
-pub fn whitened_table(
+/// The readouts `channels` of a run (by name; o1, o12 for the x model) whitened by
+/// `whitener`, with a polynomial of `poly_degree` projected out: the table t, `<channel>_w`
+/// (after the filter's start-up samples) and a report of the moments of each channel before
+/// and after the projection (white unit-variance noise: mean 0, sd 1, skewness 0, excess
+/// kurtosis 0, each with its standard error). A channel the run lacks is an error naming the
+/// run file and the column.
+pub fn whitened_table<const N: usize>(
     run: &Run,
-    whitener: &Whitener<2>,
+    channels: &[&str],
+    whitener: &Whitener<N>,
     poly_degree: usize,
 ) -> Result<(Table, String), IoError> {
-    let w = whitener.apply(&super::outputs_of(run));
+    let series: Vec<Vec<f64>> = channels
+        .iter()
+        .map(|c| run.column(c).map(<[f64]>::to_vec))
+        .collect::<Result<_, _>>()?;
+    let w = whitener.apply(&series);
     let basis = crate::fit::whiten::poly_basis(w[0].len(), poly_degree);
     let p = whitener.order();
     let mut report = String::new();
@@ -59,8 +66,9 @@ pub fn whitened_table(
         "{:<8} {:<10} {:>22} {:>20} {:>20} {:>20}",
         "channel", "stage", "mean", "sd", "skewness", "excess kurtosis"
     );
-    let mut cols = Vec::new();
-    for (c, name) in CHANNELS.iter().enumerate() {
+    let t: Vec<f64> = (p..run.len()).map(|i| run.t0 + i as f64 * run.dt).collect();
+    let mut table = Table::new().with_f64("t", t)?.with_unit("t", "s");
+    for (c, name) in channels.iter().enumerate() {
         let raw = moments(&w[c]);
         let mut det = w[c].clone();
         crate::fit::whiten::project_out(&mut det, &basis);
@@ -72,15 +80,9 @@ pub fn whitened_table(
                 m.mean, m.mean_err, m.sd, m.sd_err, m.skewness, m.skewness_err, m.excess_kurtosis, m.kurtosis_err
             );
         }
-        cols.push(det);
+        let col = format!("{name}_w");
+        table = table.with_f64(col.clone(), det)?.with_unit(col, "1");
     }
-    let t: Vec<f64> = (p..run.len()).map(|i| run.t0 + i as f64 * run.dt).collect();
-    let [o1, o12]: [Vec<f64>; 2] = cols.try_into().expect("two channels");
-    let table = Table::new()
-        .with_f64("t", t)?
-        .with_f64("o1_w", o1)?
-        .with_f64("o12_w", o12)?
-        .with_units([("t", "s"), ("o1_w", "1"), ("o12_w", "1")]);
     Ok((table, report))
 }
 

@@ -47,7 +47,8 @@ pub struct WhitenArgs {
     /// Degree of the polynomial removed from the whitened series.
     #[arg(long, default_value_t = DEFAULT_POLY_DEGREE)]
     pub poly_degree: usize,
-    /// Output Parquet: t, o1_w, o12_w (after the filter's start-up samples).
+    /// Output Parquet: t, o1_w, o12_w (after the filter's start-up samples; with --model-psd,
+    /// one `<readout>_w` per readout of the model).
     #[arg(long)]
     pub out: PathBuf,
 }
@@ -61,7 +62,7 @@ pub fn whiten(a: WhitenArgs) -> Result<()> {
         poly_degree: a.poly_degree,
     };
     // Printed once the file is written.
-    let report = job.run(|| a.model.setup(), &a.run, &a.out)?;
+    let report = job.run(|| a.model.any_setup(), &a.run, &a.out)?;
     out!("{report}");
     info!("wrote {}", a.out.display());
     Ok(())

@@ -262,3 +262,71 @@ fn commands_are_declared_and_checked() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && err.contains("--commands"), "{err}");
 }
+
+#[test]
+fn xy_model_psd_whitening_is_the_x_models_along_x_and_white_along_y_and_phi() {
+    // Oracles: (1) the x model: without cross-talk (scenario nominal) the xy noise cross-PSD
+    // is block diagonal with the x model's at the same x parameters (continuous loop,
+    // monte_carlo: the x block of the xy truths) as its x block, so `whiten --model lpf_xy
+    // --model-psd` gives the x model's o1_w and o12_w (1e-6 of their sd, the filters being
+    // computed in 7 and in 2 dimensions); (2) whiteness: the xy noise run whitened by the PSD it
+    // was drawn from has a unit sd on every readout, within 5 standard errors (1/sqrt(2n)).
+    let dir = tempfile::tempdir().unwrap();
+    let ds = simulate(dir.path(), "nominal", "7", &[]);
+    let noise = ds.parent().unwrap().join("noise.parquet");
+    let s = |p: &std::path::Path| p.to_str().unwrap().to_string();
+    let (wxy, wx) = (
+        dir.path().join("wxy.parquet"),
+        dir.path().join("wx.parquet"),
+    );
+    let out = common::ok(&[
+        "whiten",
+        &s(&noise),
+        "--model-psd",
+        "--model",
+        "lpf_xy",
+        "--scenario",
+        "nominal",
+        "--out",
+        &s(&wxy),
+    ]);
+    let text = String::from_utf8_lossy(&out.stdout);
+    assert!(text.contains("ophisc"), "{text}");
+    common::ok(&[
+        "whiten",
+        &s(&noise),
+        "--model-psd",
+        "--loop",
+        "continuous",
+        "--scenario",
+        "monte_carlo",
+        "--out",
+        &s(&wx),
+    ]);
+    let (txy, tx) = (
+        freefall::io::read_parquet(&wxy).unwrap(),
+        freefall::io::read_parquet(&wx).unwrap(),
+    );
+    assert_eq!(tx.names(), ["t", "o1_w", "o12_w"]);
+    let readouts = SetupXy::embedded().model.readout_names();
+    let mut names = vec!["t".to_string()];
+    names.extend(readouts.iter().map(|r| format!("{r}_w")));
+    assert_eq!(txy.names(), names);
+    for c in ["o1_w", "o12_w"] {
+        let (a, b) = (txy.f64_column(c).unwrap(), tx.f64_column(c).unwrap());
+        assert_eq!(a.len(), b.len());
+        let worst = a
+            .iter()
+            .zip(b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f64::max);
+        assert!(worst < 1e-6, "{c}: xy and x whitening differ by {worst:e}");
+    }
+    for r in readouts {
+        let w = txy.f64_column(&format!("{r}_w")).unwrap();
+        let n = w.len() as f64;
+        let sd = (w.iter().map(|x| x * x).sum::<f64>() / n).sqrt();
+        eprintln!("{r}: whitened sd {sd:.4} over {n} samples");
+        assert!((sd - 1.0).abs() < 5.0 / (2.0 * n).sqrt(), "{r}: sd {sd}");
+    }
+}
