@@ -156,8 +156,8 @@ pub struct Comparison {
 
 /// Compare this analysis's whole-run spectrum and budget with `reference`'s; `dir` names the
 /// reference in errors.
-pub fn compare(
-    report: &AccelReport,
+pub fn compare<const N: usize>(
+    report: &AccelReport<N>,
     reference: &Reference,
     dir: &Path,
 ) -> Result<Comparison, CompareError> {

@@ -15,7 +15,7 @@ use crate::analysis::{
 };
 use crate::io::plot::run_plot_script;
 use crate::io::{ensure_dir, read_dataset, read_run_segments, write_parquet, Run};
-use crate::setup::Setup;
+use crate::setup::{SetupOf, SpecModel};
 use crate::spectral::WelchConfig;
 
 /// The plot script, embedded so that an installed binary plots without the source tree.
@@ -79,7 +79,11 @@ pub struct AccelJob {
 impl AccelJob {
     /// The request after checking every setting's range; `decimated`: the telemetry went
     /// through the model's anti-alias FIR.
-    fn request(&self, setup: &Setup, decimated: bool) -> Result<AccelRequest, JobError> {
+    fn request<M: SpecModel<N>, const N: usize>(
+        &self,
+        setup: &SetupOf<M, N>,
+        decimated: bool,
+    ) -> Result<AccelRequest, JobError> {
         crate::config::probability("--level", self.level)?;
         crate::config::at_least_one("--welch-segments", self.welch_segments)?;
         Ok(AccelRequest {
@@ -106,9 +110,11 @@ impl AccelJob {
     /// Converts the run of `input` (a run file or a dataset TOML) and writes accel.parquet,
     /// accel_psd.parquet, budget.parquet and the plot to `out`; returns the printable summary:
     /// where the parameters came from, the run's size and the levels at the report frequencies.
-    pub fn run(
+    /// Any model: its readouts and guidance by name, one acceleration channel per readout
+    /// (`report::channel_names`).
+    pub fn run<M: SpecModel<N> + Sync, const N: usize>(
         &self,
-        setup: &Setup,
+        setup: &SetupOf<M, N>,
         input: &Path,
         out: &Path,
         notes: Notes<'_>,
@@ -126,6 +132,12 @@ impl AccelJob {
             truth: meta_truth,
             decimated,
         } = self.load_input(input, setup, &mut *notes)?;
+        if let Some(e) = runs
+            .iter()
+            .find_map(|r| super::missing_column(&setup.model, r))
+        {
+            return Err(e.into());
+        }
         let req = self.request(setup, self.decimated || decimated)?;
         let (p, p_label) = self.delta_parameters(setup)?;
         // The readouts' noise model for the projection: the truth when the data say it.
@@ -211,7 +223,12 @@ impl AccelJob {
 
     /// The run to convert and what its dataset says ([`Input`]). A dataset's noise run with
     /// gaps is read again whole: the dataset keeps only its longest segment, for the fits.
-    fn load_input(&self, input: &Path, setup: &Setup, notes: Notes<'_>) -> Result<Input, JobError> {
+    fn load_input<M: SpecModel<N>, const N: usize>(
+        &self,
+        input: &Path,
+        setup: &SetupOf<M, N>,
+        notes: Notes<'_>,
+    ) -> Result<Input, JobError> {
         let is_dataset = input
             .extension()
             .is_some_and(|e| e.eq_ignore_ascii_case("toml"));
@@ -257,7 +274,10 @@ impl AccelJob {
     }
 
     /// The parameters of Delta and where they came from.
-    fn delta_parameters(&self, setup: &Setup) -> Result<(Vec<f64>, String), JobError> {
+    fn delta_parameters<M: SpecModel<N>, const N: usize>(
+        &self,
+        setup: &SetupOf<M, N>,
+    ) -> Result<(Vec<f64>, String), JobError> {
         if let Some(p) = &self.params {
             let v = parameters_from_estimates(p, &setup.parameter_names())?;
             return Ok((v, format!("estimates {}", p.display())));

@@ -42,6 +42,16 @@ use crate::io::Run;
 use crate::model::closed_loop::ClosedLoopModel;
 use crate::spectral::SpectralError;
 
+/// The first of the model's readouts and guidance inputs that `run` lacks, as the error
+/// naming the run's file, the column and the columns it has.
+pub fn missing_column<M: ClosedLoopModel<N>, const N: usize>(
+    model: &M,
+    run: &Run,
+) -> Option<crate::io::IoError> {
+    let names = model.readout_names().into_iter().chain(model.input_names());
+    names.filter_map(|n| run.column(n).err()).next()
+}
+
 /// Errors of the acceleration estimate.
 #[derive(Debug, thiserror::Error)]
 pub enum AccelError {
@@ -139,15 +149,26 @@ impl Acceleration {
     }
 }
 
-/// `Delta(p)` applied to a run's readouts (guidance injections removed, see [`operator`]).
-pub fn acceleration_of_run<M: ClosedLoopModel<2>>(
+/// `Delta(p)` applied to a run's readouts (guidance injections removed, see [`operator`]): the
+/// model's readouts and guidance inputs, by name.
+///
+/// # Panics
+/// If the run lacks one of them ([`missing_column`] names it first).
+pub fn acceleration_of_run<M: ClosedLoopModel<N>, const N: usize>(
     model: &M,
     p: &[f64],
     run: &Run,
     stencil: Stencil,
 ) -> Result<Acceleration, AccelError> {
     let est = DeltaEstimator::new(model, p, run.dt, stencil)?;
-    let g = est.apply(run.outputs(), Some(run.inputs()))?;
+    let named = |names: [&str; N]| -> [&[f64]; N] {
+        let v = run.named(&names);
+        std::array::from_fn(|c| v[c])
+    };
+    let g = est.apply(
+        named(model.readout_names()),
+        Some(named(model.input_names())),
+    )?;
     Ok(Acceleration {
         t0: run.t0 + est.edge() as f64 * run.dt,
         dt: run.dt,

@@ -34,23 +34,33 @@ pub struct AccelRequest {
     pub telemetry: Option<Decimator>,
 }
 
-/// The outcome: three tables and the whole run's spectrum and budget.
-pub struct AccelReport {
+/// The outcome: three tables and the whole run's spectrum and budget, for a model of `N`
+/// readouts (the x-axis model's two by default).
+pub struct AccelReport<const N: usize = 2> {
     /// One contiguous piece per segment of the run between its gaps (one for a run without).
     pub pieces: Vec<Acceleration>,
     /// Welch segments each piece added to the whole run's spectrum (0: shorter than one).
     pub welch_per_piece: Vec<usize>,
-    /// t, g1, g12 (the pieces in time order; `t` jumps across the gaps).
+    /// t, g1, g12 (the pieces in time order; `t` jumps across the gaps); one `g` per readout
+    /// of the model ([`channel_names`]).
     pub series: Table,
     /// One block of rows per span: segment, f, S_g1, S_g12, their bands, model, level.
     pub spectra: Table,
     /// source, entry, f, S_g1, S_g12.
     pub budget: Table,
     pub whole: AccelPsd,
-    pub terms: Vec<BudgetTerm>,
+    pub terms: Vec<BudgetTerm<N>>,
 }
 
-impl AccelReport {
+/// The acceleration channels of a model, one per readout: `o1 -> g1`, `o12 -> g12`,
+/// `oy1 -> gy1`, ... (the leading `o` of the readout's name replaced by `g`).
+pub fn channel_names<M: ClosedLoopModel<N>, const N: usize>(model: &M) -> [String; N] {
+    model
+        .readout_names()
+        .map(|o| format!("g{}", o.strip_prefix('o').unwrap_or(o)))
+}
+
+impl<const N: usize> AccelReport<N> {
     /// Samples of acceleration, all pieces together.
     pub fn samples(&self) -> usize {
         self.pieces.iter().map(Acceleration::len).sum()
@@ -91,14 +101,14 @@ pub fn parse_segment(spec: &str) -> Result<(String, f64, f64), String> {
 /// Convert `runs` (the contiguous pieces of one run, in time order; one for a run without gaps)
 /// through `Delta(p)`, each on its own, and estimate their spectra, averaging the Welch segments
 /// of all pieces, and the noise budget, the model's readout noise taken at `p_noise`.
-pub fn analyse<M: ClosedLoopModel<2>>(
+pub fn analyse<M: ClosedLoopModel<N> + Sync, const N: usize>(
     model: &M,
-    noise: &NoiseModel<2>,
+    noise: &NoiseModel<N>,
     p: &[f64],
     p_noise: &[f64],
     runs: &[Run],
     req: &AccelRequest,
-) -> Result<AccelReport, AccelReportError> {
+) -> Result<AccelReport<N>, AccelReportError> {
     let pieces = runs
         .iter()
         .map(|run| super::acceleration_of_run(model, p, run, req.stencil))
@@ -113,11 +123,15 @@ pub fn analyse<M: ClosedLoopModel<2>>(
     let dt = first.dt;
     let est = DeltaEstimator::new(model, p, dt, req.stencil)?;
     let concat = |f: &dyn Fn(&Acceleration) -> Vec<f64>| pieces.iter().flat_map(f).collect();
-    let series = Table::new()
+    let names = channel_names(model);
+    let mut series = Table::new()
         .with_f64("t", concat(&|a| a.time()))?
-        .with_f64("g1", concat(&|a| a.g[0].clone()))?
-        .with_f64("g12", concat(&|a| a.g[1].clone()))?
-        .with_units([("t", "s"), ("g1", ACCEL_UNIT), ("g12", ACCEL_UNIT)]);
+        .with_unit("t", "s");
+    for (c, g) in names.iter().enumerate() {
+        series = series
+            .with_f64(g.clone(), concat(&|a| a.g[c].clone()))?
+            .with_unit(g.clone(), ACCEL_UNIT);
+    }
     let mut spans = vec![("all".to_string(), pieces.clone())];
     for (name, t0, t1) in &req.segments {
         spans.push((name.clone(), span_of(&pieces, *t0, *t1)?));
@@ -142,7 +156,7 @@ pub fn analyse<M: ClosedLoopModel<2>>(
             Response::Estimator,
             req.telemetry.as_ref(),
         );
-        let rows = psd_rows(name, &psd, &proj)?;
+        let rows = psd_rows(name, &psd, &proj, &names)?;
         match spectra.as_mut() {
             None => spectra = Some(rows),
             Some(t) => t.append(&rows)?,
@@ -160,7 +174,7 @@ pub fn analyse<M: ClosedLoopModel<2>>(
         req.telemetry.as_ref(),
     );
     Ok(AccelReport {
-        budget: budget_rows(&whole.f, &terms)?,
+        budget: budget_rows(&whole.f, &terms, &names)?,
         spectra: spectra.expect("the whole run is always analysed"),
         pieces,
         welch_per_piece,
@@ -195,7 +209,7 @@ fn span_of(pieces: &[Acceleration], start: f64, end: f64) -> Result<Vec<Accelera
     Ok(inside)
 }
 
-impl AccelReport {
+impl<const N: usize> AccelReport<N> {
     /// The levels at [`REPORT_HZ`], one line each, with the largest budget term.
     pub fn levels_text(&self) -> String {
         let psd = &self.whole;
@@ -227,45 +241,54 @@ fn nearest(f: &[f64], f0: f64) -> Option<usize> {
     (0..f.len()).min_by(|&i, &j| (f[i] - f0).abs().total_cmp(&(f[j] - f0).abs()))
 }
 
-fn psd_rows(segment: &str, psd: &AccelPsd, model: &[[f64; 2]]) -> Result<Table, IoError> {
+/// One span's rows of accel_psd.parquet: segment, f, `S_<g>` per channel, then `S_<g>_lo`,
+/// `S_<g>_hi` per channel, then `model_<g>` per channel, level.
+fn psd_rows<const N: usize>(
+    segment: &str,
+    psd: &AccelPsd,
+    model: &[[f64; N]],
+    names: &[String; N],
+) -> Result<Table, IoError> {
     let col = |c: usize, scale: f64| psd.psd[c].iter().map(|v| v * scale).collect::<Vec<_>>();
-    let psd_cols = [
-        "S_g1",
-        "S_g12",
-        "S_g1_lo",
-        "S_g1_hi",
-        "S_g12_lo",
-        "S_g12_hi",
-        "model_g1",
-        "model_g12",
-    ];
-    Ok(Table::new()
+    let mut t = Table::new()
         .with_str("segment", vec![segment.to_string(); psd.f.len()])?
-        .with_f64("f", psd.f.clone())?
-        .with_f64("S_g1", col(0, 1.0))?
-        .with_f64("S_g12", col(1, 1.0))?
-        .with_f64("S_g1_lo", col(0, psd.lo))?
-        .with_f64("S_g1_hi", col(0, psd.hi))?
-        .with_f64("S_g12_lo", col(1, psd.lo))?
-        .with_f64("S_g12_hi", col(1, psd.hi))?
-        .with_f64("model_g1", model.iter().map(|m| m[0]).collect())?
-        .with_f64("model_g12", model.iter().map(|m| m[1]).collect())?
-        .with_f64("level", vec![psd.level; psd.f.len()])?
-        .with_units(psd_cols.iter().map(|c| (*c, ACCEL_PSD_UNIT)))
+        .with_f64("f", psd.f.clone())?;
+    let mut psd_cols = Vec::new();
+    for (c, g) in names.iter().enumerate() {
+        t = t.with_f64(format!("S_{g}"), col(c, 1.0))?;
+        psd_cols.push(format!("S_{g}"));
+    }
+    for (c, g) in names.iter().enumerate() {
+        t = t
+            .with_f64(format!("S_{g}_lo"), col(c, psd.lo))?
+            .with_f64(format!("S_{g}_hi"), col(c, psd.hi))?;
+        psd_cols.extend([format!("S_{g}_lo"), format!("S_{g}_hi")]);
+    }
+    for (c, g) in names.iter().enumerate() {
+        t = t.with_f64(format!("model_{g}"), model.iter().map(|m| m[c]).collect())?;
+        psd_cols.push(format!("model_{g}"));
+    }
+    Ok(t.with_f64("level", vec![psd.level; psd.f.len()])?
+        .with_units(psd_cols.into_iter().map(|c| (c, ACCEL_PSD_UNIT)))
         .with_units([("f", "Hz"), ("level", "1")]))
 }
 
-fn budget_rows(f: &[f64], terms: &[BudgetTerm]) -> Result<Table, IoError> {
+/// budget.parquet: source, entry, f, `S_<g>` per channel.
+fn budget_rows<const N: usize>(
+    f: &[f64],
+    terms: &[BudgetTerm<N>],
+    names: &[String; N],
+) -> Result<Table, IoError> {
     let rows = || terms.iter().flat_map(|t| t.psd.iter().map(move |r| (t, r)));
-    Ok(Table::new()
+    let mut t = Table::new()
         .with_str("source", rows().map(|(t, _)| t.source.clone()))?
         .with_str("entry", rows().map(|(t, _)| t.entry.to_string()))?
         .with_f64("f", terms.iter().flat_map(|_| f.iter().copied()).collect())?
-        .with_f64("S_g1", rows().map(|(_, r)| r[0]).collect())?
-        .with_f64("S_g12", rows().map(|(_, r)| r[1]).collect())?
-        .with_units([
-            ("f", "Hz"),
-            ("S_g1", ACCEL_PSD_UNIT),
-            ("S_g12", ACCEL_PSD_UNIT),
-        ]))
+        .with_unit("f", "Hz");
+    for (c, g) in names.iter().enumerate() {
+        t = t
+            .with_f64(format!("S_{g}"), rows().map(|(_, r)| r[c]).collect())?
+            .with_unit(format!("S_{g}"), ACCEL_PSD_UNIT);
+    }
+    Ok(t)
 }

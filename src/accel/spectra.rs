@@ -114,15 +114,15 @@ pub fn projection<M: ClosedLoopModel<N>, const N: usize>(
 /// sampled directly at the analysis rate): `S_o` is the folded telemetry PSD
 /// `sum_k |H(f_k)|^2 S_o(f_k)` over the images `f_k = f + k fs_out`
 /// ([`crate::fit::telemetry_psd::folded`], the PSD `fit` and `diagnose` whiten with).
-pub fn projection_of_telemetry<M: ClosedLoopModel<2> + Sync>(
-    est: &DeltaEstimator<'_, M, 2>,
+pub fn projection_of_telemetry<M: ClosedLoopModel<N> + Sync, const N: usize>(
+    est: &DeltaEstimator<'_, M, N>,
     model: &M,
-    noise: &NoiseModel<2>,
+    noise: &NoiseModel<N>,
     p_noise: &[f64],
     f: &[f64],
     which: Response,
     decimator: Option<&Decimator>,
-) -> Vec<[f64; 2]> {
+) -> Vec<[f64; N]> {
     let Some(dec) = decimator else {
         return projection(est, model, noise, p_noise, f, which);
     };
@@ -133,18 +133,16 @@ pub fn projection_of_telemetry<M: ClosedLoopModel<2> + Sync>(
         .collect()
 }
 
-/// One noise source's contribution to the acceleration PSDs.
+/// One noise source's contribution to the acceleration PSDs of a model of `N` readouts (the
+/// x-axis model's two by default).
 #[derive(Debug, Clone)]
-pub struct BudgetTerm {
+pub struct BudgetTerm<const N: usize = 2> {
     pub source: String,
     /// `"force"` or `"readout"`: where the source enters the loop.
     pub entry: &'static str,
     /// `psd[k][c]` at the frequencies given to [`budget`].
-    pub psd: Vec<[f64; N_MAX]>,
+    pub psd: Vec<[f64; N]>,
 }
-
-/// Channels carried by a [`BudgetTerm`] (the x-axis model has two).
-pub const N_MAX: usize = 2;
 
 /// Noise budget of the projection: for each source of `noise` (mutually uncorrelated), its PSD
 /// pushed through the closed loop at `p_noise` to the readouts and back through `est`:
@@ -158,7 +156,7 @@ pub fn budget<M: ClosedLoopModel<N> + Sync, const N: usize>(
     p_noise: &[f64],
     f: &[f64],
     which: Response,
-) -> Vec<BudgetTerm> {
+) -> Vec<BudgetTerm<N>> {
     budget_of_telemetry(est, model, noise, p_noise, f, which, None)
 }
 
@@ -174,13 +172,12 @@ pub fn budget_of_telemetry<M: ClosedLoopModel<N> + Sync, const N: usize>(
     f: &[f64],
     which: Response,
     decimator: Option<&Decimator>,
-) -> Vec<BudgetTerm> {
-    assert!(N <= N_MAX, "budget carries at most {N_MAX} channels");
+) -> Vec<BudgetTerm<N>> {
     // One row of all sources per bin, the bins spread over the cores (each sums its images).
-    let rows: Vec<Vec<[f64; N_MAX]>> = f
+    let rows: Vec<Vec<[f64; N]>> = f
         .par_iter()
         .map(|&fk| {
-            let mut row = vec![[0.0; N_MAX]; noise.sources.len()];
+            let mut row = vec![[0.0; N]; noise.sources.len()];
             let d_est = est.delta(fk, which);
             // Without a decimator, `f` itself with gain 1; with one, its images.
             let imgs = std::iter::once((fk, 1.0))
@@ -207,7 +204,7 @@ pub fn budget_of_telemetry<M: ClosedLoopModel<N> + Sync, const N: usize>(
                         }
                     });
                     let psd = gain * shapes::psd(src, fi.abs());
-                    for (i, o) in out.iter_mut().enumerate().take(N) {
+                    for (i, o) in out.iter_mut().enumerate() {
                         let v: Complex64 = (0..N).map(|j| d_est[(i, j)] * r[j]).sum();
                         *o += v.norm_sqr() * psd;
                     }

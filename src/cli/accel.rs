@@ -12,7 +12,8 @@ use crate::accel::job::AccelJob;
 
 #[derive(Debug, Args)]
 pub struct AccelArgs {
-    /// A run (Parquet or CSV: t, oi1, oi12, o1, o12) or a dataset TOML (its noise run, or --run).
+    /// A run (Parquet or CSV: t, oi1, oi12, o1, o12, and the model's other readouts and
+    /// guidance) or a dataset TOML (its noise run, or --run).
     pub input: PathBuf,
     /// With a dataset: the experiment to convert instead of the noise run.
     #[arg(long)]
@@ -66,7 +67,7 @@ pub struct AccelArgs {
 }
 
 pub fn run(a: AccelArgs) -> Result<()> {
-    let setup = a.model.setup()?;
+    let setup = a.model.any_setup()?;
     let job = AccelJob {
         run: a.run,
         params: a.params,
@@ -80,9 +81,10 @@ pub fn run(a: AccelArgs) -> Result<()> {
         compare: a.compare,
         decimated: a.decimated,
     };
-    let text = super::working("converting to acceleration", |notes| {
-        job.run(&setup, &a.input, &a.out, notes)
-    })?;
+    let text = super::working(
+        "converting to acceleration",
+        |notes| crate::with_setup!(&setup, s => job.run(&**s, &a.input, &a.out, notes)),
+    )?;
     out!("{text}");
     info!("wrote {}", a.out.display());
     Ok(())

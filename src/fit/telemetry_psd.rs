@@ -56,12 +56,12 @@ pub fn images(f: f64, decimator: &Decimator) -> impl Iterator<Item = (f64, f64)>
 
 /// The telemetry PSD `S_dec` of a process of one-sided cross-PSD `psd` at the decimator's input
 /// rate, after `decimator` (module doc, "Folding").
-pub fn folded<'a>(
-    psd: impl Fn(f64) -> CMat<2> + 'a,
+pub fn folded<'a, const N: usize>(
+    psd: impl Fn(f64) -> CMat<N> + 'a,
     decimator: &'a Decimator,
-) -> impl Fn(f64) -> CMat<2> + 'a {
+) -> impl Fn(f64) -> CMat<N> + 'a {
     move |f: f64| {
-        let mut s = CMat::<2>::zeros();
+        let mut s = CMat::<N>::zeros();
         for (fk, h2) in images(f, decimator) {
             // A real process: S(-f) = conj(S(f)) for the negative images.
             let sk = if fk > 0.0 {
