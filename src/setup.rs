@@ -173,6 +173,18 @@ impl<M: SpecModel<N>, const N: usize> SetupOf<M, N> {
         Ok(Whitener::from_psd(self.psd(p), dt, order, n)?)
     }
 
+    /// The glitches of `g` for a simulation directly at the analysis rate over `n` samples
+    /// (every readout's white driving sequence gets its own). Glitch amplitudes are in units of
+    /// the white driving sequence at the simulation rate; at the analysis rate the same
+    /// physical glitch is sqrt(simulate_hz / analyse_hz) times larger in units of that
+    /// (coarser) sequence.
+    pub fn analysis_glitches(&self, g: &GlitchSpec, n: usize) -> GlitchConfig {
+        let ratio = (self.spec.sampling.simulate_hz / self.spec.sampling.analyse_hz).sqrt();
+        let mut g = g.clone();
+        g.amplitude_sigma = [g.amplitude_sigma[0] * ratio, g.amplitude_sigma[1] * ratio];
+        GlitchConfig::new(&g, n)
+    }
+
     /// Checked before a simulator of `design` is built: the longest run's samples at the
     /// simulation rate times [`SIMULATION_BYTES_PER_SAMPLE`] (per pair of channels) must fit
     /// in memory. `option` names what set the duration (a design's `duration_s`,
@@ -245,17 +257,6 @@ impl Setup {
             ),
             None => (Whitener::from_psd(psd, dt, order, n)?, None),
         })
-    }
-
-    /// The glitches of `g` for a simulation directly at the analysis rate over `n` samples.
-    /// Glitch amplitudes are in units of the white driving sequence at the simulation rate; at
-    /// the analysis rate the same physical glitch is sqrt(simulate_hz / analyse_hz) times larger
-    /// in units of that (coarser) sequence.
-    pub fn analysis_glitches(&self, g: &GlitchSpec, n: usize) -> GlitchConfig {
-        let ratio = (self.spec.sampling.simulate_hz / self.spec.sampling.analyse_hz).sqrt();
-        let mut g = g.clone();
-        g.amplitude_sigma = [g.amplitude_sigma[0] * ratio, g.amplitude_sigma[1] * ratio];
-        GlitchConfig::new(&g, n)
     }
 }
 

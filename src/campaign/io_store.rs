@@ -132,7 +132,7 @@ pub fn load(path: Option<&Path>) -> Result<Loaded, CampaignError> {
         designs.push(design);
     }
     let scenarios = resolve_scenarios(setup.spec(), &campaign)?;
-    check_x_only(&campaign, &scenarios, setup.spec().model)?;
+    check_x_only(&campaign, setup.spec().model)?;
     let mut parts: Vec<&[u8]> = vec![text.as_bytes(), model_text.as_bytes()];
     parts.extend(design_texts.iter().map(|t| t.as_bytes()));
     Ok(Loaded {

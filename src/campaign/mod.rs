@@ -17,9 +17,9 @@
 //! # Models
 //! A campaign runs on the x model (`lpf_x`, the default) or on the 7-DOF xy cross-talk model
 //! (`model = "lpf_xy"`, or a model file that says `model = "lpf_xy"`); the runner is generic
-//! in the model ([`runner::CampaignModel`]), `[accel]` included (the bias of S_g12, x12 on both
-//! models). The time-domain engine and glitches are the x model's only and are refused for
-//! the xy model in one line. The xy model's
+//! in the model ([`runner::CampaignModel`]), `[accel]` (the bias of S_g12, x12 on both models)
+//! and glitches included. The time-domain engine is the x model's only and is refused for the
+//! xy model in one line. The xy model's
 //! `standard_xy` injection table is the x standard design plus one experiment per y/phi input
 //! (campaigns/xy_crosstalk.toml).
 //!

@@ -20,10 +20,10 @@
 //!
 //! The runner is generic in the model ([`CampaignModel`]): the x model (`lpf_x`) and the 7-DOF
 //! xy model (`lpf_xy`). The `[accel]` statistics are every model's: the bias of `S_g12`, the
-//! second readout's total equivalent acceleration (x12 on both models). The time-domain engine
-//! and glitches are the x model's only (the digital loop of `sim::time_domain` and the glitch
-//! synthesis act on the x model's two channels); [`check_x_only`] refuses them for another
-//! model in one line.
+//! second readout's total equivalent acceleration (x12 on both models); so are glitches (in
+//! every readout's white driving sequence). The time-domain engine is the x model's only (the
+//! digital loop of `sim::time_domain` is the x model's); [`check_x_only`] refuses it for
+//! another model in one line.
 
 use rayon::prelude::*;
 
@@ -60,16 +60,18 @@ pub struct TimeDomainParts<const N: usize> {
 }
 
 /// What a campaign needs of its model beyond [`SpecModel`]: the simulators of its cells. The
-/// x model has them all; the xy model has the frequency-domain simulator without glitches (its
-/// campaigns are checked by [`check_x_only`] before any cell is built).
+/// x model has them all; the xy model has the frequency-domain simulator (its campaigns are
+/// checked by [`check_x_only`] before any cell is built).
 pub trait CampaignModel<const N: usize>: SpecModel<N> + Sync {
     /// The frequency-domain simulator of design `d` at the scenario's truth, at the analysis
-    /// rate (with the scenario's glitches where the model has them).
+    /// rate, with the scenario's glitches.
     fn campaign_simulator(
         setup: &SetupOf<Self, N>,
         d: &Design,
         sc: &Scenario,
-    ) -> Result<Simulator<N>, crate::setup::Error>;
+    ) -> Result<Simulator<N>, crate::setup::Error> {
+        setup.simulator(d, &sc.truth, sc.glitch.as_ref())
+    }
 
     /// The time-domain engine's parts of design `d` at the scenario's truth, whitened with the
     /// model PSD at `p_w` folded through the decimator, filter order `order`.
@@ -83,14 +85,6 @@ pub trait CampaignModel<const N: usize>: SpecModel<N> + Sync {
 }
 
 impl CampaignModel<2> for LpfX {
-    fn campaign_simulator(
-        setup: &SetupOf<Self, 2>,
-        d: &Design,
-        sc: &Scenario,
-    ) -> Result<Simulator<2>, crate::setup::Error> {
-        setup.simulator(d, &sc.truth, sc.glitch.as_ref())
-    }
-
     fn time_domain_parts(
         setup: &SetupOf<Self, 2>,
         d: &Design,
@@ -117,17 +111,6 @@ impl CampaignModel<2> for LpfX {
 }
 
 impl CampaignModel<7> for LpfXy {
-    fn campaign_simulator(
-        setup: &SetupOf<Self, 7>,
-        d: &Design,
-        sc: &Scenario,
-    ) -> Result<Simulator<7>, crate::setup::Error> {
-        if sc.glitch.is_some() {
-            return Err(x_only_error(&setup.spec, "glitches"));
-        }
-        setup.plain_simulator(d, &sc.truth)
-    }
-
     fn time_domain_parts(
         setup: &SetupOf<Self, 7>,
         _: &Design,
@@ -147,13 +130,9 @@ fn x_only_error(spec: &ModelSpec, what: &str) -> crate::setup::Error {
     ))
 }
 
-/// Refuse the x-only features (time-domain engine, glitches) in a campaign on a model of
-/// another `kind`, naming the campaign file and key.
-pub fn check_x_only(
-    campaign: &Campaign,
-    scenarios: &[Scenario],
-    kind: ModelKind,
-) -> Result<(), CampaignError> {
+/// Refuse the x-only feature (the time-domain engine, `sim::time_domain`, whose digital loop is
+/// the x model's) in a campaign on a model of another `kind`, naming the campaign file and key.
+pub fn check_x_only(campaign: &Campaign, kind: ModelKind) -> Result<(), CampaignError> {
     if kind == ModelKind::LpfX {
         return Ok(());
     }
@@ -167,9 +146,6 @@ pub fn check_x_only(
     };
     if campaign.fit.engine == Engine::TimeDomain {
         return Err(bad("fit.engine".into(), "\"time-domain\""));
-    }
-    if let Some(i) = scenarios.iter().position(|s| s.glitch.is_some()) {
-        return Err(bad(format!("scenario[{i}].glitch"), "a glitch"));
     }
     Ok(())
 }
@@ -492,7 +468,7 @@ impl<'s, M: CampaignModel<N>, const N: usize> Runner<'s, M, N> {
                 ),
             });
         }
-        check_x_only(campaign, &scenarios, M::KIND)?;
+        check_x_only(campaign, M::KIND)?;
         check_engine_model(&setup.spec, campaign)?;
         let (mut cells, mut notes) = (Vec::new(), Vec::new());
         for (i, sc) in scenarios.iter().enumerate() {

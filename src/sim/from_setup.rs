@@ -35,6 +35,31 @@ impl<M: SpecModel<N>, const N: usize> SetupOf<M, N> {
         )?)
     }
 
+    /// A simulator of `design` at parameters `truth`, directly at the analysis rate, with
+    /// the glitches of `glitch` (thesis sec. 4.5.7) in every readout's white driving sequence
+    /// if given. The noise has the model PSD sampled at the analysis rate, i.e. the data an
+    /// ideal anti-alias decimator would produce (the 10 Hz path with a real filter is
+    /// `sim::decimated`).
+    pub fn simulator(
+        &self,
+        design: &Design,
+        truth: &[f64],
+        glitch: Option<&GlitchSpec>,
+    ) -> Result<Simulator<N>, Error> {
+        self.check_simulation_size(design, "duration_s")?;
+        let dt = self.analysis_dt();
+        let glitches = glitch.map(|g| self.analysis_glitches(g, design.samples(dt)));
+        Ok(Simulator::new(
+            &self.model,
+            design,
+            truth,
+            self.psd(truth),
+            dt,
+            NOISE_OVERSAMPLE,
+            glitches,
+        )?)
+    }
+
     /// [`Self::plain_simulator`] of `model` (the setup's model extended, for example by
     /// effects) at its parameters `p`; the noise is the setup's at the base parameters
     /// `truth` (the effects perturb operators, not noise sources).
@@ -59,29 +84,6 @@ impl<M: SpecModel<N>, const N: usize> SetupOf<M, N> {
 }
 
 impl Setup {
-    /// A simulator of `design` at parameters `truth`, directly at the analysis rate. The noise
-    /// has the model PSD sampled at the analysis rate, i.e. the data an ideal anti-alias
-    /// decimator would produce (the 10 Hz path with a real filter is `sim::decimated`).
-    pub fn simulator(
-        &self,
-        design: &Design,
-        truth: &[f64],
-        glitch: Option<&GlitchSpec>,
-    ) -> Result<Simulator<2>, Error> {
-        self.check_simulation_size(design, "duration_s")?;
-        let dt = self.analysis_dt();
-        let glitches = glitch.map(|g| self.analysis_glitches(g, design.samples(dt)));
-        Ok(Simulator::new(
-            &self.model,
-            design,
-            truth,
-            self.psd(truth),
-            dt,
-            NOISE_OVERSAMPLE,
-            glitches,
-        )?)
-    }
-
     /// The thesis's path: a simulator at simulate_hz whose output is decimated with the
     /// anti-alias FIR to analyse_hz (`sim::decimated`).
     pub fn decimated_simulator(
