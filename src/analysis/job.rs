@@ -556,8 +556,9 @@ impl FitJob {
     ) -> Result<FitOutcome, JobError> {
         if self.transient {
             return Err(JobError::Invalid(format!(
-                "--transient: start-up transients are fitted by the lpf_x model only; \
-                     this is the {} model",
+                "--transient: the start-up transients' columns are free responses of the \
+                 time-domain digital loop (sim::time_domain), which simulates the lpf_x model \
+                 only; this is the {} model",
                 M::KIND.name()
             )));
         }

@@ -140,7 +140,8 @@ pub fn check_x_only(campaign: &Campaign, kind: ModelKind) -> Result<(), Campaign
         file: campaign.file.clone(),
         key,
         reason: format!(
-            "{what} is the lpf_x model's only; this campaign's model is {}",
+            "{what} is the lpf_x model's only (the digital loop of sim::time_domain simulates \
+             the x axis); this campaign's model is {}",
             kind.name()
         ),
     };

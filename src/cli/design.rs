@@ -145,7 +145,10 @@ fn evaluate_model<M: DesignModel<N>, const N: usize>(
     Ok(())
 }
 fn validate(a: ValidateArgs) -> Result<()> {
-    let setup = a.model.setup()?;
+    let setup = a.model.any_setup()?.x(
+        "design validate (the thesis's four-step validation of the x experiments; for lpf_xy, \
+         `design optimize --model lpf_xy` and a campaign of its designs)",
+    )?;
     let cfg = ValidationConfig::from_file(&a.campaign, a.realizations)?;
     let out = match &a.out {
         Some(out) => out.clone(),
