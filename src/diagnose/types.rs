@@ -153,6 +153,9 @@ pub struct Candidate {
     pub acts_on: String,
     pub score_statistic: f64,
     pub score_p_value: f64,
+    /// Its Bayes factor and BIC difference against the model without it, from the refit when
+    /// it was refitted, else from the score test ([`crate::diagnose::evidence`]).
+    pub evidence: Option<crate::diagnose::evidence::Evidence>,
     /// Fraction of the effect's Fisher information not explained by the fitted parameters
     /// (`1 - R^2`; near zero means degenerate).
     pub identifiable_fraction: f64,
@@ -191,6 +194,12 @@ pub struct AddedEffect {
     /// within the chi^2(1) quantile at `1 - alpha` of its own), e.g. a kick on TM1 against one of
     /// opposite sign on TM2, which the closed loop shows alike in the readouts.
     pub indistinguishable_from: Vec<Alternative>,
+    /// Its Bayes factor and BIC difference (from its refit).
+    pub evidence: Option<crate::diagnose::evidence::Evidence>,
+    /// Candidates its Bayes factor cannot tell from it, their columns almost the same: when
+    /// any, the data want one of them and this design cannot say which (status
+    /// `not_distinguishable`); the effect stays in the model as their common proxy.
+    pub near_twins: Vec<crate::diagnose::evidence::Twin>,
     /// Index of its additive effect in the final model (internal).
     #[serde(skip)]
     pub lin_index: Option<usize>,
