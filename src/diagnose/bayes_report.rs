@@ -99,6 +99,16 @@ fn twin_sentence(name: &str, own: f64, t: &Twin) -> String {
     )
 }
 
+/// Kass & Raftery's (1995) reading of `ln B` (their scale is on `2 ln B`: 2, 6, 10).
+pub fn grade(ln_b: f64) -> &'static str {
+    match ln_b.abs() {
+        x if x < 1.0 => "barely worth mentioning",
+        x if x < 3.0 => "positive",
+        x if x < 5.0 => "strong",
+        _ => "very strong",
+    }
+}
+
 impl Diagnosis {
     /// The priors, the approximations, and every candidate whose p-value and Bayes factor
     /// disagree (its latest round), one sentence each.
@@ -124,7 +134,7 @@ impl Diagnosis {
             let sentence = if e.significant && e.ln_bayes_factor < 0.0 {
                 format!("- {} (round {}): significant (p = {p:.1e}) but ln B = {:.2} < 0: with the stated prior the Bayes factor prefers the model without it (the effect is small against the prior's width).", c.name, c.round, e.ln_bayes_factor)
             } else if !e.significant && e.ln_bayes_factor > 0.0 {
-                format!("- {} (round {}): not significant at the round's threshold (p = {p:.1e}) but ln B = {:.2} > 0: the Bayes factor favours it.", c.name, c.round, e.ln_bayes_factor)
+                format!("- {} (round {}): not significant at the round's threshold (p = {p:.1e}) but ln B = {:.2} > 0: the Bayes factor favours it ({} evidence on the scale of Kass & Raftery 1995).", c.name, c.round, e.ln_bayes_factor, grade(e.ln_bayes_factor))
             } else {
                 continue;
             };

@@ -84,6 +84,10 @@ pub struct DiagnoseConfig {
     /// guidance columns, `analysis::guidance::sharp_edges`), per experiment, s from its first
     /// sample: a time-localised candidate within [`EDGE_TRANSIENT_S`] of one is not claimed.
     pub stretch_edges: Vec<Vec<f64>>,
+    /// The recorded guidance of other degrees of freedom (a dataset's `[[auxiliary]]` of role
+    /// guidance): column, and whether any experiment injects on it. It names the injection
+    /// that would separate two near-twin auxiliary candidates.
+    pub aux_guidance: Vec<(String, bool)>,
 }
 
 /// Half-width of a stretch edge's transient window [s]: the closed loop's fastest time
@@ -111,6 +115,7 @@ impl Default for DiagnoseConfig {
             constraints: crate::fit::Constraints::default(),
             auxiliary: None,
             stretch_edges: Vec::new(),
+            aux_guidance: Vec::new(),
         }
     }
 }

@@ -23,7 +23,6 @@ use std::sync::Arc;
 
 use nalgebra::DMatrix;
 
-use crate::data::AuxRole;
 use crate::design::redesign::{self, redesign_verdict};
 use crate::diagnose::evidence::{
     delta_bic, laplace_ln_bayes_factor, Evidence, Prior, Twin, PRIOR_TYPICALS, TWIN_CORRELATION,
@@ -332,36 +331,23 @@ fn separation(
 /// Which recorded guidance of the other degrees of freedom carries no injection: only an
 /// injection that drives the loops recording two auxiliary series apart separates them.
 fn aux_separation(problem: &DiagnosisProblem<'_>) -> String {
-    let Some(aux) = problem.cfg.auxiliary.as_deref() else {
-        return String::new();
-    };
-    let guidance: Vec<(usize, &str)> = aux
-        .channels
-        .iter()
-        .enumerate()
-        .filter(|(_, c)| c.role == AuxRole::Guidance)
-        .map(|(k, c)| (k, c.column.as_str()))
-        .collect();
+    let guidance = &problem.cfg.aux_guidance;
     if guidance.is_empty() {
         return "recorded series: an injection on the degrees of freedom they come from would separate them; the dataset records no guidance of those degrees of freedom".into();
     }
     let silent: Vec<&str> = guidance
         .iter()
-        .filter(|(k, _)| {
-            aux.experiments
-                .iter()
-                .all(|e| e.get(*k).is_none_or(|s| s.iter().all(|v| *v == 0.0)))
-        })
-        .map(|(_, n)| *n)
+        .filter(|(_, injected)| !injected)
+        .map(|(n, _)| n.as_str())
         .collect();
     if silent.is_empty() {
         format!(
             "recorded series: the injections on {} do not drive them apart; a larger or differently timed one on the degree of freedom of either would",
-            guidance.iter().map(|g| g.1).collect::<Vec<_>>().join(", ")
+            guidance.iter().map(|g| g.0.as_str()).collect::<Vec<_>>().join(", ")
         )
     } else {
         format!(
-            "recorded series: inject on the guidance of the degrees of freedom they come from ({} carry no injection in these experiments; a design that drives them, e.g. of the model that recorded them)",
+            "recorded series: inject on the guidance of the degrees of freedom they come from ({} carry no injection in these experiments), as a design of the model that recorded them does",
             silent.join(", ")
         )
     }
