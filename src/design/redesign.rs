@@ -161,9 +161,25 @@ pub fn probe(
     data: &ExperimentData,
     timing: Timing,
 ) -> Result<Redesign, DesignError> {
+    probe_given(setup, p, Vec::new(), effect, data, timing)
+}
+
+/// [`probe`] with the effects `given` fitted as well (at zero): could one more stretch
+/// separate `effect` from them and the base parameters? (Two near-twin candidates of a
+/// diagnosis: the twin given the effect added.)
+pub fn probe_given(
+    setup: &Setup,
+    p: &[f64],
+    given: Vec<Arc<dyn Effect>>,
+    effect: Arc<dyn Effect>,
+    data: &ExperimentData,
+    timing: Timing,
+) -> Result<Redesign, DesignError> {
     let k = effect.parameter_names().len();
     let effect_typical = effect.typical();
-    let model = Extended::new(setup.model.clone(), vec![effect]);
+    let mut effects = given;
+    effects.push(effect);
+    let model = Extended::new(setup.model.clone(), effects);
     let q = model.nested(p);
     let np = model.n_params();
     let psd = setup.psd(p);

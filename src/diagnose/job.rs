@@ -112,6 +112,7 @@ impl DiagnoseJob {
                 .filter(|a| !a.is_empty())
                 .map(std::sync::Arc::new),
             stretch_edges: stretch_edges(&prep),
+            aux_guidance: aux_guidance(ds),
             ..Default::default()
         };
         let mut d = diagnose_observed(
@@ -171,5 +172,22 @@ fn stretch_edges(prep: &crate::analysis::job::Prepared) -> Vec<Vec<f64>> {
     crate::analysis::guidance::sharp_edges(&prep.ds)
         .into_iter()
         .map(|per_column| per_column.into_iter().flatten().collect())
+        .collect()
+}
+
+/// The dataset's recorded guidance of other degrees of freedom: each column and whether any
+/// experiment injects on it (for the separation of near-twin auxiliary candidates).
+fn aux_guidance(ds: &crate::io::dataset::Dataset) -> Vec<(String, bool)> {
+    let g = ds.auxiliary_of(&[crate::data::AuxRole::Guidance]);
+    g.channels
+        .iter()
+        .enumerate()
+        .map(|(k, c)| {
+            let injected = g
+                .experiments
+                .iter()
+                .any(|e| e.get(k).is_some_and(|s| s.iter().any(|v| *v != 0.0)));
+            (c.column.clone(), injected)
+        })
         .collect()
 }

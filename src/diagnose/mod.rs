@@ -61,6 +61,8 @@
 //! ([`crate::fit::score`]) and the whitening of a raw series like the data
 //! ([`crate::fit::Likelihood::whiten_series`]).
 
+pub mod bayes_report;
+pub mod evidence;
 pub mod families;
 pub mod job;
 pub mod report;

@@ -6,6 +6,7 @@ use std::fmt::Write;
 use serde_json::{json, Map, Value};
 
 use crate::design::redesign::{probe_md, redesign_verdict};
+use crate::diagnose::bayes_report as bayes;
 use crate::diagnose::{Candidate, Diagnosis, Stage};
 
 fn num(v: f64) -> Value {
@@ -103,7 +104,7 @@ impl Diagnosis {
             .effects_added
             .iter()
             .map(|a| {
-                json!({
+                let mut v = json!({
                     "name": a.name, "category": a.category, "family": a.family, "acts_on": a.acts_on,
                     "parameters": named(&a.parameter_names, &a.parameters),
                     "sigmas": named(&a.parameter_names, &a.sigmas),
@@ -111,14 +112,17 @@ impl Diagnosis {
                     "most_correlated": a.most_correlated.as_ref().map(|(n, c)| json!({"parameter": n, "correlation": num(*c)})),
                     "degenerate": a.degenerate,
                     "indistinguishable_from": a.indistinguishable_from.iter().map(|x| json!({"name": x.name, "acts_on": x.acts_on, "parameters": x.parameters.iter().map(|v| num(*v)).collect::<Vec<_>>(), "delta_chi2": num(x.delta_chi2)})).collect::<Vec<_>>(),
-                })
+                });
+                bayes::evidence_fields(a.evidence.as_ref(), &mut v);
+                bayes::twin_fields(a, &mut v);
+                v
             })
             .collect();
         let cands: Vec<Value> = self
             .candidates
             .iter()
             .map(|c| {
-                json!({
+                let mut v = json!({
                     "round": c.round, "name": c.name, "category": c.category, "acts_on": c.acts_on,
                     "score_statistic": num(c.score_statistic), "score_p_value": num(c.score_p_value),
                     "identifiable_fraction": num(c.identifiable_fraction),
@@ -129,7 +133,9 @@ impl Diagnosis {
                     "delta_chi2": c.delta_chi2.map(num), "p_value": c.p_value.map(num),
                     // Its derived Serialize (non-finite numbers become null, as `num` does).
                     "redesign": serde_json::to_value(&c.redesign).unwrap_or(Value::Null),
-                })
+                });
+                bayes::evidence_fields(c.evidence.as_ref(), &mut v);
+                v
             })
             .collect();
         let unexpl: Vec<Value> = self
@@ -207,6 +213,7 @@ impl Diagnosis {
         self.md_unexplained(&mut s);
         self.md_aux_coherence(&mut s);
         self.md_candidates(&mut s);
+        self.md_bayes(&mut s);
         self.md_degenerate(&mut s);
         self.md_scope(&mut s);
         s
@@ -220,7 +227,15 @@ impl Diagnosis {
         } else {
             self.effects_added
                 .iter()
-                .map(|e| e.name.clone())
+                .map(|e| {
+                    let mut n = vec![e.name.clone()];
+                    n.extend(e.near_twins.iter().map(|t| t.name.clone()));
+                    if n.len() > 1 {
+                        format!("{} (not distinguishable)", n.join(" | "))
+                    } else {
+                        e.name.clone()
+                    }
+                })
                 .collect::<Vec<_>>()
                 .join(", ")
         };
@@ -286,7 +301,7 @@ The closed loop's free response to initial conditions (thesis sec. 3.2, 4.7), fi
                 "added {}",
                 self.effects_added
                     .iter()
-                    .map(|a| format!("**{}** ({})", a.name, a.category))
+                    .map(bayes::verdict_name)
                     .collect::<Vec<_>>()
                     .join(", then ")
             )
@@ -331,7 +346,7 @@ The closed loop's free response to initial conditions (thesis sec. 3.2, 4.7), fi
         if self.effects_added.is_empty() {
             let _ = writeln!(s, "None.\n");
         } else {
-            let _ = writeln!(s, "| effect | category | acts on | parameters | score | delta chi2 | p | most correlated |\n|---|---|---|---|---|---|---|---|");
+            let _ = writeln!(s, "| effect | status | category | acts on | parameters | score | delta chi2 | p | ln B | delta BIC | most correlated |\n|---|---|---|---|---|---|---|---|---|---|---|");
             for a in &self.effects_added {
                 let pars: Vec<String> = a
                     .parameter_names
@@ -347,19 +362,22 @@ The closed loop's free response to initial conditions (thesis sec. 3.2, 4.7), fi
                     .unwrap_or_default();
                 let _ = writeln!(
                     s,
-                    "| {} | {} | {} | {} | {:.1} | {:.1} | {:.2e} | {} |",
+                    "| {} | {} | {} | {} | {} | {:.1} | {:.1} | {:.2e} | {} | {} |",
                     a.name,
+                    bayes::status(a),
                     a.category,
                     a.acts_on,
                     pars.join(", "),
                     a.score_statistic,
                     a.delta_chi2,
                     a.p_value,
+                    bayes::cells(a.evidence.as_ref()),
                     corr
                 );
             }
             let _ = writeln!(s);
             for a in &self.effects_added {
+                bayes::md_twins(s, a);
                 for x in &a.indistinguishable_from {
                     let pars: Vec<String> =
                         x.parameters.iter().map(|v| format!("{v:.4e}")).collect();
@@ -572,7 +590,7 @@ The closed loop's free response to initial conditions (thesis sec. 3.2, 4.7), fi
     /// Every candidate of every round.
     fn md_candidates(&self, s: &mut String) {
         let _ = writeln!(s, "## Candidates (score test at zero, per round)\n");
-        let _ = writeln!(s, "| round | effect | category | score | p | identifiable | most correlated | delta chi2 | p (refit) |\n|---|---|---|---|---|---|---|---|---|");
+        let _ = writeln!(s, "| round | effect | category | score | p | identifiable | most correlated | delta chi2 | p (refit) | ln B | delta BIC |\n|---|---|---|---|---|---|---|---|---|---|---|");
         for c in &self.candidates {
             let corr = c
                 .most_correlated
@@ -591,7 +609,7 @@ The closed loop's free response to initial conditions (thesis sec. 3.2, 4.7), fi
                 };
             let _ = writeln!(
                 s,
-                "| {} | {} | {} | {:.2} | {:.1e} | {:.2e} | {corr} | {} | {} |",
+                "| {} | {} | {} | {:.2} | {:.1e} | {:.2e} | {corr} | {} | {} | {} |",
                 c.round,
                 c.name,
                 c.category,
@@ -603,7 +621,8 @@ The closed loop's free response to initial conditions (thesis sec. 3.2, 4.7), fi
                     .unwrap_or_else(|| "-".into()),
                 c.p_value
                     .map(|v| format!("{v:.1e}"))
-                    .unwrap_or_else(|| "-".into())
+                    .unwrap_or_else(|| "-".into()),
+                bayes::cells(c.evidence.as_ref())
             );
         }
     }

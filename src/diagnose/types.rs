@@ -84,6 +84,10 @@ pub struct DiagnoseConfig {
     /// guidance columns, `analysis::guidance::sharp_edges`), per experiment, s from its first
     /// sample: a time-localised candidate within [`EDGE_TRANSIENT_S`] of one is not claimed.
     pub stretch_edges: Vec<Vec<f64>>,
+    /// The recorded guidance of other degrees of freedom (a dataset's `[[auxiliary]]` of role
+    /// guidance): column, and whether any experiment injects on it. It names the injection
+    /// that would separate two near-twin auxiliary candidates.
+    pub aux_guidance: Vec<(String, bool)>,
 }
 
 /// Half-width of a stretch edge's transient window [s]: the closed loop's fastest time
@@ -111,6 +115,7 @@ impl Default for DiagnoseConfig {
             constraints: crate::fit::Constraints::default(),
             auxiliary: None,
             stretch_edges: Vec::new(),
+            aux_guidance: Vec::new(),
         }
     }
 }
@@ -153,6 +158,9 @@ pub struct Candidate {
     pub acts_on: String,
     pub score_statistic: f64,
     pub score_p_value: f64,
+    /// Its Bayes factor and BIC difference against the model without it, from the refit when
+    /// it was refitted, else from the score test ([`crate::diagnose::evidence`]).
+    pub evidence: Option<crate::diagnose::evidence::Evidence>,
     /// Fraction of the effect's Fisher information not explained by the fitted parameters
     /// (`1 - R^2`; near zero means degenerate).
     pub identifiable_fraction: f64,
@@ -191,6 +199,12 @@ pub struct AddedEffect {
     /// within the chi^2(1) quantile at `1 - alpha` of its own), e.g. a kick on TM1 against one of
     /// opposite sign on TM2, which the closed loop shows alike in the readouts.
     pub indistinguishable_from: Vec<Alternative>,
+    /// Its Bayes factor and BIC difference (from its refit).
+    pub evidence: Option<crate::diagnose::evidence::Evidence>,
+    /// Candidates its Bayes factor cannot tell from it, their columns almost the same: when
+    /// any, the data want one of them and this design cannot say which (status
+    /// `not_distinguishable`); the effect stays in the model as their common proxy.
+    pub near_twins: Vec<crate::diagnose::evidence::Twin>,
     /// Index of its additive effect in the final model (internal).
     #[serde(skip)]
     pub lin_index: Option<usize>,

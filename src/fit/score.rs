@@ -20,6 +20,9 @@ pub struct Score {
     pub most_correlated: Option<(usize, f64)>,
     /// The one-step estimate `S^+ U` from zero: where the data pull the extra parameters.
     pub step: Vec<f64>,
+    /// The Schur complement `S`: the extra parameters' information given the fitted ones (the
+    /// inverse of their covariance at the one-step estimate).
+    pub information: DMatrix<f64>,
 }
 
 /// The score statistic `U^T S^+ U` of extra parameters with score `ue`, information `iee`,
@@ -59,6 +62,7 @@ pub fn score_test(
         identifiable_fraction: frac,
         most_correlated,
         step,
+        information: schur,
     }
 }
 

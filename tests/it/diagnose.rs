@@ -1375,3 +1375,52 @@ fn the_stages_are_reported_in_order() {
         "round 1 refits the damping candidate: {s:?}"
     );
 }
+
+#[test]
+fn a_claimed_effect_carries_its_bayes_factor_and_bic_difference() {
+    // Oracles, by hand. BIC (Schwarz): delta BIC = delta chi2 / s - k ln n, with n the whitened
+    // samples of the nominal fit (counted here from its whitened residuals) and k = 1.
+    // Laplace for one parameter bounded at zero with the half-normal prior 2 N(0, w^2),
+    // w = 10 x typical (0.02 rad): far from the bound, ln B = delta chi2 / (2 s)
+    // + ln(2 N(theta; 0, w^2)) + ln(sqrt(2 pi) sigma), sigma the refit's (scaled) sigma;
+    // the posterior mode differs from the estimate by sigma^2 / w^2 of it, well inside 0.05.
+    let c = check_single("loss_angle_tm2", 0.01, "loss_angle", 104);
+    let a = &c.d.effects_added[0];
+    let e = a
+        .evidence
+        .as_ref()
+        .expect("the added effect has a Bayes factor");
+    assert_eq!(e.from, "refit");
+    assert!(a.near_twins.is_empty(), "{:?}", a.near_twins);
+    let n: usize = c.d.residuals_before.0.iter().flatten().map(Vec::len).sum();
+    assert_eq!(e.n_samples, n);
+    assert!((e.delta_chi2 - a.delta_chi2).abs() < 1e-9 * a.delta_chi2.abs());
+    let bic = a.delta_chi2 / e.variance_scale - (n as f64).ln();
+    assert!(
+        (e.delta_bic - bic).abs() < 1e-9 * bic.abs(),
+        "{} vs {bic}",
+        e.delta_bic
+    );
+    let (theta, w) = (a.parameters[0], 10.0 * 0.02);
+    let ln_prior = (2.0f64).ln()
+        - 0.5 * (2.0 * std::f64::consts::PI * w * w).ln()
+        - theta * theta / (2.0 * w * w);
+    let by_hand = a.delta_chi2 / (2.0 * e.variance_scale)
+        + ln_prior
+        + ((2.0 * std::f64::consts::PI).sqrt() * a.sigmas[0]).ln();
+    eprintln!(
+        "loss_angle_tm2: ln B {:.3} (by hand {by_hand:.3}), delta BIC {:.3}, p {:.2e}",
+        e.ln_bayes_factor, e.delta_bic, a.p_value
+    );
+    assert!(
+        (e.ln_bayes_factor - by_hand).abs() < 0.05,
+        "{} vs {by_hand}",
+        e.ln_bayes_factor
+    );
+    assert!(e.ln_bayes_factor > 0.0 && e.significant);
+    // Every candidate row carries one; the markdown shows them and the priors.
+    assert!(c.d.candidates.iter().all(|x| x.evidence.is_some()));
+    let md = c.d.to_markdown("test");
+    assert!(md.contains("## Bayes factors"), "{md}");
+    assert!(md.contains("| ln B | delta BIC |"));
+}

@@ -324,7 +324,7 @@ fn robust_check(
 }
 
 /// Stretch slots per experiment of the redesign probe's timing: the standard design's seven.
-const REDESIGN_GRID: usize = 7;
+pub(super) const REDESIGN_GRID: usize = 7;
 
 /// Attach a redesign verdict ([`redesign::probe`]) to every degenerate operator candidate: is
 /// the effect separable with one more injection stretch of the `standard` design's timing, within

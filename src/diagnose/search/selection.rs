@@ -26,6 +26,7 @@ use serde::Serialize;
 
 use crate::diagnose::families::additive::Additive;
 use crate::diagnose::families::glitch;
+use crate::diagnose::search::bayes;
 use crate::diagnose::search::observer::{Observer, Round, Step, StopReason};
 use crate::diagnose::search::problem::{DiagnosisProblem, LinearFit};
 use crate::diagnose::search::score::{
@@ -96,6 +97,8 @@ pub(super) struct Described {
     pub(super) noise_var: f64,
     /// Physical lower bound of each parameter (None: unbounded).
     pub(super) lower: Vec<Option<f64>>,
+    /// The effect table's typical size of each parameter (empty for an additive effect).
+    pub(super) typical: Vec<f64>,
 }
 
 impl Described {
@@ -104,7 +107,7 @@ impl Described {
     }
 
     /// A bound at the nested value zero makes the test of a one-parameter effect one-sided.
-    fn bounded_at_zero(&self) -> bool {
+    pub(super) fn bounded_at_zero(&self) -> bool {
         self.dim == 1 && self.lower.first().copied().flatten() == Some(0.0)
     }
 
@@ -131,7 +134,7 @@ pub struct DiagnosisState {
     pub model: Extended,
     pub(crate) fit: LinearFit,
     /// Library effects not yet added.
-    pool: Vec<Arc<dyn Effect>>,
+    pub(super) pool: Vec<Arc<dyn Effect>>,
     /// Drift and line candidates not yet added.
     lin_pool: Vec<Additive>,
     /// Tests in each round's Bonferroni family. The glitch scan is one test; its own
@@ -224,6 +227,7 @@ fn describe_operator(k: usize, e: &Arc<dyn Effect>) -> Described {
         trials: 1.0,
         noise_var: 1.0,
         lower: e.lower_bounds(),
+        typical: e.typical(),
     }
 }
 
@@ -236,6 +240,7 @@ fn describe_additive(a: Additive, pooled: Option<usize>) -> Described {
         trials: a.trials(),
         noise_var: a.noise_var(),
         lower: vec![None; a.parameter_names().len()],
+        typical: Vec::new(),
         proposal: Proposal::Additive { effect: a, pooled },
     }
 }
@@ -353,20 +358,26 @@ fn score(
         &extra,
     )?);
     let names = state.model.parameter_names();
+    let (n, threshold) = (
+        bayes::n_samples(state),
+        problem.cfg.alpha / state.n_tests as f64,
+    );
     Ok(described
         .iter()
         .zip(scores)
-        .map(|(d, s)| candidate(problem, state.round, d, &s, names))
+        .map(|(d, s)| candidate(problem, state.round, d, &s, names, (n, threshold)))
         .collect())
 }
 
-/// One candidate's row from its score test, one-sided at a physical bound.
+/// One candidate's row from its score test, one-sided at a physical bound, with its Bayes
+/// factor from the score test (`n` whitened samples; the round's p-value `threshold`).
 fn candidate(
     problem: &DiagnosisProblem<'_>,
     round: usize,
     d: &Described,
     s: &Score,
     names: &[String],
+    (n, threshold): (usize, f64),
 ) -> Candidate {
     let most = s.most_correlated.map(|(k, v)| (names[k].clone(), v));
     let calibrated = d.category == Category::Glitch;
@@ -382,13 +393,15 @@ fn candidate(
         let p = problem.tail(d.dim, s.statistic / d.noise_var, calibrated);
         (s.statistic, p)
     };
+    let score_p_value = (d.trials * p).min(1.0);
     Candidate {
         round,
         name: d.name.clone(),
         category: d.category.as_str(),
         acts_on: d.acts_on.clone(),
         score_statistic: statistic,
-        score_p_value: (d.trials * p).min(1.0),
+        score_p_value,
+        evidence: bayes::from_score(d, s, n, score_p_value < threshold),
         identifiable_fraction: s.identifiable_fraction,
         degenerate: s.identifiable_fraction < DEGENERATE_FRACTION
             || most
@@ -516,6 +529,22 @@ fn record_refit(
     let calibrated = d.category == Category::Glitch;
     let mut p = problem.tail(d.dim, dchi2 / scale, calibrated);
     c.delta_chi2 = Some(dchi2);
+    // The Bayes factor's maximum and information of the added parameters given the rest.
+    let (theta_hat, info) = match &d.proposal {
+        Proposal::Operator(_) => {
+            let range = m.range(m.effects.len() - 1);
+            (
+                f.estimate[range.clone()].to_vec(),
+                bayes::schur_of(&f.information, range),
+            )
+        }
+        Proposal::Additive { .. } => match (r.fit.linear.last(), r.fit.covariances.last()) {
+            (Some((_, v)), Some(cov)) => {
+                (v.clone(), bayes::information_of_covariance(cov, v.len()))
+            }
+            _ => (Vec::new(), None),
+        },
+    };
     match &d.proposal {
         Proposal::Operator(_) => {
             let range = m.range(m.effects.len() - 1);
@@ -546,7 +575,18 @@ fn record_refit(
             }
         }
     }
-    c.p_value = Some((d.trials * p).min(1.0));
+    let p_value = (d.trials * p).min(1.0);
+    c.p_value = Some(p_value);
+    let threshold = problem.cfg.alpha / state.n_tests as f64;
+    c.evidence = bayes::from_refit(
+        d,
+        dchi2,
+        scale,
+        &theta_hat,
+        info,
+        bayes::n_samples(state),
+        p_value < threshold && !c.outside_physical_range,
+    );
 }
 
 /// Add the largest significant chi^2 drop among refits that converged, are identifiable and
@@ -576,15 +616,21 @@ fn decide(
         })
         .collect();
     let drop = |i: usize| tested[i].delta_chi2.unwrap_or(f64::NEG_INFINITY);
+    let eligible = |i: usize, r: &Refit| {
+        let c = &tested[i];
+        r.fit.fit.termination.converged()
+            && c.p_value.is_some_and(|p| p < threshold)
+            && !c.outside_physical_range
+    };
+    // The refits a near-twin of the added effect may be among.
+    let others: Vec<usize> = refits
+        .iter()
+        .filter(|(i, r)| eligible(*i, r))
+        .map(|(i, _)| *i)
+        .collect();
     let best = refits
         .into_iter()
-        .filter(|(i, r)| {
-            let c = &tested[*i];
-            r.fit.fit.termination.converged()
-                && c.p_value.is_some_and(|p| p < threshold)
-                && !c.outside_physical_range
-                && state.open(cfg, described[*i].family())
-        })
+        .filter(|(i, r)| eligible(*i, r) && state.open(cfg, described[*i].family()))
         .max_by(|a, b| drop(a.0).total_cmp(&drop(b.0)));
     let Some((i, refit)) = best else {
         return Round::Stop(StopReason::NothingSignificant);
@@ -603,6 +649,8 @@ fn decide(
         .filter(|(k, a)| *k != i && a.delta_chi2 > dchi2 - q)
         .map(|(_, a)| a)
         .collect();
+    // Before the pool changes: the twins' columns are at the current model.
+    let near_twins = bayes::near_twins(problem, state, described, tested, i, &others);
     let (parameter_names, parameters, sigmas, lin_index) = match &described[i].proposal {
         Proposal::Operator(k) => {
             let e = state.pool.remove(*k);
@@ -645,6 +693,8 @@ fn decide(
         most_correlated: c.most_correlated.clone(),
         degenerate: c.degenerate,
         indistinguishable_from,
+        evidence: c.evidence.clone(),
+        near_twins,
         lin_index,
     });
     state.model = refit.model;

@@ -1,0 +1,354 @@
+//! The forward selection's Bayes factors ([`crate::diagnose::evidence`]) and its near-twins.
+//!
+//! - **Priors**: an operator effect's parameters have zero-mean Gaussian priors of width
+//!   [`PRIOR_TYPICALS`] times the effect table's typical size (half-normal for a parameter
+//!   bounded at zero); an additive effect (drift, line, glitch, auxiliary cross-talk) has no
+//!   physical size in the table and gets the unit-information prior `N(0, n Sigma)`. A glitch's
+//!   position, entry and width, chosen by the scan, get a uniform prior over the scan's trials:
+//!   `ln B` less `ln trials`, the Bayesian form of the p-value's look-elsewhere factor. A line's
+//!   frequency is taken as given, as its p-value takes it.
+//! - **From the refit** (`Delta chi^2` of the refit, its maximum `theta_hat` and the information
+//!   of `theta` given the rest: the Schur complement of the refit's information for an operator
+//!   effect, the inverse of the amplitudes' covariance for an additive one), or **from the score
+//!   test** for a candidate not refitted (the one-step estimate `S^+ U`, information `S`, and
+//!   `Delta chi^2 ~ LM`, the score statistic, asymptotically the likelihood ratio). Either in
+//!   the likelihood scaled as the candidate's p-value is (the refit's `chi^2/nu` when above
+//!   one, a noise-run calibration).
+//! - **Near-twins**: a refitted, significant candidate of the round whose first whitened column
+//!   correlates with the added effect's at [`TWIN_CORRELATION`] or more and whose `ln B` is within
+//!   [`TWIN_LN_B`] of it: the data want one of them and cannot say which. Both are named, with
+//!   what injection would separate them.
+
+use std::sync::Arc;
+
+use nalgebra::DMatrix;
+
+use crate::design::redesign::{self, redesign_verdict};
+use crate::diagnose::evidence::{
+    delta_bic, laplace_ln_bayes_factor, Evidence, Prior, Twin, PRIOR_TYPICALS, TWIN_CORRELATION,
+    TWIN_LN_B,
+};
+use crate::diagnose::families::additive::Additive;
+use crate::diagnose::search::problem::DiagnosisProblem;
+use crate::diagnose::search::selection::{Described, DiagnosisState, Proposal};
+use crate::diagnose::Candidate;
+use crate::fit::score::Score;
+use crate::model::effects::{Category, Effect, Extended};
+use crate::numerics::linalg::{equilibrated_pinv, series_dot};
+use crate::sim::Series;
+
+/// The whitened samples of the current fit (the BIC's `n`).
+pub(super) fn n_samples(state: &DiagnosisState) -> usize {
+    state
+        .fit
+        .fit
+        .residuals_w
+        .iter()
+        .flatten()
+        .map(Vec::len)
+        .sum()
+}
+
+/// The prior of `d`'s added parameters (module docs), with `n` whitened samples.
+fn prior_of(d: &Described, n: usize) -> Prior {
+    if d.typical.is_empty() {
+        Prior::UnitInformation { n: n as f64 }
+    } else {
+        Prior::Gaussian {
+            width: d.typical.iter().map(|t| PRIOR_TYPICALS * t.abs()).collect(),
+            half: d.bounded_at_zero(),
+        }
+    }
+}
+
+/// Added parameters the BIC counts: the amplitudes and the non-linear ones.
+fn bic_parameters(d: &Described) -> usize {
+    match &d.proposal {
+        Proposal::Operator(_) => d.dim,
+        Proposal::Additive { effect, .. } => d.dim + effect.nonlinear().len(),
+    }
+}
+
+/// The evidence of `d` from the unscaled chi^2 drop `dchi2`, the variance scale `scale`, the
+/// maximum `theta` and the unscaled information `info` of the added parameters given the rest.
+#[allow(clippy::too_many_arguments)]
+fn evidence(
+    d: &Described,
+    from: &'static str,
+    dchi2: f64,
+    scale: f64,
+    theta: &[f64],
+    info: &DMatrix<f64>,
+    n: usize,
+    significant: bool,
+) -> Evidence {
+    let prior = prior_of(d, n);
+    let f = info / scale;
+    let mut ln_b = laplace_ln_bayes_factor(0.5 * dchi2 / scale, theta, &f, &prior);
+    let mut text = prior.describe();
+    if d.trials > 1.0 {
+        ln_b -= d.trials.ln();
+        text.push_str(&format!(
+            "; position and width uniform over the scan's {:.0} trials",
+            d.trials
+        ));
+    }
+    let k = bic_parameters(d);
+    Evidence {
+        ln_bayes_factor: ln_b,
+        delta_bic: delta_bic(dchi2, scale, k, n),
+        prior: text,
+        from,
+        n_samples: n,
+        n_parameters: k,
+        variance_scale: scale,
+        delta_chi2: dchi2,
+        significant,
+    }
+}
+
+/// The evidence of a candidate only scored: the score test's one-step estimate and Schur
+/// complement, `Delta chi^2 = LM` of the quadratic model (`theta^T S theta`, also where the
+/// statistic is reported as 0 for a degenerate candidate).
+pub(super) fn from_score(
+    d: &Described,
+    s: &Score,
+    n: usize,
+    significant: bool,
+) -> Option<Evidence> {
+    if s.step.iter().any(|v| !v.is_finite()) || s.step.len() != s.information.nrows() {
+        return None;
+    }
+    let t = DMatrix::from_column_slice(s.step.len(), 1, &s.step);
+    let lm = (t.transpose() * &s.information * &t)[(0, 0)].max(0.0);
+    let scale = if d.noise_var > 0.0 { d.noise_var } else { 1.0 };
+    Some(evidence(
+        d,
+        "score",
+        lm,
+        scale,
+        &s.step,
+        &s.information,
+        n,
+        significant,
+    ))
+}
+
+/// The evidence of a refitted candidate (`info`: the unscaled information of its parameters
+/// given the rest, see [`schur_of`] and [`information_of_covariance`]).
+#[allow(clippy::too_many_arguments)]
+pub(super) fn from_refit(
+    d: &Described,
+    dchi2: f64,
+    scale: f64,
+    theta: &[f64],
+    info: Option<DMatrix<f64>>,
+    n: usize,
+    significant: bool,
+) -> Option<Evidence> {
+    let info = info?;
+    if theta.len() != info.nrows() || theta.iter().any(|v| !v.is_finite()) {
+        return None;
+    }
+    Some(evidence(
+        d,
+        "refit",
+        dchi2,
+        scale,
+        theta,
+        &info,
+        n,
+        significant,
+    ))
+}
+
+/// The information of the parameters `range` given the others: the Schur complement
+/// `I_ee - I_en I_nn^+ I_ne` of the full information `info`.
+pub(super) fn schur_of(info: &DMatrix<f64>, range: std::ops::Range<usize>) -> Option<DMatrix<f64>> {
+    let np = info.nrows();
+    let e: Vec<usize> = range.collect();
+    let o: Vec<usize> = (0..np).filter(|k| !e.contains(k)).collect();
+    let sub =
+        |r: &[usize], c: &[usize]| DMatrix::from_fn(r.len(), c.len(), |a, b| info[(r[a], c[b])]);
+    let iee = sub(&e, &e);
+    if o.is_empty() {
+        return Some(iee);
+    }
+    let ien = sub(&e, &o);
+    let inn = equilibrated_pinv(&sub(&o, &o))?;
+    Some(iee - &ien * inn * ien.transpose())
+}
+
+/// The information of the first `dim` parameters of a covariance (amplitudes of an additive
+/// effect, the non-linear ones marginalised): the inverse of that block.
+pub(super) fn information_of_covariance(cov: &DMatrix<f64>, dim: usize) -> Option<DMatrix<f64>> {
+    if cov.nrows() < dim {
+        return None;
+    }
+    let block = cov.view((0, 0), (dim, dim)).into_owned();
+    if block.iter().any(|v| !v.is_finite()) {
+        return None;
+    }
+    equilibrated_pinv(&block)
+}
+
+/// The first whitened column of candidate `d` at the current fit: the template derivative of
+/// an operator effect (at zero), the whitened series of an additive one.
+fn first_column(
+    problem: &DiagnosisProblem<'_>,
+    state: &DiagnosisState,
+    d: &Described,
+) -> Option<Series> {
+    let est = &state.fit.fit.estimate;
+    match &d.proposal {
+        Proposal::Operator(k) => {
+            let mut effects = state.model.effects.clone();
+            effects.push(state.pool[*k].clone());
+            let full = Extended::new(state.model.base.clone(), effects);
+            let lik = problem.likelihood(&full).ok()?;
+            let prob = lik.problem(problem.data).ok()?;
+            let (_, j) = prob.residuals_and_jacobian(&full.nested(est));
+            j.into_iter().nth(full.range(full.effects.len() - 1).start)
+        }
+        Proposal::Additive { effect, .. } => {
+            let lik = problem.likelihood(&state.model).ok()?;
+            let col = effect
+                .columns(lik.engine.model(), &lik, problem.data, est)
+                .into_iter()
+                .next()?;
+            Some(lik.whiten_series(problem.data, col))
+        }
+    }
+}
+
+/// The correlation of two whitened columns.
+fn correlation(a: &Series, b: &Series) -> f64 {
+    series_dot(a, b) / (series_dot(a, a) * series_dot(b, b)).sqrt()
+}
+
+/// The near-twins of the added candidate `winner` among the refitted candidates `others` of
+/// the round (converged, physical, significant; module docs).
+pub(super) fn near_twins(
+    problem: &DiagnosisProblem<'_>,
+    state: &DiagnosisState,
+    described: &[Described],
+    tested: &[Candidate],
+    winner: usize,
+    others: &[usize],
+) -> Vec<Twin> {
+    let Some(ew) = tested[winner].evidence.as_ref() else {
+        return Vec::new();
+    };
+    let mut col_w: Option<Option<Series>> = None;
+    let mut out = Vec::new();
+    for &k in others.iter().filter(|&&k| k != winner) {
+        let c = &tested[k];
+        let Some(ek) = c.evidence.as_ref().filter(|e| e.significant) else {
+            continue;
+        };
+        let between = ew.ln_bayes_factor - ek.ln_bayes_factor;
+        if !(between.abs() < TWIN_LN_B) {
+            continue;
+        }
+        let cw = col_w.get_or_insert_with(|| first_column(problem, state, &described[winner]));
+        let (Some(cw), Some(ck)) = (cw.as_ref(), first_column(problem, state, &described[k]))
+        else {
+            continue;
+        };
+        let corr = correlation(cw, &ck);
+        if !(corr.abs() >= TWIN_CORRELATION) {
+            continue;
+        }
+        let (separation, redesign) = separation(problem, state, &described[winner], &described[k]);
+        out.push(Twin {
+            name: c.name.clone(),
+            acts_on: c.acts_on.clone(),
+            correlation: corr,
+            ln_bayes_factor: ek.ln_bayes_factor,
+            ln_bayes_factor_between: between,
+            delta_chi2: c.delta_chi2.unwrap_or(f64::NAN),
+            separation,
+            redesign,
+        });
+    }
+    out
+}
+
+/// What would separate two near-twins: for two operator effects the redesign probe of the
+/// twin with the added one fitted ([`redesign::probe_given`]); for two recorded auxiliary
+/// series, the guidance of the other degrees of freedom the dataset records without injection.
+fn separation(
+    problem: &DiagnosisProblem<'_>,
+    state: &DiagnosisState,
+    a: &Described,
+    b: &Described,
+) -> (String, Option<redesign::Redesign>) {
+    match (&a.proposal, &b.proposal) {
+        (Proposal::Operator(i), Proposal::Operator(j)) => {
+            let (ea, eb): (Arc<dyn Effect>, Arc<dyn Effect>) =
+                (state.pool[*i].clone(), state.pool[*j].clone());
+            let setup = problem.setup;
+            let p = &state.fit.fit.estimate[..state.model.n_base()];
+            let probe = setup
+                .design("standard")
+                .map_err(|e| e.to_string())
+                .and_then(|d| {
+                    let timing =
+                        crate::design::space::DesignSpace::timing_of(&d, super::run::REDESIGN_GRID);
+                    redesign::probe_given(setup, p, vec![ea], eb, problem.data, timing)
+                        .map_err(|e| e.to_string())
+                });
+            match probe {
+                Ok(r) => (
+                    format!(
+                        "redesign probe of {} with {} fitted: {}",
+                        b.name,
+                        a.name,
+                        redesign_verdict(&r)
+                    ),
+                    Some(r),
+                ),
+                Err(e) => (format!("no redesign probe: {e}"), None),
+            }
+        }
+        (Proposal::Additive { effect: x, .. }, Proposal::Additive { effect: y, .. })
+            if matches!(x, Additive::AuxCrosstalk { .. })
+                && matches!(y, Additive::AuxCrosstalk { .. }) =>
+        {
+            (aux_separation(problem), None)
+        }
+        _ if a.category == Category::Glitch || b.category == Category::Glitch => (
+            "a transient: no injection separates where it entered; a repeated event would".into(),
+            None,
+        ),
+        _ => (
+            "no redesign probe for an additive effect (it has no operator to redesign for)".into(),
+            None,
+        ),
+    }
+}
+
+/// Which recorded guidance of the other degrees of freedom carries no injection: only an
+/// injection that drives the loops recording two auxiliary series apart separates them.
+fn aux_separation(problem: &DiagnosisProblem<'_>) -> String {
+    let guidance = &problem.cfg.aux_guidance;
+    if guidance.is_empty() {
+        return "recorded series: an injection on the degrees of freedom they come from would separate them; the dataset records no guidance of those degrees of freedom".into();
+    }
+    let silent: Vec<&str> = guidance
+        .iter()
+        .filter(|(_, injected)| !injected)
+        .map(|(n, _)| n.as_str())
+        .collect();
+    if silent.is_empty() {
+        format!(
+            "recorded series: the injections on {} do not drive them apart; a larger or differently timed one on the degree of freedom of either would",
+            guidance.iter().map(|g| g.0.as_str()).collect::<Vec<_>>().join(", ")
+        )
+    } else {
+        format!(
+            "recorded series: inject on the guidance of the degrees of freedom they come from ({} carry no injection in these experiments), as a design of the model that recorded them does",
+            silent.join(", ")
+        )
+    }
+}
