@@ -1,13 +1,7 @@
 //! `freefall accel`: a run's readouts to total equivalent acceleration through `Delta(p)`
 //! (see `accel`), its Welch spectra against the model's projection, the noise budget, and a plot.
 
-use std::path::PathBuf;
-
-use anyhow::Result;
-use clap::Args;
-
-use super::values::ScenarioSet;
-use super::ModelOpt;
+use super::prelude::*;
 use crate::accel::job::AccelJob;
 
 #[derive(Debug, Args)]
@@ -68,20 +62,9 @@ pub struct AccelArgs {
 
 pub fn run(a: AccelArgs) -> Result<()> {
     let setup = a.model.any_setup()?;
-    let job = AccelJob {
-        run: a.run,
-        params: a.params,
-        scenario: a.scenario,
-        set: a.set.into(),
-        segments: a.segments,
-        stencil: a.stencil,
-        welch_segments: a.welch_segments,
-        level: a.level,
-        plots: !a.no_plots,
-        compare: a.compare,
-        decimated: a.decimated,
-    };
-    let text = super::working(
+    let job = job!(a => AccelJob { run, params, scenario, segments, stencil, welch_segments,
+        level, compare, decimated; set: a.set.into(), plots: !a.no_plots });
+    let text = working(
         "converting to acceleration",
         |notes| crate::with_setup!(&setup, s => job.run(&**s, &a.input, &a.out, notes)),
     )?;

@@ -1,13 +1,7 @@
 //! `freefall psd`, `freefall whiten` and `freefall fit`: time series in, spectra, whitened
 //! series and estimates out. Measured and simulated data take the same path.
 
-use std::path::PathBuf;
-
-use anyhow::Result;
-use clap::Args;
-
-use super::values::{Estimator, Whitening};
-use super::ModelOpt;
+use super::prelude::*;
 use crate::analysis::job::{psd as psd_job, DatasetFit, FitJob, WhitenJob};
 use crate::setup::{DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 
@@ -54,13 +48,7 @@ pub struct WhitenArgs {
 }
 
 pub fn whiten(a: WhitenArgs) -> Result<()> {
-    let job = WhitenJob {
-        noise: a.noise,
-        model_psd: a.model_psd,
-        scenario: a.scenario,
-        order: a.order,
-        poly_degree: a.poly_degree,
-    };
+    let job = job!(a => WhitenJob { noise, model_psd, scenario, order, poly_degree });
     // Printed once the file is written.
     let report = job.run(|| a.model.any_setup(), &a.run, &a.out)?;
     out!("{report}");
@@ -98,14 +86,8 @@ impl FitOpts {
     /// The library's settings of the dataset fit; readouts that fail the units check are
     /// refused unless `--force`.
     pub fn dataset_fit(self) -> DatasetFit {
-        DatasetFit {
-            guess: self.guess,
-            order: self.order,
-            poly_degree: self.poly_degree,
-            fix: self.fix,
-            prior: self.prior,
-            check_units: !super::force(),
-        }
+        job!(self => DatasetFit { guess, order, poly_degree, fix, prior;
+            check_units: !force() })
     }
 }
 
@@ -138,19 +120,17 @@ pub struct FitArgs {
 
 pub fn fit(a: FitArgs) -> Result<()> {
     let setup = a.model.any_setup()?;
-    let job = FitJob {
-        dataset: a.fit.dataset_fit(),
-        estimator: a.estimator.into(),
-        whitening: a.whitening.into(),
-        transient: a.transient,
-    };
-    let fitted = super::working("fitting", |notes| {
+    let job = job!(a => FitJob { transient; dataset: a.fit.dataset_fit(),
+        estimator: a.estimator.into(), whitening: a.whitening.into() });
+    let fitted = working("fitting", |notes| {
         job.run_any(&setup, &a.dataset, &a.out, notes)
     })?;
     out!("{}", fitted.text);
     info!("wrote {}", a.out.display());
-    for w in &fitted.summary.warnings {
-        eprintln!("warning: {w}");
-    }
+    fitted
+        .summary
+        .warnings
+        .iter()
+        .for_each(|w| eprintln!("warning: {w}"));
     Ok(fitted.check()?)
 }

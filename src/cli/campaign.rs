@@ -1,11 +1,7 @@
 //! `freefall campaign run|merge|slurm`: Monte Carlo campaigns from a campaign file (see
 //! `campaign::spec` for the schema), with shards, resume and SLURM job arrays.
 
-use std::path::PathBuf;
-
-use anyhow::Result;
-use clap::{Args, Subcommand};
-
+use super::prelude::*;
 use crate::campaign::io_store::Progress;
 use crate::campaign::{self, slurm, RunOptions, Shard};
 
@@ -89,22 +85,12 @@ pub fn run(c: CampaignCmd) -> Result<()> {
             Ok(())
         }
         CampaignCmd::Slurm(a) => {
-            let opts = slurm::SlurmOptions {
-                campaign: a.file,
-                shards: a.shards,
-                out: a.out,
-                partition: a.partition,
-                time: a.time,
-                mem: a.mem,
-                cpus_per_task: a.cpus_per_task,
-                binary: a.binary.map_or_else(std::env::current_exe, Ok)?,
-            };
+            let opts = job!(a => slurm::SlurmOptions { shards, out, partition, time, mem,
+                cpus_per_task; campaign: a.file,
+                binary: a.binary.map_or_else(std::env::current_exe, Ok)? });
             let written = slurm::write(&opts)?;
-            outln!(
-                "wrote {} and {}",
-                written.array.display(),
-                written.merge.display()
-            );
+            let (array, merge) = (written.array.display(), written.merge.display());
+            outln!("wrote {array} and {merge}");
             if a.submit {
                 let ids = slurm::submit(&written)?;
                 outln!("submitted array job {} and merge job {}", ids.0, ids.1);
@@ -118,31 +104,26 @@ pub fn run(c: CampaignCmd) -> Result<()> {
 
 fn run_campaign(a: RunArgs) -> Result<()> {
     let loaded = campaign::load(a.file.as_deref())?;
-    let opts = RunOptions {
-        out: a.out.clone(),
-        shard: a.shard.unwrap_or(Shard::WHOLE),
-        resume: a.resume,
-        force: super::force(),
-        threads: a.threads,
-    };
+    let opts = job!(a => RunOptions { resume, threads; out: a.out.clone(),
+        shard: a.shard.unwrap_or(Shard::WHOLE), force: force() });
     if let Some(n) = opts.threads_note() {
-        info!("note: {n}");
+        note(&n);
     }
     crate::io::ensure_dir(&a.out)?;
-    let bar = super::Working::bar("{bar:40} {pos}/{len} realizations  {per_sec}  ETA {eta}  {msg}");
+    let bar = Working::bar("{bar:40} {pos}/{len} realizations  {per_sec}  ETA {eta}  {msg}");
     let report = campaign::run(&loaded, &opts, &mut |p: Progress| {
-        let msg = format!("{} fits, {} failed", p.fits, p.failed);
-        bar.progress(p.done, p.total, msg)
+        bar.progress(
+            p.done,
+            p.total,
+            format!("{} fits, {} failed", p.fits, p.failed),
+        )
     })?;
     drop(bar);
-    for n in &report.notes {
-        info!("note: {n}");
-    }
-    let m = &report.manifest;
+    report.notes.iter().for_each(|n| note(n));
     if report.already_complete {
-        eprintln!("{}", m.complete_summary(&a.out));
-        return Ok(());
+        eprintln!("{}", report.manifest.complete_summary(&a.out));
+    } else {
+        info!("{}", report.manifest.run_summary(&a.out));
     }
-    info!("{}", m.run_summary(&a.out));
     Ok(())
 }

@@ -1,12 +1,6 @@
 //! `freefall design optimize|evaluate|validate`: optimal injection designs (thesis ch. 5).
 
-use std::path::PathBuf;
-
-use anyhow::Result;
-use clap::{Args, Subcommand};
-
-use super::values::{Choice, Layout, Matrix, Scaling};
-use super::ModelOpt;
+use super::prelude::*;
 use crate::design::report::write_validation;
 use crate::design::validate::{validate as run_validation, ValidationConfig};
 use crate::design::DesignModel;
@@ -91,27 +85,33 @@ pub struct ValidateArgs {
 
 pub fn run(c: DesignCmd) -> Result<()> {
     match c {
-        DesignCmd::Optimize(a) => optimize(a),
-        DesignCmd::Evaluate(a) => evaluate(a),
+        DesignCmd::Optimize(a) => {
+            crate::with_setup!(a.study.model.any_setup()?, s => optimize(&*s, &a))
+        }
+        DesignCmd::Evaluate(a) => {
+            crate::with_setup!(a.study.model.any_setup()?, s => evaluate(&*s, &a))
+        }
         DesignCmd::Validate(a) => validate(a),
     }
 }
 
-fn optimize(a: OptimizeArgs) -> Result<()> {
-    crate::with_setup!(a.study.model.any_setup()?, s => optimize_model(&*s, &a))
+impl StudyOpt {
+    /// The study these options ask for on the model of `setup`.
+    fn study<M: DesignModel<N>, const N: usize>(&self, setup: &SetupOf<M, N>) -> Result<M::Study> {
+        let (sc, pars) = (self.scenario.as_deref(), self.parameters.as_deref());
+        Ok(M::study(setup, sc, self.scaling.into(), pars)?)
+    }
 }
 
 /// `design optimize` on the model of `setup`.
-fn optimize_model<M: DesignModel<N>, const N: usize>(
+fn optimize<M: DesignModel<N>, const N: usize>(
     setup: &SetupOf<M, N>,
     a: &OptimizeArgs,
 ) -> Result<()> {
-    let (o, out) = (&a.study, &a.out);
-    let (sc, pars) = (o.scenario.as_deref(), o.parameters.as_deref());
-    let st = M::study(setup, sc, o.scaling.into(), pars)?;
+    let (st, out) = (a.study.study(setup)?, &a.out);
     ensure_dir(out)?;
     let crits = crate::design::criteria::Choice::from(a.criterion).criteria(a.on.into());
-    let (report, files) = super::working("optimising", |_| {
+    let (report, files) = working("optimising", |_| {
         M::write_optimization(setup, &st, a.layout.into(), &crits, out)
     })?;
     // Printed only once every file is written.
@@ -120,23 +120,16 @@ fn optimize_model<M: DesignModel<N>, const N: usize>(
     Ok(())
 }
 
-fn evaluate(a: EvaluateArgs) -> Result<()> {
-    crate::with_setup!(a.study.model.any_setup()?, s => evaluate_model(&*s, &a))
-}
-
 /// `design evaluate` on the model of `setup`.
-fn evaluate_model<M: DesignModel<N>, const N: usize>(
+fn evaluate<M: DesignModel<N>, const N: usize>(
     setup: &SetupOf<M, N>,
     a: &EvaluateArgs,
 ) -> Result<()> {
-    let o = &a.study;
-    let (sc, pars) = (o.scenario.as_deref(), o.parameters.as_deref());
-    let st = M::study(setup, sc, o.scaling.into(), pars)?;
     let design: Design = read_toml(&a.design)?;
-    let ev = M::evaluate(setup, &st, &design, &a.design)?;
-    for n in ev.violation_notes(&a.design, a.allow_violations)? {
-        info!("note: {n}");
-    }
+    let ev = M::evaluate(setup, &a.study.study(setup)?, &design, &a.design)?;
+    ev.violation_notes(&a.design, a.allow_violations)?
+        .iter()
+        .for_each(|n| note(n));
     if let Some(out) = &a.out {
         ensure_parent(out)?;
         write_parquet(out, &ev.table)?;
@@ -144,25 +137,17 @@ fn evaluate_model<M: DesignModel<N>, const N: usize>(
     out!("{}", ev.text);
     Ok(())
 }
+
 fn validate(a: ValidateArgs) -> Result<()> {
     let setup = a.model.any_setup()?.x(
         "design validate (the thesis's four-step validation of the x experiments; for lpf_xy, \
          `design optimize --model lpf_xy` and a campaign of its designs)",
     )?;
     let cfg = ValidationConfig::from_file(&a.campaign, a.realizations)?;
-    let out = match &a.out {
-        Some(out) => out.clone(),
-        None => {
-            // The campaign file's folder: the overwrite policy of --out (checked before the
-            // command ran) applies to it too.
-            crate::io::check_output(&cfg.out, "[design_validation] out", super::force())?;
-            cfg.out.clone()
-        }
-    };
-    ensure_dir(&out)?;
+    let out = cfg.out_dir(a.out.as_deref(), force())?;
     let (designs, realizations) = (cfg.designs(), cfg.realizations);
     info!("validating {designs} designs x {realizations} realizations ...");
-    let v = super::working("validating", |_| run_validation(&setup, &cfg))?;
+    let v = working("validating", |_| run_validation(&setup, &cfg))?;
     let md = write_validation(&setup, &v, &cfg, &out)?;
     out!("{md}");
     info!(

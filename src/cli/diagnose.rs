@@ -3,17 +3,14 @@
 //! dataset carrying library effects, drifts, glitches or lines the nominal model lacks (for
 //! tests and examples).
 
-use std::path::{Path, PathBuf};
-
-use anyhow::{bail, Result};
-use clap::Args;
-
 use super::analysis::FitOpts;
-use super::ModelOpt;
+use super::prelude::*;
+use super::simulate::SimSource;
 use crate::diagnose::job::DiagnoseJob;
 use crate::setup::AnySetup;
 use crate::sim::simulate_job::SimulateJob;
 use crate::sim::{Engine, Rate};
+use anyhow::bail;
 
 #[derive(Debug, Args)]
 pub struct DiagnoseArgs {
@@ -59,26 +56,12 @@ pub struct DiagnoseArgs {
     /// Write a simulated dataset (scenario truth + the --effect list) to DATASET and exit.
     #[arg(long)]
     pub simulate_into: bool,
-    /// With --simulate-into: an effect switched on in the truth (repeatable; the forms of
-    /// `freefall simulate --effect`).
-    #[arg(long = "effect", value_name = "NAME=VALUE[,KEY=VALUE...]")]
-    pub effects: Vec<String>,
-    /// With --simulate-into: the scenario whose truth generates the data. A scenario with a
-    /// `glitch` table (`glitches`) adds its random sine-Gaussian glitches to the noise (thesis
-    /// sec. 4.5.7).
-    #[arg(long, default_value = "monte_carlo")]
-    pub scenario: String,
-    /// With --simulate-into: the injection design of the model file.
-    #[arg(long, default_value = "standard")]
-    pub design: String,
-    /// With --simulate-into: the seed (experiments from stream (seed, 0), the noise run from
-    /// stream (seed, 1)).
-    #[arg(long, default_value_t = 1)]
-    pub seed: u64,
     /// Do not draw plots/psd.png and plots/time_chi2.png (the embedded scripts/plot_diagnose.py, run with
     /// python3; FREEFALL_PLOT_SCRIPT names another script).
     #[arg(long)]
     pub no_plots: bool,
+    #[command(flatten, next_help_heading = "With --simulate-into")]
+    pub sim: SimSource,
 }
 
 pub fn run(a: DiagnoseArgs) -> Result<()> {
@@ -91,20 +74,12 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
     };
     let setup = a.model.setup()?;
     if a.simulate_into {
-        return simulate(&a, &setup, &dataset);
+        return simulate(a, &setup, &dataset);
     }
-    let job = DiagnoseJob {
-        dataset: a.fit.dataset_fit(),
-        alpha: a.alpha,
-        max_effects: a.max_effects,
-        max_glitches: a.max_glitches,
-        model_psd: a.model_psd,
-        lines: a.lines,
-        glitches: !a.no_glitches,
-        transients: !a.no_transients,
-        plots: !a.no_plots,
-    };
-    let w = super::Working::new("diagnosing");
+    let job = job!(a => DiagnoseJob { alpha, max_effects, max_glitches, model_psd, lines;
+        dataset: a.fit.dataset_fit(), glitches: !a.no_glitches, transients: !a.no_transients,
+        plots: !a.no_plots });
+    let w = Working::new("diagnosing");
     let d = job.run(&setup, &dataset, &a.out, &mut |n| w.note(n), &mut |step| {
         w.message(format!("diagnosing: {step}"))
     });
@@ -117,23 +92,14 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
 
 /// `--simulate-into`: kept for one release as an alias of `freefall simulate --effect ...
 /// --rate analysis` with a noise run as long as the experiments (what it always wrote).
-fn simulate(a: &DiagnoseArgs, setup: &crate::setup::Setup, dir: &Path) -> Result<()> {
+fn simulate(a: DiagnoseArgs, setup: &crate::setup::Setup, dir: &Path) -> Result<()> {
     info!(
         "note: `diagnose --simulate-into DIR` is deprecated and will be removed in the next release; \
          use `freefall simulate --effect ... --rate analysis --out DIR`"
     );
-    let design = setup.design(&a.design)?;
-    let job = SimulateJob {
-        scenario: a.scenario.clone(),
-        design: a.design.clone(),
-        seed: a.seed,
-        rate: Some(Rate::Analysis),
-        engine: Engine::FrequencyDomain,
-        initial: None,
-        noise_duration: Some(design.duration_s),
-        effects: a.effects.clone(),
-        auxiliary: false,
-        commands: false,
-    };
+    let (noise, s) = (setup.design(&a.sim.design)?.duration_s, a.sim);
+    let job = job!(s => SimulateJob { scenario, design, seed, effects;
+        rate: Some(Rate::Analysis), engine: Engine::FrequencyDomain, initial: None,
+        noise_duration: Some(noise), auxiliary: false, commands: false });
     super::simulate::simulate_into(&AnySetup::X(Box::new(setup.clone())), &job, dir)
 }

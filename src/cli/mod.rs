@@ -3,10 +3,10 @@
 //! Standard output goes through [`out!`]/[`outln!`]: a closed stdout (`| head -1`) ends the
 //! printing quietly, the command still writes its files and exits 0.
 
-/// `print!` that never panics; see [`write_stdout`].
+/// `print!` that never panics; see [`crate::io::console::write_stdout`].
 macro_rules! out {
     ($($t:tt)*) => {
-        $crate::cli::write_stdout(format_args!($($t)*))
+        $crate::io::console::write_stdout(format_args!($($t)*))
     };
 }
 
@@ -14,19 +14,24 @@ macro_rules! out {
 /// Errors and warnings keep `eprintln!`.
 macro_rules! info {
     ($($t:tt)*) => {
-        if !$crate::cli::quiet() {
+        if !$crate::io::console::quiet() {
             eprintln!($($t)*);
         }
     };
 }
 
-/// `println!` that never panics; see [`write_stdout`].
+/// `println!` that never panics; see [`crate::io::console::write_stdout`].
 macro_rules! outln {
-    () => {
-        $crate::cli::write_stdout(format_args!("\n"))
-    };
     ($($t:tt)*) => {
-        $crate::cli::write_stdout(format_args!("{}\n", format_args!($($t)*)))
+        out!("{}\n", format_args!($($t)*))
+    };
+}
+
+/// The library job `$job` (a path) from the parsed arguments `$a`: the fields named alike move over,
+/// the others follow the `;` as `field: expression` (e.g. `plots: !a.no_plots`).
+macro_rules! job {
+    ($a:ident => $($job:ident)::+ { $($f:ident),* $(; $($g:ident: $e:expr),* $(,)?)? }) => {
+        $($job)::+ { $($f: $a.$f,)* $($($g: $e,)*)? }
     };
 }
 
@@ -40,11 +45,20 @@ pub mod model;
 pub mod simulate;
 pub mod values;
 
-use std::path::{Path, PathBuf};
+/// What every subcommand's file uses.
+mod prelude {
+    pub use super::values::*;
+    pub use super::{force, working, ModelOpt, Working};
+    pub use crate::io::console::note;
+    pub use anyhow::Result;
+    pub use clap::{Args, Subcommand};
+    pub use std::path::{Path, PathBuf};
+}
 
-use anyhow::Result;
-use clap::{ArgMatches, Args, FromArgMatches, Parser, Subcommand};
+use clap::{ArgMatches, FromArgMatches, Parser};
+use prelude::*;
 
+pub use crate::io::console::{quiet, working, Working};
 use crate::setup::Setup;
 
 #[derive(Debug, Parser)]
@@ -128,14 +142,6 @@ impl ModelOpt {
     }
 }
 
-/// Set by the global `--quiet`.
-static QUIET: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
-
-/// Whether the global `--quiet` was given.
-pub fn quiet() -> bool {
-    QUIET.load(std::sync::atomic::Ordering::Relaxed)
-}
-
 /// Set by the global `--force`.
 static FORCE: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
 
@@ -144,64 +150,37 @@ pub fn force() -> bool {
     FORCE.load(std::sync::atomic::Ordering::Relaxed)
 }
 
-/// Set once a write to stdout failed: nothing more is printed.
-static STDOUT_CLOSED: std::sync::atomic::AtomicBool = std::sync::atomic::AtomicBool::new(false);
-
-/// Print to stdout. A reader that went away (`BrokenPipe`, e.g. `| head -1`) silences the rest
-/// of the output without error, so the command carries on, writes its files and exits 0; any
-/// other write error is reported once on stderr and also silences stdout.
-pub fn write_stdout(args: std::fmt::Arguments<'_>) {
-    use std::io::Write;
-    use std::sync::atomic::Ordering;
-    if STDOUT_CLOSED.load(Ordering::Relaxed) {
-        return;
-    }
-    if let Err(e) = std::io::stdout().lock().write_fmt(args) {
-        STDOUT_CLOSED.store(true, Ordering::Relaxed);
-        if e.kind() != std::io::ErrorKind::BrokenPipe {
-            eprintln!("warning: cannot write to standard output: {e}");
-        }
-    }
-}
-
 /// Run the CLI; returns the process exit code.
 pub fn run() -> i32 {
     let command = <Cli as clap::CommandFactory>::command();
     let matches = command.clone().get_matches();
     let cli = Cli::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());
-    QUIET.store(cli.quiet, std::sync::atomic::Ordering::Relaxed);
+    crate::io::console::set_quiet(cli.quiet);
     FORCE.store(cli.force, std::sync::atomic::Ordering::Relaxed);
     if let Some(budget) = crate::io::memory_budget() {
         crate::config::set_memory_budget_from(budget.bytes, Some(budget.origin));
     }
     let (inputs, outputs) = command_paths(&command, &matches);
-    let refused = crate::io::check_output_not_input(&inputs, &outputs)
+    let res = crate::io::check_output_not_input(&inputs, &outputs)
         .map_err(anyhow::Error::from)
-        .and_then(|()| refuse_overwrite(&cli.command, &outputs));
-    if let Err(e) = refused {
-        eprintln!("error: {}", one_line(&e));
-        return 1;
+        .and_then(|()| refuse_overwrite(&cli.command, &outputs))
+        .and_then(|()| match cli.command {
+            Command::Model(c) => model::run(c),
+            Command::Simulate(a) => simulate::run(a),
+            Command::Psd(a) => analysis::psd(a),
+            Command::Whiten(a) => analysis::whiten(a),
+            Command::Fit(a) => analysis::fit(a),
+            Command::Campaign(c) => campaign::run(c),
+            Command::Design(c) => design::run(c),
+            Command::Diagnose(a) => diagnose::run(a),
+            Command::Completions { shell } => completions(command, shell),
+            Command::Man(a) => man::run(command, a.out.as_deref()),
+            Command::Accel(a) => accel::run(a),
+        });
+    if let Err(e) = &res {
+        eprintln!("error: {}", one_line(e));
     }
-    let res = match cli.command {
-        Command::Model(c) => model::run(c),
-        Command::Simulate(a) => simulate::run(a),
-        Command::Psd(a) => analysis::psd(a),
-        Command::Whiten(a) => analysis::whiten(a),
-        Command::Fit(a) => analysis::fit(a),
-        Command::Campaign(c) => campaign::run(c),
-        Command::Design(c) => design::run(c),
-        Command::Diagnose(a) => diagnose::run(a),
-        Command::Completions { shell } => completions(command, shell),
-        Command::Man(a) => man::run(command, a.out.as_deref()),
-        Command::Accel(a) => accel::run(a),
-    };
-    match res {
-        Ok(()) => 0,
-        Err(e) => {
-            eprintln!("error: {}", one_line(&e));
-            1
-        }
-    }
+    i32::from(res.is_err())
 }
 
 /// Prints the completion script for `shell` of `command`.
@@ -253,84 +232,6 @@ fn command_paths<'a>(cmd: &clap::Command, m: &'a ArgMatches) -> (Vec<Named<'a>>,
     (inputs, outputs)
 }
 
-/// A spinner or a progress bar on stderr while a command works (hidden under `--quiet` or when
-/// stderr is not a terminal); cleared when dropped.
-pub struct Working(Option<indicatif::ProgressBar>);
-
-impl Working {
-    /// A spinner with `msg` and the elapsed time.
-    pub fn new(msg: &str) -> Working {
-        let spinner = indicatif::ProgressBar::new_spinner();
-        let w = Working::shown(spinner, "{spinner} {msg} {elapsed}");
-        if let Some(pb) = &w.0 {
-            pb.set_message(msg.to_string());
-            pb.enable_steady_tick(std::time::Duration::from_millis(SPINNER_TICK_MS));
-        }
-        w
-    }
-
-    /// A progress bar drawn with `template`; [`Working::progress`] sets its length.
-    pub fn bar(template: &str) -> Working {
-        Working::shown(indicatif::ProgressBar::new(0), template)
-    }
-
-    fn shown(pb: indicatif::ProgressBar, template: &str) -> Working {
-        use std::io::IsTerminal;
-        if quiet() || !std::io::stderr().is_terminal() {
-            return Working(None);
-        }
-        if let Ok(style) = indicatif::ProgressStyle::with_template(template) {
-            pb.set_style(style);
-        }
-        Working(Some(pb))
-    }
-
-    /// Moves the bar to `done` of `total` with `msg`; a new total restarts its rate estimate.
-    pub fn progress(&self, done: u64, total: u64, msg: String) {
-        if let Some(pb) = &self.0 {
-            if pb.length() != Some(total) {
-                pb.set_length(total);
-                pb.set_position(done);
-                pb.reset_eta();
-            }
-            pb.set_position(done);
-            pb.set_message(msg);
-        }
-    }
-
-    /// Replaces the spinner's or bar's message (a command's current stage).
-    pub fn message(&self, msg: String) {
-        if let Some(pb) = &self.0 {
-            pb.set_message(msg);
-        }
-    }
-
-    /// Prints `note: {text}` (unless `--quiet`) without breaking the spinner's line.
-    pub fn note(&self, text: &str) {
-        match &self.0 {
-            Some(pb) => pb.suspend(|| info!("note: {text}")),
-            None => info!("note: {text}"),
-        }
-    }
-}
-
-/// Runs `job` under a [`Working`] spinner with `msg`, handing it a printer of its notes.
-pub fn working<T>(msg: &str, job: impl FnOnce(crate::analysis::job::Notes<'_>) -> T) -> T {
-    let w = Working::new(msg);
-    job(&mut |n| w.note(n))
-}
-
-/// Spinner redraw interval (fast enough to look alive, slow enough to cost nothing).
-const SPINNER_TICK_MS: u64 = 120;
-
-impl Drop for Working {
-    fn drop(&mut self) {
-        if let Some(pb) = &self.0 {
-            pb.finish_and_clear();
-        }
-    }
-}
-
 /// The one overwrite policy of every command ([`crate::io::check_output`]): an existing output
 /// file or a non-empty output folder is refused unless `--force`. `campaign run` checks its own
 /// folder when it is a campaign's, under the folder's lock (`--resume` continues or reports the
@@ -348,12 +249,10 @@ fn refuse_overwrite(cmd: &Command, outputs: &[Named<'_>]) -> Result<()> {
     Ok(())
 }
 
-/// The error chain on one line.
+/// The error chain on one line (anyhow's `{:#}`: the messages joined by `: `).
 pub fn one_line(e: &anyhow::Error) -> String {
-    let text = e
-        .chain()
-        .map(|c| c.to_string())
+    format!("{e:#}")
+        .split_whitespace()
         .collect::<Vec<_>>()
-        .join(": ");
-    text.split_whitespace().collect::<Vec<_>>().join(" ")
+        .join(" ")
 }

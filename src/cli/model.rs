@@ -1,11 +1,6 @@
 //! `freefall model transfer|noise|fisher`.
 
-use std::path::PathBuf;
-
-use anyhow::Result;
-use clap::{Args, Subcommand};
-
-use super::ModelOpt;
+use super::prelude::*;
 use crate::analysis::model_tables::{FisherJob, GridJob, Product};
 
 #[derive(Debug, Subcommand)]
@@ -55,28 +50,19 @@ pub struct FisherArgs {
 }
 
 pub fn run(cmd: ModelCmd) -> Result<()> {
-    let (a, product) = match cmd {
+    let (a, kind) = match cmd {
         ModelCmd::Transfer(a) => (a, Product::Transfer),
         ModelCmd::Noise(a) => (a, Product::Noise),
         ModelCmd::Fisher(a) => return fisher(a),
     };
-    let job = GridJob {
-        product,
-        scenario: a.scenario,
-        fmin: a.fmin,
-        fmax: a.fmax,
-        points: a.points,
-    };
+    let job = job!(a => GridJob { scenario, fmin, fmax, points; product: kind });
     let n = job.run_any(&a.model.any_setup()?, &a.out)?;
     info!("wrote {} ({n} frequencies)", a.out.display());
     Ok(())
 }
 
 fn fisher(a: FisherArgs) -> Result<()> {
-    let job = FisherJob {
-        scenario: a.scenario,
-        design: a.design,
-    };
+    let job = job!(a => FisherJob { scenario, design });
     let (text, corr_path) = job.run_any(&a.model.any_setup()?, &a.out)?;
     out!("{text}");
     info!("wrote {} and {}", a.out.display(), corr_path.display());

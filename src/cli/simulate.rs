@@ -1,22 +1,17 @@
 //! `freefall simulate`: a dataset in the measured-data format (dataset.toml + Parquet runs).
 
-use std::path::{Path, PathBuf};
-
-use anyhow::Result;
-use clap::Args;
-
-use super::values::{Engine, Rate};
-use super::ModelOpt;
+use super::prelude::*;
 use crate::io::write_dataset;
 use crate::setup::AnySetup;
 use crate::sim::simulate_job::SimulateJob;
 use crate::sim::time_domain::InitialConditions;
 
-#[derive(Debug, Args)]
-pub struct SimulateArgs {
-    #[command(flatten)]
-    pub model: ModelOpt,
-    /// Scenario whose true parameters generate the data.
+/// What a simulated dataset is drawn from: a scenario's truth, a design, a seed and the effects
+/// the nominal model lacks (`simulate`, and the deprecated `diagnose --simulate-into`).
+#[derive(Debug, Clone, Args)]
+pub struct SimSource {
+    /// Scenario whose true parameters generate the data. A scenario with a `glitch` table
+    /// (`glitches`) adds its random sine-Gaussian glitches to the noise (thesis sec. 4.5.7).
     #[arg(long, default_value = "monte_carlo")]
     pub scenario: String,
     /// Injection design of the model file.
@@ -25,21 +20,6 @@ pub struct SimulateArgs {
     /// Seed: the experiments use random stream (seed, 0), the noise run stream (seed, 1).
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
-    /// Simulation path (default: decimated; analysis with --effect).
-    #[arg(long, value_enum)]
-    pub rate: Option<Rate>,
-    /// Simulation engine.
-    #[arg(long, value_enum, default_value_t = Engine::FrequencyDomain)]
-    pub engine: Engine,
-    /// Initial conditions of every run (time-domain engine): readout positions [m] and rates
-    /// [m/s] at the first control sample, e.g. o1=2.4e-7,o12=3.6e-7,v1=-5e-10,v12=-4e-12;
-    /// keys left out are zero.
-    #[arg(long, value_name = "o1=M,o12=M,v1=M/S,v12=M/S")]
-    pub initial: Option<InitialConditions>,
-    /// Duration of the noise-only run [s]; default: four experiment durations (the thesis
-    /// characterises noise on runs of 12 to 28 hours, longer than the 3-hour experiments).
-    #[arg(long)]
-    pub noise_duration: Option<f64>,
     /// An effect the nominal model lacks, switched on in the truth (repeatable; simulated at
     /// the analysis rate with the frequency-domain engine; the time-domain engine simulates
     /// the library's operator effects in its plant, except loss angles, and lines, but not
@@ -59,6 +39,29 @@ pub struct SimulateArgs {
     /// o1 or o12 of every run, noise run included, e.g. aux_crosstalk_oy1_o12=-3e-3.
     #[arg(long = "effect", value_name = "NAME=VALUE[,KEY=VALUE...]")]
     pub effects: Vec<String>,
+}
+
+#[derive(Debug, Args)]
+pub struct SimulateArgs {
+    #[command(flatten)]
+    pub model: ModelOpt,
+    #[command(flatten)]
+    pub source: SimSource,
+    /// Simulation path (default: decimated; analysis with --effect).
+    #[arg(long, value_enum)]
+    pub rate: Option<Rate>,
+    /// Simulation engine.
+    #[arg(long, value_enum, default_value_t = Engine::FrequencyDomain)]
+    pub engine: Engine,
+    /// Initial conditions of every run (time-domain engine): readout positions [m] and rates
+    /// [m/s] at the first control sample, e.g. o1=2.4e-7,o12=3.6e-7,v1=-5e-10,v12=-4e-12;
+    /// keys left out are zero.
+    #[arg(long, value_name = "o1=M,o12=M,v1=M/S,v12=M/S")]
+    pub initial: Option<InitialConditions>,
+    /// Duration of the noise-only run [s]; default: four experiment durations (the thesis
+    /// characterises noise on runs of 12 to 28 hours, longer than the 3-hour experiments).
+    #[arg(long)]
+    pub noise_duration: Option<f64>,
     /// Write the model file's auxiliary readouts (`[auxiliary]`: readouts of other degrees of
     /// freedom, a documented stand-in noise) as extra columns of every run, declared in
     /// `[[auxiliary]]` of dataset.toml (implied by an `aux_crosstalk_...` effect).
@@ -74,31 +77,18 @@ pub struct SimulateArgs {
     pub out: PathBuf,
 }
 
-impl SimulateArgs {
-    /// The library job these arguments describe.
-    pub fn job(&self) -> SimulateJob {
-        SimulateJob {
-            scenario: self.scenario.clone(),
-            design: self.design.clone(),
-            seed: self.seed,
-            rate: self.rate.map(Into::into),
-            engine: self.engine.into(),
-            initial: self.initial,
-            noise_duration: self.noise_duration,
-            effects: self.effects.clone(),
-            auxiliary: self.auxiliary,
-            commands: self.commands,
-        }
-    }
-}
-
 pub fn run(a: SimulateArgs) -> Result<()> {
-    simulate_into(&a.model.any_setup()?, &a.job(), &a.out)
+    let setup = a.model.any_setup()?;
+    let s = a.source;
+    let job = job!(a => SimulateJob { initial, noise_duration, auxiliary, commands;
+        scenario: s.scenario, design: s.design, seed: s.seed, effects: s.effects,
+        rate: a.rate.map(Into::into), engine: a.engine.into() });
+    simulate_into(&setup, &job, &a.out)
 }
 
 /// Runs `job` and writes its dataset to `out`.
 pub fn simulate_into(setup: &AnySetup, job: &SimulateJob, out: &Path) -> Result<()> {
-    let s = super::working("simulating", |_| job.run_any(setup))?;
+    let s = working("simulating", |_| job.run_any(setup))?;
     let what = s.describe();
     let path = write_dataset(out, &s.dataset()?)?;
     info!("wrote {} ({what})", path.display());

@@ -2,15 +2,16 @@
 //! `clap::ValueEnum` (the library does not depend on clap), with the same variants, names,
 //! aliases and doc comments (which `--help` prints as the values' help), and `From` both ways.
 
-/// A `clap::ValueEnum` copy of the library enum `$lib` named `$cli`, variant for variant, and
-/// the conversions. Variant doc comments and `#[value(...)]` attributes are kept.
+/// For each `$cli => $lib { variants }`: a `clap::ValueEnum` copy of the library enum `$lib`
+/// named `$cli`, variant for variant, and the conversions. Variant doc comments and
+/// `#[value(...)]` attributes are kept.
 macro_rules! value_enum {
-    (
+    ($(
         $(#[$meta:meta])*
         $cli:ident => $lib:path {
             $( $(#[$vmeta:meta])* $variant:ident ),* $(,)?
         }
-    ) => {
+    )*) => {$(
         $(#[$meta])*
         #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
         pub enum $cli {
@@ -33,7 +34,7 @@ macro_rules! value_enum {
                 }
             }
         }
-    };
+    )*};
 }
 
 value_enum! {
@@ -44,17 +45,10 @@ value_enum! {
         /// The spacecraft's loop: discrete controllers at the control rate, held commands.
         Digital,
     }
-}
 
-value_enum! {
     /// Which parameter set of a scenario (`accel::job::ScenarioSet`).
-    ScenarioSet => crate::accel::job::ScenarioSet {
-        Guess,
-        Truth,
-    }
-}
+    ScenarioSet => crate::accel::job::ScenarioSet { Guess, Truth }
 
-value_enum! {
     /// The L-estimator of a fit (`fit::Estimator`).
     Estimator => crate::fit::Estimator {
         /// `rho = r^2` (Gaussian likelihood).
@@ -64,9 +58,7 @@ value_enum! {
         /// `rho = log(1 + r^2)` (Lorentzian; thesis: "mean logarithmic deviation").
         Log,
     }
-}
 
-value_enum! {
     /// Information or covariance matrix (`design::criteria::Matrix`).
     Matrix => crate::design::criteria::Matrix {
         #[value(alias = "info")]
@@ -74,28 +66,13 @@ value_enum! {
         #[value(alias = "cov")]
         Covariance,
     }
-}
 
-value_enum! {
     /// The criteria an optimisation is asked for (`design::criteria::Choice`).
-    Choice => crate::design::criteria::Choice {
-        D,
-        E,
-        T,
-        All,
-    }
-}
+    Choice => crate::design::criteria::Choice { D, E, T, All }
 
-value_enum! {
     /// Parameter scaling for T and E (`design::criteria::Scaling`).
-    Scaling => crate::design::criteria::Scaling {
-        Natural,
-        Nominal,
-        Standard,
-    }
-}
+    Scaling => crate::design::criteria::Scaling { Natural, Nominal, Standard }
 
-value_enum! {
     /// How the experiments use the inputs (`design::space::Layout`).
     Layout => crate::design::space::Layout {
         /// Multi-experiment single-input: Exp. 1 on oi1, Exp. 2 on oi12 (thesis sec. 5.3).
@@ -103,9 +80,7 @@ value_enum! {
         /// Single-experiment multi-input: Exp. 3 injects on both inputs at once (thesis sec. 5.4).
         Simultaneous,
     }
-}
 
-value_enum! {
     /// The simulation engine (`sim::Engine`).
     Engine => crate::sim::Engine {
         /// Templates plus coloured noise of the continuous loop's PSD (fast; the campaigns'
@@ -115,9 +90,7 @@ value_enum! {
         /// controllers, held commands), decimated with the anti-alias FIR.
         TimeDomain,
     }
-}
 
-value_enum! {
     /// The simulation path of a dataset (`sim::Rate`).
     Rate => crate::sim::Rate {
         /// Simulate at the model's simulate_hz and decimate with the anti-alias FIR (thesis).
@@ -126,9 +99,7 @@ value_enum! {
         /// campaigns use).
         Analysis,
     }
-}
 
-value_enum! {
     /// Where the whitening filter should come from (`analysis::Whitening`).
     Whitening => crate::analysis::Whitening {
         /// The dataset's noise run if it has one, else the model's noise PSD.
@@ -144,35 +115,23 @@ value_enum! {
 mod tests {
     use clap::ValueEnum;
 
+    /// The command-line name of every value of `C` against `name` of the library value.
+    fn same_names<C: ValueEnum + Copy, L: From<C>>(name: impl Fn(L) -> String) {
+        for v in C::value_variants() {
+            let cli = v.to_possible_value().expect("visible");
+            assert_eq!(cli.get_name(), name(L::from(*v)));
+        }
+    }
+
     /// Every value's command-line name is the library's own name of it (oracle: the library's
     /// `as_str`/`name`/`Display`, which the dataset meta and reports use).
     #[test]
     fn names_match_the_library() {
-        for v in super::Engine::value_variants() {
-            let name = v.to_possible_value().expect("visible");
-            assert_eq!(name.get_name(), crate::sim::Engine::from(*v).as_str());
-        }
-        for v in super::Rate::value_variants() {
-            let name = v.to_possible_value().expect("visible");
-            assert_eq!(name.get_name(), crate::sim::Rate::from(*v).as_str());
-        }
-        for v in super::Estimator::value_variants() {
-            let name = v.to_possible_value().expect("visible");
-            assert_eq!(name.get_name(), crate::fit::Estimator::from(*v).to_string());
-        }
-        for v in super::Scaling::value_variants() {
-            let name = v.to_possible_value().expect("visible");
-            assert_eq!(
-                name.get_name(),
-                crate::design::criteria::Scaling::from(*v).name()
-            );
-        }
-        for v in super::Layout::value_variants() {
-            let name = v.to_possible_value().expect("visible");
-            assert_eq!(
-                name.get_name(),
-                crate::design::space::Layout::from(*v).name()
-            );
-        }
+        use crate::design::{criteria, space};
+        same_names::<super::Engine, _>(|v: crate::sim::Engine| v.as_str().into());
+        same_names::<super::Rate, _>(|v: crate::sim::Rate| v.as_str().into());
+        same_names::<super::Estimator, _>(|v: crate::fit::Estimator| v.to_string());
+        same_names::<super::Scaling, _>(|v: criteria::Scaling| v.name().into());
+        same_names::<super::Layout, _>(|v: space::Layout| v.name().into());
     }
 }

@@ -196,6 +196,21 @@ impl ValidationConfig {
         references + self.criteria.len() + self.simultaneous_criteria.len()
     }
 
+    /// The output folder: `out` when given (the command line's `--out`, checked with every
+    /// other output), else the file's `[design_validation] out`, which an earlier result in it
+    /// refuses unless `force` ([`crate::io::check_output`]). Created if missing.
+    pub fn out_dir(&self, out: Option<&Path>, force: bool) -> Result<PathBuf, DesignError> {
+        let out = match out {
+            Some(out) => out.to_path_buf(),
+            None => {
+                crate::io::check_output(&self.out, "[design_validation] out", force)?;
+                self.out.clone()
+            }
+        };
+        crate::io::ensure_dir(&out)?;
+        Ok(out)
+    }
+
     /// Read and check `[design_validation]` of `file`; `realizations` overrides the file's.
     pub fn from_file(file: &Path, realizations: Option<usize>) -> Result<Self, DesignError> {
         let spec = crate::io::read_toml::<ValidationFile>(file)?.design_validation;

@@ -13,7 +13,9 @@
 //! - atomic writes ([`atomic`]): every output is written to a temporary file in the destination
 //!   directory, flushed to disk and renamed into place, so a reader never sees a half-written file
 //!   and a failed write leaves nothing behind;
-//! - figures ([`plot`]): a Python script run on a command's output folder.
+//! - figures ([`plot`]): a Python script run on a command's output folder;
+//! - the terminal ([`console`]): standard output that a closed pipe silences, the quiet switch,
+//!   spinners and progress bars, and the environment variables the crate reads.
 //!
 //! # Errors
 //! Every failure is an [`IoError`] whose message is one line naming the file and, where it applies,
@@ -23,6 +25,7 @@
 //! errors also give the 1-based line number of the file.
 
 pub mod atomic;
+pub mod console;
 pub mod dataset;
 pub mod plot;
 pub mod provenance;
