@@ -15,7 +15,7 @@
 //! - `fit`: whitening, likelihood, estimators;
 //! - `setup`: a model file assembled into model, noise model, designs and whitening filters;
 //! - `sim`: the simulators (built from a setup), effect injection, the `simulate` job;
-//! - `units`, `analysis`, `accel`, `campaign`, `design`, `diagnose`: the jobs, each using the
+//! - `units`, `analysis`, `accel`, `posterior`, `campaign`, `design`, `diagnose`: the jobs, each using the
 //!   ones before it;
 //! - `cli`: the command line.
 //!
@@ -39,6 +39,7 @@ const LAYERS: &[&[&str]] = &[
     &["units"],
     &["analysis"],
     &["accel"],
+    &["posterior"],
     &["campaign"],
     &["design"],
     &["diagnose"],

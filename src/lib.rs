@@ -27,6 +27,7 @@ mod layers;
 pub mod model;
 pub mod noise;
 pub mod numerics;
+pub mod posterior;
 pub mod setup;
 pub mod signal;
 pub mod sim;

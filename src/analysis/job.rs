@@ -22,7 +22,7 @@ use crate::io::{
     create_output_dir, ensure_parent, read_dataset, read_run, write_json_atomic, write_parquet,
     Dataset, IoError, Provenance,
 };
-use crate::model::{check_stability, LpfX, LpfXy, ModelError};
+use crate::model::{check_stability, ClosedLoopModel, LpfX, LpfXy, ModelError};
 use crate::setup::{AnySetup, Error as SetupError, Setup, SetupOf, SpecModel};
 use crate::spectral::CrossSpectrum;
 use crate::units::UnitsError;
@@ -322,6 +322,21 @@ impl FitOutcome {
     }
 }
 
+/// A dataset fitted and not yet written: what `fit` writes, and what `posterior` starts from
+/// (the same likelihood, whitening filter, constraints and start-up transients).
+pub struct Fitted<'m, M: ClosedLoopModel<N>, const N: usize> {
+    pub prep: Prepared,
+    /// The likelihood of the dataset (with its fitted transient columns, if any).
+    pub lik: Likelihood<'m, M, N>,
+    /// The fit's settings: bounds, fixed parameters, priors, estimator.
+    pub cfg: FitConfig,
+    pub res: FitResult,
+    /// Where the whitening filter came from.
+    pub source: String,
+    /// The start-up transients fitted (noise run first), when asked for.
+    pub transients: Vec<TransientReport>,
+}
+
 impl FitJob {
     /// Fits the dataset at `path` and writes the results to `out`.
     pub fn run(
@@ -331,6 +346,54 @@ impl FitJob {
         out: &Path,
         notes: Notes<'_>,
     ) -> Result<FitOutcome, JobError> {
+        let Fitted {
+            prep,
+            lik,
+            cfg,
+            res,
+            source,
+            transients,
+        } = self.fitted_x(setup, path, notes)?;
+        let (ds, guess) = (&prep.ds, &prep.guess);
+        let names = setup.parameter_names();
+        let summary = FitSummary::new(
+            &res,
+            self.estimator,
+            source,
+            self.dataset.order,
+            self.dataset.poly_degree,
+            Provenance::new("fit")
+                .with_model(&setup.spec)
+                .with_dataset(ds)?
+                .meta,
+        )
+        .with_constraints(&names, &cfg);
+        let summary = FitSummary {
+            transients,
+            excluded: prep.excluded.clone(),
+            ..summary
+        };
+        write_fit(setup, &prep, &lik, &res, &summary, out)?;
+        let truth = truth_from_meta(ds, &names);
+        let mut text = summary.text(&names, &res, guess, truth.as_deref());
+        for t in &summary.transients {
+            text.push_str(&format!("transient {}\n", t.text()));
+        }
+        Ok(FitOutcome {
+            text,
+            summary,
+            terminated: res.termination.converged(),
+        })
+    }
+
+    /// The x model's fit of the dataset at `path` (start-up transients, the units check,
+    /// decimated telemetry), not written.
+    pub fn fitted_x<'m>(
+        &self,
+        setup: &'m Setup,
+        path: &Path,
+        notes: Notes<'_>,
+    ) -> Result<Fitted<'m, LpfX, 2>, JobError> {
         let prep = self.dataset.prepare(setup, path, notes)?;
         let (ds, data, guess) = (&prep.ds, &prep.data, &prep.guess);
         let mut cfg = prep.constraints.apply(FitConfig::new(&setup.model));
@@ -366,34 +429,13 @@ impl FitJob {
         } else {
             run_fit(&setup.model, &lik.problem(data)?, guess, &cfg)?
         };
-        let names = setup.parameter_names();
-        let summary = FitSummary::new(
-            &res,
-            self.estimator,
+        Ok(Fitted {
+            prep,
+            lik,
+            cfg,
+            res,
             source,
-            self.dataset.order,
-            self.dataset.poly_degree,
-            Provenance::new("fit")
-                .with_model(&setup.spec)
-                .with_dataset(ds)?
-                .meta,
-        )
-        .with_constraints(&names, &cfg);
-        let summary = FitSummary {
             transients,
-            excluded: prep.excluded.clone(),
-            ..summary
-        };
-        write_fit(setup, &prep, &lik, &res, &summary, out)?;
-        let truth = truth_from_meta(ds, &names);
-        let mut text = summary.text(&names, &res, guess, truth.as_deref());
-        for t in &summary.transients {
-            text.push_str(&format!("transient {}\n", t.text()));
-        }
-        Ok(FitOutcome {
-            text,
-            summary,
-            terminated: res.termination.converged(),
         })
     }
 
@@ -513,6 +555,16 @@ pub trait FitModel<const N: usize>: SpecModel<N> {
     ) -> Result<FitOutcome, JobError> {
         job.run_model(setup, path, out, notes)
     }
+
+    /// The fit of [`FitModel::fit_job`] without writing it: what `posterior` starts from.
+    fn fitted<'m>(
+        job: &FitJob,
+        setup: &'m SetupOf<Self, N>,
+        path: &Path,
+        notes: Notes<'_>,
+    ) -> Result<Fitted<'m, Self, N>, JobError> {
+        job.fitted_model(setup, path, notes)
+    }
 }
 
 impl FitModel<2> for LpfX {
@@ -524,6 +576,15 @@ impl FitModel<2> for LpfX {
         notes: Notes<'_>,
     ) -> Result<FitOutcome, JobError> {
         job.run(setup, path, out, notes)
+    }
+
+    fn fitted<'m>(
+        job: &FitJob,
+        setup: &'m SetupOf<Self, 2>,
+        path: &Path,
+        notes: Notes<'_>,
+    ) -> Result<Fitted<'m, Self, 2>, JobError> {
+        job.fitted_x(setup, path, notes)
     }
 }
 
@@ -554,6 +615,55 @@ impl FitJob {
         out: &Path,
         notes: Notes<'_>,
     ) -> Result<FitOutcome, JobError> {
+        let Fitted {
+            prep,
+            cfg,
+            res,
+            source,
+            ..
+        } = self.fitted_model(setup, path, notes)?;
+        let (ds, guess) = (&prep.ds, &prep.guess);
+        let names = setup.parameter_names();
+        let (order, poly_degree) = (self.dataset.order, self.dataset.poly_degree);
+        let meta = Provenance::new("fit")
+            .with_model(&setup.spec)
+            .with_dataset(ds)?
+            .meta;
+        let summary = FitSummary::new(
+            &res,
+            self.estimator,
+            source,
+            order,
+            poly_degree,
+            meta.clone(),
+        )
+        .with_constraints(&names, &cfg);
+        let summary = FitSummary {
+            excluded: prep.excluded.clone(),
+            ..summary
+        };
+        create_output_dir(out)?;
+        write_reconstruction(&prep, out)?;
+        let est = estimates_table(&names, setup.parameter_units(), &res, guess)?;
+        write_parquet(out.join("estimates.parquet"), &est.with_meta_all(&meta))?;
+        let corr = correlation_table(&names, |i, j| res.correlation[(i, j)])?;
+        write_parquet(out.join("correlation.parquet"), &corr.with_meta_all(&meta))?;
+        write_json_atomic(out.join("fit.json"), &summary)?;
+        let truth = truth_from_meta(ds, &names);
+        Ok(FitOutcome {
+            text: summary.text(&names, &res, guess, truth.as_deref()),
+            summary,
+            terminated: res.termination.converged(),
+        })
+    }
+
+    /// Any model's fit of the dataset at `path` (see [`Self::run_model`]), not written.
+    pub fn fitted_model<'m, M: SpecModel<N>, const N: usize>(
+        &self,
+        setup: &'m SetupOf<M, N>,
+        path: &Path,
+        notes: Notes<'_>,
+    ) -> Result<Fitted<'m, M, N>, JobError> {
         if self.transient {
             return Err(JobError::Invalid(format!(
                 "--transient: the start-up transients' columns are free responses of the \
@@ -564,8 +674,7 @@ impl FitJob {
         }
         let prep = self.dataset.prepare(setup, path, notes)?;
         let (ds, data, guess) = (&prep.ds, &prep.data, &prep.guess);
-        let names = setup.parameter_names();
-        let (order, poly_degree) = (self.dataset.order, self.dataset.poly_degree);
+        let order = self.dataset.order;
         check_stability(&setup.model, guess, Some(&setup.spec.nominal()))
             .map_err(context("the starting point"))?;
         let readouts = setup.model.readout_names();
@@ -589,41 +698,18 @@ impl FitJob {
                 "model noise PSD at the guess",
             ),
         };
-        let lik = Likelihood::for_data(&setup.model, data, w, poly_degree)
+        let lik = Likelihood::for_data(&setup.model, data, w, self.dataset.poly_degree)
             .map_err(context(path.display().to_string()))?;
-        let constraints = &prep.constraints;
-        let mut cfg = constraints.apply(FitConfig::new(&setup.model));
+        let mut cfg = prep.constraints.apply(FitConfig::new(&setup.model));
         cfg.estimator = self.estimator;
         let res = run_fit(&setup.model, &lik.problem(data)?, guess, &cfg)?;
-        let meta = Provenance::new("fit")
-            .with_model(&setup.spec)
-            .with_dataset(ds)?
-            .meta;
-        let summary = FitSummary::new(
-            &res,
-            self.estimator,
-            source.to_string(),
-            order,
-            poly_degree,
-            meta.clone(),
-        )
-        .with_constraints(&names, &cfg);
-        let summary = FitSummary {
-            excluded: prep.excluded.clone(),
-            ..summary
-        };
-        create_output_dir(out)?;
-        write_reconstruction(&prep, out)?;
-        let est = estimates_table(&names, setup.parameter_units(), &res, guess)?;
-        write_parquet(out.join("estimates.parquet"), &est.with_meta_all(&meta))?;
-        let corr = correlation_table(&names, |i, j| res.correlation[(i, j)])?;
-        write_parquet(out.join("correlation.parquet"), &corr.with_meta_all(&meta))?;
-        write_json_atomic(out.join("fit.json"), &summary)?;
-        let truth = truth_from_meta(ds, &names);
-        Ok(FitOutcome {
-            text: summary.text(&names, &res, guess, truth.as_deref()),
-            summary,
-            terminated: res.termination.converged(),
+        Ok(Fitted {
+            lik,
+            cfg,
+            res,
+            source: source.to_string(),
+            transients: Vec::new(),
+            prep,
         })
     }
 }

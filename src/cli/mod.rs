@@ -42,6 +42,7 @@ pub mod design;
 pub mod diagnose;
 pub mod man;
 pub mod model;
+pub mod posterior;
 pub mod simulate;
 pub mod values;
 
@@ -92,6 +93,8 @@ pub enum Command {
     Whiten(analysis::WhitenArgs),
     /// Fit the model to a dataset (MIMO multi-experiment, whitened likelihood).
     Fit(analysis::FitArgs),
+    /// Sample the posterior of a dataset's parameters (Metropolis-Hastings on fit's likelihood).
+    Posterior(posterior::PosteriorArgs),
     /// Monte Carlo campaigns: run, shard, resume and merge.
     #[command(subcommand)]
     Campaign(campaign::CampaignCmd),
@@ -170,6 +173,7 @@ pub fn run() -> i32 {
             Command::Psd(a) => analysis::psd(a),
             Command::Whiten(a) => analysis::whiten(a),
             Command::Fit(a) => analysis::fit(a),
+            Command::Posterior(a) => posterior::run(a),
             Command::Campaign(c) => campaign::run(c),
             Command::Design(c) => design::run(c),
             Command::Diagnose(a) => diagnose::run(a),

@@ -357,3 +357,74 @@ fn laplace_bayes_factor_matches_the_evidence_by_quadrature() {
         );
     }
 }
+
+#[test]
+fn posterior_matches_the_closed_form_gaussian_posterior() {
+    // Oracle: with a flat prior and Gaussian noise, the posterior of a model linear over its
+    // error ellipse is the Gaussian N(p_ML, I^-1): mean the maximum-likelihood estimate, sd
+    // the closed-form Fisher sigmas (module docs). The draws' mean must lie within 4 Monte
+    // Carlo errors sd / sqrt(ESS) of p_ML and their sd within 4 sd / sqrt(2 ESS) of the
+    // closed-form sigma (the curvature of T over one sigma, ~1e-3 relative here, is far
+    // below that). Through the library API: the sampler on the fit's log-density.
+    use freefall::posterior::diagnostics::{ess_bulk, rhat};
+    use freefall::posterior::{sample, FitPosterior, SamplerConfig};
+    let model = Oscillator::new();
+    let inputs = vec![vec![sine(N, BIN, AMP)]];
+    let psd = 2.0 * SIGMA * SIGMA;
+    let whitener =
+        Whitener::<1>::from_psd(|_| CMat::<1>::new(Complex64::new(psd, 0.0)), 1.0, 2, N).unwrap();
+    let lik = Likelihood::new(&model, &inputs, 1.0, whitener, 0).unwrap();
+    let clean = lik.engine.templates(&TRUTH, None);
+    let mut rng = freefall::sim::rng::stream(23, 0);
+    let outputs = vec![vec![clean[0][0]
+        .iter()
+        .map(|x| {
+            let z: f64 = StandardNormal.sample(&mut rng);
+            x + SIGMA * z
+        })
+        .collect()]];
+    let data = ExperimentData {
+        tails: Vec::new(),
+        names: vec!["exp".into()],
+        inputs: inputs.clone(),
+        outputs,
+        dt: 1.0,
+    };
+    let problem = lik.problem(&data).unwrap();
+    let cfg = FitConfig::new(&model);
+    let res = fit(&model, &problem, &TRUTH, &cfg).unwrap();
+    let cov = closed_form_fisher().try_inverse().unwrap();
+    let target = FitPosterior::new(&problem, &cfg, &res.estimate);
+    let sampler = SamplerConfig {
+        chains: 4,
+        warmup: 400,
+        draws: 1500,
+        seed: 5,
+    };
+    let draws = sample(&target, &res.estimate, &cov, &sampler).unwrap();
+    for k in 0..2 {
+        let c = draws.parameter(k);
+        let all: Vec<f64> = c.iter().flatten().copied().collect();
+        let n = all.len() as f64;
+        let mean = all.iter().sum::<f64>() / n;
+        let sd = (all.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1.0)).sqrt();
+        let sigma = cov[(k, k)].sqrt();
+        let ess = ess_bulk(&c);
+        eprintln!(
+            "parameter {k}: posterior mean - ML = {:.3} sigma, sd / sigma = {:.4}, ESS {ess:.0}, R-hat {:.4}",
+            (mean - res.estimate[k]) / sigma,
+            sd / sigma,
+            rhat(&c)
+        );
+        assert!(ess > 500.0, "ESS {ess}");
+        assert!(
+            (mean - res.estimate[k]).abs() < 4.0 * sigma / ess.sqrt(),
+            "mean {mean} vs {}",
+            res.estimate[k]
+        );
+        assert!(
+            (sd - sigma).abs() < 4.0 * sigma / (2.0 * ess).sqrt(),
+            "sd {sd} vs {sigma}"
+        );
+    }
+}

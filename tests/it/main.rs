@@ -31,6 +31,7 @@ mod model;
 mod nyquist_null;
 mod overwrite;
 mod plots;
+mod posterior;
 mod redesign;
 mod simulation;
 mod slurm;

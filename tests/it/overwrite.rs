@@ -145,6 +145,21 @@ fn cases(f: &Fixture, design_toml: &Path) -> Vec<Case> {
         case("whiten", st(&["whiten", s(&run), "--model-psd"]), Out::File),
         case("fit", st(&["fit", s(&ds)]), Out::Dir("estimates.parquet")),
         case(
+            "posterior",
+            st(&[
+                "posterior",
+                s(&ds),
+                "--chains",
+                "2",
+                "--warmup",
+                "20",
+                "--draws",
+                "20",
+                "--no-plots",
+            ]),
+            Out::Dir("posterior.json"),
+        ),
+        case(
             "campaign run",
             st(&["campaign", "run", s(&f.campaign)]),
             Out::Dir("manifest.json"),
