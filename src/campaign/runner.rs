@@ -27,13 +27,13 @@
 
 use rayon::prelude::*;
 
-use super::spec::{Campaign, ScenarioSource, WhitenAt};
+use super::spec::{Campaign, LikelihoodKind, ScenarioSource, WhitenAt};
 use super::stats::{Layout, Row, ScenarioLabel};
 use super::CampaignError;
 use crate::data::ExperimentData;
 use crate::fit::{
-    fit, Estimator, FitConfig, JacobianCache, JacobianPolicy, Likelihood, Whitener,
-    JACOBIAN_REUSE_SIGMA,
+    fit, Estimator, FitConfig, JacobianCache, JacobianPolicy, Likelihood, Residuals, Whitener,
+    WhittleLikelihood, JACOBIAN_REUSE_SIGMA,
 };
 use crate::model::spec::{ModelKind, ModelSpec, Scenario};
 use crate::model::{check_stability, LpfX, LpfXy};
@@ -43,6 +43,7 @@ use crate::sim::rng::stream;
 use crate::sim::time_domain::TimeDomainSimulator;
 use crate::sim::Simulator;
 use crate::sim::WhitenedSimulator;
+use crate::sim::WhittleSimulator;
 
 use super::spec::Engine;
 
@@ -151,6 +152,44 @@ pub fn check_x_only(campaign: &Campaign, kind: ModelKind) -> Result<(), Campaign
     Ok(())
 }
 
+/// Refuse what the Whittle likelihood cannot honour (`[fit] likelihood = "whittle"`):
+/// glitches (non-Gaussian, non-stationary noise) and the robust estimators (whose weights act
+/// on time samples, not on Fourier coefficients), naming the campaign file and key. The
+/// `[fit]` keys are checked when the file is read (`spec`).
+pub fn check_whittle(campaign: &Campaign, scenarios: &[Scenario]) -> Result<(), CampaignError> {
+    if campaign.fit.likelihood != LikelihoodKind::Whittle {
+        return Ok(());
+    }
+    let bad = |key: String, reason: String| CampaignError::Invalid {
+        file: campaign.file.clone(),
+        key,
+        reason: format!("{reason}; use likelihood = \"time-domain\" for it"),
+    };
+    if let Some(i) = scenarios.iter().position(|s| s.glitch.is_some()) {
+        return Err(bad(
+            format!("scenario[{i}].glitch"),
+            format!(
+                "scenario '{}' has glitches, which the Whittle likelihood (stationary Gaussian noise) does not describe",
+                scenarios[i].name
+            ),
+        ));
+    }
+    if let Some(i) = campaign
+        .estimators
+        .iter()
+        .position(|&e| e != Estimator::Squared)
+    {
+        return Err(bad(
+            format!("estimators[{i}]"),
+            format!(
+                "'{}' is a robust estimator; the Whittle likelihood is fitted with \"squared\" only",
+                campaign.estimators[i]
+            ),
+        ));
+    }
+    Ok(())
+}
+
 /// Where a cell's data come from (`[fit] engine`).
 // One per campaign cell, built once: the variants' size difference costs nothing.
 #[allow(clippy::large_enum_variant)]
@@ -176,9 +215,24 @@ impl<const N: usize> Source<N> {
     }
 }
 
+/// A cell's likelihood and the data it fits.
+// One per campaign cell, built once: the variants' size difference costs nothing.
+#[allow(clippy::large_enum_variant)]
+enum Path<'s, M: CampaignModel<N>, const N: usize> {
+    /// The time-domain likelihood (whitening filter) of data from `source`.
+    Time {
+        source: Source<N>,
+        lik: Likelihood<'s, M, N>,
+    },
+    /// The frequency-domain Whittle likelihood of data drawn as Fourier coefficients.
+    Whittle {
+        sim: Box<WhittleSimulator<N>>,
+        lik: WhittleLikelihood<'s, M, N>,
+    },
+}
+
 struct Cell<'s, M: CampaignModel<N>, const N: usize> {
-    source: Source<N>,
-    lik: Likelihood<'s, M, N>,
+    path: Path<'s, M, N>,
     /// Fit configuration per estimator (they differ by estimator and by the cell's Jacobians).
     configs: Vec<FitConfig>,
     /// The acceleration-noise reference of `[accel]` bands, if recorded.
@@ -187,8 +241,8 @@ struct Cell<'s, M: CampaignModel<N>, const N: usize> {
 
 /// A realization's whitened problem, and, if asked, the noise-only run's `(nu, whitened
 /// series)`, or the errors of either.
-type Drawn<'a, 's, M, const N: usize> = (
-    Result<crate::fit::Problem<'a, 's, M, N>, crate::fit::FitError>,
+type Drawn<'a> = (
+    Result<Box<dyn Residuals + 'a>, crate::fit::FitError>,
     Option<Result<(usize, crate::data::Series), crate::fit::FitError>>,
 );
 
@@ -199,19 +253,30 @@ impl<'s, M: CampaignModel<N>, const N: usize> Cell<'s, M, N> {
         &'a self,
         rng: &mut rand_xoshiro::Xoshiro256PlusPlus,
         noise_chi2: bool,
-    ) -> Drawn<'a, 's, M, N> {
-        let lik = &self.lik;
-        if let Source::Frequency { wsim: Some(ws), .. } = &self.source {
+    ) -> Drawn<'a> {
+        let boxed = |p: crate::fit::Problem<'a, 's, M, N>| Box::new(p) as Box<dyn Residuals>;
+        let (source, lik) = match &self.path {
+            Path::Time { source, lik } => (source, lik),
+            Path::Whittle { sim, lik } => {
+                let data = lik.problem(sim.draw(rng));
+                let noise_w = noise_chi2.then(|| {
+                    lik.problem(sim.draw_noise(rng))
+                        .map(|p| (lik.nu(0), p.data_w))
+                });
+                return (data.map(|p| Box::new(p) as Box<dyn Residuals>), noise_w);
+            }
+        };
+        if let Source::Frequency { wsim: Some(ws), .. } = source {
             let data_w = ws.draw(rng);
             let noise_w = noise_chi2.then(|| {
                 lik.problem_whitened(ws.draw_noise(rng))
                     .map(|p| (p.nu(0), p.data_w))
             });
-            return (lik.problem_whitened(data_w), noise_w);
+            return (lik.problem_whitened(data_w).map(boxed), noise_w);
         }
-        let data = self.source.draw(rng);
+        let data = source.draw(rng);
         let noise_w = noise_chi2.then(|| {
-            let outputs = match &self.source {
+            let outputs = match source {
                 Source::Frequency { sim, .. } => (0..data.outputs.len())
                     .map(|e| sim.noise_series_of(e, rng))
                     .collect(),
@@ -226,7 +291,7 @@ impl<'s, M: CampaignModel<N>, const N: usize> Cell<'s, M, N> {
             };
             lik.problem(&noise).map(|p| (p.nu(0), p.data_w))
         });
-        (lik.problem(&data), noise_w)
+        (lik.problem(&data).map(boxed), noise_w)
     }
 }
 
@@ -470,6 +535,7 @@ impl<'s, M: CampaignModel<N>, const N: usize> Runner<'s, M, N> {
             });
         }
         check_x_only(campaign, M::KIND)?;
+        check_whittle(campaign, &scenarios)?;
         check_engine_model(&setup.spec, campaign)?;
         let (mut cells, mut notes) = (Vec::new(), Vec::new());
         for (i, sc) in scenarios.iter().enumerate() {
@@ -566,7 +632,7 @@ impl<'s, M: CampaignModel<N>, const N: usize> Runner<'s, M, N> {
                     Err(err) => return failed(format!("error: {err}"), 0),
                 };
                 let nu = problem.nu(np) as u64;
-                match fit(&self.setup.model, problem, &sc.guess, cfg) {
+                match fit(&self.setup.model, problem.as_ref(), &sc.guess, cfg) {
                     Err(err) => failed(format!("error: {err}"), nu),
                     Ok(res) => Row {
                         scenario: s,
@@ -670,11 +736,9 @@ fn check_engine_model(spec: &ModelSpec, campaign: &Campaign) -> Result<(), Campa
     Ok(())
 }
 
-/// One (scenario, design) cell: the data source of the campaign's engine, the likelihood with
-/// the whitening filter of the noise PSD at `[fit] whiten_at` (for time-domain data, the
-/// model PSD folded through the anti-alias FIR, `fit::telemetry_psd`), the fit configurations
-/// and the `[accel]` reference; and a note when the whitening needed a floor. `label` names
-/// the cell in errors.
+/// One (scenario, design) cell: its path ([`time_path`] or [`whittle_path`] by `[fit]
+/// likelihood`), the fit configurations and the `[accel]` reference; and a note when the
+/// whitening needed a floor. `label` names the cell in errors.
 fn build_cell<'s, M: CampaignModel<N>, const N: usize>(
     setup: &'s SetupOf<M, N>,
     campaign: &Campaign,
@@ -687,51 +751,6 @@ fn build_cell<'s, M: CampaignModel<N>, const N: usize>(
         context: label.to_string(),
         cause: Box::new(e),
     };
-    let p_w = match campaign.fit.whiten_at {
-        WhitenAt::Truth => &sc.truth,
-        WhitenAt::Guess => &sc.guess,
-    };
-    let order = campaign.fit.whitening_order;
-    let mut note = None;
-    let (source, inputs, dt, whitener) = match campaign.fit.engine {
-        Engine::FrequencyDomain => {
-            let sim = M::campaign_simulator(setup, d, sc).map_err(ctx)?;
-            let whitener = setup
-                .whitener_from_model(p_w, sim.n, sim.dt, order)
-                .map_err(ctx)?;
-            let (inputs, dt) = (sim.inputs.clone(), sim.dt);
-            let source = Source::Frequency {
-                sim: Box::new(sim),
-                wsim: None,
-            };
-            (source, inputs, dt, whitener)
-        }
-        Engine::TimeDomain => {
-            let parts = M::time_domain_parts(setup, d, sc, p_w, order).map_err(ctx)?;
-            note = parts.floor_note;
-            (
-                Source::Time(parts.simulator),
-                parts.inputs,
-                parts.dt,
-                parts.whitener,
-            )
-        }
-    };
-    let lik = Likelihood::new(
-        &setup.model,
-        &inputs,
-        dt,
-        whitener,
-        campaign.fit.poly_degree,
-    )
-    .map_err(|e| ctx(e.into()))?;
-    let source = match source {
-        Source::Frequency { sim, .. } => {
-            let wsim = WhitenedSimulator::new(&lik, &sim).ok().map(Box::new);
-            Source::Frequency { sim, wsim }
-        }
-        time => time,
-    };
     let mut base = constraints.apply(FitConfig::new(&setup.model));
     base.max_iterations = campaign.fit.max_iterations;
     if let Some(t) = campaign.fit.ftol {
@@ -740,10 +759,11 @@ fn build_cell<'s, M: CampaignModel<N>, const N: usize>(
     if let Some(t) = campaign.fit.ptol {
         base.ptol = t;
     }
-    if campaign.fit.cached_jacobian {
-        base.jacobian = cell_jacobians(setup, &source, &lik, sc, campaign.seed, &base)
-            .map_err(|e| ctx(e.into()))?;
+    let (path, dt, note) = match campaign.fit.likelihood {
+        LikelihoodKind::TimeDomain => time_path(setup, campaign, sc, d, &mut base),
+        LikelihoodKind::Whittle => whittle_path(setup, campaign, sc, d, &mut base),
     }
+    .map_err(ctx)?;
     let configs = campaign
         .estimators
         .iter()
@@ -767,12 +787,128 @@ fn build_cell<'s, M: CampaignModel<N>, const N: usize>(
         )
     };
     let cell = Cell {
-        source,
-        lik,
+        path,
         configs,
         accel,
     };
     Ok((cell, note))
+}
+
+/// The noise PSD's parameters of the whitening (`[fit] whiten_at`).
+fn whitening_point<'a>(campaign: &Campaign, sc: &'a Scenario) -> &'a [f64] {
+    match campaign.fit.whiten_at {
+        WhitenAt::Truth => &sc.truth,
+        WhitenAt::Guess => &sc.guess,
+    }
+}
+
+/// A cell's path, its analysis interval and a note on its preparation.
+type Prepared<'s, M, const N: usize> = (Path<'s, M, N>, f64, Option<String>);
+
+/// The time-domain path of a cell: the data source of the campaign's engine and the
+/// likelihood with the whitening filter of the noise PSD at `[fit] whiten_at` (for
+/// time-domain data, the model PSD folded through the anti-alias FIR, `fit::telemetry_psd`,
+/// with a note when it needed a floor); the cached Jacobians go into `base`.
+fn time_path<'s, M: CampaignModel<N>, const N: usize>(
+    setup: &'s SetupOf<M, N>,
+    campaign: &Campaign,
+    sc: &Scenario,
+    d: &Design,
+    base: &mut FitConfig,
+) -> Result<Prepared<'s, M, N>, crate::setup::Error> {
+    let p_w = whitening_point(campaign, sc);
+    let order = campaign.fit.whitening_order;
+    let mut note = None;
+    let (source, inputs, dt, whitener) = match campaign.fit.engine {
+        Engine::FrequencyDomain => {
+            let sim = M::campaign_simulator(setup, d, sc)?;
+            let whitener = setup.whitener_from_model(p_w, sim.n, sim.dt, order)?;
+            let (inputs, dt) = (sim.inputs.clone(), sim.dt);
+            let source = Source::Frequency {
+                sim: Box::new(sim),
+                wsim: None,
+            };
+            (source, inputs, dt, whitener)
+        }
+        Engine::TimeDomain => {
+            let parts = M::time_domain_parts(setup, d, sc, p_w, order)?;
+            note = parts.floor_note;
+            (
+                Source::Time(parts.simulator),
+                parts.inputs,
+                parts.dt,
+                parts.whitener,
+            )
+        }
+    };
+    let lik = Likelihood::new(
+        &setup.model,
+        &inputs,
+        dt,
+        whitener,
+        campaign.fit.poly_degree,
+    )?;
+    let source = match source {
+        Source::Frequency { sim, .. } => {
+            let wsim = WhitenedSimulator::new(&lik, &sim).ok().map(Box::new);
+            Source::Frequency { sim, wsim }
+        }
+        time => time,
+    };
+    if campaign.fit.cached_jacobian {
+        base.jacobian = cell_jacobians(setup, &source, &lik, sc, campaign.seed, base)?;
+    }
+    Ok((Path::Time { source, lik }, dt, note))
+}
+
+/// The Whittle path of a cell: the likelihood on the analysis bins kept at the cell's truth
+/// and guess ([`crate::fit::whittle`]), with the noise PSD at `[fit] whiten_at`, and the data
+/// drawn as Fourier coefficients ([`WhittleSimulator`]) around the simulator's noise-free
+/// response; with `[fit] jacobian = "cached"` the Jacobians at the guess and at realization
+/// 0's estimate, as the time-domain path caches them.
+fn whittle_path<'s, M: CampaignModel<N>, const N: usize>(
+    setup: &'s SetupOf<M, N>,
+    campaign: &Campaign,
+    sc: &Scenario,
+    d: &Design,
+    base: &mut FitConfig,
+) -> Result<Prepared<'s, M, N>, crate::setup::Error> {
+    let p_w = whitening_point(campaign, sc);
+    let sim = M::campaign_simulator(setup, d, sc)?;
+    let at = [sc.truth.clone(), sc.guess.clone()];
+    let tol = crate::fit::whittle::DEFAULT_DROP_TOLERANCE;
+    let lik = WhittleLikelihood::new(&setup.model, &sim.inputs, sim.dt, setup.psd(p_w), &at, tol)?;
+    let same = campaign.fit.whiten_at == WhitenAt::Truth;
+    let wsim = WhittleSimulator::new(
+        &lik,
+        &sim.signal,
+        sim.dt,
+        setup.psd(&sc.truth),
+        setup.psd(p_w),
+        same,
+    )?;
+    if campaign.fit.cached_jacobian {
+        let mut points = vec![sc.guess.clone()];
+        if let Ok(problem) = lik.problem(wsim.draw(&mut stream(campaign.seed, 0))) {
+            if let Ok(res) = fit(&setup.model, &problem, &sc.guess, base) {
+                if res.termination.converged() {
+                    points.push(res.estimate);
+                }
+            }
+        }
+        let fixed: Vec<usize> = (0..base.fixed.len()).filter(|&k| base.fixed[k]).collect();
+        let names = setup.model.parameter_names();
+        let cache =
+            JacobianCache::from_templates(&points, JACOBIAN_REUSE_SIGMA, &fixed, names, |p| {
+                lik.templates_and_jacobian(p)
+            })?;
+        base.jacobian = JacobianPolicy::Cached(std::sync::Arc::new(cache));
+    }
+    let path = Path::Whittle {
+        sim: Box::new(wsim),
+        lik,
+    };
+    Ok((path, sim.dt, None))
 }
 
 /// Whether a fit fails the chi^2 test against its noise reference ([`crate::fit::Chi2Test`]);

@@ -41,6 +41,12 @@
 //!                               # (defaults 1e-4, thesis sec. 4.4.4; with nu ~ 5e5 degrees of
 //!                               # freedom ftol = 1e-4 is 50 units of chi^2, too coarse for
 //!                               # ill-conditioned parameters: see campaigns/xy_crosstalk.toml)
+//! likelihood = "time-domain"    # the fits' likelihood: "time-domain" (default; whitening
+//!                               # filter, whitened series) or "whittle" (frequency domain:
+//!                               # noise drawn as Fourier coefficients, fit and Fisher matrix
+//!                               # on the analysis bins, `fit::whittle`; stationary noise
+//!                               # without gaps only: no time-domain engine, glitches, robust
+//!                               # estimators, whitening_order or poly_degree)
 //! engine = "frequency-domain"   # data simulator: "frequency-domain" (default; templates plus
 //!                               # coloured noise at the analysis rate) or "time-domain" (the
 //!                               # digital loop stepped at simulate_hz and decimated by the
@@ -129,6 +135,7 @@ struct FitEntry {
     fixed: Option<Vec<String>>,
     prior: Option<BTreeMap<String, [f64; 2]>>,
     engine: Option<String>,
+    likelihood: Option<String>,
     ftol: Option<f64>,
     ptol: Option<f64>,
 }
@@ -137,6 +144,16 @@ struct FitEntry {
 /// the campaign's model (the time-domain engine's data need the sampled-data model), which is
 /// campaign-wide too.
 pub use crate::sim::Engine;
+
+/// The likelihood a campaign's fits use (`[fit] likelihood`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LikelihoodKind {
+    /// The whitening filter and whitened time series (`fit::Likelihood`), the default.
+    TimeDomain,
+    /// The frequency-domain Whittle likelihood (`fit::whittle`), with data drawn as Fourier
+    /// coefficients (`sim::whittle`).
+    Whittle,
+}
 
 /// Where a scenario's parameter sets come from.
 #[derive(Debug, Clone)]
@@ -223,6 +240,8 @@ pub struct FitOptions {
     pub priors: BTreeMap<String, [f64; 2]>,
     /// The data simulator (`engine = "time-domain"`).
     pub engine: Engine,
+    /// The fits' likelihood (`likelihood = "whittle"`).
+    pub likelihood: LikelihoodKind,
     /// The fits' relative chi^2 and parameter tolerances (`None`: the fit's defaults).
     pub ftol: Option<f64>,
     pub ptol: Option<f64>,
@@ -611,7 +630,9 @@ impl Checker<'_> {
             }
             _ => Ok(t),
         };
+        let likelihood = self.likelihood(fit, engine)?;
         Ok(FitOptions {
+            likelihood,
             ftol: tolerance("fit.ftol", fit.ftol)?,
             ptol: tolerance("fit.ptol", fit.ptol)?,
             whitening_order,
@@ -624,6 +645,50 @@ impl Checker<'_> {
             priors,
             engine,
         })
+    }
+}
+
+impl Checker<'_> {
+    /// `[fit] likelihood`: "time-domain" (default) or "whittle", which refuses the keys whose
+    /// settings it has no use for or cannot honour (the time-domain engine's data are not
+    /// stationary Gaussian noise at the analysis bins; the whitening filter's order and the
+    /// nuisance polynomial do not exist in the frequency domain).
+    fn likelihood(&self, fit: &FitEntry, engine: Engine) -> Result<LikelihoodKind, CampaignError> {
+        let kind = match fit.likelihood.as_deref() {
+            None | Some("time-domain") => return Ok(LikelihoodKind::TimeDomain),
+            Some("whittle") => LikelihoodKind::Whittle,
+            Some(other) => {
+                return Err(self.bad(
+                    "fit.likelihood",
+                    format!("'{other}' (expected \"time-domain\" or \"whittle\")"),
+                ))
+            }
+        };
+        let refuse = |key: &str, why: &str| {
+            Err(self.bad(
+                key,
+                format!("not with likelihood = \"whittle\": {why}; remove the key or use likelihood = \"time-domain\""),
+            ))
+        };
+        if engine == Engine::TimeDomain {
+            return refuse(
+                "fit.engine",
+                "the time-domain engine's data (digital loop, decimation, start-up) are not stationary noise at the analysis bins",
+            );
+        }
+        if fit.whitening_order.is_some() {
+            return refuse(
+                "fit.whitening_order",
+                "the Whittle likelihood has no whitening filter",
+            );
+        }
+        if fit.poly_degree.is_some() {
+            return refuse(
+                "fit.poly_degree",
+                "the Whittle likelihood leaves out the DC bin instead of a nuisance polynomial",
+            );
+        }
+        Ok(kind)
     }
 }
 

@@ -316,6 +316,7 @@ pub fn monte_carlo(
             fixed: Vec::new(),
             priors: Default::default(),
             engine: crate::campaign::spec::Engine::FrequencyDomain,
+            likelihood: crate::campaign::spec::LikelihoodKind::TimeDomain,
             ftol: None,
             ptol: None,
         },

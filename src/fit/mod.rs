@@ -19,6 +19,7 @@ pub mod score;
 pub mod telemetry_psd;
 pub mod transient;
 pub mod whiten;
+pub mod whittle;
 
 use std::borrow::Cow;
 use std::time::Instant;
@@ -29,6 +30,7 @@ use serde::{Deserialize, Serialize};
 pub use estimator::Estimator;
 pub use problem::{ExperimentData, Likelihood, Problem};
 pub use whiten::Whitener;
+pub use whittle::{WhittleLikelihood, WhittleProblem};
 
 use crate::data::Series;
 use crate::model::closed_loop::{check_stability, ClosedLoopModel};
@@ -379,17 +381,32 @@ impl JacobianCache {
         max_sigma: f64,
         fixed: &[usize],
     ) -> Result<Self, FitError> {
+        let names = lik.engine.model().parameter_names();
+        Self::from_templates(points, max_sigma, fixed, names, |p| {
+            lik.templates_and_jacobian(p)
+        })
+    }
+
+    /// [`Self::with_fixed`] for any likelihood: `templates_and_jacobian(p)` gives its whitened
+    /// templates and their derivatives at `p` (the frequency-domain one's, for example);
+    /// `names` name the parameters in errors.
+    pub fn from_templates(
+        points: &[Vec<f64>],
+        max_sigma: f64,
+        fixed: &[usize],
+        names: &[String],
+        templates_and_jacobian: impl Fn(&[f64]) -> (Series, Vec<Series>),
+    ) -> Result<Self, FitError> {
         let entries = points
             .iter()
             .map(|p| {
-                let (templates, j) = lik.templates_and_jacobian(p);
+                let (templates, j) = templates_and_jacobian(p);
                 let information = series_gram(&j);
                 let free: Vec<usize> = (0..p.len()).filter(|k| !fixed.contains(k)).collect();
                 let restricted = DMatrix::from_fn(free.len(), free.len(), |a, b| {
                     information[(free[a], free[b])]
                 });
                 let cov = spd_inverse(&restricted).ok_or_else(|| {
-                    let names = lik.engine.model().parameter_names();
                     FitError::Singular(explain_singular(
                         "Fisher information at a cached Jacobian point",
                         &restricted,
@@ -428,6 +445,35 @@ impl JacobianCache {
             .filter(|(d, _)| *d <= self.max_sigma)
             .min_by(|a, b| a.0.total_cmp(&b.0))
             .map(|(_, e)| e)
+    }
+}
+
+/// What the optimiser fits: whitened residuals (unit-variance, independent under the model)
+/// and their Jacobian at any parameter point, bound to one data set. The time-domain
+/// [`Problem`] and the frequency-domain [`WhittleProblem`] both are one.
+pub trait Residuals {
+    /// Whitened residuals `r[e][i]` at `p`.
+    fn residuals(&self, p: &[f64]) -> Series;
+    /// Whitened residuals and the whitened template derivatives `j[k][e][i]` (`dr/dp = -j`).
+    fn residuals_and_jacobian(&self, p: &[f64]) -> (Series, Vec<Series>);
+    /// Whitened residuals `d - t` against whitened templates `t` (a cached Jacobian's).
+    fn residuals_from(&self, t: &Series) -> Series;
+    /// Degrees of freedom `nu` for `n_params` fitted parameters.
+    fn nu(&self, n_params: usize) -> usize;
+}
+
+impl<M: ClosedLoopModel<N>, const N: usize> Residuals for Problem<'_, '_, M, N> {
+    fn residuals(&self, p: &[f64]) -> Series {
+        Problem::residuals(self, p)
+    }
+    fn residuals_and_jacobian(&self, p: &[f64]) -> (Series, Vec<Series>) {
+        Problem::residuals_and_jacobian(self, p)
+    }
+    fn residuals_from(&self, t: &Series) -> Series {
+        Problem::residuals_from(self, t)
+    }
+    fn nu(&self, n_params: usize) -> usize {
+        Problem::nu(self, n_params)
     }
 }
 
@@ -624,9 +670,9 @@ const MIN_DAMPING: f64 = 1e-12;
 /// that lowers the objective `f` (data plus priors), raising `lambda` tenfold after each
 /// failure and lowering it tenfold on success. `None` when no trial lowered the objective.
 #[allow(clippy::too_many_arguments)]
-fn damped_step<M: ClosedLoopModel<N>, const N: usize>(
+fn damped_step<M: ClosedLoopModel<N>, P: Residuals + ?Sized, const N: usize>(
     model: &M,
-    problem: &Problem<'_, '_, M, N>,
+    problem: &P,
     cfg: &FitConfig,
     (a, g): (&DMatrix<f64>, &DVector<f64>),
     p: &[f64],
@@ -686,10 +732,11 @@ fn covariance<M: ClosedLoopModel<N>, const N: usize>(
     Ok((info, base * scale))
 }
 
-/// Fit the model to the prepared problem from `guess`.
-pub fn fit<M: ClosedLoopModel<N>, const N: usize>(
+/// Fit the model to the prepared problem (time-domain [`Problem`] or frequency-domain
+/// [`WhittleProblem`]) from `guess`.
+pub fn fit<M: ClosedLoopModel<N>, P: Residuals + ?Sized, const N: usize>(
     model: &M,
-    problem: &Problem<'_, '_, M, N>,
+    problem: &P,
     guess: &[f64],
     cfg: &FitConfig,
 ) -> Result<FitResult, FitError> {

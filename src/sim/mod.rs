@@ -23,6 +23,7 @@ pub mod simulate_job;
 pub mod time_domain;
 pub mod transient;
 pub mod whitened;
+pub mod whittle;
 
 pub use crate::data::Series;
 pub use crate::forward::TemplateEngine;
@@ -33,6 +34,7 @@ pub use simulate::{
     simulate_with_effects, EffectsError,
 };
 pub use whitened::WhitenedSimulator;
+pub use whittle::WhittleSimulator;
 
 /// The simulation engine of a dataset or a campaign.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

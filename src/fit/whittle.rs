@@ -1,0 +1,494 @@
+//! The frequency-domain (Whittle) likelihood of stationary Gaussian noise (thesis sec. 4.4,
+//! eq. "joint log-likelihood" in the frequency domain; conventions of `docs/physics.md`: one-sided
+//! cross-PSD `S`, transform `X(f_k) = dt FFT(x)_k`, `T = n dt`, `f_k = k / T`).
+//!
+//! For experiment e of `n_e` samples, on its own bins `k = 1..=K_e`, `K_e = (n_e - 1) / 2`
+//! (DC and Nyquist left out: the mean of red noise is not defined by its PSD, which the
+//! time-domain path's nuisance polynomial reflects), the residual
+//! `r_k = D_k - T(f_k, p) X_k` of the data's and the inputs' transforms gives
+//!
+//! `chi^2 = sum_e sum_k (4 / T_e) r_k^H S_k^-1 r_k`,
+//!
+//! whose expectation is `2 N` per bin, and whose Hessian is the Fisher information of
+//! `forward::fisher_information`. With `S_k = L_k L_k^H` (Cholesky) the whitened coefficients
+//! `w_k = sqrt(4 / T) L_k^-1 r_k` make `chi^2 = sum |w_k|^2`: their real and imaginary parts are
+//! independent unit-variance Gaussians under the model, which is what the optimiser
+//! ([`super::fit`]) takes (interleaved `Re, Im` per channel: the same Levenberg-Marquardt,
+//! starting point and stopping rules as the time-domain estimator).
+//!
+//! # What it assumes
+//! The Whittle likelihood is exact for noise whose Fourier coefficients are independent
+//! between bins: a stationary process observed over many correlation times without gaps. The
+//! templates are `T(f_k, p) X_k`, the circular response to the inputs; the linear response of a
+//! loop that starts from rest differs from it by the wrap-around of whatever is still ringing at
+//! the end of the experiment (small for designs that end on a quiet stretch, as the standard
+//! one does). Gaps, transients, non-stationary noise and glitches break these assumptions and
+//! are refused where the likelihood is selected (campaign `[fit] likelihood = "whittle"`).
+//!
+//! # Bins kept
+//! Bins where no injection reaches the readouts carry no information on the parameters: their
+//! `|w_k|^2` is a constant of the fit. The likelihood keeps, per grid, the smallest set of bins
+//! whose dropped share of every parameter's information and of the template energy (at the
+//! points it is prepared at) is at most `tolerance`; the dropped bins enter the fit only
+//! through the sum of their `|w_k|^2`, one extra residual per experiment (its Jacobian zero),
+//! so that chi^2 and nu are those of all bins. Evaluations then cost the model on the kept bins
+//! only.
+
+use nalgebra::DMatrix;
+use num_complex::Complex64;
+
+use super::{FitError, Residuals};
+use crate::data::Series;
+use crate::model::closed_loop::{CMat, ClosedLoopModel};
+use crate::noise::generate::hermitian_cholesky;
+use crate::numerics::linalg::series_gram;
+
+/// Default share of each parameter's information (and of the template energy) the kept bins
+/// may leave out: the Monte Carlo sd grows by at most half of it, 5e-9 relative.
+pub const DEFAULT_DROP_TOLERANCE: f64 = 1e-8;
+
+/// The analysis bins of an experiment of `n` samples: `k = 1..=(n - 1) / 2`.
+pub fn bins_of(n: usize) -> usize {
+    n.saturating_sub(1) / 2
+}
+
+/// `sqrt(4 / T) L_k^-1` for the bins `k = 1..=bins_of(n)` (index `k - 1`), with `L_k L_k^H` the
+/// one-sided cross-PSD `psd(f_k)`: the whitening of a residual spectrum. An error names the
+/// first frequency where the PSD is not positive definite.
+pub fn whitening_factors<const N: usize>(
+    psd: &impl Fn(f64) -> CMat<N>,
+    n: usize,
+    dt: f64,
+) -> Result<Vec<CMat<N>>, FitError> {
+    let duration = n as f64 * dt;
+    let scale = Complex64::new((4.0 / duration).sqrt(), 0.0);
+    (1..=bins_of(n))
+        .map(|k| {
+            let f = k as f64 / duration;
+            let s = psd(f);
+            hermitian_cholesky(&s)
+                .try_inverse()
+                .filter(|l| l.iter().all(|z| z.re.is_finite() && z.im.is_finite()))
+                .map(|l| l * scale)
+                .ok_or_else(|| {
+                    FitError::Input(format!(
+                        "the noise cross-PSD at {f:.6e} Hz is not positive definite: the Whittle likelihood needs noise on every channel at every bin"
+                    ))
+                })
+        })
+        .collect()
+}
+
+/// `X_c(f_k) = dt FFT(x_c)_k` of `N` input series of length `n` at bins `1..=bins_of(n)`
+/// (`None` for an absent or all-zero input).
+pub fn input_spectra<const N: usize>(
+    inputs: &[Vec<f64>],
+    n: usize,
+    dt: f64,
+) -> Vec<Option<Vec<Complex64>>> {
+    let fft = crate::numerics::fft::real_forward(n);
+    (0..N)
+        .map(|c| {
+            let x = inputs.get(c)?;
+            if x.iter().all(|v| *v == 0.0) {
+                return None;
+            }
+            let mut buf = vec![0.0; n];
+            let len = x.len().min(n);
+            buf[..len].copy_from_slice(&x[..len]);
+            let mut spec = fft.make_output_vec();
+            fft.process(&mut buf, &mut spec).expect("FFT sizes match");
+            Some(spec[1..=bins_of(n)].iter().map(|z| z * dt).collect())
+        })
+        .collect()
+}
+
+/// The experiments of one length `n`: their kept bins and what the model needs there.
+struct Grid<P, const N: usize> {
+    n: usize,
+    /// Kept bins `k` (ascending, in `1..=bins_of(n)`).
+    kept: Vec<usize>,
+    /// The model's prepared frequency points at the kept bins.
+    points: Vec<P>,
+    /// `sqrt(4 / T) L_k^-1` at the kept bins.
+    winv: Vec<CMat<N>>,
+}
+
+/// The Whittle likelihood of a design (see the module doc): prepared once per design and
+/// noise model (input spectra, whitening factors, kept bins), then evaluated at any `p`.
+pub struct WhittleLikelihood<'m, M: ClosedLoopModel<N>, const N: usize> {
+    model: &'m M,
+    dt: f64,
+    grids: Vec<Grid<M::Point, N>>,
+    /// Grid of every experiment (index into `grids`).
+    grid_of: Vec<usize>,
+    /// `inputs[e][c]`: `X_c` at the kept bins of `e`'s grid, `None` for an absent input.
+    inputs: Vec<Vec<Option<Vec<Complex64>>>>,
+}
+
+/// Whitened coefficients `w` of one experiment at one bin, from a transfer matrix `t`, the
+/// whitening factor `winv` and the inputs at that bin.
+#[inline]
+fn whitened<const N: usize>(
+    t: &CMat<N>,
+    winv: &CMat<N>,
+    x: &[(usize, Complex64)],
+) -> [Complex64; N] {
+    let mut u = [Complex64::new(0.0, 0.0); N];
+    for &(c, xc) in x {
+        for (i, ui) in u.iter_mut().enumerate() {
+            *ui += t[(i, c)] * xc;
+        }
+    }
+    std::array::from_fn(|i| (0..=i).map(|j| winv[(i, j)] * u[j]).sum())
+}
+
+impl<'m, M: ClosedLoopModel<N>, const N: usize> WhittleLikelihood<'m, M, N> {
+    /// `inputs[e][c]`: every experiment's guidance series (its length is the experiment's),
+    /// `psd(f)` the noise cross-PSD of the whitening, `at` the parameter points at which the
+    /// kept bins are chosen (e.g. a campaign cell's truth and guess) with `tolerance` (see
+    /// the module doc; 0 keeps every bin).
+    pub fn new(
+        model: &'m M,
+        inputs: &[Vec<Vec<f64>>],
+        dt: f64,
+        psd: impl Fn(f64) -> CMat<N>,
+        at: &[Vec<f64>],
+        tolerance: f64,
+    ) -> Result<Self, FitError> {
+        let lens: Vec<usize> = inputs
+            .iter()
+            .map(|e| e.first().map_or(0, Vec::len))
+            .collect();
+        if let Some(e) = lens.iter().position(|&n| bins_of(n) < 1) {
+            return Err(FitError::TooShort {
+                what: format!("experiment {} for the Whittle likelihood", e + 1),
+                len: lens[e],
+                need: 3,
+            });
+        }
+        let mut grids = Vec::new();
+        let mut grid_of = Vec::with_capacity(lens.len());
+        let mut spectra: Vec<Vec<Option<Vec<Complex64>>>> = Vec::new();
+        for (e, &n) in lens.iter().enumerate() {
+            spectra.push(input_spectra::<N>(&inputs[e], n, dt));
+            match lens[..e].iter().position(|&l| l == n) {
+                Some(f) => grid_of.push(grid_of[f]),
+                None => {
+                    grid_of.push(grids.len());
+                    grids.push(n);
+                }
+            }
+        }
+        let mut out_grids = Vec::with_capacity(grids.len());
+        for (g, &n) in grids.iter().enumerate() {
+            let winv_all = whitening_factors(&psd, n, dt)?;
+            let exps: Vec<&Vec<Option<Vec<Complex64>>>> = (0..lens.len())
+                .filter(|&e| grid_of[e] == g)
+                .map(|e| &spectra[e])
+                .collect();
+            let kept = kept_bins(model, n, dt, &winv_all, &exps, at, tolerance);
+            out_grids.push(Grid {
+                n,
+                points: kept
+                    .iter()
+                    .map(|&k| model.prepare(k as f64 / (n as f64 * dt)))
+                    .collect(),
+                winv: kept.iter().map(|&k| winv_all[k - 1]).collect(),
+                kept,
+            });
+        }
+        let inputs = spectra
+            .into_iter()
+            .enumerate()
+            .map(|(e, exp)| {
+                let kept = &out_grids[grid_of[e]].kept;
+                exp.into_iter()
+                    .map(|x| x.map(|x| kept.iter().map(|&k| x[k - 1]).collect()))
+                    .collect()
+            })
+            .collect();
+        Ok(WhittleLikelihood {
+            model,
+            dt,
+            grids: out_grids,
+            grid_of,
+            inputs,
+        })
+    }
+
+    pub fn model(&self) -> &'m M {
+        self.model
+    }
+
+    pub fn dt(&self) -> f64 {
+        self.dt
+    }
+
+    pub fn n_experiments(&self) -> usize {
+        self.grid_of.len()
+    }
+
+    /// Length (samples) of experiment `e`.
+    pub fn len_of(&self, e: usize) -> usize {
+        self.grids[self.grid_of[e]].n
+    }
+
+    /// The kept bins `k` of experiment `e` (ascending, in `1..=bins_of(n_e)`).
+    pub fn kept_of(&self, e: usize) -> &[usize] {
+        &self.grids[self.grid_of[e]].kept
+    }
+
+    /// Degrees of freedom of all bins for `n_params` fitted parameters:
+    /// `2 N sum_e bins_of(n_e) - n_params`.
+    pub fn nu(&self, n_params: usize) -> usize {
+        let bins: usize = (0..self.n_experiments())
+            .map(|e| bins_of(self.len_of(e)))
+            .sum();
+        (2 * N * bins).saturating_sub(n_params)
+    }
+
+    /// The inputs of experiment `e` at kept bin index `i`: (input, `X_c`).
+    fn inputs_at(&self, e: usize, i: usize, buf: &mut Vec<(usize, Complex64)>) {
+        buf.clear();
+        for (c, x) in self.inputs[e].iter().enumerate() {
+            if let Some(x) = x {
+                buf.push((c, x[i]));
+            }
+        }
+    }
+
+    /// Visit the whitened template of every experiment at every kept bin at `p`, with its
+    /// derivatives if `derivatives`: `visit(e, i, w, dw)`, `i` the kept bin's index, `dw[q]`
+    /// the derivative by parameter `q` (empty without derivatives).
+    fn visit(
+        &self,
+        p: &[f64],
+        derivatives: bool,
+        mut visit: impl FnMut(usize, usize, &[Complex64; N], &[[Complex64; N]]),
+    ) {
+        let np = self.model.n_params();
+        let mut x = Vec::with_capacity(N);
+        let mut dw = vec![[Complex64::new(0.0, 0.0); N]; if derivatives { np } else { 0 }];
+        for (g, grid) in self.grids.iter().enumerate() {
+            let nb = grid.kept.len();
+            let mut t = vec![CMat::<N>::zeros(); nb];
+            let mut d = vec![CMat::<N>::zeros(); if derivatives { nb * np } else { 0 }];
+            self.model
+                .transfer_grid(&grid.points, p, &mut t, derivatives.then_some(&mut d[..]));
+            for e in (0..self.n_experiments()).filter(|&e| self.grid_of[e] == g) {
+                for i in 0..nb {
+                    self.inputs_at(e, i, &mut x);
+                    let w = whitened(&t[i], &grid.winv[i], &x);
+                    for (q, dq) in dw.iter_mut().enumerate() {
+                        *dq = whitened(&d[i * np + q], &grid.winv[i], &x);
+                    }
+                    visit(e, i, &w, &dw);
+                }
+            }
+        }
+    }
+
+    /// An empty series of the residuals' shape: per experiment `N` channels of `2 kept`
+    /// interleaved `Re, Im` values, and one more channel of one value (the dropped bins).
+    fn series(&self) -> Series {
+        (0..self.n_experiments())
+            .map(|e| {
+                let nb = self.kept_of(e).len();
+                let mut exp = vec![vec![0.0; 2 * nb]; N];
+                exp.push(vec![0.0]);
+                exp
+            })
+            .collect()
+    }
+
+    /// Whitened templates at `p`, in the residuals' shape (zero in the dropped-bins channel).
+    pub fn templates_w(&self, p: &[f64]) -> Series {
+        let mut s = self.series();
+        self.visit(p, false, |e, i, w, _| put(&mut s[e], i, w));
+        s
+    }
+
+    /// Whitened templates and their derivatives `j[q][e][i]` at `p` (data-independent).
+    pub fn templates_and_jacobian(&self, p: &[f64]) -> (Series, Vec<Series>) {
+        let np = self.model.n_params();
+        let mut s = self.series();
+        let mut j: Vec<Series> = (0..np).map(|_| self.series()).collect();
+        self.visit(p, true, |e, i, w, dw| {
+            put(&mut s[e], i, w);
+            for (jq, dq) in j.iter_mut().zip(dw) {
+                put(&mut jq[e], i, dq);
+            }
+        });
+        (s, j)
+    }
+
+    /// The Fisher information `sum_e sum_k (4 / T) Re[dh_a^H S^-1 dh_b]` over the kept bins.
+    pub fn information(&self, p: &[f64]) -> DMatrix<f64> {
+        series_gram(&self.templates_and_jacobian(p).1)
+    }
+
+    /// This likelihood bound to whitened data (in the residuals' shape, as
+    /// `sim::WhittleSimulator::draw` delivers them).
+    pub fn problem<'a>(&'a self, data_w: Series) -> Result<WhittleProblem<'a, 'm, M, N>, FitError> {
+        let shape_ok = data_w.len() == self.n_experiments()
+            && data_w.iter().enumerate().all(|(e, exp)| {
+                exp.len() == N + 1
+                    && exp[..N]
+                        .iter()
+                        .all(|c| c.len() == 2 * self.kept_of(e).len())
+                    && exp[N].len() == 1
+            });
+        if !shape_ok {
+            return Err(FitError::Input(format!(
+                "whitened Fourier data must have {} experiments of {N} channels of 2 x kept bins plus the dropped bins' norm",
+                self.n_experiments()
+            )));
+        }
+        Ok(WhittleProblem { lik: self, data_w })
+    }
+}
+
+/// Write a whitened coefficient vector `w` at kept bin index `i` into experiment series `exp`.
+#[inline]
+fn put<const N: usize>(exp: &mut [Vec<f64>], i: usize, w: &[Complex64; N]) {
+    for (c, z) in w.iter().enumerate() {
+        exp[c][2 * i] = z.re;
+        exp[c][2 * i + 1] = z.im;
+    }
+}
+
+/// The bins to keep on one grid of length `n` (see the module doc): per bin, the largest share
+/// over the points `at` of each parameter's information and of the template energy; bins are
+/// dropped in increasing order of that share while every quantity's dropped share stays at
+/// most `tolerance`.
+#[allow(clippy::too_many_arguments)]
+fn kept_bins<M: ClosedLoopModel<N>, const N: usize>(
+    model: &M,
+    n: usize,
+    dt: f64,
+    winv: &[CMat<N>],
+    exps: &[&Vec<Option<Vec<Complex64>>>],
+    at: &[Vec<f64>],
+    tolerance: f64,
+) -> Vec<usize> {
+    let nb = bins_of(n);
+    let np = model.n_params();
+    let points: Vec<M::Point> = (1..=nb)
+        .map(|k| model.prepare(k as f64 / (n as f64 * dt)))
+        .collect();
+    // share[k][q]: q < np the information of parameter q, q = np the template energy.
+    let mut share = vec![vec![0.0f64; np + 1]; nb];
+    let mut t = vec![CMat::<N>::zeros(); nb];
+    let mut d = vec![CMat::<N>::zeros(); nb * np];
+    let mut x = Vec::with_capacity(N);
+    for p in at {
+        model.transfer_grid(&points, p, &mut t, Some(&mut d));
+        let mut c = vec![vec![0.0f64; np + 1]; nb];
+        for exp in exps {
+            for (k, ck) in c.iter_mut().enumerate() {
+                x.clear();
+                x.extend(
+                    exp.iter()
+                        .enumerate()
+                        .filter_map(|(ch, s)| s.as_ref().map(|s| (ch, s[k]))),
+                );
+                let energy = |m: &CMat<N>| {
+                    whitened(m, &winv[k], &x)
+                        .iter()
+                        .map(|z| z.norm_sqr())
+                        .sum::<f64>()
+                };
+                for q in 0..np {
+                    ck[q] += energy(&d[k * np + q]);
+                }
+                ck[np] += energy(&t[k]);
+            }
+        }
+        for q in 0..=np {
+            let total: f64 = c.iter().map(|ck| ck[q]).sum();
+            if total > 0.0 {
+                for (sk, ck) in share.iter_mut().zip(&c) {
+                    sk[q] = sk[q].max(ck[q] / total);
+                }
+            }
+        }
+    }
+    let key: Vec<f64> = share
+        .iter()
+        .map(|s| s.iter().copied().fold(0.0, f64::max))
+        .collect();
+    let mut order: Vec<usize> = (0..nb).collect();
+    order.sort_by(|&a, &b| key[a].total_cmp(&key[b]).then(a.cmp(&b)));
+    let mut dropped = vec![0.0f64; np + 1];
+    let mut keep = vec![true; nb];
+    for &k in &order {
+        if share[k]
+            .iter()
+            .zip(&dropped)
+            .any(|(s, acc)| acc + s > tolerance)
+        {
+            break;
+        }
+        dropped.iter_mut().zip(&share[k]).for_each(|(a, s)| *a += s);
+        keep[k] = false;
+    }
+    (1..=nb).filter(|&k| keep[k - 1]).collect()
+}
+
+/// The Whittle likelihood bound to one data set's whitened Fourier coefficients.
+pub struct WhittleProblem<'a, 'm, M: ClosedLoopModel<N>, const N: usize> {
+    pub lik: &'a WhittleLikelihood<'m, M, N>,
+    /// Whitened data in the residuals' shape (see [`WhittleLikelihood::problem`]).
+    pub data_w: Series,
+}
+
+impl<M: ClosedLoopModel<N>, const N: usize> WhittleProblem<'_, '_, M, N> {
+    /// `chi^2(p)` and its gradient `d chi^2 / dp_q = -2 sum Re[r^H dw_q]` in one pass over
+    /// the kept bins, without the residual series (what a sampler evaluates:
+    /// `log L = -chi^2 / 2` up to a constant).
+    pub fn chi2_and_gradient(&self, p: &[f64]) -> (f64, Vec<f64>) {
+        let np = self.lik.model.n_params();
+        let mut chi2: f64 = self.data_w.iter().map(|exp| exp[N][0].powi(2)).sum();
+        let mut grad = vec![0.0; np];
+        self.lik.visit(p, true, |e, i, w, dw| {
+            let exp = &self.data_w[e];
+            for c in 0..N {
+                let r = Complex64::new(exp[c][2 * i] - w[c].re, exp[c][2 * i + 1] - w[c].im);
+                chi2 += r.norm_sqr();
+                for (g, dq) in grad.iter_mut().zip(dw) {
+                    *g -= 2.0 * (r.re * dq[c].re + r.im * dq[c].im);
+                }
+            }
+        });
+        (chi2, grad)
+    }
+}
+
+impl<M: ClosedLoopModel<N>, const N: usize> Residuals for WhittleProblem<'_, '_, M, N> {
+    fn residuals(&self, p: &[f64]) -> Series {
+        self.residuals_from(&self.lik.templates_w(p))
+    }
+
+    fn residuals_and_jacobian(&self, p: &[f64]) -> (Series, Vec<Series>) {
+        let (t, j) = self.lik.templates_and_jacobian(p);
+        (self.residuals_from(&t), j)
+    }
+
+    fn residuals_from(&self, t: &Series) -> Series {
+        self.data_w
+            .iter()
+            .zip(t)
+            .map(|(de, te)| {
+                de.iter()
+                    .zip(te)
+                    .map(|(d, t)| d.iter().zip(t).map(|(a, b)| a - b).collect())
+                    .collect()
+            })
+            .collect()
+    }
+
+    fn nu(&self, n_params: usize) -> usize {
+        self.lik.nu(n_params)
+    }
+}
