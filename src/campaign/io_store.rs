@@ -133,6 +133,7 @@ pub fn load(path: Option<&Path>) -> Result<Loaded, CampaignError> {
     }
     let scenarios = resolve_scenarios(setup.spec(), &campaign)?;
     check_x_only(&campaign, setup.spec().model)?;
+    super::runner::check_whittle(&campaign, &scenarios)?;
     let mut parts: Vec<&[u8]> = vec![text.as_bytes(), model_text.as_bytes()];
     parts.extend(design_texts.iter().map(|t| t.as_bytes()));
     Ok(Loaded {

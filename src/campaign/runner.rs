@@ -877,7 +877,15 @@ fn whittle_path<'s, M: CampaignModel<N>, const N: usize>(
     let sim = M::campaign_simulator(setup, d, sc)?;
     let at = [sc.truth.clone(), sc.guess.clone()];
     let tol = crate::fit::whittle::DEFAULT_DROP_TOLERANCE;
-    let lik = WhittleLikelihood::new(&setup.model, &sim.inputs, sim.dt, setup.psd(p_w), &at, tol)?;
+    let lik = WhittleLikelihood::new(
+        &setup.model,
+        &sim.inputs,
+        sim.dt,
+        setup.psd(p_w),
+        p_w,
+        &at,
+        tol,
+    )?;
     let same = campaign.fit.whiten_at == WhitenAt::Truth;
     let wsim = WhittleSimulator::new(
         &lik,

@@ -21,7 +21,7 @@ use rand::{Rng, RngExt};
 use rand_distr::StandardNormal;
 
 use crate::data::Series;
-use crate::fit::whittle::{bins_of, whitening_factors, WhittleLikelihood};
+use crate::fit::whittle::{bins_of, lower_times, whitening_factors, WhittleLikelihood};
 use crate::fit::FitError;
 use crate::model::closed_loop::{CMat, ClosedLoopModel};
 use crate::noise::generate::hermitian_cholesky;
@@ -48,12 +48,9 @@ pub struct WhittleSimulator<const N: usize> {
     /// Per experiment: its length's index, and the kept bin index of every bin `k - 1`.
     length_of: Vec<usize>,
     slot: Vec<Vec<Option<usize>>>,
-}
-
-/// `a` times the vector `z`, `a` lower triangular.
-#[inline]
-fn lower_times<const N: usize>(a: &CMat<N>, z: &[Complex64; N]) -> [Complex64; N] {
-    std::array::from_fn(|i| (0..=i).map(|j| a[(i, j)] * z[j]).sum())
+    /// Per experiment and bin `k - 1`: the likelihood's fixed template, subtracted in the
+    /// dropped bins.
+    fixed: Vec<Vec<[Complex64; N]>>,
 }
 
 impl<const N: usize> WhittleSimulator<N> {
@@ -134,6 +131,9 @@ impl<const N: usize> WhittleSimulator<N> {
             })
             .collect();
         Ok(WhittleSimulator {
+            fixed: (0..signal.len())
+                .map(|e| lik.fixed_template(e).to_vec())
+                .collect(),
             dt,
             signal_w,
             lengths,
@@ -162,7 +162,9 @@ impl<const N: usize> WhittleSimulator<N> {
     }
 
     /// Whitened data (signal if `with_signal`, plus the noise of `z`) in the likelihood's
-    /// residual shape: the kept bins interleaved per channel, the dropped bins' norm last.
+    /// residual shape: the kept bins interleaved per channel, and last the norm of the dropped
+    /// bins' data minus the likelihood's fixed template there (for a noise-only run, the
+    /// norm of the noise alone).
     pub fn whitened(&self, z: &WhiteDraw<N>, with_signal: bool) -> Series {
         z.iter()
             .enumerate()
@@ -188,7 +190,15 @@ impl<const N: usize> WhittleSimulator<N> {
                                 exp[c][2 * i + 1] = v.im;
                             }
                         }
-                        None => rest += w.iter().map(|v| v.norm_sqr()).sum::<f64>(),
+                        None if !with_signal => rest += w.iter().map(|v| v.norm_sqr()).sum::<f64>(),
+                        None => {
+                            let h = &self.fixed[e][b];
+                            rest += w
+                                .iter()
+                                .zip(h)
+                                .map(|(v, h)| (v - h).norm_sqr())
+                                .sum::<f64>()
+                        }
                     }
                 }
                 exp.push(vec![rest.sqrt()]);

@@ -41,6 +41,7 @@ mod time_domain_diagnose;
 mod time_domain_effects;
 mod transient;
 mod units;
+mod whittle;
 mod xy_commands;
 mod xy_diagnose;
 mod xy_model;
