@@ -8,10 +8,11 @@ use std::path::Path;
 use crate::analysis::job::{context, DatasetFit, JobError, Notes};
 use crate::analysis::{decimated_telemetry, truth_from_meta};
 use crate::diagnose::tables::Timeline;
+use crate::diagnose::DiagnoseModel;
 use crate::diagnose::{diagnose_observed, DiagnoseConfig, Diagnosis, Observer, Step};
 use crate::io::plot::run_plot_script;
 use crate::io::{create_output_dir, write_text_atomic, Provenance};
-use crate::setup::Setup;
+use crate::setup::SetupOf;
 
 /// The plot script, embedded so that an installed binary plots without the source tree.
 const PLOT_SCRIPT: &str = include_str!("../../scripts/plot_diagnose.py");
@@ -63,28 +64,36 @@ impl Observer for Forward<'_, '_, '_> {
 impl DiagnoseJob {
     /// Diagnoses the dataset at `path` and writes the report folder `out`, handing each note to
     /// `notes` and each stage ([`Step`], in its documented order) to `progress` as it starts.
-    pub fn run(
+    pub fn run<M: DiagnoseModel<N>, const N: usize>(
         &self,
-        setup: &Setup,
+        setup: &SetupOf<M, N>,
         path: &Path,
         out: &Path,
         mut notes: Notes<'_>,
         progress: Progress<'_>,
     ) -> Result<Diagnosis, JobError> {
         // The settings' ranges before any data is read: a bad one is the only line printed.
-        DiagnoseConfig {
+        DiagnoseConfig::<N> {
             order: self.dataset.order,
             poly_degree: self.dataset.poly_degree,
             alpha: self.alpha,
             max_effects: self.max_effects,
             max_glitches: self.max_glitches,
-            ..Default::default()
+            ..DiagnoseConfig::defaults()
         }
         .validate()
         .map_err(context(path.display().to_string()))?;
         progress(Step::Reading);
         let prep = self.dataset.prepare(setup, path, notes)?;
-        self.dataset.check_units(setup, &prep)?;
+        if self.dataset.check_units {
+            match M::check_units(setup, &prep.guess, &prep.ds) {
+                Some(r) => r?,
+                None => notes(&format!(
+                    "no units check of the readouts: it is the lpf_x model's, this is the {} model",
+                    M::KIND.name()
+                )),
+            }
+        }
         let (ds, data) = (&prep.ds, &prep.data);
         let truth = truth_from_meta(ds, &setup.parameter_names());
         let noise: Option<Vec<Vec<f64>>> = ds.noise.as_ref().map(crate::analysis::outputs_of);
@@ -96,7 +105,7 @@ impl DiagnoseJob {
                 )));
             }
         }
-        let cfg = DiagnoseConfig {
+        let cfg = DiagnoseConfig::<N> {
             order: self.dataset.order,
             poly_degree: self.dataset.poly_degree,
             alpha: self.alpha,
@@ -113,7 +122,7 @@ impl DiagnoseJob {
                 .map(std::sync::Arc::new),
             stretch_edges: stretch_edges(&prep),
             aux_guidance: aux_guidance(ds),
-            ..Default::default()
+            ..DiagnoseConfig::defaults()
         };
         let mut d = diagnose_observed(
             setup,
