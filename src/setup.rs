@@ -318,6 +318,16 @@ impl AnySetup {
         Ok(match spec.model {
             ModelKind::LpfX => AnySetup::X(Box::new(Setup::new(spec)?)),
             ModelKind::LpfXy => AnySetup::Xy(Box::new(SetupXy::new(spec)?)),
+            ModelKind::Other(name) => {
+                return Err(ModelError::Invalid {
+                    origin: spec.origin.clone(),
+                    key: "model".into(),
+                    reason: format!(
+                        "'{name}' is not a model of freefall (lpf_x, lpf_xy); a model of your own is built through the library (setup::SetupOf)"
+                    ),
+                }
+                .into())
+            }
         })
     }
 

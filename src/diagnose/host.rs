@@ -38,7 +38,7 @@ use crate::model::effects::{library_for, EffectHost, Extended};
 use crate::model::{LpfX, LpfXy};
 use crate::setup::{SetupOf, SpecModel};
 
-pub use crate::model::effects::Effect;
+use crate::model::effects::Effect;
 
 /// A model the diagnosis runs on: a model built from a model file ([`SpecModel`]) whose
 /// operators the effects can perturb ([`EffectHost`]), with the model-specific products of the

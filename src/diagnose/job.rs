@@ -96,7 +96,18 @@ impl DiagnoseJob {
         }
         let (ds, data) = (&prep.ds, &prep.data);
         let truth = truth_from_meta(ds, &setup.parameter_names());
-        let noise: Option<Vec<Vec<f64>>> = ds.noise.as_ref().map(crate::analysis::outputs_of);
+        // The noise run's readouts of the model, by column name (a model beyond the x
+        // channels reads its other readouts from the run's auxiliary columns).
+        let readouts = setup.model.readout_names();
+        let noise: Option<Vec<Vec<f64>>> = match &ds.noise {
+            Some(r) => Some(
+                readouts
+                    .iter()
+                    .map(|n| r.column(n).map(<[f64]>::to_vec))
+                    .collect::<Result<_, _>>()?,
+            ),
+            None => None,
+        };
         if let Some(nr) = &ds.noise {
             if !crate::numerics::tol::same_time(nr.dt, data.dt) {
                 return Err(JobError::Invalid(format!(
@@ -117,7 +128,7 @@ impl DiagnoseJob {
             glitches: self.glitches,
             transients: self.transients,
             constraints: prep.constraints.clone(),
-            auxiliary: Some(ds.auxiliary_series())
+            auxiliary: Some(own_channels_removed(ds.auxiliary_series(), &setup.model))
                 .filter(|a| !a.is_empty())
                 .map(std::sync::Arc::new),
             stretch_edges: stretch_edges(&prep),
@@ -170,6 +181,38 @@ impl DiagnoseJob {
         write_text_atomic(out.join("report.md"), &md)?;
         Ok(d)
     }
+}
+
+/// The auxiliary channels of a dataset less those the model reads as its own readouts or
+/// guidance (an xy dataset's oy1, ..., oi_y1, ... under the xy model): what remains is another
+/// degree of freedom's record, a cross-talk candidate.
+fn own_channels_removed<M: crate::model::ClosedLoopModel<N>, const N: usize>(
+    mut aux: crate::data::Auxiliary,
+    model: &M,
+) -> crate::data::Auxiliary {
+    let own: Vec<&str> = (model.readout_names().into_iter())
+        .chain(model.input_names())
+        .collect();
+    let keep: Vec<bool> = (aux.channels.iter())
+        .map(|c| !own.contains(&c.column.as_str()))
+        .collect();
+    if keep.iter().all(|k| *k) {
+        return aux;
+    }
+    let pick = |v: Vec<Vec<f64>>| -> Vec<Vec<f64>> {
+        v.into_iter()
+            .zip(&keep)
+            .filter(|(_, k)| **k)
+            .map(|(x, _)| x)
+            .collect()
+    };
+    aux.channels = (aux.channels.into_iter().zip(&keep))
+        .filter(|(_, k)| **k)
+        .map(|(c, _)| c)
+        .collect();
+    aux.experiments = aux.experiments.into_iter().map(pick).collect();
+    aux.noise = aux.noise.map(pick);
+    aux
 }
 
 /// The stretch edges the input notes name as not modelled: the sharp edges of point-sampled

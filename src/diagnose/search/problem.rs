@@ -213,10 +213,12 @@ fn whitening<M: DiagnoseModel<N>, const N: usize>(
         .as_ref()
         .filter(|nr| nr.vif.iter().any(|v| *v > VIF_NOTE))
     {
+        let per: Vec<String> = (setup.model.readout_names().iter().enumerate())
+            .map(|(c, name)| format!("{name} {:.2}", nr.vif.get(c).copied().unwrap_or(1.0)))
+            .collect();
         obs.note(&format!(
-            "the whitened noise run is not quite white (variance inflation of a windowed mean square: o1 {:.2}, o12 {:.2}); the time-window tests use correspondingly fewer degrees of freedom",
-            nr.vif[0],
-            nr.vif.get(1).copied().unwrap_or(1.0)
+            "the whitened noise run is not quite white (variance inflation of a windowed mean square: {}); the time-window tests use correspondingly fewer degrees of freedom",
+            per.join(", ")
         ));
     }
     Ok(Whitening {
