@@ -213,6 +213,13 @@ impl<M: SpecModel<N>, const N: usize> SetupOf<M, N> {
 pub const DEFAULT_PRIOR_RELATIVE: f64 = 1.0;
 
 impl Setup {
+    /// The embedded x model with the thesis's continuous loop (its tables' comparisons).
+    pub fn embedded_continuous() -> Self {
+        Self::new(ModelSpec::embedded_continuous()).expect("embedded model is valid")
+    }
+}
+
+impl<M: SpecModel<N>, const N: usize> SetupOf<M, N> {
     /// The prior (centre, width) of each base parameter, when it has one: a prior of the
     /// diagnosis's constraints (`--prior`), else the model file's.
     pub fn priors(&self, constraints: &crate::fit::Constraints) -> Vec<Option<(f64, f64)>> {
@@ -232,11 +239,6 @@ impl Setup {
             .collect()
     }
 
-    /// The embedded x model with the thesis's continuous loop (its tables' comparisons).
-    pub fn embedded_continuous() -> Self {
-        Self::new(ModelSpec::embedded_continuous()).expect("embedded model is valid")
-    }
-
     /// The whitening filter of data decimated by `decimator` (the time-domain engine's
     /// telemetry): the model's readout PSD at `p` at the simulation rate, filtered by the FIR
     /// and folded onto the analysis band (`fit::telemetry_psd`), with a white floor if the
@@ -248,7 +250,7 @@ impl Setup {
         dt: f64,
         order: usize,
         decimator: &crate::spectral::Decimator,
-    ) -> Result<(Whitener<2>, Option<NullFloor>), Error> {
+    ) -> Result<(Whitener<N>, Option<NullFloor<N>>), Error> {
         let psd = folded(self.psd(p), decimator);
         Ok(match NullFloor::detect(&psd, dt) {
             Some(floor) => (
@@ -316,6 +318,16 @@ impl AnySetup {
         Ok(match spec.model {
             ModelKind::LpfX => AnySetup::X(Box::new(Setup::new(spec)?)),
             ModelKind::LpfXy => AnySetup::Xy(Box::new(SetupXy::new(spec)?)),
+            ModelKind::Other(name) => {
+                return Err(ModelError::Invalid {
+                    origin: spec.origin.clone(),
+                    key: "model".into(),
+                    reason: format!(
+                        "'{name}' is not a model of freefall (lpf_x, lpf_xy); a model of your own is built through the library (setup::SetupOf)"
+                    ),
+                }
+                .into())
+            }
         })
     }
 

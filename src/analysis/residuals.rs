@@ -172,7 +172,8 @@ pub struct ChannelInput<'a> {
     /// Raw residual and the experiment's inputs, full length, for the coherence.
     pub raw: &'a [f64],
     pub inputs: &'a [Vec<f64>],
-    pub input_names: [&'a str; 2],
+    /// The model's guidance inputs, in column order.
+    pub input_names: &'a [&'a str],
     pub dt: f64,
     pub alpha: f64,
     /// Degrees of freedom of the whitening filter's spectrum when it was estimated from a noise

@@ -72,7 +72,7 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
     let Some(dataset) = a.dataset.clone() else {
         bail!("give a dataset TOML (or --list-effects)")
     };
-    let setup = a.model.setup()?;
+    let setup = a.model.any_setup()?;
     if a.simulate_into {
         return simulate(a, &setup, &dataset);
     }
@@ -80,8 +80,9 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
         dataset: a.fit.dataset_fit(), glitches: !a.no_glitches, transients: !a.no_transients,
         plots: !a.no_plots });
     let w = Working::new("diagnosing");
-    let d = job.run(&setup, &dataset, &a.out, &mut |n| w.note(n), &mut |step| {
-        w.message(format!("diagnosing: {step}"))
+    let mut progress = |step| w.message(format!("diagnosing: {step}"));
+    let d = crate::with_setup!(&setup, s => {
+        job.run(s.as_ref(), &dataset, &a.out, &mut |n| w.note(n), &mut progress)
     });
     drop(w);
     let d = d?;
@@ -92,7 +93,7 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
 
 /// `--simulate-into`: kept for one release as an alias of `freefall simulate --effect ...
 /// --rate analysis` with a noise run as long as the experiments (what it always wrote).
-fn simulate(a: DiagnoseArgs, setup: &crate::setup::Setup, dir: &Path) -> Result<()> {
+fn simulate(a: DiagnoseArgs, setup: &AnySetup, dir: &Path) -> Result<()> {
     info!(
         "note: `diagnose --simulate-into DIR` is deprecated and will be removed in the next release; \
          use `freefall simulate --effect ... --rate analysis --out DIR`"
@@ -101,5 +102,5 @@ fn simulate(a: DiagnoseArgs, setup: &crate::setup::Setup, dir: &Path) -> Result<
     let job = job!(s => SimulateJob { scenario, design, seed, effects;
         rate: Some(Rate::Analysis), engine: Engine::FrequencyDomain, initial: None,
         noise_duration: Some(noise), auxiliary: false, commands: false });
-    super::simulate::simulate_into(&AnySetup::X(Box::new(setup.clone())), &job, dir)
+    super::simulate::simulate_into(setup, &job, dir)
 }

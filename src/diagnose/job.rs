@@ -8,10 +8,11 @@ use std::path::Path;
 use crate::analysis::job::{context, DatasetFit, JobError, Notes};
 use crate::analysis::{decimated_telemetry, truth_from_meta};
 use crate::diagnose::tables::Timeline;
+use crate::diagnose::DiagnoseModel;
 use crate::diagnose::{diagnose_observed, DiagnoseConfig, Diagnosis, Observer, Step};
 use crate::io::plot::run_plot_script;
 use crate::io::{create_output_dir, write_text_atomic, Provenance};
-use crate::setup::Setup;
+use crate::setup::SetupOf;
 
 /// The plot script, embedded so that an installed binary plots without the source tree.
 const PLOT_SCRIPT: &str = include_str!("../../scripts/plot_diagnose.py");
@@ -63,31 +64,50 @@ impl Observer for Forward<'_, '_, '_> {
 impl DiagnoseJob {
     /// Diagnoses the dataset at `path` and writes the report folder `out`, handing each note to
     /// `notes` and each stage ([`Step`], in its documented order) to `progress` as it starts.
-    pub fn run(
+    pub fn run<M: DiagnoseModel<N>, const N: usize>(
         &self,
-        setup: &Setup,
+        setup: &SetupOf<M, N>,
         path: &Path,
         out: &Path,
         mut notes: Notes<'_>,
         progress: Progress<'_>,
     ) -> Result<Diagnosis, JobError> {
         // The settings' ranges before any data is read: a bad one is the only line printed.
-        DiagnoseConfig {
+        DiagnoseConfig::<N> {
             order: self.dataset.order,
             poly_degree: self.dataset.poly_degree,
             alpha: self.alpha,
             max_effects: self.max_effects,
             max_glitches: self.max_glitches,
-            ..Default::default()
+            ..DiagnoseConfig::defaults()
         }
         .validate()
         .map_err(context(path.display().to_string()))?;
         progress(Step::Reading);
         let prep = self.dataset.prepare(setup, path, notes)?;
-        self.dataset.check_units(setup, &prep)?;
+        if self.dataset.check_units {
+            match M::check_units(setup, &prep.guess, &prep.ds) {
+                Some(r) => r?,
+                None => notes(&format!(
+                    "no units check of the readouts: it is the lpf_x model's, this is the {} model",
+                    M::KIND.name()
+                )),
+            }
+        }
         let (ds, data) = (&prep.ds, &prep.data);
         let truth = truth_from_meta(ds, &setup.parameter_names());
-        let noise: Option<Vec<Vec<f64>>> = ds.noise.as_ref().map(crate::analysis::outputs_of);
+        // The noise run's readouts of the model, by column name (a model beyond the x
+        // channels reads its other readouts from the run's auxiliary columns).
+        let readouts = setup.model.readout_names();
+        let noise: Option<Vec<Vec<f64>>> = match &ds.noise {
+            Some(r) => Some(
+                readouts
+                    .iter()
+                    .map(|n| r.column(n).map(<[f64]>::to_vec))
+                    .collect::<Result<_, _>>()?,
+            ),
+            None => None,
+        };
         if let Some(nr) = &ds.noise {
             if !crate::numerics::tol::same_time(nr.dt, data.dt) {
                 return Err(JobError::Invalid(format!(
@@ -96,7 +116,7 @@ impl DiagnoseJob {
                 )));
             }
         }
-        let cfg = DiagnoseConfig {
+        let cfg = DiagnoseConfig::<N> {
             order: self.dataset.order,
             poly_degree: self.dataset.poly_degree,
             alpha: self.alpha,
@@ -108,12 +128,12 @@ impl DiagnoseJob {
             glitches: self.glitches,
             transients: self.transients,
             constraints: prep.constraints.clone(),
-            auxiliary: Some(ds.auxiliary_series())
+            auxiliary: Some(own_channels_removed(ds.auxiliary_series(), &setup.model))
                 .filter(|a| !a.is_empty())
                 .map(std::sync::Arc::new),
             stretch_edges: stretch_edges(&prep),
             aux_guidance: aux_guidance(ds),
-            ..Default::default()
+            ..DiagnoseConfig::defaults()
         };
         let mut d = diagnose_observed(
             setup,
@@ -161,6 +181,38 @@ impl DiagnoseJob {
         write_text_atomic(out.join("report.md"), &md)?;
         Ok(d)
     }
+}
+
+/// The auxiliary channels of a dataset less those the model reads as its own readouts or
+/// guidance (an xy dataset's oy1, ..., oi_y1, ... under the xy model): what remains is another
+/// degree of freedom's record, a cross-talk candidate.
+fn own_channels_removed<M: crate::model::ClosedLoopModel<N>, const N: usize>(
+    mut aux: crate::data::Auxiliary,
+    model: &M,
+) -> crate::data::Auxiliary {
+    let own: Vec<&str> = (model.readout_names().into_iter())
+        .chain(model.input_names())
+        .collect();
+    let keep: Vec<bool> = (aux.channels.iter())
+        .map(|c| !own.contains(&c.column.as_str()))
+        .collect();
+    if keep.iter().all(|k| *k) {
+        return aux;
+    }
+    let pick = |v: Vec<Vec<f64>>| -> Vec<Vec<f64>> {
+        v.into_iter()
+            .zip(&keep)
+            .filter(|(_, k)| **k)
+            .map(|(x, _)| x)
+            .collect()
+    };
+    aux.channels = (aux.channels.into_iter().zip(&keep))
+        .filter(|(_, k)| **k)
+        .map(|(c, _)| c)
+        .collect();
+    aux.experiments = aux.experiments.into_iter().map(pick).collect();
+    aux.noise = aux.noise.map(pick);
+    aux
 }
 
 /// The stretch edges the input notes name as not modelled: the sharp edges of point-sampled

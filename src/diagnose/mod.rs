@@ -64,6 +64,7 @@
 pub mod bayes_report;
 pub mod evidence;
 pub mod families;
+pub mod host;
 pub mod job;
 pub mod report;
 pub(crate) mod search;
@@ -73,6 +74,7 @@ pub mod types;
 pub use crate::analysis::residuals::{ChannelReport, SpectrumCurve};
 pub use families::excess::ExcessKind;
 pub use families::tension::{Explanation, PriorTension};
+pub use host::DiagnoseModel;
 pub use search::observer::{Notes, Observer, Round, Step, StopReason};
 pub use search::problem::DiagnosisProblem;
 pub use search::run::{diagnose, diagnose_observed};

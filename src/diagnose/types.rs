@@ -8,11 +8,9 @@ use serde::Serialize;
 
 use super::{ChannelReport, ExcessKind, Family, PriorTension, SpectrumCurve};
 use crate::fit::FitError;
-use crate::model::effects::{library, Effect};
+use crate::model::effects::{library_for, Effect};
 use crate::setup::{DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 use crate::sim::Series;
-
-pub use crate::model::lpf_x::Channel;
 
 #[derive(Debug, thiserror::Error)]
 pub enum DiagnoseError {
@@ -35,9 +33,9 @@ pub enum DiagnoseError {
 pub const MAX_ADDED: usize = 20;
 const MAX_ADDED_TEXT: &str = "at most 20";
 
-/// Settings of a diagnosis.
+/// Settings of a diagnosis of a model of `N` readouts (by default the x model's two).
 #[derive(Debug, Clone)]
-pub struct DiagnoseConfig {
+pub struct DiagnoseConfig<const N: usize = 2> {
     pub order: usize,
     pub poly_degree: usize,
     /// Family-wise false-alarm probability of each round's decision.
@@ -48,7 +46,9 @@ pub struct DiagnoseConfig {
     pub max_glitches: usize,
     /// How many of the best-scoring candidates of each family are refitted per round.
     pub confirm_top: usize,
-    pub effects: Vec<Arc<dyn Effect>>,
+    /// The operator candidates (default: the whole library; the library effects the model
+    /// does not host, [`super::DiagnoseModel::effects`], are left out of the search).
+    pub effects: Vec<Arc<dyn Effect<N>>>,
     /// |correlation| above which an effect is flagged as degenerate with a fitted parameter.
     pub degeneracy: f64,
     /// Whiten with the model noise PSD at the starting point even when a noise run is given
@@ -95,8 +95,16 @@ pub struct DiagnoseConfig {
 /// report's stretch windows).
 pub const EDGE_TRANSIENT_S: f64 = 20.0;
 
+/// The x model's defaults ([`DiagnoseConfig::defaults`]).
 impl Default for DiagnoseConfig {
     fn default() -> Self {
+        Self::defaults()
+    }
+}
+
+impl<const N: usize> DiagnoseConfig<N> {
+    /// The defaults for a model of `N` readouts: the whole effect library as candidates.
+    pub fn defaults() -> Self {
         DiagnoseConfig {
             order: DEFAULT_WHITENING_ORDER,
             poly_degree: DEFAULT_POLY_DEGREE,
@@ -104,7 +112,7 @@ impl Default for DiagnoseConfig {
             max_effects: 3,
             max_glitches: 3,
             confirm_top: 3,
-            effects: library(),
+            effects: library_for::<N>(),
             degeneracy: 0.95, // |correlation| above which two effects are one
             whiten_from_model: false,
             decimated_telemetry: false,
@@ -118,9 +126,7 @@ impl Default for DiagnoseConfig {
             aux_guidance: Vec::new(),
         }
     }
-}
 
-impl DiagnoseConfig {
     /// Check every setting's range (see [`crate::config`]) before any work starts: an `alpha`
     /// of 1.5 has no quantile, and an order of 0 would "diagnose" unwhitened data.
     pub fn validate(&self) -> Result<(), crate::config::OutOfRange> {

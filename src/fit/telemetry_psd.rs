@@ -82,12 +82,12 @@ pub fn folded<'a, const N: usize>(
 /// arguments are those of [`folded`]; only the gains' rounding differs (a few 1e-16 of the DC
 /// gain). The cost is one PSD evaluation per image and grid point, without the `taps / 2`
 /// cosines per image.
-pub fn folded_on_grid(
-    psd: impl Fn(f64) -> CMat<2>,
+pub fn folded_on_grid<const N: usize>(
+    psd: impl Fn(f64) -> CMat<N>,
     decimator: &Decimator,
     step: f64,
     m_range: std::ops::RangeInclusive<i64>,
-) -> Vec<CMat<2>> {
+) -> Vec<CMat<N>> {
     let (fs_in, fs_out) = (decimator.fs_in(), decimator.fs_out());
     let m = decimator.factor() as i64;
     let per_image = fs_out / step;
@@ -98,7 +98,7 @@ pub fn folded_on_grid(
     m_range
         .map(|i| {
             let f = i as f64 * step;
-            let mut s = CMat::<2>::zeros();
+            let mut s = CMat::<N>::zeros();
             for k in -m..=m {
                 let fk = f + k as f64 * fs_out;
                 if fk == 0.0 || fk.abs() >= 0.5 * fs_in {
@@ -124,38 +124,40 @@ pub fn folded_on_grid(
         .collect()
 }
 
-/// The white floor added to the folded PSD of a decimated channel set (module doc).
+/// The white floor added to the folded PSD of a decimated channel set (module doc), per
+/// readout channel of an `N`-readout model (each channel's null is found and floored on its
+/// own, on the diagonal).
 #[derive(Debug, Clone, Copy, PartialEq)]
-pub struct NullFloor {
+pub struct NullFloor<const N: usize = 2> {
     /// One-sided PSD added to each channel's diagonal (0: that channel has no null).
-    pub level: [f64; 2],
+    pub level: [f64; N],
     /// Depth of each channel's null: its smallest folded PSD over its in-band level.
-    pub depth: [f64; 2],
+    pub depth: [f64; N],
     /// Fraction of `(0, fs_out / 2]` where the floor exceeds the folded PSD, per channel.
-    pub band_fraction: [f64; 2],
+    pub band_fraction: [f64; N],
 }
 
-impl NullFloor {
+impl<const N: usize> NullFloor<N> {
     /// The floor needed by `psd` (a folded telemetry PSD) at output interval `dt`, or `None`
     /// when no channel has a null.
-    pub fn detect(psd: &impl Fn(f64) -> CMat<2>, dt: f64) -> Option<NullFloor> {
+    pub fn detect(psd: &impl Fn(f64) -> CMat<N>, dt: f64) -> Option<NullFloor<N>> {
         let nyquist = 0.5 / dt;
         let grid: Vec<f64> = (1..=SCAN_POINTS)
             .map(|i| nyquist * i as f64 / SCAN_POINTS as f64)
             .collect();
-        let diag: Vec<[f64; 2]> = grid
+        let diag: Vec<[f64; N]> = grid
             .iter()
             .map(|&f| {
                 let s = psd(f);
-                [s[(0, 0)].re, s[(1, 1)].re]
+                std::array::from_fn(|c| s[(c, c)].re)
             })
             .collect();
         let mut floor = NullFloor {
-            level: [0.0; 2],
-            depth: [1.0; 2],
-            band_fraction: [0.0; 2],
+            level: [0.0; N],
+            depth: [1.0; N],
+            band_fraction: [0.0; N],
         };
-        for c in 0..2 {
+        for c in 0..N {
             let mut band: Vec<f64> = grid
                 .iter()
                 .zip(&diag)
@@ -172,25 +174,26 @@ impl NullFloor {
                 floor.band_fraction[c] = under as f64 / SCAN_POINTS as f64;
             }
         }
-        (floor.level != [0.0; 2]).then_some(floor)
+        (floor.level != [0.0; N]).then_some(floor)
     }
 
     /// `psd` with the floor on its diagonal.
-    pub fn apply<'a>(&'a self, psd: impl Fn(f64) -> CMat<2> + 'a) -> impl Fn(f64) -> CMat<2> + 'a {
+    pub fn apply<'a>(&'a self, psd: impl Fn(f64) -> CMat<N> + 'a) -> impl Fn(f64) -> CMat<N> + 'a {
         move |f: f64| {
             let mut s = psd(f);
-            for c in 0..2 {
+            for c in 0..N {
                 s[(c, c)] += Complex64::new(self.level[c], 0.0);
             }
             s
         }
     }
 
-    /// One line for reports: what was floored, how deep the null was and how much of the band
-    /// the floor covers.
-    pub fn note(&self) -> String {
-        let parts: Vec<String> = ["o1", "o12"]
+    /// One line for reports: what was floored (readouts named by `names`, the model's
+    /// readout names), how deep the null was and how much of the band the floor covers.
+    pub fn note_named(&self, names: &[&str]) -> String {
+        let parts: Vec<String> = names
             .iter()
+            .take(N)
             .enumerate()
             .filter(|(c, _)| self.level[*c] > 0.0)
             .map(|(c, name)| {
@@ -207,6 +210,13 @@ impl NullFloor {
             IN_BAND[0],
             IN_BAND[1]
         )
+    }
+}
+
+impl NullFloor<2> {
+    /// [`NullFloor::note_named`] of the x model's readouts o1, o12.
+    pub fn note(&self) -> String {
+        self.note_named(&["o1", "o12"])
     }
 }
 

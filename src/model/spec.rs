@@ -17,42 +17,94 @@ pub const EMBEDDED_LPF_XY: &str = include_str!("lpf_xy.toml");
 
 /// Which closed-loop model a model file describes (its top-level `model = "..."`; default
 /// `lpf_x`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum ModelKind {
     /// Along the optical axis (thesis sec. 3.3): readouts o1, o12.
     #[default]
-    #[serde(rename = "lpf_x")]
     LpfX,
     /// The xy cross-talk model (thesis sec. 3.5): o1, o12, oy1, oy2, ophi1, ophi2, ophiSC.
-    #[serde(rename = "lpf_xy")]
     LpfXy,
+    /// A model outside freefall, by the name its model file gives (`model = "oscillator"`):
+    /// a library user's own model (`setup::SpecModel::KIND`), reached through the library's
+    /// generic functions on `SetupOf<M, N>`, not through the command line. Its file has no
+    /// fixed parameter list or noise entries here: the model checks them when it is built
+    /// (`SpecModel::from_spec`, `ClosedLoopModel::noise_entry`).
+    Other(&'static str),
 }
 
+impl<'de> Deserialize<'de> for ModelKind {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let name = String::deserialize(d)?;
+        Ok(ModelKind::named(&name))
+    }
+}
+
+/// The names of the models outside freefall met so far, each stored once for the life of the
+/// process (a [`ModelKind`] is `Copy`).
+static OTHER_NAMES: std::sync::Mutex<Vec<&'static str>> = std::sync::Mutex::new(Vec::new());
+
 impl ModelKind {
+    /// The kind a model file's `model = "name"` names.
+    pub fn named(name: &str) -> ModelKind {
+        match name {
+            "lpf_x" => ModelKind::LpfX,
+            "lpf_xy" => ModelKind::LpfXy,
+            other => {
+                let mut names = OTHER_NAMES.lock().unwrap_or_else(|e| e.into_inner());
+                let stored = match names.iter().find(|n| **n == other) {
+                    Some(n) => *n,
+                    None => {
+                        let n: &'static str = Box::leak(other.to_string().into_boxed_str());
+                        names.push(n);
+                        n
+                    }
+                };
+                ModelKind::Other(stored)
+            }
+        }
+    }
+
     pub fn name(self) -> &'static str {
         match self {
             ModelKind::LpfX => "lpf_x",
             ModelKind::LpfXy => "lpf_xy",
+            ModelKind::Other(name) => name,
         }
     }
 
-    /// The model's noise entry points (`enters` of a `[noise]` source).
-    pub fn noise_entries(self) -> &'static [&'static str] {
+    /// The model's noise entry points (`enters` of a `[noise]` source); `None` for a model
+    /// outside freefall, which checks its own.
+    pub fn noise_entries(self) -> Option<&'static [&'static str]> {
         match self {
-            ModelKind::LpfX => &["f_sc", "f_1", "f_2", "o_1", "o_12"],
-            ModelKind::LpfXy => &[
+            ModelKind::LpfX => Some(&["f_sc", "f_1", "f_2", "o_1", "o_12"]),
+            ModelKind::LpfXy => Some(&[
                 "f_sc", "f_1", "f_2", "o_1", "o_12", "f_sc_y", "f_1y", "f_2y", "t_sc", "t_1",
                 "t_2", "o_y1", "o_y2", "o_phi1", "o_phi12", "o_phisc",
-            ],
+            ]),
+            ModelKind::Other(_) => None,
+        }
+    }
+
+    /// The embedded model file of this kind; `None` for a model outside freefall.
+    pub fn embedded(self) -> Option<(&'static str, &'static str)> {
+        match self {
+            ModelKind::LpfX => Some((EMBEDDED_LPF_X, "embedded lpf_x.toml")),
+            ModelKind::LpfXy => Some((EMBEDDED_LPF_XY, "embedded lpf_xy.toml")),
+            ModelKind::Other(_) => None,
         }
     }
 
     /// The embedded model file of this kind.
+    ///
+    /// # Panics
+    /// For a model outside freefall, which has none ([`Self::embedded`]).
     pub fn embedded_text(self) -> (&'static str, &'static str) {
-        match self {
-            ModelKind::LpfX => (EMBEDDED_LPF_X, "embedded lpf_x.toml"),
-            ModelKind::LpfXy => (EMBEDDED_LPF_XY, "embedded lpf_xy.toml"),
-        }
+        self.embedded().unwrap_or_else(|| {
+            panic!(
+                "the {} model is not built into freefall: it has no embedded model file",
+                self.name()
+            )
+        })
     }
 }
 
@@ -447,8 +499,8 @@ impl ModelSpec {
         let names: Vec<&str> = self.parameters.iter().map(|p| p.name.as_str()).collect();
         for (name, src) in &self.noise {
             let key = format!("noise.{name}");
-            let entries = self.model.noise_entries();
-            if !entries.contains(&src.enters.as_str()) {
+            let entries = self.model.noise_entries().unwrap_or(&[]);
+            if self.model.noise_entries().is_some() && !entries.contains(&src.enters.as_str()) {
                 return Err(self.bad(
                     &format!("{key}.enters"),
                     format!(
@@ -683,11 +735,13 @@ impl ModelSpec {
 
     fn validate_parameters(&self) -> Result<(), ModelError> {
         let names: Vec<&str> = self.parameters.iter().map(|p| p.name.as_str()).collect();
-        let needed: &[&str] = match self.model {
-            ModelKind::LpfX => &LPF_X_PARAMETERS,
-            ModelKind::LpfXy => &super::lpf_xy::LPF_XY_PARAMETERS,
+        let needed: Option<&[&str]> = match self.model {
+            ModelKind::LpfX => Some(&LPF_X_PARAMETERS),
+            ModelKind::LpfXy => Some(&super::lpf_xy::LPF_XY_PARAMETERS),
+            // A model outside freefall checks its parameters when it is built.
+            ModelKind::Other(_) => None,
         };
-        if names != needed {
+        if let Some(needed) = needed.filter(|n| names != *n) {
             return Err(self.bad(
                 "parameter",
                 format!(

@@ -130,13 +130,13 @@ pub enum Leak {
 /// (0: o1, 1: o12) of `model` at `p`: `Delta^-1 D S^-1 e_channel x` (module doc), by FFT with
 /// zero padding to at least twice the length (a linear, not circular, filter; the loop starts
 /// from rest at the first sample).
-pub fn in_loop<M: ClosedLoopModel<2>>(
+pub fn in_loop<M: ClosedLoopModel<N>, const N: usize>(
     model: &M,
     p: &[f64],
     x: &[f64],
     channel: usize,
     dt: f64,
-) -> [Vec<f64>; 2] {
+) -> [Vec<f64>; N] {
     through_loop(model, p, x, channel, Leak::Sensor, dt)
 }
 
@@ -144,15 +144,16 @@ pub fn in_loop<M: ClosedLoopModel<2>>(
 /// at `leak` of row `channel` (0: o1 / x1, 1: o12 / x12): `Delta^-1 D S^-1 e_channel x` for a
 /// sensing, `Delta^-1 e_channel x` for a force cross-talk, by FFT with zero padding to at
 /// least twice the length (a linear, not circular, filter; the loop starts from rest at the
-/// first sample).
-pub fn through_loop<M: ClosedLoopModel<2>>(
+/// first sample). For a model of `N` readouts the response is that of all `N`, row
+/// `channel` the readout (or coordinate) it enters.
+pub fn through_loop<M: ClosedLoopModel<N>, const N: usize>(
     model: &M,
     p: &[f64],
     x: &[f64],
     channel: usize,
     leak: Leak,
     dt: f64,
-) -> [Vec<f64>; 2] {
+) -> [Vec<f64>; N] {
     // The loop's response per bin; the DC bin takes its limit at low frequency (D has s^2,
     // Delta^-1 finite).
     let df = 1.0 / ((2 * x.len()).next_power_of_two() as f64 * dt);
@@ -161,19 +162,19 @@ pub fn through_loop<M: ClosedLoopModel<2>>(
         let tr = transfer(model, &model.prepare(f), p);
         let h = match leak {
             Leak::Sensor => {
-                let s_inv = tr.ops.s.try_inverse().unwrap_or_else(CMat::<2>::identity);
+                let s_inv = tr.ops.s.try_inverse().unwrap_or_else(CMat::<N>::identity);
                 tr.delta_inv * tr.ops.d * s_inv
             }
             Leak::Force => tr.delta_inv,
         };
-        [h[(0, channel)], h[(1, channel)]]
+        std::array::from_fn(|r| h[(r, channel)])
     })
 }
 
 /// Adds each cross-talk of `leaks`, through the loop of `model` at `p` ([`in_loop`]), to the
 /// readouts of the experiments `data` and of the noise run `noise`, from the recorded series
 /// `aux`. Errors name a column `aux` does not have.
-pub fn apply<M: ClosedLoopModel<2>>(
+pub fn apply<M: ClosedLoopModel<N>, const N: usize>(
     model: &M,
     p: &[f64],
     aux: &Auxiliary,

@@ -22,7 +22,6 @@
 use num_complex::Complex64;
 
 use crate::model::closed_loop::{transfer, CMat, ClosedLoopModel, NoiseEntry};
-use crate::model::effects::Extended;
 use crate::numerics::tol::DC_BIN_FRACTION;
 
 /// Where a glitch enters the loop.
@@ -111,16 +110,17 @@ impl Grid {
     }
 }
 
-/// Loop response `h(f)` (2 readouts) to a unit source at `entry`, on the grid's bins, at full
-/// parameters `p` of `model`.
-pub fn entry_response(
-    model: &Extended,
+/// Loop response `h(f)` (the model's `N` readouts) to a unit source at `entry`, on the grid's
+/// bins, at full parameters `p` of `model`; zero when the model has no such noise entry
+/// ([`ClosedLoopModel::noise_entry`]).
+pub fn entry_response<M: ClosedLoopModel<N>, const N: usize>(
+    model: &M,
     p: &[f64],
     grid: &Grid,
     entry: Entry,
-) -> Vec<[Complex64; 2]> {
+) -> Vec<[Complex64; N]> {
     let Some(e) = model.noise_entry(entry.noise_entry()) else {
-        return vec![[Complex64::new(0.0, 0.0); 2]; grid.m / 2 + 1];
+        return vec![[Complex64::new(0.0, 0.0); N]; grid.m / 2 + 1];
     };
     grid.freqs()
         .into_iter()
@@ -128,22 +128,20 @@ pub fn entry_response(
             let tr = transfer(model, &model.prepare(f), p);
             let v = match e {
                 NoiseEntry::Force(g) => {
-                    let g = nalgebra::Vector2::new(
-                        Complex64::new(g[0], 0.0),
-                        Complex64::new(g[1], 0.0),
-                    );
+                    let g = nalgebra::SVector::<Complex64, N>::from_fn(|r, _| {
+                        Complex64::new(g[r], 0.0)
+                    });
                     tr.delta_inv * g
                 }
                 NoiseEntry::Readout(w) => {
-                    let w = nalgebra::Vector2::new(
-                        Complex64::new(w[0], 0.0),
-                        Complex64::new(w[1], 0.0),
-                    );
-                    let s_inv = tr.ops.s.try_inverse().unwrap_or_else(CMat::<2>::identity);
+                    let w = nalgebra::SVector::<Complex64, N>::from_fn(|r, _| {
+                        Complex64::new(w[r], 0.0)
+                    });
+                    let s_inv = tr.ops.s.try_inverse().unwrap_or_else(CMat::<N>::identity);
                     tr.delta_inv * (tr.ops.d * s_inv) * w
                 }
             };
-            [v[0], v[1]]
+            std::array::from_fn(|r| v[r])
         })
         .collect()
 }
@@ -156,18 +154,18 @@ pub enum Part {
     DTau,
 }
 
-/// Time series (2 channels, length n) of the response `h` (optionally left-filtered by `w`
+/// Time series (`N` channels, length n) of the response `h` (optionally left-filtered by `w`
 /// per bin) to a unit-amplitude pulse of `entry` at `t0` (s) with width `tau` (s), or its
 /// derivative with respect to `t0` or `tau`.
-pub fn synthesize(
+pub fn synthesize<const N: usize>(
     grid: &Grid,
-    h: &[[Complex64; 2]],
-    w: Option<&[CMat<2>]>,
+    h: &[[Complex64; N]],
+    w: Option<&[CMat<N>]>,
     entry: Entry,
     t0: f64,
     tau: f64,
     part: Part,
-) -> [Vec<f64>; 2] {
+) -> [Vec<f64>; N] {
     let freqs = grid.freqs();
     let tau = tau.max(1e-9); // 1 ns: a delta pulse at any telemetry rate
     let norm = if entry.is_force() {
@@ -176,10 +174,8 @@ pub fn synthesize(
         tau * std::f64::consts::PI.sqrt() / grid.dt
     };
     let pi = std::f64::consts::PI;
-    let mut specs = [
-        vec![Complex64::new(0.0, 0.0); freqs.len()],
-        vec![Complex64::new(0.0, 0.0); freqs.len()],
-    ];
+    let mut specs: [Vec<Complex64>; N] =
+        std::array::from_fn(|_| vec![Complex64::new(0.0, 0.0); freqs.len()]);
     for (k, &f) in freqs.iter().enumerate() {
         let f = if k == 0 { 0.0 } else { f };
         let g = (-(pi * f * tau).powi(2)).exp() * norm;
@@ -196,17 +192,18 @@ pub fn synthesize(
         let mut v = h[k];
         if let Some(w) = w {
             let wk = &w[k];
-            v = [
-                wk[(0, 0)] * h[k][0] + wk[(0, 1)] * h[k][1],
-                wk[(1, 0)] * h[k][0] + wk[(1, 1)] * h[k][1],
-            ];
+            // Row by row, summed from the first column on (the same rounding at every N).
+            v = std::array::from_fn(|r| {
+                (1..N).fold(wk[(r, 0)] * h[k][0], |acc, j| acc + wk[(r, j)] * h[k][j])
+            });
         }
-        specs[0][k] = v[0] * p;
-        specs[1][k] = v[1] * p;
+        for (spec, v) in specs.iter_mut().zip(v) {
+            spec[k] = v * p;
+        }
     }
     let inv = crate::numerics::fft::real_inverse(grid.m);
     let mut scratch = inv.make_output_vec();
-    let mut out = [Vec::new(), Vec::new()];
+    let mut out: [Vec<f64>; N] = std::array::from_fn(|_| Vec::new());
     for (o, mut spec) in out.iter_mut().zip(specs) {
         spec[0].im = 0.0;
         if grid.m.is_multiple_of(2) {
@@ -235,8 +232,8 @@ pub struct SimGlitch {
 
 /// Add the loop's response to glitch `g` to the readouts `outputs[e][c]` (n samples at `dt`)
 /// of `model` at full parameters `p` (the same response the diagnosis fits).
-pub fn add_glitch(
-    model: &Extended,
+pub fn add_glitch<M: ClosedLoopModel<N>, const N: usize>(
+    model: &M,
     p: &[f64],
     outputs: &mut [Vec<Vec<f64>>],
     dt: f64,

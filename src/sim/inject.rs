@@ -14,7 +14,7 @@
 
 use super::glitch::{self, Entry, SimGlitch};
 use crate::fit::ExperimentData;
-use crate::model::effects::Extended;
+use crate::model::ClosedLoopModel;
 
 /// Name prefix of a sensing cross-talk from an auxiliary readout, in `--effect` specs and in
 /// the diagnosis's effect names: `aux_crosstalk_COLUMN_CHANNEL`.
@@ -168,8 +168,8 @@ fn experiments(
 
 /// Add `items` to the readouts of `data` (experiments only, not a noise run), glitches through
 /// the closed loop of `model` at full parameters `p`.
-pub fn apply(
-    model: &Extended,
+pub fn apply<M: ClosedLoopModel<N>, const N: usize>(
+    model: &M,
     p: &[f64],
     data: &mut ExperimentData,
     items: &[Injected],

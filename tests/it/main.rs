@@ -36,6 +36,7 @@ mod redesign;
 mod simulation;
 mod slurm;
 mod spectral;
+mod third_model;
 mod time_domain;
 mod time_domain_diagnose;
 mod time_domain_effects;

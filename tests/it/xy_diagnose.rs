@@ -293,3 +293,73 @@ fn an_xy_effect_at_zero_draws_the_plain_dataset_and_x_only_kinds_are_refused() {
         "{err}"
     );
 }
+
+/// `diagnose --model lpf_xy` of `ds` into `out` (no plots, [`HELD`] fixed, whitening order
+/// `order`): its report.json.
+fn diagnose_xy(ds: &std::path::Path, out: &std::path::Path, order: &str) -> Value {
+    let mut args = vec![
+        "diagnose",
+        ds.to_str().unwrap(),
+        "--model",
+        "lpf_xy",
+        "--order",
+        order,
+        "--no-plots",
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    for h in HELD {
+        args.extend(["--fix", h]);
+    }
+    ok(&args);
+    serde_json::from_str(&std::fs::read_to_string(out.join("report.json")).unwrap()).unwrap()
+}
+
+/// The xy model's own diagnosis (`--model lpf_xy`), on a dataset that declares its design.
+#[test]
+fn the_xy_models_diagnosis_of_a_declared_xy_design_finds_a_planted_effect() {
+    // Oracle: the simulated truth (phi_tm2 = 0.02 on the xy model's TM2 stiffness along x,
+    // scenario nominal). The dataset declares `[injections] design = "standard_xy"` (a design
+    // of lpf_xy.toml, which the x model does not have). The xy model's diagnosis, fitting all
+    // seven readouts of the seven experiments, claims loss_angle_tm2 within 3 sigma of 0.02
+    // and no other operator effect; its residual table has a row for every readout of the xy
+    // model.
+    let dir = tempfile::tempdir().unwrap();
+    let ds = simulate(
+        dir.path(),
+        "nominal",
+        "7",
+        &["--effect", "loss_angle_tm2=0.02"],
+    );
+    let text = std::fs::read_to_string(&ds).unwrap();
+    std::fs::write(
+        &ds,
+        text.replacen(
+            "[[experiment]]",
+            "[injections]\ndesign = \"standard_xy\"\n\n[[experiment]]",
+            1,
+        ),
+    )
+    .unwrap();
+    let r = diagnose_xy(&ds, &dir.path().join("d"), "40");
+    let a = added(&r);
+    let (_, phi, s, _) = a
+        .iter()
+        .find(|(n, ..)| n == "loss_angle_tm2")
+        .unwrap_or_else(|| panic!("loss_angle_tm2 not claimed: {a:?}"));
+    assert!(((phi - 0.02) / s).abs() < 3.0, "phi_tm2 = {phi:e} +- {s:e}");
+    let others: Vec<_> = a
+        .iter()
+        .filter(|(n, _, _, f)| n != "loss_angle_tm2" && f != "glitch" && f != "line")
+        .collect();
+    assert!(others.is_empty(), "claimed {others:?}");
+    let channels: std::collections::BTreeSet<&str> = r["before"]["channels"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| c["channel"].as_str().unwrap())
+        .collect();
+    for readout in ["o1", "o12", "oy1", "oy2", "ophi1", "ophi2", "ophisc"] {
+        assert!(channels.contains(readout), "{readout} not in {channels:?}");
+    }
+}

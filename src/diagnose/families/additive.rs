@@ -38,9 +38,9 @@
 
 use nalgebra::DMatrix;
 
+use crate::diagnose::DiagnoseModel;
 use crate::fit::{ExperimentData, Likelihood};
 use crate::model::effects::{Category, Extended};
-use crate::model::ClosedLoopModel;
 use crate::sim::auxiliary::{through_loop, Leak};
 use crate::sim::glitch::{self, Entry, Grid, Part};
 use crate::sim::Series;
@@ -59,6 +59,8 @@ pub enum Additive {
         experiment: usize,
         experiment_name: String,
         channel: usize,
+        /// The readout's name (the model's `readout_names()[channel]`).
+        channel_name: &'static str,
         f_hz: f64,
     },
     Drift {
@@ -72,8 +74,9 @@ pub enum Additive {
         /// Index of the auxiliary channel in the diagnosis's [`crate::data::Auxiliary`].
         aux: usize,
         column: String,
-        /// Readout it leaks into (0: o1, 1: o12).
+        /// Readout it leaks into (0: o1, 1: o12), and its name.
         channel: usize,
+        channel_name: &'static str,
         /// The rate term `k' da/dt` instead of the static `k a`.
         rate: bool,
         /// Where it enters the loop: the sensor (a readout's sensing cross-talk) or the
@@ -113,9 +116,15 @@ impl PartialEq for AuxSeries {
 }
 
 impl Additive {
-    /// The cross-talk candidates of every auxiliary channel of `aux` into each readout: the
-    /// static and rate sensing cross-talks of a readout, the force cross-talk of a command.
-    pub fn aux_crosstalks(aux: &crate::data::Auxiliary, dt: f64) -> Vec<Additive> {
+    /// The cross-talk candidates of every auxiliary channel of `aux` into each readout of the
+    /// x block (the first two of `readouts`, the model's readout names: o1 and o12 of the x
+    /// and xy models; a one-readout model has one): the static and rate sensing cross-talks of
+    /// a readout, the force cross-talk of a command.
+    pub fn aux_crosstalks(
+        aux: &crate::data::Auxiliary,
+        dt: f64,
+        readouts: &[&'static str],
+    ) -> Vec<Additive> {
         let mut out = Vec::new();
         for (k, ch) in aux.channels.iter().enumerate() {
             let command = ch.role == crate::data::AuxRole::Command;
@@ -138,11 +147,12 @@ impl Additive {
                     })
                     .collect();
                 let series = AuxSeries(std::sync::Arc::new(series));
-                for channel in 0..2 {
+                for (channel, &channel_name) in readouts.iter().enumerate().take(2) {
                     out.push(Additive::AuxCrosstalk {
                         aux: k,
                         column: ch.column.clone(),
                         channel,
+                        channel_name,
                         rate,
                         leak,
                         series: series.clone(),
@@ -156,13 +166,13 @@ impl Additive {
     /// For an auxiliary cross-talk: its template over the noise run of `aux` (the series or
     /// its rate, through the loop of `model` at `p`: `sim::auxiliary::through_loop`), both
     /// readouts.
-    pub fn noise_template(
+    pub fn noise_template<M: DiagnoseModel<N>, const N: usize>(
         &self,
-        model: &Extended,
+        model: &Extended<M, N>,
         p: &[f64],
         aux: &crate::data::Auxiliary,
         dt: f64,
-    ) -> Option<[Vec<f64>; 2]> {
+    ) -> Option<[Vec<f64>; N]> {
         match self {
             Additive::AuxCrosstalk {
                 aux: k,
@@ -185,7 +195,10 @@ impl Additive {
     }
 
     /// A drift of base parameter `name` of `model`, if it has one.
-    pub fn drift(model: &Extended, name: &str) -> Option<Additive> {
+    pub fn drift<M: DiagnoseModel<N>, const N: usize>(
+        model: &Extended<M, N>,
+        name: &str,
+    ) -> Option<Additive> {
         let k = model
             .base
             .parameter_names()
@@ -243,12 +256,11 @@ impl Additive {
         match self {
             Additive::Line {
                 experiment_name,
-                channel,
+                channel_name,
                 f_hz,
                 ..
             } => format!(
-                "line_{experiment_name}_{}_{:.2}mhz",
-                ["o1", "o12"][(*channel).min(1)],
+                "line_{experiment_name}_{channel_name}_{:.2}mhz",
                 f_hz * 1e3 // mHz
             ),
             Additive::Drift {
@@ -267,18 +279,17 @@ impl Additive {
             } => format!("glitch_{experiment_name}_{}_{:.0}s", entry.key(), t0),
             Additive::AuxCrosstalk {
                 column,
-                channel,
+                channel_name,
                 rate,
                 leak,
                 ..
             } => format!(
-                "{}{}{column}_{}",
+                "{}{}{column}_{channel_name}",
                 match leak {
                     Leak::Sensor => crate::sim::inject::AUX_CROSSTALK_PREFIX,
                     Leak::Force => AUX_FORCE_PREFIX,
                 },
                 if *rate { "rate_" } else { "" },
-                ["o1", "o12"][(*channel).min(1)]
             ),
         }
     }
@@ -287,12 +298,11 @@ impl Additive {
         match self {
             Additive::Line {
                 experiment_name,
-                channel,
+                channel_name,
                 f_hz,
                 ..
             } => format!(
-                "{experiment_name} {} at {:.4} mHz",
-                ["o1", "o12"][(*channel).min(1)],
+                "{experiment_name} {channel_name} at {:.4} mHz",
                 f_hz * 1e3 // mHz
             ),
             Additive::Drift {
@@ -330,11 +340,10 @@ impl Additive {
             }
             Additive::AuxCrosstalk {
                 column,
-                channel,
+                channel_name: o,
                 rate,
                 ..
             } => {
-                let o = ["o1", "o12"][(*channel).min(1)];
                 if *rate {
                     format!("{o} sensor += k' d{column}/dt, through the loop (sensing cross-talk rate of the recorded {column})")
                 } else {
@@ -359,15 +368,14 @@ impl Additive {
             Additive::Glitch { .. } => vec!["amplitude".into()],
             Additive::AuxCrosstalk {
                 column,
-                channel,
+                channel_name,
                 rate,
                 leak,
                 ..
             } => vec![format!(
-                "k{}{}_{column}_{}",
+                "k{}{}_{column}_{channel_name}",
                 if *leak == Leak::Force { "f" } else { "" },
                 if *rate { "dot" } else { "" },
-                ["o1", "o12"][(*channel).min(1)]
             )],
         }
     }
@@ -467,10 +475,10 @@ impl Additive {
 
     /// Raw (unwhitened) readout columns, one per amplitude, at full parameters `p` of `model`
     /// (`lik` prepared for it), full length n_e of every experiment and channel.
-    pub fn columns(
+    pub fn columns<M: DiagnoseModel<N>, const N: usize>(
         &self,
-        model: &Extended,
-        lik: &Likelihood<'_, Extended, 2>,
+        model: &Extended<M, N>,
+        lik: &Likelihood<'_, Extended<M, N>, N>,
         data: &ExperimentData,
         p: &[f64],
     ) -> Vec<Series> {
@@ -532,10 +540,10 @@ impl Additive {
         }
     }
 
-    fn glitch_part(
+    fn glitch_part<M: DiagnoseModel<N>, const N: usize>(
         &self,
-        model: &Extended,
-        lik: &Likelihood<'_, Extended, 2>,
+        model: &Extended<M, N>,
+        lik: &Likelihood<'_, Extended<M, N>, N>,
         data: &ExperimentData,
         p: &[f64],
         part: Part,
@@ -556,9 +564,9 @@ impl Additive {
                 dt: data.dt,
             };
             let h = glitch::entry_response(model, p, &grid, *entry);
-            let [a, b] = glitch::synthesize(&grid, &h, None, *entry, *t0, *tau, part);
+            let r = glitch::synthesize(&grid, &h, None, *entry, *t0, *tau, part);
             if let Some(e) = col.get_mut(*experiment) {
-                *e = vec![a, b];
+                *e = r.to_vec();
             }
         }
         col
@@ -566,10 +574,10 @@ impl Additive {
 
     /// Raw derivative columns with respect to the non-linear parameters, `sum_j a_j d col_j /
     /// d theta_q` at amplitudes `amps`.
-    pub fn nonlinear_columns(
+    pub fn nonlinear_columns<M: DiagnoseModel<N>, const N: usize>(
         &self,
-        model: &Extended,
-        lik: &Likelihood<'_, Extended, 2>,
+        model: &Extended<M, N>,
+        lik: &Likelihood<'_, Extended<M, N>, N>,
         data: &ExperimentData,
         p: &[f64],
         amps: &[f64],
@@ -612,10 +620,12 @@ fn regressor(x: &[f64], noise_asd: Option<f64>, dt: f64) -> Vec<f64> {
     }
 }
 
-/// Zero series of the shape of `data`'s outputs (every experiment of its own length).
+/// Zero series of the shape of `data`'s outputs (every experiment of its own length and
+/// readout channels).
 fn zero_series(data: &ExperimentData) -> Series {
     data.lengths()
         .into_iter()
-        .map(|n| vec![vec![0.0; n]; 2])
+        .zip(&data.outputs)
+        .map(|(n, o)| vec![vec![0.0; n]; o.len()])
         .collect()
 }

@@ -4,13 +4,14 @@
 //! ([`crate::analysis::coherence`]: coherence, partial coherence and their tails per octave band).
 
 use crate::analysis::coherence::{aux_filters, run_coherence, AuxCoherence, RunInput};
+use crate::diagnose::DiagnoseModel;
 
 /// The coherence rows of every experiment and of the noise run of `problem` at `stage`, from
 /// the whitened residuals `residuals_w` of a fit under its filter (empty without auxiliary
 /// readouts).
-pub(crate) fn table(
+pub(crate) fn table<M: DiagnoseModel<N>, const N: usize>(
     stage: &'static str,
-    problem: &crate::diagnose::DiagnosisProblem<'_>,
+    problem: &crate::diagnose::DiagnosisProblem<'_, M, N>,
     residuals_w: &crate::sim::Series,
 ) -> Vec<AuxCoherence> {
     let Some(aux) = problem.cfg.auxiliary.as_deref().filter(|a| !a.is_empty()) else {

@@ -12,6 +12,7 @@ use crate::diagnose::search::observer::Observer;
 use crate::diagnose::search::problem::DiagnosisProblem;
 use crate::diagnose::search::selection::DiagnosisState;
 use crate::diagnose::DiagnoseError;
+use crate::diagnose::DiagnoseModel;
 
 /// Most alternations of cleaning the noise run and refitting.
 const PASSES: usize = 3;
@@ -20,9 +21,9 @@ const SETTLED_SIGMA: f64 = 0.1;
 
 /// The noise run `noise` less the auxiliary cross-talks among `state`'s additive effects at
 /// their fitted coefficients (`None` when there are none or no auxiliary noise run).
-fn cleaned(
-    problem: &DiagnosisProblem<'_>,
-    state: &DiagnosisState,
+fn cleaned<M: DiagnoseModel<N>, const N: usize>(
+    problem: &DiagnosisProblem<'_, M, N>,
+    state: &DiagnosisState<M, N>,
     noise: &[Vec<f64>],
 ) -> Option<Vec<Vec<f64>>> {
     let aux = problem.cfg.auxiliary.as_deref()?;
@@ -44,7 +45,9 @@ fn cleaned(
 }
 
 /// The fitted cross-talk coefficients of `state` with their sigmas.
-fn coefficients(state: &DiagnosisState) -> Vec<(f64, f64)> {
+fn coefficients<M: DiagnoseModel<N>, const N: usize>(
+    state: &DiagnosisState<M, N>,
+) -> Vec<(f64, f64)> {
     state
         .fit
         .linear
@@ -59,12 +62,12 @@ fn coefficients(state: &DiagnosisState) -> Vec<(f64, f64)> {
 /// again (module docs). Returns the problem planned on the cleaned noise run the final fit of
 /// `state` was whitened with (`None`, leaving `state` as it is, when nothing was claimed or
 /// the run has no auxiliary readouts).
-pub(crate) fn refine<'a>(
-    problem: &DiagnosisProblem<'a>,
-    state: &mut DiagnosisState,
+pub(crate) fn refine<'a, M: DiagnoseModel<N>, const N: usize>(
+    problem: &DiagnosisProblem<'a, M, N>,
+    state: &mut DiagnosisState<M, N>,
     guess: &[f64],
     obs: &mut dyn Observer,
-) -> Result<Option<DiagnosisProblem<'a>>, DiagnoseError> {
+) -> Result<Option<DiagnosisProblem<'a, M, N>>, DiagnoseError> {
     let Some(noise) = problem.noise.as_deref() else {
         return Ok(None);
     };

@@ -10,8 +10,10 @@
 //! whitened kernels are a few samples long, so positions are close to independent) the
 //! threshold is barely conservative.
 
+use crate::diagnose::DiagnoseModel;
 use crate::model::closed_loop::CMat;
 use crate::model::effects::Extended;
+use crate::model::ClosedLoopModel;
 use crate::numerics::fft::xcorr;
 use crate::sim::glitch::{entry_response, synthesize, Entry, Grid, Part, ENTRIES};
 
@@ -40,10 +42,10 @@ pub struct Scan {
 }
 
 /// `z^2(t0)` of kernel `kern` (pulse at sample `p0`, energy prefix sums `q`) against whitened
-/// series `r` (2 channels, whitened sample `j` at time `j + order`), for centres `t0` from
-/// `order` to the end of `r`: `(t0, z^2)`.
-fn zscan(
-    kern: &[Vec<f64>; 2],
+/// series `r` (the model's `N` channels, whitened sample `j` at time `j + order`), for centres
+/// `t0` from `order` to the end of `r`: `(t0, z^2)`, the correlation summed over the channels.
+fn zscan<const N: usize>(
+    kern: &[Vec<f64>; N],
     q: &[f64],
     p0: usize,
     r: &[Vec<f64>],
@@ -52,8 +54,7 @@ fn zscan(
     let n = kern[0].len();
     let nr = r[0].len();
     let len = crate::numerics::fft::fast_len(n + nr + 1);
-    let c0 = xcorr(&kern[0], &r[0], len);
-    let c1 = xcorr(&kern[1], &r[1], len);
+    let cs: Vec<Vec<f64>> = kern.iter().zip(r).map(|(k, r)| xcorr(k, r, len)).collect();
     let mut out = Vec::with_capacity(nr);
     for t0 in order..order + nr {
         // Lag l = t0 - p0 - order.
@@ -63,7 +64,7 @@ fn zscan(
         } else {
             (len as i64 + l) as usize
         };
-        let c = c0[idx] + c1[idx];
+        let c = cs[1..].iter().fold(cs[0][idx], |acc, ch| acc + ch[idx]);
         let lo = (-l).max(0) as usize;
         let hi = ((nr as i64 - l).max(0) as usize).min(n);
         if hi <= lo {
@@ -89,11 +90,11 @@ fn zscan(
 /// low-frequency responses to a kick on a TM feel it most), is the peak's `noise_var` when it
 /// is above one.
 #[allow(clippy::too_many_arguments)]
-pub fn scan(
-    model: &Extended,
+pub fn scan<M: DiagnoseModel<N>, const N: usize>(
+    model: &Extended<M, N>,
     p: &[f64],
     grid: &Grid,
-    w: &[CMat<2>],
+    w: &[CMat<N>],
     order: usize,
     res: &[Vec<Vec<f64>>],
     scale: f64,
@@ -104,6 +105,10 @@ pub fn scan(
     let mut peaks = Vec::new();
     let mut n_kernels = 0usize;
     for entry in ENTRIES {
+        // An entry the model does not have is not scanned (its response would be zero).
+        if model.noise_entry(entry.noise_entry()).is_none() {
+            continue;
+        }
         let h = entry_response(model, p, grid, entry);
         let mut best: Option<Peak> = None;
         for wid in SCAN_WIDTHS {
@@ -126,10 +131,12 @@ pub fn scan(
             // Prefix sums of the kernel's energy.
             let mut q = vec![0.0; n + 1];
             for s in 0..n {
-                q[s + 1] = q[s] + kern[0][s] * kern[0][s] + kern[1][s] * kern[1][s];
+                q[s + 1] = kern.iter().fold(q[s], |acc, k| acc + k[s] * k[s]);
             }
             let noise_var = noise
-                .filter(|(r, _)| r.len() >= 2 && r[0].len() > 1 && r[1].len() == r[0].len())
+                .filter(|(r, _)| {
+                    r.len() >= N && r[0].len() > 1 && r.iter().all(|c| c.len() == r[0].len())
+                })
                 .map(|(r, factor)| {
                     let z = zscan(&kern, &q, p0, r, order);
                     factor * z.iter().map(|x| x.1).sum::<f64>() / z.len().max(1) as f64
@@ -138,7 +145,7 @@ pub fn scan(
                 .unwrap_or(1.0)
                 .max(1.0);
             for (e, r) in res.iter().enumerate() {
-                if r.len() < 2 || r[0].len() != nr || r[1].len() != nr {
+                if r.len() < N || r.iter().any(|c| c.len() != nr) {
                     continue;
                 }
                 for (t0, z2) in zscan(&kern, &q, p0, r, order) {

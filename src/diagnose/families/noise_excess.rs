@@ -9,9 +9,10 @@
 
 use crate::analysis::noise_bands::{band_levels, band_levels_on_grid};
 use crate::diagnose::families::excess::ExcessKind;
-use crate::diagnose::{Channel, Unexplained};
+use crate::diagnose::{DiagnoseModel, Unexplained};
 use crate::model::effects::Extended;
-use crate::setup::Setup;
+use crate::model::ClosedLoopModel;
+use crate::setup::SetupOf;
 
 /// The model's noise levels are taken as known to this fraction: a smaller excess of the
 /// noise run, however significant, is not reported (a long run resolves a few per cent).
@@ -21,9 +22,9 @@ pub const NOISE_RUN: &str = "noise run";
 
 /// The noise run's bands in excess over the final model's noise (module docs) at Bonferroni
 /// level `alpha` over every band and channel; `p` are the final model's full parameters.
-pub(crate) fn find(
-    setup: &Setup,
-    model: &Extended,
+pub(crate) fn find<M: DiagnoseModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
+    model: &Extended<M, N>,
     p: &[f64],
     noise: &[Vec<f64>],
     dt: f64,
@@ -38,13 +39,14 @@ pub(crate) fn find(
         None => band_levels(noise, dt, psd),
     };
     let n = levels.len().max(1) as f64;
+    let readouts = model.readout_names();
     let t_end = noise.first().map_or(0.0, |c| c.len() as f64 * dt);
     levels
         .into_iter()
         .filter(|b| b.p_value < alpha / n && b.excess > MIN_EXCESS)
         .map(|b| Unexplained {
             experiment: NOISE_RUN.to_string(),
-            channel: b.channel.as_str().to_string(),
+            channel: readouts.get(b.channel).copied().unwrap_or("?").to_string(),
             kind: ExcessKind::NoiseModel,
             band_hz: b.band_hz,
             time_s: [0.0, t_end],
@@ -59,10 +61,11 @@ pub(crate) fn find(
 pub(crate) fn notes(
     found: &[Unexplained],
     source: crate::diagnose::WhiteningSource,
+    readouts: &[&str],
 ) -> Vec<String> {
     let mut out = Vec::new();
-    for ch in Channel::ALL {
-        let mine: Vec<&Unexplained> = found.iter().filter(|u| u.channel == ch.as_str()).collect();
+    for &ch in readouts {
+        let mine: Vec<&Unexplained> = found.iter().filter(|u| u.channel == ch).collect();
         let (Some(first), Some(last)) = (mine.first(), mine.last()) else {
             continue;
         };

@@ -9,10 +9,11 @@
 
 use serde::Serialize;
 
+use crate::diagnose::DiagnoseModel;
 use crate::diagnose::{Candidate, Stage};
 use crate::model::effects::by_name;
 use crate::numerics::stats::chi2_isf;
-use crate::setup::Setup;
+use crate::setup::SetupOf;
 
 /// A degenerate candidate that would explain a parameter's shift.
 #[derive(Debug, Clone, Serialize)]
@@ -83,8 +84,8 @@ fn explanations(parameter: &str, shift: f64, candidates: &[Candidate]) -> Vec<Ex
 
 /// Base parameters of the final stage `after` beyond their prior at the two-sided Bonferroni
 /// level `alpha / n_parameters`, each with the degenerate `candidates` that would explain it.
-pub fn prior_tension(
-    setup: &Setup,
+pub fn prior_tension<M: DiagnoseModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
     constraints: &crate::fit::Constraints,
     after: &Stage,
     alpha: f64,

@@ -13,26 +13,24 @@
 //!    later fit of the diagnosis and the transients are reported, the noise run's with them.
 //!    When not, nothing is claimed and the diagnosis runs on the noise run as recorded.
 
-use crate::analysis::transient::{
-    clean_noise_run, experiment_columns, fit_with_transients, TransientReport,
-};
+use crate::analysis::transient::TransientReport;
 use crate::data::ExperimentData;
 use crate::diagnose::families::additive::{Additive, DRIFT_PARAMETERS};
 use crate::diagnose::search::observer::Observer;
 use crate::diagnose::search::problem::{DiagnosisProblem, LinearFit};
+use crate::diagnose::DiagnoseModel;
 use crate::diagnose::{DiagnoseConfig, DiagnoseError};
 use crate::fit::FitConfig;
-use crate::model::ClosedLoopModel;
-use crate::setup::Setup;
+use crate::setup::SetupOf;
 
 /// The noise run less its fitted free response, with the report, when that fit is
 /// significant on its own (else `None`). A failed fit is a note and leaves the run as it is.
-pub(crate) fn clean_noise(
-    setup: &Setup,
+pub(crate) fn clean_noise<M: DiagnoseModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
     noise: &[Vec<f64>],
     guess: &[f64],
     dt: f64,
-    cfg: &DiagnoseConfig,
+    cfg: &DiagnoseConfig<N>,
     obs: &mut dyn Observer,
 ) -> Option<(Vec<Vec<f64>>, TransientReport)> {
     // A run the diagnosis will set aside (a non-finite value, a dead channel) is left as it
@@ -44,7 +42,7 @@ pub(crate) fn clean_noise(
         return None;
     }
     let nb = setup.model.n_params();
-    match clean_noise_run(
+    match M::clean_noise_run(
         setup,
         &guess[..nb],
         noise,
@@ -52,8 +50,8 @@ pub(crate) fn clean_noise(
         cfg.order,
         cfg.poly_degree,
         cfg.alpha,
-    ) {
-        Ok((t, report)) if report.significant => Some((t.cleaned, report)),
+    )? {
+        Ok((cleaned, report)) if report.significant => Some((cleaned, report)),
         Ok(_) => None,
         Err(e) => {
             obs.note(&format!(
@@ -72,19 +70,26 @@ pub(crate) fn clean_noise(
 /// transient of its own, p = 4.7e-5 on the time-domain simulator's run without initial
 /// conditions, see the README); otherwise the diagnosis is planned again on the noise run as
 /// recorded, exactly as without transients.
-pub(crate) fn plan_and_fit<'a>(
-    setup: &'a Setup,
+pub(crate) fn plan_and_fit<'a, M: DiagnoseModel<N>, const N: usize>(
+    setup: &'a SetupOf<M, N>,
     data: &'a ExperimentData,
     noise: Option<&[Vec<f64>]>,
     cleaned: Option<&(Vec<Vec<f64>>, TransientReport)>,
     guess: &[f64],
-    cfg: &'a DiagnoseConfig,
+    cfg: &'a DiagnoseConfig<N>,
     obs: &mut dyn Observer,
-) -> Result<(DiagnosisProblem<'a>, LinearFit, Vec<TransientReport>), DiagnoseError> {
+) -> Result<(DiagnosisProblem<'a, M, N>, LinearFit, Vec<TransientReport>), DiagnoseError> {
     let first_noise = cleaned.map(|(c, _)| &c[..]).or(noise).map(<[_]>::to_vec);
     let mut problem = DiagnosisProblem::plan(setup, data, first_noise, guess, cfg, obs)?;
     let fit0 = problem.fit_plain(&problem.nominal, guess)?;
     if !cfg.transients {
+        return Ok((problem, fit0, Vec::new()));
+    }
+    if M::transient_columns(setup, &fit0.fit.estimate[..setup.model.n_params()], data).is_none() {
+        obs.note(&format!(
+            "start-up transients are not tested: the {} model has no free-response columns",
+            M::KIND.name()
+        ));
         return Ok((problem, fit0, Vec::new()));
     }
     match test_experiments(&mut problem, data, &fit0, obs)? {
@@ -119,8 +124,8 @@ pub(crate) fn plan_and_fit<'a>(
 /// Test the experiments' start-up transients against the nominal fit `fit0`. When significant,
 /// `problem` keeps the columns (at the transient fit's estimate), and the nominal fit with
 /// them and the reports are returned.
-pub(crate) fn test_experiments(
-    problem: &mut DiagnosisProblem<'_>,
+pub(crate) fn test_experiments<M: DiagnoseModel<N>, const N: usize>(
+    problem: &mut DiagnosisProblem<'_, M, N>,
     data: &ExperimentData,
     fit0: &LinearFit,
     obs: &mut dyn Observer,
@@ -129,7 +134,7 @@ pub(crate) fn test_experiments(
     let (res, reports) = {
         let mut lik = problem.likelihood(&problem.nominal)?;
         let fcfg = cfg.constraints.apply(FitConfig::new(&problem.nominal));
-        match fit_with_transients(
+        match M::fit_with_transients(
             problem.setup,
             &mut lik,
             data,
@@ -137,8 +142,9 @@ pub(crate) fn test_experiments(
             &fcfg,
             cfg.alpha,
         ) {
-            Ok(x) => x,
-            Err(e) => {
+            None => return Ok(None),
+            Some(Ok(x)) => x,
+            Some(Err(e)) => {
                 obs.note(&format!(
                     "the experiments' start-up transients could not be fitted ({e}); none is assumed"
                 ));
@@ -173,8 +179,7 @@ pub(crate) fn test_experiments(
         "the experiments start with transients (chi^2 drop {drop:.3e} for {dim} initial conditions, p = {p:.2e}): their free responses are fitted in every later fit"
     ));
     let nb = problem.setup.model.n_params();
-    let (cols, _) = experiment_columns(problem.setup, &res.estimate[..nb], data)
-        .map_err(|e| DiagnoseError::Numerical(e.to_string()))?;
+    let cols = transient_columns(problem, &res.estimate[..nb], data)?;
     problem.set_transient(&cols)?;
     let refit = problem.fit_plain(&problem.nominal, &res.estimate)?;
     Ok(Some((refit, reports)))
@@ -186,8 +191,8 @@ pub(crate) fn test_experiments(
 /// step of a forward selection between them, each drop penalised by twice its number of
 /// parameters (Akaike). Measured: an a_sus drift of 0.3 % over each run gave the transients a
 /// drop of 1144 against 1620 for the drift.
-fn stronger_drift(
-    problem: &DiagnosisProblem<'_>,
+fn stronger_drift<M: DiagnoseModel<N>, const N: usize>(
+    problem: &DiagnosisProblem<'_, M, N>,
     fit0: &LinearFit,
     drop: f64,
     dim: usize,
@@ -210,6 +215,18 @@ fn stronger_drift(
     Ok(best)
 }
 
+/// The model's free-response columns of every experiment at base parameters `p`
+/// ([`DiagnoseModel::transient_columns`]).
+fn transient_columns<M: DiagnoseModel<N>, const N: usize>(
+    problem: &DiagnosisProblem<'_, M, N>,
+    p: &[f64],
+    data: &ExperimentData,
+) -> Result<crate::diagnose::host::TransientColumns, DiagnoseError> {
+    M::transient_columns(problem.setup, p, data)
+        .ok_or_else(|| DiagnoseError::Input("the model has no free-response columns".into()))?
+        .map_err(DiagnoseError::Numerical)
+}
+
 /// Later-started copies of the experiments' columns in the localisation test.
 const LOCAL_SHIFTS: usize = 8;
 
@@ -221,14 +238,13 @@ const LOCAL_SHIFTS: usize = 8;
 /// start. `(D_0 / k) / (mean_j D_j / k)` is F(k, k J) for `k` columns in all when both are
 /// noise. Returns the ratio and its tail probability. Measured: a TM2 loss angle of 0.01 left
 /// the start columns a chi^2 drop of 832 (p = 1.9e-155 by the likelihood ratio alone).
-fn localisation(
-    problem: &DiagnosisProblem<'_>,
+fn localisation<M: DiagnoseModel<N>, const N: usize>(
+    problem: &DiagnosisProblem<'_, M, N>,
     data: &ExperimentData,
     fit0: &LinearFit,
 ) -> Result<(f64, f64), DiagnoseError> {
     let nb = problem.setup.model.n_params();
-    let (cols, _) = experiment_columns(problem.setup, &fit0.fit.estimate[..nb], data)
-        .map_err(|e| DiagnoseError::Numerical(e.to_string()))?;
+    let cols = transient_columns(problem, &fit0.fit.estimate[..nb], data)?;
     let mut lik = problem.likelihood(&problem.nominal)?;
     let mut rest = fit0.fit.residuals_w.clone();
     lik.set_transient(&cols)?;

@@ -32,13 +32,16 @@ use crate::diagnose::families::additive::Additive;
 use crate::diagnose::search::problem::DiagnosisProblem;
 use crate::diagnose::search::selection::{Described, DiagnosisState, Proposal};
 use crate::diagnose::Candidate;
+use crate::diagnose::DiagnoseModel;
 use crate::fit::score::Score;
 use crate::model::effects::{Category, Effect, Extended};
 use crate::numerics::linalg::{equilibrated_pinv, series_dot};
 use crate::sim::Series;
 
 /// The whitened samples of the current fit (the BIC's `n`).
-pub(super) fn n_samples(state: &DiagnosisState) -> usize {
+pub(super) fn n_samples<M: DiagnoseModel<N>, const N: usize>(
+    state: &DiagnosisState<M, N>,
+) -> usize {
     state
         .fit
         .fit
@@ -194,9 +197,9 @@ pub(super) fn information_of_covariance(cov: &DMatrix<f64>, dim: usize) -> Optio
 
 /// The first whitened column of candidate `d` at the current fit: the template derivative of
 /// an operator effect (at zero), the whitened series of an additive one.
-fn first_column(
-    problem: &DiagnosisProblem<'_>,
-    state: &DiagnosisState,
+fn first_column<M: DiagnoseModel<N>, const N: usize>(
+    problem: &DiagnosisProblem<'_, M, N>,
+    state: &DiagnosisState<M, N>,
     d: &Described,
 ) -> Option<Series> {
     let est = &state.fit.fit.estimate;
@@ -228,9 +231,9 @@ fn correlation(a: &Series, b: &Series) -> f64 {
 
 /// The near-twins of the added candidate `winner` among the refitted candidates `others` of
 /// the round (converged, physical, significant; module docs).
-pub(super) fn near_twins(
-    problem: &DiagnosisProblem<'_>,
-    state: &DiagnosisState,
+pub(super) fn near_twins<M: DiagnoseModel<N>, const N: usize>(
+    problem: &DiagnosisProblem<'_, M, N>,
+    state: &DiagnosisState<M, N>,
     described: &[Described],
     tested: &[Candidate],
     winner: usize,
@@ -277,15 +280,15 @@ pub(super) fn near_twins(
 /// What would separate two near-twins: for two operator effects the redesign probe of the
 /// twin with the added one fitted ([`redesign::probe_given`]); for two recorded auxiliary
 /// series, the guidance of the other degrees of freedom the dataset records without injection.
-fn separation(
-    problem: &DiagnosisProblem<'_>,
-    state: &DiagnosisState,
+fn separation<M: DiagnoseModel<N>, const N: usize>(
+    problem: &DiagnosisProblem<'_, M, N>,
+    state: &DiagnosisState<M, N>,
     a: &Described,
     b: &Described,
 ) -> (String, Option<redesign::Redesign>) {
     match (&a.proposal, &b.proposal) {
         (Proposal::Operator(i), Proposal::Operator(j)) => {
-            let (ea, eb): (Arc<dyn Effect>, Arc<dyn Effect>) =
+            let (ea, eb): (Arc<dyn Effect<N>>, Arc<dyn Effect<N>>) =
                 (state.pool[*i].clone(), state.pool[*j].clone());
             let setup = problem.setup;
             let p = &state.fit.fit.estimate[..state.model.n_base()];
@@ -295,8 +298,8 @@ fn separation(
                 .and_then(|d| {
                     let timing =
                         crate::design::space::DesignSpace::timing_of(&d, super::run::REDESIGN_GRID);
-                    redesign::probe_given(setup, p, vec![ea], eb, problem.data, timing)
-                        .map_err(|e| e.to_string())
+                    M::redesign(setup, p, vec![ea], eb, problem.data, timing)
+                        .unwrap_or_else(|| Err(format!("the {} model has none", M::KIND.name())))
                 });
             match probe {
                 Ok(r) => (
@@ -330,7 +333,9 @@ fn separation(
 
 /// Which recorded guidance of the other degrees of freedom carries no injection: only an
 /// injection that drives the loops recording two auxiliary series apart separates them.
-fn aux_separation(problem: &DiagnosisProblem<'_>) -> String {
+fn aux_separation<M: DiagnoseModel<N>, const N: usize>(
+    problem: &DiagnosisProblem<'_, M, N>,
+) -> String {
     let guidance = &problem.cfg.aux_guidance;
     if guidance.is_empty() {
         return "recorded series: an injection on the degrees of freedom they come from would separate them; the dataset records no guidance of those degrees of freedom".into();

@@ -11,13 +11,13 @@ use crate::analysis::residuals;
 use crate::data::check_finite;
 use crate::diagnose::families::additive;
 use crate::diagnose::search::observer::Observer;
-use crate::diagnose::{Channel, DiagnoseConfig, DiagnoseError, Stage, WhiteningSource};
+use crate::diagnose::{DiagnoseConfig, DiagnoseError, DiagnoseModel, Stage, WhiteningSource};
 use crate::fit::{fit, ExperimentData, FitConfig, FitResult, Likelihood, Whitener};
 use crate::model::effects::Extended;
 use crate::model::lpf_x::LpfX;
 use crate::model::ClosedLoopModel;
 use crate::numerics::linalg::{series_dot, series_gram_pinv};
-use crate::setup::Setup;
+use crate::setup::SetupOf;
 use crate::sim::Series;
 
 /// Samples a whitening filter of order p needs beyond `4 p`: the least-squares fit of the
@@ -46,12 +46,12 @@ pub(crate) struct LinearFit {
 }
 
 /// The whitening of a diagnosis and the noise run's reference level under it.
-pub(crate) struct Whitening {
+pub(crate) struct Whitening<const N: usize> {
     /// The noise run can serve as a reference (no dead channel, long enough).
     pub usable: bool,
     /// Akaike's final-prediction-error factor of the noise run's whitened level (1 if none).
     pub fpe: f64,
-    pub filter: Whitener<2>,
+    pub filter: Whitener<N>,
     pub source: WhiteningSource,
     pub noise_ref: Option<residuals::NoiseReference>,
     /// Degrees of freedom of a filter estimated from the noise run (None for the model's).
@@ -60,20 +60,20 @@ pub(crate) struct Whitening {
 
 /// Everything a round of the forward selection reads and never changes. It owns its noise
 /// run: a new noise run (cleaned of a transient or of a claimed cross-talk) is a new problem.
-pub struct DiagnosisProblem<'a> {
-    pub setup: &'a Setup,
+pub struct DiagnosisProblem<'a, M: ClosedLoopModel<N> = LpfX, const N: usize = 2> {
+    pub setup: &'a SetupOf<M, N>,
     pub data: &'a ExperimentData,
     pub noise: Option<Vec<Vec<f64>>>,
-    pub cfg: &'a DiagnoseConfig,
+    pub cfg: &'a DiagnoseConfig<N>,
     /// The whitening order (the configured one, reduced for a short run).
     pub order: usize,
-    pub(crate) whitening: Whitening,
+    pub(crate) whitening: Whitening<N>,
     /// The likelihood planned once on the base model; [`Self::likelihood`] retargets it.
-    planned: Likelihood<'a, LpfX, 2>,
+    planned: Likelihood<'a, M, N>,
     /// The whitened noise run that calibrates the glitch scan (with glitches and a usable run).
     pub(crate) noise_w: Option<Vec<Vec<f64>>>,
     /// The reference model with no effect.
-    pub nominal: Extended,
+    pub nominal: Extended<M, N>,
     /// The start-up transient columns profiled out of every fit (to plan again with them).
     transient_raw: Option<Vec<Vec<Vec<Vec<f64>>>>>,
 }
@@ -115,12 +115,12 @@ fn whitening_order(n: usize, order: usize, obs: &mut dyn Observer) -> Result<usi
 
 /// The filter fitted on the noise run when it is usable and not overridden; every reason not
 /// to use it is a note.
-fn noise_run_filter(
+fn noise_run_filter<const N: usize>(
     noise: Option<&[Vec<f64>]>,
     from_model: bool,
     order: usize,
     obs: &mut dyn Observer,
-) -> Result<Option<Whitener<2>>, DiagnoseError> {
+) -> Result<Option<Whitener<N>>, DiagnoseError> {
     let Some(nz) = noise else {
         obs.note("the dataset has no noise-only run: whitening uses the model noise PSD at the starting point, and band excesses are judged against white unit noise");
         return Ok(None);
@@ -133,7 +133,7 @@ fn noise_run_filter(
     } else if nz.first().map_or(0, |c| c.len()) < 4 * order + MIN_SAMPLES_BEYOND_FILTER {
         obs.note(&format!("the noise run is too short for a whitening filter of order {order}: the model noise is used"));
     } else {
-        match Whitener::<2>::from_series(nz, order) {
+        match Whitener::<N>::from_series(nz, order) {
             Ok(w) => return Ok(Some(w)),
             Err(e) => obs.note(&format!(
                 "whitening from the noise run failed ({e}): the model noise is used"
@@ -145,14 +145,14 @@ fn noise_run_filter(
 
 /// The whitening filter of the model noise PSD at `guess`: folded through the anti-alias FIR
 /// for decimated telemetry, with a note when a Nyquist null needed a white floor.
-fn model_whitener(
-    setup: &Setup,
+fn model_whitener<M: DiagnoseModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
     data: &ExperimentData,
     guess: &[f64],
-    cfg: &DiagnoseConfig,
+    cfg: &DiagnoseConfig<N>,
     order: usize,
     obs: &mut dyn Observer,
-) -> Result<crate::fit::Whitener<2>, DiagnoseError> {
+) -> Result<crate::fit::Whitener<N>, DiagnoseError> {
     if !cfg.decimated_telemetry {
         return Ok(setup.whitener_from_model(guess, data.len(), data.dt, order)?);
     }
@@ -161,7 +161,7 @@ fn model_whitener(
         setup.whitener_through_decimator(guess, data.len(), data.dt, order, &decimator)?;
     obs.note("whitening from the model noise PSD folded through the anti-alias FIR (decimated telemetry)");
     if let Some(f) = floor {
-        obs.note(&f.note());
+        obs.note(&f.note_named(&setup.model.readout_names()));
     }
     Ok(w)
 }
@@ -169,17 +169,17 @@ fn model_whitener(
 /// Choose the whitening filter: the noise run when it is usable and not overridden, else the
 /// model noise PSD at `guess`. With a filter fitted on the noise run, that run's whitened level
 /// is an in-sample estimate, scaled by Akaike's final-prediction-error factor `(T + m) / (T - m)`,
-/// `m = 2 p` coefficients per equation of the two-channel autoregression, and the filter's
-/// spectrum carries `T / m` degrees of freedom.
-fn whitening(
-    setup: &Setup,
+/// `m = N p` coefficients per equation of the `N`-channel autoregression (2 p for the x
+/// model), and the filter's spectrum carries `T / m` degrees of freedom.
+fn whitening<M: DiagnoseModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
     data: &ExperimentData,
     noise: Option<&[Vec<f64>]>,
     guess: &[f64],
-    cfg: &DiagnoseConfig,
+    cfg: &DiagnoseConfig<N>,
     order: usize,
     obs: &mut dyn Observer,
-) -> Result<Whitening, DiagnoseError> {
+) -> Result<Whitening<N>, DiagnoseError> {
     let (filter, source) = match noise_run_filter(noise, cfg.whiten_from_model, order, obs)? {
         Some(w) => (w, WhiteningSource::NoiseRun),
         None => (
@@ -194,7 +194,7 @@ fn whitening(
     // Samples over coefficients per equation of the filter fitted on the noise run.
     let fitted_on = usable_noise
         .filter(|_| source == WhiteningSource::NoiseRun)
-        .map(|nz| (nz[0].len().saturating_sub(order) as f64, (2 * order) as f64));
+        .map(|nz| (nz[0].len().saturating_sub(order) as f64, (N * order) as f64));
     let fpe = match fitted_on {
         Some((t, m)) if t > 2.0 * m => (t + m) / (t - m),
         _ => 1.0,
@@ -213,10 +213,12 @@ fn whitening(
         .as_ref()
         .filter(|nr| nr.vif.iter().any(|v| *v > VIF_NOTE))
     {
+        let per: Vec<String> = (setup.model.readout_names().iter().enumerate())
+            .map(|(c, name)| format!("{name} {:.2}", nr.vif.get(c).copied().unwrap_or(1.0)))
+            .collect();
         obs.note(&format!(
-            "the whitened noise run is not quite white (variance inflation of a windowed mean square: o1 {:.2}, o12 {:.2}); the time-window tests use correspondingly fewer degrees of freedom",
-            nr.vif[0],
-            nr.vif.get(1).copied().unwrap_or(1.0)
+            "the whitened noise run is not quite white (variance inflation of a windowed mean square: {}); the time-window tests use correspondingly fewer degrees of freedom",
+            per.join(", ")
         ));
     }
     Ok(Whitening {
@@ -229,14 +231,14 @@ fn whitening(
     })
 }
 
-impl<'a> DiagnosisProblem<'a> {
+impl<'a, M: DiagnoseModel<N>, const N: usize> DiagnosisProblem<'a, M, N> {
     /// Check the data, choose the whitening and plan the likelihood, once.
     pub fn plan(
-        setup: &'a Setup,
+        setup: &'a SetupOf<M, N>,
         data: &'a ExperimentData,
         noise: Option<Vec<Vec<f64>>>,
         guess: &[f64],
-        cfg: &'a DiagnoseConfig,
+        cfg: &'a DiagnoseConfig<N>,
         obs: &mut dyn Observer,
     ) -> Result<Self, DiagnoseError> {
         cfg.validate()?;
@@ -281,7 +283,7 @@ impl<'a> DiagnosisProblem<'a> {
         self.noise.as_deref().filter(|_| self.whitening.usable)
     }
 
-    pub(crate) fn filter(&self) -> &Whitener<2> {
+    pub(crate) fn filter(&self) -> &Whitener<N> {
         &self.whitening.filter
     }
 
@@ -302,7 +304,7 @@ impl<'a> DiagnosisProblem<'a> {
         noise: Vec<Vec<f64>>,
         guess: &[f64],
         obs: &mut dyn Observer,
-    ) -> Result<DiagnosisProblem<'a>, DiagnoseError> {
+    ) -> Result<DiagnosisProblem<'a, M, N>, DiagnoseError> {
         let mut p =
             DiagnosisProblem::plan(self.setup, self.data, Some(noise), guess, self.cfg, obs)?;
         if let Some(raw) = &self.transient_raw {
@@ -314,8 +316,8 @@ impl<'a> DiagnosisProblem<'a> {
     /// The planned likelihood for `model` (no re-planning).
     pub fn likelihood<'m>(
         &self,
-        model: &'m Extended,
-    ) -> Result<Likelihood<'m, Extended, 2>, DiagnoseError> {
+        model: &'m Extended<M, N>,
+    ) -> Result<Likelihood<'m, Extended<M, N>, N>, DiagnoseError> {
         Ok(self.planned.for_model(model)?)
     }
 
@@ -338,7 +340,7 @@ impl<'a> DiagnosisProblem<'a> {
     /// contributions); also returns raw residuals.
     pub(crate) fn fit(
         &self,
-        lik: &Likelihood<'_, Extended, 2>,
+        lik: &Likelihood<'_, Extended<M, N>, N>,
         data: &ExperimentData,
         guess: &[f64],
     ) -> Result<(FitResult, Series), DiagnoseError> {
@@ -353,7 +355,7 @@ impl<'a> DiagnosisProblem<'a> {
     /// Fit `model` without additive effects.
     pub(crate) fn fit_plain(
         &self,
-        model: &Extended,
+        model: &Extended<M, N>,
         guess: &[f64],
     ) -> Result<LinearFit, DiagnoseError> {
         let lik = self.likelihood(model)?;
@@ -369,7 +371,7 @@ impl<'a> DiagnosisProblem<'a> {
     /// Raw columns of every additive effect of `lin` at `p`, flattened, with their amplitudes.
     pub(crate) fn linear_columns(
         &self,
-        lik: &Likelihood<'_, Extended, 2>,
+        lik: &Likelihood<'_, Extended<M, N>, N>,
         lin: &Linear,
         p: &[f64],
     ) -> (Vec<Series>, Vec<f64>) {
@@ -385,7 +387,7 @@ impl<'a> DiagnosisProblem<'a> {
     /// The data minus the additive contributions of `lin` at base parameters `p`.
     pub(crate) fn effective_data(
         &self,
-        lik: &Likelihood<'_, Extended, 2>,
+        lik: &Likelihood<'_, Extended<M, N>, N>,
         lin: &Linear,
         p: &[f64],
     ) -> ExperimentData {
@@ -397,7 +399,7 @@ impl<'a> DiagnosisProblem<'a> {
     }
 
     /// One fit's summary with the residual tests of every experiment and channel.
-    pub(crate) fn stage(&self, model: &Extended, f: &LinearFit) -> Stage {
+    pub(crate) fn stage(&self, model: &Extended<M, N>, f: &LinearFit) -> Stage {
         let (res, raw, data) = (&f.fit, &f.raw, self.data);
         let noise_ref = self.whitening.noise_ref.as_ref();
         let inputs = model.input_names();
@@ -408,17 +410,16 @@ impl<'a> DiagnosisProblem<'a> {
             .map(|e| data.inputs_of(e).into_iter().map(<[f64]>::to_vec).collect())
             .collect();
         for (e, en) in data.names.iter().enumerate() {
-            for ch in Channel::ALL {
-                let c = ch.index();
+            for (c, channel) in model.readout_names().into_iter().enumerate() {
                 let inp = residuals::ChannelInput {
                     experiment: en,
-                    channel: ch.as_str(),
+                    channel,
                     channel_index: c,
                     whitened: &res.residuals_w[e][c],
                     offset: self.order,
                     raw: &raw[e][c],
                     inputs: &aligned[e],
-                    input_names: inputs,
+                    input_names: &inputs,
                     dt: data.dt,
                     alpha: self.cfg.alpha,
                     whitening_dof: self.whitening.whitening_dof,
@@ -451,8 +452,8 @@ const PASSES_NONLINEAR: usize = 5;
 /// The whitened columns of the additive effects of `lin` at `est`: amplitudes, then non-linear
 /// parameters (only once the amplitudes are non-zero; before that their columns vanish), and
 /// per effect (amplitudes, non-linear parameters with a column).
-fn additive_jacobian(
-    lik: &Likelihood<'_, Extended, 2>,
+fn additive_jacobian<M: DiagnoseModel<N>, const N: usize>(
+    lik: &Likelihood<'_, Extended<M, N>, N>,
     data: &ExperimentData,
     lin: &Linear,
     est: &[f64],
@@ -510,7 +511,7 @@ fn additive_covariances(
     covs
 }
 
-impl DiagnosisProblem<'_> {
+impl<M: DiagnoseModel<N>, const N: usize> DiagnosisProblem<'_, M, N> {
     /// Fit `model` with the additive effects `lin` (amplitudes and non-linear parameters as
     /// starting values): alternate the nonlinear fit of the base parameters on the data minus the
     /// additive contributions with a joint Gauss-Newton step of the amplitudes and of the
@@ -519,7 +520,7 @@ impl DiagnosisProblem<'_> {
     /// counts the amplitudes and non-linear parameters.
     pub(crate) fn fit_linear(
         &self,
-        model: &Extended,
+        model: &Extended<M, N>,
         guess: &[f64],
         lin: &Linear,
     ) -> Result<LinearFit, DiagnoseError> {

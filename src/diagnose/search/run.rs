@@ -11,35 +11,35 @@ use crate::analysis::residuals;
 use crate::design::redesign;
 use crate::diagnose::families::{coherence, crosstalk, excess, noise_excess, tension, transient};
 use crate::diagnose::{
-    next_round, Candidate, Channel, DiagnoseConfig, DiagnoseError, Diagnosis, DiagnosisState,
+    next_round, Candidate, DiagnoseConfig, DiagnoseError, DiagnoseModel, Diagnosis, DiagnosisState,
     ExcessKind, Notes, Observer, RobustCheck, Round, SpectrumCurve, Stage, Unexplained,
 };
 use crate::fit::{fit, FitConfig, FitResult};
 use crate::model::effects::Effect;
 use crate::model::ClosedLoopModel;
-use crate::setup::Setup;
+use crate::setup::SetupOf;
 
 /// Run the diagnosis on experiments `data`, with an optional noise-only run (`noise[c]`), from
 /// the base-parameter `guess`. `truth` (simulated data) is carried into the report.
-pub fn diagnose(
-    setup: &Setup,
+pub fn diagnose<M: DiagnoseModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
     data: &crate::fit::ExperimentData,
     noise: Option<&[Vec<f64>]>,
     guess: &[f64],
     truth: Option<&[f64]>,
-    cfg: &DiagnoseConfig,
+    cfg: &DiagnoseConfig<N>,
 ) -> Result<Diagnosis, DiagnoseError> {
     diagnose_observed(setup, data, noise, guess, truth, cfg, &mut ())
 }
 
 /// [`diagnose`], reporting every note to `obs` as it is made (besides the report's own list).
-pub fn diagnose_observed(
-    setup: &Setup,
+pub fn diagnose_observed<M: DiagnoseModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
     data: &crate::fit::ExperimentData,
     noise: Option<&[Vec<f64>]>,
     guess: &[f64],
     truth: Option<&[f64]>,
-    cfg: &DiagnoseConfig,
+    cfg: &DiagnoseConfig<N>,
     obs: &mut dyn Observer,
 ) -> Result<Diagnosis, DiagnoseError> {
     let start = std::time::Instant::now();
@@ -111,24 +111,13 @@ pub fn diagnose_observed(
     // The science product: the noise run's readouts (or the first experiment's, guidance
     // removed) through Delta before and after.
     both.step(&observer::Step::Acceleration);
-    let own = data.inputs_of(0);
-    let (source, o, oi) = match noise {
-        Some(n) => ("noise run".to_string(), [&n[0][..], &n[1][..]], None),
-        None => (
-            data.names[0].clone(),
-            [&data.outputs[0][0][..], &data.outputs[0][1][..]],
-            Some([own[0], own[1]]),
-        ),
-    };
-    d.acceleration = crate::accel::change::compare(
+    d.acceleration = M::acceleration(
         &problem.nominal,
         &d.before.estimate,
         &final_model,
         &d.after.estimate,
-        data.dt,
-        &source,
-        o,
-        oi,
+        data,
+        noise,
     );
     d.notes = notes.0;
     d.transients = transients;
@@ -139,9 +128,9 @@ pub fn diagnose_observed(
 
 /// After the selection: final additive reports, the final stage, the unexplained excess, the
 /// robust check, redesign probes, prior tension and residual spectra.
-fn finish(
-    problem: &DiagnosisProblem<'_>,
-    mut state: DiagnosisState,
+fn finish<M: DiagnoseModel<N>, const N: usize>(
+    problem: &DiagnosisProblem<'_, M, N>,
+    mut state: DiagnosisState<M, N>,
     fit0: &problem::LinearFit,
     before: Stage,
     obs: &mut dyn Observer,
@@ -172,7 +161,11 @@ fn finish(
             cfg.decimated_telemetry,
             cfg.alpha / excess::FAMILIES,
         );
-        for n in noise_excess::notes(&found, problem.whitening_source()) {
+        for n in noise_excess::notes(
+            &found,
+            problem.whitening_source(),
+            &state.model.readout_names(),
+        ) {
             obs.note(&n);
         }
         unexplained.extend(found);
@@ -211,9 +204,9 @@ fn finish(
 }
 
 /// With `outliers` in the unexplained list: a note on the heavy tails and the robust check.
-fn heavy_tails(
-    problem: &DiagnosisProblem<'_>,
-    state: &DiagnosisState,
+fn heavy_tails<M: DiagnoseModel<N>, const N: usize>(
+    problem: &DiagnosisProblem<'_, M, N>,
+    state: &DiagnosisState<M, N>,
     after: &Stage,
     unexplained: &[Unexplained],
     obs: &mut dyn Observer,
@@ -246,21 +239,22 @@ fn heavy_tails(
 
 /// Whitened residual spectra of every experiment and channel before and after, and of the
 /// noise run when it is the reference.
-fn spectra(
-    problem: &DiagnosisProblem<'_>,
+fn spectra<M: DiagnoseModel<N>, const N: usize>(
+    problem: &DiagnosisProblem<'_, M, N>,
     before: &FitResult,
     after: &FitResult,
 ) -> Vec<SpectrumCurve> {
     let data = problem.data;
+    let readouts = problem.nominal.readout_names();
     let mut out = Vec::new();
     for (st, res) in [
         ("before", &before.residuals_w),
         ("after", &after.residuals_w),
     ] {
         for (e, en) in data.names.iter().enumerate() {
-            for ch in Channel::ALL {
-                let r = &res[e][ch.index()];
-                out.push(residuals::spectrum_curve(st, en, ch.as_str(), r, data.dt));
+            for (c, ch) in readouts.iter().enumerate() {
+                let r = &res[e][c];
+                out.push(residuals::spectrum_curve(st, en, ch, r, data.dt));
             }
         }
     }
@@ -272,12 +266,12 @@ fn spectra(
         let wn = problem
             .filter()
             .apply_projected(nz, problem.cfg.poly_degree);
-        for ch in Channel::ALL {
+        for (c, ch) in readouts.iter().enumerate() {
             out.push(residuals::spectrum_curve(
                 "noise_run",
                 "noise",
-                ch.as_str(),
-                &wn[ch.index()],
+                ch,
+                &wn[c],
                 data.dt,
             ));
         }
@@ -287,9 +281,9 @@ fn spectra(
 
 /// Refit the final model (its additive effects held at their amplitudes) with the Lorentzian
 /// estimator and compare with the Gaussian fit.
-fn robust_check(
-    problem: &DiagnosisProblem<'_>,
-    state: &DiagnosisState,
+fn robust_check<M: DiagnoseModel<N>, const N: usize>(
+    problem: &DiagnosisProblem<'_, M, N>,
+    state: &DiagnosisState<M, N>,
     obs: &mut dyn Observer,
 ) -> Option<RobustCheck> {
     let (model, gauss) = (&state.model, &state.fit.fit);
@@ -329,8 +323,8 @@ pub(super) const REDESIGN_GRID: usize = 7;
 /// Attach a redesign verdict ([`redesign::probe`]) to every degenerate operator candidate: is
 /// the effect separable with one more injection stretch of the `standard` design's timing, within
 /// the operating constraints or only above `f_max_hz`? Probed at the nominal estimate `p`.
-fn redesign_degenerate(
-    problem: &DiagnosisProblem<'_>,
+fn redesign_degenerate<M: DiagnoseModel<N>, const N: usize>(
+    problem: &DiagnosisProblem<'_, M, N>,
     p: &[f64],
     candidates: &mut [Candidate],
     obs: &mut dyn Observer,
@@ -338,7 +332,7 @@ fn redesign_degenerate(
     let setup = problem.setup;
     // The operator effects (additive ones have no operator to redesign for) flagged degenerate
     // in some round.
-    let effects: Vec<&Arc<dyn Effect>> = problem
+    let effects: Vec<&Arc<dyn Effect<N>>> = problem
         .cfg
         .effects
         .iter()
@@ -359,22 +353,30 @@ fn redesign_degenerate(
             return;
         }
     };
-    let verdicts: Vec<(String, Result<redesign::Redesign, String>)> = effects
+    let verdicts: Vec<(String, Option<Result<redesign::Redesign, String>>)> = effects
         .par_iter()
         .map(|&e| {
-            let res = redesign::probe(setup, p, e.clone(), problem.data, timing)
-                .map_err(|e| e.to_string());
-            (e.name(), res)
+            (
+                e.name(),
+                M::redesign(setup, p, Vec::new(), e.clone(), problem.data, timing),
+            )
         })
         .collect();
+    if verdicts.iter().any(|(_, v)| v.is_none()) {
+        obs.note(&format!(
+            "no redesign probe of the degenerate effects: the {} model has none",
+            M::KIND.name()
+        ));
+    }
     for (name, res) in verdicts {
         match res {
-            Ok(r) => {
+            None => {}
+            Some(Ok(r)) => {
                 for c in candidates.iter_mut().filter(|c| c.name == name) {
                     c.redesign = Some(r.clone());
                 }
             }
-            Err(e) => obs.note(&format!("redesign probe of {name} failed: {e}")),
+            Some(Err(e)) => obs.note(&format!("redesign probe of {name} failed: {e}")),
         }
     }
 }

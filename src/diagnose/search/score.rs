@@ -11,7 +11,7 @@ use crate::diagnose::families::additive::{self, Additive};
 use crate::diagnose::families::glitch;
 use crate::diagnose::search::problem::DiagnosisProblem;
 use crate::diagnose::search::selection::{Described, Proposal};
-use crate::diagnose::{Channel, DiagnoseError, DiagnosisState, Stage};
+use crate::diagnose::{DiagnoseError, DiagnoseModel, DiagnosisState, Stage};
 use crate::fit::score::{score_test, Score};
 use crate::fit::{ExperimentData, FitResult, Likelihood};
 use crate::model::effects::{Category, Effect, Extended};
@@ -25,11 +25,11 @@ use crate::spectral::periodogram::refine_frequency;
 /// Score tests of the operator candidates `pool` at the current fit. `extra` are whitened
 /// columns of further fitted nuisance parameters (the amplitudes of the additive effects
 /// already added), projected out like the model's own.
-pub(super) fn score_operators(
-    problem: &DiagnosisProblem<'_>,
-    current: &Extended,
+pub(super) fn score_operators<M: DiagnoseModel<N>, const N: usize>(
+    problem: &DiagnosisProblem<'_, M, N>,
+    current: &Extended<M, N>,
     estimate: &[f64],
-    pool: &[Arc<dyn Effect>],
+    pool: &[Arc<dyn Effect<N>>],
     data: &ExperimentData,
     extra: &[Series],
 ) -> Result<Vec<Score>, DiagnoseError> {
@@ -80,8 +80,8 @@ pub(super) fn score_operators(
 
 /// Score tests of the additive candidates `cands` at the current fit (data `eff` already has
 /// the current additive effects removed; `extra` as in [`score_operators`]).
-pub(super) fn score_additive(
-    lik: &Likelihood<'_, Extended, 2>,
+pub(super) fn score_additive<M: DiagnoseModel<N>, const N: usize>(
+    lik: &Likelihood<'_, Extended<M, N>, N>,
     data: &ExperimentData,
     estimate: &[f64],
     cands: &[Additive],
@@ -137,9 +137,9 @@ const CALIBRATION_SHIFTS: usize = 32;
 /// larger where the residual's spectrum is above 1 under the column's red spectrum (a whitening
 /// imperfect at low frequency). As for the glitch scan, the candidate's statistics are divided
 /// by it when it exceeds one.
-pub(super) fn calibrate_aux(
-    problem: &DiagnosisProblem<'_>,
-    state: &DiagnosisState,
+pub(super) fn calibrate_aux<M: DiagnoseModel<N>, const N: usize>(
+    problem: &DiagnosisProblem<'_, M, N>,
+    state: &DiagnosisState<M, N>,
     described: &mut [Described],
 ) -> Result<(), DiagnoseError> {
     if !described
@@ -189,12 +189,13 @@ pub(super) fn calibrate_aux(
 
 /// Additive candidates: drifts of [`additive::DRIFT_PARAMETERS`], and the narrow lines of the
 /// nominal fit's residual that are in scope (coherent across experiments, or `cfg.lines`).
-pub(super) fn additive_candidates(
-    problem: &DiagnosisProblem<'_>,
+pub(super) fn additive_candidates<M: DiagnoseModel<N>, const N: usize>(
+    problem: &DiagnosisProblem<'_, M, N>,
     before: &Stage,
     fit0: &FitResult,
 ) -> Vec<Additive> {
     let (cfg, data) = (problem.cfg, problem.data);
+    let readouts = problem.nominal.readout_names();
     let mut out = Vec::new();
     if cfg.drifts {
         out.extend(
@@ -204,7 +205,7 @@ pub(super) fn additive_candidates(
         );
     }
     if let Some(aux) = cfg.auxiliary.as_deref().filter(|a| !a.is_empty()) {
-        out.extend(Additive::aux_crosstalks(aux, data.dt));
+        out.extend(Additive::aux_crosstalks(aux, data.dt, &readouts));
     }
     let n_ch = before.channels.len().max(1);
     let lines: Vec<(usize, usize, f64)> = before
@@ -212,7 +213,7 @@ pub(super) fn additive_candidates(
         .iter()
         .filter_map(|ch| {
             let e = data.names.iter().position(|n| *n == ch.experiment)?;
-            let c = Channel::from_name(&ch.channel)?.index();
+            let c = readouts.iter().position(|n| *n == ch.channel)?;
             Some((e, c, ch))
         })
         .flat_map(|(e, c, ch)| {
@@ -234,6 +235,7 @@ pub(super) fn additive_candidates(
                 experiment: e,
                 experiment_name: data.names[e].clone(),
                 channel: c,
+                channel_name: readouts[c],
                 f_hz: refine_frequency(r, data.dt, f),
             });
         }
@@ -247,9 +249,9 @@ const CHI2_1_MEDIAN: f64 = 0.454_936_423_119_572_8;
 /// Glitch candidates at the current fit: the matched-filter scan of its whitened residual
 /// ([`glitch::scan`]): for each entry point, the best experiment, position and width, each
 /// carrying the scan's look-elsewhere factor.
-pub(super) fn glitch_candidates(
-    problem: &DiagnosisProblem<'_>,
-    model: &Extended,
+pub(super) fn glitch_candidates<M: DiagnoseModel<N>, const N: usize>(
+    problem: &DiagnosisProblem<'_, M, N>,
+    model: &Extended<M, N>,
     fit: &FitResult,
 ) -> Result<Vec<Additive>, DiagnoseError> {
     let data = problem.data;

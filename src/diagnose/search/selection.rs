@@ -36,6 +36,7 @@ use crate::diagnose::types::EDGE_TRANSIENT_S;
 use crate::diagnose::{AddedEffect, Alternative, Candidate, DiagnoseConfig, DiagnoseError, Stage};
 use crate::fit::score::Score;
 
+use crate::diagnose::DiagnoseModel;
 use crate::model::effects::{Category, Effect, Extended};
 use crate::model::ClosedLoopModel;
 use crate::numerics::stats::chi2_isf;
@@ -63,7 +64,7 @@ impl Family {
         }
     }
 
-    fn limit(self, cfg: &DiagnoseConfig) -> usize {
+    fn limit<const N: usize>(self, cfg: &DiagnoseConfig<N>) -> usize {
         match self {
             Family::Effect => cfg.max_effects,
             Family::Glitch => cfg.max_glitches,
@@ -121,20 +122,20 @@ impl Described {
 }
 
 /// A refitted extended model and its fit.
-struct Refit {
-    model: Extended,
+struct Refit<M, const N: usize> {
+    model: Extended<M, N>,
     fit: LinearFit,
 }
 
 /// The forward selection's state between rounds.
-pub struct DiagnosisState {
+pub struct DiagnosisState<M = crate::model::LpfX, const N: usize = 2> {
     /// Rounds run so far.
     pub round: usize,
     /// The current model (reference model and the operator effects added).
-    pub model: Extended,
+    pub model: Extended<M, N>,
     pub(crate) fit: LinearFit,
     /// Library effects not yet added.
-    pub(super) pool: Vec<Arc<dyn Effect>>,
+    pub(super) pool: Vec<Arc<dyn Effect<N>>>,
     /// Drift and line candidates not yet added.
     lin_pool: Vec<Additive>,
     /// Tests in each round's Bonferroni family. The glitch scan is one test; its own
@@ -146,11 +147,30 @@ pub struct DiagnosisState {
     pub added: Vec<AddedEffect>,
 }
 
-impl DiagnosisState {
+impl<M: DiagnoseModel<N>, const N: usize> DiagnosisState<M, N> {
     /// The state after the nominal fit `fit0` (summarised in `before`).
-    pub(crate) fn new(problem: &DiagnosisProblem<'_>, fit0: LinearFit, before: &Stage) -> Self {
+    pub(crate) fn new(
+        problem: &DiagnosisProblem<'_, M, N>,
+        fit0: LinearFit,
+        before: &Stage,
+    ) -> Self {
         let cfg = problem.cfg;
-        let pool = cfg.effects.clone();
+        // The library effects the model does not host are left out (effects from outside the
+        // library are the caller's and stay).
+        let hosted: Vec<String> = M::effects().iter().map(|e| e.name()).collect();
+        let library: Vec<String> = crate::model::effects::library_for::<N>()
+            .iter()
+            .map(|e| e.name())
+            .collect();
+        let pool: Vec<Arc<dyn Effect<N>>> = cfg
+            .effects
+            .iter()
+            .filter(|e| {
+                let name = e.name();
+                hosted.contains(&name) || !library.contains(&name)
+            })
+            .cloned()
+            .collect();
         let lin_pool = additive_candidates(problem, before, &fit0.fit);
         let n_tests = (pool.len() + lin_pool.len() + usize::from(cfg.glitches)).max(1);
         DiagnosisState {
@@ -166,16 +186,16 @@ impl DiagnosisState {
     }
 
     /// Is `family` under its limit?
-    pub fn open(&self, cfg: &DiagnoseConfig, family: Family) -> bool {
+    pub fn open(&self, cfg: &DiagnoseConfig<N>, family: Family) -> bool {
         self.added.iter().filter(|a| a.family == family).count() < family.limit(cfg)
     }
 }
 
 /// One round: score every candidate, refit the best of each family, add the best refit that
 /// survives every check.
-pub fn next_round(
-    problem: &DiagnosisProblem<'_>,
-    state: &mut DiagnosisState,
+pub fn next_round<M: DiagnoseModel<N>, const N: usize>(
+    problem: &DiagnosisProblem<'_, M, N>,
+    state: &mut DiagnosisState<M, N>,
     obs: &mut dyn Observer,
 ) -> Result<Round, DiagnoseError> {
     let open: Vec<Family> = Family::ALL
@@ -217,7 +237,7 @@ pub fn next_round(
     Ok(outcome)
 }
 
-fn describe_operator(k: usize, e: &Arc<dyn Effect>) -> Described {
+fn describe_operator<const N: usize>(k: usize, e: &Arc<dyn Effect<N>>) -> Described {
     Described {
         proposal: Proposal::Operator(k),
         name: e.name(),
@@ -246,9 +266,9 @@ fn describe_additive(a: Additive, pooled: Option<usize>) -> Described {
 }
 
 /// This round's candidates of the open families: operator effects first, then additive ones.
-fn propose(
-    problem: &DiagnosisProblem<'_>,
-    state: &DiagnosisState,
+fn propose<M: DiagnoseModel<N>, const N: usize>(
+    problem: &DiagnosisProblem<'_, M, N>,
+    state: &DiagnosisState<M, N>,
     open: &[Family],
     obs: &mut dyn Observer,
 ) -> Result<Vec<Described>, DiagnoseError> {
@@ -319,9 +339,9 @@ fn propose(
 }
 
 /// Score tests of every described candidate at the current fit, as candidates of this round.
-fn score(
-    problem: &DiagnosisProblem<'_>,
-    state: &DiagnosisState,
+fn score<M: DiagnoseModel<N>, const N: usize>(
+    problem: &DiagnosisProblem<'_, M, N>,
+    state: &DiagnosisState<M, N>,
     described: &[Described],
 ) -> Result<Vec<Candidate>, DiagnoseError> {
     let lik = problem.likelihood(&state.model)?;
@@ -371,8 +391,8 @@ fn score(
 
 /// One candidate's row from its score test, one-sided at a physical bound, with its Bayes
 /// factor from the score test (`n` whitened samples; the round's p-value `threshold`).
-fn candidate(
-    problem: &DiagnosisProblem<'_>,
+fn candidate<M: DiagnoseModel<N>, const N: usize>(
+    problem: &DiagnosisProblem<'_, M, N>,
     round: usize,
     d: &Described,
     s: &Score,
@@ -418,11 +438,11 @@ fn candidate(
 }
 
 /// The refit of candidate `d` added to the current model.
-fn refit_one(
-    problem: &DiagnosisProblem<'_>,
-    state: &DiagnosisState,
+fn refit_one<M: DiagnoseModel<N>, const N: usize>(
+    problem: &DiagnosisProblem<'_, M, N>,
+    state: &DiagnosisState<M, N>,
     d: &Described,
-) -> Result<Refit, DiagnoseError> {
+) -> Result<Refit<M, N>, DiagnoseError> {
     let (cur, lin) = (&state.fit.fit, &state.fit.linear);
     match &d.proposal {
         Proposal::Operator(k) => {
@@ -447,14 +467,14 @@ fn refit_one(
 
 /// Refit the `confirm_top` best score-significant candidates of each open family (in
 /// parallel) and record each refit's chi^2 drop, p-value and estimate in `tested`.
-fn refit(
-    problem: &DiagnosisProblem<'_>,
-    state: &DiagnosisState,
+fn refit<M: DiagnoseModel<N>, const N: usize>(
+    problem: &DiagnosisProblem<'_, M, N>,
+    state: &DiagnosisState<M, N>,
     described: &[Described],
     tested: &mut [Candidate],
     open: &[Family],
     obs: &mut dyn Observer,
-) -> Vec<(usize, Refit)> {
+) -> Vec<(usize, Refit<M, N>)> {
     let threshold = problem.cfg.alpha / state.n_tests as f64;
     let mut chosen = Vec::new();
     for family in open {
@@ -474,7 +494,7 @@ fn refit(
     let (round, of) = (state.round, chosen.len());
     obs.step(&Step::Refit { round, done: 0, of });
     let (tx, rx) = std::sync::mpsc::channel::<()>();
-    let results: Vec<(usize, Result<Refit, DiagnoseError>)> = std::thread::scope(|s| {
+    let results: Vec<(usize, Result<Refit<M, N>, DiagnoseError>)> = std::thread::scope(|s| {
         let work = s.spawn(move || {
             chosen
                 .par_iter()
@@ -516,12 +536,12 @@ fn refit(
 /// chi^2/nu when it exceeds one), its estimate, and for an operator effect its degeneracy from
 /// the refit's correlation and whether its estimate is physical. An estimate outside the
 /// physical range is the constrained fit at the bound, the nested model: its p-value is one.
-fn record_refit(
-    problem: &DiagnosisProblem<'_>,
-    state: &DiagnosisState,
+fn record_refit<M: DiagnoseModel<N>, const N: usize>(
+    problem: &DiagnosisProblem<'_, M, N>,
+    state: &DiagnosisState<M, N>,
     d: &Described,
     c: &mut Candidate,
-    r: &Refit,
+    r: &Refit<M, N>,
 ) {
     let (m, f) = (&r.model, &r.fit.fit);
     let scale = f.chi2_reduced.max(d.noise_var).max(1.0);
@@ -591,12 +611,12 @@ fn record_refit(
 
 /// Add the largest significant chi^2 drop among refits that converged, are identifiable and
 /// physical, of a family under its limit; or stop.
-fn decide(
-    problem: &DiagnosisProblem<'_>,
-    state: &mut DiagnosisState,
+fn decide<M: DiagnoseModel<N>, const N: usize>(
+    problem: &DiagnosisProblem<'_, M, N>,
+    state: &mut DiagnosisState<M, N>,
     described: &[Described],
     tested: &[Candidate],
-    refits: Vec<(usize, Refit)>,
+    refits: Vec<(usize, Refit<M, N>)>,
 ) -> Round {
     let cfg = problem.cfg;
     let threshold = cfg.alpha / state.n_tests as f64;
@@ -616,7 +636,7 @@ fn decide(
         })
         .collect();
     let drop = |i: usize| tested[i].delta_chi2.unwrap_or(f64::NEG_INFINITY);
-    let eligible = |i: usize, r: &Refit| {
+    let eligible = |i: usize, r: &Refit<M, N>| {
         let c = &tested[i];
         r.fit.fit.termination.converged()
             && c.p_value.is_some_and(|p| p < threshold)
