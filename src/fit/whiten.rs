@@ -320,7 +320,7 @@ impl<const N: usize> Whitener<N> {
                 }
                 // A real filter of real data: the DC (and even-m Nyquist) bins are real.
                 y[0].im = 0.0;
-                if m % 2 == 0 {
+                if m.is_multiple_of(2) {
                     y[nb - 1].im = 0.0;
                 }
                 inv.process(&mut y, &mut buf).expect("FFT sizes match");
@@ -568,8 +568,14 @@ mod tests {
                 for (d, f) in direct.iter().zip(&fast) {
                     assert_eq!(d.len(), n - 120);
                     assert_eq!(f.len(), n - 120);
-                    let err = d.iter().zip(f).fold(0.0f64, |a, (u, v)| a.max((u - v).abs()));
-                    assert!(err <= 1e-12 * scale, "n {n}: max difference {err} of {scale}");
+                    let err = d
+                        .iter()
+                        .zip(f)
+                        .fold(0.0f64, |a, (u, v)| a.max((u - v).abs()));
+                    assert!(
+                        err <= 1e-12 * scale,
+                        "n {n}: max difference {err} of {scale}"
+                    );
                 }
             }
         }
