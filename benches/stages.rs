@@ -17,14 +17,14 @@
 //!     cargo bench --bench stages
 
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
-use rand::RngExt;
-use rand_distr::StandardNormal;
 use freefall::fit::{
     fit, FitConfig, JacobianCache, JacobianPolicy, Likelihood, JACOBIAN_REUSE_SIGMA,
 };
 use freefall::setup::{Setup, DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 use freefall::sim::rng::stream;
 use freefall::sim::WhitenedSimulator;
+use rand::RngExt;
+use rand_distr::StandardNormal;
 use std::hint::black_box;
 
 fn bench(c: &mut Criterion) {
@@ -72,9 +72,12 @@ fn bench(c: &mut Criterion) {
     });
     let cfg = FitConfig::new(&setup.model);
     let first = fit(&setup.model, &problem, &sc.guess, &cfg).unwrap();
-    let cache =
-        JacobianCache::new(&lik, &[sc.guess.clone(), first.estimate], JACOBIAN_REUSE_SIGMA)
-            .unwrap();
+    let cache = JacobianCache::new(
+        &lik,
+        &[sc.guess.clone(), first.estimate],
+        JACOBIAN_REUSE_SIGMA,
+    )
+    .unwrap();
     let mut cached = cfg.clone();
     cached.jacobian = JacobianPolicy::Cached(std::sync::Arc::new(cache));
     g.bench_function("whitened_draw_and_fit_cached", |b| {

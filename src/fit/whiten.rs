@@ -568,8 +568,14 @@ mod tests {
                 for (d, f) in direct.iter().zip(&fast) {
                     assert_eq!(d.len(), n - 120);
                     assert_eq!(f.len(), n - 120);
-                    let err = d.iter().zip(f).fold(0.0f64, |a, (u, v)| a.max((u - v).abs()));
-                    assert!(err <= 1e-12 * scale, "n {n}: max difference {err} of {scale}");
+                    let err = d
+                        .iter()
+                        .zip(f)
+                        .fold(0.0f64, |a, (u, v)| a.max((u - v).abs()));
+                    assert!(
+                        err <= 1e-12 * scale,
+                        "n {n}: max difference {err} of {scale}"
+                    );
                 }
             }
         }
