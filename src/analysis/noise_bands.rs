@@ -163,7 +163,7 @@ pub fn band_levels_on_grid<const N: usize>(
         }
     }
     let mut out = Vec::new();
-    for c in 0..series.len() {
+    for (c, _) in series.iter().enumerate() {
         let data = cs.psd(c);
         for &(lo, hi) in &bands {
             let n = hi - lo;

@@ -22,10 +22,21 @@
 //!   block of the x and xy models);
 //! - the operator candidates are the library effects the model hosts ([`DiagnoseModel::effects`]);
 //! - start-up transients are tested where the model has free-response columns
-//!   ([`DiagnoseModel::transient_columns`]; the x model's four initial conditions).
+//!   ([`DiagnoseModel::transient_columns`]; the x model's four initial conditions), and the
+//!   units check, the acceleration noise and the redesign probes are the x model's (each a
+//!   hook: another model's report says it has none).
+//!
+//! A model of one's own (a third model) implements `ClosedLoopModel<N>`, `SpecModel<N>`
+//! (with `KIND = ModelKind::Other("name")`, its model file's `model = "name"`),
+//! `EffectHost<N>` and this trait (usually only [`DiagnoseModel::effects`]), and calls
+//! [`crate::diagnose::diagnose`] or [`crate::diagnose::job::DiagnoseJob::run`] with its
+//! `SetupOf<M, N>` (`tests/it/third_model.rs`).
 
 /// The transient columns of every experiment, `cols[e][k][c]`: column `k` of readout `c`.
 pub type TransientColumns = Vec<Vec<Vec<Vec<f64>>>>;
+
+/// A noise run less its fitted free response, with the fit's report.
+pub type CleanedNoise = (Vec<Vec<f64>>, TransientReport);
 
 use std::sync::Arc;
 
@@ -87,7 +98,7 @@ pub trait DiagnoseModel<const N: usize>: SpecModel<N> + EffectHost<N> + Send + S
         _order: usize,
         _poly_degree: usize,
         _alpha: f64,
-    ) -> Option<Result<(Vec<Vec<f64>>, TransientReport), String>> {
+    ) -> Option<Result<CleanedNoise, String>> {
         None
     }
 
@@ -180,7 +191,7 @@ impl DiagnoseModel<2> for LpfX {
         order: usize,
         poly_degree: usize,
         alpha: f64,
-    ) -> Option<Result<(Vec<Vec<f64>>, TransientReport), String>> {
+    ) -> Option<Result<CleanedNoise, String>> {
         Some(
             crate::analysis::transient::clean_noise_run(
                 setup,

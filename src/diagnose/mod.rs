@@ -52,6 +52,10 @@
 //! whitening learned still shows as the noise run's level above the model's noise PSD
 //! ([`noise_excess`](families::noise_excess)), reported as unexplained with its channel and band.
 //!
+//! The diagnosis is generic in the model (`SetupOf<M, N>` with `M:`
+//! [`DiagnoseModel<N>`](host::DiagnoseModel)): [`host`] says how the x model's two channels
+//! generalise to `N` readouts and which products are the x model's.
+//!
 //! Layout by role: the search ([`search`]: the problem, the forward selection, the run), the
 //! tests of each family of model errors ([`families`]), the report ([`report`], [`tables`],
 //! [`job`]), and the shared types ([`types`]). What is not the diagnosis's own lives in the
