@@ -9,7 +9,6 @@ use super::simulate::SimSource;
 use crate::diagnose::job::DiagnoseJob;
 use crate::setup::AnySetup;
 use crate::sim::simulate_job::SimulateJob;
-use crate::sim::{Engine, Rate};
 use anyhow::bail;
 
 #[derive(Debug, Args)]
@@ -98,9 +97,7 @@ fn simulate(a: DiagnoseArgs, setup: &AnySetup, dir: &Path) -> Result<()> {
         "note: `diagnose --simulate-into DIR` is deprecated and will be removed in the next release; \
          use `freefall simulate --effect ... --rate analysis --out DIR`"
     );
-    let (noise, s) = (setup.design(&a.sim.design)?.duration_s, a.sim);
-    let job = job!(s => SimulateJob { scenario, design, seed, effects;
-        rate: Some(Rate::Analysis), engine: Engine::FrequencyDomain, initial: None,
-        noise_duration: Some(noise), auxiliary: false, commands: false });
+    let s = a.sim;
+    let job = SimulateJob::diagnose_alias(setup, s.scenario, s.design, s.seed, s.effects)?;
     super::simulate::simulate_into(setup, &job, dir)
 }

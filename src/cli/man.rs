@@ -3,18 +3,9 @@
 //! `freefall-campaign-run.1`) are written there, each written atomically. Every page ends with
 //! EXAMPLES (command lines of README.md's tour and docs/user-guide.md) and ENVIRONMENT.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use anyhow::Result;
-
-/// `freefall man [--out DIR]`.
-#[derive(Debug, clap::Args)]
-pub struct ManArgs {
-    /// Write every page (freefall.1, freefall-<subcommand>.1, nested ones too) into this folder
-    /// instead of printing the top page.
-    #[arg(long)]
-    pub out: Option<PathBuf>,
-}
 
 /// The examples of every page (a data file; its format is in its header).
 const EXAMPLES: &str = include_str!("man_examples.txt");

@@ -60,7 +60,6 @@ use clap::{ArgMatches, FromArgMatches, Parser};
 use prelude::*;
 
 pub use crate::io::console::{quiet, working, Working};
-use crate::setup::Setup;
 
 #[derive(Debug, Parser)]
 #[command(
@@ -110,7 +109,12 @@ pub enum Command {
     },
     /// Print the man page (roff) of freefall (e.g. `freefall man | man -l -`), or with --out write
     /// every page: freefall.1 and freefall-<subcommand>.1 (e.g. freefall-campaign-run.1).
-    Man(man::ManArgs),
+    Man {
+        /// Write every page (freefall.1, freefall-<subcommand>.1, nested ones too) into this
+        /// folder instead of printing the top page.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
     /// Total equivalent acceleration: readouts through Delta(p), spectra, model, noise budget.
     Accel(accel::AccelArgs),
 }
@@ -137,11 +141,6 @@ impl ModelOpt {
             Some(kind) => setup.with_loop(kind.into())?,
             None => setup,
         })
-    }
-
-    /// The x model (commands that take only it).
-    pub fn setup(&self) -> Result<Setup, crate::setup::Error> {
-        self.any_setup()?.x("this command")
     }
 }
 
@@ -178,7 +177,7 @@ pub fn run() -> i32 {
             Command::Design(c) => design::run(c),
             Command::Diagnose(a) => diagnose::run(a),
             Command::Completions { shell } => completions(command, shell),
-            Command::Man(a) => man::run(command, a.out.as_deref()),
+            Command::Man { out } => man::run(command, out.as_deref()),
             Command::Accel(a) => accel::run(a),
         });
     if let Err(e) = &res {

@@ -1,14 +1,8 @@
 //! `freefall posterior`: the posterior of a dataset's parameters by Metropolis-Hastings on the
 //! whitened likelihood `fit` maximises (see `posterior`).
 
-use std::path::PathBuf;
-
-use anyhow::Result;
-use clap::Args;
-
 use super::analysis::FitOpts;
-use super::values::Whitening;
-use super::ModelOpt;
+use super::prelude::*;
 use crate::analysis::job::FitJob;
 use crate::fit::Estimator;
 use crate::posterior::sampler::{SamplerConfig, DEFAULT_DRAWS, DEFAULT_WARMUP};
@@ -52,28 +46,22 @@ pub struct PosteriorArgs {
 
 pub fn run(a: PosteriorArgs) -> Result<()> {
     let setup = a.model.any_setup()?;
+    let fit = job!(a => FitJob { transient; dataset: a.fit.dataset_fit(),
+        estimator: Estimator::Squared, whitening: a.whitening.into() });
+    let sampler = job!(a => SamplerConfig { chains, warmup, draws, seed });
     let job = PosteriorJob {
-        fit: FitJob {
-            dataset: a.fit.dataset_fit(),
-            estimator: Estimator::Squared,
-            whitening: a.whitening.into(),
-            transient: a.transient,
-        },
-        sampler: SamplerConfig {
-            chains: a.chains,
-            warmup: a.warmup,
-            draws: a.draws,
-            seed: a.seed,
-        },
+        fit,
+        sampler,
         plots: !a.no_plots,
     };
-    let done = super::working("sampling", |notes| {
+    let done = working("sampling", |notes| {
         job.run_any(&setup, &a.dataset, &a.out, notes)
     })?;
     out!("{}", done.text);
     info!("wrote {}", a.out.display());
-    for w in &done.summary.warnings {
-        eprintln!("warning: {w}");
-    }
+    done.summary
+        .warnings
+        .iter()
+        .for_each(|w| eprintln!("warning: {w}"));
     Ok(())
 }

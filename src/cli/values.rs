@@ -1,6 +1,7 @@
 //! The command line's value enums: each is the library enum of the same name with
 //! `clap::ValueEnum` (the library does not depend on clap), with the same variants, names,
-//! aliases and doc comments (which `--help` prints as the values' help), and `From` both ways.
+//! aliases and doc comments (which `--help` prints as the values' help), and `From` both ways
+//! (tests/it/cli.rs checks the names against the library's).
 
 /// For each `$cli => $lib { variants }`: a `clap::ValueEnum` copy of the library enum `$lib`
 /// named `$cli`, variant for variant, and the conversions. Variant doc comments and
@@ -108,30 +109,5 @@ value_enum! {
         Noise,
         /// The model's noise cross-PSD at the starting point.
         Model,
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use clap::ValueEnum;
-
-    /// The command-line name of every value of `C` against `name` of the library value.
-    fn same_names<C: ValueEnum + Copy, L: From<C>>(name: impl Fn(L) -> String) {
-        for v in C::value_variants() {
-            let cli = v.to_possible_value().expect("visible");
-            assert_eq!(cli.get_name(), name(L::from(*v)));
-        }
-    }
-
-    /// Every value's command-line name is the library's own name of it (oracle: the library's
-    /// `as_str`/`name`/`Display`, which the dataset meta and reports use).
-    #[test]
-    fn names_match_the_library() {
-        use crate::design::{criteria, space};
-        same_names::<super::Engine, _>(|v: crate::sim::Engine| v.as_str().into());
-        same_names::<super::Rate, _>(|v: crate::sim::Rate| v.as_str().into());
-        same_names::<super::Estimator, _>(|v: crate::fit::Estimator| v.to_string());
-        same_names::<super::Scaling, _>(|v: criteria::Scaling| v.name().into());
-        same_names::<super::Layout, _>(|v: space::Layout| v.name().into());
     }
 }

@@ -124,6 +124,31 @@ impl Simulated {
 type Runs = (ExperimentData, Vec<Vec<f64>>);
 
 impl SimulateJob {
+    /// What the deprecated `diagnose --simulate-into` draws: `scenario`'s truth with `effects`
+    /// by the frequency-domain engine at the analysis rate, and a noise run as long as the
+    /// experiments of `design` (where `simulate` makes it [`NOISE_DURATIONS`] times longer).
+    pub fn diagnose_alias(
+        setup: &AnySetup,
+        scenario: String,
+        design: String,
+        seed: u64,
+        effects: Vec<String>,
+    ) -> Result<Self, SimulateError> {
+        let noise_duration = Some(setup.design(&design)?.duration_s);
+        Ok(SimulateJob {
+            scenario,
+            design,
+            seed,
+            rate: Some(Rate::Analysis),
+            engine: Engine::FrequencyDomain,
+            initial: None,
+            noise_duration,
+            effects,
+            auxiliary: false,
+            commands: false,
+        })
+    }
+
     /// The scenario (its truth checked for a stable loop), the design and the noise-only run of
     /// this job on the model file of `setup`, each checked against the memory limit.
     pub(super) fn plan<M: SpecModel<N>, const N: usize>(

@@ -775,3 +775,24 @@ fn a_run_file_given_to_fit_or_diagnose_is_named_as_one() {
         assert!(!String::from_utf8_lossy(&o.stderr).contains("UTF-8"));
     }
 }
+
+/// The command-line name of every value of `C` against `name` of the library value.
+fn same_names<C: clap::ValueEnum + Copy, L: From<C>>(name: impl Fn(L) -> String) {
+    for v in C::value_variants() {
+        let cli = v.to_possible_value().expect("visible");
+        assert_eq!(cli.get_name(), name(L::from(*v)));
+    }
+}
+
+/// Every value's command-line name (`freefall::cli::values`) is the library's own name of it
+/// (oracle: the library's `as_str`/`name`/`Display`, which the dataset meta and reports use).
+#[test]
+fn value_names_match_the_library() {
+    use freefall::cli::values as v;
+    use freefall::design::{criteria, space};
+    same_names::<v::Engine, _>(|v: freefall::sim::Engine| v.as_str().into());
+    same_names::<v::Rate, _>(|v: freefall::sim::Rate| v.as_str().into());
+    same_names::<v::Estimator, _>(|v: freefall::fit::Estimator| v.to_string());
+    same_names::<v::Scaling, _>(|v: criteria::Scaling| v.name().into());
+    same_names::<v::Layout, _>(|v: space::Layout| v.name().into());
+}
