@@ -14,8 +14,9 @@
 //!
 //! with the likelihood expanded to second order in `theta` about its maximum `theta_hat`
 //! (information `F = Sigma_theta^-1`, the inverse of the marginal covariance of `theta`, i.e.
-//! the Schur complement of the `phi` block): `Delta ln L(theta) = Delta ln L_max
-//! - (theta - theta_hat)^T F (theta - theta_hat) / 2`. The expansion is taken at the maximum of
+//! the Schur complement of the `phi` block):
+//! `Delta ln L(theta) = Delta ln L_max - (theta - theta_hat)^T F (theta - theta_hat) / 2`.
+//! The expansion is taken at the maximum of
 //! `L pi` (`theta*`, the posterior mode) with the posterior information `P = F + W^-1`
 //! (`Sigma_post = P^-1`, `theta* = P^-1 F theta_hat`) of a Gaussian prior `N(0, W)`: for a
 //! likelihood Gaussian in `theta` this is the exact evidence ratio (Tierney & Kadane 1986 at the
@@ -124,7 +125,7 @@ pub fn laplace_ln_bayes_factor(
             delta_ln_l - 0.5 * q / (n + 1.0) - 0.5 * k as f64 * (n + 1.0).ln()
         }
         Prior::Gaussian { width, half } => {
-            if width.len() != k || width.iter().any(|w| !(*w > 0.0)) {
+            if width.len() != k || width.iter().any(|w| w.is_nan() || *w <= 0.0) {
                 return f64::NAN;
             }
             let w_inv = DMatrix::from_fn(k, k, |a, b| {
@@ -182,6 +183,26 @@ pub struct Twin {
     pub separation: String,
     /// For two operator effects: the redesign probe of the twin with the added effect fitted.
     pub redesign: Option<crate::design::redesign::Redesign>,
+    /// The twin itself, to swap it in for the added effect at the final fit (internal).
+    #[serde(skip)]
+    pub swap: Option<Swap>,
+    /// Its `ln B` less its `Delta ln L_max`: the prior's (Occam) part (internal).
+    #[serde(skip)]
+    pub occam: f64,
+}
+
+/// A near-twin as it enters a model (internal).
+#[derive(Debug, Clone)]
+pub enum Swap {
+    Operator(std::sync::Arc<dyn crate::model::effects::Effect>),
+    Additive(crate::diagnose::families::additive::Additive),
+}
+
+impl Evidence {
+    /// `ln B` less `Delta ln L_max`: what the prior (the Occam factor) contributes.
+    pub fn occam(&self) -> f64 {
+        self.ln_bayes_factor - 0.5 * self.delta_chi2 / self.variance_scale
+    }
 }
 
 /// |correlation| of two candidates' whitened columns from which they are near-twins.

@@ -25,8 +25,8 @@ use nalgebra::DMatrix;
 
 use crate::design::redesign::{self, redesign_verdict};
 use crate::diagnose::evidence::{
-    delta_bic, laplace_ln_bayes_factor, Evidence, Prior, Twin, PRIOR_TYPICALS, TWIN_CORRELATION,
-    TWIN_LN_B,
+    delta_bic, laplace_ln_bayes_factor, Evidence, Prior, Swap, Twin, PRIOR_TYPICALS,
+    TWIN_CORRELATION, TWIN_LN_B,
 };
 use crate::diagnose::families::additive::Additive;
 use crate::diagnose::search::problem::DiagnosisProblem;
@@ -250,7 +250,7 @@ pub(super) fn near_twins<M: DiagnoseModel<N>, const N: usize>(
             continue;
         };
         let between = ew.ln_bayes_factor - ek.ln_bayes_factor;
-        if !(between.abs() < TWIN_LN_B) {
+        if between.is_nan() || between.abs() >= TWIN_LN_B {
             continue;
         }
         let cw = col_w.get_or_insert_with(|| first_column(problem, state, &described[winner]));
@@ -259,10 +259,14 @@ pub(super) fn near_twins<M: DiagnoseModel<N>, const N: usize>(
             continue;
         };
         let corr = correlation(cw, &ck);
-        if !(corr.abs() >= TWIN_CORRELATION) {
+        if corr.is_nan() || corr.abs() < TWIN_CORRELATION {
             continue;
         }
         let (separation, redesign) = separation(problem, state, &described[winner], &described[k]);
+        let swap = match &described[k].proposal {
+            Proposal::Operator(j) => Swap::Operator(state.pool[*j].clone()),
+            Proposal::Additive { effect, .. } => Swap::Additive(effect.clone()),
+        };
         out.push(Twin {
             name: c.name.clone(),
             acts_on: c.acts_on.clone(),
@@ -272,6 +276,8 @@ pub(super) fn near_twins<M: DiagnoseModel<N>, const N: usize>(
             delta_chi2: c.delta_chi2.unwrap_or(f64::NAN),
             separation,
             redesign,
+            swap: Some(swap),
+            occam: ek.occam(),
         });
     }
     out
@@ -355,5 +361,92 @@ fn aux_separation<M: DiagnoseModel<N>, const N: usize>(
             "recorded series: inject on the guidance of the degrees of freedom they come from ({} carry no injection in these experiments), as a design of the model that recorded them does",
             silent.join(", ")
         )
+    }
+}
+
+/// The chi^2 of the final model with the near-twin `t` in place of added effect `a`.
+fn swapped_chi2(
+    problem: &DiagnosisProblem<'_>,
+    state: &DiagnosisState,
+    a: &crate::diagnose::AddedEffect,
+    t: &Twin,
+) -> Result<f64, String> {
+    let mut effects = state.model.effects.clone();
+    let mut est = state.fit.fit.estimate.clone();
+    let mut lin = state.fit.linear.clone();
+    match a.lin_index {
+        Some(k) if k < lin.len() => {
+            lin.remove(k);
+        }
+        Some(_) => return Err("its additive column is gone".into()),
+        None => {
+            let j = effects
+                .iter()
+                .position(|e| e.name() == a.name)
+                .ok_or("it is not in the final model")?;
+            est.drain(state.model.range(j));
+            effects.remove(j);
+        }
+    }
+    match t.swap.as_ref().ok_or("no twin to swap in")? {
+        Swap::Operator(e) => effects.push(e.clone()),
+        Swap::Additive(x) => lin.push((x.clone(), vec![0.0; x.parameter_names().len()])),
+    }
+    let model = Extended::new(state.model.base.clone(), effects);
+    let guess = model.nested(&est);
+    let fit = problem
+        .fit_linear(&model, &guess, &lin)
+        .map_err(|e| e.to_string())?;
+    Ok(fit.fit.chi2)
+}
+
+/// Confirm each added effect's near-twins at the final fit, where the other effects are in
+/// the model and the variance scale `s` is the final `chi^2/nu` (at least one): the twin is
+/// swapped in for the effect and refitted, and
+/// `ln B_between = (chi^2_swapped - chi^2_final) / (2 s) + occam_effect - occam_twin`.
+/// A round's scale can be far above one while larger effects are still missing, which
+/// compresses every chi^2 difference; a twin the final fit tells apart (`|ln B| >= TWIN_LN_B`)
+/// is dropped with a note.
+pub(crate) fn confirm_twins(
+    problem: &DiagnosisProblem<'_>,
+    state: &mut DiagnosisState,
+    obs: &mut dyn crate::diagnose::Observer,
+) {
+    let (chi2_f, s_f) = (state.fit.fit.chi2, state.fit.fit.chi2_reduced.max(1.0));
+    for ai in 0..state.added.len() {
+        if state.added[ai].near_twins.is_empty() {
+            continue;
+        }
+        let own = state.added[ai]
+            .evidence
+            .as_ref()
+            .map_or(0.0, Evidence::occam);
+        let twins = std::mem::take(&mut state.added[ai].near_twins);
+        let mut keep = Vec::new();
+        for mut t in twins {
+            let a = &state.added[ai];
+            match swapped_chi2(problem, state, a, &t) {
+                Ok(chi2_t) => {
+                    let between = (chi2_t - chi2_f) / (2.0 * s_f) + own - t.occam;
+                    if between.abs() < TWIN_LN_B {
+                        t.ln_bayes_factor_between = between;
+                        keep.push(t);
+                    } else {
+                        obs.note(&format!(
+                            "{} and {} were near-twins when {} was added; at the final fit (every effect in the model, chi2/nu {:.3}) the data tell them apart: ln B = {between:.1} between them (chi2 {:.1} with {} in its place)",
+                            a.name, t.name, a.name, state.fit.fit.chi2_reduced, chi2_t, t.name
+                        ));
+                    }
+                }
+                Err(e) => {
+                    obs.note(&format!(
+                        "the near-twin {} of {} could not be refitted in its place ({e}): kept as the round found it",
+                        t.name, a.name
+                    ));
+                    keep.push(t);
+                }
+            }
+        }
+        state.added[ai].near_twins = keep;
     }
 }

@@ -149,6 +149,7 @@ fn finish<M: DiagnoseModel<N>, const N: usize>(
             e.sigmas = sigmas;
         }
     }
+    super::bayes::confirm_twins(problem, &mut state, obs);
     let after = problem.stage(&state.model, &state.fit);
     let mut unexplained = excess::find_unexplained(&after, cfg.alpha);
     if let Some(nz) = problem.usable_noise() {
