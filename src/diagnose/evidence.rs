@@ -194,7 +194,8 @@ pub struct Twin {
 /// A near-twin as it enters a model (internal).
 #[derive(Debug, Clone)]
 pub enum Swap {
-    Operator(std::sync::Arc<dyn crate::model::effects::Effect>),
+    /// A library effect, by name (still in the selection's pool).
+    Operator(String),
     Additive(crate::diagnose::families::additive::Additive),
 }
 

@@ -264,7 +264,7 @@ pub(super) fn near_twins<M: DiagnoseModel<N>, const N: usize>(
         }
         let (separation, redesign) = separation(problem, state, &described[winner], &described[k]);
         let swap = match &described[k].proposal {
-            Proposal::Operator(j) => Swap::Operator(state.pool[*j].clone()),
+            Proposal::Operator(j) => Swap::Operator(state.pool[*j].name()),
             Proposal::Additive { effect, .. } => Swap::Additive(effect.clone()),
         };
         out.push(Twin {
@@ -365,9 +365,9 @@ fn aux_separation<M: DiagnoseModel<N>, const N: usize>(
 }
 
 /// The chi^2 of the final model with the near-twin `t` in place of added effect `a`.
-fn swapped_chi2(
-    problem: &DiagnosisProblem<'_>,
-    state: &DiagnosisState,
+fn swapped_chi2<M: DiagnoseModel<N>, const N: usize>(
+    problem: &DiagnosisProblem<'_, M, N>,
+    state: &DiagnosisState<M, N>,
     a: &crate::diagnose::AddedEffect,
     t: &Twin,
 ) -> Result<f64, String> {
@@ -389,7 +389,14 @@ fn swapped_chi2(
         }
     }
     match t.swap.as_ref().ok_or("no twin to swap in")? {
-        Swap::Operator(e) => effects.push(e.clone()),
+        Swap::Operator(name) => effects.push(
+            state
+                .pool
+                .iter()
+                .find(|e| e.name() == *name)
+                .ok_or("it is no longer in the pool")?
+                .clone(),
+        ),
         Swap::Additive(x) => lin.push((x.clone(), vec![0.0; x.parameter_names().len()])),
     }
     let model = Extended::new(state.model.base.clone(), effects);
@@ -407,9 +414,9 @@ fn swapped_chi2(
 /// A round's scale can be far above one while larger effects are still missing, which
 /// compresses every chi^2 difference; a twin the final fit tells apart (`|ln B| >= TWIN_LN_B`)
 /// is dropped with a note.
-pub(crate) fn confirm_twins(
-    problem: &DiagnosisProblem<'_>,
-    state: &mut DiagnosisState,
+pub(crate) fn confirm_twins<M: DiagnoseModel<N>, const N: usize>(
+    problem: &DiagnosisProblem<'_, M, N>,
+    state: &mut DiagnosisState<M, N>,
     obs: &mut dyn crate::diagnose::Observer,
 ) {
     let (chi2_f, s_f) = (state.fit.fit.chi2, state.fit.fit.chi2_reduced.max(1.0));
