@@ -264,10 +264,33 @@ mod tests {
             (got / expect - 1.0).abs() < 0.1,
             "bulk ESS {got} vs {expect}"
         );
+        // Tail ESS is that of the indicator I(x <= q05) (and of q95, the same by symmetry).
+        // For a Gaussian AR(1) its lag-k correlation is (Phi2(h, h; phi^k) - p^2) / (p (1 - p)),
+        // h = Phi^-1(p), with Phi2(h, h; rho) = p^2 + int_0^rho exp(-h^2 / (1 + r)) /
+        // (2 pi sqrt(1 - r^2)) dr (the bivariate normal's derivative in rho, Plackett 1954):
+        // tau = 1 + 2 sum_k of it, about 1.69 here, so the tail ESS exceeds the bulk one.
+        let (p, h) = (0.05, -1.6448536269514722);
+        let phi2_excess = |rho: f64| {
+            let f = |r: f64| {
+                (-h * h / (1.0 + r)).exp() / (2.0 * std::f64::consts::PI * (1.0 - r * r).sqrt())
+            };
+            let n = 2000;
+            let dr = rho / n as f64;
+            let inner: f64 = (1..n)
+                .map(|i| if i % 2 == 1 { 4.0 } else { 2.0 } * f(i as f64 * dr))
+                .sum();
+            (f(0.0) + f(rho) + inner) * dr / 3.0
+        };
+        let tau_tail = 1.0
+            + 2.0
+                * (1..60)
+                    .map(|k| phi2_excess(phi.powi(k)) / (p * (1.0 - p)))
+                    .sum::<f64>();
+        let expect_tail = 40_000.0 / tau_tail;
         let tail = ess_tail(&c);
         assert!(
-            tail > 0.3 * expect && tail < 1.5 * expect,
-            "tail ESS {tail}"
+            (tail / expect_tail - 1.0).abs() < 0.15,
+            "tail ESS {tail} vs {expect_tail}"
         );
     }
 
