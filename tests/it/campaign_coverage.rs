@@ -14,7 +14,7 @@ use crate::common::tables::assert_same_dirs;
 fn campaign_text(n: u64, sampled: u64, draws: usize) -> String {
     format!(
         "name = \"cov\"\nseed = 11\nrealizations = {n}\nestimators = [\"squared\"]\n\
-         [posterior]\nrealizations = {sampled}\ndraws = {draws}\nchains = 4\nwarmup = 300\n\
+         [posterior]\nrealizations = {sampled}\ndraws = {draws}\nchains = 4\nwarmup = 200\n\
          [[scenario]]\nname = \"monte_carlo\"\n"
     )
 }
@@ -130,7 +130,7 @@ fn bad_posterior_keys_are_one_line_errors() {
 #[ignore = "slow tier: samples 200 posteriors (several minutes on 2 cores)"]
 fn coverage_of_200_realizations_is_nominal() {
     let tmp = tempfile::tempdir().unwrap();
-    let f = write(tmp.path(), "c.toml", &campaign_text(200, 200, 500));
+    let f = write(tmp.path(), "c.toml", &campaign_text(200, 200, 150));
     let out = tmp.path().join("t");
     run(&f, &out, freefall::campaign::io_store::max_threads());
     let t = read_parquet(out.join("coverage.parquet")).unwrap();
