@@ -8,7 +8,9 @@
 //! batch of realizations `start..end`; `--resume` refuses a chunk of another config hash. A killed run keeps every finished chunk; `--resume` replays them
 //! through the aggregators (same order, same numbers) and continues with the next realization.
 //! At the end the chunks are streamed into `realizations.parquet`, the aggregate tables and
-//! `manifest.json` are written, and `.partial` is removed. A folder holding `.partial` is an
+//! `manifest.json` are written (with `[posterior]`, `coverage.parquet` of the shard's
+//! sampled realizations; `merge` does not combine the parts' coverage tables), and `.partial` is
+//! removed. A folder holding `.partial` is an
 //! unfinished run whatever else it holds; it is a finished campaign when it holds
 //! `manifest.json` and no `.partial`.
 //!

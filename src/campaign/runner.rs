@@ -24,6 +24,12 @@
 //! every readout's white driving sequence). The time-domain engine is the x model's only (the
 //! digital loop of `sim::time_domain` is the x model's); [`check_x_only`] refuses it for
 //! another model in one line.
+//!
+//! With `[posterior]` the first realizations of each cell are also sampled after their fit
+//! ([`Runner::coverage_job`]): the data are drawn again from the realization's stream, fitted
+//! with the squared estimator, and the posterior of that whitened likelihood is sampled with
+//! the sampler seeded by the stream's next number, so `coverage.parquet` is a pure function of
+//! the campaign file, whatever the thread count, batch or resume.
 
 use rayon::prelude::*;
 
