@@ -8,7 +8,9 @@
 //! batch of realizations `start..end`; `--resume` refuses a chunk of another config hash. A killed run keeps every finished chunk; `--resume` replays them
 //! through the aggregators (same order, same numbers) and continues with the next realization.
 //! At the end the chunks are streamed into `realizations.parquet`, the aggregate tables and
-//! `manifest.json` are written, and `.partial` is removed. A folder holding `.partial` is an
+//! `manifest.json` are written (with `[posterior]`, `coverage.parquet` of the shard's
+//! sampled realizations; `merge` does not combine the parts' coverage tables), and `.partial` is
+//! removed. A folder holding `.partial` is an
 //! unfinished run whatever else it holds; it is a finished campaign when it holds
 //! `manifest.json` and no `.partial`.
 //!
@@ -570,7 +572,22 @@ pub fn run(
         app.finish()?;
     }
     write_aggregates(out, &agg, &outputs.names(), &meta)?;
-    remove_stale_tables(out, &outputs.names(), &layout)?;
+    let mut written = outputs.names();
+    if let Some(p) = &c.posterior {
+        // The sampled realizations of this shard, after its fits (`Runner::coverage_job`).
+        let stop = end.min(p.realizations);
+        let hits = if start < stop {
+            pool.install(|| runner.coverage_range(start, stop, p))
+        } else {
+            Vec::new()
+        };
+        write_parquet(
+            out.join("coverage.parquet"),
+            &layout.coverage_table(&hits)?.with_meta_all(&meta),
+        )?;
+        written.push("coverage".into());
+    }
+    remove_stale_tables(out, &written, &layout)?;
     let (fits, failed) = agg.counts();
     let wall = clock.elapsed().as_secs_f64();
     let manifest = Manifest {
@@ -724,7 +741,14 @@ fn fresh_partial(partial: &Path, state: &State) -> Result<(), CampaignError> {
 }
 
 /// Every table a campaign folder can hold, by name (`<name>.parquet`).
-const CAMPAIGN_TABLES: [&str; 5] = ["realizations", "summary", "correlation", "chi2", "accel"];
+const CAMPAIGN_TABLES: [&str; 6] = [
+    "realizations",
+    "summary",
+    "correlation",
+    "chi2",
+    "accel",
+    "coverage",
+];
 
 /// In a folder that held a campaign (it has a `manifest.json`, about to be replaced), removes
 /// the campaign tables the new run or merge did not write (`written`, plus `accel` when the

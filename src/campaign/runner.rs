@@ -24,10 +24,16 @@
 //! every readout's white driving sequence). The time-domain engine is the x model's only (the
 //! digital loop of `sim::time_domain` is the x model's); [`check_x_only`] refuses it for
 //! another model in one line.
+//!
+//! With `[posterior]` the first realizations of each cell are also sampled after their fit
+//! ([`Runner::coverage_job`]): the data are drawn again from the realization's stream, fitted
+//! with the squared estimator, and the posterior of that whitened likelihood is sampled with
+//! the sampler seeded by the stream's next number, so `coverage.parquet` is a pure function of
+//! the campaign file, whatever the thread count, batch or resume.
 
 use rayon::prelude::*;
 
-use super::spec::{Campaign, LikelihoodKind, ScenarioSource, WhitenAt};
+use super::spec::{Campaign, LikelihoodKind, PosteriorOptions, ScenarioSource, WhitenAt};
 use super::stats::{Layout, Row, ScenarioLabel};
 use super::CampaignError;
 use crate::data::ExperimentData;
@@ -37,6 +43,9 @@ use crate::fit::{
 };
 use crate::model::spec::{ModelKind, ModelSpec, Scenario};
 use crate::model::{check_stability, LpfX, LpfXy};
+use crate::posterior::diagnostics::quantile_sorted;
+use crate::posterior::target::ResidualsPosterior;
+use crate::posterior::{sample, SamplerConfig};
 use crate::setup::{SetupOf, SpecModel};
 use crate::signal::Design;
 use crate::sim::rng::stream;
@@ -242,7 +251,7 @@ struct Cell<'s, M: CampaignModel<N>, const N: usize> {
 /// A realization's whitened problem, and, if asked, the noise-only run's `(nu, whitened
 /// series)`, or the errors of either.
 type Drawn<'a> = (
-    Result<Box<dyn Residuals + 'a>, crate::fit::FitError>,
+    Result<Box<dyn Residuals + Sync + 'a>, crate::fit::FitError>,
     Option<Result<(usize, crate::data::Series), crate::fit::FitError>>,
 );
 
@@ -254,7 +263,7 @@ impl<'s, M: CampaignModel<N>, const N: usize> Cell<'s, M, N> {
         rng: &mut rand_xoshiro::Xoshiro256PlusPlus,
         noise_chi2: bool,
     ) -> Drawn<'a> {
-        let boxed = |p: crate::fit::Problem<'a, 's, M, N>| Box::new(p) as Box<dyn Residuals>;
+        let boxed = |p: crate::fit::Problem<'a, 's, M, N>| Box::new(p) as Box<dyn Residuals + Sync>;
         let (source, lik) = match &self.path {
             Path::Time { source, lik } => (source, lik),
             Path::Whittle { sim, lik } => {
@@ -263,7 +272,10 @@ impl<'s, M: CampaignModel<N>, const N: usize> Cell<'s, M, N> {
                     lik.problem(sim.draw_noise(rng))
                         .map(|p| (lik.nu(0), p.data_w))
                 });
-                return (data.map(|p| Box::new(p) as Box<dyn Residuals>), noise_w);
+                return (
+                    data.map(|p| Box::new(p) as Box<dyn Residuals + Sync>),
+                    noise_w,
+                );
             }
         };
         if let Source::Frequency { wsim: Some(ws), .. } = source {
@@ -690,6 +702,100 @@ impl<'s, M: CampaignModel<N>, const N: usize> Runner<'s, M, N> {
     }
 }
 
+/// The central credible intervals whose coverage `[posterior]` records (probability mass).
+pub const COVERAGE_LEVELS: [f64; 3] = [0.5, 0.9, 0.99];
+
+/// One sampled realization of one cell: per parameter and level of [`COVERAGE_LEVELS`],
+/// whether the central credible interval contains the truth; `None` for a fixed parameter or
+/// when the fit or the sampler failed.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CoverageHit {
+    pub scenario: usize,
+    pub design: usize,
+    pub realization: u64,
+    pub hits: Vec<Option<[bool; 3]>>,
+}
+
+impl<'s, M: CampaignModel<N>, const N: usize> Runner<'s, M, N> {
+    /// Realization `r` of cell `(s, d)` sampled after its fit: the data drawn from the
+    /// realization's stream exactly as [`Runner::run_job`] draws them, fitted with the squared
+    /// estimator (the cell's configuration, so its bounds, fixed parameters and priors), then
+    /// the posterior of that whitened likelihood ([`ResidualsPosterior`]: uniform within the
+    /// model bounds unless `[fit.prior]` gives one) sampled from the fit's estimate and
+    /// covariance, the sampler seeded by the next number of the same stream. Pure in
+    /// `(seed, r, s, d)`: identical for any thread count, shard or resume.
+    pub fn coverage_job(&self, r: u64, s: usize, d: usize, opts: &PosteriorOptions) -> CoverageHit {
+        use rand::Rng;
+        let cell = &self.cells[s * self.n_designs + d];
+        let sc = &self.scenarios[s];
+        let np = sc.truth.len();
+        let mut rng = stream(self.seed, r);
+        let (problem, _) = cell.draw(&mut rng, self.noise_chi2);
+        let seed = rng.next_u64();
+        let mut cfg = cell.configs[0].clone();
+        cfg.estimator = Estimator::Squared;
+        let hits = (|| {
+            let problem = problem.ok()?;
+            let res = fit(&self.setup.model, problem.as_ref(), &sc.guess, &cfg).ok()?;
+            let target = ResidualsPosterior::<M, N>::new(
+                &self.setup.model,
+                problem.as_ref(),
+                &cfg,
+                &res.estimate,
+            );
+            let free = target.free().to_vec();
+            let center: Vec<f64> = free.iter().map(|&k| res.estimate[k]).collect();
+            let cov = nalgebra::DMatrix::from_fn(free.len(), free.len(), |a, b| {
+                res.covariance[(free[a], free[b])]
+            });
+            let sampler = SamplerConfig {
+                chains: opts.chains,
+                warmup: opts.warmup,
+                draws: opts.draws,
+                seed,
+            };
+            let draws = sample(&target, &center, &cov, &sampler).ok()?;
+            let mut hits = vec![None; np];
+            for (j, &k) in free.iter().enumerate() {
+                let mut all: Vec<f64> = draws.parameter(j).into_iter().flatten().collect();
+                all.sort_by(f64::total_cmp);
+                let t = sc.truth[k];
+                hits[k] = Some(COVERAGE_LEVELS.map(|c| {
+                    let lo = quantile_sorted(&all, 0.5 * (1.0 - c));
+                    let hi = quantile_sorted(&all, 0.5 * (1.0 + c));
+                    lo <= t && t <= hi
+                }));
+            }
+            Some(hits)
+        })()
+        .unwrap_or_else(|| vec![None; np]);
+        CoverageHit {
+            scenario: s,
+            design: d,
+            realization: r,
+            hits,
+        }
+    }
+
+    /// [`Runner::coverage_job`] of every cell for realizations `start..end`, in row order
+    /// (realization, scenario, design), in parallel on the current rayon pool.
+    pub fn coverage_range(
+        &self,
+        start: u64,
+        end: u64,
+        opts: &PosteriorOptions,
+    ) -> Vec<CoverageHit> {
+        let (ns, nd) = (self.scenarios.len(), self.n_designs);
+        let jobs: Vec<(u64, usize, usize)> = (start..end)
+            .flat_map(|r| (0..ns).flat_map(move |s| (0..nd).map(move |d| (r, s, d))))
+            .collect();
+        jobs.par_iter()
+            .with_max_len(1)
+            .map(|&(r, s, d)| self.coverage_job(r, s, d, opts))
+            .collect()
+    }
+}
+
 /// A prepared campaign of either model, as the store runs it (`Runner` of the x or the xy
 /// model behind one type).
 pub trait Jobs: Sync {
@@ -701,6 +807,8 @@ pub trait Jobs: Sync {
     fn rows_per_realization(&self) -> usize;
     /// Rows of realizations `start..end` in row order, on the current rayon pool.
     fn run_range(&self, start: u64, end: u64) -> Vec<Row>;
+    /// Credible-interval hits of realizations `start..end` ([`Runner::coverage_range`]).
+    fn coverage_range(&self, start: u64, end: u64, opts: &PosteriorOptions) -> Vec<CoverageHit>;
 }
 
 impl<M: CampaignModel<N>, const N: usize> Jobs for Runner<'_, M, N> {
@@ -715,6 +823,9 @@ impl<M: CampaignModel<N>, const N: usize> Jobs for Runner<'_, M, N> {
     }
     fn run_range(&self, start: u64, end: u64) -> Vec<Row> {
         Runner::run_range(self, start, end)
+    }
+    fn coverage_range(&self, start: u64, end: u64, opts: &PosteriorOptions) -> Vec<CoverageHit> {
+        Runner::coverage_range(self, start, end, opts)
     }
 }
 

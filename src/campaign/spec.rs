@@ -59,6 +59,12 @@
 //! [accel]                       # optional: per realization, the bias of the acceleration-noise
 //! bands_hz = [[3e-4, 5e-4], [4e-2, 6e-2]]  # level S_g12 in each band when the fitted instead
 //!                               # of the true parameters convert the readouts (accel.parquet)
+//!
+//! [posterior]                   # optional: credible-interval coverage (coverage.parquet)
+//! realizations = 200            # the first N realizations of each cell are sampled after the fit
+//! draws = 1000                  # kept draws per chain (>= 4)
+//! chains = 4                    # optional (>= 2)
+//! warmup = 500                  # optional (>= 0)
 //! ```
 
 use std::collections::BTreeMap;
@@ -96,6 +102,28 @@ struct FileSpec {
     fit: FitEntry,
     #[serde(default)]
     accel: Option<AccelEntry>,
+    #[serde(default)]
+    posterior: Option<PosteriorEntry>,
+}
+
+/// `[posterior]`: credible-interval coverage of the first realizations of each cell.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct PosteriorEntry {
+    realizations: i64,
+    draws: i64,
+    chains: Option<i64>,
+    warmup: Option<i64>,
+}
+
+/// `[posterior]`: the first `realizations` of each cell are sampled after the fit
+/// (`coverage.parquet`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct PosteriorOptions {
+    pub realizations: u64,
+    pub chains: usize,
+    pub warmup: usize,
+    pub draws: usize,
 }
 
 /// `[accel]`: the acceleration-noise statistics per realization.
@@ -271,6 +299,8 @@ pub struct Campaign {
     /// the bias of the acceleration-noise level S_g12 estimated with the fitted instead of the
     /// true parameters (thesis sec. 4.6). Empty: not recorded.
     pub accel_bands: Vec<[f64; 2]>,
+    /// `[posterior]`: credible-interval coverage; `None`: not sampled.
+    pub posterior: Option<PosteriorOptions>,
 }
 
 impl Campaign {
@@ -307,6 +337,19 @@ impl Campaign {
                 }
             }
         };
+        let posterior = cx.posterior(spec.posterior.as_ref())?;
+        if let Some(p) = posterior
+            .as_ref()
+            .filter(|p| p.realizations > spec.realizations)
+        {
+            return Err(cx.bad(
+                "posterior.realizations",
+                format!(
+                    "{}: more than the campaign's realizations ({})",
+                    p.realizations, spec.realizations
+                ),
+            ));
+        }
         let batch = spec.batch.unwrap_or(DEFAULT_BATCH);
         if batch == 0 {
             return Err(cx.bad("batch", "must be at least 1"));
@@ -326,6 +369,7 @@ impl Campaign {
             designs: cx.designs(spec.designs)?,
             fit: cx.fit(&spec.fit)?,
             accel_bands: cx.accel(spec.accel.as_ref())?,
+            posterior,
         })
     }
 
@@ -562,6 +606,35 @@ impl Checker<'_> {
             }
         }
         Ok(a.bands_hz.clone())
+    }
+
+    /// `[posterior]`: `realizations >= 1`, `draws >= 4`, `chains >= 2` (default 4), `warmup >= 0`
+    /// (default the sampler's), as the sampler needs them.
+    fn posterior(
+        &self,
+        p: Option<&PosteriorEntry>,
+    ) -> Result<Option<PosteriorOptions>, CampaignError> {
+        use crate::posterior::sampler::DEFAULT_WARMUP;
+        let Some(p) = p else {
+            return Ok(None);
+        };
+        let at_least = |key: &str, v: i64, min: i64| {
+            if v < min {
+                Err(self.bad(key, format!("{v}: must be at least {min}")))
+            } else {
+                Ok(v as usize)
+            }
+        };
+        Ok(Some(PosteriorOptions {
+            realizations: at_least("posterior.realizations", p.realizations, 1)? as u64,
+            draws: at_least("posterior.draws", p.draws, 4)?,
+            chains: at_least("posterior.chains", p.chains.unwrap_or(4), 2)?,
+            warmup: at_least(
+                "posterior.warmup",
+                p.warmup.unwrap_or(DEFAULT_WARMUP as i64),
+                0,
+            )?,
+        }))
     }
 
     /// `[fit]`: whitening, iteration and nuisance settings with their ranges.

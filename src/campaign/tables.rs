@@ -2,6 +2,7 @@
 //! `correlation` and `chi2` tables of [`Aggregates`]. The aggregation itself (`stats`) knows
 //! nothing of files or tables.
 
+use super::runner::{CoverageHit, COVERAGE_LEVELS};
 use super::stats::{Aggregates, Layout, Row};
 use crate::io::{IoError, Table};
 
@@ -419,5 +420,57 @@ impl Aggregates {
             t.push_column(name, v)?;
         }
         Ok(t)
+    }
+}
+
+impl Layout {
+    /// The `coverage` table of `[posterior]`: per (scenario, design, parameter) and level of
+    /// [`COVERAGE_LEVELS`], over the sampled realizations whose fit and sampling succeeded
+    /// (`n`; `failed` did not), the fraction `coverage` whose central credible interval holds
+    /// the truth and its binomial sd `sqrt(p (1 - p) / n)`. Fixed parameters have no rows.
+    pub fn coverage_table(&self, hits: &[CoverageHit]) -> Result<Table, IoError> {
+        let (mut sc, mut de, mut pa, mut level) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        let (mut n, mut failed, mut cov, mut sd) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        for s in 0..self.scenarios.len() {
+            for d in 0..self.designs.len() {
+                let cell: Vec<&CoverageHit> = hits
+                    .iter()
+                    .filter(|h| h.scenario == s && h.design == d)
+                    .collect();
+                for (k, name) in self.parameters.iter().enumerate() {
+                    let ok: Vec<[bool; 3]> = cell.iter().filter_map(|h| h.hits[k]).collect();
+                    // Sampled elsewhere in the cell but never here: a fixed parameter.
+                    let any = cell.iter().any(|h| h.hits.iter().any(Option::is_some));
+                    if cell.is_empty() || (ok.is_empty() && any) {
+                        continue;
+                    }
+                    for (j, &c) in COVERAGE_LEVELS.iter().enumerate() {
+                        let m = ok.len();
+                        let p = ok.iter().filter(|h| h[j]).count() as f64 / m as f64;
+                        sc.push(self.scenarios[s].name.clone());
+                        de.push(self.designs[d].clone());
+                        pa.push(name.clone());
+                        level.push(c);
+                        n.push(m as u64);
+                        failed.push((cell.len() - m) as u64);
+                        cov.push(if m > 0 { p } else { f64::NAN });
+                        sd.push(if m > 0 {
+                            (p * (1.0 - p) / m as f64).sqrt()
+                        } else {
+                            f64::NAN
+                        });
+                    }
+                }
+            }
+        }
+        Table::new()
+            .with_str("scenario", sc)?
+            .with_str("design", de)?
+            .with_str("parameter", pa)?
+            .with_f64("level", level)?
+            .with_counts("n", &n)?
+            .with_counts("failed", &failed)?
+            .with_f64("coverage", cov)?
+            .with_f64("coverage_sd", sd)
     }
 }

@@ -321,6 +321,7 @@ pub fn monte_carlo(
             ptol: None,
         },
         accel_bands: Vec::new(),
+        posterior: None,
     };
     let scenario = Scenario {
         name: "validation".into(),

@@ -7,6 +7,7 @@ mod accel;
 mod analytic_model;
 mod auxiliary;
 mod campaign;
+mod campaign_coverage;
 mod campaign_time_domain;
 mod campaign_xy;
 mod cli;
