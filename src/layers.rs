@@ -237,7 +237,7 @@ fn targets_at(c: &[char], i: usize) -> Vec<String> {
         let (id, _) = ident_at(c, j);
         return vec![id];
     }
-    // A group: the first identifier after `{` and after every `,` at depth one.
+    // A group: the first identifier after the opening brace and after every comma at depth one.
     let mut out = Vec::new();
     let mut depth = 0;
     let mut expect = false;
