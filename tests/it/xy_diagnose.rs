@@ -354,7 +354,7 @@ fn the_xy_models_diagnosis_of_a_declared_xy_design_finds_a_planted_effect() {
         .filter(|(n, _, _, f)| n != "loss_angle_tm2" && f != "glitch" && f != "line")
         .collect();
     assert!(others.is_empty(), "claimed {others:?}");
-    let channels: std::collections::BTreeSet<&str> = r["before"]["channels"]
+    let channels: std::collections::BTreeSet<&str> = r["before"]["per_experiment_channel"]
         .as_array()
         .unwrap()
         .iter()
