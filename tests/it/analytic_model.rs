@@ -10,98 +10,21 @@
 
 use freefall::fit::{fit, ExperimentData, FitConfig, Likelihood, Whitener};
 use freefall::forward::fisher::{fisher_information, InputSpectra};
-use freefall::model::closed_loop::{
-    transfer, transfer_grid_generic, CMat, NoiseEntry, OperatorDerivative, Operators,
-};
-use freefall::model::poly::Poly;
+use freefall::model::closed_loop::{transfer, transfer_grid_generic, CMat};
 use freefall::model::ClosedLoopModel;
 use nalgebra::DMatrix;
 use num_complex::Complex64;
 use rand_distr::{Distribution, StandardNormal};
 
-const GAMMA: f64 = 0.1;
-const KP: f64 = 0.05;
-const KI: f64 = 0.001;
+use crate::common::oscillator::Oscillator;
+
 /// Truth: w2 [s^-2], a [1]. Stable: gamma (w2 + a kp) = 6e-3 > a ki = 1e-3 (Routh-Hurwitz).
 const TRUTH: [f64; 2] = [0.01, 1.0];
-
-struct Oscillator {
-    names: Vec<String>,
-}
-
-impl Oscillator {
-    fn new() -> Self {
-        Oscillator {
-            names: vec!["w2".into(), "a".into()],
-        }
-    }
-}
-
-fn m1(z: Complex64) -> CMat<1> {
-    CMat::<1>::new(z)
-}
-
-/// `(D, C)` at `s`.
-fn d_c(s: Complex64, w2: f64) -> (Complex64, Complex64) {
-    (s * s + GAMMA * s + w2, KP + KI / s)
-}
-
-impl ClosedLoopModel<1> for Oscillator {
-    type Point = Complex64;
-
-    fn parameter_names(&self) -> &[String] {
-        &self.names
-    }
-    fn readout_names(&self) -> [&'static str; 1] {
-        ["o"]
-    }
-    fn input_names(&self) -> [&'static str; 1] {
-        ["oi"]
-    }
-    fn prepare(&self, f_hz: f64) -> Complex64 {
-        Complex64::new(0.0, 2.0 * std::f64::consts::PI * f_hz)
-    }
-    fn operators(&self, s: &Complex64, p: &[f64]) -> Operators<1> {
-        let (d, c) = d_c(*s, p[0]);
-        let one = Complex64::new(1.0, 0.0);
-        Operators {
-            d: m1(d),
-            s: m1(one),
-            ac: m1(p[1] * c),
-            c: m1(c),
-            t: m1(one),
-        }
-    }
-    fn derivative(&self, s: &Complex64, _p: &[f64], k: usize) -> OperatorDerivative<1> {
-        let (_, c) = d_c(*s, 0.0);
-        match k {
-            0 => OperatorDerivative {
-                d: Some(m1(Complex64::new(1.0, 0.0))),
-                ..Default::default()
-            },
-            _ => OperatorDerivative {
-                ac: Some(m1(c)),
-                ..Default::default()
-            },
-        }
-    }
-    fn characteristic_polynomial(&self, p: &[f64]) -> Poly {
-        // s (D + a C) = s^3 + gamma s^2 + (w2 + a kp) s + a ki.
-        Poly(vec![p[1] * KI, p[0] + p[1] * KP, GAMMA, 1.0])
-    }
-    fn noise_entry(&self, name: &str) -> Option<NoiseEntry<1>> {
-        match name {
-            "readout" => Some(NoiseEntry::Readout([1.0])),
-            "force" => Some(NoiseEntry::Force([1.0])),
-            _ => None,
-        }
-    }
-}
 
 /// Closed-form `T` and `[dT/dw2, dT/da]` at frequency `f`.
 fn closed_form(f: f64, p: &[f64]) -> (Complex64, [Complex64; 2]) {
     let s = Complex64::new(0.0, 2.0 * std::f64::consts::PI * f);
-    let (d, c) = d_c(s, p[0]);
+    let (d, c) = Oscillator::new().d_c(s, p[0]);
     let delta = d + p[1] * c;
     (
         p[1] * c / delta,

@@ -1,7 +1,7 @@
 //! A third model through the public API: the one-DOF damped oscillator of `analytic_model.rs`,
 //! `x'' + gamma x' + w2 x = a C(s) (o_i - o)` under a PI loop `C(s) = kp + ki / s` with unit
-//! sensing, added as its own Rust file (this one) and its own model file ([`MODEL_TOML`]),
-//! nothing else. What it implements:
+//! sensing, added as its own Rust files (`common::oscillator`, shared with `analytic_model.rs`,
+//! and this one) and its own model file ([`MODEL_TOML`]), nothing else. What it implements:
 //!
 //! - [`ClosedLoopModel<1>`]: its operators and their derivatives;
 //! - [`SpecModel<1>`]: built from its model file (`model = "oscillator"`, a
@@ -19,20 +19,18 @@ use std::sync::Arc;
 
 use freefall::diagnose::{diagnose, DiagnoseConfig, DiagnoseModel};
 use freefall::fit::{fit, ExperimentData, FitConfig, Likelihood};
-use freefall::model::closed_loop::{CMat, NoiseEntry, OperatorDerivative, Operators};
+use freefall::model::closed_loop::CMat;
 use freefall::model::effects::{
     ActuationLag, Actuator, Damping, Effect, EffectHost, Extended, LossAngle, Roles, SensingGain,
     Tm,
 };
 use freefall::model::lpf_x::Channel;
-use freefall::model::poly::Poly;
 use freefall::model::spec::{ModelKind, ModelSpec};
 use freefall::model::{ClosedLoopModel, ModelError};
 use freefall::setup::{design_fisher, SetupOf, SpecModel};
 use num_complex::Complex64;
 
-/// The oscillator's own damping [s^-1] (a constant of the model, as LPF's gravity gradient).
-const GAMMA: f64 = 0.1;
+use crate::common::oscillator::{c, m1, Oscillator};
 
 /// The oscillator's model file. Truth: w2 = 0.01 s^-2, a = 1; stable, as gamma (w2 + a kp) =
 /// 6e-3 > a ki = 1e-3 (Routh-Hurwitz). `[constants]` and `[controllers.suspension]` are
@@ -108,80 +106,6 @@ guess = { w2 = 0.0102, a = 0.98 }
 kind = "continuous"
 "#;
 
-/// The oscillator; its loop law `C(s) = kp + ki / s` from the model file.
-#[derive(Debug, Clone)]
-struct Oscillator {
-    names: Vec<String>,
-    kp: f64,
-    ki: f64,
-}
-
-fn m1(z: Complex64) -> CMat<1> {
-    CMat::<1>::new(z)
-}
-
-fn c(re: f64) -> Complex64 {
-    Complex64::new(re, 0.0)
-}
-
-impl Oscillator {
-    /// `(D, C)` at `s`.
-    fn d_c(&self, s: Complex64, w2: f64) -> (Complex64, Complex64) {
-        (s * s + GAMMA * s + w2, self.kp + self.ki / s)
-    }
-}
-
-impl ClosedLoopModel<1> for Oscillator {
-    type Point = Complex64;
-
-    fn parameter_names(&self) -> &[String] {
-        &self.names
-    }
-    fn readout_names(&self) -> [&'static str; 1] {
-        ["o"]
-    }
-    fn input_names(&self) -> [&'static str; 1] {
-        ["oi"]
-    }
-    fn prepare(&self, f_hz: f64) -> Complex64 {
-        Complex64::new(0.0, 2.0 * std::f64::consts::PI * f_hz)
-    }
-    fn operators(&self, s: &Complex64, p: &[f64]) -> Operators<1> {
-        let (d, cs) = self.d_c(*s, p[0]);
-        Operators {
-            d: m1(d),
-            s: m1(c(1.0)),
-            ac: m1(p[1] * cs),
-            c: m1(cs),
-            t: m1(c(1.0)),
-        }
-    }
-    fn derivative(&self, s: &Complex64, _p: &[f64], k: usize) -> OperatorDerivative<1> {
-        let (_, cs) = self.d_c(*s, 0.0);
-        match k {
-            0 => OperatorDerivative {
-                d: Some(m1(c(1.0))),
-                ..Default::default()
-            },
-            _ => OperatorDerivative {
-                ac: Some(m1(cs)),
-                ..Default::default()
-            },
-        }
-    }
-    fn characteristic_polynomial(&self, p: &[f64]) -> Poly {
-        // s (D + a C) = s^3 + gamma s^2 + (w2 + a kp) s + a ki.
-        Poly(vec![p[1] * self.ki, p[0] + p[1] * self.kp, GAMMA, 1.0])
-    }
-    fn noise_entry(&self, name: &str) -> Option<NoiseEntry<1>> {
-        match name {
-            "readout" => Some(NoiseEntry::Readout([1.0])),
-            "force" => Some(NoiseEntry::Force([1.0])),
-            _ => None,
-        }
-    }
-}
-
 impl SpecModel<1> for Oscillator {
     const KIND: ModelKind = ModelKind::Other("oscillator");
     /// The parameters `w2, a` in this order and a PI law (one zero, one pole at 0).
@@ -207,8 +131,7 @@ impl SpecModel<1> for Oscillator {
         }
         Ok(Oscillator {
             names,
-            kp: law.gain,
-            ki: -law.gain * law.zeros[0],
+            ..Oscillator::with_law(law.gain, -law.gain * law.zeros[0])
         })
     }
 }
@@ -216,7 +139,7 @@ impl SpecModel<1> for Oscillator {
 /// The oscillator's roles at one point: its mass is TM1 (and "TM2", of which it has none,
 /// acts on nothing), its readout and coordinate are both x channels', its actuator both.
 #[derive(Debug, Clone, Copy)]
-struct OscRoles<'a> {
+pub struct OscRoles<'a> {
     model: &'a Oscillator,
     s: Complex64,
     p: &'a [f64],

@@ -5,6 +5,7 @@
 #![allow(dead_code)]
 
 pub mod loops;
+pub mod oscillator;
 pub mod tables;
 pub mod xy;
 
