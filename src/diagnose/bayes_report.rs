@@ -6,8 +6,8 @@ use std::fmt::Write;
 
 use serde_json::{json, Value};
 
-use crate::diagnose::evidence::{Evidence, Twin, PRIOR_TYPICALS, TWIN_CORRELATION, TWIN_LN_B};
-use crate::diagnose::{AddedEffect, Diagnosis};
+use crate::diagnose::search::bayes::{PRIOR_TYPICALS, TWIN_CORRELATION, TWIN_LN_B};
+use crate::diagnose::{AddedEffect, Diagnosis, Evidence, Twin};
 
 fn num(v: f64) -> Value {
     if v.is_finite() {

@@ -66,7 +66,6 @@
 //! ([`crate::fit::Likelihood::whiten_series`]).
 
 pub mod bayes_report;
-pub mod evidence;
 pub mod families;
 pub mod host;
 pub mod job;

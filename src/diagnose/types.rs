@@ -1,6 +1,6 @@
 //! The types a diagnosis shares between its search, its tests and its report: the settings,
-//! the errors, one fit's summary, the candidates and added effects, the unexplained excess and
-//! the complete diagnosis.
+//! the errors, one fit's summary, the candidates and added effects with their evidence and
+//! near-twins, the unexplained excess and the complete diagnosis.
 
 use std::sync::Arc;
 
@@ -165,8 +165,8 @@ pub struct Candidate {
     pub score_statistic: f64,
     pub score_p_value: f64,
     /// Its Bayes factor and BIC difference against the model without it, from the refit when
-    /// it was refitted, else from the score test ([`crate::diagnose::evidence`]).
-    pub evidence: Option<crate::diagnose::evidence::Evidence>,
+    /// it was refitted, else from the score test ([`crate::fit::evidence`]).
+    pub evidence: Option<Evidence>,
     /// Fraction of the effect's Fisher information not explained by the fitted parameters
     /// (`1 - R^2`; near zero means degenerate).
     pub identifiable_fraction: f64,
@@ -206,14 +206,80 @@ pub struct AddedEffect {
     /// opposite sign on TM2, which the closed loop shows alike in the readouts.
     pub indistinguishable_from: Vec<Alternative>,
     /// Its Bayes factor and BIC difference (from its refit).
-    pub evidence: Option<crate::diagnose::evidence::Evidence>,
+    pub evidence: Option<Evidence>,
     /// Candidates its Bayes factor cannot tell from it, their columns almost the same: when
     /// any, the data want one of them and this design cannot say which (status
     /// `not_distinguishable`); the effect stays in the model as their common proxy.
-    pub near_twins: Vec<crate::diagnose::evidence::Twin>,
+    pub near_twins: Vec<Twin>,
     /// Index of its additive effect in the final model (internal).
     #[serde(skip)]
     pub lin_index: Option<usize>,
+}
+
+/// The Bayes factor of one candidate against the model without it, and how it was obtained.
+#[derive(Debug, Clone, Serialize)]
+pub struct Evidence {
+    /// Laplace `ln B` ([`crate::fit::evidence`]); positive favours the effect.
+    pub ln_bayes_factor: f64,
+    /// `BIC_without - BIC_with`; positive favours the effect.
+    pub delta_bic: f64,
+    /// The prior of the added parameters (and `1/trials` of a glitch's position and width).
+    pub prior: String,
+    /// `refit` (the candidate's own fit) or `score` (the one-step estimate of the score test,
+    /// the score statistic for `Delta chi^2`).
+    pub from: &'static str,
+    /// The whitened samples `n` of the BIC.
+    pub n_samples: usize,
+    /// Added parameters counted by the BIC.
+    pub n_parameters: usize,
+    /// The variance scale `s` of the whitened likelihood (the F-type test's).
+    pub variance_scale: f64,
+    /// The unscaled `Delta chi^2` used.
+    pub delta_chi2: f64,
+    /// Whether its p-value passed the round's threshold (for the disagreement sentences).
+    pub significant: bool,
+}
+
+/// A candidate the data cannot tell from an added effect by its Bayes factor: their whitened
+/// columns correlate at [`TWIN_CORRELATION`](super::search::bayes::TWIN_CORRELATION) or more and their Bayes factors against the model
+/// without either differ by less than [`TWIN_LN_B`](super::search::bayes::TWIN_LN_B).
+#[derive(Debug, Clone, Serialize)]
+pub struct Twin {
+    pub name: String,
+    pub acts_on: String,
+    /// Correlation of the two candidates' (first) whitened columns at the current fit.
+    pub correlation: f64,
+    /// The twin's own `ln B` against the model without either.
+    pub ln_bayes_factor: f64,
+    /// `ln B` of the added effect against the twin (`ln B_added - ln B_twin`).
+    pub ln_bayes_factor_between: f64,
+    pub delta_chi2: f64,
+    /// What injection would separate them (the redesign probe's verdict, or for recorded
+    /// auxiliary series which guidance to inject on).
+    pub separation: String,
+    /// For two operator effects: the redesign probe of the twin with the added effect fitted.
+    pub redesign: Option<crate::design::redesign::Redesign>,
+    /// The twin itself, to swap it in for the added effect at the final fit (internal).
+    #[serde(skip)]
+    pub swap: Option<Swap>,
+    /// Its `ln B` less its `Delta ln L_max`: the prior's (Occam) part (internal).
+    #[serde(skip)]
+    pub occam: f64,
+}
+
+/// A near-twin as it enters a model (internal).
+#[derive(Debug, Clone)]
+pub enum Swap {
+    /// A library effect, by name (still in the selection's pool).
+    Operator(String),
+    Additive(super::families::additive::Additive),
+}
+
+impl Evidence {
+    /// `ln B` less `Delta ln L_max`: what the prior (the Occam factor) contributes.
+    pub fn occam(&self) -> f64 {
+        self.ln_bayes_factor - 0.5 * self.delta_chi2 / self.variance_scale
+    }
 }
 
 /// A candidate the data cannot tell from an added effect.

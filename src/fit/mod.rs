@@ -1,7 +1,8 @@
 //! Estimation (thesis sec. 4.4): the whitening-based MIMO multi-experiment likelihood
 //! (`problem`), the whitening filter (`whiten`), robust L-estimators (`estimator`), the
 //! frequency-domain Fisher information (`fisher`), the score test of extra parameters at zero
-//! (`score`) and the optimiser (this module).
+//! (`score`), the Bayes factor and BIC of added parameters (`evidence`) and the optimiser (this
+//! module).
 //!
 //! The optimiser is a bounded Levenberg-Marquardt on the whitened residuals with the analytic
 //! Jacobian (iteratively reweighted for the robust estimators). argmin offers Gauss-Newton but
@@ -14,6 +15,7 @@
 //! relative to `|p| + sigma`.
 
 pub mod estimator;
+pub mod evidence;
 pub mod problem;
 pub mod score;
 pub mod telemetry_psd;

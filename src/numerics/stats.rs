@@ -1,9 +1,11 @@
 //! Sample statistics and distribution tails shared by whitening checks, campaigns and the
 //! diagnosis: moments with their large-sample errors, chi^2 and F survival functions
-//! (statrs), the Ljung-Box portmanteau test and the two-sample Kolmogorov-Smirnov test.
+//! (statrs), the log of the normal CDF into its far tail, the Ljung-Box portmanteau test and
+//! the two-sample Kolmogorov-Smirnov test.
 
 use serde::Serialize;
 use statrs::distribution::{ChiSquared, ContinuousCDF, FisherSnedecor};
+use statrs::function::erf::erfc;
 
 use super::tol::KS_SERIES_TERM;
 
@@ -67,6 +69,15 @@ pub fn chi2_isf(dof: f64, alpha: f64) -> f64 {
     match ChiSquared::new(dof) {
         Ok(d) if alpha > 0.0 && alpha < 1.0 => d.inverse_cdf(1.0 - alpha),
         _ => f64::NAN,
+    }
+}
+
+/// `ln Phi(x)` of the standard normal, finite far in the lower tail (Mills ratio).
+pub fn ln_normal_cdf(x: f64) -> f64 {
+    if x > -30.0 {
+        (0.5 * erfc(-x / std::f64::consts::SQRT_2)).ln()
+    } else {
+        -0.5 * x * x - (-x).ln() - 0.5 * (2.0 * std::f64::consts::PI).ln()
     }
 }
 
@@ -171,6 +182,14 @@ mod tests {
             * (lf + 2.0);
         assert_eq!(h, 5);
         assert!((q - want).abs() < 1e-9 * want && p < 1e-100);
+    }
+
+    #[test]
+    fn normal_cdf_log_is_continuous_into_the_tail() {
+        // Oracle: Phi(0) = 1/2, and the Mills-ratio branch meets the erfc branch at -30.
+        assert!((ln_normal_cdf(0.0) - 0.5f64.ln()).abs() < 1e-15);
+        let (a, b) = (ln_normal_cdf(-29.999_999), ln_normal_cdf(-30.000_001));
+        assert!((a - b).abs() < 1e-3 * a.abs(), "{a} {b}");
     }
 
     /// Identical samples have D = 0 (p = 1); disjoint ones D = 1 (p -> 0).

@@ -188,7 +188,7 @@ fn laplace_bayes_factor_matches_the_evidence_by_quadrature() {
     // nonlinear in (w2, a) over the posterior width only at the parameters' relative error
     // (~2e-3), and the two fits' information differs by as much, so the two agree within 0.02
     // in ln B (the quadrature's own error is below 1e-6 at this step).
-    use freefall::diagnose::evidence::{laplace_ln_bayes_factor, Prior};
+    use freefall::fit::evidence::{laplace_ln_bayes_factor, Prior};
     let model = Oscillator::new();
     let inputs = vec![vec![sine(N, BIN, AMP)]];
     let psd = 2.0 * SIGMA * SIGMA;

@@ -1,4 +1,4 @@
-//! The forward selection's Bayes factors ([`crate::diagnose::evidence`]) and its near-twins.
+//! The forward selection's Bayes factors ([`crate::fit::evidence`]) and its near-twins.
 //!
 //! - **Priors**: an operator effect's parameters have zero-mean Gaussian priors of width
 //!   [`PRIOR_TYPICALS`] times the effect table's typical size (half-normal for a parameter
@@ -24,19 +24,27 @@ use std::sync::Arc;
 use nalgebra::DMatrix;
 
 use crate::design::redesign::{self, redesign_verdict};
-use crate::diagnose::evidence::{
-    delta_bic, laplace_ln_bayes_factor, Evidence, Prior, Swap, Twin, PRIOR_TYPICALS,
-    TWIN_CORRELATION, TWIN_LN_B,
-};
 use crate::diagnose::families::additive::Additive;
 use crate::diagnose::search::problem::DiagnosisProblem;
 use crate::diagnose::search::selection::{Described, DiagnosisState, Proposal};
-use crate::diagnose::Candidate;
 use crate::diagnose::DiagnoseModel;
+use crate::diagnose::{Candidate, Evidence, Swap, Twin};
+use crate::fit::evidence::{delta_bic, laplace_ln_bayes_factor, Prior};
 use crate::fit::score::Score;
 use crate::model::effects::{Category, Effect, Extended};
-use crate::numerics::linalg::{equilibrated_pinv, series_dot};
+use crate::numerics::linalg::series_dot;
 use crate::sim::Series;
+
+/// Width of an operator effect's Gaussian prior in units of its typical size
+/// ([`crate::model::effects::Effect::typical`]): an effect ten times its expected order of
+/// magnitude is a two-sigma prior event.
+pub const PRIOR_TYPICALS: f64 = 10.0;
+
+/// |correlation| of two candidates' whitened columns from which they are near-twins.
+pub const TWIN_CORRELATION: f64 = 0.99;
+/// |ln B| between two candidates below which the data do not prefer either: Kass & Raftery
+/// (1995) call `2 ln B < 6` less than strong evidence.
+pub const TWIN_LN_B: f64 = 3.0;
 
 /// The whitened samples of the current fit (the BIC's `n`).
 pub(super) fn n_samples<M: DiagnoseModel<N>, const N: usize>(
@@ -89,6 +97,9 @@ fn evidence(
     let f = info / scale;
     let mut ln_b = laplace_ln_bayes_factor(0.5 * dchi2 / scale, theta, &f, &prior);
     let mut text = prior.describe();
+    if let Prior::Gaussian { .. } = prior {
+        text.push_str(&format!(" ({PRIOR_TYPICALS} x typical)"));
+    }
     if d.trials > 1.0 {
         ln_b -= d.trials.ln();
         text.push_str(&format!(
@@ -138,7 +149,7 @@ pub(super) fn from_score(
 }
 
 /// The evidence of a refitted candidate (`info`: the unscaled information of its parameters
-/// given the rest, see [`schur_of`] and [`information_of_covariance`]).
+/// given the rest, see [`crate::fit::evidence::information_given_rest`]).
 #[allow(clippy::too_many_arguments)]
 pub(super) fn from_refit(
     d: &Described,
@@ -163,36 +174,6 @@ pub(super) fn from_refit(
         n,
         significant,
     ))
-}
-
-/// The information of the parameters `range` given the others: the Schur complement
-/// `I_ee - I_en I_nn^+ I_ne` of the full information `info`.
-pub(super) fn schur_of(info: &DMatrix<f64>, range: std::ops::Range<usize>) -> Option<DMatrix<f64>> {
-    let np = info.nrows();
-    let e: Vec<usize> = range.collect();
-    let o: Vec<usize> = (0..np).filter(|k| !e.contains(k)).collect();
-    let sub =
-        |r: &[usize], c: &[usize]| DMatrix::from_fn(r.len(), c.len(), |a, b| info[(r[a], c[b])]);
-    let iee = sub(&e, &e);
-    if o.is_empty() {
-        return Some(iee);
-    }
-    let ien = sub(&e, &o);
-    let inn = equilibrated_pinv(&sub(&o, &o))?;
-    Some(iee - &ien * inn * ien.transpose())
-}
-
-/// The information of the first `dim` parameters of a covariance (amplitudes of an additive
-/// effect, the non-linear ones marginalised): the inverse of that block.
-pub(super) fn information_of_covariance(cov: &DMatrix<f64>, dim: usize) -> Option<DMatrix<f64>> {
-    if cov.nrows() < dim {
-        return None;
-    }
-    let block = cov.view((0, 0), (dim, dim)).into_owned();
-    if block.iter().any(|v| !v.is_finite()) {
-        return None;
-    }
-    equilibrated_pinv(&block)
 }
 
 /// The first whitened column of candidate `d` at the current fit: the template derivative of

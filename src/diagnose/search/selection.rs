@@ -34,6 +34,7 @@ use crate::diagnose::search::score::{
 };
 use crate::diagnose::types::EDGE_TRANSIENT_S;
 use crate::diagnose::{AddedEffect, Alternative, Candidate, DiagnoseConfig, DiagnoseError, Stage};
+use crate::fit::evidence::{information_given_rest, information_of_covariance};
 use crate::fit::score::Score;
 
 use crate::diagnose::DiagnoseModel;
@@ -555,13 +556,11 @@ fn record_refit<M: DiagnoseModel<N>, const N: usize>(
             let range = m.range(m.effects.len() - 1);
             (
                 f.estimate[range.clone()].to_vec(),
-                bayes::schur_of(&f.information, range),
+                information_given_rest(&f.information, range),
             )
         }
         Proposal::Additive { .. } => match (r.fit.linear.last(), r.fit.covariances.last()) {
-            (Some((_, v)), Some(cov)) => {
-                (v.clone(), bayes::information_of_covariance(cov, v.len()))
-            }
+            (Some((_, v)), Some(cov)) => (v.clone(), information_of_covariance(cov, v.len())),
             _ => (Vec::new(), None),
         },
     };

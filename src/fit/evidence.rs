@@ -1,9 +1,12 @@
 //! Bayes factors of a nested model comparison: the Laplace approximation of the evidence ratio
 //! and the Schwarz criterion (BIC), as Karnesis et al. compare them for LISA Pathfinder's
-//! models ("Bayesian model selection for LISA Pathfinder", arXiv:1304.4436).
+//! models ("Bayesian model selection for LISA Pathfinder", arXiv:1304.4436). Generic statistics
+//! of a fit (the diagnosis's forward selection uses them for every candidate; a posterior
+//! comparison could as well): the information of a parameter block given the rest, the
+//! evidence ratio under a Gaussian or unit-information prior, the BIC difference.
 //!
-//! The model with an effect (parameters `theta`, `k` of them, zero in the model without it)
-//! against the model without it, the other parameters `phi` shared, with independent priors
+//! The model with added parameters (`theta`, `k` of them, zero in the model without them)
+//! against the model without them, the other parameters `phi` shared, with independent priors
 //! `pi(phi) pi(theta)` and the same `pi(phi)` in both. The evidence of each is the Laplace
 //! integral about its maximum; the ratio of the two leaves, for the added parameters given the
 //! rest (block determinant `det Sigma_1 = det Sigma_theta det Sigma_phi|theta`, with
@@ -27,82 +30,45 @@
 //!
 //! A parameter bounded below at zero (a lag, a damping, a loss angle) has the half-normal prior
 //! `2 N(0, w^2)` on `theta >= 0`; the Gaussian integral over the half-line adds
-//! `ln 2 + ln Phi(theta* sqrt(P))` (one-dimensional effects only, the only bounded ones).
+//! `ln 2 + ln Phi(theta* sqrt(P))` (one-dimensional blocks only).
 //!
 //! The Schwarz criterion: `BIC = -2 ln L_max + d ln n`, so that
 //! `Delta BIC = BIC_without - BIC_with = Delta chi^2 / s - k_all ln n` (positive favours the
-//! effect; `ln B ~ Delta BIC / 2` to O(1)), with `n` the number of whitened samples and `k_all`
-//! every added parameter (the non-linear ones of a line or a glitch too).
+//! added parameters; `ln B ~ Delta BIC / 2` to O(1)), with `n` the number of whitened samples and `k_all`
+//! every added parameter (non-linear ones too).
 
 use nalgebra::DMatrix;
-use serde::Serialize;
-use statrs::function::erf::erfc;
 
-/// Width of an operator effect's Gaussian prior in units of its typical size
-/// ([`crate::model::effects::Effect::typical`]): an effect ten times its expected order of
-/// magnitude is a two-sigma prior event.
-pub const PRIOR_TYPICALS: f64 = 10.0;
+use crate::numerics::linalg::equilibrated_pinv;
+use crate::numerics::stats::ln_normal_cdf;
 
-/// The prior of an effect's added parameters.
+/// The prior of the added parameters.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Prior {
     /// Independent zero-mean Gaussians of standard deviations `width`; `half`: the (single)
     /// parameter is bounded below at zero and its prior is the half-normal `2 N(0, w^2)`.
     Gaussian { width: Vec<f64>, half: bool },
     /// The unit-information prior `N(0, n Sigma_theta)` (Kass & Wasserman 1995): the
-    /// information of one of the `n` whitened samples, for effects without a physical size
-    /// (drifts, lines, glitches, auxiliary cross-talk). With it `ln B` is `Delta BIC / 2` up to
+    /// information of one of the `n` whitened samples, for parameters without a physical size
+    /// (in the diagnosis: drifts, lines, glitches, auxiliary cross-talk). With it `ln B` is `Delta BIC / 2` up to
     /// `O(1/n)`.
     UnitInformation { n: f64 },
 }
 
 impl Prior {
-    /// One phrase for the report, e.g. `half-normal, width 1.0e0`.
+    /// One phrase for a report, e.g. `half-normal N(0, w^2), w = 1.0e0`.
     pub fn describe(&self) -> String {
         match self {
             Prior::Gaussian { width, half } => {
                 let w: Vec<String> = width.iter().map(|w| format!("{w:.1e}")).collect();
                 format!(
-                    "{} N(0, w^2), w = {} ({PRIOR_TYPICALS} x typical)",
+                    "{} N(0, w^2), w = {}",
                     if *half { "half-normal" } else { "Gaussian" },
                     w.join(", ")
                 )
             }
             Prior::UnitInformation { .. } => "unit information N(0, n Sigma)".into(),
         }
-    }
-}
-
-/// The Bayes factor of one candidate against the model without it, and how it was obtained.
-#[derive(Debug, Clone, Serialize)]
-pub struct Evidence {
-    /// Laplace `ln B` (module docs); positive favours the effect.
-    pub ln_bayes_factor: f64,
-    /// `BIC_without - BIC_with`; positive favours the effect.
-    pub delta_bic: f64,
-    /// The prior of the added parameters (and `1/trials` of a glitch's position and width).
-    pub prior: String,
-    /// `refit` (the candidate's own fit) or `score` (the one-step estimate of the score test,
-    /// the score statistic for `Delta chi^2`).
-    pub from: &'static str,
-    /// The whitened samples `n` of the BIC.
-    pub n_samples: usize,
-    /// Added parameters counted by the BIC.
-    pub n_parameters: usize,
-    /// The variance scale `s` of the whitened likelihood (the F-type test's).
-    pub variance_scale: f64,
-    /// The unscaled `Delta chi^2` used.
-    pub delta_chi2: f64,
-    /// Whether its p-value passed the round's threshold (for the disagreement sentences).
-    pub significant: bool,
-}
-
-/// `ln Phi(x)` of the standard normal, finite far in the lower tail (Mills ratio).
-pub fn ln_normal_cdf(x: f64) -> f64 {
-    if x > -30.0 {
-        (0.5 * erfc(-x / std::f64::consts::SQRT_2)).ln()
-    } else {
-        -0.5 * x * x - (-x).ln() - 0.5 * (2.0 * std::f64::consts::PI).ln()
     }
 }
 
@@ -164,57 +130,43 @@ pub fn delta_bic(delta_chi2: f64, scale: f64, k: usize, n: usize) -> f64 {
     delta_chi2 / scale - k as f64 * (n.max(1) as f64).ln()
 }
 
-/// A candidate the data cannot tell from an added effect by its Bayes factor: their whitened
-/// columns correlate at [`TWIN_CORRELATION`] or more and their Bayes factors against the model
-/// without either differ by less than [`TWIN_LN_B`].
-#[derive(Debug, Clone, Serialize)]
-pub struct Twin {
-    pub name: String,
-    pub acts_on: String,
-    /// Correlation of the two candidates' (first) whitened columns at the current fit.
-    pub correlation: f64,
-    /// The twin's own `ln B` against the model without either.
-    pub ln_bayes_factor: f64,
-    /// `ln B` of the added effect against the twin (`ln B_added - ln B_twin`).
-    pub ln_bayes_factor_between: f64,
-    pub delta_chi2: f64,
-    /// What injection would separate them (the redesign probe's verdict, or for recorded
-    /// auxiliary series which guidance to inject on).
-    pub separation: String,
-    /// For two operator effects: the redesign probe of the twin with the added effect fitted.
-    pub redesign: Option<crate::design::redesign::Redesign>,
-    /// The twin itself, to swap it in for the added effect at the final fit (internal).
-    #[serde(skip)]
-    pub swap: Option<Swap>,
-    /// Its `ln B` less its `Delta ln L_max`: the prior's (Occam) part (internal).
-    #[serde(skip)]
-    pub occam: f64,
-}
-
-/// A near-twin as it enters a model (internal).
-#[derive(Debug, Clone)]
-pub enum Swap {
-    /// A library effect, by name (still in the selection's pool).
-    Operator(String),
-    Additive(crate::diagnose::families::additive::Additive),
-}
-
-impl Evidence {
-    /// `ln B` less `Delta ln L_max`: what the prior (the Occam factor) contributes.
-    pub fn occam(&self) -> f64 {
-        self.ln_bayes_factor - 0.5 * self.delta_chi2 / self.variance_scale
+/// The information of the parameters `range` given the others: the Schur complement
+/// `I_ee - I_en I_nn^+ I_ne` of the full information `info`.
+pub fn information_given_rest(
+    info: &DMatrix<f64>,
+    range: std::ops::Range<usize>,
+) -> Option<DMatrix<f64>> {
+    let np = info.nrows();
+    let e: Vec<usize> = range.collect();
+    let o: Vec<usize> = (0..np).filter(|k| !e.contains(k)).collect();
+    let sub =
+        |r: &[usize], c: &[usize]| DMatrix::from_fn(r.len(), c.len(), |a, b| info[(r[a], c[b])]);
+    let iee = sub(&e, &e);
+    if o.is_empty() {
+        return Some(iee);
     }
+    let ien = sub(&e, &o);
+    let inn = equilibrated_pinv(&sub(&o, &o))?;
+    Some(iee - &ien * inn * ien.transpose())
 }
 
-/// |correlation| of two candidates' whitened columns from which they are near-twins.
-pub const TWIN_CORRELATION: f64 = 0.99;
-/// |ln B| between two candidates below which the data do not prefer either: Kass & Raftery
-/// (1995) call `2 ln B < 6` less than strong evidence.
-pub const TWIN_LN_B: f64 = 3.0;
+/// The information of the first `dim` parameters of a covariance, the others marginalised: the
+/// inverse of that block.
+pub fn information_of_covariance(cov: &DMatrix<f64>, dim: usize) -> Option<DMatrix<f64>> {
+    if cov.nrows() < dim {
+        return None;
+    }
+    let block = cov.view((0, 0), (dim, dim)).into_owned();
+    if block.iter().any(|v| !v.is_finite()) {
+        return None;
+    }
+    equilibrated_pinv(&block)
+}
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use statrs::function::erf::erfc;
 
     #[test]
     fn one_dimensional_gaussian_case_is_the_closed_form_evidence() {
@@ -273,13 +225,5 @@ mod tests {
         let d = delta_bic(1100.0 - 1060.0, 1.06, 1, 1000);
         assert!((d - (40.0 / 1.06 - 1000f64.ln())).abs() < 1e-12);
         assert!((d - 30.828).abs() < 1e-3, "{d}");
-    }
-
-    #[test]
-    fn normal_cdf_log_is_continuous_into_the_tail() {
-        // Oracle: Phi(0) = 1/2, and the Mills-ratio branch meets the erfc branch at -30.
-        assert!((ln_normal_cdf(0.0) - 0.5f64.ln()).abs() < 1e-15);
-        let (a, b) = (ln_normal_cdf(-29.999_999), ln_normal_cdf(-30.000_001));
-        assert!((a - b).abs() < 1e-3 * a.abs(), "{a} {b}");
     }
 }
