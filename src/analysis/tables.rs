@@ -1,4 +1,5 @@
-//! The tables of `psd`, `whiten` and `fit` (and the residual layout `diagnose` shares): long
+//! The tables of `psd`, `whiten` and `fit` (and the residual layout, residual spectra and
+//! windowed chi^2 that `diagnose` writes): long
 //! format, one unit per column (Parquet field metadata) or a `unit` column where rows differ.
 
 use std::collections::BTreeMap;
@@ -6,6 +7,7 @@ use std::fmt::Write as _;
 
 use serde::Serialize;
 
+use super::residuals::{ChannelReport, SpectrumCurve};
 use crate::fit::{FitResult, Whitener};
 use crate::io::{IoError, Run, Table};
 use crate::numerics::stats::moments;
@@ -136,6 +138,58 @@ pub fn residual_table(
         .with_f64("whitened", w)?
         .with_units([("t", "s"), ("raw", "m"), ("whitened", "1")])
         .with_nan_as_null("whitened"))
+}
+
+/// Whitened residual spectra for plots (`diagnose`'s spectra.parquet): stage, experiment,
+/// channel, f, level and its 90 % band (`lo90`, `hi90`), one row per point of each curve.
+pub fn spectra_table(spectra: &[SpectrumCurve]) -> Result<Table, IoError> {
+    let rows = || {
+        spectra
+            .iter()
+            .flat_map(|s| (0..s.f.len()).map(move |i| (s, i)))
+    };
+    Table::new()
+        .with_str("stage", rows().map(|(s, _)| s.stage.clone()))?
+        .with_str("experiment", rows().map(|(s, _)| s.experiment.clone()))?
+        .with_str("channel", rows().map(|(s, _)| s.channel.clone()))?
+        .with_f64("f", rows().map(|(s, i)| s.f[i]).collect())?
+        .with_f64("level", rows().map(|(s, i)| s.level[i]).collect())?
+        .with_f64("lo90", rows().map(|(s, i)| s.lo[i]).collect())?
+        .with_f64("hi90", rows().map(|(s, i)| s.hi[i]).collect())
+        .map(|t| t.with_units([("f", "Hz"), ("level", "1"), ("lo90", "1"), ("hi90", "1")]))
+}
+
+/// Windowed chi^2 of the residual reports of named stages (`diagnose`'s time_chi2.parquet):
+/// stage, experiment, channel, window, chi^2/n, excess and p-value, one row per time window of
+/// each channel.
+pub fn time_chi2_table(stages: &[(&str, &[ChannelReport])]) -> Result<Table, IoError> {
+    let rows = || {
+        stages.iter().flat_map(|&(stage, channels)| {
+            channels
+                .iter()
+                .flat_map(move |c| c.time.iter().map(move |t| (stage, c, t)))
+        })
+    };
+    Table::new()
+        .with_str("stage", rows().map(|(s, _, _)| s.to_string()))?
+        .with_str("experiment", rows().map(|(_, c, _)| c.experiment.clone()))?
+        .with_str("channel", rows().map(|(_, c, _)| c.channel.clone()))?
+        .with_f64("t_lo", rows().map(|(_, _, t)| t.time_s[0]).collect())?
+        .with_f64("t_hi", rows().map(|(_, _, t)| t.time_s[1]).collect())?
+        .with_f64(
+            "chi2_reduced",
+            rows().map(|(_, _, t)| t.chi2_reduced).collect(),
+        )?
+        .with_f64("excess", rows().map(|(_, _, t)| t.excess).collect())?
+        .with_f64("p_value", rows().map(|(_, _, t)| t.p_value).collect())
+        .map(|t| {
+            t.with_units([
+                ("t_lo", "s"),
+                ("t_hi", "s"),
+                ("chi2_reduced", "1"),
+                ("excess", "1"),
+            ])
+        })
 }
 
 /// estimates.parquet of a fit: parameter, estimate, sigma, guess, unit.

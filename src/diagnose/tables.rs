@@ -7,9 +7,9 @@ use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::Path;
 
-use crate::analysis::residual_table;
+use crate::analysis::{residual_table, spectra_table, time_chi2_table};
 use crate::diagnose::Diagnosis;
-use crate::io::{write_json_atomic, write_parquet, IoError, Table};
+use crate::io::{write_json_atomic, write_parquet, IoError};
 
 /// Where the experiments sit in time: names, each run's first sample time and the spacing.
 pub struct Timeline<'a> {
@@ -27,13 +27,7 @@ impl Diagnosis {
         meta: &BTreeMap<String, String>,
     ) -> Result<(), IoError> {
         let mut json = self.to_json();
-        if let Some(o) = json.as_object_mut() {
-            let prov = meta
-                .iter()
-                .map(|(k, v)| (k.clone(), serde_json::Value::String(v.clone())))
-                .collect();
-            o.insert("provenance".into(), serde_json::Value::Object(prov));
-        }
+        json["provenance"] = serde_json::json!(meta);
         write_json_atomic(out.join("report.json"), &json)?;
         for (stage, (w, raw)) in [
             ("before", &self.residuals_before),
@@ -47,61 +41,14 @@ impl Diagnosis {
         }
         write_parquet(
             out.join("spectra.parquet"),
-            &self.spectra_table()?.with_meta_all(meta),
+            &spectra_table(&self.spectra)?.with_meta_all(meta),
         )?;
+        let stages = [("before", &self.before), ("after", &self.after)];
+        let stages = stages.map(|(name, s)| (name, &s.channels[..]));
         write_parquet(
             out.join("time_chi2.parquet"),
-            &self.time_chi2_table()?.with_meta_all(meta),
+            &time_chi2_table(&stages)?.with_meta_all(meta),
         )
-    }
-
-    fn spectra_table(&self) -> Result<Table, IoError> {
-        let rows = || {
-            self.spectra
-                .iter()
-                .flat_map(|s| (0..s.f.len()).map(move |i| (s, i)))
-        };
-        Table::new()
-            .with_str("stage", rows().map(|(s, _)| s.stage.clone()))?
-            .with_str("experiment", rows().map(|(s, _)| s.experiment.clone()))?
-            .with_str("channel", rows().map(|(s, _)| s.channel.clone()))?
-            .with_f64("f", rows().map(|(s, i)| s.f[i]).collect())?
-            .with_f64("level", rows().map(|(s, i)| s.level[i]).collect())?
-            .with_f64("lo90", rows().map(|(s, i)| s.lo[i]).collect())?
-            .with_f64("hi90", rows().map(|(s, i)| s.hi[i]).collect())
-            .map(|t| t.with_units([("f", "Hz"), ("level", "1"), ("lo90", "1"), ("hi90", "1")]))
-    }
-
-    fn time_chi2_table(&self) -> Result<Table, IoError> {
-        let rows = || {
-            [("before", &self.before), ("after", &self.after)]
-                .into_iter()
-                .flat_map(|(stage, s)| {
-                    s.channels
-                        .iter()
-                        .flat_map(move |c| c.time.iter().map(move |t| (stage, c, t)))
-                })
-        };
-        Table::new()
-            .with_str("stage", rows().map(|(s, _, _)| s.to_string()))?
-            .with_str("experiment", rows().map(|(_, c, _)| c.experiment.clone()))?
-            .with_str("channel", rows().map(|(_, c, _)| c.channel.clone()))?
-            .with_f64("t_lo", rows().map(|(_, _, t)| t.time_s[0]).collect())?
-            .with_f64("t_hi", rows().map(|(_, _, t)| t.time_s[1]).collect())?
-            .with_f64(
-                "chi2_reduced",
-                rows().map(|(_, _, t)| t.chi2_reduced).collect(),
-            )?
-            .with_f64("excess", rows().map(|(_, _, t)| t.excess).collect())?
-            .with_f64("p_value", rows().map(|(_, _, t)| t.p_value).collect())
-            .map(|t| {
-                t.with_units([
-                    ("t_lo", "s"),
-                    ("t_hi", "s"),
-                    ("chi2_reduced", "1"),
-                    ("excess", "1"),
-                ])
-            })
     }
 }
 
