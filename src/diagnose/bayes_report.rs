@@ -6,16 +6,9 @@ use std::fmt::Write;
 
 use serde_json::{json, Value};
 
+use crate::diagnose::report::num;
 use crate::diagnose::search::bayes::{PRIOR_TYPICALS, TWIN_CORRELATION, TWIN_LN_B};
 use crate::diagnose::{AddedEffect, Diagnosis, Evidence, Twin};
-
-fn num(v: f64) -> Value {
-    if v.is_finite() {
-        json!(v)
-    } else {
-        Value::Null
-    }
-}
 
 /// `status` of an added effect: `claimed`, or `not_distinguishable` with near-twins.
 pub fn status(a: &AddedEffect) -> &'static str {

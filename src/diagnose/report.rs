@@ -9,7 +9,8 @@ use crate::design::redesign::{probe_md, redesign_verdict};
 use crate::diagnose::bayes_report as bayes;
 use crate::diagnose::{Candidate, Diagnosis, Stage};
 
-fn num(v: f64) -> Value {
+/// A number of report.json: null where it is not finite (as serde_json writes one).
+pub(crate) fn num(v: f64) -> Value {
     if v.is_finite() {
         json!(v)
     } else {
@@ -38,29 +39,18 @@ fn with_sigma(v: f64, e: f64) -> String {
 }
 
 fn stage_json(s: &Stage, truth: Option<&[f64]>) -> Value {
+    // Each channel's residual report as it serialises, less its chi2 (n and chi2_reduced give
+    // it) and its outliers' time span (an `outliers` entry of `unexplained` carries it).
     let per: Vec<Value> = s
         .channels
         .iter()
         .map(|c| {
-            json!({
-                "experiment": c.experiment,
-                "channel": c.channel,
-                "n": c.n,
-                "chi2_reduced": num(c.chi2_reduced),
-                "excess_kurtosis": num(c.excess_kurtosis),
-                "kurtosis_err": num(c.kurtosis_err),
-                "outliers": c.outliers,
-                "outliers_expected": num(c.outliers_expected),
-                "ljung_box": num(c.ljung_box),
-                "ljung_box_lags": c.ljung_box_lags,
-                "ljung_box_p": num(c.ljung_box_p),
-                "ks_statistic": c.ks_statistic.map(num),
-                "ks_p": c.ks_p.map(num),
-                "coherence": c.coherence.iter().map(|k| json!({"input": k.input, "max": num(k.max), "f_hz": num(k.f_hz), "threshold": num(k.threshold)})).collect::<Vec<_>>(),
-                "bands": c.bands.iter().map(|b| json!({"band_hz": [num(b.band_hz[0]), num(b.band_hz[1])], "bins": b.bins, "level": num(b.level), "noise_level": b.noise_level.map(num), "excess": num(b.excess), "p_value": num(b.p_value)})).collect::<Vec<_>>(),
-                "time": c.time.iter().map(|t| json!({"time_s": [num(t.time_s[0]), num(t.time_s[1])], "n": t.n, "chi2_reduced": num(t.chi2_reduced), "excess": num(t.excess), "p_value": num(t.p_value)})).collect::<Vec<_>>(),
-                "lines": c.lines.iter().map(|l| json!({"f_hz": num(l.f_hz), "power": num(l.power), "p_value": num(l.p_value)})).collect::<Vec<_>>(),
-            })
+            let mut v = serde_json::to_value(c).unwrap_or(Value::Null);
+            if let Some(o) = v.as_object_mut() {
+                o.remove("chi2");
+                o.remove("outlier_span_s");
+            }
+            v
         })
         .collect();
     let mut v = json!({
@@ -138,29 +128,13 @@ impl Diagnosis {
                 v
             })
             .collect();
-        let unexpl: Vec<Value> = self
-            .unexplained
-            .iter()
-            .map(|u| {
-                json!({
-                    "experiment": u.experiment, "channel": u.channel, "kind": u.kind,
-                    "band_hz": [num(u.band_hz[0]), num(u.band_hz[1])], "time_s": [num(u.time_s[0]), num(u.time_s[1])],
-                    "excess": num(u.excess), "p_value": num(u.p_value),
-                })
-            })
-            .collect();
         json!({
             "before": stage_json(&self.before, truth),
             "after": stage_json(&self.after, truth),
             "effects_added": added,
             "candidates": cands,
-            "unexplained": unexpl,
-            "prior_tension": self.prior_tension.iter().map(|t| json!({
-                "parameter": t.parameter, "estimate": num(t.estimate), "sigma": num(t.sigma),
-                "prior": num(t.prior), "prior_sigma": num(t.prior_sigma), "shift": num(t.shift),
-                "tension_sigma": num(t.tension_sigma),
-                "explained_by": t.explained_by.iter().map(|x| json!({"effect": x.effect, "effect_parameter": x.effect_parameter, "shift_per_unit": num(x.shift_per_unit), "equivalent": num(x.equivalent)})).collect::<Vec<_>>(),
-            })).collect::<Vec<_>>(),
+            "unexplained": self.unexplained,
+            "prior_tension": self.prior_tension,
             "parameter_shifts_sigma": Value::Object(self.shifts_sigma().into_iter().map(|(n, v)| (n, num(v))).collect()),
             "whitening": self.whitening,
             "whitening_order": self.order,
@@ -189,12 +163,7 @@ impl Diagnosis {
                 "wald_statistic": num(t.statistic),
                 "p_value": num(t.p_value),
             })).collect::<Vec<_>>(),
-            "aux_coherence": self.aux_coherence.iter().map(|c| json!({
-                "stage": c.stage, "run": c.run, "channel": c.channel, "aux": c.aux,
-                "band_hz": [num(c.band_hz[0]), num(c.band_hz[1])],
-                "coherence": num(c.coherence), "partial_coherence": num(c.partial_coherence),
-                "null_level": num(c.null_level), "p_value": num(c.p_value),
-            })).collect::<Vec<_>>(),
+            "aux_coherence": self.aux_coherence,
             "seconds": num(self.seconds),
         })
     }

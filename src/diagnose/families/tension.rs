@@ -24,7 +24,9 @@ pub struct Explanation {
     pub shift_per_unit: f64,
     /// The effect size that explains the whole shift.
     pub equivalent: f64,
-    /// `equivalent` over the effect's typical size (explanations are listed smallest first).
+    /// `equivalent` over the effect's typical size (explanations are listed smallest first;
+    /// not in report.json).
+    #[serde(skip)]
     pub relative_size: f64,
 }
 
