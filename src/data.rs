@@ -225,6 +225,42 @@ impl Auxiliary {
         self.channels.is_empty()
     }
 
+    /// These channels less those whose column is among `columns` (a model's own readouts and
+    /// guidance, read as its channels, not as another degree of freedom's record).
+    pub fn without(mut self, columns: &[&str]) -> Auxiliary {
+        let keep: Vec<bool> = (self.channels.iter())
+            .map(|c| !columns.contains(&c.column.as_str()))
+            .collect();
+        if keep.iter().all(|k| *k) {
+            return self;
+        }
+        let pick = |v: Vec<Vec<f64>>| -> Vec<Vec<f64>> {
+            (v.into_iter().zip(&keep))
+                .filter(|(_, k)| **k)
+                .map(|(x, _)| x)
+                .collect()
+        };
+        self.channels = (self.channels.into_iter().zip(&keep))
+            .filter(|(_, k)| **k)
+            .map(|(c, _)| c)
+            .collect();
+        self.experiments = self.experiments.into_iter().map(pick).collect();
+        self.noise = self.noise.map(pick);
+        self
+    }
+
+    /// Each channel's column, and whether any experiment's series of it is not all zero (for
+    /// guidance: whether any experiment injects on it).
+    pub fn nonzero(&self) -> Vec<(String, bool)> {
+        (self.channels.iter().enumerate())
+            .map(|(k, c)| {
+                let nonzero = (self.experiments.iter())
+                    .any(|e| e.get(k).is_some_and(|s| s.iter().any(|v| *v != 0.0)));
+                (c.column.clone(), nonzero)
+            })
+            .collect()
+    }
+
     /// The readouts cover every experiment of `data` sample for sample (and the noise run,
     /// when they have it), finite.
     pub fn check_covers(

@@ -73,16 +73,21 @@ impl DiagnoseJob {
         progress: Progress<'_>,
     ) -> Result<Diagnosis, JobError> {
         // The settings' ranges before any data is read: a bad one is the only line printed.
-        DiagnoseConfig::<N> {
+        let settings = DiagnoseConfig::<N> {
             order: self.dataset.order,
             poly_degree: self.dataset.poly_degree,
             alpha: self.alpha,
             max_effects: self.max_effects,
             max_glitches: self.max_glitches,
+            whiten_from_model: self.model_psd,
+            lines: self.lines,
+            glitches: self.glitches,
+            transients: self.transients,
             ..DiagnoseConfig::defaults()
-        }
-        .validate()
-        .map_err(context(path.display().to_string()))?;
+        };
+        settings
+            .validate()
+            .map_err(context(path.display().to_string()))?;
         progress(Step::Reading);
         let prep = self.dataset.prepare(setup, path, notes)?;
         if self.dataset.check_units {
@@ -116,24 +121,24 @@ impl DiagnoseJob {
                 )));
             }
         }
+        // A model's own readouts and guidance among the auxiliary columns (an xy dataset's oy1,
+        // ..., oi_y1, ... under the xy model) are its channels, not another degree of freedom's
+        // record: what remains are the cross-talk candidates.
+        let own: Vec<&str> = (setup.model.readout_names().into_iter())
+            .chain(setup.model.input_names())
+            .collect();
+        let auxiliary = ds.auxiliary_series().without(&own);
         let cfg = DiagnoseConfig::<N> {
-            order: self.dataset.order,
-            poly_degree: self.dataset.poly_degree,
-            alpha: self.alpha,
-            max_effects: self.max_effects,
-            max_glitches: self.max_glitches,
-            whiten_from_model: self.model_psd,
             decimated_telemetry: decimated_telemetry(ds),
-            lines: self.lines,
-            glitches: self.glitches,
-            transients: self.transients,
             constraints: prep.constraints.clone(),
-            auxiliary: Some(own_channels_removed(ds.auxiliary_series(), &setup.model))
+            auxiliary: Some(auxiliary)
                 .filter(|a| !a.is_empty())
                 .map(std::sync::Arc::new),
             stretch_edges: stretch_edges(&prep),
-            aux_guidance: aux_guidance(ds),
-            ..DiagnoseConfig::defaults()
+            // Which recorded guidance of other degrees of freedom any experiment injects on
+            // (for the separation of near-twin auxiliary candidates).
+            aux_guidance: ds.auxiliary_of(&[crate::data::AuxRole::Guidance]).nonzero(),
+            ..settings
         };
         let mut d = diagnose_observed(
             setup,
@@ -183,38 +188,6 @@ impl DiagnoseJob {
     }
 }
 
-/// The auxiliary channels of a dataset less those the model reads as its own readouts or
-/// guidance (an xy dataset's oy1, ..., oi_y1, ... under the xy model): what remains is another
-/// degree of freedom's record, a cross-talk candidate.
-fn own_channels_removed<M: crate::model::ClosedLoopModel<N>, const N: usize>(
-    mut aux: crate::data::Auxiliary,
-    model: &M,
-) -> crate::data::Auxiliary {
-    let own: Vec<&str> = (model.readout_names().into_iter())
-        .chain(model.input_names())
-        .collect();
-    let keep: Vec<bool> = (aux.channels.iter())
-        .map(|c| !own.contains(&c.column.as_str()))
-        .collect();
-    if keep.iter().all(|k| *k) {
-        return aux;
-    }
-    let pick = |v: Vec<Vec<f64>>| -> Vec<Vec<f64>> {
-        v.into_iter()
-            .zip(&keep)
-            .filter(|(_, k)| **k)
-            .map(|(x, _)| x)
-            .collect()
-    };
-    aux.channels = (aux.channels.into_iter().zip(&keep))
-        .filter(|(_, k)| **k)
-        .map(|(c, _)| c)
-        .collect();
-    aux.experiments = aux.experiments.into_iter().map(pick).collect();
-    aux.noise = aux.noise.map(pick);
-    aux
-}
-
 /// The stretch edges the input notes name as not modelled: the sharp edges of point-sampled
 /// guidance columns, when no design (declared or reconstructed) makes the guidance.
 fn stretch_edges(prep: &crate::analysis::job::Prepared) -> Vec<Vec<f64>> {
@@ -224,22 +197,5 @@ fn stretch_edges(prep: &crate::analysis::job::Prepared) -> Vec<Vec<f64>> {
     crate::analysis::guidance::sharp_edges(&prep.ds)
         .into_iter()
         .map(|per_column| per_column.into_iter().flatten().collect())
-        .collect()
-}
-
-/// The dataset's recorded guidance of other degrees of freedom: each column and whether any
-/// experiment injects on it (for the separation of near-twin auxiliary candidates).
-fn aux_guidance(ds: &crate::io::dataset::Dataset) -> Vec<(String, bool)> {
-    let g = ds.auxiliary_of(&[crate::data::AuxRole::Guidance]);
-    g.channels
-        .iter()
-        .enumerate()
-        .map(|(k, c)| {
-            let injected = g
-                .experiments
-                .iter()
-                .any(|e| e.get(k).is_some_and(|s| s.iter().any(|v| *v != 0.0)));
-            (c.column.clone(), injected)
-        })
         .collect()
 }
