@@ -550,21 +550,9 @@ fn record_refit<M: DiagnoseModel<N>, const N: usize>(
     let calibrated = d.category == Category::Glitch;
     let mut p = problem.tail(d.dim, dchi2 / scale, calibrated);
     c.delta_chi2 = Some(dchi2);
-    // The Bayes factor's maximum and information of the added parameters given the rest.
+    // The estimate, and the Bayes factor's maximum and information of the added parameters
+    // given the rest.
     let (theta_hat, info) = match &d.proposal {
-        Proposal::Operator(_) => {
-            let range = m.range(m.effects.len() - 1);
-            (
-                f.estimate[range.clone()].to_vec(),
-                information_given_rest(&f.information, range),
-            )
-        }
-        Proposal::Additive { .. } => match (r.fit.linear.last(), r.fit.covariances.last()) {
-            (Some((_, v)), Some(cov)) => (v.clone(), information_of_covariance(cov, v.len())),
-            _ => (Vec::new(), None),
-        },
-    };
-    match &d.proposal {
         Proposal::Operator(_) => {
             let range = m.range(m.effects.len() - 1);
             let theta = f.estimate[range.clone()].to_vec();
@@ -574,7 +562,7 @@ fn record_refit<M: DiagnoseModel<N>, const N: usize>(
             } else if d.bounded_at_zero() {
                 p *= 0.5;
             }
-            c.estimate = Some(theta);
+            c.estimate = Some(theta.clone());
             c.sigma = Some(f.sigma[range.clone()].to_vec());
             let k = range.start;
             let most = (0..k)
@@ -585,15 +573,18 @@ fn record_refit<M: DiagnoseModel<N>, const N: usize>(
                 c.most_correlated = Some((m.parameter_names()[q].clone(), v));
                 c.degenerate = v.abs() > problem.cfg.degeneracy;
             }
+            (theta, information_given_rest(&f.information, range))
         }
-        Proposal::Additive { .. } => {
-            if let (Some((a, v)), Some(cov)) = (r.fit.linear.last(), r.fit.covariances.last()) {
+        Proposal::Additive { .. } => match (r.fit.linear.last(), r.fit.covariances.last()) {
+            (Some((a, v)), Some(cov)) => {
                 let (_, values, sigmas) = a.report(v, cov);
                 c.estimate = Some(values);
                 c.sigma = Some(sigmas);
+                (v.clone(), information_of_covariance(cov, v.len()))
             }
-        }
-    }
+            _ => (Vec::new(), None),
+        },
+    };
     let p_value = (d.trials * p).min(1.0);
     c.p_value = Some(p_value);
     let threshold = problem.cfg.alpha / state.n_tests as f64;
@@ -619,21 +610,7 @@ fn decide<M: DiagnoseModel<N>, const N: usize>(
 ) -> Round {
     let cfg = problem.cfg;
     let threshold = cfg.alpha / state.n_tests as f64;
-    let alternatives: Vec<(usize, Alternative)> = refits
-        .iter()
-        .map(|(i, _)| {
-            let c = &tested[*i];
-            (
-                *i,
-                Alternative {
-                    name: c.name.clone(),
-                    acts_on: c.acts_on.clone(),
-                    parameters: c.estimate.clone().unwrap_or_default(),
-                    delta_chi2: c.delta_chi2.unwrap_or(f64::NAN),
-                },
-            )
-        })
-        .collect();
+    let refitted: Vec<usize> = refits.iter().map(|(i, _)| *i).collect();
     let drop = |i: usize| tested[i].delta_chi2.unwrap_or(f64::NEG_INFINITY);
     let eligible = |i: usize, r: &Refit<M, N>| {
         let c = &tested[i];
@@ -659,18 +636,39 @@ fn decide<M: DiagnoseModel<N>, const N: usize>(
         // be fitted to its residual, a proxy.
         return Round::Stop(StopReason::Degenerate);
     }
-    let c = &tested[i];
-    let dchi2 = c.delta_chi2.unwrap_or(f64::NAN);
     // Refits of the same round the data cannot tell from the winner.
+    let dchi2 = tested[i].delta_chi2.unwrap_or(f64::NAN);
     let q = chi2_isf(1.0, cfg.alpha);
-    let indistinguishable_from: Vec<Alternative> = alternatives
+    let indistinguishable_from: Vec<Alternative> = refitted
         .into_iter()
-        .filter(|(k, a)| *k != i && a.delta_chi2 > dchi2 - q)
-        .map(|(_, a)| a)
+        .map(|k| (k, &tested[k]))
+        .filter(|(k, c)| *k != i && c.delta_chi2.unwrap_or(f64::NAN) > dchi2 - q)
+        .map(|(_, c)| Alternative {
+            name: c.name.clone(),
+            acts_on: c.acts_on.clone(),
+            parameters: c.estimate.clone().unwrap_or_default(),
+            delta_chi2: c.delta_chi2.unwrap_or(f64::NAN),
+        })
         .collect();
     // Before the pool changes: the twins' columns are at the current model.
     let near_twins = bayes::near_twins(problem, state, described, tested, i, &others);
-    let (parameter_names, parameters, sigmas, lin_index) = match &described[i].proposal {
+    let mut added = adopt(state, &described[i], &tested[i], refit);
+    added.indistinguishable_from = indistinguishable_from;
+    added.near_twins = near_twins;
+    state.added.push(added);
+    Round::Added(state.added.len() - 1)
+}
+
+/// Take the refit of candidate `d` (tested as `c`) as the current model: out of its pool (a
+/// linear drift opening its nested second-order term, one more test), its parameters as
+/// reported; the alternatives and near-twins are the caller's.
+fn adopt<M: DiagnoseModel<N>, const N: usize>(
+    state: &mut DiagnosisState<M, N>,
+    d: &Described,
+    c: &Candidate,
+    refit: Refit<M, N>,
+) -> AddedEffect {
+    let (parameter_names, parameters, sigmas, lin_index) = match &d.proposal {
         Proposal::Operator(k) => {
             let e = state.pool.remove(*k);
             let m = &refit.model;
@@ -685,7 +683,6 @@ fn decide<M: DiagnoseModel<N>, const N: usize>(
         Proposal::Additive { pooled, .. } => {
             if let Some(k) = *pooled {
                 let a = state.lin_pool.remove(k);
-                // A linear drift opens its nested second-order term (one more test).
                 if let Some(q) = a.quadratic_extension() {
                     state.lin_pool.push(q);
                     state.n_tests += 1;
@@ -698,25 +695,24 @@ fn decide<M: DiagnoseModel<N>, const N: usize>(
             (names, values, sig, Some(l.len() - 1))
         }
     };
-    state.added.push(AddedEffect {
+    state.model = refit.model;
+    state.fit = refit.fit;
+    AddedEffect {
         name: c.name.clone(),
         category: c.category,
-        family: described[i].family(),
+        family: d.family(),
         acts_on: c.acts_on.clone(),
         parameter_names,
         parameters,
         sigmas,
         score_statistic: c.score_statistic,
-        delta_chi2: dchi2,
+        delta_chi2: c.delta_chi2.unwrap_or(f64::NAN),
         p_value: c.p_value.unwrap_or(f64::NAN),
         most_correlated: c.most_correlated.clone(),
         degenerate: c.degenerate,
-        indistinguishable_from,
+        indistinguishable_from: Vec::new(),
         evidence: c.evidence.clone(),
-        near_twins,
+        near_twins: Vec::new(),
         lin_index,
-    });
-    state.model = refit.model;
-    state.fit = refit.fit;
-    Round::Added(state.added.len() - 1)
+    }
 }
