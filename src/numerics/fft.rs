@@ -164,6 +164,58 @@ pub fn xcorr(k: &[f64], r: &[f64], len: usize) -> Vec<f64> {
     out
 }
 
+/// Prefix sums of a multi-channel kernel's energy: `q[s] = sum_c sum_{j < s} k_c[j]^2`
+/// (for [`matched_filter_z2`]).
+pub fn energy_prefix(kern: &[Vec<f64>]) -> Vec<f64> {
+    let n = kern.first().map_or(0, Vec::len);
+    let mut q = vec![0.0; n + 1];
+    for s in 0..n {
+        q[s + 1] = kern.iter().fold(q[s], |acc, k| acc + k[s] * k[s]);
+    }
+    q
+}
+
+/// The normalised matched-filter statistic of a multi-channel kernel `kern` (`n` samples,
+/// its reference instant at sample `p0`, energy prefix sums `q` from [`energy_prefix`])
+/// against the series `r` (sample `j` at time `j + offset`), for every reference time `t0`
+/// from `offset` to the end of `r`: `(t0, z^2)` with
+/// `z^2(t0) = (sum_c <K_c(t0), r_c>)^2 / |K(t0)|^2`, `K(t0)` the kernel moved to `t0` and cut
+/// to the span of `r` (times where the cut kernel has no energy are left out). For white unit
+/// noise `r`, `z(t0) ~ N(0, 1)`. One FFT cross-correlation ([`xcorr`]) per channel.
+pub fn matched_filter_z2(
+    kern: &[Vec<f64>],
+    q: &[f64],
+    p0: usize,
+    r: &[Vec<f64>],
+    offset: usize,
+) -> Vec<(usize, f64)> {
+    let n = kern[0].len();
+    let nr = r[0].len();
+    let len = fast_len(n + nr + 1);
+    let cs: Vec<Vec<f64>> = kern.iter().zip(r).map(|(k, r)| xcorr(k, r, len)).collect();
+    let mut out = Vec::with_capacity(nr);
+    for t0 in offset..offset + nr {
+        // Lag l = t0 - p0 - offset.
+        let l = t0 as i64 - p0 as i64 - offset as i64;
+        let idx = if l >= 0 {
+            l as usize
+        } else {
+            (len as i64 + l) as usize
+        };
+        let c = cs[1..].iter().fold(cs[0][idx], |acc, ch| acc + ch[idx]);
+        let lo = (-l).max(0) as usize;
+        let hi = ((nr as i64 - l).max(0) as usize).min(n);
+        if hi <= lo {
+            continue;
+        }
+        let e2 = q[hi] - q[lo];
+        if e2 > 0.0 {
+            out.push((t0, c * c / e2));
+        }
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -258,5 +310,31 @@ mod tests {
             let want = if j >= d { x[j - d] } else { 0.0 };
             assert!((delayed[j] - want).abs() < 1e-12, "sample {j}");
         }
+    }
+
+    #[test]
+    fn matched_filter_of_the_kernel_itself_peaks_at_its_energy() {
+        // Oracle, by hand (Cauchy-Schwarz): a series that is the kernel placed at t0 = 7 gives
+        // z^2 = <K, K>^2 / |K|^2 = |K|^2 there, and no larger value anywhere; two channels
+        // add their inner products and energies.
+        let kern = vec![vec![0.0, 1.0, 2.0, 1.0], vec![0.0, -1.0, 0.5, 0.0]];
+        let q = energy_prefix(&kern);
+        let energy = 1.0 + 4.0 + 1.0 + 1.0 + 0.25;
+        assert!((q[4] - energy).abs() < 1e-15);
+        let (p0, offset, t0) = (2, 3, 7);
+        let mut r = vec![vec![0.0; 12]; 2];
+        for c in 0..2 {
+            for s in 0..4 {
+                // Kernel sample s at time t0 - p0 + s, series sample j at time j + offset.
+                r[c][t0 - p0 + s - offset] = kern[c][s];
+            }
+        }
+        let z = matched_filter_z2(&kern, &q, p0, &r, offset);
+        let (best_t, best) = z
+            .iter()
+            .copied()
+            .fold((0, 0.0), |a, b| if b.1 > a.1 { b } else { a });
+        assert_eq!(best_t, t0);
+        assert!((best - energy).abs() < 1e-9, "{best} vs {energy}");
     }
 }

@@ -4,7 +4,8 @@
 //! Detection is a matched-filter scan: the whitened response to a pulse at one reference time is
 //! a kernel; by time invariance of the loop and of the (causal, FIR) whitening filter, the
 //! whitened template at any `t0` is that kernel shifted, and `z(t0) = <K_t0, r> / |K_t0|` over
-//! every sample, experiment, entry and width is one FFT cross-correlation each. Under the fitted
+//! every sample, experiment, entry and width is one FFT cross-correlation each
+//! ([`crate::numerics::fft::matched_filter_z2`]). Under the fitted
 //! model `z(t0) ~ N(0, 1)`; the scan is a look-elsewhere problem, calibrated by Bonferroni over
 //! every position, entry and width tried ([`Scan::trials`]): with one trial per sample (the
 //! whitened kernels are a few samples long, so positions are close to independent) the
@@ -14,7 +15,7 @@ use crate::diagnose::DiagnoseModel;
 use crate::model::closed_loop::CMat;
 use crate::model::effects::Extended;
 use crate::model::ClosedLoopModel;
-use crate::numerics::fft::xcorr;
+use crate::numerics::fft::{energy_prefix, matched_filter_z2};
 use crate::sim::glitch::{entry_response, synthesize, Entry, Grid, Part, ENTRIES};
 
 /// Pulse widths (in sampling intervals) tried by the scan; the fit refines the width.
@@ -39,43 +40,6 @@ pub struct Peak {
 pub struct Scan {
     pub peaks: Vec<Peak>,
     pub trials: f64,
-}
-
-/// `z^2(t0)` of kernel `kern` (pulse at sample `p0`, energy prefix sums `q`) against whitened
-/// series `r` (the model's `N` channels, whitened sample `j` at time `j + order`), for centres
-/// `t0` from `order` to the end of `r`: `(t0, z^2)`, the correlation summed over the channels.
-fn zscan<const N: usize>(
-    kern: &[Vec<f64>; N],
-    q: &[f64],
-    p0: usize,
-    r: &[Vec<f64>],
-    order: usize,
-) -> Vec<(usize, f64)> {
-    let n = kern[0].len();
-    let nr = r[0].len();
-    let len = crate::numerics::fft::fast_len(n + nr + 1);
-    let cs: Vec<Vec<f64>> = kern.iter().zip(r).map(|(k, r)| xcorr(k, r, len)).collect();
-    let mut out = Vec::with_capacity(nr);
-    for t0 in order..order + nr {
-        // Lag l = t0 - p0 - order.
-        let l = t0 as i64 - p0 as i64 - order as i64;
-        let idx = if l >= 0 {
-            l as usize
-        } else {
-            (len as i64 + l) as usize
-        };
-        let c = cs[1..].iter().fold(cs[0][idx], |acc, ch| acc + ch[idx]);
-        let lo = (-l).max(0) as usize;
-        let hi = ((nr as i64 - l).max(0) as usize).min(n);
-        if hi <= lo {
-            continue;
-        }
-        let e2 = q[hi] - q[lo];
-        if e2 > 0.0 {
-            out.push((t0, c * c / e2));
-        }
-    }
-    out
 }
 
 /// Matched-filter scan of whitened residuals `res[e][c]` (valid samples, whitened sample `j`
@@ -128,17 +92,13 @@ pub fn scan<M: DiagnoseModel<N>, const N: usize>(
                 tau,
                 Part::Value,
             );
-            // Prefix sums of the kernel's energy.
-            let mut q = vec![0.0; n + 1];
-            for s in 0..n {
-                q[s + 1] = kern.iter().fold(q[s], |acc, k| acc + k[s] * k[s]);
-            }
+            let q = energy_prefix(&kern);
             let noise_var = noise
                 .filter(|(r, _)| {
                     r.len() >= N && r[0].len() > 1 && r.iter().all(|c| c.len() == r[0].len())
                 })
                 .map(|(r, factor)| {
-                    let z = zscan(&kern, &q, p0, r, order);
+                    let z = matched_filter_z2(&kern, &q, p0, r, order);
                     factor * z.iter().map(|x| x.1).sum::<f64>() / z.len().max(1) as f64
                 })
                 .filter(|v| v.is_finite())
@@ -148,7 +108,7 @@ pub fn scan<M: DiagnoseModel<N>, const N: usize>(
                 if r.len() < N || r.iter().any(|c| c.len() != nr) {
                     continue;
                 }
-                for (t0, z2) in zscan(&kern, &q, p0, r, order) {
+                for (t0, z2) in matched_filter_z2(&kern, &q, p0, r, order) {
                     let z2 = z2 / scale / noise_var;
                     if best.as_ref().is_none_or(|b| z2 > b.z2) {
                         best = Some(Peak {
