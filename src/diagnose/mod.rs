@@ -61,9 +61,11 @@
 //! [`job`]), and the shared types ([`types`]). What is not the diagnosis's own lives in the
 //! layers below: the residual tests of a fit ([`crate::analysis::residuals`]), the noise run's
 //! band levels against a model PSD ([`crate::analysis::noise_bands`]), the coherence with
-//! auxiliary readouts ([`crate::analysis::coherence`]), the score test
-//! ([`crate::fit::score`]) and the whitening of a raw series like the data
-//! ([`crate::fit::Likelihood::whiten_series`]).
+//! auxiliary readouts ([`crate::analysis::coherence`]), the residual spectra and windowed chi^2
+//! tables ([`crate::analysis::tables`]), the score test ([`crate::fit::score`]), the Bayes
+//! factors and BIC of added parameters ([`crate::fit::evidence`]), the whitening of a raw
+//! series like the data ([`crate::fit::Likelihood::whiten_series`]) and the matched filter of
+//! the glitch scan ([`crate::numerics::fft::matched_filter_z2`]).
 
 pub mod bayes_report;
 pub mod families;

@@ -101,7 +101,7 @@ impl Diagnosis {
                     "score_statistic": num(a.score_statistic), "delta_chi2": num(a.delta_chi2), "p_value": num(a.p_value),
                     "most_correlated": a.most_correlated.as_ref().map(|(n, c)| json!({"parameter": n, "correlation": num(*c)})),
                     "degenerate": a.degenerate,
-                    "indistinguishable_from": a.indistinguishable_from.iter().map(|x| json!({"name": x.name, "acts_on": x.acts_on, "parameters": x.parameters.iter().map(|v| num(*v)).collect::<Vec<_>>(), "delta_chi2": num(x.delta_chi2)})).collect::<Vec<_>>(),
+                    "indistinguishable_from": a.indistinguishable_from,
                 });
                 bayes::evidence_fields(a.evidence.as_ref(), &mut v);
                 bayes::twin_fields(a, &mut v);
