@@ -68,6 +68,14 @@ impl ExperimentData {
         self.lengths().into_iter().min().unwrap_or(0)
     }
 
+    /// Zero series of the shape of the outputs (every experiment of its own length and
+    /// readout channels).
+    pub fn zeros(&self) -> Series {
+        (self.lengths().into_iter().zip(&self.outputs))
+            .map(|(n, o)| vec![vec![0.0; n]; o.len()])
+            .collect()
+    }
+
     /// Length `n_e` of every experiment.
     pub fn lengths(&self) -> Vec<usize> {
         self.outputs

@@ -35,20 +35,8 @@ pub fn evidence_fields(e: Option<&Evidence>, obj: &mut Value) {
 /// An added effect's `status` and `near_twins`.
 pub fn twin_fields(a: &AddedEffect, obj: &mut Value) {
     obj["status"] = json!(status(a));
-    obj["near_twins"] = Value::Array(
-        a.near_twins
-            .iter()
-            .map(|t| {
-                json!({
-                    "name": t.name, "acts_on": t.acts_on, "correlation": num(t.correlation),
-                    "ln_bayes_factor": num(t.ln_bayes_factor),
-                    "ln_bayes_factor_between": num(t.ln_bayes_factor_between),
-                    "delta_chi2": num(t.delta_chi2), "separation": t.separation,
-                    "redesign": serde_json::to_value(&t.redesign).unwrap_or(Value::Null),
-                })
-            })
-            .collect(),
-    );
+    // Its derived Serialize (the swap and the Occam part stay internal).
+    obj["near_twins"] = serde_json::to_value(&a.near_twins).unwrap_or(Value::Null);
 }
 
 /// How the header names an added effect: bold, or with its near-twins as an undecided choice.

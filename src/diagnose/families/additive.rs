@@ -482,7 +482,7 @@ impl Additive {
         data: &ExperimentData,
         p: &[f64],
     ) -> Vec<Series> {
-        let zeros = || zero_series(data);
+        let zeros = || data.zeros();
         match self {
             Additive::Line {
                 experiment,
@@ -548,7 +548,7 @@ impl Additive {
         p: &[f64],
         part: Part,
     ) -> Series {
-        let mut col = zero_series(data);
+        let mut col = data.zeros();
         if let Additive::Glitch {
             experiment,
             entry,
@@ -589,7 +589,7 @@ impl Additive {
                 f_hz,
                 ..
             } => {
-                let mut d = zero_series(data);
+                let mut d = data.zeros();
                 let w = 2.0 * std::f64::consts::PI * f_hz * data.dt;
                 let (a, b) = (amps[0], amps[1]);
                 for (i, v) in d[*experiment][*channel].iter_mut().enumerate() {
@@ -618,14 +618,4 @@ fn regressor(x: &[f64], noise_asd: Option<f64>, dt: f64) -> Vec<f64> {
         Some(a) => denoised(x, a * a, dt),
         None => x.to_vec(),
     }
-}
-
-/// Zero series of the shape of `data`'s outputs (every experiment of its own length and
-/// readout channels).
-fn zero_series(data: &ExperimentData) -> Series {
-    data.lengths()
-        .into_iter()
-        .zip(&data.outputs)
-        .map(|(n, o)| vec![vec![0.0; n]; o.len()])
-        .collect()
 }
