@@ -42,6 +42,10 @@ fn bench(c: &mut Criterion) {
     group.bench_function("likelihood_and_gradient_standard_1hz", |b| {
         b.iter(|| black_box(problem.chi2_and_gradient(black_box(&sc.guess))))
     });
+    use freefall::fit::Residuals;
+    group.bench_function("residuals_standard_1hz", |b| {
+        b.iter(|| black_box(problem.residuals(black_box(&sc.guess))))
+    });
     let mut r = 0u64;
     group.bench_function("draw_standard_1hz", |b| {
         b.iter(|| {
@@ -67,8 +71,7 @@ fn bench(c: &mut Criterion) {
             r += 1;
             let mut rng = stream(7, r);
             let problem = lik.problem(wsim.draw(&mut rng)).unwrap();
-            let noise = wsim.draw_noise(&mut rng);
-            let chi2: f64 = noise.iter().flatten().flatten().map(|v| v * v).sum();
+            let chi2 = wsim.noise_chi2(&mut rng);
             black_box((
                 fit(&setup.model, &problem, &sc.guess, &cached).unwrap(),
                 chi2,

@@ -248,12 +248,33 @@ struct Cell<'s, M: CampaignModel<N>, const N: usize> {
     accel: Option<AccelReference<N>>,
 }
 
-/// A realization's whitened problem, and, if asked, the noise-only run's `(nu, whitened
-/// series)`, or the errors of either.
+/// A realization's whitened problem, and, if asked, the noise-only run's reference, or the
+/// errors of either.
 type Drawn<'a> = (
     Result<Box<dyn Residuals + Sync + 'a>, crate::fit::FitError>,
-    Option<Result<(usize, crate::data::Series), crate::fit::FitError>>,
+    Option<Result<NoiseRun, crate::fit::FitError>>,
 );
+
+/// The noise-only run of a realization, as its chi^2 test needs it.
+enum NoiseRun {
+    /// Its degrees of freedom and whitened series (any estimator's objective).
+    Whitened(usize, crate::data::Series),
+    /// Its degrees of freedom and squared-estimator chi^2 (the Whittle path, drawn as one
+    /// number: `WhittleSimulator::noise_chi2`).
+    Chi2(usize, f64),
+}
+
+impl NoiseRun {
+    /// The reduced objective of estimator `est` (NaN for a robust one on a bare chi^2, which
+    /// the Whittle path refuses anyway).
+    fn reduced(&self, est: Estimator) -> f64 {
+        match self {
+            NoiseRun::Whitened(nu, w) => crate::fit::objective(est, w) / *nu as f64,
+            NoiseRun::Chi2(nu, chi2) if est == Estimator::Squared => chi2 / *nu as f64,
+            NoiseRun::Chi2(..) => f64::NAN,
+        }
+    }
+}
 
 impl<'s, M: CampaignModel<N>, const N: usize> Cell<'s, M, N> {
     /// Draw one realization from `rng`: the data first (every experiment), then, if
@@ -268,13 +289,10 @@ impl<'s, M: CampaignModel<N>, const N: usize> Cell<'s, M, N> {
             Path::Time { source, lik } => (source, lik),
             Path::Whittle { sim, lik } => {
                 let data = lik.problem(sim.draw(rng));
-                let noise_w = noise_chi2.then(|| {
-                    lik.problem(sim.draw_noise(rng))
-                        .map(|p| (lik.nu(0), p.data_w))
-                });
+                let noise = noise_chi2.then(|| Ok(NoiseRun::Chi2(lik.nu(0), sim.noise_chi2(rng))));
                 return (
                     data.map(|p| Box::new(p) as Box<dyn Residuals + Sync>),
-                    noise_w,
+                    noise,
                 );
             }
         };
@@ -282,7 +300,7 @@ impl<'s, M: CampaignModel<N>, const N: usize> Cell<'s, M, N> {
             let data_w = ws.draw(rng);
             let noise_w = noise_chi2.then(|| {
                 lik.problem_whitened(ws.draw_noise(rng))
-                    .map(|p| (p.nu(0), p.data_w))
+                    .map(|p| NoiseRun::Whitened(p.nu(0), p.data_w))
             });
             return (lik.problem_whitened(data_w).map(boxed), noise_w);
         }
@@ -301,7 +319,8 @@ impl<'s, M: CampaignModel<N>, const N: usize> Cell<'s, M, N> {
                 outputs,
                 dt: data.dt,
             };
-            lik.problem(&noise).map(|p| (p.nu(0), p.data_w))
+            lik.problem(&noise)
+                .map(|p| NoiseRun::Whitened(p.nu(0), p.data_w))
         });
         (lik.problem(&data).map(boxed), noise_w)
     }
@@ -617,7 +636,7 @@ impl<'s, M: CampaignModel<N>, const N: usize> Runner<'s, M, N> {
             .enumerate()
             .map(|(e, (&est, cfg))| {
                 let noise_chi2_reduced = match &noise_w {
-                    Some(Ok((nu0, w))) => crate::fit::objective(est, w) / *nu0 as f64,
+                    Some(Ok(run)) => run.reduced(est),
                     _ => f64::NAN,
                 };
                 let failed = |termination: String, nu: u64| Row {

@@ -132,17 +132,38 @@ pub struct WhittleLikelihood<'m, M: ClosedLoopModel<N>, const N: usize> {
     grids: Vec<Grid<M::Point, N>>,
     /// Grid of every experiment (index into `grids`).
     grid_of: Vec<usize>,
-    /// `inputs[e][c]`: `X_c` at the kept bins of `e`'s grid, `None` for an absent input.
-    inputs: Vec<Vec<Option<Vec<Complex64>>>>,
+    /// `inputs[e][i]`: the inputs `X_c` at kept bin index `i` of `e`'s grid (zero for an
+    /// absent input), and `present[e]` the inputs that are not absent.
+    inputs: Vec<Vec<[Complex64; N]>>,
+    present: Vec<Vec<usize>>,
     /// The expansion point `p0` of the wrap-around.
     p0: Vec<f64>,
     /// Per experiment, at the kept bins: the whitened wrap-around `sqrt(4 / T) L^-1 V(p0)` and
-    /// its derivatives `[q][i]`.
+    /// its derivatives `[i * n_params + q]`.
     wrap: Vec<Vec<[Complex64; N]>>,
-    dwrap: Vec<Vec<Vec<[Complex64; N]>>>,
+    dwrap: Vec<Vec<[Complex64; N]>>,
     /// Per experiment, at every bin `k - 1`: the whitened linear template at `p0`, which the
     /// dropped bins' residuals hold fixed.
     fixed: Vec<Vec<[Complex64; N]>>,
+}
+
+/// Whitened coefficients `w = winv t x` of one experiment at one bin, from a transfer matrix
+/// `t`, the whitening factor `winv` (lower triangular) and the inputs `x` at that bin, of
+/// which only the `present` ones are not zero.
+#[inline(always)]
+fn whitened_dense<const N: usize>(
+    t: &CMat<N>,
+    winv: &CMat<N>,
+    x: &[Complex64; N],
+    present: &[usize],
+) -> [Complex64; N] {
+    let mut u = [Complex64::new(0.0, 0.0); N];
+    for &c in present {
+        for (i, ui) in u.iter_mut().enumerate() {
+            *ui += t[(i, c)] * x[c];
+        }
+    }
+    lower_times(winv, &u)
 }
 
 /// Whitened coefficients `w` of one experiment at one bin, from a transfer matrix `t`, the
@@ -224,13 +245,23 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> WhittleLikelihood<'m, M, N> {
                 kept,
             });
         }
+        let present = spectra
+            .iter()
+            .map(|exp| (0..N).filter(|&c| exp[c].is_some()).collect())
+            .collect();
         let kept_inputs = spectra
-            .into_iter()
+            .iter()
             .enumerate()
             .map(|(e, exp)| {
                 let kept = &out_grids[grid_of[e]].kept;
-                exp.into_iter()
-                    .map(|x| x.map(|x| kept.iter().map(|&k| x[k - 1]).collect()))
+                kept.iter()
+                    .map(|&k| {
+                        std::array::from_fn(|c| {
+                            exp[c]
+                                .as_ref()
+                                .map_or(Complex64::new(0.0, 0.0), |x| x[k - 1])
+                        })
+                    })
                     .collect()
             })
             .collect();
@@ -240,6 +271,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> WhittleLikelihood<'m, M, N> {
             grids: out_grids,
             grid_of,
             inputs: kept_inputs,
+            present,
             p0: p0.to_vec(),
             wrap: Vec::new(),
             dwrap: Vec::new(),
@@ -269,7 +301,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> WhittleLikelihood<'m, M, N> {
         }
         // The circular responses, whitened, first.
         let p0 = self.p0.clone();
-        self.visit_circular(&p0, true, |e, i, w, dw| {
+        self.visit_with(&p0, true, false, |e, i, w, dw| {
             wrap[e][i] = *w;
             for (q, dq) in dw.iter().enumerate() {
                 dwrap[e][q][i] = *dq;
@@ -317,7 +349,15 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> WhittleLikelihood<'m, M, N> {
             ));
         }
         self.wrap = wrap;
-        self.dwrap = dwrap;
+        self.dwrap = dwrap
+            .into_iter()
+            .map(|d| {
+                let nb = d.first().map_or(0, Vec::len);
+                (0..nb)
+                    .flat_map(|i| d.iter().map(move |dq| dq[i]))
+                    .collect()
+            })
+            .collect();
         Ok(())
     }
 
@@ -359,16 +399,6 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> WhittleLikelihood<'m, M, N> {
         (2 * N * bins).saturating_sub(n_params)
     }
 
-    /// The inputs of experiment `e` at kept bin index `i`: (input, `X_c`).
-    fn inputs_at(&self, e: usize, i: usize, buf: &mut Vec<(usize, Complex64)>) {
-        buf.clear();
-        for (c, x) in self.inputs[e].iter().enumerate() {
-            if let Some(x) = x {
-                buf.push((c, x[i]));
-            }
-        }
-    }
-
     /// Visit the whitened template of every experiment at every kept bin at `p`, with its
     /// derivatives if `derivatives`: `visit(e, i, w, dw)`, `i` the kept bin's index, `dw[q]`
     /// the derivative by parameter `q` (empty without derivatives).
@@ -376,42 +406,24 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> WhittleLikelihood<'m, M, N> {
         &self,
         p: &[f64],
         derivatives: bool,
-        mut visit: impl FnMut(usize, usize, &[Complex64; N], &[[Complex64; N]]),
+        visit: impl FnMut(usize, usize, &[Complex64; N], &[[Complex64; N]]),
     ) {
-        let dp: Vec<f64> = p.iter().zip(&self.p0).map(|(a, b)| a - b).collect();
-        let mut buf: Vec<[Complex64; N]> = Vec::new();
-        self.visit_circular(p, derivatives, |e, i, w, dw| {
-            let dv = &self.dwrap[e];
-            let mut w = *w;
-            for c in 0..N {
-                let mut v = self.wrap[e][i][c];
-                for (q, d) in dp.iter().enumerate() {
-                    v += dv[q][i][c] * d;
-                }
-                w[c] -= v;
-            }
-            buf.clear();
-            buf.extend_from_slice(dw);
-            for (q, dq) in buf.iter_mut().enumerate() {
-                for c in 0..N {
-                    dq[c] -= dv[q][i][c];
-                }
-            }
-            visit(e, i, &w, &buf)
-        })
+        self.visit_with(p, derivatives, true, visit)
     }
 
-    /// [`Self::visit`] of the circular responses `sqrt(4 / T) L^-1 T(f_k, p) X_k` (without
-    /// the wrap-around).
-    fn visit_circular(
+    /// [`Self::visit`], of the circular responses `sqrt(4 / T) L^-1 T(f_k, p) X_k` alone
+    /// unless `wrapped` (the wrap-around `V(p)` subtracted, to first order about `p0`).
+    fn visit_with(
         &self,
         p: &[f64],
         derivatives: bool,
+        wrapped: bool,
         mut visit: impl FnMut(usize, usize, &[Complex64; N], &[[Complex64; N]]),
     ) {
         let np = self.model.n_params();
-        let mut x = Vec::with_capacity(N);
-        let mut dw = vec![[Complex64::new(0.0, 0.0); N]; if derivatives { np } else { 0 }];
+        let dp: Vec<f64> = p.iter().zip(&self.p0).map(|(a, b)| a - b).collect();
+        let zero = [Complex64::new(0.0, 0.0); N];
+        let mut dw = vec![zero; if derivatives { np } else { 0 }];
         for (g, grid) in self.grids.iter().enumerate() {
             let nb = grid.kept.len();
             let mut t = vec![CMat::<N>::zeros(); nb];
@@ -419,11 +431,31 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> WhittleLikelihood<'m, M, N> {
             self.model
                 .transfer_grid(&grid.points, p, &mut t, derivatives.then_some(&mut d[..]));
             for e in (0..self.n_experiments()).filter(|&e| self.grid_of[e] == g) {
+                let (x, present) = (&self.inputs[e], &self.present[e][..]);
                 for i in 0..nb {
-                    self.inputs_at(e, i, &mut x);
-                    let w = whitened(&t[i], &grid.winv[i], &x);
-                    for (q, dq) in dw.iter_mut().enumerate() {
-                        *dq = whitened(&d[i * np + q], &grid.winv[i], &x);
+                    let mut w = whitened_dense(&t[i], &grid.winv[i], &x[i], present);
+                    let dv: &[[Complex64; N]] = if wrapped {
+                        let dv = &self.dwrap[e][i * np..(i + 1) * np];
+                        let mut v = self.wrap[e][i];
+                        for (dq, a) in dv.iter().zip(&dp) {
+                            for c in 0..N {
+                                v[c] += dq[c] * a;
+                            }
+                        }
+                        for c in 0..N {
+                            w[c] -= v[c];
+                        }
+                        dv
+                    } else {
+                        &[]
+                    };
+                    for (q, out) in dw.iter_mut().enumerate() {
+                        *out = whitened_dense(&d[i * np + q], &grid.winv[i], &x[i], present);
+                        if let Some(dq) = dv.get(q) {
+                            for c in 0..N {
+                                out[c] -= dq[c];
+                            }
+                        }
                     }
                     visit(e, i, &w, &dw);
                 }
@@ -611,8 +643,16 @@ impl<M: ClosedLoopModel<N>, const N: usize> WhittleProblem<'_, '_, M, N> {
 }
 
 impl<M: ClosedLoopModel<N>, const N: usize> Residuals for WhittleProblem<'_, '_, M, N> {
+    /// `residuals_from(&templates_w(p))` in one pass (the same numbers).
     fn residuals(&self, p: &[f64]) -> Series {
-        self.residuals_from(&self.lik.templates_w(p))
+        let mut r = self.data_w.clone();
+        self.lik.visit(p, false, |e, i, w, _| {
+            for (c, z) in w.iter().enumerate() {
+                r[e][c][2 * i] -= z.re;
+                r[e][c][2 * i + 1] -= z.im;
+            }
+        });
+        r
     }
 
     fn residuals_and_jacobian(&self, p: &[f64]) -> (Series, Vec<Series>) {

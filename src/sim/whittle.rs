@@ -15,10 +15,22 @@
 //! The same draw inverse-transformed (DC and Nyquist zero) is a time series of the same
 //! noise, periodic over the experiment, which the time-domain estimator can fit
 //! ([`WhittleSimulator::noise_series`]): the two estimators see the very same realization.
+//!
+//! # Campaign draws
+//! The likelihood sees a dropped bin only through `rest^2 = sum_dropped |w_k - h_k(p0)|^2`
+//! (its fixed template `h(p0)`). When the whitening PSD is the truth's, `w_k - h_k(p0) =
+//! z_k + m_k` with `m_k = s_k - h_k(p0)` fixed, so `rest^2` is a noncentral chi^2 with
+//! `nu_d = 2 N (dropped bins)` degrees of freedom and noncentrality `lambda = sum |m_k|^2`:
+//! [`WhittleSimulator::draw`] then draws `z` at the kept bins only and
+//! `rest^2 = (Z + sqrt(lambda))^2 + chi^2_{nu_d - 1}` (one standard normal `Z` and one
+//! central chi^2), the same distribution from fewer random numbers; likewise the noise-only
+//! run's chi^2 over all bins is one chi^2 with `2 N sum_e K_e` degrees of freedom
+//! ([`WhittleSimulator::noise_chi2`]). With another whitening PSD they are sums of
+//! differently weighted squares, and every bin is drawn ([`WhittleSimulator::draw_white`]).
 
 use num_complex::Complex64;
 use rand::{Rng, RngExt};
-use rand_distr::StandardNormal;
+use rand_distr::{ChiSquared, Distribution, StandardNormal};
 
 use crate::data::Series;
 use crate::fit::whittle::{bins_of, lower_times, whitening_factors, WhittleLikelihood};
@@ -51,6 +63,43 @@ pub struct WhittleSimulator<const N: usize> {
     /// Per experiment and bin `k - 1`: the likelihood's fixed template, subtracted in the
     /// dropped bins.
     fixed: Vec<Vec<[Complex64; N]>>,
+    /// Whether the whitening PSD is the truth's (`mix` the identity): then the kept bins are
+    /// drawn alone (module doc).
+    same_psd: bool,
+    /// Per experiment: the bins `k - 1` of its kept bin indices, ascending.
+    kept: Vec<Vec<usize>>,
+    /// Per experiment: the dropped bins' norm of the kept-bin draw (module doc).
+    rest: Vec<DroppedNorm>,
+    /// The noise-only chi^2 over every bin of every experiment, for `same_psd`.
+    noise: ChiSquared<f64>,
+}
+
+/// `rest = sqrt((Z + sqrt(lambda))^2 + chi^2_{nu - 1})`: the norm of `nu` unit normals with
+/// means of total square `lambda` (a noncentral chi with `nu` degrees of freedom).
+struct DroppedNorm {
+    sqrt_lambda: f64,
+    /// `chi^2_{nu - 1}`; `None` when no bin is dropped (`nu = 0`, `rest = 0`).
+    chi2: Option<ChiSquared<f64>>,
+}
+
+impl DroppedNorm {
+    /// `nu` is `2 N` times the dropped bins: 0 or at least 2.
+    fn new(nu: usize, lambda: f64) -> Self {
+        DroppedNorm {
+            sqrt_lambda: lambda.sqrt(),
+            chi2: (nu > 0).then(|| ChiSquared::new((nu - 1) as f64).expect("positive degrees")),
+        }
+    }
+
+    fn sample<R: Rng + ?Sized>(&self, rng: &mut R) -> f64 {
+        match &self.chi2 {
+            None => 0.0,
+            Some(chi2) => {
+                let z: f64 = rng.sample(StandardNormal);
+                ((z + self.sqrt_lambda).powi(2) + chi2.sample(rng)).sqrt()
+            }
+        }
+    }
 }
 
 impl<const N: usize> WhittleSimulator<N> {
@@ -104,7 +153,7 @@ impl<const N: usize> WhittleSimulator<N> {
             winvs.push(winv);
             length_of.push(lengths.len() - 1);
         }
-        let signal_w = signal
+        let signal_w: Vec<Vec<[Complex64; N]>> = signal
             .iter()
             .enumerate()
             .map(|(e, s)| {
@@ -121,7 +170,7 @@ impl<const N: usize> WhittleSimulator<N> {
                     .collect()
             })
             .collect();
-        let slot = (0..signal.len())
+        let slot: Vec<Vec<Option<usize>>> = (0..signal.len())
             .map(|e| {
                 let mut s = vec![None; bins_of(lik.len_of(e))];
                 for (i, &k) in lik.kept_of(e).iter().enumerate() {
@@ -130,15 +179,30 @@ impl<const N: usize> WhittleSimulator<N> {
                 s
             })
             .collect();
+        let fixed: Vec<Vec<[Complex64; N]>> = (0..signal.len())
+            .map(|e| lik.fixed_template(e).to_vec())
+            .collect();
+        let kept = (0..signal.len())
+            .map(|e| lik.kept_of(e).iter().map(|&k| k - 1).collect())
+            .collect();
+        let rest = (0..signal.len())
+            .map(|e| dropped_norm(&slot[e], &signal_w[e], &fixed[e]))
+            .collect();
+        let all_bins: usize = (0..signal.len()).map(|e| bins_of(lik.len_of(e))).sum();
+        let noise = ChiSquared::new((2 * N * all_bins) as f64).map_err(|_| {
+            FitError::Input("the Whittle simulator needs at least one analysis bin".into())
+        })?;
         Ok(WhittleSimulator {
-            fixed: (0..signal.len())
-                .map(|e| lik.fixed_template(e).to_vec())
-                .collect(),
+            fixed,
             dt,
             signal_w,
             lengths,
             length_of,
             slot,
+            same_psd,
+            kept,
+            rest,
+            noise,
         })
     }
 
@@ -207,14 +271,53 @@ impl<const N: usize> WhittleSimulator<N> {
             .collect()
     }
 
-    /// One realization (signal plus noise), whitened: what the Whittle fit takes.
+    /// One realization (signal plus noise), whitened: what the Whittle fit takes. Distributed
+    /// as `whitened(&draw_white(rng), true)`, which it is when the whitening PSD is not the
+    /// truth's; at the truth's it draws the kept bins (per experiment, kept bin and channel:
+    /// `a` then `b`) and then the dropped bins' norm (module doc), so the same stream gives
+    /// other values than `draw_white`.
     pub fn draw<R: Rng + ?Sized>(&self, rng: &mut R) -> Series {
-        self.whitened(&self.draw_white(rng), true)
+        if !self.same_psd {
+            return self.whitened(&self.draw_white(rng), true);
+        }
+        (0..self.signal_w.len())
+            .map(|e| {
+                let kept = &self.kept[e];
+                let signal = &self.signal_w[e];
+                let mut exp = vec![vec![0.0; 2 * kept.len()]; N];
+                for (i, &b) in kept.iter().enumerate() {
+                    for (c, s) in signal[b].iter().enumerate() {
+                        let a: f64 = rng.sample(StandardNormal);
+                        let im: f64 = rng.sample(StandardNormal);
+                        exp[c][2 * i] = s.re + a;
+                        exp[c][2 * i + 1] = s.im + im;
+                    }
+                }
+                exp.push(vec![self.rest[e].sample(rng)]);
+                exp
+            })
+            .collect()
     }
 
     /// A noise-only run of every experiment, whitened.
     pub fn draw_noise<R: Rng + ?Sized>(&self, rng: &mut R) -> Series {
         self.whitened(&self.draw_white(rng), false)
+    }
+
+    /// The chi^2 of a noise-only run over every bin of every experiment in the likelihood's
+    /// whitened coordinates (what the squared estimator's objective of [`Self::draw_noise`]
+    /// is): at the truth's whitening PSD one chi^2 draw with `2 N sum_e K_e` degrees of
+    /// freedom (module doc), else the sum of squares of a full draw.
+    pub fn noise_chi2<R: Rng + ?Sized>(&self, rng: &mut R) -> f64 {
+        if self.same_psd {
+            return self.noise.sample(rng);
+        }
+        self.draw_noise(rng)
+            .iter()
+            .flatten()
+            .flatten()
+            .map(|v| v * v)
+            .sum()
     }
 
     /// The noise of draw `z` as time series `x[e][c]` of each experiment's length: the inverse
@@ -248,4 +351,25 @@ impl<const N: usize> WhittleSimulator<N> {
             })
             .collect()
     }
+}
+
+/// The dropped bins' norm of one experiment (module doc): `nu = 2 N` per dropped bin (`slot`
+/// `None`), `lambda = sum |s_k - h_k(p0)|^2` over them.
+fn dropped_norm<const N: usize>(
+    slot: &[Option<usize>],
+    signal_w: &[[Complex64; N]],
+    fixed: &[[Complex64; N]],
+) -> DroppedNorm {
+    let (mut nu, mut lambda) = (0, 0.0);
+    for ((s, m), h) in slot.iter().zip(signal_w).zip(fixed) {
+        if s.is_none() {
+            nu += 2 * N;
+            lambda += m
+                .iter()
+                .zip(h)
+                .map(|(a, b)| (a - b).norm_sqr())
+                .sum::<f64>();
+        }
+    }
+    DroppedNorm::new(nu, lambda)
 }
