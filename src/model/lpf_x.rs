@@ -244,10 +244,14 @@ impl LpfX {
         let d12r = g + mt * (w1 + w12);
         let k22 = w1 + w12 - 2.0 * g;
         let (mut ph1, mut ph2) = (Phasor::new(p[DT1]), Phasor::new(p[DT12]));
+        // The recurrence needs every spacing from the second point on equal (the first may
+        // differ: the DC bin sits at a fraction of the spacing); a grid with gaps is not
+        // uniform even when its end spacings agree.
         let uniform = points.len() > 3 && {
             let d1 = points[2].s - points[1].s;
-            let d2 = points[points.len() - 1].s - points[points.len() - 2].s;
-            (d1 - d2).norm() <= crate::numerics::tol::SAME_TIME * d1.norm()
+            points[1..].windows(2).all(|w| {
+                ((w[1].s - w[0].s) - d1).norm() <= crate::numerics::tol::SAME_TIME * d1.norm()
+            })
         };
         let Some(d) = d_out else {
             // Templates only: T = Delta^-1 M with M = [[m11, mt m22], [0, m22]], so
