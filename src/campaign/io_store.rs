@@ -9,8 +9,8 @@
 //! through the aggregators (same order, same numbers) and continues with the next realization.
 //! At the end the chunks are streamed into `realizations.parquet`, the aggregate tables and
 //! `manifest.json` are written (with `[posterior]`, `coverage.parquet` of the shard's
-//! sampled realizations; `merge` does not combine the parts' coverage tables), and `.partial` is
-//! removed. A folder holding `.partial` is an
+//! sampled realizations; `merge` sums the parts' integer counts into the unsharded table), and
+//! `.partial` is removed. A folder holding `.partial` is an
 //! unfinished run whatever else it holds; it is a finished campaign when it holds
 //! `manifest.json` and no `.partial`.
 //!
@@ -29,6 +29,7 @@ use serde::{Deserialize, Serialize};
 use super::runner::{check_x_only, resolve_scenarios, Jobs, Runner};
 use super::spec::{Campaign, DesignSource};
 use super::stats::{Aggregates, Layout};
+use super::tables::CellCoverage;
 use super::CampaignError;
 use crate::io::Provenance;
 use crate::io::{
@@ -992,6 +993,38 @@ fn load_parts(parts: &[PathBuf], out: &Path) -> Result<Vec<(Manifest, PathBuf)>,
     Ok(ms)
 }
 
+/// The `[posterior]` counts of the parts summed ([`CellCoverage::add`]), `None` when no part
+/// has a `coverage.parquet`. Sums of integer counts, so the merged table is the one an
+/// unsharded run writes. A part without the table when another has it is an error naming the
+/// missing file.
+fn merged_coverage(
+    ms: &[(Manifest, PathBuf)],
+    layout: &Layout,
+) -> Result<Option<Vec<CellCoverage>>, CampaignError> {
+    let Some((_, with)) = ms.iter().find(|(_, p)| p.join("coverage.parquet").exists()) else {
+        return Ok(None);
+    };
+    let mut total: Option<Vec<CellCoverage>> = None;
+    for (_, p) in ms {
+        let path = p.join("coverage.parquet");
+        if !path.exists() {
+            return Err(store_err(
+                &path,
+                format!(
+                    "missing: this part has no coverage table while {} has one ([posterior]); rerun this part",
+                    with.join("coverage.parquet").display()
+                ),
+            ));
+        }
+        let cells = layout.coverage_counts_from_table(&read_parquet(&path)?)?;
+        match &mut total {
+            None => total = Some(cells),
+            Some(t) => t.iter_mut().zip(&cells).for_each(|(a, b)| a.add(b)),
+        }
+    }
+    Ok(total)
+}
+
 /// Merge finished shard parts into `out`: the same tables as one unsharded run. Refuses parts
 /// that are unfinished, of another campaign (config hash), of another shard layout, overlapping
 /// or leaving a gap; the error names the part.
@@ -1080,7 +1113,15 @@ pub fn merge(parts: &[PathBuf], out: &Path) -> Result<Manifest, CampaignError> {
         &first.config_hash,
     );
     write_aggregates(out, &agg, &first.outputs, &meta)?;
-    remove_stale_tables(out, &first.outputs, &layout)?;
+    let mut written = first.outputs.clone();
+    if let Some(cells) = merged_coverage(&ms, &layout)? {
+        write_parquet(
+            out.join("coverage.parquet"),
+            &layout.coverage_table_of(&cells)?.with_meta_all(&meta),
+        )?;
+        written.push("coverage".into());
+    }
+    remove_stale_tables(out, &written, &layout)?;
     let (fits, failed) = agg.counts();
     let manifest = Manifest {
         shard: Shard::WHOLE,

@@ -4,6 +4,8 @@
 
 use super::runner::{CoverageHit, COVERAGE_LEVELS};
 use super::stats::{Aggregates, Layout, Row};
+use std::path::Path;
+
 use crate::io::{IoError, Table};
 
 /// Name the summary table's true-value column had before it was renamed to `truth` (an SQL
@@ -423,43 +425,101 @@ impl Aggregates {
     }
 }
 
+/// The additive credible-interval counts of one cell (scenario, design) of `[posterior]`:
+/// the realizations sampled (`sampled`), and per parameter those whose fit and sampling
+/// succeeded (`n[k]`) and, per level of [`COVERAGE_LEVELS`], those whose central credible
+/// interval held the truth (`hits[k][j]`). Counts of disjoint sets of realizations add, so
+/// shards merge exactly ([`CellCoverage::add`]).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct CellCoverage {
+    pub sampled: u64,
+    pub n: Vec<u64>,
+    pub hits: Vec<[u64; 3]>,
+}
+
+impl CellCoverage {
+    fn zero(np: usize) -> CellCoverage {
+        CellCoverage {
+            sampled: 0,
+            n: vec![0; np],
+            hits: vec![[0; 3]; np],
+        }
+    }
+
+    /// Adds the counts of another set of realizations of the same cell.
+    pub fn add(&mut self, other: &CellCoverage) {
+        self.sampled += other.sampled;
+        for (a, b) in self.n.iter_mut().zip(&other.n) {
+            *a += b;
+        }
+        for (a, b) in self.hits.iter_mut().zip(&other.hits) {
+            a.iter_mut().zip(b).for_each(|(x, y)| *x += y);
+        }
+    }
+}
+
 impl Layout {
+    /// The counts of `hits` per cell, in cell order (scenario, then design).
+    pub fn coverage_counts(&self, hits: &[CoverageHit]) -> Vec<CellCoverage> {
+        let (np, nd) = (self.parameters.len(), self.designs.len());
+        let mut cells = vec![CellCoverage::zero(np); self.scenarios.len() * nd];
+        for h in hits {
+            let c = &mut cells[h.scenario * nd + h.design];
+            c.sampled += 1;
+            for (k, ok) in h.hits.iter().enumerate() {
+                if let Some(ok) = ok {
+                    c.n[k] += 1;
+                    for (x, &y) in c.hits[k].iter_mut().zip(ok) {
+                        *x += u64::from(y);
+                    }
+                }
+            }
+        }
+        cells
+    }
+
+    /// The `coverage` table of `[posterior]` of `hits` ([`Layout::coverage_table_of`]).
+    pub fn coverage_table(&self, hits: &[CoverageHit]) -> Result<Table, IoError> {
+        self.coverage_table_of(&self.coverage_counts(hits))
+    }
+
     /// The `coverage` table of `[posterior]`: per (scenario, design, parameter) and level of
     /// [`COVERAGE_LEVELS`], over the sampled realizations whose fit and sampling succeeded
-    /// (`n`; `failed` did not), the fraction `coverage` whose central credible interval holds
-    /// the truth and its binomial sd `sqrt(p (1 - p) / n)`. Fixed parameters have no rows.
-    pub fn coverage_table(&self, hits: &[CoverageHit]) -> Result<Table, IoError> {
+    /// (`n`; `failed` did not), the number `hits` whose central credible interval holds the
+    /// truth, the fraction `coverage = hits / n` and its binomial sd `sqrt(p (1 - p) / n)`
+    /// (NaN when `n = 0`). Fixed parameters (never sampled in a cell where another parameter
+    /// was) and cells without sampled realizations have no rows.
+    pub fn coverage_table_of(&self, cells: &[CellCoverage]) -> Result<Table, IoError> {
         let (mut sc, mut de, mut pa, mut level) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
-        let (mut n, mut failed, mut cov, mut sd) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
-        for s in 0..self.scenarios.len() {
-            for d in 0..self.designs.len() {
-                let cell: Vec<&CoverageHit> = hits
-                    .iter()
-                    .filter(|h| h.scenario == s && h.design == d)
-                    .collect();
-                for (k, name) in self.parameters.iter().enumerate() {
-                    let ok: Vec<[bool; 3]> = cell.iter().filter_map(|h| h.hits[k]).collect();
-                    // Sampled elsewhere in the cell but never here: a fixed parameter.
-                    let any = cell.iter().any(|h| h.hits.iter().any(Option::is_some));
-                    if cell.is_empty() || (ok.is_empty() && any) {
-                        continue;
-                    }
-                    for (j, &c) in COVERAGE_LEVELS.iter().enumerate() {
-                        let m = ok.len();
-                        let p = ok.iter().filter(|h| h[j]).count() as f64 / m as f64;
-                        sc.push(self.scenarios[s].name.clone());
-                        de.push(self.designs[d].clone());
-                        pa.push(name.clone());
-                        level.push(c);
-                        n.push(m as u64);
-                        failed.push((cell.len() - m) as u64);
-                        cov.push(if m > 0 { p } else { f64::NAN });
-                        sd.push(if m > 0 {
-                            (p * (1.0 - p) / m as f64).sqrt()
-                        } else {
-                            f64::NAN
-                        });
-                    }
+        let (mut n, mut failed, mut hits) = (Vec::new(), Vec::new(), Vec::new());
+        let (mut cov, mut sd) = (Vec::new(), Vec::new());
+        let nd = self.designs.len();
+        for (i, cell) in cells.iter().enumerate() {
+            let any = cell.n.iter().any(|&m| m > 0);
+            if cell.sampled == 0 {
+                continue;
+            }
+            for (k, name) in self.parameters.iter().enumerate() {
+                let m = cell.n[k];
+                if m == 0 && any {
+                    continue;
+                }
+                for (j, &c) in COVERAGE_LEVELS.iter().enumerate() {
+                    let h = cell.hits[k][j];
+                    let p = h as f64 / m as f64;
+                    sc.push(self.scenarios[i / nd].name.clone());
+                    de.push(self.designs[i % nd].clone());
+                    pa.push(name.clone());
+                    level.push(c);
+                    n.push(m);
+                    failed.push(cell.sampled - m);
+                    hits.push(h);
+                    cov.push(if m > 0 { p } else { f64::NAN });
+                    sd.push(if m > 0 {
+                        (p * (1.0 - p) / m as f64).sqrt()
+                    } else {
+                        f64::NAN
+                    });
                 }
             }
         }
@@ -470,7 +530,93 @@ impl Layout {
             .with_f64("level", level)?
             .with_counts("n", &n)?
             .with_counts("failed", &failed)?
+            .with_counts("hits", &hits)?
             .with_f64("coverage", cov)?
             .with_f64("coverage_sd", sd)
+    }
+
+    /// The counts back from a `coverage` table written by [`Layout::coverage_table_of`], in
+    /// cell order. A table without the `hits` column (written before it existed) gives
+    /// `hits = round(coverage n)`, accepted only when it reproduces `coverage` exactly. Labels
+    /// must be known to this layout; an error names the table, row and column.
+    pub fn coverage_counts_from_table(&self, t: &Table) -> Result<Vec<CellCoverage>, IoError> {
+        let label = t
+            .source()
+            .map_or_else(|| "<coverage>".into(), Path::to_path_buf);
+        let bad = |row: usize, message: String| IoError::Invalid {
+            path: label.clone(),
+            message: format!("row {row}: {message}"),
+        };
+        let (sc, de, pa) = (
+            t.str_column("scenario")?,
+            t.str_column("design")?,
+            t.str_column("parameter")?,
+        );
+        let (level, n, failed) = (
+            t.f64_column("level")?,
+            t.count_column("n")?,
+            t.count_column("failed")?,
+        );
+        let cov = t.f64_column("coverage")?;
+        let hits = match t.column("hits") {
+            Ok(_) => Some(t.count_column("hits")?),
+            Err(_) => None,
+        };
+        let (np, nd) = (self.parameters.len(), self.designs.len());
+        let mut cells = vec![CellCoverage::zero(np); self.scenarios.len() * nd];
+        let snames: Vec<String> = self.scenarios.iter().map(|s| s.name.clone()).collect();
+        let find = |row: usize, col: &str, names: &[String], v: &str| {
+            names
+                .iter()
+                .position(|x| x == v)
+                .ok_or_else(|| bad(row, format!("column '{col}': unknown label '{v}'")))
+        };
+        for r in 0..t.num_rows() {
+            let s = find(r, "scenario", &snames, &sc[r])?;
+            let d = find(r, "design", &self.designs, &de[r])?;
+            let k = find(r, "parameter", &self.parameters, &pa[r])?;
+            let j = COVERAGE_LEVELS
+                .iter()
+                .position(|&c| c == level[r])
+                .ok_or_else(|| bad(r, format!("column 'level': unknown level {}", level[r])))?;
+            let h = match &hits {
+                Some(h) => h[r],
+                None if n[r] == 0 => 0,
+                None => {
+                    let h = (cov[r] * n[r] as f64).round();
+                    if !(h >= 0.0 && h as u64 <= n[r]) || (h / n[r] as f64) != cov[r] {
+                        return Err(bad(
+                            r,
+                            format!(
+                                "column 'coverage': {} is no fraction of n = {}",
+                                cov[r], n[r]
+                            ),
+                        ));
+                    }
+                    h as u64
+                }
+            };
+            if h > n[r] {
+                return Err(bad(
+                    r,
+                    format!("column 'hits': {h} is more than n = {}", n[r]),
+                ));
+            }
+            let c = &mut cells[s * nd + d];
+            if c.sampled != 0 && c.sampled != n[r] + failed[r] {
+                return Err(bad(
+                    r,
+                    format!(
+                        "n + failed = {} but the cell's other rows say {}",
+                        n[r] + failed[r],
+                        c.sampled
+                    ),
+                ));
+            }
+            c.sampled = n[r] + failed[r];
+            c.n[k] = n[r];
+            c.hits[k][j] = h;
+        }
+        Ok(cells)
     }
 }

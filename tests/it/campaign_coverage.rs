@@ -85,6 +85,74 @@ fn coverage_table_has_its_columns_and_is_deterministic() {
     }
 }
 
+// Oracle: the same campaign run in one piece. Coverage counts of disjoint realizations add, so
+// `merge` of the shards' tables must reproduce the unsharded coverage.parquet bit for bit (the
+// determinism contract of campaign/mod.rs), as it does the other tables. Shard 1 holds only
+// one of the three sampled realizations.
+#[test]
+fn shards_merge_to_the_unsharded_coverage() {
+    let tmp = tempfile::tempdir().unwrap();
+    let f = write(tmp.path(), "c.toml", &campaign_text(4, 3, 100));
+    let whole = tmp.path().join("whole");
+    run(&f, &whole, 2);
+    let loaded = campaign::load(Some(&f)).unwrap();
+    let parts: Vec<PathBuf> = (0..2)
+        .map(|k| tmp.path().join(format!("part{k}")))
+        .collect();
+    for (k, p) in parts.iter().enumerate() {
+        let opts = RunOptions {
+            out: p.clone(),
+            shard: Shard {
+                index: k as u64,
+                count: 2,
+            },
+            resume: false,
+            force: false,
+            threads: Some(1),
+        };
+        std::fs::create_dir_all(p).unwrap();
+        campaign::run(&loaded, &opts, &mut |_: Progress| {}).unwrap();
+    }
+    let merged = tmp.path().join("merged");
+    campaign::merge(&[parts[1].clone(), parts[0].clone()], &merged).unwrap();
+    assert_same_dirs(&whole, &merged);
+    let t = read_parquet(merged.join("coverage.parquet")).unwrap();
+    let (n, failed, hits, cov) = (
+        t.i64_column("n").unwrap(),
+        t.i64_column("failed").unwrap(),
+        t.i64_column("hits").unwrap(),
+        t.f64_column("coverage").unwrap(),
+    );
+    for i in 0..t.num_rows() {
+        assert_eq!(n[i] + failed[i], 3, "row {i}: sampled realizations");
+        assert!(
+            n[i] == 0 || cov[i] == hits[i] as f64 / n[i] as f64,
+            "row {i}"
+        );
+    }
+
+    // A table written before the `hits` column: the counts are recovered exactly from the
+    // fractions (coverage n is an integer).
+    let m: campaign::Manifest = freefall::io::read_json(merged.join("manifest.json")).unwrap();
+    let mut legacy = t.clone();
+    legacy.columns.retain(|(name, _)| name != "hits");
+    assert_eq!(
+        m.layout.coverage_counts_from_table(&legacy).unwrap(),
+        m.layout.coverage_counts_from_table(&t).unwrap()
+    );
+
+    // A part without its coverage table: one line naming that part's file.
+    std::fs::remove_file(parts[1].join("coverage.parquet")).unwrap();
+    let err = campaign::merge(&parts, &tmp.path().join("m2"))
+        .unwrap_err()
+        .to_string();
+    assert!(!err.contains('\n'), "{err}");
+    assert!(
+        err.contains(&parts[1].join("coverage.parquet").display().to_string()),
+        "{err}"
+    );
+}
+
 // Oracle: the `[posterior]` schema (campaign/spec.rs): each bad value is a one-line error naming
 // the file and the key.
 #[test]

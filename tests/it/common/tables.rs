@@ -27,9 +27,14 @@ pub fn assert_same(a: &Table, b: &Table, what: &str) {
     }
 }
 
-/// [`assert_same`] on the statistics tables of two campaign folders.
+/// [`assert_same`] on the statistics tables of two campaign folders, and on their
+/// `coverage.parquet` when the first has one (`[posterior]`; then the second must have it too).
 pub fn assert_same_dirs(a: &Path, b: &Path) {
-    for t in ["realizations", "summary", "correlation", "chi2"] {
+    let coverage = a.join("coverage.parquet").exists();
+    for t in ["realizations", "summary", "correlation", "chi2", "coverage"] {
+        if t == "coverage" && !coverage {
+            continue;
+        }
         let f = format!("{t}.parquet");
         assert_same(
             &read_parquet(a.join(&f)).unwrap(),
