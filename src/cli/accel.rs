@@ -68,7 +68,5 @@ pub fn run(a: AccelArgs) -> Result<()> {
         "converting to acceleration",
         |notes| crate::with_setup!(&setup, s => job.run(&**s, &a.input, &a.out, notes)),
     )?;
-    out!("{text}");
-    info!("wrote {}", a.out.display());
-    Ok(())
+    report(&text, &a.out, &[])
 }

@@ -1,22 +1,17 @@
-//! `freefall psd`, `freefall whiten` and `freefall fit`: time series in, spectra, whitened
-//! series and estimates out. Measured and simulated data take the same path.
+//! `freefall psd`, `freefall whiten`, `freefall fit` and `freefall posterior`: time series in,
+//! spectra, whitened series, estimates and posterior draws out (Metropolis-Hastings on the
+//! whitened likelihood `fit` maximises). Measured and simulated data take the same path.
 
 use super::prelude::*;
 use crate::analysis::job::{psd as psd_job, DatasetFit, FitJob, WhitenJob};
-use crate::setup::{DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
+use crate::posterior::sampler::{SamplerConfig, DEFAULT_DRAWS, DEFAULT_WARMUP};
+use crate::posterior::PosteriorJob;
+use crate::setup::{AnySetup, DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 
-#[derive(Debug, Args)]
-pub struct PsdArgs {
-    /// Run file (Parquet or CSV) with columns t, oi1, oi12, o1, o12.
-    pub run: PathBuf,
-    /// Output Parquet: f, s11, s22, s12_re, s12_im, coherence (one-sided, thesis Welch settings).
-    #[arg(long)]
-    pub out: PathBuf,
-}
-
-pub fn psd(a: PsdArgs) -> Result<()> {
-    let cs = psd_job(&a.run, &a.out)?;
-    info!("wrote {} ({})", a.out.display(), cs.describe());
+/// `psd`: the Welch cross-spectra of `run` into `out`.
+pub fn psd(run: &Path, out: &Path) -> Result<()> {
+    let cs = psd_job(run, out)?;
+    info!("wrote {} ({})", out.display(), cs.describe());
     Ok(())
 }
 
@@ -49,11 +44,8 @@ pub struct WhitenArgs {
 
 pub fn whiten(a: WhitenArgs) -> Result<()> {
     let job = job!(a => WhitenJob { noise, model_psd, scenario, order, poly_degree });
-    // Printed once the file is written.
-    let report = job.run(|| a.model.any_setup(), &a.run, &a.out)?;
-    out!("{report}");
-    info!("wrote {}", a.out.display());
-    Ok(())
+    let text = job.run(|| a.model.any_setup(), &a.run, &a.out)?;
+    report(text, &a.out, &[])
 }
 
 /// The starting point, the whitening filter's order, the nuisance polynomial and the
@@ -77,7 +69,8 @@ pub struct FitOpts {
     pub fix: Vec<String>,
     /// A Gaussian prior on a parameter (repeatable; in `diagnose`, a base parameter in every
     /// fit, and it replaces the model file's prior in the prior-tension report): it adds
-    /// ((p - MEAN) / SIGMA)^2 to the objective and 1 / SIGMA^2 to the information.
+    /// ((p - MEAN) / SIGMA)^2 to the objective and 1 / SIGMA^2 to the information. In
+    /// `posterior`, a parameter without one has a uniform prior within the model file's bounds.
     #[arg(long, value_name = "NAME=MEAN,SIGMA")]
     pub prior: Vec<String>,
 }
@@ -91,46 +84,90 @@ impl FitOpts {
     }
 }
 
+/// A dataset, its model and how it is fitted (`fit`, and the fit `posterior` starts from).
 #[derive(Debug, Args)]
-pub struct FitArgs {
+pub struct DatasetFitArgs {
     /// Dataset TOML (noise run + experiments in the measured-data format).
     pub dataset: PathBuf,
     #[command(flatten)]
     pub model: ModelOpt,
     #[command(flatten)]
     pub fit: FitOpts,
-    /// Estimator (thesis eq. "L-estimates").
-    #[arg(long, value_enum, default_value_t = Estimator::Squared)]
-    pub estimator: Estimator,
     /// Where the whitening filter comes from: the dataset's noise run if it has one (auto),
     /// the noise run, or the model's noise PSD at the guess.
     #[arg(long, value_enum, default_value_t = Whitening::Auto)]
     pub whitening: Whitening,
-    /// Output directory (created): estimates.parquet, correlation.parquet, fit.json, residuals.parquet.
-    #[arg(long)]
-    pub out: PathBuf,
     /// Fit start-up transients (thesis sec. 3.2, 4.7): the closed loop's free responses to
-    /// initial positions and velocities are fitted nuisance columns of every experiment, and
-    /// the noise run's fitted free response is removed before its whitening filter is
-    /// estimated. For runs that start away from equilibrium (no burn-in); off by default,
-    /// since a steady-state run only loses four degrees of freedom per run to them.
+    /// initial positions and velocities are fitted nuisance columns of every experiment
+    /// (profiled out of the likelihood in `posterior`), and the noise run's fitted free
+    /// response is removed before its whitening filter is estimated. For runs that start away
+    /// from equilibrium (no burn-in); off by default, since a steady-state run only loses four
+    /// degrees of freedom per run to them.
     #[arg(long)]
     pub transient: bool,
 }
 
+impl DatasetFitArgs {
+    /// The model, the dataset and the fit job of these options with estimator `est`.
+    pub fn job(self, est: crate::fit::Estimator) -> Result<(AnySetup, PathBuf, FitJob)> {
+        let job = job!(self => FitJob { transient; dataset: self.fit.dataset_fit(),
+            estimator: est, whitening: self.whitening.into() });
+        Ok((self.model.any_setup()?, self.dataset, job))
+    }
+}
+
+#[derive(Debug, Args)]
+pub struct FitArgs {
+    #[command(flatten)]
+    pub data: DatasetFitArgs,
+    /// Estimator (thesis eq. "L-estimates").
+    #[arg(long, value_enum, default_value_t = Estimator::Squared)]
+    pub estimator: Estimator,
+    /// Output directory (created): estimates.parquet, correlation.parquet, fit.json, residuals.parquet.
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
 pub fn fit(a: FitArgs) -> Result<()> {
-    let setup = a.model.any_setup()?;
-    let job = job!(a => FitJob { transient; dataset: a.fit.dataset_fit(),
-        estimator: a.estimator.into(), whitening: a.whitening.into() });
+    let (setup, dataset, job) = a.data.job(a.estimator.into())?;
     let fitted = working("fitting", |notes| {
-        job.run_any(&setup, &a.dataset, &a.out, notes)
+        job.run_any(&setup, &dataset, &a.out, notes)
     })?;
-    out!("{}", fitted.text);
-    info!("wrote {}", a.out.display());
-    fitted
-        .summary
-        .warnings
-        .iter()
-        .for_each(|w| eprintln!("warning: {w}"));
+    report(&fitted.text, &a.out, &fitted.summary.warnings)?;
     Ok(fitted.check()?)
+}
+
+#[derive(Debug, Args)]
+pub struct PosteriorArgs {
+    /// The dataset and the fit the sampler starts from (its estimate and covariance).
+    #[command(flatten)]
+    pub data: DatasetFitArgs,
+    /// Chains (run in parallel).
+    #[arg(long, default_value_t = 4)]
+    pub chains: usize,
+    /// Kept draws per chain.
+    #[arg(long, default_value_t = DEFAULT_DRAWS)]
+    pub draws: usize,
+    /// Warm-up steps per chain (adaptation; not kept).
+    #[arg(long, default_value_t = DEFAULT_WARMUP)]
+    pub warmup: usize,
+    /// Seed: chain c draws from random stream (seed, c).
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
+    /// Do not draw plots/corner.png and plots/trace.png (the embedded scripts/plot_posterior.py).
+    #[arg(long)]
+    pub no_plots: bool,
+    /// Output directory (created): posterior.parquet, posterior.json, plots/.
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+pub fn posterior(a: PosteriorArgs) -> Result<()> {
+    let (setup, dataset, fit) = a.data.job(crate::fit::Estimator::Squared)?;
+    let job = job!(a => PosteriorJob { ; fit: fit, plots: !a.no_plots,
+        sampler: job!(a => SamplerConfig { chains, warmup, draws, seed }) });
+    let done = working("sampling", |notes| {
+        job.run_any(&setup, &dataset, &a.out, notes)
+    })?;
+    report(&done.text, &a.out, &done.summary.warnings)
 }

@@ -10,7 +10,14 @@ pub enum CampaignCmd {
     /// Run a campaign file (default: the embedded quick campaign) into an output directory.
     Run(RunArgs),
     /// Merge finished shard directories into the tables of one unsharded run.
-    Merge(MergeArgs),
+    Merge {
+        /// Part directories written by `campaign run --shard K/N`.
+        #[arg(required = true, value_name = "PART")]
+        parts: Vec<PathBuf>,
+        /// Output directory of the merged tables.
+        #[arg(long)]
+        out: PathBuf,
+    },
     /// Write a SLURM job-array submission (one shard per task) and a dependent merge job.
     Slurm(SlurmArgs),
 }
@@ -34,16 +41,6 @@ pub struct RunArgs {
     /// Worker threads (default: all cores).
     #[arg(long)]
     pub threads: Option<usize>,
-}
-
-#[derive(Debug, Args)]
-pub struct MergeArgs {
-    /// Part directories written by `campaign run --shard K/N`.
-    #[arg(required = true, value_name = "PART")]
-    pub parts: Vec<PathBuf>,
-    /// Output directory of the merged tables.
-    #[arg(long)]
-    pub out: PathBuf,
 }
 
 #[derive(Debug, Args)]
@@ -79,9 +76,8 @@ pub struct SlurmArgs {
 pub fn run(c: CampaignCmd) -> Result<()> {
     match c {
         CampaignCmd::Run(a) => run_campaign(a),
-        CampaignCmd::Merge(a) => {
-            let m = campaign::merge(&a.parts, &a.out)?;
-            eprintln!("{}", m.merge_summary(&a.out));
+        CampaignCmd::Merge { parts, out } => {
+            eprintln!("{}", campaign::merge(&parts, &out)?.merge_summary(&out));
             Ok(())
         }
         CampaignCmd::Slurm(a) => {
@@ -90,12 +86,12 @@ pub fn run(c: CampaignCmd) -> Result<()> {
                 binary: a.binary.map_or_else(std::env::current_exe, Ok)? });
             let written = slurm::write(&opts)?;
             let (array, merge) = (written.array.display(), written.merge.display());
-            outln!("wrote {array} and {merge}");
+            out!("wrote {array} and {merge}\n");
             if a.submit {
                 let ids = slurm::submit(&written)?;
-                outln!("submitted array job {} and merge job {}", ids.0, ids.1);
+                out!("submitted array job {} and merge job {}\n", ids.0, ids.1);
             } else {
-                outln!("submit with: {}", written.submit.display());
+                out!("submit with: {}\n", written.submit.display());
             }
             Ok(())
         }
@@ -106,17 +102,12 @@ fn run_campaign(a: RunArgs) -> Result<()> {
     let loaded = campaign::load(a.file.as_deref())?;
     let opts = job!(a => RunOptions { resume, threads; out: a.out.clone(),
         shard: a.shard.unwrap_or(Shard::WHOLE), force: force() });
-    if let Some(n) = opts.threads_note() {
-        note(&n);
-    }
+    opts.threads_note().iter().for_each(|n| note(n));
     crate::io::ensure_dir(&a.out)?;
     let bar = Working::bar("{bar:40} {pos}/{len} realizations  {per_sec}  ETA {eta}  {msg}");
     let report = campaign::run(&loaded, &opts, &mut |p: Progress| {
-        bar.progress(
-            p.done,
-            p.total,
-            format!("{} fits, {} failed", p.fits, p.failed),
-        )
+        let msg = format!("{} fits, {} failed", p.fits, p.failed);
+        bar.progress(p.done, p.total, msg)
     })?;
     drop(bar);
     report.notes.iter().for_each(|n| note(n));

@@ -7,6 +7,7 @@ use crate::design::DesignModel;
 use crate::io::{ensure_dir, ensure_parent, read_toml, write_parquet};
 use crate::setup::SetupOf;
 use crate::signal::Design;
+use crate::with_setup;
 
 #[derive(Debug, Subcommand)]
 pub enum DesignCmd {
@@ -85,12 +86,8 @@ pub struct ValidateArgs {
 
 pub fn run(c: DesignCmd) -> Result<()> {
     match c {
-        DesignCmd::Optimize(a) => {
-            crate::with_setup!(a.study.model.any_setup()?, s => optimize(&*s, &a))
-        }
-        DesignCmd::Evaluate(a) => {
-            crate::with_setup!(a.study.model.any_setup()?, s => evaluate(&*s, &a))
-        }
+        DesignCmd::Optimize(a) => with_setup!(a.study.model.any_setup()?, s => optimize(&*s, &a)),
+        DesignCmd::Evaluate(a) => with_setup!(a.study.model.any_setup()?, s => evaluate(&*s, &a)),
         DesignCmd::Validate(a) => validate(a),
     }
 }
@@ -127,9 +124,8 @@ fn evaluate<M: DesignModel<N>, const N: usize>(
 ) -> Result<()> {
     let design: Design = read_toml(&a.design)?;
     let ev = M::evaluate(setup, &a.study.study(setup)?, &design, &a.design)?;
-    ev.violation_notes(&a.design, a.allow_violations)?
-        .iter()
-        .for_each(|n| note(n));
+    let notes = ev.violation_notes(&a.design, a.allow_violations)?;
+    notes.iter().for_each(|n| note(n));
     if let Some(out) = &a.out {
         ensure_parent(out)?;
         write_parquet(out, &ev.table)?;

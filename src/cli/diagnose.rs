@@ -85,9 +85,7 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
     });
     drop(w);
     let d = d?;
-    outln!("{}", d.summary_line());
-    info!("wrote {}", a.out.display());
-    Ok(())
+    report(&format!("{}\n", d.summary_line()), &a.out, &[])
 }
 
 /// `--simulate-into`: kept for one release as an alias of `freefall simulate --effect ...

@@ -58,16 +58,22 @@ fn roff_text(s: &str) -> String {
     }
 }
 
-/// `cmd` and its subcommands, depth first, into `acc` (hidden ones left out; clap's own `help`
-/// subcommands kept as one page each, since the parent pages list them, but not the copy of
-/// the command tree under them).
-fn pages(cmd: &clap::Command, acc: &mut Vec<clap::Command>) {
-    acc.push(cmd.clone());
+/// Writes the pages of `cmd` and its subcommands, depth first, into `dir` (hidden ones left
+/// out; clap's own `help` subcommands kept as one page each, since the parent pages list them,
+/// but not the copy of the command tree under them).
+fn write_pages(cmd: &clap::Command, dir: &Path) -> Result<()> {
+    let path = dir.join(format!(
+        "{}.1",
+        cmd.get_display_name().unwrap_or(cmd.get_name())
+    ));
+    crate::io::write_bytes_atomic(&path, &render(cmd)?)?;
+    info!("wrote {}", path.display());
     if cmd.get_name() != "help" {
         for sub in cmd.get_subcommands().filter(|s| !s.is_hide_set()) {
-            pages(sub, acc);
+            write_pages(sub, dir)?;
         }
     }
+    Ok(())
 }
 
 /// Prints the top page, or with `out` writes every page into that folder (created if missing).
@@ -78,13 +84,5 @@ pub fn run(mut command: clap::Command, out: Option<&Path>) -> Result<()> {
         return Ok(());
     };
     crate::io::ensure_dir(dir)?;
-    let mut all = Vec::new();
-    pages(&command, &mut all);
-    for cmd in &all {
-        let name = format!("{}.1", cmd.get_display_name().unwrap_or(cmd.get_name()));
-        let path = dir.join(&name);
-        crate::io::write_bytes_atomic(&path, &render(cmd)?)?;
-        info!("wrote {}", path.display());
-    }
-    Ok(())
+    write_pages(&command, dir)
 }

@@ -1,6 +1,6 @@
 //! Command-line interface: thin clap subcommands that parse, call the library and print.
 //! `anyhow` is used only here. Every failure is one line on stderr and a non-zero exit.
-//! Standard output goes through [`out!`]/[`outln!`]: a closed stdout (`| head -1`) ends the
+//! Standard output goes through [`out!`]: a closed stdout (`| head -1`) ends the
 //! printing quietly, the command still writes its files and exits 0.
 
 /// `print!` that never panics; see [`crate::io::console::write_stdout`].
@@ -20,13 +20,6 @@ macro_rules! info {
     };
 }
 
-/// `println!` that never panics; see [`crate::io::console::write_stdout`].
-macro_rules! outln {
-    ($($t:tt)*) => {
-        out!("{}\n", format_args!($($t)*))
-    };
-}
-
 /// The library job `$job` (a path) from the parsed arguments `$a`: the fields named alike move over,
 /// the others follow the `;` as `field: expression` (e.g. `plots: !a.no_plots`).
 macro_rules! job {
@@ -42,14 +35,13 @@ pub mod design;
 pub mod diagnose;
 pub mod man;
 pub mod model;
-pub mod posterior;
 pub mod simulate;
 pub mod values;
 
 /// What every subcommand's file uses.
 mod prelude {
     pub use super::values::*;
-    pub use super::{force, working, ModelOpt, Working};
+    pub use super::{force, report, working, ModelOpt, Working};
     pub use crate::io::console::note;
     pub use anyhow::Result;
     pub use clap::{Args, Subcommand};
@@ -87,13 +79,19 @@ pub enum Command {
     /// Simulate a dataset (experiments plus a noise-only run) in the measured-data format.
     Simulate(simulate::SimulateArgs),
     /// Welch cross-spectra of a run.
-    Psd(analysis::PsdArgs),
+    Psd {
+        /// Run file (Parquet or CSV) with columns t, oi1, oi12, o1, o12.
+        run: PathBuf,
+        /// Output Parquet: f, s11, s22, s12_re, s12_im, coherence (one-sided, thesis Welch settings).
+        #[arg(long)]
+        out: PathBuf,
+    },
     /// Whiten a run and print the whitened moments with their uncertainties.
     Whiten(analysis::WhitenArgs),
     /// Fit the model to a dataset (MIMO multi-experiment, whitened likelihood).
     Fit(analysis::FitArgs),
     /// Sample the posterior of a dataset's parameters (Metropolis-Hastings on fit's likelihood).
-    Posterior(posterior::PosteriorArgs),
+    Posterior(analysis::PosteriorArgs),
     /// Monte Carlo campaigns: run, shard, resume and merge.
     #[command(subcommand)]
     Campaign(campaign::CampaignCmd),
@@ -137,10 +135,10 @@ impl ModelOpt {
     /// The model file of either kind (commands that take the xy model too).
     pub fn any_setup(&self) -> Result<crate::setup::AnySetup, crate::setup::Error> {
         let setup = crate::setup::AnySetup::load(self.model.as_deref())?;
-        Ok(match self.control_loop {
-            Some(kind) => setup.with_loop(kind.into())?,
-            None => setup,
-        })
+        match self.control_loop {
+            Some(kind) => setup.with_loop(kind.into()),
+            None => Ok(setup),
+        }
     }
 }
 
@@ -169,10 +167,10 @@ pub fn run() -> i32 {
         .and_then(|()| match cli.command {
             Command::Model(c) => model::run(c),
             Command::Simulate(a) => simulate::run(a),
-            Command::Psd(a) => analysis::psd(a),
+            Command::Psd { run, out } => analysis::psd(&run, &out),
             Command::Whiten(a) => analysis::whiten(a),
             Command::Fit(a) => analysis::fit(a),
-            Command::Posterior(a) => posterior::run(a),
+            Command::Posterior(a) => analysis::posterior(a),
             Command::Campaign(c) => campaign::run(c),
             Command::Design(c) => design::run(c),
             Command::Diagnose(a) => diagnose::run(a),
@@ -184,6 +182,15 @@ pub fn run() -> i32 {
         eprintln!("error: {}", one_line(e));
     }
     i32::from(res.is_err())
+}
+
+/// Prints a command's result `text` (once its files are written), the "wrote OUT" line and
+/// the result's warnings.
+pub fn report(text: impl std::fmt::Display, out: &Path, warnings: &[String]) -> Result<()> {
+    out!("{text}");
+    info!("wrote {}", out.display());
+    warnings.iter().for_each(|w| eprintln!("warning: {w}"));
+    Ok(())
 }
 
 /// Prints the completion script for `shell` of `command`.
@@ -254,8 +261,6 @@ fn refuse_overwrite(cmd: &Command, outputs: &[Named<'_>]) -> Result<()> {
 
 /// The error chain on one line (anyhow's `{:#}`: the messages joined by `: `).
 pub fn one_line(e: &anyhow::Error) -> String {
-    format!("{e:#}")
-        .split_whitespace()
-        .collect::<Vec<_>>()
-        .join(" ")
+    let text = format!("{e:#}");
+    text.split_whitespace().collect::<Vec<_>>().join(" ")
 }

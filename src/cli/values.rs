@@ -1,19 +1,18 @@
 //! The command line's value enums: each is the library enum of the same name with
 //! `clap::ValueEnum` (the library does not depend on clap), with the same variants, names,
-//! aliases and doc comments (which `--help` prints as the values' help), and `From` both ways
-//! (tests/it/cli.rs checks the names against the library's).
+//! aliases and doc comments (which `--help` prints as the values' help), and `From` into the
+//! library's (tests/it/cli.rs checks the names against the library's).
 
 /// For each `$cli => $lib { variants }`: a `clap::ValueEnum` copy of the library enum `$lib`
-/// named `$cli`, variant for variant, and the conversions. Variant doc comments and
-/// `#[value(...)]` attributes are kept.
+/// named `$cli`, variant for variant, and the conversion into `$lib`. Variant doc comments and
+/// `#[value(...)]` attributes are kept; the enum's doc links to `$lib`.
 macro_rules! value_enum {
     ($(
-        $(#[$meta:meta])*
         $cli:ident => $lib:path {
             $( $(#[$vmeta:meta])* $variant:ident ),* $(,)?
         }
     )*) => {$(
-        $(#[$meta])*
+        #[doc = concat!("The command line's [`", stringify!($lib), "`].")]
         #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
         pub enum $cli {
             $( $(#[$vmeta])* $variant ),*
@@ -26,20 +25,10 @@ macro_rules! value_enum {
                 }
             }
         }
-
-        impl From<$lib> for $cli {
-            fn from(v: $lib) -> Self {
-                type Lib = $lib;
-                match v {
-                    $( Lib::$variant => $cli::$variant ),*
-                }
-            }
-        }
     )*};
 }
 
 value_enum! {
-    /// Which frequency response the model uses (`model::spec::LoopKind`).
     LoopKind => crate::model::spec::LoopKind {
         /// The thesis's idealisation: continuous controllers, no hold (its tables use it).
         Continuous,
@@ -47,10 +36,8 @@ value_enum! {
         Digital,
     }
 
-    /// Which parameter set of a scenario (`accel::job::ScenarioSet`).
     ScenarioSet => crate::accel::job::ScenarioSet { Guess, Truth }
 
-    /// The L-estimator of a fit (`fit::Estimator`).
     Estimator => crate::fit::Estimator {
         /// `rho = r^2` (Gaussian likelihood).
         Squared,
@@ -60,7 +47,6 @@ value_enum! {
         Log,
     }
 
-    /// Information or covariance matrix (`design::criteria::Matrix`).
     Matrix => crate::design::criteria::Matrix {
         #[value(alias = "info")]
         Information,
@@ -68,13 +54,10 @@ value_enum! {
         Covariance,
     }
 
-    /// The criteria an optimisation is asked for (`design::criteria::Choice`).
     Choice => crate::design::criteria::Choice { D, E, T, All }
 
-    /// Parameter scaling for T and E (`design::criteria::Scaling`).
     Scaling => crate::design::criteria::Scaling { Natural, Nominal, Standard }
 
-    /// How the experiments use the inputs (`design::space::Layout`).
     Layout => crate::design::space::Layout {
         /// Multi-experiment single-input: Exp. 1 on oi1, Exp. 2 on oi12 (thesis sec. 5.3).
         Separate,
@@ -82,7 +65,6 @@ value_enum! {
         Simultaneous,
     }
 
-    /// The simulation engine (`sim::Engine`).
     Engine => crate::sim::Engine {
         /// Templates plus coloured noise of the continuous loop's PSD (fast; the campaigns'
         /// default).
@@ -92,7 +74,6 @@ value_enum! {
         TimeDomain,
     }
 
-    /// The simulation path of a dataset (`sim::Rate`).
     Rate => crate::sim::Rate {
         /// Simulate at the model's simulate_hz and decimate with the anti-alias FIR (thesis).
         Decimated,
@@ -101,7 +82,6 @@ value_enum! {
         Analysis,
     }
 
-    /// Where the whitening filter should come from (`analysis::Whitening`).
     Whitening => crate::analysis::Whitening {
         /// The dataset's noise run if it has one, else the model's noise PSD.
         Auto,
