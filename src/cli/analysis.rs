@@ -1,12 +1,83 @@
-//! `freefall psd`, `freefall whiten`, `freefall fit` and `freefall posterior`: time series in,
-//! spectra, whitened series, estimates and posterior draws out (Metropolis-Hastings on the
-//! whitened likelihood `fit` maximises). Measured and simulated data take the same path.
+//! `freefall model transfer|noise|fisher`: the model's products; `freefall psd`, `whiten`,
+//! `fit`, `posterior` and `accel`: time series in, spectra, whitened series, estimates,
+//! posterior draws (Metropolis-Hastings on the whitened likelihood `fit` maximises) and total
+//! equivalent acceleration out (the readouts through `Delta(p)`, see `accel`, their Welch
+//! spectra against the model's projection, the noise budget and a plot). Measured and
+//! simulated data take the same path.
 
 use super::prelude::*;
+use crate::accel::job::AccelJob;
 use crate::analysis::job::{psd as psd_job, DatasetFit, FitJob, WhitenJob};
+use crate::analysis::model_tables::{FisherJob, GridJob, Product};
 use crate::posterior::sampler::{SamplerConfig, DEFAULT_DRAWS, DEFAULT_WARMUP};
 use crate::posterior::PosteriorJob;
 use crate::setup::{AnySetup, DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
+
+#[derive(Debug, Subcommand)]
+pub enum ModelCmd {
+    /// T_{oi->o}[out, in] on a log frequency grid: columns f, t11_re, t11_im, ..., t22_im.
+    Transfer(GridArgs),
+    /// One-sided readout cross-PSD: columns f, s11, s22, s12_re, s12_im.
+    Noise(GridArgs),
+    /// Fisher errors of a design: columns parameter, value, sigma (+ *_corr.parquet).
+    Fisher(FisherArgs),
+}
+
+#[derive(Debug, Args)]
+pub struct GridArgs {
+    #[command(flatten)]
+    pub model: ModelOpt,
+    /// Scenario whose true parameters are used (default: the model's nominal parameters).
+    #[arg(long)]
+    pub scenario: Option<String>,
+    /// Lowest frequency [Hz].
+    #[arg(long, default_value_t = 1e-5)]
+    pub fmin: f64,
+    /// Highest frequency [Hz].
+    #[arg(long, default_value_t = 0.5)]
+    pub fmax: f64,
+    /// Number of log-spaced frequencies.
+    #[arg(long, default_value_t = 1000)]
+    pub points: usize,
+    /// Output Parquet file.
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+#[derive(Debug, Args)]
+pub struct FisherArgs {
+    #[command(flatten)]
+    pub model: ModelOpt,
+    /// Scenario whose true parameters are used (default: monte_carlo).
+    #[arg(long, default_value = "monte_carlo")]
+    pub scenario: String,
+    /// Injection design of the model file.
+    #[arg(long, default_value = "standard")]
+    pub design: String,
+    /// Output Parquet file; the correlations go to <stem>_corr.parquet beside it.
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+pub fn model(cmd: ModelCmd) -> Result<()> {
+    let (a, kind) = match cmd {
+        ModelCmd::Transfer(a) => (a, Product::Transfer),
+        ModelCmd::Noise(a) => (a, Product::Noise),
+        ModelCmd::Fisher(a) => return fisher(a),
+    };
+    let job = job!(a => GridJob { scenario, fmin, fmax, points; product: kind });
+    let n = job.run_any(&a.model.any_setup()?, &a.out)?;
+    info!("wrote {} ({n} frequencies)", a.out.display());
+    Ok(())
+}
+
+fn fisher(a: FisherArgs) -> Result<()> {
+    let job = job!(a => FisherJob { scenario, design });
+    let (text, corr_path) = job.run_any(&a.model.any_setup()?, &a.out)?;
+    out!("{text}");
+    info!("wrote {} and {}", a.out.display(), corr_path.display());
+    Ok(())
+}
 
 /// `psd`: the Welch cross-spectra of `run` into `out`.
 pub fn psd(run: &Path, out: &Path) -> Result<()> {
@@ -129,10 +200,8 @@ pub struct FitArgs {
 }
 
 pub fn fit(a: FitArgs) -> Result<()> {
-    let (setup, dataset, job) = a.data.job(a.estimator.into())?;
-    let fitted = working("fitting", |notes| {
-        job.run_any(&setup, &dataset, &a.out, notes)
-    })?;
+    let (setup, data, job) = a.data.job(a.estimator.into())?;
+    let fitted = working("fitting", |notes| job.run_any(&setup, &data, &a.out, notes))?;
     report(&fitted.text, &a.out, &fitted.summary.warnings)?;
     Ok(fitted.check()?)
 }
@@ -163,11 +232,78 @@ pub struct PosteriorArgs {
 }
 
 pub fn posterior(a: PosteriorArgs) -> Result<()> {
-    let (setup, dataset, fit) = a.data.job(crate::fit::Estimator::Squared)?;
+    let (setup, data, fit) = a.data.job(crate::fit::Estimator::Squared)?;
     let job = job!(a => PosteriorJob { ; fit: fit, plots: !a.no_plots,
         sampler: job!(a => SamplerConfig { chains, warmup, draws, seed }) });
     let done = working("sampling", |notes| {
-        job.run_any(&setup, &dataset, &a.out, notes)
+        job.run_any(&setup, &data, &a.out, notes)
     })?;
     report(&done.text, &a.out, &done.summary.warnings)
+}
+
+#[derive(Debug, Args)]
+pub struct AccelArgs {
+    /// A run (Parquet or CSV: t, oi1, oi12, o1, o12, and the model's other readouts and
+    /// guidance) or a dataset TOML (its noise run, or --run).
+    pub input: PathBuf,
+    /// With a dataset: the experiment to convert instead of the noise run.
+    #[arg(long)]
+    pub run: Option<String>,
+    /// Parameters of Delta: an estimates.parquet written by `freefall fit` (columns parameter,
+    /// estimate).
+    #[arg(long, conflicts_with = "scenario")]
+    pub params: Option<PathBuf>,
+    /// Parameters of Delta: a scenario of the model file (its guess, or its truth with
+    /// --use truth). Without --params or --scenario: the model's nominal values.
+    #[arg(long)]
+    pub scenario: Option<String>,
+    /// Which parameter set of --scenario.
+    #[arg(long = "use", value_enum, default_value_t = ScenarioSet::Guess)]
+    pub set: ScenarioSet,
+    #[command(flatten)]
+    pub model: ModelOpt,
+    /// A time span START:END (s, run time) whose spectrum is also estimated (repeatable), e.g.
+    /// a start-up transient against a later steady stretch.
+    #[arg(long = "segment", value_name = "START:END")]
+    pub segments: Vec<String>,
+    /// Outer coefficient a of the five-point second-derivative estimator (0.25: response
+    /// -sin^2(w dt)/dt^2; 2/7: parabolic fit; -1/12: Taylor).
+    #[arg(long, default_value_t = crate::accel::derivative::PI_STENCIL)]
+    pub stencil: f64,
+    /// Welch segments averaged (66 % overlap, 92-dB Blackman-Harris, mean detrended).
+    #[arg(long, default_value_t = 16)]
+    pub welch_segments: usize,
+    /// Probability of the confidence band of the spectra.
+    #[arg(long, default_value_t = 0.9)]
+    pub level: f64,
+    /// Output directory (created): accel.parquet, accel_psd.parquet, budget.parquet,
+    /// plots/accel.png (and compare*.parquet with --compare).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Do not draw plots/accel.png (the embedded scripts/plot_accel.py, run with python3;
+    /// FREEFALL_PLOT_SCRIPT names another script).
+    #[arg(long)]
+    pub no_plots: bool,
+    /// The run file's readouts went through the model file's anti-alias FIR (`[anti_alias]`):
+    /// the projection and the budget fold the readout noise through it. A dataset says so in
+    /// `[meta] rate = "decimated"` (as `freefall simulate` writes it).
+    #[arg(long)]
+    pub decimated: bool,
+    /// An earlier `freefall accel` output folder of the same run (e.g. Delta at the truth) to
+    /// compare against: the amplitude ratio at 0.4 and 50 mHz, which noise sources make the
+    /// excess, and whether the spectrum lies inside the reference's band; writes
+    /// compare.parquet and compare_budget.parquet.
+    #[arg(long, value_name = "DIR")]
+    pub compare: Option<PathBuf>,
+}
+
+pub fn accel(a: AccelArgs) -> Result<()> {
+    let setup = a.model.any_setup()?;
+    let job = job!(a => AccelJob { run, params, scenario, segments, stencil, welch_segments,
+        level, compare, decimated; set: a.set.into(), plots: !a.no_plots });
+    let text = working(
+        "converting to acceleration",
+        |notes| crate::with_setup!(&setup, s => job.run(&**s, &a.input, &a.out, notes)),
+    )?;
+    report(&text, &a.out, &[])
 }

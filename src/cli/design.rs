@@ -108,13 +108,10 @@ fn optimize<M: DesignModel<N>, const N: usize>(
     let (st, out) = (a.study.study(setup)?, &a.out);
     ensure_dir(out)?;
     let crits = crate::design::criteria::Choice::from(a.criterion).criteria(a.on.into());
-    let (report, files) = working("optimising", |_| {
+    let (text, files) = working("optimising", |_| {
         M::write_optimization(setup, &st, a.layout.into(), &crits, out)
     })?;
-    // Printed only once every file is written.
-    out!("{report}");
-    info!("wrote {}/{files}", out.display());
-    Ok(())
+    report(text, &out.join(files), &[])
 }
 
 /// `design evaluate` on the model of `setup`.

@@ -9,7 +9,7 @@ use super::simulate::SimSource;
 use crate::diagnose::job::DiagnoseJob;
 use crate::setup::AnySetup;
 use crate::sim::simulate_job::SimulateJob;
-use anyhow::bail;
+use anyhow::Context;
 
 #[derive(Debug, Args)]
 pub struct DiagnoseArgs {
@@ -68,9 +68,8 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
         out!("{}", crate::diagnose::tables::effect_list());
         return Ok(());
     }
-    let Some(dataset) = a.dataset.clone() else {
-        bail!("give a dataset TOML (or --list-effects)")
-    };
+    let missing = "give a dataset TOML (or --list-effects)";
+    let dataset = a.dataset.clone().context(missing)?;
     let setup = a.model.any_setup()?;
     if a.simulate_into {
         return simulate(a, &setup, &dataset);
@@ -84,8 +83,7 @@ pub fn run(a: DiagnoseArgs) -> Result<()> {
         job.run(s.as_ref(), &dataset, &a.out, &mut |n| w.note(n), &mut progress)
     });
     drop(w);
-    let d = d?;
-    report(&format!("{}\n", d.summary_line()), &a.out, &[])
+    report(format!("{}\n", d?.summary_line()), &a.out, &[])
 }
 
 /// `--simulate-into`: kept for one release as an alias of `freefall simulate --effect ...

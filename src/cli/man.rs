@@ -12,17 +12,14 @@ const EXAMPLES: &str = include_str!("man_examples.txt");
 
 /// The examples of the page named `page` (`freefall-campaign-run`): (what it does, command line).
 fn examples(page: &str) -> Vec<(String, String)> {
-    let (mut here, mut what, mut acc) = (false, String::new(), Vec::new());
-    for line in EXAMPLES
-        .lines()
-        .filter(|l| !l.starts_with('#') && !l.trim().is_empty())
-    {
+    let (mut here, mut what, mut acc) = (false, "", Vec::new());
+    for line in EXAMPLES.lines().filter(|l| !l.starts_with('#')) {
         if let Some(name) = line.strip_prefix('[').and_then(|l| l.strip_suffix(']')) {
             here = name == page;
         } else if let (true, Some(cmd)) = (here, line.trim_start().strip_prefix("$ ")) {
-            acc.push((std::mem::take(&mut what), cmd.to_string()));
-        } else if here {
-            what = line.to_string();
+            acc.push((std::mem::take(&mut what).to_string(), cmd.to_string()));
+        } else if here && !line.trim().is_empty() {
+            what = line;
         }
     }
     acc
@@ -31,9 +28,8 @@ fn examples(page: &str) -> Vec<(String, String)> {
 /// Renders the page of `cmd` (a built command: its display name is the page name) with the
 /// EXAMPLES and ENVIRONMENT sections appended.
 fn render(cmd: &clap::Command) -> Result<Vec<u8>> {
-    let man = clap_mangen::Man::new(cmd.clone());
     let mut out = Vec::new();
-    man.render(&mut out)?;
+    clap_mangen::Man::new(cmd.clone()).render(&mut out)?;
     let page = cmd.get_display_name().unwrap_or(cmd.get_name());
     out.extend_from_slice(b".SH EXAMPLES\n");
     for (what, line) in &examples(page) {

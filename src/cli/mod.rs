@@ -28,13 +28,11 @@ macro_rules! job {
     };
 }
 
-pub mod accel;
 pub mod analysis;
 pub mod campaign;
 pub mod design;
 pub mod diagnose;
 pub mod man;
-pub mod model;
 pub mod simulate;
 pub mod values;
 
@@ -53,12 +51,9 @@ use prelude::*;
 
 pub use crate::io::console::{quiet, working, Working};
 
+/// System identification of drag-free closed-loop experiments (LISA Pathfinder kind)
 #[derive(Debug, Parser)]
-#[command(
-    name = "freefall",
-    version = crate::VERSION,
-    about = "System identification of drag-free closed-loop experiments (LISA Pathfinder kind)"
-)]
+#[command(version = crate::VERSION)]
 pub struct Cli {
     /// No progress bars, notes or "wrote" lines on stderr (results, warnings and errors stay).
     #[arg(short, long, global = true)]
@@ -75,7 +70,7 @@ pub struct Cli {
 pub enum Command {
     /// Closed-loop model products: transfer functions, noise cross-PSD, Fisher errors.
     #[command(subcommand)]
-    Model(model::ModelCmd),
+    Model(analysis::ModelCmd),
     /// Simulate a dataset (experiments plus a noise-only run) in the measured-data format.
     Simulate(simulate::SimulateArgs),
     /// Welch cross-spectra of a run.
@@ -114,7 +109,7 @@ pub enum Command {
         out: Option<PathBuf>,
     },
     /// Total equivalent acceleration: readouts through Delta(p), spectra, model, noise budget.
-    Accel(accel::AccelArgs),
+    Accel(analysis::AccelArgs),
 }
 
 /// `--model FILE`: a model file of the lpf_x.toml schema (default: the embedded one).
@@ -165,7 +160,7 @@ pub fn run() -> i32 {
         .map_err(anyhow::Error::from)
         .and_then(|()| refuse_overwrite(&cli.command, &outputs))
         .and_then(|()| match cli.command {
-            Command::Model(c) => model::run(c),
+            Command::Model(c) => analysis::model(c),
             Command::Simulate(a) => simulate::run(a),
             Command::Psd { run, out } => analysis::psd(&run, &out),
             Command::Whiten(a) => analysis::whiten(a),
@@ -176,7 +171,7 @@ pub fn run() -> i32 {
             Command::Diagnose(a) => diagnose::run(a),
             Command::Completions { shell } => completions(command, shell),
             Command::Man { out } => man::run(command, out.as_deref()),
-            Command::Accel(a) => accel::run(a),
+            Command::Accel(a) => analysis::accel(a),
         });
     if let Err(e) = &res {
         eprintln!("error: {}", one_line(e));

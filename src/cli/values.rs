@@ -3,9 +3,8 @@
 //! aliases and doc comments (which `--help` prints as the values' help), and `From` into the
 //! library's (tests/it/cli.rs checks the names against the library's).
 
-/// For each `$cli => $lib { variants }`: a `clap::ValueEnum` copy of the library enum `$lib`
-/// named `$cli`, variant for variant, and the conversion into `$lib`. Variant doc comments and
-/// `#[value(...)]` attributes are kept; the enum's doc links to `$lib`.
+/// For each `$cli => $lib { variants }`: the enum `$cli` above (variant doc comments and
+/// `#[value(...)]` attributes kept, its doc linking to `$lib`) and `From<$cli> for $lib`.
 macro_rules! value_enum {
     ($(
         $cli:ident => $lib:path {
@@ -20,9 +19,7 @@ macro_rules! value_enum {
 
         impl From<$cli> for $lib {
             fn from(v: $cli) -> Self {
-                match v {
-                    $( $cli::$variant => Self::$variant ),*
-                }
+                match v { $( $cli::$variant => Self::$variant ),* }
             }
         }
     )*};
