@@ -1,9 +1,8 @@
-//! `freefall model transfer|noise|fisher`: the model's products; `freefall psd`, `whiten`,
-//! `fit`, `posterior` and `accel`: time series in, spectra, whitened series, estimates,
-//! posterior draws (Metropolis-Hastings on the whitened likelihood `fit` maximises) and total
-//! equivalent acceleration out (the readouts through `Delta(p)`, see `accel`, their Welch
-//! spectra against the model's projection, the noise budget and a plot). Measured and
-//! simulated data take the same path.
+//! `freefall model transfer|noise|fisher` (the model's products) and the commands that take
+//! time series in: `psd` (spectra), `whiten`, `fit` (estimates), `posterior` (draws by
+//! Metropolis-Hastings on the whitened likelihood `fit` maximises) and `accel` (total equivalent
+//! acceleration through `Delta(p)`, its spectra against the model's projection, the noise
+//! budget). Measured and simulated data take the same path.
 
 use super::prelude::*;
 use crate::accel::job::AccelJob;
@@ -63,19 +62,17 @@ pub fn model(cmd: ModelCmd) -> Result<()> {
     let (a, kind) = match cmd {
         ModelCmd::Transfer(a) => (a, Product::Transfer),
         ModelCmd::Noise(a) => (a, Product::Noise),
-        ModelCmd::Fisher(a) => return fisher(a),
+        ModelCmd::Fisher(a) => {
+            let job = job!(a => FisherJob { scenario, design });
+            let (text, corr_path) = job.run_any(&a.model.any_setup()?, &a.out)?;
+            out!("{text}");
+            info!("wrote {} and {}", a.out.display(), corr_path.display());
+            return Ok(());
+        }
     };
     let job = job!(a => GridJob { scenario, fmin, fmax, points; product: kind });
     let n = job.run_any(&a.model.any_setup()?, &a.out)?;
     info!("wrote {} ({n} frequencies)", a.out.display());
-    Ok(())
-}
-
-fn fisher(a: FisherArgs) -> Result<()> {
-    let job = job!(a => FisherJob { scenario, design });
-    let (text, corr_path) = job.run_any(&a.model.any_setup()?, &a.out)?;
-    out!("{text}");
-    info!("wrote {} and {}", a.out.display(), corr_path.display());
     Ok(())
 }
 

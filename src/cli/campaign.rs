@@ -2,8 +2,7 @@
 //! `campaign::spec` for the schema), with shards, resume and SLURM job arrays.
 
 use super::prelude::*;
-use crate::campaign::io_store::Progress;
-use crate::campaign::{self, slurm, RunOptions, Shard};
+use crate::campaign::{self, io_store::Progress, slurm, RunOptions, Shard};
 
 #[derive(Debug, Subcommand)]
 pub enum CampaignCmd {

@@ -3,9 +3,7 @@
 //! dataset carrying library effects, drifts, glitches or lines the nominal model lacks (for
 //! tests and examples).
 
-use super::analysis::FitOpts;
-use super::prelude::*;
-use super::simulate::SimSource;
+use super::{analysis::FitOpts, prelude::*, simulate::SimSource};
 use crate::diagnose::job::DiagnoseJob;
 use crate::setup::AnySetup;
 use crate::sim::simulate_job::SimulateJob;

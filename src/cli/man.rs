@@ -47,7 +47,7 @@ fn render(cmd: &clap::Command) -> Result<Vec<u8>> {
 /// a leading `.` or `'` (a control line) guarded.
 fn roff_text(s: &str) -> String {
     let t = s.replace('\\', "\\e").replace('-', "\\-");
-    if t.starts_with('.') || t.starts_with('\'') {
+    if t.starts_with(['.', '\'']) {
         format!("\\&{t}")
     } else {
         t

@@ -39,8 +39,8 @@ pub mod values;
 /// What every subcommand's file uses.
 mod prelude {
     pub use super::values::*;
-    pub use super::{force, report, working, ModelOpt, Working};
-    pub use crate::io::console::note;
+    pub use super::{force, report, ModelOpt};
+    pub use crate::io::console::{note, working, Working};
     pub use anyhow::Result;
     pub use clap::{Args, Subcommand};
     pub use std::path::{Path, PathBuf};
@@ -48,8 +48,6 @@ mod prelude {
 
 use clap::{ArgMatches, FromArgMatches, Parser};
 use prelude::*;
-
-pub use crate::io::console::{quiet, working, Working};
 
 /// System identification of drag-free closed-loop experiments (LISA Pathfinder kind)
 #[derive(Debug, Parser)]
@@ -179,8 +177,7 @@ pub fn run() -> i32 {
     i32::from(res.is_err())
 }
 
-/// Prints a command's result `text` (once its files are written), the "wrote OUT" line and
-/// the result's warnings.
+/// Prints a command's result `text` (once its files are written), "wrote OUT" and the warnings.
 pub fn report(text: impl std::fmt::Display, out: &Path, warnings: &[String]) -> Result<()> {
     out!("{text}");
     info!("wrote {}", out.display());

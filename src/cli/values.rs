@@ -1,7 +1,6 @@
-//! The command line's value enums: each is the library enum of the same name with
-//! `clap::ValueEnum` (the library does not depend on clap), with the same variants, names,
-//! aliases and doc comments (which `--help` prints as the values' help), and `From` into the
-//! library's (tests/it/cli.rs checks the names against the library's).
+//! The command line's value enums: copies of the library's with `clap::ValueEnum` (the library
+//! does not depend on clap), same variants, names, aliases and doc comments (`--help` prints them
+//! as the values' help); tests/it/cli.rs checks the names against the library's.
 
 /// For each `$cli => $lib { variants }`: the enum `$cli` above (variant doc comments and
 /// `#[value(...)]` attributes kept, its doc linking to `$lib`) and `From<$cli> for $lib`.
