@@ -16,7 +16,7 @@ use freefall::model::{transfer, transfer_with_derivatives, CMat, ClosedLoopModel
 use freefall::setup::Setup;
 use freefall::signal::Design;
 use freefall::sim::rng::stream;
-use freefall::sim::time_domain::{DigitalLoop, InitialConditions, LoopConfig};
+use freefall::sim::time_domain::{DigitalLoop, LoopConfig, SensedState};
 use freefall::spectral::{welch_csd, WelchConfig};
 use num_complex::Complex64;
 
@@ -319,18 +319,16 @@ fn free_response_decays_as_the_closed_loop_poles_say() {
     let setup = digital_setup(Discretisation::Tustin, 0.0);
     let p = setup.spec.scenario("monte_carlo").unwrap().truth;
     let cfg = LoopConfig::from_spec(&setup.spec);
-    let ic = InitialConditions {
-        o1: 2.4e-7,
-        o12: 3.6e-7,
-        v1: -5e-10,
-        v12: -4e-12,
+    let ic = SensedState {
+        position: [2.4e-7, 3.6e-7],
+        rate: [-5e-10, -4e-12],
     };
     let mut lp = DigitalLoop::new(&setup.model, &p, &cfg);
     lp.reset(Some(&ic));
     let n = 20_000; // 2000 s: the fast modes die out, the slow ones are well sampled
     let zero = vec![0.0; n];
     let o = lp.run([&zero, &zero], [&zero, &zero], [&zero, &zero]);
-    assert_eq!((o[0][0], o[1][0]), (ic.o1, ic.o12));
+    assert_eq!((o[0][0], o[1][0]), (ic.position[0], ic.position[1]));
     let poles = model_z_poles(&setup, &p);
     // Real basis: Re and Im of z^k for each complex pair (upper half plane), z^k for a real z.
     let modes: Vec<Complex64> = poles.iter().copied().filter(|z| z.im >= 0.0).collect();
