@@ -67,7 +67,7 @@ fn xy_sine_responses_approach_the_continuous_loop_to_the_order_of_the_hold() {
     let cfg = LoopConfig::from_spec(&setup.spec);
     let lp = DigitalLoop::<7>::new(&setup.model, &p, &cfg);
     let delays = setup.model.guidance_delays(&p);
-    for cycles in [STANDARD_CYCLES[0], STANDARD_CYCLES[3], STANDARD_CYCLES[6]] {
+    for cycles in [STANDARD_CYCLES[0], STANDARD_CYCLES[6]] {
         let f = cycles / STRETCH_S;
         let wh = 2.0 * std::f64::consts::PI * f * cfg.dt;
         let t = transfer(&setup.model, &setup.model.prepare(f), &p).oi_o;
@@ -99,7 +99,8 @@ fn xy_noise_free_response_matches_the_frequency_domain_template() {
     // time-domain engine's noise-free telemetry (guidance at 10 Hz through the digital loop,
     // decimated by the anti-alias FIR) must agree in every readout to the order of the hold
     // at the highest injected frequency, 2 w_max h of the channel's peak, after the first
-    // stretch (away from the start-up of the first injection).
+    // stretch (away from the start-up of the first injection); a readout the design leaves
+    // at zero must stay there.
     let setup = SetupXy::embedded();
     let p = setup.spec.scenario(SCENARIO).unwrap().truth;
     let design = setup.design("standard_xy").unwrap();
@@ -118,12 +119,16 @@ fn xy_noise_free_response_matches_the_frequency_domain_template() {
             let peak = b[from..n].iter().fold(0.0f64, |m, v| m.max(v.abs()));
             let worst = (from..n).map(|k| (a[k] - b[k]).abs()).fold(0.0, f64::max);
             assert!(
-                worst <= 2.0 * w_max * h * peak,
+                worst <= 2.0 * w_max * h * peak + ZERO_RESPONSE,
                 "{name}, readout {c}: worst difference {worst:.3e} of peak {peak:.3e}"
             );
         }
     }
 }
+
+/// A response this small (m or rad) is zero: a million times below the quietest readout's
+/// noise in one sample.
+const ZERO_RESPONSE: f64 = 1e-15;
 
 /// Mean ratio estimate/model over bins in `[lo, hi]` and its standard error (bins treated as
 /// independent with the Welch dof, inflated by 2 for the window's bin-to-bin correlation).
@@ -203,7 +208,7 @@ fn xy_fit_of_time_domain_data_recovers_the_truth() {
         "--engine",
         "time-domain",
         "--noise-duration",
-        "9450",
+        "21600",
         "--out",
         ds.to_str().unwrap(),
     ]);
@@ -268,6 +273,8 @@ fn cli_simulates_the_xy_loop_in_the_time_domain_with_initial_conditions() {
         "simulate",
         "--model",
         "lpf_xy",
+        "--scenario",
+        "crosstalk",
         "--engine",
         "time-domain",
         "--initial",
@@ -299,6 +306,8 @@ fn cli_simulates_the_xy_loop_in_the_time_domain_with_initial_conditions() {
         "lpf_xy",
         "--engine",
         "time-domain",
+        "--scenario",
+        "crosstalk",
         "--initial",
         "v3=1",
         "--out",
