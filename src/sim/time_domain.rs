@@ -596,8 +596,8 @@ impl<const N: usize> DigitalLoop<N> {
         for c in 0..N {
             acc += gn[c] * w[c];
         }
-        for c in 0..N {
-            acc += gp[c] * self.w_prev[c];
+        for (g, v) in gp.iter().zip(&self.w_prev) {
+            acc += g * v;
         }
         acc
     }

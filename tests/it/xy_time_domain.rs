@@ -113,8 +113,7 @@ fn xy_noise_free_response_matches_the_frequency_domain_template() {
     let w_max = 2.0 * std::f64::consts::PI * STANDARD_CYCLES[6] / STRETCH_S;
     let from = (STRETCH_S / td.dt).round() as usize;
     for (e, name) in td.names.iter().enumerate() {
-        for c in 0..7 {
-            let (a, b) = (&td.outputs[e][c], &fd[e][c]);
+        for (c, (a, b)) in td.outputs[e].iter().zip(&fd[e]).enumerate() {
             let n = a.len().min(b.len());
             let peak = b[from..n].iter().fold(0.0f64, |m, v| m.max(v.abs()));
             let worst = (from..n).map(|k| (a[k] - b[k]).abs()).fold(0.0, f64::max);
@@ -207,8 +206,6 @@ fn xy_fit_of_time_domain_data_recovers_the_truth() {
         "4",
         "--engine",
         "time-domain",
-        "--noise-duration",
-        "21600",
         "--out",
         ds.to_str().unwrap(),
     ]);
@@ -280,7 +277,7 @@ fn cli_simulates_the_xy_loop_in_the_time_domain_with_initial_conditions() {
         "--initial",
         "o1=2.4e-7,oy1=3e-7,vphi1=-2e-9",
         "--noise-duration",
-        "10800",
+        "21600",
         "--out",
         out.to_str().unwrap(),
     ]);
