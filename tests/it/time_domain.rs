@@ -118,7 +118,8 @@ fn noise_run_matches_the_model_cross_psd_where_the_loops_agree() {
 #[test]
 fn cli_simulates_with_the_time_domain_engine_and_initial_conditions() {
     // Oracle: the documented flags write a dataset whose metadata names the engine and the
-    // initial conditions; bad --initial values are one-line errors naming the key.
+    // initial conditions; bad --initial values are one-line errors naming the key (a key
+    // that is no readout of the model when the model is known, before anything is written).
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("td");
     let o = freefall(&[
@@ -150,7 +151,7 @@ fn cli_simulates_with_the_time_domain_engine_and_initial_conditions() {
             "--initial",
             arg,
             "--out",
-            out.to_str().unwrap(),
+            dir.path().join("bad").to_str().unwrap(),
         ]);
         let err = String::from_utf8_lossy(&o.stderr);
         assert!(!o.status.success() && err.contains(needle), "{arg}: {err}");
