@@ -24,6 +24,7 @@ use crate::io::{
 };
 use crate::model::{check_stability, ClosedLoopModel, LpfX, LpfXy, ModelError};
 use crate::setup::{AnySetup, Error as SetupError, Setup, SetupOf, SpecModel};
+use crate::sim::time_domain::DigitalPlant;
 use crate::spectral::CrossSpectrum;
 use crate::units::UnitsError;
 
@@ -588,7 +589,22 @@ impl FitModel<2> for LpfX {
     }
 }
 
-impl FitModel<7> for LpfXy {}
+impl FitModel<7> for LpfXy {
+    /// With `--transient`, the fit with the free responses of the 7-DOF digital loop
+    /// ([`FitJob::fitted_digital`]).
+    fn fitted<'m>(
+        job: &FitJob,
+        setup: &'m SetupOf<Self, 7>,
+        path: &Path,
+        notes: Notes<'_>,
+    ) -> Result<Fitted<'m, Self, 7>, JobError> {
+        if job.transient {
+            job.fitted_digital(setup, path, notes)
+        } else {
+            job.fitted_model(setup, path, notes)
+        }
+    }
+}
 
 impl FitJob {
     /// Fits the dataset at `path` by the model of `setup` ([`FitModel::fit_job`]).
@@ -608,7 +624,7 @@ impl FitJob {
     /// whitening in the model's dimension. Start-up transients are refused; the units check,
     /// decimated telemetry and residuals.parquet (whose table has the x model's two channels)
     /// are the x model's ([`Self::run`]).
-    pub fn run_model<M: SpecModel<N>, const N: usize>(
+    pub fn run_model<M: FitModel<N>, const N: usize>(
         &self,
         setup: &SetupOf<M, N>,
         path: &Path,
@@ -620,8 +636,9 @@ impl FitJob {
             cfg,
             res,
             source,
+            transients,
             ..
-        } = self.fitted_model(setup, path, notes)?;
+        } = M::fitted(self, setup, path, notes)?;
         let (ds, guess) = (&prep.ds, &prep.guess);
         let names = setup.parameter_names();
         let (order, poly_degree) = (self.dataset.order, self.dataset.poly_degree);
@@ -639,6 +656,7 @@ impl FitJob {
         )
         .with_constraints(&names, &cfg);
         let summary = FitSummary {
+            transients,
             excluded: prep.excluded.clone(),
             ..summary
         };
@@ -650,8 +668,12 @@ impl FitJob {
         write_parquet(out.join("correlation.parquet"), &corr.with_meta_all(&meta))?;
         write_json_atomic(out.join("fit.json"), &summary)?;
         let truth = truth_from_meta(ds, &names);
+        let mut text = summary.text(&names, &res, guess, truth.as_deref());
+        for t in &summary.transients {
+            text.push_str(&format!("transient {}\n", t.text()));
+        }
         Ok(FitOutcome {
-            text: summary.text(&names, &res, guess, truth.as_deref()),
+            text,
             summary,
             terminated: res.termination.converged(),
         })
@@ -666,9 +688,8 @@ impl FitJob {
     ) -> Result<Fitted<'m, M, N>, JobError> {
         if self.transient {
             return Err(JobError::Invalid(format!(
-                "--transient: the start-up transients' columns are free responses of the \
-                 time-domain digital loop (sim::time_domain), which simulates the lpf_x model \
-                 only; this is the {} model",
+                "--transient: the start-up transients' columns are free responses of a digital \
+                 loop (sim::time_domain::DigitalPlant), which the {} model does not have",
                 M::KIND.name()
             )));
         }
@@ -709,6 +730,83 @@ impl FitJob {
             res,
             source: source.to_string(),
             transients: Vec::new(),
+            prep,
+        })
+    }
+}
+
+impl FitJob {
+    /// `fit --transient` of any model with a digital loop (the x model's own path is
+    /// [`Self::fitted_x`], which adds the units check and the decimated telemetry's whitening):
+    /// the free responses of the loop are fitted nuisance columns of every experiment
+    /// (`analysis::transient`), and the noise run less its own fitted free response gives the
+    /// whitening filter (the model noise PSD at the guess without a noise run, or with
+    /// `--whitening model`); as the x fit, the noise run's columns are evaluated once more at
+    /// the estimate and the fit repeated.
+    pub fn fitted_digital<'m, M: SpecModel<N> + DigitalPlant<N>, const N: usize>(
+        &self,
+        setup: &'m SetupOf<M, N>,
+        path: &Path,
+        notes: Notes<'_>,
+    ) -> Result<Fitted<'m, M, N>, JobError> {
+        let prep = self.dataset.prepare(setup, path, notes)?;
+        let (ds, data, guess) = (&prep.ds, &prep.data, &prep.guess);
+        let (order, poly_degree) = (self.dataset.order, self.dataset.poly_degree);
+        check_stability(&setup.model, guess, Some(&setup.spec.nominal()))
+            .map_err(context("the starting point"))?;
+        let readouts = setup.model.readout_names();
+        let noise: Option<Vec<Vec<f64>>> = ds
+            .noise
+            .as_ref()
+            .map(|r| r.named(&readouts).iter().map(|c| c.to_vec()).collect());
+        type Whitened<const N: usize> = (Whitener<N>, String, Option<TransientReport>);
+        let whiten = |p: &[f64]| -> Result<Whitened<N>, JobError> {
+            match (&noise, self.whitening) {
+                (Some(n), Whitening::Auto | Whitening::Noise) => {
+                    let (t, report) =
+                        clean_noise_run(setup, p, n, data.dt, order, poly_degree, TRANSIENT_ALPHA)?;
+                    let w = Whitener::<N>::from_series(&t.cleaned, order)
+                        .map_err(context("the noise run less its fitted start-up transient"))?;
+                    let source = "noise run less its fitted start-up transient".to_string();
+                    Ok((w, source, Some(report)))
+                }
+                (None, Whitening::Noise) => Err(JobError::Invalid(format!(
+                    "--whitening noise: {} has no noise run",
+                    path.display()
+                ))),
+                _ => Ok((
+                    setup.whitener_from_model(p, data.len(), data.dt, order)?,
+                    "model noise PSD at the guess".to_string(),
+                    None,
+                )),
+            }
+        };
+        let likelihood = |w: Whitener<N>| {
+            Likelihood::for_data(&setup.model, data, w, poly_degree)
+                .map_err(context(path.display().to_string()))
+        };
+        let mut cfg = prep.constraints.apply(FitConfig::new(&setup.model));
+        cfg.estimator = self.estimator;
+        let (w, mut source, mut noise_report) = whiten(guess)?;
+        let mut lik = likelihood(w)?;
+        let (mut res, mut reports) =
+            fit_with_transients(setup, &mut lik, data, guess, &cfg, TRANSIENT_ALPHA)?;
+        if noise_report.is_some() {
+            let (w, s, r) = whiten(&res.estimate)?;
+            (source, noise_report) = (s, r);
+            lik = likelihood(w)?;
+            let start = res.estimate.clone();
+            (res, reports) =
+                fit_with_transients(setup, &mut lik, data, &start, &cfg, TRANSIENT_ALPHA)?;
+        }
+        let mut transients: Vec<TransientReport> = noise_report.into_iter().collect();
+        transients.extend(reports);
+        Ok(Fitted {
+            lik,
+            cfg,
+            res,
+            source,
+            transients,
             prep,
         })
     }

@@ -21,8 +21,11 @@
 //! filter of the experiments is estimated from.
 //!
 //! Reported initial conditions: `x(0) = L c` with the map `L` of `sim::transient`, covariance
-//! `L Cov(c) L^T`; the Wald statistic `c^T Cov(c)^-1 c` is chi^2 with 4 degrees of freedom for
-//! a run without transient.
+//! `L Cov(c) L^T`; the Wald statistic `c^T Cov(c)^-1 c` is chi^2 with `2N` degrees of freedom
+//! (4 for the x model, 14 for the xy model) for a run without transient.
+//!
+//! Every function is generic over the model ([`DigitalPlant`]: the loop whose free responses
+//! the columns are).
 
 use nalgebra::{DMatrix, DVector};
 use serde::Serialize;
@@ -32,9 +35,9 @@ use crate::fit::transient::{fit_noise_run, Columns, NoiseRunTransient};
 use crate::fit::{fit, FitConfig, FitError, FitResult, Likelihood};
 use crate::model::ClosedLoopModel;
 use crate::numerics::stats::{chi2_sf, f_sf};
-use crate::setup::Setup;
-use crate::sim::time_domain::LoopConfig;
-use crate::sim::transient::{free_response, FreeResponse, IC_NAMES, IC_UNITS};
+use crate::setup::{SetupOf, SpecModel};
+use crate::sim::time_domain::{DigitalPlant, LoopConfig};
+use crate::sim::transient::{free_response, ic_names, ic_units, FreeResponse};
 
 /// The fit is repeated with the columns at the new estimate until no parameter moves by more
 /// than this many of its sigmas.
@@ -56,7 +59,11 @@ pub enum TransientError {
 type Result<T> = std::result::Result<T, TransientError>;
 
 /// The free response of a run of `n` telemetry samples at base parameters `p`.
-pub fn run_response(setup: &Setup, p: &[f64], n: usize) -> Result<FreeResponse> {
+pub fn run_response<M: SpecModel<N> + DigitalPlant<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
+    p: &[f64],
+    n: usize,
+) -> Result<FreeResponse> {
     Ok(free_response(
         &setup.model,
         p,
@@ -68,8 +75,8 @@ pub fn run_response(setup: &Setup, p: &[f64], n: usize) -> Result<FreeResponse> 
 
 /// Columns `cols[e][k][c]` of every experiment over its own samples (after its lead-in, which
 /// belongs to the same run), and every experiment's map to the state at its first sample.
-pub fn experiment_columns(
-    setup: &Setup,
+pub fn experiment_columns<M: SpecModel<N> + DigitalPlant<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
     p: &[f64],
     data: &ExperimentData,
 ) -> Result<(Vec<Columns>, Vec<FreeResponse>)> {
@@ -92,8 +99,8 @@ pub fn experiment_columns(
 /// One initial condition of a report.
 #[derive(Debug, Clone, Serialize)]
 pub struct InitialCondition {
-    pub name: &'static str,
-    pub unit: &'static str,
+    pub name: String,
+    pub unit: String,
     pub value: f64,
     pub sigma: f64,
 }
@@ -107,8 +114,8 @@ pub struct TransientReport {
     /// Where the loop was started with the controllers at rest, relative to the first
     /// telemetry sample [s].
     pub loop_start_s: f64,
-    /// Wald statistic of the four coefficients and its tail probability (chi^2 with 4 degrees of
-    /// freedom; for a noise run, Hotelling's T^2 with the covariance estimated from later-started
+    /// Wald statistic of the `2N` coefficients and its tail probability (chi^2 with `2N` degrees
+    /// of freedom; for a noise run, Hotelling's T^2 with the covariance estimated from later-started
     /// copies of the columns, see `fit::transient::fit_noise_run`).
     pub statistic: f64,
     pub p_value: f64,
@@ -116,8 +123,10 @@ pub struct TransientReport {
 }
 
 impl TransientReport {
-    /// From the coefficients `c` at the loop start and their covariance, through the run's map.
+    /// From the coefficients `c` at the loop start and their covariance, through the run's map;
+    /// the conditions are named after the model's `readouts`.
     pub fn new(
+        readouts: &[&str],
         run: &str,
         fr: &FreeResponse,
         c: &DVector<f64>,
@@ -125,7 +134,9 @@ impl TransientReport {
         alpha: f64,
         null_dof: Option<f64>,
     ) -> Self {
-        let l = DMatrix::from_fn(4, 4, |i, k| fr.to_t0[i][k]);
+        let dim = fr.to_t0.len();
+        let l = DMatrix::from_fn(dim, dim, |i, k| fr.to_t0[i][k]);
+        let (names, units) = (ic_names(readouts), ic_units(readouts));
         let x = &l * c;
         let cx = &l * cov * l.transpose();
         let statistic = cov
@@ -140,10 +151,10 @@ impl TransientReport {
         };
         TransientReport {
             run: run.to_string(),
-            initial_conditions: (0..4)
+            initial_conditions: (0..dim)
                 .map(|i| InitialCondition {
-                    name: IC_NAMES[i],
-                    unit: IC_UNITS[i],
+                    name: names[i].clone(),
+                    unit: units[i].clone(),
                     value: x[i],
                     sigma: cx[(i, i)].max(0.0).sqrt(),
                 })
@@ -174,8 +185,8 @@ impl TransientReport {
 
 /// The noise run's free response at base parameters `p` fitted and removed (see the module
 /// docs): the fit under the cleaned run's own filter, with the cleaned run, and the report.
-pub fn clean_noise_run(
-    setup: &Setup,
+pub fn clean_noise_run<M: SpecModel<N> + DigitalPlant<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
     p: &[f64],
     noise: &[Vec<f64>],
     dt: f64,
@@ -188,6 +199,7 @@ pub fn clean_noise_run(
     let model = setup.whitener_from_model(p, n, dt, order)?;
     let t = fit_noise_run(&model, noise, &fr.cols, poly_degree)?;
     let report = TransientReport::new(
+        &setup.model.readout_names(),
         "noise run",
         &fr,
         &t.coefficients,
@@ -202,15 +214,20 @@ pub fn clean_noise_run(
 /// and one report per experiment. `lik` keeps the columns of the last fit (evaluated within
 /// [`REFRESH_SIGMA`] of its estimate). The base parameters are the model's first
 /// `setup.model.n_params()`.
-pub fn fit_with_transients<M: ClosedLoopModel<2>>(
-    setup: &Setup,
-    lik: &mut Likelihood<'_, M, 2>,
+pub fn fit_with_transients<B, M, const N: usize>(
+    setup: &SetupOf<B, N>,
+    lik: &mut Likelihood<'_, M, N>,
     data: &ExperimentData,
     guess: &[f64],
     cfg: &FitConfig,
     alpha: f64,
-) -> Result<(FitResult, Vec<TransientReport>)> {
+) -> Result<(FitResult, Vec<TransientReport>)>
+where
+    B: SpecModel<N> + DigitalPlant<N>,
+    M: ClosedLoopModel<N>,
+{
     let nb = setup.model.n_params();
+    let readouts = setup.model.readout_names();
     let mut p = guess.to_vec();
     let mut round = 1;
     loop {
@@ -233,7 +250,9 @@ pub fn fit_with_transients<M: ClosedLoopModel<2>>(
                 .iter()
                 .zip(&maps)
                 .zip(&data.names)
-                .map(|(((c, cov), fr), name)| TransientReport::new(name, fr, c, cov, alpha, None))
+                .map(|(((c, cov), fr), name)| {
+                    TransientReport::new(&readouts, name, fr, c, cov, alpha, None)
+                })
                 .collect();
             return Ok((res, reports));
         }

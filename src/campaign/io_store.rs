@@ -26,7 +26,7 @@ use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
 use serde::{Deserialize, Serialize};
 
-use super::runner::{check_x_only, resolve_scenarios, Jobs, Runner};
+use super::runner::{check_engine_model, resolve_scenarios, Jobs, Runner};
 use super::spec::{Campaign, DesignSource};
 use super::stats::{Aggregates, Layout};
 use super::tables::CellCoverage;
@@ -135,7 +135,7 @@ pub fn load(path: Option<&Path>) -> Result<Loaded, CampaignError> {
         designs.push(design);
     }
     let scenarios = resolve_scenarios(setup.spec(), &campaign)?;
-    check_x_only(&campaign, setup.spec().model)?;
+    check_engine_model(setup.spec(), &campaign)?;
     super::runner::check_whittle(&campaign, &scenarios)?;
     let mut parts: Vec<&[u8]> = vec![text.as_bytes(), model_text.as_bytes()];
     parts.extend(design_texts.iter().map(|t| t.as_bytes()));

@@ -169,8 +169,8 @@ pub struct DatasetFitArgs {
     /// initial positions and velocities are fitted nuisance columns of every experiment
     /// (profiled out of the likelihood in `posterior`), and the noise run's fitted free
     /// response is removed before its whitening filter is estimated. For runs that start away
-    /// from equilibrium (no burn-in); off by default, since a steady-state run only loses four
-    /// degrees of freedom per run to them.
+    /// from equilibrium (no burn-in); off by default, since a steady-state run only loses 2 per
+    /// readout (4 on lpf_x, 14 on lpf_xy) to them.
     #[arg(long)]
     pub transient: bool,
 }

@@ -54,8 +54,8 @@ pub struct SimulateArgs {
     #[arg(long, value_enum, default_value_t = Engine::FrequencyDomain)]
     pub engine: Engine,
     /// Initial conditions of every run (time-domain engine): readout positions [m] and rates
-    /// [m/s] at the first control sample, e.g. o1=2.4e-7,o12=3.6e-7,v1=-5e-10,v12=-4e-12;
-    /// keys left out are zero.
+    /// [m/s] at the first control sample, e.g. o1=2.4e-7,o12=3.6e-7,v1=-5e-10,v12=-4e-12 (a
+    /// readout's name, or its rate with `v` for the `o`: lpf_xy's oy1, vphi1, ...); others zero.
     #[arg(long, value_name = "o1=M,o12=M,v1=M/S,v12=M/S")]
     pub initial: Option<InitialConditions>,
     /// Duration of the noise-only run [s]; default: four experiment durations (the thesis

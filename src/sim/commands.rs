@@ -64,6 +64,16 @@ impl SimulateModel<7> for LpfXy {
             setup.plain_simulator_of(&model, noise_design, truth, &p)?,
         )))
     }
+
+    /// The 7-DOF digital loop (`sim::time_domain`).
+    fn time_domain_runs(
+        job: &super::simulate_job::SimulateJob,
+        setup: &SetupXy,
+        truth: &[f64],
+        designs: (&crate::signal::Design, &crate::signal::Design),
+    ) -> Result<Option<super::simulate_job::Runs>, SimulateError> {
+        super::simulate_job::digital_loop_runs(job, setup, truth, designs).map(Some)
+    }
 }
 
 /// The recorded command columns of the y/phi loops: `u` and the readout's name without its

@@ -9,7 +9,7 @@ use crate::setup::{Error, Setup, SetupOf, SpecModel};
 use crate::signal::Design;
 use crate::sim::decimated::DecimatedSimulator;
 use crate::sim::time_domain::{
-    InitialConditions, LoopConfig, PlantEffects, TimeDomainError, TimeDomainSimulator,
+    DigitalPlant, InitialConditions, LoopConfig, PlantEffects, TimeDomainError, TimeDomainSimulator,
 };
 use crate::sim::Simulator;
 
@@ -105,17 +105,18 @@ impl Setup {
     }
 }
 
-impl Setup {
+impl<M: SpecModel<N> + DigitalPlant<N>, const N: usize> SetupOf<M, N> {
     /// The time-domain simulator of the digital loop (`sim::time_domain`): controllers at
     /// simulate_hz as `[control_loop]` says, telemetry decimated to analyse_hz by the
-    /// anti-alias FIR, optional initial conditions. Glitches are refused (not simulated).
+    /// anti-alias FIR, optional initial conditions (keys checked against the model's readouts).
+    /// Glitches are refused (not simulated).
     pub fn time_domain_simulator(
         &self,
         design: &Design,
         truth: &[f64],
         glitch: Option<&GlitchSpec>,
-        initial: Option<InitialConditions>,
-    ) -> Result<TimeDomainSimulator, Error> {
+        initial: Option<&InitialConditions>,
+    ) -> Result<TimeDomainSimulator<N>, Error> {
         self.time_domain_simulator_with_effects(
             design,
             truth,
@@ -132,12 +133,16 @@ impl Setup {
         design: &Design,
         truth: &[f64],
         glitch: Option<&GlitchSpec>,
-        initial: Option<InitialConditions>,
-        effects: &PlantEffects,
-    ) -> Result<TimeDomainSimulator, Error> {
+        initial: Option<&InitialConditions>,
+        effects: &PlantEffects<N>,
+    ) -> Result<TimeDomainSimulator<N>, Error> {
         if glitch.is_some() {
             return Err(TimeDomainError::Glitches.into());
         }
+        let initial = initial
+            .map(|ic| ic.resolve(self.model.readout_names()))
+            .transpose()
+            .map_err(TimeDomainError::Initial)?;
         self.check_simulation_size(design, "duration_s")?;
         Ok(TimeDomainSimulator::new(
             &self.model,

@@ -17,7 +17,7 @@ use crate::setup::{AnySetup, Error as SetupError, Setup, SetupOf, SpecModel};
 use crate::signal::Design;
 use crate::sim::experiment::Simulator;
 use crate::sim::rng::stream;
-use crate::sim::time_domain::{InitialConditions, PlantEffects, TimeDomainError};
+use crate::sim::time_domain::{DigitalPlant, InitialConditions, PlantEffects, TimeDomainError};
 use crate::sim::{Engine, Rate};
 
 /// The default noise-only run lasts this many experiment durations (the thesis characterises
@@ -121,7 +121,7 @@ impl Simulated {
 }
 
 /// The experiments and the noise-only run's readouts.
-type Runs = (ExperimentData, Vec<Vec<f64>>);
+pub type Runs = (ExperimentData, Vec<Vec<f64>>);
 
 impl SimulateJob {
     /// What the deprecated `diagnose --simulate-into` draws: `scenario`'s truth with `effects`
@@ -232,7 +232,7 @@ impl SimulateJob {
         } else {
             crate::data::Auxiliary::default()
         };
-        let mut meta = self.meta(&setup.spec, &sc, rate);
+        let mut meta = self.meta(&setup.spec, &sc, rate, &setup.model.readout_names());
         if !effects.is_empty() {
             meta.insert("effects".into(), toml::Value::Table(effects.meta));
         }
@@ -254,7 +254,7 @@ impl SimulateJob {
         rate: Rate,
     ) -> Result<Runs, SimulateError> {
         let glitch = sc.glitch.as_ref();
-        let (truth, seed, initial) = (&sc.truth, self.seed, self.initial);
+        let (truth, seed, initial) = (&sc.truth, self.seed, self.initial.as_ref());
         Ok(match (self.engine, rate) {
             (Engine::TimeDomain, _) if !effects.is_empty() => {
                 self.time_domain_effects(setup, (design, noise_design), sc, effects)?
@@ -319,7 +319,7 @@ impl SimulateJob {
             return Err(refused("glitch_"));
         }
         let fx = PlantEffects::from_library(&setup.model, &effects.effects)?;
-        let (initial, seed) = (self.initial, self.seed);
+        let (initial, seed) = (self.initial.as_ref(), self.seed);
         let sim = setup.time_domain_simulator_with_effects(design, truth, glitch, initial, &fx)?;
         let nsim =
             setup.time_domain_simulator_with_effects(noise_design, truth, glitch, initial, &fx)?;
@@ -334,7 +334,14 @@ impl SimulateJob {
 
     /// `[meta]` of a simulated dataset: generator, model, scenario (and its glitch population),
     /// design, seed, rate, engine, initial conditions and the truth.
-    pub(super) fn meta(&self, setup: &ModelSpec, sc: &Scenario, rate: Rate) -> toml::Table {
+    /// `readouts` are the model's, whose positions and rates the initial conditions name.
+    pub(super) fn meta(
+        &self,
+        setup: &ModelSpec,
+        sc: &Scenario,
+        rate: Rate,
+        readouts: &[&str],
+    ) -> toml::Table {
         let mut meta = toml::Table::new();
         meta.insert(
             "generator".into(),
@@ -365,15 +372,10 @@ impl SimulateJob {
                 toml::Value::Float(cl.computation_delay_s),
             );
         }
-        if let Some(ic) = self.initial {
+        if let Some(ic) = &self.initial {
             let mut t = toml::Table::new();
-            for (k, v) in [
-                ("o1", ic.o1),
-                ("o12", ic.o12),
-                ("v1", ic.v1),
-                ("v12", ic.v12),
-            ] {
-                t.insert(k.into(), toml::Value::Float(v));
+            for (k, v) in ic.table(readouts) {
+                t.insert(k, toml::Value::Float(v));
             }
             meta.insert("initial".into(), toml::Value::Table(t));
         }
@@ -437,6 +439,31 @@ pub trait SimulateModel<const N: usize>: SpecModel<N> {
     ) -> Result<Option<(Simulator<N>, Simulator<N>)>, SimulateError> {
         Ok(None)
     }
+
+    /// The runs of every readout by the time-domain engine (`sim::time_domain`, the model's
+    /// digital loop, decimated telemetry) from `job`'s seed, with its initial conditions;
+    /// `None`: the model has no digital loop ([`crate::sim::time_domain::DigitalPlant`]).
+    fn time_domain_runs(
+        _job: &SimulateJob,
+        _setup: &SetupOf<Self, N>,
+        _truth: &[f64],
+        _designs: (&Design, &Design),
+    ) -> Result<Option<Runs>, SimulateError> {
+        Ok(None)
+    }
+}
+
+/// [`SimulateModel::time_domain_runs`] of a model with a digital loop.
+pub fn digital_loop_runs<M: SpecModel<N> + DigitalPlant<N>, const N: usize>(
+    job: &SimulateJob,
+    setup: &SetupOf<M, N>,
+    truth: &[f64],
+    (design, noise_design): (&Design, &Design),
+) -> Result<Runs, SimulateError> {
+    let initial = job.initial.as_ref();
+    let sim = setup.time_domain_simulator(design, truth, None, initial)?;
+    let nsim = setup.time_domain_simulator(noise_design, truth, None, initial)?;
+    Ok(draw_all(|r| sim.draw(r), |r| nsim.noise_run(r), job.seed))
 }
 
 impl SimulateModel<2> for LpfX {
@@ -527,6 +554,55 @@ impl SimulateJob {
         crate::with_setup!(setup, s => SimulateModel::simulate(self, &**s))
     }
 
+    /// Draws the dataset of any model with a digital loop by the time-domain engine
+    /// ([`SimulateModel::time_domain_runs`]), decimated telemetry, with the initial conditions
+    /// of `--initial`: the runs' channels as the runs, the model's other readouts and guidance
+    /// as auxiliary columns, as [`Self::run_plain`] writes them. The reference loop only: effects
+    /// and `--commands` are refused in one line.
+    fn run_digital<M: SimulateModel<N>, const N: usize>(
+        &self,
+        setup: &SetupOf<M, N>,
+    ) -> Result<Simulated, SimulateError> {
+        let refuse = |what: &str| {
+            Err(SimulateError::Effect(format!(
+                "{what}: the time-domain engine of the {} model ({}) simulates its reference \
+                 loop only; use the frequency-domain engine",
+                M::KIND.name(),
+                setup.spec.origin
+            )))
+        };
+        if self.resolved_rate() == Rate::Analysis {
+            return Err(SimulateError::AnalysisRateInTimeDomain);
+        }
+        if !self.effects.is_empty() {
+            return refuse("--effect");
+        }
+        if self.commands {
+            return refuse("--commands");
+        }
+        let (sc, design, noise_design) = self.plan(setup)?;
+        if sc.glitch.is_some() {
+            return Err(TimeDomainError::Glitches.into());
+        }
+        let designs = (&design, &noise_design);
+        let Some((all, noise)) = M::time_domain_runs(self, setup, &sc.truth, designs)? else {
+            return Err(SimulateError::Effect(format!(
+                "--engine time-domain: the {} model ({}) has no digital loop \
+                 (sim::time_domain::DigitalPlant)",
+                M::KIND.name(),
+                setup.spec.origin
+            )));
+        };
+        let (data, aux) = split_runs(&setup.model, readout_floors(setup), all, &noise);
+        let readouts = setup.model.readout_names();
+        Ok(Simulated {
+            data,
+            noise: noise[..RUN_CHANNELS].to_vec(),
+            aux,
+            meta: self.meta(&setup.spec, &sc, Rate::Decimated, &readouts),
+        })
+    }
+
     /// Draws the dataset of any model by the frequency-domain engine at the analysis rate
     /// (`SetupOf::plain_simulator`): the runs' channels as the runs, the model's other readouts
     /// and guidance as auxiliary columns (`[[auxiliary]]` of dataset.toml), experiments and
@@ -546,13 +622,13 @@ impl SimulateJob {
             )))
         };
         if self.engine == Engine::TimeDomain {
-            return refuse("--engine time-domain");
+            return self.run_digital(setup);
         }
         if self.rate == Some(Rate::Decimated) {
             return refuse("--rate decimated");
         }
         if self.initial.is_some() {
-            return refuse("--initial");
+            return Err(SimulateError::InitialNeedsTimeDomain);
         }
         let (sc, design, noise_design) = self.plan(setup)?;
         let set = EffectSet::parse(&self.effects, &setup.parameter_names())
@@ -596,7 +672,8 @@ impl SimulateJob {
             }
         }
         let noise = noise[..RUN_CHANNELS].to_vec();
-        let mut meta = self.meta(&setup.spec, &sc, Rate::Analysis);
+        let readouts = setup.model.readout_names();
+        let mut meta = self.meta(&setup.spec, &sc, Rate::Analysis, &readouts);
         if !set.is_empty() {
             meta.insert("effects".into(), toml::Value::Table(set.meta));
         }

@@ -1,19 +1,23 @@
-//! Time-domain simulation of the digital (sampled-data) LPF-x loop along x, as measured data
-//! are made (thesis sec. 3.3 for the physics, sec. 4.4.5 for the ESA simulator's digital
-//! loop, sec. 4.3 for the 10 Hz -> 1 Hz telemetry decimation, sec. 4.7 for initial conditions).
+//! Time-domain simulation of the digital (sampled-data) closed loop of any model with a real
+//! plant ([`DigitalPlant`]: the x model's 2x2 loop, the xy model's 7-DOF loop), as measured data
+//! are made (thesis sec. 3.3 for the physics, sec. 4.4.5 for the ESA simulator's digital loop,
+//! sec. 4.3 for the 10 Hz -> 1 Hz telemetry decimation, sec. 4.7 for initial conditions).
 //!
-//! Plant (the operators of `reference/README.md` in the time domain): coordinates
-//! `q = (x1, x12)`, `q'' + K q = G f - A u`, with `K` the stiffness of `D = s^2 + K`,
-//! `A u = (a_df u_df + mt a_sus u_sus, a_sus u_sus)` the actuated commands and `G f` the force
-//! noise rows. Readouts `o = S q + o_n`, `S = [[1, 0], [s21, 1]]`.
+//! Plant (the operators of `reference/README.md` in the time domain, the same matrices the
+//! model's frequency-domain operators are made of): coordinates `q` (one per readout),
+//! `q'' + K q = G f - A u`, with `K` the stiffness of `D = s^2 + K`, `A` the actuation of the
+//! bare commands (column `j` of `A C` is `a_j law_j`: for x, `A u = (a_df u_df + mt a_sus u_sus,
+//! a_sus u_sus)`; for xy, the gains and the actuation cross-talk of every loop) and `G f` the
+//! force noise rows. Readouts `o = S q + o_n` (for x, `S = [[1, 0], [s21, 1]]`; for xy, the
+//! sensing cross-talk too). The dynamical cross-talk is in `K`.
 //!
 //! Digital loop at the control interval `h` (`sampling.simulate_hz`), step `k`:
 //! 1. sample the readouts `o_k = S q(t_k) + o_n,k` (readout noise is seen by the controllers
 //!    and by the telemetry);
 //! 2. errors `e_k = o_k - oi(t_k - dt)`, the guidance evaluated analytically with the
-//!    guidance delays `dt1`, `dt12`;
-//! 3. commands `u_df = C_df(z) e1`, `u_sus = C_sus(z) e12`, difference equations of the
-//!    discretised laws ([`crate::model::discrete`]);
+//!    guidance delays (`dt1`, `dt12` on the x inputs; none on the others);
+//! 3. commands `u_j = C_j(z) e_j`, one law per column of `A C` (x: `C_df` on e1, `C_sus` on
+//!    e12), difference equations of the discretised laws ([`crate::model::discrete`]);
 //! 4. the commands are held (ZOH) from `t_k + tau` to `t_(k+1) + tau` (`tau` the computation
 //!    delay), the force noise `f_k` from `t_k` to `t_(k+1)`;
 //! 5. the plant moves exactly: `x_(k+1) = Phi x_k + Gamma f_k + Gamma_now w_k + Gamma_prev
@@ -24,12 +28,12 @@
 //! Noise: each entry point's coloured series is generated at the control rate by the
 //! frequency-domain generator with the sources' one-sided PSDs (force rows `G S_f G^T`,
 //! readout weights `w S_ro w^T`), so the held force sequence and the sampled readout noise
-//! have exactly the model's PSD on `(0, 1/(2h))`. Telemetry (guidance `oi(t_k)` and readouts)
-//! is decimated to the analysis rate by the model's anti-alias FIR on a grid with margins, so
-//! every kept sample is fully supported ([`DecimationGrid`]).
+//! have exactly the model's PSD on `(0, 1/(2h))` ([`InputNoise`]). Telemetry (guidance
+//! `oi(t_k)` and readouts) is decimated to the analysis rate by the model's anti-alias FIR on
+//! a grid with margins, so every kept sample is fully supported ([`DecimationGrid`]).
 //!
-//! Effects ([`PlantEffects`]): the library's operator effects are changes of this plant, so
-//! they are simulated exactly like the reference loop:
+//! Effects ([`PlantEffects`], the x model's): the library's operator effects are changes of
+//! this plant, so they are simulated exactly like the reference loop:
 //! - gravity gradient: `K += dgamma [[0, 1], [0, -2]]`; damping of TM k: a velocity term
 //!   `gamma M_k q'` in the equation of motion (thesis sec. 4.1.1);
 //! - sensing gains and sensing cross-talk: `S += dS` in the sampled readouts (thesis sec. 3.5);
@@ -50,21 +54,19 @@ use num_complex::Complex64;
 use rand::Rng;
 
 use crate::data::ExperimentData;
-use crate::model::closed_loop::{CMat, NoiseEntry};
+use crate::model::closed_loop::{CMat, ClosedLoopModel, NoiseEntry};
 use crate::model::discrete::{held_input, Df2t, DiscreteTf, Discretisation};
 use crate::model::effects::{stiffness_map, Category, Effect};
 use crate::model::lpf_x::{A_DF, A_SUS, DT1, DT12, S21};
-use crate::model::{LpfX, ModelSpec};
+use crate::model::zpk::Zpk;
+use crate::model::{LpfX, LpfXy, ModelSpec};
 use crate::noise::{shapes, ColoredNoise, NoiseError, NoiseModel};
 use crate::signal::Design;
 use crate::sim::decimated::DecimationGrid;
 
-/// Plant states: positions x1, x12 and velocities v1, v12.
-const NX: usize = 4;
-/// Plant states with the actuator lags: then the lagged drag-free and suspension commands.
-const NZ: usize = NX + 2;
-/// Entry points of the coloured input noise: force rows x1, x12, then readouts o1, o12.
-const NOISE_CHANNELS: usize = 4;
+/// Entry points of the x loop's coloured input noise, drawn jointly: force rows x1, x12, then
+/// readouts o1, o12.
+const X_NOISE_CHANNELS: usize = 4;
 /// Iterations allowed to the Schur decomposition of the loop's transition matrix, per state
 /// (as for the polynomial roots of the continuous model, see `model::poly`).
 const SCHUR_ITERATIONS_PER_STATE: usize = 100;
@@ -87,26 +89,108 @@ pub enum TimeDomainError {
     Glitches,
     #[error("effect '{name}' cannot be simulated by the time-domain engine: {reason}; use the frequency-domain engine")]
     Effect { name: String, reason: String },
+    #[error("--initial: {0}")]
+    Initial(String),
+}
+
+/// What the digital loop needs of a model: its continuous plant `q'' + K q = G f - A u` as
+/// real matrices (the same `K`, `S`, `A C` and `T` its frequency-domain operators are made
+/// of), one control law per column of `A C`, acting on that column's readout error.
+pub trait DigitalPlant<const N: usize>: ClosedLoopModel<N> {
+    /// The stiffness `K` of `D = s^2 + K` at `p`, rows and columns in readout order.
+    fn plant_stiffness(&self, p: &[f64]) -> [[f64; N]; N];
+    /// The sensing matrix `S` (`o = S q`) at `p`.
+    fn plant_sensing(&self, p: &[f64]) -> [[f64; N]; N];
+    /// The actuation `A`: column `j` is the force per unit mass of a unit command of law `j`
+    /// (`A C = A diag(law_j)`, gains and actuation cross-talk included).
+    fn plant_actuation(&self, p: &[f64]) -> [[f64; N]; N];
+    /// The continuous control law of column `j` (discretised by the loop).
+    fn column_law(&self, j: usize) -> &Zpk;
+    /// The delay of each guidance input `oi_j` [s] (`T = diag(exp(-s dt_j))`).
+    fn guidance_delays(&self, p: &[f64]) -> [f64; N];
+}
+
+impl DigitalPlant<2> for LpfX {
+    fn plant_stiffness(&self, p: &[f64]) -> [[f64; 2]; 2] {
+        self.stiffness(p)
+    }
+
+    fn plant_sensing(&self, p: &[f64]) -> [[f64; 2]; 2] {
+        [[1.0, 0.0], [p[S21], 1.0]]
+    }
+
+    fn plant_actuation(&self, p: &[f64]) -> [[f64; 2]; 2] {
+        [[p[A_DF], self.mt * p[A_SUS]], [0.0, p[A_SUS]]]
+    }
+
+    fn column_law(&self, j: usize) -> &Zpk {
+        [&self.c_df, &self.c_sus][j]
+    }
+
+    fn guidance_delays(&self, p: &[f64]) -> [f64; 2] {
+        [p[DT1], p[DT12]]
+    }
+}
+
+impl DigitalPlant<7> for LpfXy {
+    fn plant_stiffness(&self, p: &[f64]) -> [[f64; 7]; 7] {
+        let k = self.stiffness(p);
+        std::array::from_fn(|i| std::array::from_fn(|j| k[(i, j)]))
+    }
+
+    fn plant_sensing(&self, p: &[f64]) -> [[f64; 7]; 7] {
+        let s = self.sensing(p);
+        std::array::from_fn(|i| std::array::from_fn(|j| s[(i, j)]))
+    }
+
+    fn plant_actuation(&self, p: &[f64]) -> [[f64; 7]; 7] {
+        let cols: [[f64; 7]; 7] = std::array::from_fn(|j| self.actuation_column(p, j));
+        std::array::from_fn(|i| std::array::from_fn(|j| cols[j][i]))
+    }
+
+    fn column_law(&self, j: usize) -> &Zpk {
+        self.law_zpk(j)
+    }
+
+    /// The x guidance delays; the y and phi guidance is not delayed (`T` of the operators).
+    fn guidance_delays(&self, p: &[f64]) -> [f64; 7] {
+        let mut d = [0.0; 7];
+        d[0] = p[DT1];
+        d[1] = p[DT12];
+        d
+    }
 }
 
 /// The library's operator effects as changes of the time-domain plant (module doc, "Effects").
 /// All zero: the reference loop.
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
-pub struct PlantEffects {
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PlantEffects<const N: usize = 2> {
     /// Added to the stiffness `K` [s^-2] (gravity gradient).
-    pub dk: [[f64; 2]; 2],
+    pub dk: [[f64; N]; N],
     /// Velocity-proportional force per unit mass [s^-1]: `q'' += -damping q'` (damping).
-    pub damping: [[f64; 2]; 2],
+    pub damping: [[f64; N]; N],
     /// Added to the sensing matrix `S` (sensing gains, sensing cross-talk).
-    pub ds: [[f64; 2]; 2],
-    /// Added to the actuation of the bare commands `(u_df, u_sus)`, rows x1, x12 (actuation
-    /// cross-talk).
-    pub dac: [[f64; 2]; 2],
-    /// First-order lag time constants of the drag-free and suspension actuation [s]; 0: none.
-    pub lag: [f64; 2],
+    pub ds: [[f64; N]; N],
+    /// Added to the actuation of the bare commands, rows the coordinates, columns the laws
+    /// (actuation cross-talk).
+    pub dac: [[f64; N]; N],
+    /// First-order lag time constants of each column's actuation [s]; 0: none.
+    pub lag: [f64; N],
 }
 
-impl PlantEffects {
+impl<const N: usize> Default for PlantEffects<N> {
+    fn default() -> Self {
+        PlantEffects {
+            dk: [[0.0; N]; N],
+            damping: [[0.0; N]; N],
+            ds: [[0.0; N]; N],
+            dac: [[0.0; N]; N],
+            lag: [0.0; N],
+        }
+    }
+}
+
+impl PlantEffects<2> {
     /// The plant changes of library effects at their values (one value per effect parameter).
     /// Every effect of the library either maps here or is refused naming it: a loss angle is a
     /// frequency-independent imaginary stiffness, which no causal time-domain plant has.
@@ -181,27 +265,99 @@ impl LoopConfig {
     }
 }
 
-/// Initial state of the plant in sensed coordinates: readout positions [m] and their rates
-/// [m/s] (thesis sec. 4.7), at the first control sample; controller states start at zero.
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
+/// The plant's state in sensed coordinates: readout positions (`o = S q`, metres or radians)
+/// and their rates, one per readout; controllers and held commands are not part of it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SensedState<const N: usize> {
+    pub position: [f64; N],
+    pub rate: [f64; N],
+}
+
+impl<const N: usize> Default for SensedState<N> {
+    fn default() -> Self {
+        SensedState {
+            position: [0.0; N],
+            rate: [0.0; N],
+        }
+    }
+}
+
+/// Initial state of the plant in sensed coordinates (thesis sec. 4.7), at the first control
+/// sample, as given on the command line: `KEY=VALUE` pairs where a key is a readout's name
+/// (its position: `o1`, `oy1`, `ophi1`, ...) or that name with its leading `o` replaced by `v`
+/// (its rate: `v1`, `vy1`, `vphi1`, ...); keys left out are zero, controller states start at
+/// zero. The keys are checked against a model's readouts by [`Self::resolve`].
+#[derive(Debug, Clone, Default, PartialEq)]
 pub struct InitialConditions {
-    pub o1: f64,
-    pub o12: f64,
-    pub v1: f64,
-    pub v12: f64,
+    /// The pairs in the order given, each key once.
+    pub entries: Vec<(String, f64)>,
+}
+
+impl InitialConditions {
+    /// The x loop's conditions: readout positions `o1`, `o12` [m] and rates `v1`, `v12` [m/s].
+    pub fn x(o1: f64, o12: f64, v1: f64, v12: f64) -> Self {
+        let entries = [("o1", o1), ("o12", o12), ("v1", v1), ("v12", v12)];
+        InitialConditions {
+            entries: entries.iter().map(|(k, v)| (k.to_string(), *v)).collect(),
+        }
+    }
+
+    /// The value of `key`, zero if it was left out.
+    pub fn get(&self, key: &str) -> f64 {
+        self.entries
+            .iter()
+            .find(|(k, _)| k == key)
+            .map_or(0.0, |(_, v)| *v)
+    }
+
+    /// Every key a model with readouts `readouts` takes: positions, then rates.
+    pub fn keys(readouts: &[&str]) -> Vec<String> {
+        let rate = |r: &&str| format!("v{}", r.strip_prefix('o').unwrap_or(r));
+        let mut keys: Vec<String> = readouts.iter().map(|r| r.to_string()).collect();
+        keys.extend(readouts.iter().map(rate));
+        keys
+    }
+
+    /// The state of a model with readouts `readouts`; Err names a key it does not take.
+    pub fn resolve<const N: usize>(&self, readouts: [&str; N]) -> Result<SensedState<N>, String> {
+        let keys = Self::keys(&readouts);
+        let mut st = SensedState::<N>::default();
+        for (k, v) in &self.entries {
+            let i = keys
+                .iter()
+                .position(|x| x == k)
+                .ok_or_else(|| format!("unknown key '{k}' (expected {})", keys.join(", ")))?;
+            if i < N {
+                st.position[i] = *v;
+            } else {
+                st.rate[i - N] = *v;
+            }
+        }
+        Ok(st)
+    }
+
+    /// Every key of `readouts` with its value (zero if left out), for a dataset's `[meta]`.
+    pub fn table(&self, readouts: &[&str]) -> Vec<(String, f64)> {
+        Self::keys(readouts)
+            .into_iter()
+            .map(|k| {
+                let v = self.get(&k);
+                (k, v)
+            })
+            .collect()
+    }
 }
 
 impl std::str::FromStr for InitialConditions {
     type Err = String;
 
-    /// `o1=M,o12=M,v1=M/S,v12=M/S`, any subset (the others are zero), each key at most once.
+    /// `KEY=VALUE[,KEY=VALUE...]` (e.g. `o1=M,o12=M,v1=M/S,v12=M/S`), each key at most once.
     fn from_str(text: &str) -> Result<Self, String> {
         let mut ic = InitialConditions::default();
-        let mut seen: Vec<&str> = Vec::new();
         for item in text.split(',').map(str::trim).filter(|s| !s.is_empty()) {
-            let (key, value) = item
-                .split_once('=')
-                .ok_or_else(|| format!("'{item}' is not KEY=VALUE (keys o1, o12, v1, v12)"))?;
+            let (key, value) = item.split_once('=').ok_or_else(|| {
+                format!("'{item}' is not KEY=VALUE (keys: readout names such as o1, o12 and their rates v1, v12)")
+            })?;
             let key = key.trim();
             let v: f64 = value
                 .trim()
@@ -209,92 +365,75 @@ impl std::str::FromStr for InitialConditions {
                 .ok()
                 .filter(|v: &f64| v.is_finite())
                 .ok_or_else(|| format!("{key}: '{}' is not a finite number", value.trim()))?;
-            let slot = match key {
-                "o1" => &mut ic.o1,
-                "o12" => &mut ic.o12,
-                "v1" => &mut ic.v1,
-                "v12" => &mut ic.v12,
-                _ => return Err(format!("unknown key '{key}' (expected o1, o12, v1, v12)")),
-            };
-            if seen.contains(&key) {
+            if !(key.starts_with('o') || key.starts_with('v')) || key.len() < 2 {
+                return Err(format!(
+                    "unknown key '{key}' (a readout's name such as o1, o12, or its rate v1, v12)"
+                ));
+            }
+            if ic.entries.iter().any(|(k, _)| k == key) {
                 return Err(format!("{key} is given twice"));
             }
-            seen.push(key);
-            *slot = v;
+            ic.entries.push((key.to_string(), v));
         }
-        if seen.is_empty() {
+        if ic.entries.is_empty() {
             return Err("empty (expected o1=M,o12=M,v1=M/S,v12=M/S)".into());
         }
         Ok(ic)
     }
 }
 
-type Mat<const R: usize, const C: usize> = [[f64; C]; R];
-
-fn to_array<const R: usize, const C: usize>(m: &DMatrix<f64>) -> Mat<R, C> {
-    std::array::from_fn(|i| {
-        std::array::from_fn(|j| {
-            if i < m.nrows() && j < m.ncols() {
-                m[(i, j)]
-            } else {
-                0.0
-            }
-        })
-    })
-}
-
 /// The loop's continuous plant at one parameter set, effects included: `z' = A z + B_f f + B_u w`
-/// with `w = -(u_df, u_sus)` the bare commands (see the module doc).
-struct Plant {
+/// with `w = -u` the bare commands (see the module doc). State layout: positions `q` (N),
+/// velocities (N), one lag state per column of `A` (N, zero rows unless lagged).
+struct Plant<const N: usize> {
     a: DMatrix<f64>,
     b_force: DMatrix<f64>,
     b_cmd: DMatrix<f64>,
     /// The sensing matrix `S`.
-    s: [[f64; 2]; 2],
-    /// Plant states that exist: the four of `q`, `q'` and the active lag states.
+    s: [[f64; N]; N],
+    /// Plant states that exist: the `2 N` of `q`, `q'` and the active lag states.
     active: Vec<usize>,
 }
 
-impl Plant {
-    fn new(model: &LpfX, p: &[f64], fx: &PlantEffects) -> Plant {
-        let k = model.stiffness(p);
-        let mut a = DMatrix::<f64>::zeros(NZ, NZ);
-        a[(0, 2)] = 1.0;
-        a[(1, 3)] = 1.0;
-        for i in 0..2 {
-            for j in 0..2 {
-                a[(2 + i, j)] = -(k[i][j] + fx.dk[i][j]);
-                a[(2 + i, 2 + j)] = -fx.damping[i][j];
+impl<const N: usize> Plant<N> {
+    fn new<M: DigitalPlant<N>>(model: &M, p: &[f64], fx: &PlantEffects<N>) -> Plant<N> {
+        let (nx, nz) = (2 * N, 3 * N);
+        let k = model.plant_stiffness(p);
+        let mut a = DMatrix::<f64>::zeros(nz, nz);
+        for i in 0..N {
+            a[(i, N + i)] = 1.0;
+            for j in 0..N {
+                a[(N + i, j)] = -(k[i][j] + fx.dk[i][j]);
+                a[(N + i, N + j)] = -fx.damping[i][j];
             }
         }
-        let mut b_force = DMatrix::<f64>::zeros(NZ, 2);
-        b_force[(2, 0)] = 1.0;
-        b_force[(3, 1)] = 1.0;
-        // Actuation of the bare commands (u_df, u_sus): the gains' columns of `A C`.
-        let gains = [[p[A_DF], model.mt * p[A_SUS]], [0.0, p[A_SUS]]];
-        let mut b_cmd = DMatrix::<f64>::zeros(NZ, 2);
-        let mut active = vec![0, 1, 2, 3];
-        for j in 0..2 {
+        let mut b_force = DMatrix::<f64>::zeros(nz, N);
+        for i in 0..N {
+            b_force[(N + i, i)] = 1.0;
+        }
+        // Actuation of the bare commands: the gains' columns of `A C`.
+        let gains = model.plant_actuation(p);
+        let mut b_cmd = DMatrix::<f64>::zeros(nz, N);
+        let mut active: Vec<usize> = (0..nx).collect();
+        for j in 0..N {
             let tau = fx.lag[j];
-            for i in 0..2 {
-                b_cmd[(2 + i, j)] = fx.dac[i][j];
+            for i in 0..N {
+                b_cmd[(N + i, j)] = fx.dac[i][j];
                 if tau > 0.0 {
                     // The lag state y_j (`tau y' = w_j - y`) carries the actuator's column.
-                    a[(2 + i, NX + j)] = gains[i][j];
+                    a[(N + i, nx + j)] = gains[i][j];
                 } else {
-                    b_cmd[(2 + i, j)] += gains[i][j];
+                    b_cmd[(N + i, j)] += gains[i][j];
                 }
             }
             if tau > 0.0 {
-                a[(NX + j, NX + j)] = -1.0 / tau;
-                b_cmd[(NX + j, j)] = 1.0 / tau;
-                active.push(NX + j);
+                a[(nx + j, nx + j)] = -1.0 / tau;
+                b_cmd[(nx + j, j)] = 1.0 / tau;
+                active.push(nx + j);
             }
         }
-        let s = [
-            [1.0 + fx.ds[0][0], fx.ds[0][1]],
-            [p[S21] + fx.ds[1][0], 1.0 + fx.ds[1][1]],
-        ];
+        let s0 = model.plant_sensing(p);
+        let s = std::array::from_fn(|i| std::array::from_fn(|j| s0[i][j] + fx.ds[i][j]));
         Plant {
             a,
             b_force,
@@ -305,35 +444,52 @@ impl Plant {
     }
 }
 
-/// The digital LPF-x loop at one parameter set, with its state (see the module doc).
+/// A dense matrix as row-major `f64`s.
+fn row_major(m: &DMatrix<f64>) -> Vec<f64> {
+    (0..m.nrows())
+        .flat_map(|i| (0..m.ncols()).map(move |j| m[(i, j)]))
+        .collect()
+}
+
+/// The digital loop of an `N`-readout model at one parameter set, with its state (see the
+/// module doc).
 #[derive(Debug, Clone)]
-pub struct DigitalLoop {
+pub struct DigitalLoop<const N: usize = 2> {
     pub dt: f64,
-    phi: Mat<NZ, NZ>,
-    gam_force: Mat<NZ, 2>,
-    gam_now: Mat<NZ, 2>,
-    gam_prev: Mat<NZ, 2>,
+    /// Row-major `3N x 3N` one-step transition of the plant, and its `3N x N` input matrices.
+    phi: Vec<f64>,
+    gam_force: Vec<f64>,
+    gam_now: Vec<f64>,
+    gam_prev: Vec<f64>,
     delayed: bool,
     /// Whether an actuator lag is simulated (the step then carries the lag states).
     lagged: bool,
     /// Indices of the plant states that exist (positions, velocities, active lags).
     active: Vec<usize>,
-    c_df: Df2t,
-    c_sus: Df2t,
-    s: [[f64; 2]; 2],
-    x: [f64; NZ],
-    w_prev: [f64; 2],
+    /// One discretised law per column of `A C`, acting on that column's readout error.
+    laws: Vec<Df2t>,
+    s: [[f64; N]; N],
+    /// The plant state (`3N`: positions, velocities, lags) and the step's scratch.
+    x: Vec<f64>,
+    next: Vec<f64>,
+    w_prev: [f64; N],
 }
 
-impl DigitalLoop {
+impl<const N: usize> DigitalLoop<N> {
     /// The loop of `model` at parameters `p`, at rest.
-    pub fn new(model: &LpfX, p: &[f64], cfg: &LoopConfig) -> Self {
+    pub fn new<M: DigitalPlant<N>>(model: &M, p: &[f64], cfg: &LoopConfig) -> Self {
         Self::with_effects(model, p, cfg, &PlantEffects::default())
     }
 
     /// The loop of `model` at parameters `p` with the operator effects `fx`, at rest.
-    pub fn with_effects(model: &LpfX, p: &[f64], cfg: &LoopConfig, fx: &PlantEffects) -> Self {
+    pub fn with_effects<M: DigitalPlant<N>>(
+        model: &M,
+        p: &[f64],
+        cfg: &LoopConfig,
+        fx: &PlantEffects<N>,
+    ) -> Self {
         let plant = Plant::new(model, p, fx);
+        let nz = 3 * N;
         let (a, b) = (&plant.a, &plant.b_cmd);
         let (h, tau) = (cfg.dt, cfg.computation_delay_s);
         let (phi, gam_force) = held_input(a, &plant.b_force, h);
@@ -342,99 +498,154 @@ impl DigitalLoop {
             let (_, gam_tau) = held_input(a, b, tau);
             (gam_rest, phi_rest * gam_tau)
         } else {
-            (held_input(a, b, h).1, DMatrix::zeros(NZ, 2))
+            (held_input(a, b, h).1, DMatrix::zeros(nz, N))
         };
         let law = |c| Df2t::new(&DiscreteTf::from_zpk(c, h, cfg.discretisation));
         DigitalLoop {
             dt: h,
-            phi: to_array(&phi),
-            gam_force: to_array(&gam_force),
-            gam_now: to_array(&gam_now),
-            gam_prev: to_array(&gam_prev),
+            phi: row_major(&phi),
+            gam_force: row_major(&gam_force),
+            gam_now: row_major(&gam_now),
+            gam_prev: row_major(&gam_prev),
             delayed: tau > 0.0,
-            lagged: plant.active.len() > NX,
+            lagged: plant.active.len() > 2 * N,
             active: plant.active,
-            c_df: law(&model.c_df),
-            c_sus: law(&model.c_sus),
+            laws: (0..N).map(|j| law(model.column_law(j))).collect(),
             s: plant.s,
-            x: [0.0; NZ],
-            w_prev: [0.0; 2],
+            x: vec![0.0; nz],
+            next: vec![0.0; nz],
+            w_prev: [0.0; N],
         }
+    }
+
+    /// `S^-1 o` (Cramer's rule for two readouts, LU otherwise; a singular `S` leaves `o` as
+    /// it is, as the operators' `S^-1` falls back to the identity).
+    fn unsense(&self, o: &[f64; N]) -> [f64; N] {
+        let s = &self.s;
+        if N == 2 {
+            let det = s[0][0] * s[1][1] - s[0][1] * s[1][0];
+            let q = [
+                (s[1][1] * o[0] - s[0][1] * o[1]) / det,
+                (s[0][0] * o[1] - s[1][0] * o[0]) / det,
+            ];
+            return std::array::from_fn(|i| q[i]);
+        }
+        let m = DMatrix::from_fn(N, N, |i, j| s[i][j]);
+        let rhs = nalgebra::DVector::from_column_slice(o);
+        let q = m.lu().solve(&rhs).unwrap_or_else(|| rhs.clone());
+        std::array::from_fn(|i| q[i])
     }
 
     /// Put the plant at `ic` (sensed coordinates, `q = S^-1 o`), controllers, lags and held
     /// commands at zero.
-    pub fn reset(&mut self, ic: Option<&InitialConditions>) {
+    pub fn reset(&mut self, ic: Option<&SensedState<N>>) {
         let ic = ic.copied().unwrap_or_default();
-        let s = self.s;
-        let det = s[0][0] * s[1][1] - s[0][1] * s[1][0];
-        let inv = |a: f64, b: f64| {
-            [
-                (s[1][1] * a - s[0][1] * b) / det,
-                (s[0][0] * b - s[1][0] * a) / det,
-            ]
-        };
-        let (q, v) = (inv(ic.o1, ic.o12), inv(ic.v1, ic.v12));
-        self.x = [0.0; NZ];
-        self.x[..NX].copy_from_slice(&[q[0], q[1], v[0], v[1]]);
-        self.w_prev = [0.0; 2];
-        self.c_df.state_mut().fill(0.0);
-        self.c_sus.state_mut().fill(0.0);
+        let (q, v) = (self.unsense(&ic.position), self.unsense(&ic.rate));
+        self.x.fill(0.0);
+        self.x[..N].copy_from_slice(&q);
+        self.x[N..2 * N].copy_from_slice(&v);
+        self.w_prev = [0.0; N];
+        for law in &mut self.laws {
+            law.state_mut().fill(0.0);
+        }
     }
 
     /// One control step with guidance references `g` (already delayed), held force noise `f`
-    /// (rows x1, x12) and readout noise `n`; returns the sampled readouts.
+    /// (one per coordinate row) and readout noise `n`; returns the sampled readouts.
     #[inline(always)]
-    pub fn step(&mut self, g: [f64; 2], f: [f64; 2], n: [f64; 2]) -> [f64; 2] {
-        if self.lagged {
-            self.step_n::<NZ>(g, f, n)
-        } else {
-            self.step_n::<NX>(g, f, n)
+    pub fn step(&mut self, g: [f64; N], f: [f64; N], n: [f64; N]) -> [f64; N] {
+        let m = if self.lagged { 3 * N } else { 2 * N };
+        // Fixed sizes for the embedded models' loops (the compiler unrolls them).
+        match m {
+            4 => self.step_n::<4>(g, f, n),
+            6 => self.step_n::<6>(g, f, n),
+            14 => self.step_n::<14>(g, f, n),
+            21 => self.step_n::<21>(g, f, n),
+            _ => self.step_dyn(m, g, f, n),
         }
     }
 
-    /// [`Self::step`] over the first `M` plant states (`NX` without lags: the lag states
-    /// stay zero; `NZ` with them).
+    /// Readouts `o = S q + n` and the commands `w = -C(o - g)` of one step.
     #[inline(always)]
-    fn step_n<const M: usize>(&mut self, g: [f64; 2], f: [f64; 2], n: [f64; 2]) -> [f64; 2] {
-        let x = self.x;
-        let s = &self.s;
-        let o = [
-            s[0][0] * x[0] + s[0][1] * x[1] + n[0],
-            s[1][0] * x[0] + s[1][1] * x[1] + n[1],
-        ];
-        let w = [-self.c_df.step(o[0] - g[0]), -self.c_sus.step(o[1] - g[1])];
-        let wp = self.w_prev;
+    fn sense_and_command(&mut self, g: &[f64; N], n: &[f64; N]) -> ([f64; N], [f64; N]) {
+        let (x, s) = (&self.x, &self.s);
+        let o: [f64; N] = std::array::from_fn(|i| {
+            let mut acc = s[i][0] * x[0];
+            for j in 1..N {
+                acc += s[i][j] * x[j];
+            }
+            acc + n[i]
+        });
+        let w = std::array::from_fn(|j| -self.laws[j].step(o[j] - g[j]));
+        (o, w)
+    }
+
+    /// Row `i` of the plant update's input terms: `Gamma f + Gamma_now w + Gamma_prev w_prev`.
+    #[inline(always)]
+    fn input_row(&self, i: usize, f: &[f64; N], w: &[f64; N]) -> f64 {
+        let r = i * N;
+        let (gf, gn, gp) = (
+            &self.gam_force[r..r + N],
+            &self.gam_now[r..r + N],
+            &self.gam_prev[r..r + N],
+        );
+        let mut acc = gf[0] * f[0];
+        for c in 1..N {
+            acc += gf[c] * f[c];
+        }
+        for c in 0..N {
+            acc += gn[c] * w[c];
+        }
+        for (g, v) in gp.iter().zip(&self.w_prev) {
+            acc += g * v;
+        }
+        acc
+    }
+
+    /// [`Self::step`] over the first `M` plant states (`2N` without lags: the lag states
+    /// stay zero; `3N` with them).
+    #[inline(always)]
+    fn step_n<const M: usize>(&mut self, g: [f64; N], f: [f64; N], n: [f64; N]) -> [f64; N] {
+        let (o, w) = self.sense_and_command(&g, &n);
+        let nz = 3 * N;
+        let x: &[f64; M] = self.x[..M].try_into().expect("M plant states");
         for i in 0..M {
-            let (p, gf, gn, gp) = (
-                &self.phi[i],
-                &self.gam_force[i],
-                &self.gam_now[i],
-                &self.gam_prev[i],
-            );
-            let mut acc = gf[0] * f[0]
-                + gf[1] * f[1]
-                + gn[0] * w[0]
-                + gn[1] * w[1]
-                + gp[0] * wp[0]
-                + gp[1] * wp[1];
+            let p: &[f64; M] = self.phi[i * nz..i * nz + M].try_into().expect("M columns");
+            let mut acc = self.input_row(i, &f, &w);
             for j in 0..M {
                 acc += p[j] * x[j];
             }
-            self.x[i] = acc;
+            self.next[i] = acc;
         }
+        self.x[..M].copy_from_slice(&self.next[..M]);
+        self.w_prev = w;
+        o
+    }
+
+    /// [`Self::step_n`] for a state count known only at run time.
+    fn step_dyn(&mut self, m: usize, g: [f64; N], f: [f64; N], n: [f64; N]) -> [f64; N] {
+        let (o, w) = self.sense_and_command(&g, &n);
+        let nz = 3 * N;
+        for i in 0..m {
+            let mut acc = self.input_row(i, &f, &w);
+            for j in 0..m {
+                acc += self.phi[i * nz + j] * self.x[j];
+            }
+            self.next[i] = acc;
+        }
+        self.x[..m].copy_from_slice(&self.next[..m]);
         self.w_prev = w;
         o
     }
 
     /// Run `guidance[c].len()` steps from the current state; every slice has that length.
-    /// Returns the sampled readouts (o1, o12).
+    /// Returns the sampled readouts.
     pub fn run(
         &mut self,
-        guidance: [&[f64]; 2],
-        force: [&[f64]; 2],
-        readout: [&[f64]; 2],
-    ) -> [Vec<f64>; 2] {
+        guidance: [&[f64]; N],
+        force: [&[f64]; N],
+        readout: [&[f64]; N],
+    ) -> [Vec<f64>; N] {
         let n = guidance[0].len();
         for s in guidance.iter().chain(&force).chain(&readout) {
             assert_eq!(
@@ -443,45 +654,51 @@ impl DigitalLoop {
                 "every input series has one value per control step"
             );
         }
-        let mut out = [Vec::with_capacity(n), Vec::with_capacity(n)];
+        let mut out: [Vec<f64>; N] = std::array::from_fn(|_| Vec::with_capacity(n));
         for k in 0..n {
             let o = self.step(
-                [guidance[0][k], guidance[1][k]],
-                [force[0][k], force[1][k]],
-                [readout[0][k], readout[1][k]],
+                std::array::from_fn(|c| guidance[c][k]),
+                std::array::from_fn(|c| force[c][k]),
+                std::array::from_fn(|c| readout[c][k]),
             );
-            out[0].push(o[0]);
-            out[1].push(o[1]);
+            for (series, v) in out.iter_mut().zip(o) {
+                series.push(v);
+            }
         }
         out
     }
 
-    /// The plant's state in sensed coordinates `(o1, o12, v1, v12)` (readout positions and
-    /// rates without readout noise), the inverse of [`Self::reset`]'s map.
-    pub fn sensed_state(&self) -> [f64; NX] {
-        let (x, s) = (self.x, self.s);
-        [
-            s[0][0] * x[0] + s[0][1] * x[1],
-            s[1][0] * x[0] + s[1][1] * x[1],
-            s[0][0] * x[2] + s[0][1] * x[3],
-            s[1][0] * x[2] + s[1][1] * x[3],
-        ]
+    /// The plant's state in sensed coordinates, positions then rates (readouts and their rates
+    /// without readout noise), the inverse of [`Self::reset`]'s map.
+    pub fn sensed_state(&self) -> Vec<f64> {
+        let (x, s) = (&self.x, &self.s);
+        let sense = |off: usize, i: usize| {
+            let mut acc = s[i][0] * x[off];
+            for j in 1..N {
+                acc += s[i][j] * x[off + j];
+            }
+            acc
+        };
+        (0..N)
+            .map(|i| sense(0, i))
+            .chain((0..N).map(|i| sense(N, i)))
+            .collect()
     }
 
-    /// Dimension of the loop's state: plant (with its active lag states), both controllers,
+    /// Dimension of the loop's state: plant (with its active lag states), the controllers,
     /// and the held commands when there is a computation delay.
     pub fn state_dim(&self) -> usize {
         self.active.len()
-            + self.c_df.order()
-            + self.c_sus.order()
-            + if self.delayed { 2 } else { 0 }
+            + self.laws.iter().map(Df2t::order).sum::<usize>()
+            + if self.delayed { N } else { 0 }
     }
 
     /// The loop's state as one vector (order of [`Self::state_dim`]).
     pub fn state(&self) -> Vec<f64> {
         let mut v: Vec<f64> = self.active.iter().map(|&i| self.x[i]).collect();
-        v.extend_from_slice(self.c_df.state());
-        v.extend_from_slice(self.c_sus.state());
+        for law in &self.laws {
+            v.extend_from_slice(law.state());
+        }
         if self.delayed {
             v.extend_from_slice(&self.w_prev);
         }
@@ -489,19 +706,20 @@ impl DigitalLoop {
     }
 
     pub fn set_state(&mut self, v: &[f64]) {
-        let (np, nd, ns) = (self.active.len(), self.c_df.order(), self.c_sus.order());
-        self.x = [0.0; NZ];
+        self.x.fill(0.0);
         for (k, &i) in self.active.iter().enumerate() {
             self.x[i] = v[k];
         }
-        self.c_df.state_mut().copy_from_slice(&v[np..np + nd]);
-        self.c_sus
-            .state_mut()
-            .copy_from_slice(&v[np + nd..np + nd + ns]);
+        let mut at = self.active.len();
+        for law in &mut self.laws {
+            let n = law.order();
+            law.state_mut().copy_from_slice(&v[at..at + n]);
+            at += n;
+        }
         if self.delayed {
-            self.w_prev.copy_from_slice(&v[np + nd + ns..]);
+            self.w_prev.copy_from_slice(&v[at..]);
         } else {
-            self.w_prev = [0.0; 2];
+            self.w_prev = [0.0; N];
         }
     }
 
@@ -515,7 +733,7 @@ impl DigitalLoop {
             let mut e = vec![0.0; dim];
             e[j] = 1.0;
             probe.set_state(&e);
-            probe.step([0.0; 2], [0.0; 2], [0.0; 2]);
+            probe.step([0.0; N], [0.0; N], [0.0; N]);
             for (i, v) in probe.state().into_iter().enumerate() {
                 m[(i, j)] = v;
             }
@@ -555,10 +773,10 @@ impl DigitalLoop {
     }
 }
 
-/// One-sided cross-PSD of the loop's noise inputs at `f`: force rows `G S_f G^T` (channels 0,
-/// 1) and readout noise `w S_ro w^T` (channels 2, 3), the sources being uncorrelated.
-pub fn input_csd(noise: &NoiseModel<2>, f: f64) -> CMat<NOISE_CHANNELS> {
-    let mut m = CMat::<NOISE_CHANNELS>::zeros();
+/// One-sided cross-PSD of the x loop's noise inputs at `f`: force rows `G S_f G^T` (channels
+/// 0, 1) and readout noise `w S_ro w^T` (channels 2, 3), the sources being uncorrelated.
+pub fn input_csd(noise: &NoiseModel<2>, f: f64) -> CMat<X_NOISE_CHANNELS> {
+    let mut m = CMat::<X_NOISE_CHANNELS>::zeros();
     for (_, src, entry) in &noise.sources {
         let psd = shapes::psd(src, f);
         let (off, w) = match entry {
@@ -574,44 +792,137 @@ pub fn input_csd(noise: &NoiseModel<2>, f: f64) -> CMat<NOISE_CHANNELS> {
     m
 }
 
+/// One noise source of the loop's inputs: its own coloured series, spread over the entry
+/// channels by its weights (force rows `0..N`, readouts `N..2N`).
+struct SourceNoise {
+    series: ColoredNoise<1>,
+    /// First entry channel of its kind (0 force, `N` readout) and its weight per row.
+    offset: usize,
+    weights: Vec<f64>,
+}
+
+/// The coloured noise at the loop's `2N` entry channels (force rows, then readouts).
+enum InputNoise {
+    /// The x loop's four channels drawn jointly from their cross-PSD ([`input_csd`]), as
+    /// the x datasets always were (so they stay reproducible from their seeds).
+    JointX(ColoredNoise<X_NOISE_CHANNELS>),
+    /// Any model: each source drawn on its own (uncorrelated sources) and spread by its
+    /// weights, `x_i = sum_k w_k,i n_k`, whose cross-PSD is exactly `sum_k S_k w_k w_k^T`; one
+    /// complex factor per bin and source instead of a `2N x 2N` one.
+    Sources {
+        channels: usize,
+        n: usize,
+        sources: Vec<SourceNoise>,
+    },
+}
+
+impl InputNoise {
+    fn new<const N: usize>(
+        noise: &NoiseModel<N>,
+        n: usize,
+        h: f64,
+        oversample: usize,
+    ) -> Result<Self, NoiseError> {
+        if N == 2 {
+            let x = NoiseModel::<2> {
+                sources: (noise.sources.iter())
+                    .map(|(name, src, e)| (name.clone(), src.clone(), narrow(e)))
+                    .collect(),
+            };
+            let joint = ColoredNoise::new(|f| input_csd(&x, f), n, h, oversample)?;
+            return Ok(InputNoise::JointX(joint));
+        }
+        let sources = (noise.sources.iter())
+            .map(|(_, src, entry)| {
+                let (offset, w) = match entry {
+                    NoiseEntry::Force(g) => (0, g),
+                    NoiseEntry::Readout(w) => (N, w),
+                };
+                let psd = |f| CMat::<1>::new(Complex64::new(shapes::psd(src, f), 0.0));
+                Ok(SourceNoise {
+                    series: ColoredNoise::new(psd, n, h, oversample)?,
+                    offset,
+                    weights: w.to_vec(),
+                })
+            })
+            .collect::<Result<_, NoiseError>>()?;
+        Ok(InputNoise::Sources {
+            channels: 2 * N,
+            n,
+            sources,
+        })
+    }
+
+    /// One realization at the `2N` entry channels.
+    fn generate<R: Rng + ?Sized>(&self, rng: &mut R) -> Vec<Vec<f64>> {
+        match self {
+            InputNoise::JointX(c) => c.generate(rng),
+            InputNoise::Sources {
+                channels,
+                n,
+                sources,
+            } => {
+                let mut out = vec![vec![0.0; *n]; *channels];
+                for s in sources {
+                    let x = s.series.generate(rng).swap_remove(0);
+                    for (i, &w) in s.weights.iter().enumerate().filter(|(_, w)| **w != 0.0) {
+                        let row = &mut out[s.offset + i];
+                        row.iter_mut().zip(&x).for_each(|(r, v)| *r += w * v);
+                    }
+                }
+                out
+            }
+        }
+    }
+}
+
+/// A two-row entry of an `N`-readout model (`N == 2`, checked by the caller).
+fn narrow<const N: usize>(e: &NoiseEntry<N>) -> NoiseEntry<2> {
+    let two = |w: &[f64; N]| [w[0], w[1]];
+    match e {
+        NoiseEntry::Force(g) => NoiseEntry::Force(two(g)),
+        NoiseEntry::Readout(w) => NoiseEntry::Readout(two(w)),
+    }
+}
+
 /// Everything needed to draw time-domain realizations of one design at one parameter set.
 /// Built once; `draw` is deterministic in the RNG it is given.
-pub struct TimeDomainSimulator {
+pub struct TimeDomainSimulator<const N: usize = 2> {
     pub grid: DecimationGrid,
     pub names: Vec<String>,
     /// The loop at rest at the true parameters.
-    pub digital: DigitalLoop,
+    pub digital: DigitalLoop<N>,
     /// Delayed guidance references per experiment and input, at the control rate.
-    guidance: Vec<[Vec<f64>; 2]>,
+    guidance: Vec<[Vec<f64>; N]>,
     /// Telemetry of the guidance (`oi(t_k)`, decimated) per experiment and input.
     inputs: Vec<Vec<Vec<f64>>>,
-    noise: ColoredNoise<NOISE_CHANNELS>,
-    initial: Option<InitialConditions>,
+    noise: InputNoise,
+    initial: Option<SensedState<N>>,
     /// Telemetry samples of every experiment: experiments of different durations run on the
     /// longest one's grid and are cut to their own length (the loop is causal).
     lens: Vec<usize>,
 }
 
-impl TimeDomainSimulator {
+impl<const N: usize> TimeDomainSimulator<N> {
     /// A simulator of `design` at `truth`, output decimated from the control rate by
     /// `decimator` (whose input rate is the control rate).
     #[allow(clippy::too_many_arguments)]
-    pub fn new(
-        model: &LpfX,
-        noise: &NoiseModel<2>,
+    pub fn new<M: DigitalPlant<N>>(
+        model: &M,
+        noise: &NoiseModel<N>,
         cfg: &LoopConfig,
         decimator: crate::spectral::Decimator,
         design: &Design,
         truth: &[f64],
-        initial: Option<InitialConditions>,
+        initial: Option<SensedState<N>>,
         oversample: usize,
-        effects: &PlantEffects,
+        effects: &PlantEffects<N>,
     ) -> Result<Self, TimeDomainError> {
         let digital = DigitalLoop::with_effects(model, truth, cfg, effects);
-        digital.check_stable(model_names(model), truth)?;
+        digital.check_stable(model.parameter_names(), truth)?;
         let grid = DecimationGrid::with_decimator(design, decimator);
         let (h, t0, n) = (cfg.dt, grid.t0, grid.n_sim);
-        let delays = [truth[DT1], truth[DT12]];
+        let delays = model.guidance_delays(truth);
         let guidance = (0..design.experiments.len())
             .map(|e| {
                 std::array::from_fn(|c| {
@@ -624,13 +935,13 @@ impl TimeDomainSimulator {
         let inputs = (0..design.experiments.len())
             .map(|e| {
                 design
-                    .sample(e, 2, t0, h, n)
+                    .sample(e, N, t0, h, n)
                     .iter()
                     .map(|c| grid.keep(c))
                     .collect()
             })
             .collect();
-        let noise = ColoredNoise::new(|f| input_csd(noise, f), n, h, oversample)?;
+        let noise = InputNoise::new(noise, n, h, oversample)?;
         Ok(TimeDomainSimulator {
             lens: design.lengths(grid.dt_out),
             grid,
@@ -644,21 +955,24 @@ impl TimeDomainSimulator {
     }
 
     /// The readouts at the control rate over the whole grid: guidance of `experiment` (none:
-    /// zero guidance), with the noise inputs `noise` (4 channels, see [`input_csd`]; none:
-    /// noise-free), from the initial conditions.
+    /// zero guidance), with the noise inputs `noise` (`2N` channels, force rows then readouts;
+    /// none: noise-free), from the initial conditions.
     pub fn run_control_rate(
         &self,
         experiment: Option<usize>,
         noise: Option<&[Vec<f64>]>,
-    ) -> [Vec<f64>; 2] {
+    ) -> [Vec<f64>; N] {
         let zeros = vec![0.0; self.grid.n_sim];
-        let g: [&[f64]; 2] = match experiment {
-            Some(e) => [&self.guidance[e][0], &self.guidance[e][1]],
-            None => [&zeros, &zeros],
+        let g: [&[f64]; N] = match experiment {
+            Some(e) => std::array::from_fn(|c| &self.guidance[e][c][..]),
+            None => [&zeros[..]; N],
         };
-        let (f, r): ([&[f64]; 2], [&[f64]; 2]) = match noise {
-            Some(x) => ([&x[0], &x[1]], [&x[2], &x[3]]),
-            None => ([&zeros, &zeros], [&zeros, &zeros]),
+        let (f, r): ([&[f64]; N], [&[f64]; N]) = match noise {
+            Some(x) => (
+                std::array::from_fn(|c| &x[c][..]),
+                std::array::from_fn(|c| &x[N + c][..]),
+            ),
+            None => ([&zeros[..]; N], [&zeros[..]; N]),
         };
         let mut lp = self.digital.clone();
         lp.reset(self.initial.as_ref());
@@ -740,7 +1054,7 @@ impl TimeDomainSimulator {
         self.telemetry(None, Some(&noise))
     }
 
-    /// The loop's noise inputs for one run (4 channels at the control rate), from `rng`.
+    /// The loop's noise inputs for one run (`2N` channels at the control rate), from `rng`.
     pub fn noise_inputs<R: Rng + ?Sized>(&self, rng: &mut R) -> Vec<Vec<f64>> {
         self.noise.generate(rng)
     }
@@ -749,9 +1063,4 @@ impl TimeDomainSimulator {
     pub fn fully_supported(&self) -> bool {
         self.grid.fully_supported()
     }
-}
-
-fn model_names(model: &LpfX) -> &[String] {
-    use crate::model::ClosedLoopModel;
-    model.parameter_names()
 }

@@ -5,8 +5,9 @@
 //! The loop is the one the time-domain simulator steps ([`DigitalLoop`]: exactly integrated
 //! plant, discretised controllers, held commands). A free response is linear in the initial
 //! state, so the transient of a run is `o_t = sum_k c_k phi_k` with `phi_k` the response to a
-//! unit initial condition `k` in `(o1, o12, v1, v12)` (readout positions [m] and rates [m/s]),
-//! controllers and held commands at rest, and no guidance, force or readout noise.
+//! unit initial condition `k` in the sensed state (every readout's position, then every rate:
+//! `(o1, o12, v1, v12)` for the x model, 14 for the xy model; [`ic_names`]), controllers and
+//! held commands at rest, and no guidance, force or readout noise.
 //!
 //! **Where the initial condition sits.** The loop is started at the first control sample of the
 //! decimation grid ([`DecimationGrid::with_decimator_samples`]), `loop_start_s < 0` before the first
@@ -18,45 +19,58 @@
 //! (the controllers have moved by then, so `L` is not the identity).
 
 use super::decimated::DecimationGrid;
-use super::time_domain::{DigitalLoop, InitialConditions, LoopConfig};
-use crate::model::LpfX;
+use super::time_domain::{DigitalLoop, DigitalPlant, InitialConditions, LoopConfig, SensedState};
 use crate::noise::NoiseError;
 
-/// The initial conditions of a transient, in the order of its columns.
+/// The x model's initial conditions, in the order of its columns.
 pub const IC_NAMES: [&str; 4] = ["o1", "o12", "v1", "v12"];
 /// Their units.
 pub const IC_UNITS: [&str; 4] = ["m", "m", "m/s", "m/s"];
 
+/// The initial conditions of a model with readouts `readouts`, in the order of its columns:
+/// positions, then rates ([`InitialConditions::keys`]).
+pub fn ic_names(readouts: &[&str]) -> Vec<String> {
+    InitialConditions::keys(readouts)
+}
+
+/// Their units: metres for a displacement, radians for an angle (a readout named `...phi...`),
+/// then the rates per second.
+pub fn ic_units(readouts: &[&str]) -> Vec<String> {
+    let unit = |r: &&str| if r.contains("phi") { "rad" } else { "m" };
+    let mut u: Vec<String> = readouts.iter().map(|r| unit(r).to_string()).collect();
+    u.extend(readouts.iter().map(|r| format!("{}/s", unit(r))));
+    u
+}
+
 /// The free responses of one run's readouts at the telemetry samples.
 #[derive(Debug, Clone)]
 pub struct FreeResponse {
-    /// `cols[k][c]`: readout `c` (o1, o12) at telemetry samples `0..n` for a unit initial
-    /// condition `k` ([`IC_NAMES`]) at the loop start.
+    /// `cols[k][c]`: readout `c` at telemetry samples `0..n` for a unit initial condition `k`
+    /// ([`ic_names`]) at the loop start.
     pub cols: Vec<Vec<Vec<f64>>>,
     /// `to_t0[i][k]`: sensed plant state `i` at the first telemetry sample for a unit initial
     /// condition `k` at the loop start (the map `L` of the module docs).
-    pub to_t0: [[f64; 4]; 4],
+    pub to_t0: Vec<Vec<f64>>,
     /// Time of the loop start relative to the first telemetry sample [s] (negative).
     pub loop_start_s: f64,
 }
 
-/// A unit initial condition along `k` ([`IC_NAMES`]).
-fn unit(k: usize) -> InitialConditions {
-    let mut v = [0.0; 4];
-    v[k] = 1.0;
-    InitialConditions {
-        o1: v[0],
-        o12: v[1],
-        v1: v[2],
-        v12: v[3],
+/// A unit initial condition along `k` (positions `0..N`, rates `N..2N`).
+fn unit<const N: usize>(k: usize) -> SensedState<N> {
+    let mut st = SensedState::<N>::default();
+    if k < N {
+        st.position[k] = 1.0;
+    } else {
+        st.rate[k - N] = 1.0;
     }
+    st
 }
 
 /// The free responses of the loop of `model` at parameters `p` over `n_out` telemetry samples,
 /// the control rate decimated by `decimator` (the model file's anti-alias FIR,
 /// `ModelSpec::decimator`, the one the time-domain simulator uses; see the module docs).
-pub fn free_response(
-    model: &LpfX,
+pub fn free_response<M: DigitalPlant<N>, const N: usize>(
+    model: &M,
     p: &[f64],
     cfg: &LoopConfig,
     decimator: crate::spectral::Decimator,
@@ -64,30 +78,22 @@ pub fn free_response(
 ) -> Result<FreeResponse, NoiseError> {
     let factor = decimator.factor();
     let grid = DecimationGrid::with_decimator_samples(n_out, decimator);
-    let base = DigitalLoop::new(model, p, cfg);
+    let base = DigitalLoop::<N>::new(model, p, cfg);
     let zeros = vec![0.0; grid.n_sim];
-    let z: [&[f64]; 2] = [&zeros, &zeros];
     // The control sample of the first telemetry sample (t = 0).
     let k0 = grid.first * factor;
-    let mut cols = Vec::with_capacity(IC_NAMES.len());
-    let mut to_t0 = [[0.0; 4]; 4];
-    for k in 0..IC_NAMES.len() {
+    let (head_z, tail_z): ([&[f64]; N], [&[f64]; N]) = ([&zeros[..k0]; N], [&zeros[k0..]; N]);
+    let mut cols = Vec::with_capacity(2 * N);
+    let mut to_t0 = vec![vec![0.0; 2 * N]; 2 * N];
+    for k in 0..2 * N {
         let mut lp = base.clone();
-        lp.reset(Some(&unit(k)));
-        let head = lp.run(
-            [&z[0][..k0], &z[1][..k0]],
-            [&z[0][..k0], &z[1][..k0]],
-            [&z[0][..k0], &z[1][..k0]],
-        );
+        lp.reset(Some(&unit::<N>(k)));
+        let head = lp.run(head_z, head_z, head_z);
         let state = lp.sensed_state();
         for (i, row) in to_t0.iter_mut().enumerate() {
             row[k] = state[i];
         }
-        let tail = lp.run(
-            [&z[0][k0..], &z[1][k0..]],
-            [&z[0][k0..], &z[1][k0..]],
-            [&z[0][k0..], &z[1][k0..]],
-        );
+        let tail = lp.run(tail_z, tail_z, tail_z);
         cols.push(
             head.into_iter()
                 .zip(tail)

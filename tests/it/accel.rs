@@ -779,7 +779,7 @@ fn suppresses_the_start_up_transient(setup: &Setup) {
     let quiet = design.noise_only(40_000.0);
     let initial: InitialConditions = "o1=2.4e-7,o12=3.6e-7,v1=-5e-10,v12=-4e-12".parse().unwrap();
     let sim = setup
-        .time_domain_simulator(&quiet, &sc.truth, None, Some(initial))
+        .time_domain_simulator(&quiet, &sc.truth, None, Some(&initial))
         .unwrap();
     let welch = WelchConfig {
         segments: 2,
@@ -861,7 +861,7 @@ fn digital_delta_cancels_the_free_response_of_the_digital_loop() {
     let quiet = setup.design("standard").unwrap().noise_only(8_000.0);
     let initial: InitialConditions = "o1=2.4e-7,o12=3.6e-7,v1=-5e-10,v12=-4e-12".parse().unwrap();
     let sim = setup
-        .time_domain_simulator(&quiet, &sc.truth, None, Some(initial))
+        .time_domain_simulator(&quiet, &sc.truth, None, Some(&initial))
         .unwrap();
     let o = sim.noise_free().outputs.remove(0);
     let rms = |p: &[f64]| {

@@ -47,3 +47,4 @@ mod whittle;
 mod xy_commands;
 mod xy_diagnose;
 mod xy_model;
+mod xy_time_domain;

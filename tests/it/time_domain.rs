@@ -16,7 +16,7 @@ use freefall::model::{transfer, transfer_with_derivatives, CMat, ClosedLoopModel
 use freefall::setup::Setup;
 use freefall::signal::Design;
 use freefall::sim::rng::stream;
-use freefall::sim::time_domain::{DigitalLoop, InitialConditions, LoopConfig};
+use freefall::sim::time_domain::{DigitalLoop, LoopConfig, SensedState};
 use freefall::spectral::{welch_csd, WelchConfig};
 use num_complex::Complex64;
 
@@ -118,7 +118,8 @@ fn noise_run_matches_the_model_cross_psd_where_the_loops_agree() {
 #[test]
 fn cli_simulates_with_the_time_domain_engine_and_initial_conditions() {
     // Oracle: the documented flags write a dataset whose metadata names the engine and the
-    // initial conditions; bad --initial values are one-line errors naming the key.
+    // initial conditions; bad --initial values are one-line errors naming the key (a key
+    // that is no readout of the model when the model is known, before anything is written).
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("td");
     let o = freefall(&[
@@ -150,7 +151,7 @@ fn cli_simulates_with_the_time_domain_engine_and_initial_conditions() {
             "--initial",
             arg,
             "--out",
-            out.to_str().unwrap(),
+            dir.path().join("bad").to_str().unwrap(),
         ]);
         let err = String::from_utf8_lossy(&o.stderr);
         assert!(!o.status.success() && err.contains(needle), "{arg}: {err}");
@@ -319,18 +320,16 @@ fn free_response_decays_as_the_closed_loop_poles_say() {
     let setup = digital_setup(Discretisation::Tustin, 0.0);
     let p = setup.spec.scenario("monte_carlo").unwrap().truth;
     let cfg = LoopConfig::from_spec(&setup.spec);
-    let ic = InitialConditions {
-        o1: 2.4e-7,
-        o12: 3.6e-7,
-        v1: -5e-10,
-        v12: -4e-12,
+    let ic = SensedState {
+        position: [2.4e-7, 3.6e-7],
+        rate: [-5e-10, -4e-12],
     };
     let mut lp = DigitalLoop::new(&setup.model, &p, &cfg);
     lp.reset(Some(&ic));
     let n = 20_000; // 2000 s: the fast modes die out, the slow ones are well sampled
     let zero = vec![0.0; n];
     let o = lp.run([&zero, &zero], [&zero, &zero], [&zero, &zero]);
-    assert_eq!((o[0][0], o[1][0]), (ic.o1, ic.o12));
+    assert_eq!((o[0][0], o[1][0]), (ic.position[0], ic.position[1]));
     let poles = model_z_poles(&setup, &p);
     // Real basis: Re and Im of z^k for each complex pair (upper half plane), z^k for a real z.
     let modes: Vec<Complex64> = poles.iter().copied().filter(|z| z.im >= 0.0).collect();

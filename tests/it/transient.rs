@@ -22,12 +22,9 @@ use common::loops::digital_setup;
 
 /// The thesis's sec. 4.7 start: positions 0.24 um (o1) and 0.36 um (o12), rates -500 pm/s and
 /// -4 pm/s.
-const THESIS_START: InitialConditions = InitialConditions {
-    o1: 2.4e-7,
-    o12: 3.6e-7,
-    v1: -5e-10,
-    v12: -4e-12,
-};
+fn thesis_start() -> InitialConditions {
+    InitialConditions::x(2.4e-7, 3.6e-7, -5e-10, -4e-12)
+}
 /// Noise run of 12 hours, as the runs.
 const NOISE_RUN_S: f64 = 12.0 * 3600.0;
 /// Seed of both runs (experiments from stream (seed, 0), noise run from (seed, 1), as
@@ -48,7 +45,7 @@ fn noise_design(setup: &Setup, duration_s: f64) -> Design {
 fn simulate(
     setup: &Setup,
     truth: &[f64],
-    initial: Option<InitialConditions>,
+    initial: Option<&InitialConditions>,
 ) -> (ExperimentData, Vec<Vec<f64>>, usize) {
     let design = setup.design("standard").unwrap();
     let sim = setup
@@ -73,16 +70,16 @@ fn state_at_first_sample(
     truth: &[f64],
     ic: &InitialConditions,
     k0: usize,
-) -> [f64; 4] {
+) -> Vec<f64> {
     let mut lp = DigitalLoop::new(&setup.model, truth, &LoopConfig::from_spec(&setup.spec));
-    lp.reset(Some(ic));
+    lp.reset(Some(&ic.resolve(["o1", "o12"]).unwrap()));
     for _ in 0..k0 {
         lp.step([0.0; 2], [0.0; 2], [0.0; 2]);
     }
     lp.sensed_state()
 }
 
-fn run_diagnosis(setup: &Setup, initial: Option<InitialConditions>) -> (Diagnosis, usize) {
+fn run_diagnosis(setup: &Setup, initial: Option<&InitialConditions>) -> (Diagnosis, usize) {
     let truth = setup.spec.scenario("monte_carlo").unwrap().truth;
     let (data, noise, k0) = simulate(setup, &truth, initial);
     let guess = setup.spec.nominal();
@@ -100,7 +97,8 @@ fn thesis_start_is_reported_and_leaves_estimates_and_errors_as_in_steady_state()
     let truth = setup.spec.scenario("monte_carlo").unwrap().truth;
     let names = setup.parameter_names();
     let (ss, _) = run_diagnosis(&setup, None);
-    let (ic, k0) = run_diagnosis(&setup, Some(THESIS_START));
+    let start = thesis_start();
+    let (ic, k0) = run_diagnosis(&setup, Some(&start));
     // Steady-state control: no transient claimed.
     assert!(
         ss.transients.is_empty(),
@@ -113,14 +111,14 @@ fn thesis_start_is_reported_and_leaves_estimates_and_errors_as_in_steady_state()
     // Every run of the transient dataset (noise run, exp1, exp2) reports its start.
     let runs: Vec<&str> = ic.transients.iter().map(|t| t.run.as_str()).collect();
     assert_eq!(runs, ["noise run", "exp1", "exp2"], "{:?}", ic.notes);
-    let x0 = state_at_first_sample(&setup, &truth, &THESIS_START, k0);
+    let x0 = state_at_first_sample(&setup, &truth, &start, k0);
     // The experiments' initial conditions are asserted against the deterministic truth. The
     // noise run's are printed only: the simulator starts the loop at rest, and the missing
     // stationary state is a random transient of its own that the noise run's fit sees (over
     // seeds 1-9 its o12 start scattered 4.6 sigma around the deterministic truth, and as much
     // around zero without initial conditions; after a 6-hour burn-in, 0.66 sigma; README).
     for t in ic.transients.iter().filter(|t| t.run != "noise run") {
-        for (c, want) in t.initial_conditions.iter().zip(x0) {
+        for (c, want) in t.initial_conditions.iter().zip(&x0) {
             let pull = (c.value - want) / c.sigma;
             eprintln!(
                 "{} {}: {:.5e} +- {:.3e} {} (truth {want:.5e}, pull {pull:.2})",
@@ -249,15 +247,11 @@ fn free_response_columns_are_the_simulators_transient() {
             .unwrap()
             .noise_free()
     };
-    let (from_ic, at_rest) = (at(Some(THESIS_START)), at(None));
+    let start = thesis_start();
+    let (from_ic, at_rest) = (at(Some(&start)), at(None));
     let n = from_ic.len_of(0);
     let fr = freefall::analysis::transient::run_response(&setup, &truth, n).unwrap();
-    let c = [
-        THESIS_START.o1,
-        THESIS_START.o12,
-        THESIS_START.v1,
-        THESIS_START.v12,
-    ];
+    let c = ["o1", "o12", "v1", "v12"].map(|k| start.get(k));
     for ch in 0..2 {
         let diff: Vec<f64> = (0..n)
             .map(|t| from_ic.outputs[0][ch][t] - at_rest.outputs[0][ch][t])
@@ -272,12 +266,12 @@ fn free_response_columns_are_the_simulators_transient() {
         );
     }
     let sim = setup
-        .time_domain_simulator(&design, &truth, None, Some(THESIS_START))
+        .time_domain_simulator(&design, &truth, None, Some(&start))
         .unwrap();
     let x0 = state_at_first_sample(
         &setup,
         &truth,
-        &THESIS_START,
+        &start,
         sim.grid.first * setup.spec.decimation(),
     );
     for (i, want) in x0.iter().enumerate() {
