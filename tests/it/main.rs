@@ -46,4 +46,5 @@ mod units;
 mod whittle;
 mod xy_commands;
 mod xy_diagnose;
+mod xy_generic;
 mod xy_model;
