@@ -11,8 +11,8 @@ use std::path::{Path, PathBuf};
 use super::transient::{clean_noise_run, fit_with_transients, TransientError, TransientReport};
 use super::{
     correlation_table, dataset_whitener, decimated_telemetry, estimates_table, outputs_of,
-    parse_constraints, psd_table, residual_table, resolve_guess, truth_from_meta, whitened_table,
-    whole_clock_data, AnalysisError, FitSummary, Whitening,
+    parse_constraints, psd_table, residual_table, residual_table_of, resolve_guess,
+    truth_from_meta, whitened_table, whole_clock_data, AnalysisError, FitSummary, Whitening,
 };
 use crate::data::ExperimentData;
 use crate::fit::{
@@ -524,6 +524,39 @@ fn write_fit(
     Ok(())
 }
 
+/// The residual table ([`residual_table_of`]) of any model's fit: every readout of the model,
+/// each in its unit (o1, o12 in m; the others as the dataset's `[[auxiliary]]` declares them).
+fn model_residuals<M: SpecModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
+    prep: &Prepared,
+    lik: &Likelihood<'_, M, N>,
+    res: &FitResult,
+) -> Result<crate::io::Table, JobError> {
+    let (ds, data) = (&prep.ds, &prep.data);
+    let readouts = setup.model.readout_names();
+    let channels: Vec<(&str, &str)> = readouts
+        .iter()
+        .map(|r| {
+            let declared = ds.auxiliary.iter().find(|a| a.column == *r);
+            (*r, declared.map_or("m", |a| a.unit.as_str()))
+        })
+        .collect();
+    let t0: Vec<f64> = ds.experiments.iter().map(|(_, r)| r.t0).collect();
+    let problem = lik.problem(data)?;
+    let raw = problem.raw_residuals(data, &res.estimate);
+    let order = problem.lik.order();
+    let w = &res.residuals_w;
+    Ok(residual_table_of(
+        &data.names,
+        &channels,
+        &t0,
+        data.dt,
+        &raw,
+        w,
+        order,
+    )?)
+}
+
 /// Writes a design reconstructed from the recorded guidance columns into the output folder
 /// `out` ([`super::guidance::RECONSTRUCTED_FILE_NAME`]); returns a note naming it.
 pub fn write_reconstruction(prep: &Prepared, out: &Path) -> Result<Option<String>, JobError> {
@@ -543,8 +576,8 @@ pub fn write_reconstruction(prep: &Prepared, out: &Path) -> Result<Option<String
 
 /// What a fit needs of its model beyond [`SpecModel`]: [`FitModel::fit_job`] runs a
 /// [`FitJob`] on the model. The default is the fit every model has ([`FitJob::run_model`]); the
-/// x model adds start-up transients, the units check, decimated telemetry and the residual
-/// table ([`FitJob::run`]).
+/// x model adds start-up transients, the units check and decimated telemetry
+/// ([`FitJob::run`]).
 pub trait FitModel<const N: usize>: SpecModel<N> {
     fn fit_job(
         job: &FitJob,
@@ -603,11 +636,11 @@ impl FitJob {
     }
 
     /// Fits the dataset at `path` by any model and writes estimates.parquet,
-    /// correlation.parquet and fit.json to `out`: the model's readouts and guidance by column
-    /// name (the auxiliary columns of a model with more than the x channels), the MIMO fit and
-    /// whitening in the model's dimension. Start-up transients are refused; the units check,
-    /// decimated telemetry and residuals.parquet (whose table has the x model's two channels)
-    /// are the x model's ([`Self::run`]).
+    /// correlation.parquet, residuals.parquet (every readout of the model) and fit.json to
+    /// `out`: the model's readouts and guidance by column name (the auxiliary columns of a
+    /// model with more than the x channels), the MIMO fit and whitening in the model's
+    /// dimension. Start-up transients are refused; the units check and decimated telemetry are
+    /// the x model's ([`Self::run`]).
     pub fn run_model<M: SpecModel<N>, const N: usize>(
         &self,
         setup: &SetupOf<M, N>,
@@ -620,6 +653,7 @@ impl FitJob {
             cfg,
             res,
             source,
+            lik,
             ..
         } = self.fitted_model(setup, path, notes)?;
         let (ds, guess) = (&prep.ds, &prep.guess);
@@ -648,6 +682,11 @@ impl FitJob {
         write_parquet(out.join("estimates.parquet"), &est.with_meta_all(&meta))?;
         let corr = correlation_table(&names, |i, j| res.correlation[(i, j)])?;
         write_parquet(out.join("correlation.parquet"), &corr.with_meta_all(&meta))?;
+        let residuals = model_residuals(setup, &prep, &lik, &res)?;
+        write_parquet(
+            out.join("residuals.parquet"),
+            &residuals.with_meta_all(&meta),
+        )?;
         write_json_atomic(out.join("fit.json"), &summary)?;
         let truth = truth_from_meta(ds, &names);
         Ok(FitOutcome {

@@ -96,3 +96,57 @@ fn xy_design_validation_scatter_matches_the_fisher_information() {
     }
     assert!(out.join("designs/d-information_xy.toml").exists());
 }
+
+#[test]
+fn the_xy_fit_writes_the_residuals_of_every_readout_and_their_chi2_is_the_fits() {
+    // Oracles: (1) the model's readouts: residuals.parquet has every one of the seven, each
+    // with one row per sample of every experiment, in its unit (angles in rad, displacements
+    // in m: rows differ, so a `unit` column); (2) fit.json: the sum of the squared whitened
+    // residuals of the table is the fit's reported chi^2 (to rounding).
+    let dir = tempfile::tempdir().unwrap();
+    let ds = simulate(dir.path(), "sensing_crosstalk", "5", &[]);
+    let out = dir.path().join("fit");
+    let mut args = vec![
+        "fit",
+        ds.to_str().unwrap(),
+        "--model",
+        "lpf_xy",
+        "--guess",
+        "sensing_crosstalk",
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    for h in HELD {
+        args.extend(["--fix", h]);
+    }
+    ok(&args);
+    let fit: Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("fit.json")).unwrap()).unwrap();
+    let res = read_parquet_nulls_as_nan(out.join("residuals.parquet")).unwrap();
+    assert_eq!(
+        res.names(),
+        ["experiment", "channel", "t", "raw", "unit", "whitened"]
+    );
+    let (ch, unit) = (
+        res.str_column("channel").unwrap(),
+        res.str_column("unit").unwrap(),
+    );
+    let experiments: std::collections::BTreeSet<&String> =
+        res.str_column("experiment").unwrap().iter().collect();
+    for r in XY_READOUTS {
+        let rows: Vec<usize> = (0..ch.len()).filter(|&i| ch[i] == r).collect();
+        assert_eq!(rows.len(), experiments.len() * 10_800, "rows of {r}");
+        let want = if r.contains("phi") { "rad" } else { "m" };
+        assert!(rows.iter().all(|&i| unit[i] == want), "unit of {r}");
+    }
+    assert_eq!(ch.len(), experiments.len() * 10_800 * XY_READOUTS.len());
+    let chi2: f64 = (res.f64_column("whitened").unwrap().iter())
+        .filter(|w| w.is_finite())
+        .map(|w| w * w)
+        .sum();
+    let reported = fit["chi2"].as_f64().unwrap();
+    assert!(
+        ((chi2 - reported) / reported).abs() < 1e-9,
+        "chi2 of residuals.parquet {chi2} vs fit.json {reported}"
+    );
+}
