@@ -95,12 +95,29 @@ pub struct Simulated {
     /// The auxiliary readouts written with the runs (empty unless asked for).
     pub aux: crate::data::Auxiliary,
     pub meta: toml::Table,
+    /// The names of the runs' own channels, `data`'s inputs then its readouts (the model's
+    /// first [`run_channels`] of each).
+    pub run_columns: Vec<String>,
 }
 
 impl Simulated {
     /// The measured-data form: the experiments, the noise run, the auxiliary readouts declared
-    /// in `[[auxiliary]]`, and the `[meta]`.
+    /// in `[[auxiliary]]`, and the `[meta]`. Its runs hold oi1, oi12, o1, o12
+    /// (`io::run`): a model whose first inputs and readouts are not those is refused in one
+    /// line naming them.
     pub fn dataset(&self) -> Result<crate::io::Dataset, crate::io::IoError> {
+        let format = ["oi1", "oi12", "o1", "o12"];
+        if self.run_columns != format {
+            return Err(crate::io::IoError::Invalid {
+                path: std::path::PathBuf::from("<simulated dataset>"),
+                message: format!(
+                    "the model's runs hold {}; the measured-data format's runs hold {} \
+                     (src/io/run.rs), so this model's data cannot be written as a dataset",
+                    self.run_columns.join(", "),
+                    format.join(", ")
+                ),
+            });
+        }
         crate::io::Dataset::simulated_with_auxiliary(
             &self.data,
             &self.noise,
@@ -241,6 +258,7 @@ impl SimulateJob {
             noise,
             aux,
             meta,
+            run_columns: run_columns(&setup.model),
         })
     }
 
@@ -399,6 +417,26 @@ pub(super) fn draw_all(
 /// other readouts and guidance are recorded as auxiliary columns ([`SimulateJob::run_plain`]).
 pub const RUN_CHANNELS: usize = 2;
 
+/// How many of an `n`-readout model's readouts (and inputs) are the runs' own channels: its
+/// first [`RUN_CHANNELS`], or all of them when it has fewer.
+pub const fn run_channels(n: usize) -> usize {
+    if n < RUN_CHANNELS {
+        n
+    } else {
+        RUN_CHANNELS
+    }
+}
+
+/// The names of the runs' own channels of `model`: its first [`run_channels`] inputs, then as
+/// many readouts ([`Simulated::run_columns`]).
+fn run_columns<M: ClosedLoopModel<N>, const N: usize>(model: &M) -> Vec<String> {
+    let k = run_channels(N);
+    (model.input_names()[..k].iter())
+        .chain(&model.readout_names()[..k])
+        .map(|s| s.to_string())
+        .collect()
+}
+
 /// The commands of a model's loops beyond the runs' channels, with their auxiliary channels:
 /// the channels, then every experiment's commands and the noise run's, loop by loop.
 pub type LoopCommands = (Vec<AuxChannel>, crate::sim::commands::Commands);
@@ -487,35 +525,28 @@ fn split_runs<M: ClosedLoopModel<N>, const N: usize>(
             noise_asd,
         }
     };
-    let channels = (model.readout_names()[RUN_CHANNELS..].iter().enumerate())
-        .map(|(k, n)| channel(n, false, Some(floors[RUN_CHANNELS + k])))
-        .chain((model.input_names()[RUN_CHANNELS..].iter()).map(|n| channel(n, true, None)))
+    let k = run_channels(N);
+    let channels = (model.readout_names()[k..].iter().enumerate())
+        .map(|(j, n)| channel(n, false, Some(floors[k + j])))
+        .chain((model.input_names()[k..].iter()).map(|n| channel(n, true, None)))
         .collect();
     let n_noise = noise.first().map_or(0, Vec::len);
-    let quiet = vec![vec![0.0; n_noise]; N - RUN_CHANNELS];
+    let quiet = vec![vec![0.0; n_noise]; N - k];
     let aux = Auxiliary {
         channels,
         experiments: all
             .outputs
             .iter()
             .zip(&all.inputs)
-            .map(|(o, i)| [&o[RUN_CHANNELS..], &i[RUN_CHANNELS..]].concat())
+            .map(|(o, i)| [&o[k..], &i[k..]].concat())
             .collect(),
-        noise: Some([&noise[RUN_CHANNELS..], &quiet[..]].concat()),
+        noise: Some([&noise[k..], &quiet[..]].concat()),
     };
     let data = ExperimentData {
         tails: Vec::new(),
         names: all.names,
-        inputs: all
-            .inputs
-            .into_iter()
-            .map(|i| i[..RUN_CHANNELS].to_vec())
-            .collect(),
-        outputs: all
-            .outputs
-            .into_iter()
-            .map(|o| o[..RUN_CHANNELS].to_vec())
-            .collect(),
+        inputs: all.inputs.into_iter().map(|i| i[..k].to_vec()).collect(),
+        outputs: all.outputs.into_iter().map(|o| o[..k].to_vec()).collect(),
         dt: all.dt,
     };
     (data, aux)
@@ -595,7 +626,7 @@ impl SimulateJob {
                 n.extend(noise_cmd);
             }
         }
-        let noise = noise[..RUN_CHANNELS].to_vec();
+        let noise = noise[..run_channels(N)].to_vec();
         let mut meta = self.meta(&setup.spec, &sc, Rate::Analysis);
         if !set.is_empty() {
             meta.insert("effects".into(), toml::Value::Table(set.meta));
@@ -605,6 +636,7 @@ impl SimulateJob {
             noise,
             aux,
             meta,
+            run_columns: run_columns(&setup.model),
         })
     }
 }
