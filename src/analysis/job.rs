@@ -103,9 +103,9 @@ pub struct WhitenJob {
 }
 
 impl WhitenJob {
-    /// Whitens `run_path` into `out`; `setup` loads the model when its noise PSD is asked for
-    /// (any model: its readouts, by name, are whitened with its noise cross-PSD; a noise run
-    /// whitens o1 and o12). Returns the report: the filter, where it came from, and the
+    /// Whitens `run_path` into `out`; `setup` loads the model, any model: its readouts, by
+    /// name, are whitened with its noise cross-PSD or with the filter estimated from a noise
+    /// run's same readouts. Returns the report: the filter, where it came from, and the
     /// whitened moments with their uncertainties.
     pub fn run(
         &self,
@@ -116,20 +116,7 @@ impl WhitenJob {
         let run = read_run(run_path)?;
         match (&self.noise, self.model_psd) {
             (Some(path), _) => {
-                let noise = read_run(path)?;
-                if !crate::numerics::tol::same_time(noise.dt, run.dt) {
-                    return Err(JobError::Invalid(format!(
-                        "{}: sampling interval {} s differs from {}'s {} s",
-                        path.display(),
-                        noise.dt,
-                        run_path.display(),
-                        run.dt
-                    )));
-                }
-                let w = Whitener::<2>::from_series(&outputs_of(&noise), self.order)
-                    .map_err(context(path.display().to_string()))?;
-                let source = format!("noise run {}", path.display());
-                self.write(&run, run_path, &super::tables::CHANNELS, &w, &source, out)
+                crate::with_setup!(setup()?, s => self.by_noise(&*s, &run, run_path, path, out))
             }
             (None, true) => {
                 crate::with_setup!(setup()?, s => self.by_model(&*s, &run, run_path, out))
@@ -138,6 +125,38 @@ impl WhitenJob {
                 "give --noise NOISE.parquet or --model-psd to choose where the whitening filter comes from".into(),
             )),
         }
+    }
+
+    /// [`Self::run`] with the filter estimated from the noise-only run at `noise_path`: every
+    /// readout of `setup`'s model, by name (o1, o12 for the x model; o1 .. ophisc for xy), each
+    /// of which the noise run and the run must hold.
+    fn by_noise<M: SpecModel<N>, const N: usize>(
+        &self,
+        setup: &SetupOf<M, N>,
+        run: &crate::io::Run,
+        run_path: &Path,
+        noise_path: &Path,
+        out: &Path,
+    ) -> Result<String, JobError> {
+        let noise = read_run(noise_path)?;
+        if !crate::numerics::tol::same_time(noise.dt, run.dt) {
+            return Err(JobError::Invalid(format!(
+                "{}: sampling interval {} s differs from {}'s {} s",
+                noise_path.display(),
+                noise.dt,
+                run_path.display(),
+                run.dt
+            )));
+        }
+        let channels = setup.model.readout_names();
+        let series = channels
+            .iter()
+            .map(|c| noise.column(c).map(<[f64]>::to_vec))
+            .collect::<Result<Vec<_>, _>>()?;
+        let w = Whitener::<N>::from_series(&series, self.order)
+            .map_err(context(noise_path.display().to_string()))?;
+        let source = format!("noise run {}", noise_path.display());
+        self.write(run, run_path, &channels, &w, &source, out)
     }
 
     /// [`Self::run`] with the noise cross-PSD of `setup`'s model at the scenario's truth (or
