@@ -543,6 +543,32 @@ fn write_fit(
     Ok(())
 }
 
+/// The model's whitening filter at `p` for `n` samples at `dt` of the dataset `ds`: its noise
+/// PSD, folded through the anti-alias FIR when the telemetry went through it
+/// ([`decimated_telemetry`], `fit::telemetry_psd`), every readout of the model; with where it
+/// came from (and the white floor added at a null of the FIR).
+fn model_whitener<M: SpecModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
+    ds: &Dataset,
+    p: &[f64],
+    n: usize,
+    dt: f64,
+    order: usize,
+) -> Result<(Whitener<N>, String), JobError> {
+    if !decimated_telemetry(ds) {
+        let w = setup.whitener_from_model(p, n, dt, order)?;
+        return Ok((w, "model noise PSD at the guess".into()));
+    }
+    let decimator = setup.spec.decimator().map_err(SetupError::from)?;
+    let (w, floor) = setup.whitener_through_decimator(p, n, dt, order, &decimator)?;
+    let readouts = setup.model.readout_names();
+    let floor = floor.map_or(String::new(), |f| format!("; {}", f.note_named(&readouts)));
+    Ok((
+        w,
+        format!("model noise PSD at the guess folded through the anti-alias FIR{floor}"),
+    ))
+}
+
 /// The residual table ([`residual_table_of`]) of any model's fit: every readout of the model,
 /// each in its unit (o1, o12 in m; the others as the dataset's `[[auxiliary]]` declares them).
 fn model_residuals<M: SpecModel<N>, const N: usize>(
@@ -743,7 +769,7 @@ impl FitJob {
         let (w, source) = match (&noise, self.whitening) {
             (Some(n), Whitening::Auto | Whitening::Noise) => (
                 Whitener::<N>::from_series(n, order).map_err(context("the noise run"))?,
-                "noise-only run",
+                "noise-only run".to_string(),
             ),
             (None, Whitening::Noise) => {
                 return Err(JobError::Invalid(format!(
@@ -751,10 +777,7 @@ impl FitJob {
                     path.display()
                 )))
             }
-            _ => (
-                setup.whitener_from_model(guess, data.len(), data.dt, order)?,
-                "model noise PSD at the guess",
-            ),
+            _ => model_whitener(setup, ds, guess, data.len(), data.dt, order)?,
         };
         let lik = Likelihood::for_data(&setup.model, data, w, self.dataset.poly_degree)
             .map_err(context(path.display().to_string()))?;
@@ -765,7 +788,7 @@ impl FitJob {
             lik,
             cfg,
             res,
-            source: source.to_string(),
+            source,
             transients: Vec::new(),
             prep,
         })

@@ -81,17 +81,15 @@ impl<M: SpecModel<N>, const N: usize> SetupOf<M, N> {
             None,
         )?)
     }
-}
 
-impl Setup {
     /// The thesis's path: a simulator at simulate_hz whose output is decimated with the
-    /// anti-alias FIR to analyse_hz (`sim::decimated`).
+    /// anti-alias FIR to analyse_hz (`sim::decimated`), every readout and input of the model.
     pub fn decimated_simulator(
         &self,
         design: &Design,
         truth: &[f64],
         glitch: Option<&GlitchSpec>,
-    ) -> Result<DecimatedSimulator<2>, Error> {
+    ) -> Result<DecimatedSimulator<N>, Error> {
         self.check_simulation_size(design, "duration_s")?;
         Ok(DecimatedSimulator::with_decimator(
             &self.model,

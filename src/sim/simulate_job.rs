@@ -562,8 +562,9 @@ impl SimulateJob {
     /// (`SetupOf::plain_simulator`): the runs' channels as the runs, the model's other readouts
     /// and guidance as auxiliary columns (`[[auxiliary]]` of dataset.toml), experiments and
     /// noise run alike, and with `commands` the commands of the model's other loops
-    /// ([`SimulateModel::commands`]). Refuses the engines, rates, effects and initial
-    /// conditions that only the x model's draw has ([`SimulateJob::run`]).
+    /// ([`SimulateModel::commands`]); with `--rate decimated`, [`Self::run_decimated`]. Refuses
+    /// the engine, effects and initial conditions that only the x model's draw has
+    /// ([`SimulateJob::run`]).
     pub fn run_plain<M: SimulateModel<N>, const N: usize>(
         &self,
         setup: &SetupOf<M, N>,
@@ -579,11 +580,11 @@ impl SimulateJob {
         if self.engine == Engine::TimeDomain {
             return refuse("--engine time-domain");
         }
-        if self.rate == Some(Rate::Decimated) {
-            return refuse("--rate decimated");
-        }
         if self.initial.is_some() {
             return refuse("--initial");
+        }
+        if self.rate == Some(Rate::Decimated) {
+            return self.run_decimated(setup);
         }
         let (sc, design, noise_design) = self.plan(setup)?;
         let set = EffectSet::parse(&self.effects, &setup.parameter_names())
@@ -636,6 +637,40 @@ impl SimulateJob {
             noise,
             aux,
             meta,
+            run_columns: run_columns(&setup.model),
+        })
+    }
+
+    /// [`Self::run_plain`] at the decimated rate: every readout and input of the model simulated
+    /// at simulate_hz and decimated by the model file's anti-alias FIR to analyse_hz
+    /// (`sim::decimated`, the thesis's path), the noise run alike; `[meta] rate = "decimated"`
+    /// (the fit then folds its model whitening PSD through the FIR). Effects and recorded
+    /// commands are drawn at the analysis rate only.
+    fn run_decimated<M: SimulateModel<N>, const N: usize>(
+        &self,
+        setup: &SetupOf<M, N>,
+    ) -> Result<Simulated, SimulateError> {
+        if !self.effects.is_empty() {
+            return Err(SimulateError::EffectsNeedAnalysisRate);
+        }
+        if self.commands {
+            return Err(SimulateError::Effect(format!(
+                "--commands: the {} model ({}) records its loops' commands at the analysis rate \
+                 (--rate analysis)",
+                M::KIND.name(),
+                setup.spec.origin
+            )));
+        }
+        let (sc, design, noise_design) = self.plan(setup)?;
+        let sim = setup.decimated_simulator(&design, &sc.truth, None)?;
+        let nsim = setup.decimated_simulator(&noise_design, &sc.truth, None)?;
+        let (all, noise) = draw_all(|r| sim.draw(r), |r| nsim.noise_run(r), self.seed);
+        let (data, aux) = split_runs(&setup.model, readout_floors(setup), all, &noise);
+        Ok(Simulated {
+            data,
+            noise: noise[..run_channels(N)].to_vec(),
+            aux,
+            meta: self.meta(&setup.spec, &sc, Rate::Decimated),
             run_columns: run_columns(&setup.model),
         })
     }
