@@ -11,8 +11,8 @@ use std::path::{Path, PathBuf};
 use super::transient::{clean_noise_run, fit_with_transients, TransientError, TransientReport};
 use super::{
     correlation_table, dataset_whitener, decimated_telemetry, estimates_table, outputs_of,
-    parse_constraints, psd_table, residual_table, resolve_guess, truth_from_meta, whitened_table,
-    whole_clock_data, AnalysisError, FitSummary, Whitening,
+    parse_constraints, psd_table, residual_table, residual_table_of, resolve_guess,
+    truth_from_meta, whitened_table, whole_clock_data, AnalysisError, FitSummary, Whitening,
 };
 use crate::data::ExperimentData;
 use crate::fit::{
@@ -104,9 +104,9 @@ pub struct WhitenJob {
 }
 
 impl WhitenJob {
-    /// Whitens `run_path` into `out`; `setup` loads the model when its noise PSD is asked for
-    /// (any model: its readouts, by name, are whitened with its noise cross-PSD; a noise run
-    /// whitens o1 and o12). Returns the report: the filter, where it came from, and the
+    /// Whitens `run_path` into `out`; `setup` loads the model, any model: its readouts, by
+    /// name, are whitened with its noise cross-PSD or with the filter estimated from a noise
+    /// run's same readouts. Returns the report: the filter, where it came from, and the
     /// whitened moments with their uncertainties.
     pub fn run(
         &self,
@@ -117,20 +117,7 @@ impl WhitenJob {
         let run = read_run(run_path)?;
         match (&self.noise, self.model_psd) {
             (Some(path), _) => {
-                let noise = read_run(path)?;
-                if !crate::numerics::tol::same_time(noise.dt, run.dt) {
-                    return Err(JobError::Invalid(format!(
-                        "{}: sampling interval {} s differs from {}'s {} s",
-                        path.display(),
-                        noise.dt,
-                        run_path.display(),
-                        run.dt
-                    )));
-                }
-                let w = Whitener::<2>::from_series(&outputs_of(&noise), self.order)
-                    .map_err(context(path.display().to_string()))?;
-                let source = format!("noise run {}", path.display());
-                self.write(&run, run_path, &super::tables::CHANNELS, &w, &source, out)
+                crate::with_setup!(setup()?, s => self.by_noise(&*s, &run, run_path, path, out))
             }
             (None, true) => {
                 crate::with_setup!(setup()?, s => self.by_model(&*s, &run, run_path, out))
@@ -139,6 +126,38 @@ impl WhitenJob {
                 "give --noise NOISE.parquet or --model-psd to choose where the whitening filter comes from".into(),
             )),
         }
+    }
+
+    /// [`Self::run`] with the filter estimated from the noise-only run at `noise_path`: every
+    /// readout of `setup`'s model, by name (o1, o12 for the x model; o1 .. ophisc for xy), each
+    /// of which the noise run and the run must hold.
+    fn by_noise<M: SpecModel<N>, const N: usize>(
+        &self,
+        setup: &SetupOf<M, N>,
+        run: &crate::io::Run,
+        run_path: &Path,
+        noise_path: &Path,
+        out: &Path,
+    ) -> Result<String, JobError> {
+        let noise = read_run(noise_path)?;
+        if !crate::numerics::tol::same_time(noise.dt, run.dt) {
+            return Err(JobError::Invalid(format!(
+                "{}: sampling interval {} s differs from {}'s {} s",
+                noise_path.display(),
+                noise.dt,
+                run_path.display(),
+                run.dt
+            )));
+        }
+        let channels = setup.model.readout_names();
+        let series = channels
+            .iter()
+            .map(|c| noise.column(c).map(<[f64]>::to_vec))
+            .collect::<Result<Vec<_>, _>>()?;
+        let w = Whitener::<N>::from_series(&series, self.order)
+            .map_err(context(noise_path.display().to_string()))?;
+        let source = format!("noise run {}", noise_path.display());
+        self.write(run, run_path, &channels, &w, &source, out)
     }
 
     /// [`Self::run`] with the noise cross-PSD of `setup`'s model at the scenario's truth (or
@@ -525,6 +544,65 @@ fn write_fit(
     Ok(())
 }
 
+/// The model's whitening filter at `p` for `n` samples at `dt` of the dataset `ds`: its noise
+/// PSD, folded through the anti-alias FIR when the telemetry went through it
+/// ([`decimated_telemetry`], `fit::telemetry_psd`), every readout of the model; with where it
+/// came from (and the white floor added at a null of the FIR).
+fn model_whitener<M: SpecModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
+    ds: &Dataset,
+    p: &[f64],
+    n: usize,
+    dt: f64,
+    order: usize,
+) -> Result<(Whitener<N>, String), JobError> {
+    if !decimated_telemetry(ds) {
+        let w = setup.whitener_from_model(p, n, dt, order)?;
+        return Ok((w, "model noise PSD at the guess".into()));
+    }
+    let decimator = setup.spec.decimator().map_err(SetupError::from)?;
+    let (w, floor) = setup.whitener_through_decimator(p, n, dt, order, &decimator)?;
+    let readouts = setup.model.readout_names();
+    let floor = floor.map_or(String::new(), |f| format!("; {}", f.note_named(&readouts)));
+    Ok((
+        w,
+        format!("model noise PSD at the guess folded through the anti-alias FIR{floor}"),
+    ))
+}
+
+/// The residual table ([`residual_table_of`]) of any model's fit: every readout of the model,
+/// each in its unit (o1, o12 in m; the others as the dataset's `[[auxiliary]]` declares them).
+fn model_residuals<M: SpecModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
+    prep: &Prepared,
+    lik: &Likelihood<'_, M, N>,
+    res: &FitResult,
+) -> Result<crate::io::Table, JobError> {
+    let (ds, data) = (&prep.ds, &prep.data);
+    let readouts = setup.model.readout_names();
+    let channels: Vec<(&str, &str)> = readouts
+        .iter()
+        .map(|r| {
+            let declared = ds.auxiliary.iter().find(|a| a.column == *r);
+            (*r, declared.map_or("m", |a| a.unit.as_str()))
+        })
+        .collect();
+    let t0: Vec<f64> = ds.experiments.iter().map(|(_, r)| r.t0).collect();
+    let problem = lik.problem(data)?;
+    let raw = problem.raw_residuals(data, &res.estimate);
+    let order = problem.lik.order();
+    let w = &res.residuals_w;
+    Ok(residual_table_of(
+        &data.names,
+        &channels,
+        &t0,
+        data.dt,
+        &raw,
+        w,
+        order,
+    )?)
+}
+
 /// Writes a design reconstructed from the recorded guidance columns into the output folder
 /// `out` ([`super::guidance::RECONSTRUCTED_FILE_NAME`]); returns a note naming it.
 pub fn write_reconstruction(prep: &Prepared, out: &Path) -> Result<Option<String>, JobError> {
@@ -544,8 +622,8 @@ pub fn write_reconstruction(prep: &Prepared, out: &Path) -> Result<Option<String
 
 /// What a fit needs of its model beyond [`SpecModel`]: [`FitModel::fit_job`] runs a
 /// [`FitJob`] on the model. The default is the fit every model has ([`FitJob::run_model`]); the
-/// x model adds start-up transients, the units check, decimated telemetry and the residual
-/// table ([`FitJob::run`]).
+/// x model adds start-up transients, the units check and decimated telemetry
+/// ([`FitJob::run`]).
 pub trait FitModel<const N: usize>: SpecModel<N> {
     fn fit_job(
         job: &FitJob,
@@ -619,11 +697,11 @@ impl FitJob {
     }
 
     /// Fits the dataset at `path` by any model and writes estimates.parquet,
-    /// correlation.parquet and fit.json to `out`: the model's readouts and guidance by column
-    /// name (the auxiliary columns of a model with more than the x channels), the MIMO fit and
-    /// whitening in the model's dimension. Start-up transients are refused; the units check,
-    /// decimated telemetry and residuals.parquet (whose table has the x model's two channels)
-    /// are the x model's ([`Self::run`]).
+    /// correlation.parquet, residuals.parquet (every readout of the model) and fit.json to
+    /// `out`: the model's readouts and guidance by column name (the auxiliary columns of a
+    /// model with more than the x channels), the MIMO fit and whitening in the model's
+    /// dimension, start-up transients by the model's own fit ([`FitModel::fitted`]). The units
+    /// check is the x model's ([`Self::run`]).
     pub fn run_model<M: FitModel<N>, const N: usize>(
         &self,
         setup: &SetupOf<M, N>,
@@ -637,6 +715,7 @@ impl FitJob {
             res,
             source,
             transients,
+            lik,
             ..
         } = M::fitted(self, setup, path, notes)?;
         let (ds, guess) = (&prep.ds, &prep.guess);
@@ -666,6 +745,11 @@ impl FitJob {
         write_parquet(out.join("estimates.parquet"), &est.with_meta_all(&meta))?;
         let corr = correlation_table(&names, |i, j| res.correlation[(i, j)])?;
         write_parquet(out.join("correlation.parquet"), &corr.with_meta_all(&meta))?;
+        let residuals = model_residuals(setup, &prep, &lik, &res)?;
+        write_parquet(
+            out.join("residuals.parquet"),
+            &residuals.with_meta_all(&meta),
+        )?;
         write_json_atomic(out.join("fit.json"), &summary)?;
         let truth = truth_from_meta(ds, &names);
         let mut text = summary.text(&names, &res, guess, truth.as_deref());
@@ -706,7 +790,7 @@ impl FitJob {
         let (w, source) = match (&noise, self.whitening) {
             (Some(n), Whitening::Auto | Whitening::Noise) => (
                 Whitener::<N>::from_series(n, order).map_err(context("the noise run"))?,
-                "noise-only run",
+                "noise-only run".to_string(),
             ),
             (None, Whitening::Noise) => {
                 return Err(JobError::Invalid(format!(
@@ -714,10 +798,7 @@ impl FitJob {
                     path.display()
                 )))
             }
-            _ => (
-                setup.whitener_from_model(guess, data.len(), data.dt, order)?,
-                "model noise PSD at the guess",
-            ),
+            _ => model_whitener(setup, ds, guess, data.len(), data.dt, order)?,
         };
         let lik = Likelihood::for_data(&setup.model, data, w, self.dataset.poly_degree)
             .map_err(context(path.display().to_string()))?;
@@ -728,7 +809,7 @@ impl FitJob {
             lik,
             cfg,
             res,
-            source: source.to_string(),
+            source,
             transients: Vec::new(),
             prep,
         })

@@ -25,8 +25,8 @@ use crate::io::{read_toml, Dataset, IoError, Run};
 use crate::setup::{Setup, SetupOf, SpecModel};
 
 pub use tables::{
-    correlation_table, estimates_table, psd_table, residual_table, spectra_table, time_chi2_table,
-    whitened_table, FitSummary,
+    correlation_table, estimates_table, psd_table, residual_table, residual_table_of,
+    spectra_table, time_chi2_table, whitened_table, FitSummary,
 };
 
 /// Errors of the front end; each names the option, file or parameter at fault.

@@ -102,9 +102,8 @@ pub fn correlation_table(
         .with_unit("corr", "1"))
 }
 
-/// Long-format residuals: experiment, channel, t (from each experiment's own start `t0[e]`),
-/// raw, whitened (null where the whitening filter of order `order` has not started).
-/// `raw[e][c]` has one value per sample; `whitened[e][c]` starts at sample `order`.
+/// Long-format residuals of the x readouts o1, o12 [m]: [`residual_table_of`] with
+/// [`CHANNELS`].
 pub fn residual_table(
     names: &[String],
     t0: &[f64],
@@ -113,13 +112,32 @@ pub fn residual_table(
     whitened: &[Vec<Vec<f64>>],
     order: usize,
 ) -> Result<Table, IoError> {
-    let (mut exp, mut ch, mut t, mut r, mut w) =
-        (Vec::new(), Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let channels = CHANNELS.map(|c| (c, "m"));
+    residual_table_of(names, &channels, t0, dt, raw, whitened, order)
+}
+
+/// Long-format residuals: experiment, channel, t (from each experiment's own start `t0[e]`),
+/// raw, whitened (null where the whitening filter of order `order` has not started), for the
+/// readouts `channels` (name, unit), in series order. `raw[e][c]` has one value per sample;
+/// `whitened[e][c]` starts at sample `order`. `raw` is in the channel's unit: the column's
+/// when every channel has the same, else a `unit` column gives each row's.
+pub fn residual_table_of(
+    names: &[String],
+    channels: &[(&str, &str)],
+    t0: &[f64],
+    dt: f64,
+    raw: &[Vec<Vec<f64>>],
+    whitened: &[Vec<Vec<f64>>],
+    order: usize,
+) -> Result<Table, IoError> {
+    let (mut exp, mut ch, mut unit) = (Vec::<String>::new(), Vec::new(), Vec::new());
+    let (mut t, mut r, mut w) = (Vec::<f64>::new(), Vec::new(), Vec::new());
     for (e, name) in names.iter().enumerate() {
-        for (c, cname) in CHANNELS.iter().enumerate() {
+        for (c, (cname, cunit)) in channels.iter().enumerate() {
             for (i, &v) in raw[e][c].iter().enumerate() {
                 exp.push(name.clone());
                 ch.push(cname.to_string());
+                unit.push(cunit.to_string());
                 t.push(t0.get(e).copied().unwrap_or(0.0) + i as f64 * dt);
                 r.push(v);
                 w.push(
@@ -130,13 +148,22 @@ pub fn residual_table(
             }
         }
     }
-    Ok(Table::new()
+    let one_unit = channels
+        .iter()
+        .all(|c| c.1 == channels[0].1)
+        .then(|| channels[0].1);
+    let table = Table::new()
         .with_str("experiment", exp)?
         .with_str("channel", ch)?
         .with_f64("t", t)?
-        .with_f64("raw", r)?
+        .with_f64("raw", r)?;
+    let table = match one_unit {
+        Some(u) => table.with_unit("raw", u),
+        None => table.with_str("unit", unit)?,
+    };
+    Ok(table
         .with_f64("whitened", w)?
-        .with_units([("t", "s"), ("raw", "m"), ("whitened", "1")])
+        .with_units([("t", "s"), ("whitened", "1")])
         .with_nan_as_null("whitened"))
 }
 

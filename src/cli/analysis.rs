@@ -87,7 +87,8 @@ pub fn psd(run: &Path, out: &Path) -> Result<()> {
 pub struct WhitenArgs {
     /// Run file to whiten.
     pub run: PathBuf,
-    /// Noise-only run from which the whitening filter is estimated.
+    /// Noise-only run from which the whitening filter is estimated (its columns of the
+    /// model's readouts).
     #[arg(long, conflicts_with = "model_psd")]
     pub noise: Option<PathBuf>,
     /// Build the whitening filter from the model's noise PSD instead.
@@ -104,8 +105,8 @@ pub struct WhitenArgs {
     /// Degree of the polynomial removed from the whitened series.
     #[arg(long, default_value_t = DEFAULT_POLY_DEGREE)]
     pub poly_degree: usize,
-    /// Output Parquet: t, o1_w, o12_w (after the filter's start-up samples; with --model-psd,
-    /// one `<readout>_w` per readout of the model).
+    /// Output Parquet: t, then one `<readout>_w` per readout of the model (o1_w, o12_w for
+    /// lpf_x), after the filter's start-up samples.
     #[arg(long)]
     pub out: PathBuf,
 }

@@ -47,7 +47,7 @@ pub struct SimulateArgs {
     pub model: ModelOpt,
     #[command(flatten)]
     pub source: SimSource,
-    /// Simulation path (default: decimated; analysis with --effect).
+    /// Simulation path (default: decimated; analysis with --effect, and for lpf_xy).
     #[arg(long, value_enum)]
     pub rate: Option<Rate>,
     /// Simulation engine.

@@ -1,11 +1,11 @@
-//! Simulators of a model file's setup: the builders on [`SetupOf`] and [`Setup`] (analysis
+//! Simulators of a model file's setup: the builders on [`SetupOf`] and [`Setup`](crate::setup::Setup) (analysis
 //! rate, decimated, time domain), each checked against the memory limit first. They live here,
 //! not in `setup`, so that `setup` (model file -> model, noise, designs, whitening) sits below
 //! the simulators that use it.
 
 use crate::model::spec::GlitchSpec;
 use crate::noise::NOISE_OVERSAMPLE;
-use crate::setup::{Error, Setup, SetupOf, SpecModel};
+use crate::setup::{Error, SetupOf, SpecModel};
 use crate::signal::Design;
 use crate::sim::decimated::DecimatedSimulator;
 use crate::sim::time_domain::{
@@ -21,7 +21,7 @@ impl From<TimeDomainError> for Error {
 
 impl<M: SpecModel<N>, const N: usize> SetupOf<M, N> {
     /// A simulator of `design` at parameters `truth`, directly at the analysis rate, without
-    /// glitches (see [`Setup::simulator`]).
+    /// glitches (see [`Setup::simulator`](crate::setup::Setup::simulator)).
     pub fn plain_simulator(&self, design: &Design, truth: &[f64]) -> Result<Simulator<N>, Error> {
         self.check_simulation_size(design, "duration_s")?;
         Ok(Simulator::new(
@@ -81,17 +81,15 @@ impl<M: SpecModel<N>, const N: usize> SetupOf<M, N> {
             None,
         )?)
     }
-}
 
-impl Setup {
     /// The thesis's path: a simulator at simulate_hz whose output is decimated with the
-    /// anti-alias FIR to analyse_hz (`sim::decimated`).
+    /// anti-alias FIR to analyse_hz (`sim::decimated`), every readout and input of the model.
     pub fn decimated_simulator(
         &self,
         design: &Design,
         truth: &[f64],
         glitch: Option<&GlitchSpec>,
-    ) -> Result<DecimatedSimulator<2>, Error> {
+    ) -> Result<DecimatedSimulator<N>, Error> {
         self.check_simulation_size(design, "duration_s")?;
         Ok(DecimatedSimulator::with_decimator(
             &self.model,

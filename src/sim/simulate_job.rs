@@ -95,12 +95,29 @@ pub struct Simulated {
     /// The auxiliary readouts written with the runs (empty unless asked for).
     pub aux: crate::data::Auxiliary,
     pub meta: toml::Table,
+    /// The names of the runs' own channels, `data`'s inputs then its readouts (the model's
+    /// first [`run_channels`] of each).
+    pub run_columns: Vec<String>,
 }
 
 impl Simulated {
     /// The measured-data form: the experiments, the noise run, the auxiliary readouts declared
-    /// in `[[auxiliary]]`, and the `[meta]`.
+    /// in `[[auxiliary]]`, and the `[meta]`. Its runs hold oi1, oi12, o1, o12
+    /// (`io::run`): a model whose first inputs and readouts are not those is refused in one
+    /// line naming them.
     pub fn dataset(&self) -> Result<crate::io::Dataset, crate::io::IoError> {
+        let format = ["oi1", "oi12", "o1", "o12"];
+        if self.run_columns != format {
+            return Err(crate::io::IoError::Invalid {
+                path: std::path::PathBuf::from("<simulated dataset>"),
+                message: format!(
+                    "the model's runs hold {}; the measured-data format's runs hold {} \
+                     (src/io/run.rs), so this model's data cannot be written as a dataset",
+                    self.run_columns.join(", "),
+                    format.join(", ")
+                ),
+            });
+        }
         crate::io::Dataset::simulated_with_auxiliary(
             &self.data,
             &self.noise,
@@ -241,6 +258,7 @@ impl SimulateJob {
             noise,
             aux,
             meta,
+            run_columns: run_columns(&setup.model),
         })
     }
 
@@ -401,6 +419,26 @@ pub(super) fn draw_all(
 /// other readouts and guidance are recorded as auxiliary columns ([`SimulateJob::run_plain`]).
 pub const RUN_CHANNELS: usize = 2;
 
+/// How many of an `n`-readout model's readouts (and inputs) are the runs' own channels: its
+/// first [`RUN_CHANNELS`], or all of them when it has fewer.
+pub const fn run_channels(n: usize) -> usize {
+    if n < RUN_CHANNELS {
+        n
+    } else {
+        RUN_CHANNELS
+    }
+}
+
+/// The names of the runs' own channels of `model`: its first [`run_channels`] inputs, then as
+/// many readouts ([`Simulated::run_columns`]).
+fn run_columns<M: ClosedLoopModel<N>, const N: usize>(model: &M) -> Vec<String> {
+    let k = run_channels(N);
+    (model.input_names()[..k].iter())
+        .chain(&model.readout_names()[..k])
+        .map(|s| s.to_string())
+        .collect()
+}
+
 /// The commands of a model's loops beyond the runs' channels, with their auxiliary channels:
 /// the channels, then every experiment's commands and the noise run's, loop by loop.
 pub type LoopCommands = (Vec<AuxChannel>, crate::sim::commands::Commands);
@@ -514,35 +552,28 @@ fn split_runs<M: ClosedLoopModel<N>, const N: usize>(
             noise_asd,
         }
     };
-    let channels = (model.readout_names()[RUN_CHANNELS..].iter().enumerate())
-        .map(|(k, n)| channel(n, false, Some(floors[RUN_CHANNELS + k])))
-        .chain((model.input_names()[RUN_CHANNELS..].iter()).map(|n| channel(n, true, None)))
+    let k = run_channels(N);
+    let channels = (model.readout_names()[k..].iter().enumerate())
+        .map(|(j, n)| channel(n, false, Some(floors[k + j])))
+        .chain((model.input_names()[k..].iter()).map(|n| channel(n, true, None)))
         .collect();
     let n_noise = noise.first().map_or(0, Vec::len);
-    let quiet = vec![vec![0.0; n_noise]; N - RUN_CHANNELS];
+    let quiet = vec![vec![0.0; n_noise]; N - k];
     let aux = Auxiliary {
         channels,
         experiments: all
             .outputs
             .iter()
             .zip(&all.inputs)
-            .map(|(o, i)| [&o[RUN_CHANNELS..], &i[RUN_CHANNELS..]].concat())
+            .map(|(o, i)| [&o[k..], &i[k..]].concat())
             .collect(),
-        noise: Some([&noise[RUN_CHANNELS..], &quiet[..]].concat()),
+        noise: Some([&noise[k..], &quiet[..]].concat()),
     };
     let data = ExperimentData {
         tails: Vec::new(),
         names: all.names,
-        inputs: all
-            .inputs
-            .into_iter()
-            .map(|i| i[..RUN_CHANNELS].to_vec())
-            .collect(),
-        outputs: all
-            .outputs
-            .into_iter()
-            .map(|o| o[..RUN_CHANNELS].to_vec())
-            .collect(),
+        inputs: all.inputs.into_iter().map(|i| i[..k].to_vec()).collect(),
+        outputs: all.outputs.into_iter().map(|o| o[..k].to_vec()).collect(),
         dt: all.dt,
     };
     (data, aux)
@@ -597,9 +628,10 @@ impl SimulateJob {
         let readouts = setup.model.readout_names();
         Ok(Simulated {
             data,
-            noise: noise[..RUN_CHANNELS].to_vec(),
+            noise: noise[..run_channels(N)].to_vec(),
             aux,
             meta: self.meta(&setup.spec, &sc, Rate::Decimated, &readouts),
+            run_columns: run_columns(&setup.model),
         })
     }
 
@@ -607,8 +639,9 @@ impl SimulateJob {
     /// (`SetupOf::plain_simulator`): the runs' channels as the runs, the model's other readouts
     /// and guidance as auxiliary columns (`[[auxiliary]]` of dataset.toml), experiments and
     /// noise run alike, and with `commands` the commands of the model's other loops
-    /// ([`SimulateModel::commands`]). Refuses the engines, rates, effects and initial
-    /// conditions that only the x model's draw has ([`SimulateJob::run`]).
+    /// ([`SimulateModel::commands`]); with `--rate decimated`, [`Self::run_decimated`]. Refuses
+    /// the engine, effects and initial conditions that only the x model's draw has
+    /// ([`SimulateJob::run`]).
     pub fn run_plain<M: SimulateModel<N>, const N: usize>(
         &self,
         setup: &SetupOf<M, N>,
@@ -624,11 +657,11 @@ impl SimulateJob {
         if self.engine == Engine::TimeDomain {
             return self.run_digital(setup);
         }
-        if self.rate == Some(Rate::Decimated) {
-            return refuse("--rate decimated");
-        }
         if self.initial.is_some() {
             return Err(SimulateError::InitialNeedsTimeDomain);
+        }
+        if self.rate == Some(Rate::Decimated) {
+            return self.run_decimated(setup);
         }
         let (sc, design, noise_design) = self.plan(setup)?;
         let set = EffectSet::parse(&self.effects, &setup.parameter_names())
@@ -671,7 +704,7 @@ impl SimulateJob {
                 n.extend(noise_cmd);
             }
         }
-        let noise = noise[..RUN_CHANNELS].to_vec();
+        let noise = noise[..run_channels(N)].to_vec();
         let readouts = setup.model.readout_names();
         let mut meta = self.meta(&setup.spec, &sc, Rate::Analysis, &readouts);
         if !set.is_empty() {
@@ -682,6 +715,42 @@ impl SimulateJob {
             noise,
             aux,
             meta,
+            run_columns: run_columns(&setup.model),
+        })
+    }
+
+    /// [`Self::run_plain`] at the decimated rate: every readout and input of the model simulated
+    /// at simulate_hz and decimated by the model file's anti-alias FIR to analyse_hz
+    /// (`sim::decimated`, the thesis's path), the noise run alike; `[meta] rate = "decimated"`
+    /// (the fit then folds its model whitening PSD through the FIR). Effects and recorded
+    /// commands are drawn at the analysis rate only.
+    fn run_decimated<M: SimulateModel<N>, const N: usize>(
+        &self,
+        setup: &SetupOf<M, N>,
+    ) -> Result<Simulated, SimulateError> {
+        if !self.effects.is_empty() {
+            return Err(SimulateError::EffectsNeedAnalysisRate);
+        }
+        if self.commands {
+            return Err(SimulateError::Effect(format!(
+                "--commands: the {} model ({}) records its loops' commands at the analysis rate \
+                 (--rate analysis)",
+                M::KIND.name(),
+                setup.spec.origin
+            )));
+        }
+        let (sc, design, noise_design) = self.plan(setup)?;
+        let sim = setup.decimated_simulator(&design, &sc.truth, None)?;
+        let nsim = setup.decimated_simulator(&noise_design, &sc.truth, None)?;
+        let (all, noise) = draw_all(|r| sim.draw(r), |r| nsim.noise_run(r), self.seed);
+        let (data, aux) = split_runs(&setup.model, readout_floors(setup), all, &noise);
+        let readouts = setup.model.readout_names();
+        Ok(Simulated {
+            data,
+            noise: noise[..run_channels(N)].to_vec(),
+            aux,
+            meta: self.meta(&setup.spec, &sc, Rate::Decimated, &readouts),
+            run_columns: run_columns(&setup.model),
         })
     }
 }

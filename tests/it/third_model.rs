@@ -358,3 +358,44 @@ fn the_third_models_diagnosis_claims_a_planted_loss_angle_and_nothing_in_control
         .collect();
     assert!(names.is_empty(), "control claims {names:?}");
 }
+
+/// The simulate job's draw on the oscillator: every default of [`SimulateModel`].
+impl freefall::sim::simulate_job::SimulateModel<1> for Oscillator {}
+
+#[test]
+fn the_simulate_job_draws_the_third_models_one_channel_runs() {
+    // Oracles: (1) the model's own simulator: the job's experiments are the draw of the
+    // frequency-domain simulator of the same design and streams (here through the effect
+    // host `Extended` with no effect, another path to the same operators), sample for sample;
+    // (2) the model's channels: one readout and one input per run, none auxiliary, a noise run
+    // of the requested duration; (3) the measured-data format (runs of oi1, oi12, o1, o12):
+    // writing the oscillator's runs (oi, o) is refused in one line naming both.
+    use freefall::sim::simulate_job::SimulateJob;
+    let s = setup();
+    let job = SimulateJob {
+        scenario: "nominal".into(),
+        design: "standard".into(),
+        seed: 5,
+        rate: None,
+        engine: freefall::sim::Engine::FrequencyDomain,
+        initial: None,
+        noise_duration: Some(3600.0),
+        effects: Vec::new(),
+        auxiliary: false,
+        commands: false,
+    };
+    let sim = job.run_plain(&s).unwrap();
+    let (want, _) = simulate(&s, "standard", &[], 5);
+    assert_eq!(sim.data.outputs, want.outputs);
+    assert_eq!(sim.data.inputs, want.inputs);
+    assert!(sim.data.outputs.iter().all(|o| o.len() == 1));
+    assert_eq!(sim.noise.len(), 1);
+    assert_eq!(sim.noise[0].len(), 3600);
+    assert!(sim.aux.channels.is_empty());
+    assert_eq!(sim.run_columns, ["oi", "o"]);
+    let err = sim.dataset().unwrap_err().to_string();
+    assert_eq!(err.lines().count(), 1, "{err}");
+    for needle in ["oi, o", "oi1, oi12, o1, o12"] {
+        assert!(err.contains(needle), "'{err}' lacks '{needle}'");
+    }
+}
