@@ -30,7 +30,6 @@ const HELD: [&str; 10] = [
 const VALIDATION_REALIZATIONS: usize = 3;
 
 #[test]
-#[ignore = "slow tier: an xy design validation, 7 Monte Carlo fits of 7 experiments (~250 s)"]
 fn xy_design_validation_scatter_matches_the_fisher_information() {
     // Oracle: Fisher theory (thesis sec. 4.5.5): at the truth the errors e_r of an unbiased
     // efficient estimator are Gaussian with covariance F^-1, so the Mahalanobis distance
