@@ -1,7 +1,8 @@
 //! `freefall design optimize|evaluate|validate`: optimal injection designs (thesis ch. 5).
 
 use super::prelude::*;
-use crate::design::validate::ValidationConfig;
+use crate::design::report::write_validation;
+use crate::design::validate::{validate as run_validation, ValidationConfig};
 use crate::design::DesignModel;
 use crate::io::{ensure_dir, ensure_parent, read_toml, write_parquet};
 use crate::setup::SetupOf;
@@ -46,7 +47,7 @@ pub struct OptimizeArgs {
     /// Matrix the criterion acts on.
     #[arg(long, value_enum, default_value_t = Matrix::Information)]
     pub on: Matrix,
-    /// separate (Exp. 1 on oi1, Exp. 2 on oi12) or simultaneous (Exp. 3 on both); lpf_xy: separate.
+    /// separate (Exp. 1 on oi1, Exp. 2 on oi12) or simultaneous (Exp. 3 on both); lpf_x only.
     #[arg(long, value_enum, default_value_t = Layout::Separate)]
     pub layout: Layout,
     /// Output directory: designs.parquet, designs/*.toml, limits, derivatives, methods,
@@ -131,20 +132,20 @@ fn evaluate<M: DesignModel<N>, const N: usize>(
 }
 
 fn validate(a: ValidateArgs) -> Result<()> {
-    crate::with_setup!(a.model.any_setup()?, s => validate_on(&*s, &a))
-}
-
-/// `design validate` on the model of `setup`.
-fn validate_on<M: DesignModel<N>, const N: usize>(
-    setup: &SetupOf<M, N>,
-    a: &ValidateArgs,
-) -> Result<()> {
+    let setup = a.model.any_setup()?.x(
+        "design validate (the thesis's four-step validation of the x experiments; for lpf_xy, \
+         `design optimize --model lpf_xy` and a campaign of its designs)",
+    )?;
     let cfg = ValidationConfig::from_file(&a.campaign, a.realizations)?;
     let out = cfg.out_dir(a.out.as_deref(), force())?;
-    let (designs, realizations) = (M::validation_designs(&cfg), cfg.realizations);
+    let (designs, realizations) = (cfg.designs(), cfg.realizations);
     info!("validating {designs} designs x {realizations} realizations ...");
-    let (md, files) = working("validating", |_| M::validate(setup, &cfg, &out))?;
+    let v = working("validating", |_| run_validation(&setup, &cfg))?;
+    let md = write_validation(&setup, &v, &cfg, &out)?;
     out!("{md}");
-    info!("wrote {}/{files}", out.display());
+    info!(
+        "wrote {}/validation.md, validation.parquet, designs.parquet, summary.parquet, correlation.parquet, realizations.parquet",
+        out.display()
+    );
     Ok(())
 }

@@ -15,12 +15,12 @@ use super::criteria::{
 use super::search::{optimize, OptimizeConfig, Optimized};
 use super::space::{CandidateSet, DesignSpace, ExactDesign, Layout};
 use super::DesignError;
-use crate::campaign::runner::{CampaignModel, Runner};
+use crate::campaign::runner::Runner;
 use crate::campaign::spec::{Campaign, FitOptions, Outputs, WhitenAt};
 use crate::campaign::stats::{Aggregates, Layout as RowLayout, Row};
 use crate::fit::Estimator;
 use crate::model::spec::Scenario;
-use crate::setup::{Setup, SetupOf, DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
+use crate::setup::{Setup, DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 use crate::signal::Design;
 
 /// Default scenario of the x model's design studies.
@@ -279,37 +279,26 @@ pub struct Validation {
     pub aggregates: Aggregates,
 }
 
-/// How [`monte_carlo`] fits beyond the campaign's defaults: the parameters held at their
-/// values in the start (`[fit] fixed`) and the relative change of chi^2 that ends a fit
-/// (`[fit] ftol`; `None`: the fit's default).
-#[derive(Debug, Clone, Default)]
-pub struct MonteCarloFit {
-    pub fixed: Vec<String>,
-    pub ftol: Option<f64>,
-}
-
 /// Monte Carlo fits of `designs` at `truth`, each from `start` (which is also where the
 /// whitening filter's noise PSD is taken, as in the thesis's validation), over realizations
 /// `realizations` of `seed`. They run through the campaign runner, so they are the very fits
 /// `freefall campaign run` makes of these designs (same streams, same determinism contract:
 /// realization `r` of every design draws the noise of stream `r`, common random numbers across
-/// designs), with the settings of `fit`. Any model with a campaign ([`CampaignModel`]). Rows in
-/// order (realization, design).
-pub fn monte_carlo<M: CampaignModel<N>, const N: usize>(
-    setup: &SetupOf<M, N>,
+/// designs). Rows in order (realization, design).
+pub fn monte_carlo(
+    setup: &Setup,
     designs: &[Design],
     truth: &[f64],
     start: &[f64],
     seed: u64,
     realizations: std::ops::Range<u64>,
-    fit: &MonteCarloFit,
 ) -> Result<(RowLayout, Vec<Row>), DesignError> {
     let campaign = Campaign {
         file: PathBuf::from("design validation"),
         name: "design-validation".into(),
         description: String::new(),
         model: None,
-        embedded_model: M::KIND,
+        embedded_model: crate::model::spec::ModelKind::LpfX,
         seed,
         realizations: realizations.end,
         estimators: vec![Estimator::Squared],
@@ -324,11 +313,11 @@ pub fn monte_carlo<M: CampaignModel<N>, const N: usize>(
             whiten_at: WhitenAt::Guess,
             noise_chi2: false,
             cached_jacobian: true,
-            fixed: fit.fixed.clone(),
+            fixed: Vec::new(),
             priors: Default::default(),
             engine: crate::campaign::spec::Engine::FrequencyDomain,
             likelihood: crate::campaign::spec::LikelihoodKind::TimeDomain,
-            ftol: fit.ftol,
+            ftol: None,
             ptol: None,
         },
         accel_bands: Vec::new(),
@@ -396,7 +385,6 @@ pub fn validate(setup: &Setup, cfg: &ValidationConfig) -> Result<Validation, Des
         &sc.guess,
         cfg.seed,
         0..1,
-        &MonteCarloFit::default(),
     )?;
     let prelim = &prelim[0];
     if !prelim.converged {
@@ -423,7 +411,6 @@ pub fn validate(setup: &Setup, cfg: &ValidationConfig) -> Result<Validation, Des
         &preliminary,
         cfg.seed,
         1..cfg.realizations as u64 + 1,
-        &MonteCarloFit::default(),
     )?;
     layout.designs = designs.iter().map(|d| d.0.clone()).collect();
     let mut aggregates = Aggregates::new(layout);

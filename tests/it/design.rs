@@ -323,7 +323,6 @@ fn information_equals_inverse_monte_carlo_covariance() {
         &p,
         11,
         1..n as u64 + 1,
-        &freefall::design::validate::MonteCarloFit::default(),
     )
     .unwrap();
     assert!(fits.iter().all(|f| f.converged));

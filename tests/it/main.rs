@@ -46,6 +46,5 @@ mod units;
 mod whittle;
 mod xy_commands;
 mod xy_diagnose;
-mod xy_generic;
 mod xy_model;
 mod xy_time_domain;

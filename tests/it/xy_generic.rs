@@ -1,6 +1,6 @@
-//! The xy model through what was the x model's only: `design validate`, the fit's residual
-//! table, `whiten --noise` and the decimated rate (`simulate --rate decimated`, the fit's
-//! whitening folded through the anti-alias FIR) carry every readout of the model.
+//! The xy model through what was the x model's only: the fit's residual table, `whiten --noise`
+//! and the decimated rate (`simulate --rate decimated`, the fit's whitening folded through the
+//! anti-alias FIR) carry every readout of the model.
 
 use crate::common;
 
@@ -25,77 +25,6 @@ const HELD: [&str; 10] = [
     "d_sus_phi1",
     "d_sus_phi2",
 ];
-
-/// Monte Carlo fits per design of the xy validation test.
-const VALIDATION_REALIZATIONS: usize = 3;
-
-#[test]
-fn xy_design_validation_scatter_matches_the_fisher_information() {
-    // Oracle: Fisher theory (thesis sec. 4.5.5): at the truth the errors e_r of an unbiased
-    // efficient estimator are Gaussian with covariance F^-1, so the Mahalanobis distance
-    // sum_r e_r^T F e_r of n fits of k parameters is chi^2_{nk}: per degree of freedom 1 with
-    // sd sqrt(2 / (n k)) (0.23 for 3 fits of 13 parameters); the validation's statistic, over
-    // the whole covariance of each design, must lie within 3 sd of 1. Every fit converges, the
-    // table has each design's 13 fitted parameters (the x ones, the four y/phi stiffnesses and
-    // the two targets; the other cross-talk held), and the Fisher sigmas of the targets are
-    // finite (the design identifies them).
-    let dir = tempfile::tempdir().unwrap();
-    let file = dir.path().join("validation.toml");
-    let out = dir.path().join("out");
-    std::fs::write(
-        &file,
-        format!(
-            "[design_validation]\nscenario = \"sensing_crosstalk\"\nseed = 7\nrealizations = \
-             {VALIDATION_REALIZATIONS}\ncriteria = [\"d-information\"]\nparameters = \
-             [\"ds_1y1\", \"ds_2y2\"]\nout = \"{}\"\n",
-            out.display()
-        ),
-    )
-    .unwrap();
-    let o = ok(&[
-        "design",
-        "validate",
-        file.to_str().unwrap(),
-        "--model",
-        "lpf_xy",
-    ]);
-    let md = String::from_utf8_lossy(&o.stdout);
-    let t = read_parquet(out.join("validation.parquet")).unwrap();
-    let (design, parameter) = (
-        t.str_column("design").unwrap(),
-        t.str_column("parameter").unwrap(),
-    );
-    let (conv, mahal, mahal_sd, sigma) = (
-        t.f64_column("converged").unwrap(),
-        t.f64_column("mahalanobis_reduced").unwrap(),
-        t.f64_column("mahalanobis_reduced_sd").unwrap(),
-        t.f64_column("fisher_sigma").unwrap(),
-    );
-    let designs: std::collections::BTreeSet<&String> = design.iter().collect();
-    assert_eq!(
-        designs.into_iter().cloned().collect::<Vec<_>>(),
-        ["d-information/xy", "standard+y_phi"],
-        "{md}"
-    );
-    assert_eq!(t.num_rows(), 2 * 13, "{md}");
-    let n = VALIDATION_REALIZATIONS as f64;
-    let sd = (2.0 / (n * 13.0)).sqrt();
-    for i in 0..t.num_rows() {
-        assert_eq!(conv[i], n, "{}: converged fits\n{md}", design[i]);
-        assert!((mahal_sd[i] - sd).abs() < 1e-12);
-        assert!(
-            (mahal[i] - 1.0).abs() < 3.0 * sd,
-            "{}: Mahalanobis distance per dof {:.3}, outside 1 +- {:.3}\n{md}",
-            design[i],
-            mahal[i],
-            3.0 * sd
-        );
-        if ["ds_1y1", "ds_2y2"].contains(&parameter[i].as_str()) {
-            assert!(sigma[i].is_finite() && sigma[i] > 0.0, "{md}");
-        }
-    }
-    assert!(out.join("designs/d-information_xy.toml").exists());
-}
 
 #[test]
 fn the_xy_fit_writes_the_residuals_of_every_readout_and_their_chi2_is_the_fits() {
