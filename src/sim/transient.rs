@@ -17,6 +17,8 @@
 //! `L[i][k]` is the sensed state `i` at `t = 0` of the loop started from unit condition `k`
 //! (the controllers have moved by then, so `L` is not the identity).
 
+use rayon::prelude::*;
+
 use super::decimated::DecimationGrid;
 use super::time_domain::{DigitalLoop, InitialConditions, LoopConfig};
 use crate::model::LpfX;
@@ -69,34 +71,42 @@ pub fn free_response(
     let z: [&[f64]; 2] = [&zeros, &zeros];
     // The control sample of the first telemetry sample (t = 0).
     let k0 = grid.first * factor;
-    let mut cols = Vec::with_capacity(IC_NAMES.len());
-    let mut to_t0 = [[0.0; 4]; 4];
-    for k in 0..IC_NAMES.len() {
-        let mut lp = base.clone();
-        lp.reset(Some(&unit(k)));
-        let head = lp.run(
-            [&z[0][..k0], &z[1][..k0]],
-            [&z[0][..k0], &z[1][..k0]],
-            [&z[0][..k0], &z[1][..k0]],
-        );
-        let state = lp.sensed_state();
-        for (i, row) in to_t0.iter_mut().enumerate() {
-            row[k] = state[i];
-        }
-        let tail = lp.run(
-            [&z[0][k0..], &z[1][k0..]],
-            [&z[0][k0..], &z[1][k0..]],
-            [&z[0][k0..], &z[1][k0..]],
-        );
-        cols.push(
-            head.into_iter()
+    // The four unit conditions run in parallel (each its own copy of the loop), collected in
+    // their order.
+    let runs: Vec<([f64; 4], Vec<Vec<f64>>)> = (0..IC_NAMES.len())
+        .into_par_iter()
+        .map(|k| {
+            let mut lp = base.clone();
+            lp.reset(Some(&unit(k)));
+            let head = lp.run(
+                [&z[0][..k0], &z[1][..k0]],
+                [&z[0][..k0], &z[1][..k0]],
+                [&z[0][..k0], &z[1][..k0]],
+            );
+            let state = lp.sensed_state();
+            let tail = lp.run(
+                [&z[0][k0..], &z[1][k0..]],
+                [&z[0][k0..], &z[1][k0..]],
+                [&z[0][k0..], &z[1][k0..]],
+            );
+            let col = head
+                .into_iter()
                 .zip(tail)
                 .map(|(mut h, t)| {
                     h.extend(t);
                     grid.keep(&h)
                 })
-                .collect(),
-        );
+                .collect();
+            (std::array::from_fn(|i| state[i]), col)
+        })
+        .collect();
+    let mut cols = Vec::with_capacity(IC_NAMES.len());
+    let mut to_t0 = [[0.0; 4]; 4];
+    for (k, (state, col)) in runs.into_iter().enumerate() {
+        for (i, row) in to_t0.iter_mut().enumerate() {
+            row[k] = state[i];
+        }
+        cols.push(col);
     }
     Ok(FreeResponse {
         cols,
