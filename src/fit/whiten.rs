@@ -160,21 +160,25 @@ impl<const N: usize> Whitener<N> {
         let x: Vec<Vec<f64>> = series.iter().map(|s| detrend_linear(s)).collect();
         type M<const N: usize> = SMatrix<f64, N, N>;
         let outer = |a: usize, b: usize| M::<N>::from_fn(|c, d| x[c][a] * x[d][b]);
-        // First block row G[0][k] = sum_{t=p}^{n-1} x_{t-1} x_{t-1-k}^T and H[j] = sum x_{t-1-j} x_t^T.
-        let mut g0 = vec![M::<N>::zeros(); order];
-        let mut hj = vec![M::<N>::zeros(); order];
-        for t in order..n {
-            for k in 0..order {
-                for c in 0..N {
-                    let a = x[c][t - 1];
-                    let h = x[c][t - 1 - k];
-                    for d in 0..N {
-                        g0[k][(c, d)] += a * x[d][t - 1 - k];
-                        hj[k][(c, d)] += h * x[d][t];
+        // First block row G[0][k] = sum_{t=p}^{n-1} x_{t-1} x_{t-1-k}^T and H[j] = sum x_{t-1-j} x_t^T,
+        // one lag per task over the cores (each summed over t in order, as on one thread).
+        let (g0, hj): (Vec<M<N>>, Vec<M<N>>) = (0..order)
+            .into_par_iter()
+            .map(|k| {
+                let (mut g, mut h) = (M::<N>::zeros(), M::<N>::zeros());
+                for t in order..n {
+                    for c in 0..N {
+                        let a = x[c][t - 1];
+                        let b = x[c][t - 1 - k];
+                        for d in 0..N {
+                            g[(c, d)] += a * x[d][t - 1 - k];
+                            h[(c, d)] += b * x[d][t];
+                        }
                     }
                 }
-            }
-        }
+                (g, h)
+            })
+            .unzip();
         let dim = N * order;
         let mut g = DMatrix::<f64>::zeros(dim, dim);
         for k in 0..order {
@@ -202,12 +206,19 @@ impl<const N: usize> Whitener<N> {
             }
         }
         let a = solve_equilibrated(g, h, order)?;
+        // The innovations over the cores, their outer products summed in time order.
+        let innovations: Vec<SMatrix<f64, N, 1>> = (order..n)
+            .into_par_iter()
+            .map(|t| {
+                let mut e = SMatrix::<f64, N, 1>::from_fn(|c, _| x[c][t]);
+                for (j, aj) in a.iter().enumerate() {
+                    e -= aj * SMatrix::<f64, N, 1>::from_fn(|c, _| x[c][t - 1 - j]);
+                }
+                e
+            })
+            .collect();
         let mut sigma = M::<N>::zeros();
-        for t in order..n {
-            let mut e = SMatrix::<f64, N, 1>::from_fn(|c, _| x[c][t]);
-            for (j, aj) in a.iter().enumerate() {
-                e -= aj * SMatrix::<f64, N, 1>::from_fn(|c, _| x[c][t - 1 - j]);
-            }
+        for e in &innovations {
             sigma += e * e.transpose();
         }
         // Unbiased in-sample innovation covariance, inflated by Akaike's final-prediction-error
