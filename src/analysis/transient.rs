@@ -81,10 +81,16 @@ pub fn experiment_columns<M: SpecModel<N> + DigitalPlant<N>, const N: usize>(
     data: &ExperimentData,
 ) -> Result<(Vec<Columns>, Vec<FreeResponse>)> {
     let mut cols = Vec::with_capacity(data.outputs.len());
-    let mut maps = Vec::with_capacity(data.outputs.len());
+    let mut maps: Vec<FreeResponse> = Vec::with_capacity(data.outputs.len());
+    let mut lengths = Vec::with_capacity(data.outputs.len());
     for e in 0..data.outputs.len() {
         let (lead, n) = (data.lead(e), data.len_of(e));
-        let fr = run_response(setup, p, lead + n)?;
+        // Runs of one length share their free response (the same loop from the same start).
+        let fr = match lengths.iter().position(|&l| l == lead + n) {
+            Some(i) => maps[i].clone(),
+            None => run_response(setup, p, lead + n)?,
+        };
+        lengths.push(lead + n);
         cols.push(
             fr.cols
                 .iter()

@@ -20,7 +20,7 @@ use nalgebra::DMatrix;
 use num_complex::Complex64;
 use serde::Serialize;
 
-use crate::design::space::{DesignSpace, Timing, INPUTS};
+use crate::design::space::{StretchTable, Timing, INPUTS};
 use crate::design::DesignError;
 use crate::fit::ExperimentData;
 use crate::forward::fisher::{fisher_information, InputSpectra};
@@ -195,8 +195,9 @@ pub fn probe_given(
     let now = identifiable_fraction(&info, k);
     let absorbed = absorption(&info, k, model.parameter_names(), &effect_typical);
 
-    // One added stretch per grid frequency and input, at the largest allowed amplitude.
-    let space = DesignSpace::new(setup, p, timing)?;
+    // One added stretch per grid frequency and input, at the largest allowed amplitude (the
+    // limits only: the design space's information of each stretch is not needed here).
+    let space = StretchTable::new(setup, p, &timing)?;
     let names = setup.model.input_names();
     let mut within: Option<Probe> = None;
     let mut above: Option<Probe> = None;

@@ -280,9 +280,26 @@ fn dmat_from_flat(np: usize, v: &[f64]) -> DMatrix<f64> {
 /// responses and spectra): measured 800 (`design evaluate` of a 1e6 s design peaks at 0.80 GB).
 pub const DESIGN_BYTES_PER_SAMPLE: f64 = 1000.0;
 
-impl DesignSpace {
-    /// Build the space for `timing` at parameters `p` (the current estimates).
-    pub fn new(setup: &Setup, p: &[f64], timing: Timing) -> Result<DesignSpace, DesignError> {
+/// The amplitude limits of single-input stretches of `m = 1..=m_table` cycles at parameters
+/// `p`: the part of a [`DesignSpace`] without its information, all a redesign probe reads
+/// ([`crate::design::redesign::probe_given`]).
+#[derive(Debug, Clone)]
+pub struct StretchTable {
+    /// Bounds in [`Constraint::ALL`] order.
+    pub bounds: [f64; CONSTRAINTS],
+    pub f_max_hz: f64,
+    /// Highest number of cycles per stretch (`floor(f_max_hz * stretch_s)`).
+    pub m_max: usize,
+    /// Highest number of cycles tabulated (`4 m_max`, below Nyquist).
+    pub m_table: usize,
+    /// `limits[m - 1][c]`.
+    limits: Vec<[StretchLimit; INPUTS]>,
+}
+
+impl StretchTable {
+    /// The table for `timing` at parameters `p`, with the checks of [`DesignSpace::new`]
+    /// (timing, memory, constraints, a grid frequency, a stable loop).
+    pub fn new(setup: &Setup, p: &[f64], timing: &Timing) -> Result<StretchTable, DesignError> {
         let cons = &setup.spec.constraints;
         let bad = |r: String| DesignError::Config(r);
         if !(timing.stretch_s > 0.0
@@ -363,18 +380,38 @@ impl DesignSpace {
                 })
             })
             .collect();
-        let unit = unit_information(setup, p, &timing, m_table);
-        let names = model.input_names();
-        Ok(DesignSpace {
-            timing,
-            p: p.to_vec(),
-            parameter_names: setup.parameter_names(),
-            input_names: [names[0].to_string(), names[1].to_string()],
+        Ok(StretchTable {
             bounds,
             f_max_hz,
             m_max,
             m_table,
             limits,
+        })
+    }
+
+    /// The limit of input `c` at `m` cycles (1-based).
+    pub fn limit(&self, c: usize, m: usize) -> &StretchLimit {
+        &self.limits[m - 1][c]
+    }
+}
+
+impl DesignSpace {
+    /// Build the space for `timing` at parameters `p` (the current estimates): the
+    /// [`StretchTable`] and the unit-amplitude information of every tabulated stretch.
+    pub fn new(setup: &Setup, p: &[f64], timing: Timing) -> Result<DesignSpace, DesignError> {
+        let table = StretchTable::new(setup, p, &timing)?;
+        let unit = unit_information(setup, p, &timing, table.m_table);
+        let names = setup.model.input_names();
+        Ok(DesignSpace {
+            timing,
+            p: p.to_vec(),
+            parameter_names: setup.parameter_names(),
+            input_names: [names[0].to_string(), names[1].to_string()],
+            bounds: table.bounds,
+            f_max_hz: table.f_max_hz,
+            m_max: table.m_max,
+            m_table: table.m_table,
+            limits: table.limits,
             unit,
         })
     }

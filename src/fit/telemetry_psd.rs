@@ -27,6 +27,7 @@
 use crate::model::closed_loop::CMat;
 use crate::spectral::Decimator;
 use num_complex::Complex64;
+use rayon::prelude::*;
 
 /// A channel's folded PSD below this fraction of its in-band level counts as a null: 120 dB,
 /// far below the reference Kaiser design's 85 dB stopband, so its PSD is never floored.
@@ -81,9 +82,10 @@ pub fn folded<'a, const N: usize>(
 /// [`Decimator::frequency_response`] otherwise. The images, their order and the PSD's
 /// arguments are those of [`folded`]; only the gains' rounding differs (a few 1e-16 of the DC
 /// gain). The cost is one PSD evaluation per image and grid point, without the `taps / 2`
-/// cosines per image.
+/// cosines per image; the grid points are shared over the cores (each summed as on one,
+/// collected in order).
 pub fn folded_on_grid<const N: usize>(
-    psd: impl Fn(f64) -> CMat<N>,
+    psd: impl Fn(f64) -> CMat<N> + Sync,
     decimator: &Decimator,
     step: f64,
     m_range: std::ops::RangeInclusive<i64>,
@@ -96,6 +98,7 @@ pub fn folded_on_grid<const N: usize>(
         .then(|| decimator.power_response_grid(l as usize * decimator.factor()))
         .flatten();
     m_range
+        .into_par_iter()
         .map(|i| {
             let f = i as f64 * step;
             let mut s = CMat::<N>::zeros();

@@ -23,6 +23,7 @@
 
 use nalgebra::{DMatrix, SMatrix};
 use num_complex::Complex64;
+use rayon::prelude::*;
 
 use super::FitError;
 use crate::model::closed_loop::CMat;
@@ -159,21 +160,25 @@ impl<const N: usize> Whitener<N> {
         let x: Vec<Vec<f64>> = series.iter().map(|s| detrend_linear(s)).collect();
         type M<const N: usize> = SMatrix<f64, N, N>;
         let outer = |a: usize, b: usize| M::<N>::from_fn(|c, d| x[c][a] * x[d][b]);
-        // First block row G[0][k] = sum_{t=p}^{n-1} x_{t-1} x_{t-1-k}^T and H[j] = sum x_{t-1-j} x_t^T.
-        let mut g0 = vec![M::<N>::zeros(); order];
-        let mut hj = vec![M::<N>::zeros(); order];
-        for t in order..n {
-            for k in 0..order {
-                for c in 0..N {
-                    let a = x[c][t - 1];
-                    let h = x[c][t - 1 - k];
-                    for d in 0..N {
-                        g0[k][(c, d)] += a * x[d][t - 1 - k];
-                        hj[k][(c, d)] += h * x[d][t];
+        // First block row G[0][k] = sum_{t=p}^{n-1} x_{t-1} x_{t-1-k}^T and H[j] = sum x_{t-1-j} x_t^T,
+        // one lag per task over the cores (each summed over t in order, as on one thread).
+        let (g0, hj): (Vec<M<N>>, Vec<M<N>>) = (0..order)
+            .into_par_iter()
+            .map(|k| {
+                let (mut g, mut h) = (M::<N>::zeros(), M::<N>::zeros());
+                for t in order..n {
+                    for c in 0..N {
+                        let a = x[c][t - 1];
+                        let b = x[c][t - 1 - k];
+                        for d in 0..N {
+                            g[(c, d)] += a * x[d][t - 1 - k];
+                            h[(c, d)] += b * x[d][t];
+                        }
                     }
                 }
-            }
-        }
+                (g, h)
+            })
+            .unzip();
         let dim = N * order;
         let mut g = DMatrix::<f64>::zeros(dim, dim);
         for k in 0..order {
@@ -201,12 +206,19 @@ impl<const N: usize> Whitener<N> {
             }
         }
         let a = solve_equilibrated(g, h, order)?;
+        // The innovations over the cores, their outer products summed in time order.
+        let innovations: Vec<SMatrix<f64, N, 1>> = (order..n)
+            .into_par_iter()
+            .map(|t| {
+                let mut e = SMatrix::<f64, N, 1>::from_fn(|c, _| x[c][t]);
+                for (j, aj) in a.iter().enumerate() {
+                    e -= aj * SMatrix::<f64, N, 1>::from_fn(|c, _| x[c][t - 1 - j]);
+                }
+                e
+            })
+            .collect();
         let mut sigma = M::<N>::zeros();
-        for t in order..n {
-            let mut e = SMatrix::<f64, N, 1>::from_fn(|c, _| x[c][t]);
-            for (j, aj) in a.iter().enumerate() {
-                e -= aj * SMatrix::<f64, N, 1>::from_fn(|c, _| x[c][t - 1 - j]);
-            }
+        for e in &innovations {
             sigma += e * e.transpose();
         }
         // Unbiased in-sample innovation covariance, inflated by Akaike's final-prediction-error
@@ -223,7 +235,7 @@ impl<const N: usize> Whitener<N> {
     /// told from an offset or a drift in `n_data` samples and is left to the nuisance terms;
     /// including it would make the autocovariance nearly constant and the recursion singular.
     pub fn from_psd(
-        psd: impl Fn(f64) -> CMat<N>,
+        psd: impl Fn(f64) -> CMat<N> + Sync,
         dt: f64,
         order: usize,
         n_data: usize,
@@ -479,9 +491,11 @@ pub fn sample_autocovariance<const N: usize>(
 }
 
 /// Autocovariance `r[k] = E[x_{t+k} x_t^T]` of a process with one-sided cross-PSD `psd`
-/// (`S_ij ~ <X_i X_j^*>`), sampled every `dt`, from `len` frequency bins.
+/// (`S_ij ~ <X_i X_j^*>`), sampled every `dt`, from `len` frequency bins. The PSD's bins and
+/// the `N^2` transforms are shared over the cores (each computed as on one, collected in
+/// order: the same numbers at any thread count).
 pub fn psd_autocovariance<const N: usize>(
-    psd: impl Fn(f64) -> CMat<N>,
+    psd: impl Fn(f64) -> CMat<N> + Sync,
     dt: f64,
     len: usize,
     max_lag: usize,
@@ -491,6 +505,7 @@ pub fn psd_autocovariance<const N: usize>(
     // The DC bin is left out: a red process's mean is not defined by its PSD, and the
     // likelihood's polynomial nuisance absorbs it.
     let s: Vec<CMat<N>> = (0..=half)
+        .into_par_iter()
         .map(|k| {
             if k == 0 {
                 CMat::<N>::zeros()
@@ -500,9 +515,10 @@ pub fn psd_autocovariance<const N: usize>(
         })
         .collect();
     let inv = crate::numerics::fft::inverse(len);
-    let mut out = vec![SMatrix::<f64, N, N>::zeros(); max_lag + 1];
-    for i in 0..N {
-        for j in 0..N {
+    let entries: Vec<(usize, usize)> = (0..N).flat_map(|i| (0..N).map(move |j| (i, j))).collect();
+    let lags: Vec<Vec<f64>> = entries
+        .par_iter()
+        .map(|&(i, j)| {
             // Two-sided density S/2 at +f and its conjugate at -f; DC and Nyquist counted once.
             let mut buf = vec![Complex64::new(0.0, 0.0); len];
             for k in 0..=half {
@@ -513,9 +529,16 @@ pub fn psd_autocovariance<const N: usize>(
                 }
             }
             inv.process(&mut buf);
-            for (k, o) in out.iter_mut().enumerate() {
-                o[(i, j)] = buf[k].re * df;
-            }
+            buf[..=max_lag.min(len - 1)]
+                .iter()
+                .map(|v| v.re * df)
+                .collect()
+        })
+        .collect();
+    let mut out = vec![SMatrix::<f64, N, N>::zeros(); max_lag + 1];
+    for (&(i, j), r) in entries.iter().zip(&lags) {
+        for (o, v) in out.iter_mut().zip(r) {
+            o[(i, j)] = *v;
         }
     }
     out

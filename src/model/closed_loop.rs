@@ -14,6 +14,7 @@
 
 use nalgebra::SMatrix;
 use num_complex::Complex64;
+use rayon::prelude::*;
 
 use super::poly::{Poly, RootsError};
 use super::ModelError;
@@ -137,7 +138,12 @@ pub trait ClosedLoopModel<const N: usize>: Send + Sync {
     }
 }
 
-/// The generic implementation of [`ClosedLoopModel::transfer_grid`].
+/// Frequencies per task of [`transfer_grid_generic`]'s parallel loop.
+const GRID_CHUNK: usize = 256;
+
+/// The generic implementation of [`ClosedLoopModel::transfer_grid`]: the frequencies in chunks
+/// over the cores, each point computed as on one thread (the same numbers at any thread
+/// count).
 pub fn transfer_grid_generic<M: ClosedLoopModel<N>, const N: usize>(
     model: &M,
     points: &[M::Point],
@@ -146,16 +152,34 @@ pub fn transfer_grid_generic<M: ClosedLoopModel<N>, const N: usize>(
     d_out: Option<&mut [CMat<N>]>,
 ) {
     let np = model.n_params();
+    let n = points.len().min(t_out.len());
+    let (points, t_out) = (&points[..n], &mut t_out[..n]);
     match d_out {
         None => {
+            points
+                .par_chunks(GRID_CHUNK)
+                .zip(t_out.par_chunks_mut(GRID_CHUNK))
+                .for_each(|(pts, ts)| {
+                    for (pt, t) in pts.iter().zip(ts.iter_mut()) {
+                        *t = transfer(model, pt, p).oi_o;
+                    }
+                });
+        }
+        Some(d) if np == 0 => {
             for (pt, t) in points.iter().zip(t_out.iter_mut()) {
-                *t = transfer(model, pt, p).oi_o;
+                *t = transfer_with_derivatives(model, pt, p, &mut d[..0]).oi_o;
             }
         }
         Some(d) => {
-            for (k, (pt, t)) in points.iter().zip(t_out.iter_mut()).enumerate() {
-                *t = transfer_with_derivatives(model, pt, p, &mut d[k * np..(k + 1) * np]).oi_o;
-            }
+            points
+                .par_chunks(GRID_CHUNK)
+                .zip(t_out.par_chunks_mut(GRID_CHUNK))
+                .zip(d.par_chunks_mut(GRID_CHUNK * np))
+                .for_each(|((pts, ts), ds)| {
+                    for ((pt, t), dk) in pts.iter().zip(ts.iter_mut()).zip(ds.chunks_mut(np)) {
+                        *t = transfer_with_derivatives(model, pt, p, dk).oi_o;
+                    }
+                });
         }
     }
 }

@@ -18,6 +18,8 @@
 //! `L[i][k]` is the sensed state `i` at `t = 0` of the loop started from unit condition `k`
 //! (the controllers have moved by then, so `L` is not the identity).
 
+use rayon::prelude::*;
+
 use super::decimated::DecimationGrid;
 use super::time_domain::{DigitalLoop, DigitalPlant, InitialConditions, LoopConfig, SensedState};
 use crate::noise::NoiseError;
@@ -83,26 +85,34 @@ pub fn free_response<M: DigitalPlant<N>, const N: usize>(
     // The control sample of the first telemetry sample (t = 0).
     let k0 = grid.first * factor;
     let (head_z, tail_z): ([&[f64]; N], [&[f64]; N]) = ([&zeros[..k0]; N], [&zeros[k0..]; N]);
-    let mut cols = Vec::with_capacity(2 * N);
-    let mut to_t0 = vec![vec![0.0; 2 * N]; 2 * N];
-    for k in 0..2 * N {
-        let mut lp = base.clone();
-        lp.reset(Some(&unit::<N>(k)));
-        let head = lp.run(head_z, head_z, head_z);
-        let state = lp.sensed_state();
-        for (i, row) in to_t0.iter_mut().enumerate() {
-            row[k] = state[i];
-        }
-        let tail = lp.run(tail_z, tail_z, tail_z);
-        cols.push(
-            head.into_iter()
+    // The 2N unit conditions run in parallel (each its own copy of the loop), collected in
+    // their order.
+    let runs: Vec<(Vec<f64>, Vec<Vec<f64>>)> = (0..2 * N)
+        .into_par_iter()
+        .map(|k| {
+            let mut lp = base.clone();
+            lp.reset(Some(&unit::<N>(k)));
+            let head = lp.run(head_z, head_z, head_z);
+            let state = lp.sensed_state();
+            let tail = lp.run(tail_z, tail_z, tail_z);
+            let col = head
+                .into_iter()
                 .zip(tail)
                 .map(|(mut h, t)| {
                     h.extend(t);
                     grid.keep(&h)
                 })
-                .collect(),
-        );
+                .collect();
+            ((0..2 * N).map(|i| state[i]).collect(), col)
+        })
+        .collect();
+    let mut cols = Vec::with_capacity(2 * N);
+    let mut to_t0 = vec![vec![0.0; 2 * N]; 2 * N];
+    for (k, (state, col)) in runs.into_iter().enumerate() {
+        for (i, row) in to_t0.iter_mut().enumerate() {
+            row[k] = state[i];
+        }
+        cols.push(col);
     }
     Ok(FreeResponse {
         cols,

@@ -482,6 +482,19 @@ impl Additive {
         data: &ExperimentData,
         p: &[f64],
     ) -> Vec<Series> {
+        self.columns_sharing(model, lik, data, p, &std::sync::OnceLock::new())
+    }
+
+    /// [`columns`](Self::columns) with the model's raw derivatives at `p` (what a drift's
+    /// column is made of) computed at most once over the candidates that share `derivatives`.
+    pub fn columns_sharing<M: DiagnoseModel<N>, const N: usize>(
+        &self,
+        model: &Extended<M, N>,
+        lik: &Likelihood<'_, Extended<M, N>, N>,
+        data: &ExperimentData,
+        p: &[f64],
+        derivatives: &std::sync::OnceLock<Vec<Series>>,
+    ) -> Vec<Series> {
         let zeros = || data.zeros();
         match self {
             Additive::Line {
@@ -503,8 +516,8 @@ impl Additive {
                 quadratic,
                 ..
             } => {
-                let (_, d) = lik.engine.templates_and_derivatives(p, None);
-                let mut col = d.into_iter().nth(*parameter).unwrap_or_else(zeros);
+                let d = derivatives.get_or_init(|| lik.engine.templates_and_derivatives(p, None).1);
+                let mut col = d.get(*parameter).cloned().unwrap_or_else(zeros);
                 for exp in &mut col {
                     for ch in exp.iter_mut() {
                         let n = ch.len();

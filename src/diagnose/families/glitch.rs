@@ -11,6 +11,9 @@
 //! whitened kernels are a few samples long, so positions are close to independent) the
 //! threshold is barely conservative.
 
+use num_complex::Complex64;
+use rayon::prelude::*;
+
 use crate::diagnose::DiagnoseModel;
 use crate::model::closed_loop::CMat;
 use crate::model::effects::Extended;
@@ -66,60 +69,44 @@ pub fn scan<M: DiagnoseModel<N>, const N: usize>(
 ) -> Scan {
     let n = grid.n;
     let nr = n.saturating_sub(order);
-    let mut peaks = Vec::new();
+    // An entry the model does not have is not scanned (its response would be zero).
+    let entries: Vec<Entry> = ENTRIES
+        .into_iter()
+        .filter(|e| model.noise_entry(e.noise_entry()).is_some())
+        .collect();
+    let responses: Vec<_> = entries
+        .par_iter()
+        .map(|&entry| entry_response(model, p, grid, entry))
+        .collect();
+    // Every (entry, width) kernel on its own, over the cores; its best peak is the first
+    // largest in (experiment, position) order, and the kernels' bests are folded in (entry,
+    // width) order below, as one scan in that order would find them.
+    let kernels: Vec<(usize, f64)> = (0..entries.len())
+        .flat_map(|i| SCAN_WIDTHS.into_iter().map(move |w| (i, w)))
+        .collect();
+    let bests: Vec<Option<Option<Peak>>> = kernels
+        .par_iter()
+        .map(|&(i, wid)| {
+            let kernel = Kernel {
+                entry: entries[i],
+                h: &responses[i],
+                tau: wid * grid.dt,
+            };
+            kernel_best(&kernel, grid, w, order, res, scale, noise)
+        })
+        .collect();
     let mut n_kernels = 0usize;
-    for entry in ENTRIES {
-        // An entry the model does not have is not scanned (its response would be zero).
-        if model.noise_entry(entry.noise_entry()).is_none() {
-            continue;
-        }
-        let h = entry_response(model, p, grid, entry);
+    let mut peaks = Vec::new();
+    for (i, _) in entries.iter().enumerate() {
         let mut best: Option<Peak> = None;
-        for wid in SCAN_WIDTHS {
-            let tau = wid * grid.dt;
-            // Reference position: the pulse's lead (5 tau) inside the series.
-            let p0 = (5.0 * tau / grid.dt).ceil() as usize + 1;
-            if p0 + 2 >= n {
+        for (&(k, _), b) in kernels.iter().zip(&bests) {
+            let Some(b) = b.as_ref().filter(|_| k == i) else {
                 continue;
-            }
+            };
             n_kernels += 1;
-            let kern = synthesize(
-                grid,
-                &h,
-                Some(w),
-                entry,
-                p0 as f64 * grid.dt,
-                tau,
-                Part::Value,
-            );
-            let q = energy_prefix(&kern);
-            let noise_var = noise
-                .filter(|(r, _)| {
-                    r.len() >= N && r[0].len() > 1 && r.iter().all(|c| c.len() == r[0].len())
-                })
-                .map(|(r, factor)| {
-                    let z = matched_filter_z2(&kern, &q, p0, r, order);
-                    factor * z.iter().map(|x| x.1).sum::<f64>() / z.len().max(1) as f64
-                })
-                .filter(|v| v.is_finite())
-                .unwrap_or(1.0)
-                .max(1.0);
-            for (e, r) in res.iter().enumerate() {
-                if r.len() < N || r.iter().any(|c| c.len() != nr) {
-                    continue;
-                }
-                for (t0, z2) in matched_filter_z2(&kern, &q, p0, r, order) {
-                    let z2 = z2 / scale / noise_var;
-                    if best.as_ref().is_none_or(|b| z2 > b.z2) {
-                        best = Some(Peak {
-                            experiment: e,
-                            entry,
-                            tau,
-                            t0: t0 as f64 * grid.dt,
-                            z2,
-                            noise_var,
-                        });
-                    }
+            if let Some(pk) = b {
+                if best.as_ref().is_none_or(|q| pk.z2 > q.z2) {
+                    best = Some(pk.clone());
                 }
             }
         }
@@ -129,4 +116,71 @@ pub fn scan<M: DiagnoseModel<N>, const N: usize>(
         peaks,
         trials: (res.len() * nr * n_kernels).max(1) as f64,
     }
+}
+
+/// One kernel of a scan: an entry point, its loop response on the grid, a pulse width.
+struct Kernel<'a, const N: usize> {
+    entry: Entry,
+    h: &'a [[Complex64; N]],
+    tau: f64,
+}
+
+/// The best peak of one kernel over every experiment and position (the first largest in that
+/// order), or `None` when the pulse's lead does not fit in the series (not a kernel of the
+/// scan); `Some(None)` when no position had energy.
+fn kernel_best<const N: usize>(
+    k: &Kernel<'_, N>,
+    grid: &Grid,
+    w: &[CMat<N>],
+    order: usize,
+    res: &[Vec<Vec<f64>>],
+    scale: f64,
+    noise: Option<(&[Vec<f64>], f64)>,
+) -> Option<Option<Peak>> {
+    let n = grid.n;
+    let nr = n.saturating_sub(order);
+    // Reference position: the pulse's lead (5 tau) inside the series.
+    let p0 = (5.0 * k.tau / grid.dt).ceil() as usize + 1;
+    if p0 + 2 >= n {
+        return None;
+    }
+    let kern = synthesize(
+        grid,
+        k.h,
+        Some(w),
+        k.entry,
+        p0 as f64 * grid.dt,
+        k.tau,
+        Part::Value,
+    );
+    let q = energy_prefix(&kern);
+    let noise_var = noise
+        .filter(|(r, _)| r.len() >= N && r[0].len() > 1 && r.iter().all(|c| c.len() == r[0].len()))
+        .map(|(r, factor)| {
+            let z = matched_filter_z2(&kern, &q, p0, r, order);
+            factor * z.iter().map(|x| x.1).sum::<f64>() / z.len().max(1) as f64
+        })
+        .filter(|v| v.is_finite())
+        .unwrap_or(1.0)
+        .max(1.0);
+    let mut best: Option<Peak> = None;
+    for (e, r) in res.iter().enumerate() {
+        if r.len() < N || r.iter().any(|c| c.len() != nr) {
+            continue;
+        }
+        for (t0, z2) in matched_filter_z2(&kern, &q, p0, r, order) {
+            let z2 = z2 / scale / noise_var;
+            if best.as_ref().is_none_or(|b| z2 > b.z2) {
+                best = Some(Peak {
+                    experiment: e,
+                    entry: k.entry,
+                    tau: k.tau,
+                    t0: t0 as f64 * grid.dt,
+                    z2,
+                    noise_var,
+                });
+            }
+        }
+    }
+    Some(best)
 }

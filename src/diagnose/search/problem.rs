@@ -6,6 +6,7 @@
 //! of the problem, so that each round only says what it fits.
 
 use nalgebra::DMatrix;
+use rayon::prelude::*;
 
 use crate::analysis::residuals;
 use crate::data::check_finite;
@@ -403,14 +404,20 @@ impl<'a, M: DiagnoseModel<N>, const N: usize> DiagnosisProblem<'a, M, N> {
         let (res, raw, data) = (&f.fit, &f.raw, self.data);
         let noise_ref = self.whitening.noise_ref.as_ref();
         let inputs = model.input_names();
-        let mut channels = Vec::new();
         // Inputs over each experiment's own samples (without a lead-in), aligned with its
         // residuals.
         let aligned: Vec<Vec<Vec<f64>>> = (0..data.names.len())
             .map(|e| data.inputs_of(e).into_iter().map(<[f64]>::to_vec).collect())
             .collect();
-        for (e, en) in data.names.iter().enumerate() {
-            for (c, channel) in model.readout_names().into_iter().enumerate() {
+        let readouts = model.readout_names();
+        let pairs: Vec<(usize, usize)> = (0..data.names.len())
+            .flat_map(|e| (0..readouts.len()).map(move |c| (e, c)))
+            .collect();
+        // Every (experiment, channel) on its own, over the cores, in that order.
+        let channels = pairs
+            .par_iter()
+            .map(|&(e, c)| {
+                let (en, channel) = (&data.names[e], readouts[c]);
                 let inp = residuals::ChannelInput {
                     experiment: en,
                     channel,
@@ -424,9 +431,9 @@ impl<'a, M: DiagnoseModel<N>, const N: usize> DiagnosisProblem<'a, M, N> {
                     alpha: self.cfg.alpha,
                     whitening_dof: self.whitening.whitening_dof,
                 };
-                channels.push(residuals::analyse_channel(&inp, noise_ref));
-            }
-        }
+                residuals::analyse_channel(&inp, noise_ref)
+            })
+            .collect();
         Stage {
             chi2: res.chi2,
             chi2_reduced: res.chi2_reduced,

@@ -6,6 +6,7 @@
 use std::sync::Arc;
 
 use nalgebra::DMatrix;
+use rayon::prelude::*;
 
 use crate::diagnose::families::additive::{self, Additive};
 use crate::diagnose::families::glitch;
@@ -101,10 +102,12 @@ pub(super) fn score_additive<M: DiagnoseModel<N>, const N: usize>(
     let inn_inv = inn_inv.ok_or_else(|| {
         DiagnoseError::Numerical("singular information of the fitted parameters".into())
     })?;
-    let mut out = Vec::new();
-    for a in cands {
+    // The candidates in parallel, collected in their order (each score as on one thread);
+    // the drifts share one evaluation of the model's derivatives.
+    let derivatives = std::sync::OnceLock::new();
+    let one = |a: &Additive| {
         let je: Vec<Series> = a
-            .columns(current, lik, data, estimate)
+            .columns_sharing(current, lik, data, estimate, &derivatives)
             .into_iter()
             .map(|c| lik.whiten_series(data, c))
             .collect();
@@ -121,9 +124,9 @@ pub(super) fn score_additive<M: DiagnoseModel<N>, const N: usize>(
                 .filter(|(_, v)| v.is_finite())
                 .max_by(|x, y| x.1.abs().total_cmp(&y.1.abs()))
         });
-        out.push(score_test(&iee, &ien, &inn_inv, &ue, corr));
-    }
-    Ok(out)
+        score_test(&iee, &ien, &inn_inv, &ue, corr)
+    };
+    Ok(cands.par_iter().map(one).collect())
 }
 
 /// Circular shifts of the whitened residual that calibrate an auxiliary cross-talk's score.
