@@ -14,45 +14,13 @@ use freefall::setup::SetupXy;
 use freefall::sim::rng::stream;
 use freefall::sim::time_domain::{DigitalLoop, DigitalPlant, LoopConfig};
 use freefall::spectral::{welch_csd, WelchConfig};
-use num_complex::Complex64;
 
 use crate::common;
 use common::freefall;
-use common::loops::{SETTLE_TIME_CONSTANTS, STANDARD_CYCLES, STRETCH_S};
+use common::loops::{measured_response, STANDARD_CYCLES, STRETCH_S};
 
 /// The xy model's scenario with cross-talk in every operator (dynamical, sensing, actuation).
 const SCENARIO: &str = "crosstalk";
-
-/// Steady-state complex response of the 7 readouts to a unit sine on guidance input `c` at
-/// frequency `f` (a divisor of 1/STRETCH_S) delayed by `delay`: the last stretch of the
-/// control-rate readouts projected on `e^{i w t}` (exact over whole cycles), after
-/// [`SETTLE_TIME_CONSTANTS`] of the loop's slowest mode.
-fn measured_response(lp: &DigitalLoop<7>, f: f64, c: usize, delay: f64) -> [Complex64; 7] {
-    let h = lp.dt;
-    let zmax = lp
-        .poles()
-        .unwrap()
-        .iter()
-        .map(|z| z.norm())
-        .fold(0.0, f64::max);
-    let tau = -h / zmax.ln();
-    let settle = (SETTLE_TIME_CONSTANTS * tau / STRETCH_S).ceil() * STRETCH_S;
-    let n = ((settle + STRETCH_S) / h).round() as usize;
-    let nw = (STRETCH_S / h).round() as usize;
-    let w = 2.0 * std::f64::consts::PI * f;
-    let g: Vec<f64> = (0..n).map(|k| (w * (k as f64 * h - delay)).sin()).collect();
-    let zero = vec![0.0; n];
-    let guidance: [&[f64]; 7] = std::array::from_fn(|j| if j == c { &g[..] } else { &zero[..] });
-    let mut run = lp.clone();
-    let o = run.run(guidance, [&zero[..]; 7], [&zero[..]; 7]);
-    std::array::from_fn(|r| {
-        let acc: Complex64 = (n - nw..n)
-            .map(|k| o[r][k] * Complex64::new(0.0, -w * k as f64 * h).exp())
-            .sum();
-        // sin(w t) = Im e^{i w t}: the projection gives T / (2 i) per unit amplitude.
-        acc * Complex64::new(0.0, 2.0 / nw as f64)
-    })
-}
 
 #[test]
 fn xy_sine_responses_approach_the_continuous_loop_to_the_order_of_the_hold() {

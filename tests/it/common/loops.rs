@@ -35,7 +35,12 @@ pub fn digital_setup() -> Setup {
 /// on guidance input `c` at frequency `f` (a divisor of 1/STRETCH_S), delayed by `delay`,
 /// measured by projecting the last stretch of the control-rate readouts on `e^{i w t}` (exact
 /// over whole cycles).
-pub fn measured_response(lp: &DigitalLoop, f: f64, c: usize, delay: f64) -> [Complex64; 2] {
+pub fn measured_response<const N: usize>(
+    lp: &DigitalLoop<N>,
+    f: f64,
+    c: usize,
+    delay: f64,
+) -> [Complex64; N] {
     let h = lp.dt;
     let zmax = lp
         .poles()
@@ -50,9 +55,9 @@ pub fn measured_response(lp: &DigitalLoop, f: f64, c: usize, delay: f64) -> [Com
     let w = 2.0 * std::f64::consts::PI * f;
     let g: Vec<f64> = (0..n).map(|k| (w * (k as f64 * h - delay)).sin()).collect();
     let zero = vec![0.0; n];
-    let guidance: [&[f64]; 2] = if c == 0 { [&g, &zero] } else { [&zero, &g] };
+    let guidance: [&[f64]; N] = std::array::from_fn(|j| if j == c { &g[..] } else { &zero[..] });
     let mut run = lp.clone();
-    let o = run.run(guidance, [&zero, &zero], [&zero, &zero]);
+    let o = run.run(guidance, [&zero[..]; N], [&zero[..]; N]);
     std::array::from_fn(|r| {
         let acc: Complex64 = (n - nw..n)
             .map(|k| o[r][k] * Complex64::new(0.0, -w * k as f64 * h).exp())
