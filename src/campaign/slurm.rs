@@ -3,6 +3,11 @@
 //! duplicates nothing), and a merge job submitted with `--dependency=afterok` on the array that
 //! runs `freefall campaign merge` into `merged/`. Shards are independent because every
 //! realization's random stream depends only on (seed, realization index).
+//!
+//! Written again into the same folder, the scripts resume the shards already in `parts/`
+//! (the same campaign continues; another one is refused by each task). With `fresh`
+//! (`--force`), `parts/`, `merged/` and `logs/` are removed first, so that the submitted
+//! campaign runs afresh rather than reporting the old shards as its own.
 
 use std::path::{Path, PathBuf};
 
@@ -19,6 +24,8 @@ pub struct SlurmOptions {
     pub mem: String,
     pub cpus_per_task: u32,
     pub binary: PathBuf,
+    /// Remove the shards, merge and logs of an earlier submission in `out` first (`--force`).
+    pub fresh: bool,
 }
 
 /// The files [`write`] produced.
@@ -108,6 +115,21 @@ pub fn write(o: &SlurmOptions) -> Result<Written, CampaignError> {
     let bin = absolute(&o.binary)?;
     let parts = out.join("parts");
     let logs = out.join("logs");
+    let merged = out.join("merged");
+    if o.fresh {
+        for dir in [&parts, &merged, &logs] {
+            match std::fs::remove_dir_all(dir) {
+                Err(e) if e.kind() != std::io::ErrorKind::NotFound => {
+                    return Err(IoError::invalid(
+                        dir,
+                        format!("cannot remove it for --force: {e}"),
+                    )
+                    .into());
+                }
+                _ => {}
+            }
+        }
+    }
     io::ensure_dir(&parts)?;
     io::ensure_dir(&logs)?;
     let name = format!("freefall-{}", loaded.campaign.name);
@@ -124,7 +146,6 @@ pub fn write(o: &SlurmOptions) -> Result<Written, CampaignError> {
         q(&parts),
         o.cpus_per_task
     );
-    let merged = out.join("merged");
     let mut merge = header(o, &format!("{name}-merge"), 1, &logs.join("merge.out"));
     merge += "set -euo pipefail\n";
     merge += &format!(

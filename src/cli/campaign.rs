@@ -82,7 +82,7 @@ pub fn run(c: CampaignCmd) -> Result<()> {
         CampaignCmd::Slurm(a) => {
             let opts = job!(a => slurm::SlurmOptions { shards, out, partition, time, mem,
                 cpus_per_task; campaign: a.file,
-                binary: a.binary.map_or_else(std::env::current_exe, Ok)? });
+                binary: a.binary.map_or_else(std::env::current_exe, Ok)?, fresh: force() });
             let written = slurm::write(&opts)?;
             let (array, merge) = (written.array.display(), written.merge.display());
             out!("wrote {array} and {merge}\n");

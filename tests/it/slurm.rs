@@ -101,6 +101,52 @@ fn slurm_scripts_have_the_array_resume_and_dependent_merge() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("--shards"));
 }
 
+// Oracle: the overwrite policy of every command. Written again into a folder holding an earlier
+// submission's shards, `campaign slurm` is refused without --force (the tasks would resume the
+// old shards and the merge report them as the new campaign's); with --force the old shards, merge
+// and logs are gone and the scripts are the new ones.
+#[test]
+fn slurm_force_starts_afresh_over_old_shards() {
+    let tmp = tempfile::tempdir().unwrap();
+    let f = small(tmp.path());
+    let out = tmp.path().join("sl");
+    let slurm = |extra: &[&str]| {
+        Command::new(BIN)
+            .args(extra)
+            .args(["campaign", "slurm"])
+            .arg(&f)
+            .args(["--shards", "2", "--out"])
+            .arg(&out)
+            .output()
+            .unwrap()
+    };
+    assert!(slurm(&[]).status.success());
+    for old in [
+        "parts/0/manifest.json",
+        "merged/manifest.json",
+        "logs/shard-0.out",
+    ] {
+        let p = out.join(old);
+        std::fs::create_dir_all(p.parent().unwrap()).unwrap();
+        std::fs::write(&p, "old").unwrap();
+    }
+    let o = slurm(&[]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("--out") && err.contains("--force"), "{err}");
+    assert!(
+        out.join("parts/0/manifest.json").exists(),
+        "a refused run removed nothing"
+    );
+    let o = slurm(&["--force"]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert_eq!(std::fs::read_dir(out.join("parts")).unwrap().count(), 0);
+    assert_eq!(std::fs::read_dir(out.join("logs")).unwrap().count(), 0);
+    assert!(!out.join("merged").exists());
+    let array = std::fs::read_to_string(out.join("array.sbatch")).unwrap();
+    assert!(array.contains("#SBATCH --array=0-1"), "{array}");
+}
+
 // Oracle: a one-process run of the same campaign; the merged output of the SLURM array must be
 // bit-identical (except the wall-time column). Needs root and apt (installs munge/slurm);
 // skipped with a visible message where SLURM cannot be installed or started.
