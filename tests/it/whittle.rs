@@ -581,10 +581,10 @@ fn lpf_x_adjoint_matches_forward_mode() {
             m.fast_transfer_grid(pts, p, &mut t, Some(&mut d));
             let (mut forward, mut scale) = (vec![0.0; 7], vec![0.0; 7]);
             for (k, dk) in d.chunks(7).enumerate() {
-                for q in 0..7 {
-                    let term = (dk[q] * seed_at(k)).trace().re;
-                    forward[q] += term;
-                    scale[q] += term.abs();
+                for ((f, s), dq) in forward.iter_mut().zip(&mut scale).zip(dk) {
+                    let term = (dq * seed_at(k)).trace().re;
+                    *f += term;
+                    *s += term.abs();
                 }
             }
             let mut generic = vec![0.0; 7];
