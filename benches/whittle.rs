@@ -42,6 +42,48 @@ fn bench(c: &mut Criterion) {
     group.bench_function("likelihood_and_gradient_standard_1hz", |b| {
         b.iter(|| black_box(problem.chi2_and_gradient(black_box(&sc.guess))))
     });
+    // The cost split of one evaluation: the model alone at the kept bins (the experiments
+    // share one grid), its template, its template with the seven derivative matrices (what
+    // forward mode needs), and the reverse-mode contraction (with a constant seed).
+    let n = sim.inputs[0][0].len();
+    let points: Vec<_> = lik
+        .kept_of(0)
+        .iter()
+        .map(|&k| setup.model.prepare(k as f64 / (n as f64 * sim.dt)))
+        .collect();
+    eprintln!(
+        "{} experiments of {n} samples, {} of {} bins kept",
+        lik.n_experiments(),
+        points.len(),
+        freefall::fit::whittle::bins_of(n)
+    );
+    let np = setup.model.n_params();
+    let mut t = vec![freefall::model::CMat::<2>::zeros(); points.len()];
+    let mut d = vec![freefall::model::CMat::<2>::zeros(); points.len() * np];
+    group.bench_function("model_transfer_kept_bins", |b| {
+        b.iter(|| {
+            setup
+                .model
+                .transfer_grid(&points, black_box(&sc.guess), &mut t, None)
+        })
+    });
+    group.bench_function("model_transfer_and_derivatives_kept_bins", |b| {
+        b.iter(|| {
+            setup
+                .model
+                .transfer_grid(&points, black_box(&sc.guess), &mut t, Some(&mut d))
+        })
+    });
+    let seed = freefall::model::CMat::<2>::from_element(num_complex::Complex64::new(0.5, 0.25));
+    group.bench_function("model_adjoint_kept_bins", |b| {
+        b.iter(|| {
+            let mut grad = vec![0.0; np];
+            setup
+                .model
+                .transfer_grid_adjoint(&points, black_box(&sc.guess), &mut grad, |_, _| seed);
+            black_box(grad)
+        })
+    });
     use freefall::fit::Residuals;
     group.bench_function("residuals_standard_1hz", |b| {
         b.iter(|| black_box(problem.residuals(black_box(&sc.guess))))

@@ -122,6 +122,8 @@ struct Grid<P, const N: usize> {
     points: Vec<P>,
     /// `sqrt(4 / T) L_k^-1` at the kept bins.
     winv: Vec<CMat<N>>,
+    /// The experiments on this grid.
+    exps: Vec<usize>,
 }
 
 /// The Whittle likelihood of a design (see the module doc): prepared once per design and
@@ -243,6 +245,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> WhittleLikelihood<'m, M, N> {
                     .collect(),
                 winv: kept.iter().map(|&k| winv_all[k - 1]).collect(),
                 kept,
+                exps: (0..lens.len()).filter(|&e| grid_of[e] == g).collect(),
             });
         }
         let present = spectra
@@ -624,21 +627,82 @@ impl<M: ClosedLoopModel<N>, const N: usize> WhittleProblem<'_, '_, M, N> {
     /// `chi^2(p)` and its gradient `d chi^2 / dp_q = -2 sum Re[r^H dw_q]` in one pass over
     /// the kept bins, without the residual series (what a sampler evaluates:
     /// `log L = -chi^2 / 2` up to a constant).
+    ///
+    /// Reverse mode: with `dw_q = W dT_q X - dV_q` (`W = sqrt(4 / T) L^-1`, `V` the whitened
+    /// wrap-around), `d chi^2 / dp_q = -2 Re sum_k tr(dT_q G_k) + 2 Re sum_k r_k^H dV_q,k`,
+    /// `G_k = sum_e X_e (W^H r_e)^H` per bin over the experiments sharing the grid; the model
+    /// contracts `dT_q` with `G_k` ([`ClosedLoopModel::transfer_grid_adjoint`]) without
+    /// forming the derivative matrices.
     pub fn chi2_and_gradient(&self, p: &[f64]) -> (f64, Vec<f64>) {
-        let np = self.lik.model.n_params();
+        let lik = self.lik;
+        let np = lik.model.n_params();
+        let dp: Vec<f64> = p.iter().zip(&lik.p0).map(|(a, b)| a - b).collect();
         let mut chi2: f64 = self.data_w.iter().map(|exp| exp[N][0].powi(2)).sum();
-        let mut grad = vec![0.0; np];
-        self.lik.visit(p, true, |e, i, w, dw| {
-            let exp = &self.data_w[e];
-            for c in 0..N {
-                let r = Complex64::new(exp[c][2 * i] - w[c].re, exp[c][2 * i + 1] - w[c].im);
-                chi2 += r.norm_sqr();
-                for (g, dq) in grad.iter_mut().zip(dw) {
-                    *g -= 2.0 * (r.re * dq[c].re + r.im * dq[c].im);
-                }
-            }
-        });
+        // Re sum tr(dT_q G) and Re sum r^H dV_q, then combined.
+        let mut g_model = vec![0.0; 2 * np];
+        let (g_model, g_wrap) = g_model.split_at_mut(np);
+        for grid in &lik.grids {
+            lik.model
+                .transfer_grid_adjoint(&grid.points, p, g_model, |i, t| {
+                    let mut gm = CMat::<N>::zeros();
+                    for &e in &grid.exps {
+                        let r = self.residual_at(e, i, t, &grid.winv[i], &dp);
+                        chi2 += r.iter().map(|z| z.norm_sqr()).sum::<f64>();
+                        let dv = &lik.dwrap[e][i * np..(i + 1) * np];
+                        for (gq, dq) in g_wrap.iter_mut().zip(dv) {
+                            *gq += (0..N)
+                                .map(|c| r[c].re * dq[c].re + r[c].im * dq[c].im)
+                                .sum::<f64>();
+                        }
+                        // a = W^H r, G += X a^H.
+                        let winv = &grid.winv[i];
+                        let a: [Complex64; N] = std::array::from_fn(|j| {
+                            (j..N).map(|k| winv[(k, j)].conj() * r[k]).sum()
+                        });
+                        let x = &lik.inputs[e][i];
+                        for &c in &lik.present[e] {
+                            for (j, aj) in a.iter().enumerate() {
+                                gm[(c, j)] += x[c] * aj.conj();
+                            }
+                        }
+                    }
+                    gm
+                });
+        }
+        let grad = g_model
+            .iter()
+            .zip(g_wrap.iter())
+            .map(|(m, w)| 2.0 * (w - m))
+            .collect();
         (chi2, grad)
+    }
+
+    /// The whitened residual `r = d - (W T X - V(p))` of experiment `e` at kept bin index `i`
+    /// from the transfer matrix `t` there, the whitening factor `winv` and `dp = p - p0` (the
+    /// same operations as [`WhittleLikelihood::visit`]).
+    #[inline(always)]
+    fn residual_at(
+        &self,
+        e: usize,
+        i: usize,
+        t: &CMat<N>,
+        winv: &CMat<N>,
+        dp: &[f64],
+    ) -> [Complex64; N] {
+        let lik = self.lik;
+        let np = dp.len();
+        let mut w = whitened_dense(t, winv, &lik.inputs[e][i], &lik.present[e]);
+        let mut v = lik.wrap[e][i];
+        for (dq, a) in lik.dwrap[e][i * np..(i + 1) * np].iter().zip(dp) {
+            for c in 0..N {
+                v[c] += dq[c] * a;
+            }
+        }
+        let exp = &self.data_w[e];
+        std::array::from_fn(|c| {
+            w[c] -= v[c];
+            Complex64::new(exp[c][2 * i] - w[c].re, exp[c][2 * i + 1] - w[c].im)
+        })
     }
 }
 

@@ -136,6 +136,66 @@ pub trait ClosedLoopModel<const N: usize>: Send + Sync {
     {
         transfer_grid_generic(self, points, p, t_out, d_out)
     }
+
+    /// Reverse-mode (adjoint) derivatives on a grid: at every point `k` (in order) the closed
+    /// loop `T_k = T_{oi->o}(f_k, p)` is handed to `seed(k, &T_k)`, which returns a matrix
+    /// `G_k`; then
+    ///
+    /// `grad[q] += Re sum_k tr(dT_k/dp_q G_k)`.
+    ///
+    /// With `G_k = sum_e x_e a_e^H` this is `Re sum_k sum_e a_e^H dT_k/dp_q x_e`, the
+    /// derivative of a real function of the responses `T_k x_e` whose adjoints are `a_e`
+    /// (e.g. `a = -2 W^H r` for a whitened least-squares residual `r = d - W T x`). The
+    /// default runs [`Self::transfer_grid`] with its derivatives (forward mode) chunk by chunk;
+    /// a model may override it with a contraction that never forms `dT` (LPF-x's continuous
+    /// loop: `dT = Delta^-1 (dM - dDelta T)` for `T = Delta^-1 M`, so
+    /// `tr(dT G) = tr(dM B) - tr(dDelta T B)` with `B = G Delta^-1`, a few entries of `B` and
+    /// `T B` per parameter).
+    fn transfer_grid_adjoint(
+        &self,
+        points: &[Self::Point],
+        p: &[f64],
+        grad: &mut [f64],
+        seed: impl FnMut(usize, &CMat<N>) -> CMat<N>,
+    ) where
+        Self: Sized,
+    {
+        transfer_grid_adjoint_forward(self, points, p, grad, seed)
+    }
+}
+
+/// Points per chunk of [`transfer_grid_adjoint_forward`].
+const ADJOINT_CHUNK: usize = 256;
+
+/// The default [`ClosedLoopModel::transfer_grid_adjoint`]: the model's own
+/// [`ClosedLoopModel::transfer_grid`] with its derivatives on chunks of the grid, each
+/// derivative contracted with the seed, `grad[q] += Re tr(dT_q G) = Re sum_ij dT_q[i, j]
+/// G[j, i]`.
+pub fn transfer_grid_adjoint_forward<M: ClosedLoopModel<N>, const N: usize>(
+    model: &M,
+    points: &[M::Point],
+    p: &[f64],
+    grad: &mut [f64],
+    mut seed: impl FnMut(usize, &CMat<N>) -> CMat<N>,
+) {
+    let np = model.n_params();
+    let len = points.len().min(ADJOINT_CHUNK);
+    let mut t = vec![CMat::<N>::zeros(); len];
+    let mut d = vec![CMat::<N>::zeros(); len * np];
+    for (c, pts) in points.chunks(ADJOINT_CHUNK).enumerate() {
+        let m = pts.len();
+        model.transfer_grid(pts, p, &mut t[..m], Some(&mut d[..m * np]));
+        for (j, tj) in t[..m].iter().enumerate() {
+            let g = seed(c * ADJOINT_CHUNK + j, tj);
+            for (q, gq) in grad.iter_mut().enumerate().take(np) {
+                let dq = &d[j * np + q];
+                *gq += (0..N)
+                    .flat_map(|a| (0..N).map(move |b| (a, b)))
+                    .map(|(a, b)| (dq[(a, b)] * g[(b, a)]).re)
+                    .sum::<f64>();
+            }
+        }
+    }
 }
 
 /// Frequencies per task of [`transfer_grid_generic`]'s parallel loop.

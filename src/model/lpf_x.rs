@@ -11,14 +11,16 @@ use std::f64::consts::PI;
 use num_complex::Complex64;
 
 use super::closed_loop::{
-    transfer_of, transfer_with_derivatives_of, CMat, ClosedLoopModel, NoiseEntry,
-    OperatorDerivative, Operators,
+    transfer_grid_adjoint_forward, transfer_of, transfer_with_derivatives_of, CMat,
+    ClosedLoopModel, NoiseEntry, OperatorDerivative, Operators,
 };
 use super::discrete::DiscreteTf;
 use super::poly::{Poly, RootsError};
 use super::sampled::{law_polynomials_in_w, s_of_w, z_and_zm1, HeldPlant};
 use super::spec::{LoopKind, ModelSpec};
 use super::zpk::Zpk;
+
+mod adjoint;
 
 const I: Complex64 = Complex64 { re: 0.0, im: 1.0 };
 
@@ -587,6 +589,19 @@ impl ClosedLoopModel<2> for LpfX {
         match self.held_plant(p) {
             Some(plant) => self.digital_transfer_grid(&plant, points, p, t_out, d_out),
             None => self.fast_transfer_grid(points, p, t_out, d_out),
+        }
+    }
+
+    fn transfer_grid_adjoint(
+        &self,
+        points: &[LpfPoint],
+        p: &[f64],
+        grad: &mut [f64],
+        seed: impl FnMut(usize, &CMat<2>) -> CMat<2>,
+    ) {
+        match self.digital {
+            Some(_) => transfer_grid_adjoint_forward(self, points, p, grad, seed),
+            None => self.fast_transfer_grid_adjoint(points, p, grad, seed),
         }
     }
 

@@ -7,16 +7,20 @@ use std::path::Path;
 
 use freefall::campaign::{self, RunOptions, Shard};
 use freefall::data::ExperimentData;
+use freefall::data::Series;
 use freefall::fit::whittle::{bins_of, DEFAULT_DROP_TOLERANCE};
 use freefall::fit::{
     fit, objective, Estimator, FitConfig, FitResult, Likelihood, Residuals, WhittleLikelihood,
 };
 use freefall::forward::fisher::{fisher_information, InputSpectra};
+use freefall::model::closed_loop::transfer_grid_adjoint_forward;
+use freefall::model::{CMat, ClosedLoopModel};
 use freefall::numerics::linalg::spd_inverse;
 use freefall::setup::{Setup, DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 use freefall::sim::rng::stream;
 use freefall::sim::{Simulator, WhittleSimulator};
 use nalgebra::DMatrix;
+use num_complex::Complex64;
 use rayon::prelude::*;
 
 use crate::common::tables::assert_same_dirs;
@@ -478,6 +482,123 @@ fn whittle_refusals_name_the_key() {
         assert!(!err.contains('\n') && err.contains("bad.toml"), "{err}");
         for n in *needles {
             assert!(err.contains(n), "'{err}' lacks '{n}'");
+        }
+    }
+}
+
+// Oracle: forward mode, the whitened templates' analytic Jacobian (every derivative matrix
+// formed, `templates_and_jacobian`) contracted with the residuals, `-2 sum r . dw_q`: the
+// reverse-mode gradient of `chi2_and_gradient` must equal it to round-off (1e-10 of
+// `2 sum |r| |dw_q|`), on the continuous loop (LPF-x's adjoint) and on the digital one (the
+// default, chunked forward-mode adjoint), at the truth and at the guess, for data that are
+// the truth's templates plus a fixed deterministic perturbation of unit scale.
+#[test]
+fn reverse_mode_gradient_matches_forward_mode() {
+    for setup in [Setup::embedded_continuous(), Setup::embedded()] {
+        let sc = setup.spec.scenario("monte_carlo").unwrap();
+        let design = setup.design("standard").unwrap();
+        let sim = setup.simulator(&design, &sc.truth, None).unwrap();
+        let lik = WhittleLikelihood::new(
+            &setup.model,
+            &sim.inputs,
+            sim.dt,
+            setup.psd(&sc.truth),
+            &sc.truth,
+            &[sc.truth.clone(), sc.guess.clone()],
+            DEFAULT_DROP_TOLERANCE,
+        )
+        .unwrap();
+        let mut data = lik.templates_w(&sc.truth);
+        for (e, exp) in data.iter_mut().enumerate() {
+            for (c, ch) in exp.iter_mut().enumerate() {
+                for (i, v) in ch.iter_mut().enumerate() {
+                    *v += ((i * 7 + c * 3 + e) as f64 * 0.37).sin();
+                }
+            }
+        }
+        let problem = lik.problem(data).unwrap();
+        let dot = |a: &Series, b: &Series, f: fn(f64) -> f64| -> f64 {
+            a.iter()
+                .flatten()
+                .zip(b.iter().flatten())
+                .map(|(x, y)| x.iter().zip(y).map(|(u, v)| f(*u) * f(*v)).sum::<f64>())
+                .sum()
+        };
+        for p in [&sc.truth, &sc.guess] {
+            let (chi2, grad) = problem.chi2_and_gradient(p);
+            let (r, j) = problem.residuals_and_jacobian(p);
+            let direct = objective(Estimator::Squared, &r);
+            assert!((chi2 - direct).abs() < 1e-10 * chi2, "{chi2} vs {direct}");
+            for (q, jq) in j.iter().enumerate() {
+                let forward = -2.0 * dot(&r, jq, |v| v);
+                let scale = 2.0 * dot(&r, jq, f64::abs);
+                assert!(
+                    (grad[q] - forward).abs() <= 1e-10 * scale,
+                    "{:?} loop, parameter {q}: reverse {:e}, forward {forward:e} (scale {scale:e})",
+                    setup.spec.control_loop.kind,
+                    grad[q],
+                );
+            }
+        }
+    }
+}
+
+/// A deterministic seed matrix per point, of unit scale.
+fn seed_at(k: usize) -> CMat<2> {
+    let z = |a: f64| Complex64::new((a * 1.3).sin(), (a * 0.7).cos());
+    let a = k as f64;
+    CMat::<2>::new(z(a), z(a + 0.5), z(a + 1.1), z(a + 2.3))
+}
+
+// Oracle: forward mode by hand, the continuous LPF-x loop's seven analytic derivative
+// matrices (`fast_transfer_grid`) contracted with the seeds, `sum_k Re tr(dT_q G_k)`, to
+// 1e-12 of the sum of its terms' magnitudes: LPF-x's adjoint and the default chunked
+// forward-mode adjoint must both give it, on a uniform grid of 1,000 bins and on a gapped
+// one; and the template handed to the seed is `fast_transfer_grid`'s, bit for bit.
+#[test]
+fn lpf_x_adjoint_matches_forward_mode() {
+    let spec = freefall::model::ModelSpec::embedded_continuous();
+    let m = freefall::model::LpfX::from_spec(&spec);
+    let sc = spec.scenario("monte_carlo").unwrap();
+    let all: Vec<_> = (1..=1000).map(|k| m.prepare(k as f64 / 2001.0)).collect();
+    let gapped: Vec<_> = all
+        .iter()
+        .step_by(3)
+        .take(200)
+        .chain(&all[700..])
+        .copied()
+        .collect();
+    for p in [&sc.truth, &sc.guess] {
+        for pts in [&all, &gapped] {
+            let mut t = vec![CMat::<2>::zeros(); pts.len()];
+            m.fast_transfer_grid(pts, p, &mut t, None);
+            let mut fast = vec![0.0; 7];
+            m.fast_transfer_grid_adjoint(pts, p, &mut fast, |k, tk| {
+                assert_eq!(*tk, t[k], "point {k}");
+                seed_at(k)
+            });
+            let mut d = vec![CMat::<2>::zeros(); 7 * pts.len()];
+            m.fast_transfer_grid(pts, p, &mut t, Some(&mut d));
+            let (mut forward, mut scale) = (vec![0.0; 7], vec![0.0; 7]);
+            for (k, dk) in d.chunks(7).enumerate() {
+                for ((f, s), dq) in forward.iter_mut().zip(&mut scale).zip(dk) {
+                    let term = (dq * seed_at(k)).trace().re;
+                    *f += term;
+                    *s += term.abs();
+                }
+            }
+            let mut generic = vec![0.0; 7];
+            transfer_grid_adjoint_forward(&m, pts, p, &mut generic, |k, _| seed_at(k));
+            for q in 0..7 {
+                for (what, got) in [("adjoint", fast[q]), ("chunked forward", generic[q])] {
+                    assert!(
+                        (got - forward[q]).abs() <= 1e-12 * scale[q],
+                        "parameter {q}: {what} {got:e}, forward {:e} (scale {:e})",
+                        forward[q],
+                        scale[q]
+                    );
+                }
+            }
         }
     }
 }

@@ -1,0 +1,117 @@
+//! Reverse-mode derivatives of LPF-x's continuous loop (the fast form of
+//! [`ClosedLoopModel::transfer_grid_adjoint`](crate::model::ClosedLoopModel::transfer_grid_adjoint)).
+//!
+//! With `T = Delta^-1 M`, `M = A C T_d = [[m11, mt m22], [0, m22]]`,
+//! `dT/dp_q = Delta^-1 (dM_q - dDelta_q T)`, so for a seed `G`
+//!
+//! `tr(dT_q G) = tr(dM_q B) - tr(dDelta_q P)`, `B = G Delta^-1`, `P = T B`,
+//!
+//! and every `dM_q`, `dDelta_q` has at most four non-zero entries (those of
+//! [`LpfX::fast_transfer_grid`]): one `B` and one `P` per point serve all seven parameters,
+//! where forward mode forms seven 2x2 derivative matrices.
+
+use num_complex::Complex64;
+
+use super::{c, CMat, LpfPoint, LpfX, Phasor, A_DF, A_SUS, DT1, DT12, S21, W1, W12};
+
+impl LpfX {
+    /// `grad[q] += Re sum_k tr(dT_k/dp_q G_k)` with `G_k = seed(k, &T_k)` on a grid of the
+    /// continuous loop; `T_k` is [`Self::fast_transfer_grid`]'s template (the same operations,
+    /// so the same numbers).
+    pub fn fast_transfer_grid_adjoint(
+        &self,
+        points: &[LpfPoint],
+        p: &[f64],
+        grad: &mut [f64],
+        mut seed: impl FnMut(usize, &CMat<2>) -> CMat<2>,
+    ) {
+        let (w1, w12, s21, a_df, a_sus, mt, g) = (
+            p[W1],
+            p[W12],
+            p[S21],
+            p[A_DF],
+            p[A_SUS],
+            self.mt,
+            self.gamma_x,
+        );
+        let k11 = (1.0 + 2.0 * mt) * w1 + mt * w12;
+        let d12r = g + mt * (w1 + w12);
+        let k22 = w1 + w12 - 2.0 * g;
+        // dDelta of the stiffnesses (real, constant): rows [[a, b], [c, d]] of
+        // `fast_transfer_grid`'s `stiff`.
+        let stiff = [
+            [1.0 + 2.0 * mt - s21 * mt, mt, -s21, 1.0],
+            [mt - s21 * mt, mt, 1.0 - s21, 1.0],
+        ];
+        let (mut ph1, mut ph2) = (Phasor::new(p[DT1]), Phasor::new(p[DT12]));
+        let uniform = points.len() > 3 && {
+            let d1 = points[2].s - points[1].s;
+            points[1..].windows(2).all(|w| {
+                ((w[1].s - w[0].s) - d1).norm() <= crate::numerics::tol::SAME_TIME * d1.norm()
+            })
+        };
+        // Sums over the points of Re P (for the stiffnesses) and of each other parameter's
+        // contraction.
+        let mut re_p = [0.0f64; 4];
+        let mut acc = [0.0f64; 7];
+        for (k, pt) in points.iter().enumerate() {
+            let ds = (uniform && k >= 2).then(|| pt.s - points[k - 1].s);
+            let e1 = ph1.at(k, pt.s, ds);
+            let e2 = ph2.at(k, pt.s, ds);
+            let big_d22 = pt.s2 + k22;
+            let d11 = pt.s2 + k11 - s21 * d12r + pt.c_df * a_df;
+            let d12 = pt.c_sus * (mt * a_sus) + d12r;
+            let d21 = c(w12) - big_d22 * s21;
+            let d22 = big_d22 + pt.c_sus * a_sus;
+            let det = d11 * d22 - d12 * d21;
+            let inv_norm = 1.0 / det.norm_sqr();
+            let inv_det = Complex64::new(det.re * inv_norm, -det.im * inv_norm);
+            let m11 = pt.c_df * a_df * e1;
+            let m22 = pt.c_sus * a_sus * e2;
+            let a = m11 * inv_det;
+            let b = m22 * inv_det;
+            let (t11, t12, t21, t22) = (
+                d22 * a,
+                (d22 * mt - d12) * b,
+                -d21 * a,
+                (d11 - d21 * mt) * b,
+            );
+            let gm = seed(k, &CMat::<2>::new(t11, t12, t21, t22));
+            // B = G Delta^-1, Delta^-1 = [[d22, -d12], [-d21, d11]] / det.
+            let (g11, g12, g21, g22) = (
+                gm[(0, 0)] * inv_det,
+                gm[(0, 1)] * inv_det,
+                gm[(1, 0)] * inv_det,
+                gm[(1, 1)] * inv_det,
+            );
+            let b11 = g11 * d22 - g12 * d21;
+            let b12 = g12 * d11 - g11 * d12;
+            let b21 = g21 * d22 - g22 * d21;
+            let b22 = g22 * d11 - g21 * d12;
+            let p11 = t11 * b11 + t12 * b21;
+            let p12 = t11 * b12 + t12 * b22;
+            let p21 = t21 * b11 + t22 * b21;
+            let p22 = t21 * b12 + t22 * b22;
+            re_p[0] += p11.re;
+            re_p[1] += p21.re;
+            re_p[2] += p12.re;
+            re_p[3] += p22.re;
+            // s21: dDelta = [[-D12, 0], [-D22, 0]] (D12 = d12r).
+            acc[S21] += (p11 * d12r + p12 * big_d22).re;
+            // a_df: dDelta = [[cdf, 0], [0, 0]], dM = [[cdf e1, 0], [0, 0]].
+            acc[A_DF] += (pt.c_df * (e1 * b11 - p11)).re;
+            // a_sus: dDelta = [[0, mt csus], [0, csus]], dM = dDelta e2.
+            acc[A_SUS] += (pt.c_sus * (e2 * (b21 * mt + b22) - (p21 * mt + p22))).re;
+            // Delays: dDelta = 0, dM = -s (column of M).
+            acc[DT1] -= (pt.s * m11 * b11).re;
+            acc[DT12] -= (pt.s * (m22 * mt * b21 + m22 * b22)).re;
+        }
+        // Stiffnesses: tr(dDelta P) = a P11 + b P21 + c P12 + d P22.
+        for (q, s) in [(W1, &stiff[0]), (W12, &stiff[1])] {
+            acc[q] -= s.iter().zip(&re_p).map(|(a, b)| a * b).sum::<f64>();
+        }
+        for (gq, a) in grad.iter_mut().zip(acc) {
+            *gq += a;
+        }
+    }
+}
