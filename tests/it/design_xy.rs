@@ -312,7 +312,9 @@ fn xy_validation_settings_it_cannot_honour_are_refused_in_one_line() {
     ];
     for (extra, needles) in cases {
         let file = xy_validation_file(dir.path(), 2, extra);
-        let o = common::freefall(&["design", "validate", &file, "--model", "lpf_xy", "--force", "-q"]);
+        let o = common::freefall(&[
+            "design", "validate", &file, "--model", "lpf_xy", "--force", "-q",
+        ]);
         let err = String::from_utf8_lossy(&o.stderr);
         assert!(!o.status.success(), "{extra} accepted");
         assert_eq!(err.trim().lines().count(), 1, "{err}");
