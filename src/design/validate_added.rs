@@ -359,16 +359,30 @@ where
             v.iter_mut().zip(row).for_each(|(c, x)| c.push(x));
         }
     }
-    let [design, parameter, unit] = t;
-    let [tr, mean, sd, sd_err, sig, ratio, fit_sig, fit_ratio, bias, mahal, mahal_sd] = v;
-    let converged: Vec<f64> = (runs.iter())
+    let converged = (runs.iter())
         .flat_map(|r| std::iter::repeat_n(r.fits.iter().filter(|f| f.converged).count() as f64, k))
         .collect();
-    let table = Table::new()
+    let table = parquet_table(t, b, converged, v)?.with_meta("freefall.likelihood", likelihood);
+    write_parquet(out.join("validation.parquet"), &table)?;
+    crate::io::write_text_atomic(out.join("validation.md"), &md)?;
+    Ok(md)
+}
+
+/// validation.parquet's table from its string columns (design, parameter, unit), the target
+/// flags, the converged counts and the numeric columns in [`write_tables`]'s order.
+fn parquet_table(
+    t: [Vec<String>; 3],
+    target: Vec<bool>,
+    converged: Vec<f64>,
+    v: [Vec<f64>; 11],
+) -> Result<Table> {
+    let [design, parameter, unit] = t;
+    let [tr, mean, sd, sd_err, sig, ratio, fit_sig, fit_ratio, bias, mahal, mahal_sd] = v;
+    Ok(Table::new()
         .with_str("design", design)?
         .with_str("parameter", parameter)?
         .with_str("unit", unit)?
-        .with_bool("target", b)?
+        .with_bool("target", target)?
         .with_f64("converged", converged)?
         .with_f64("truth", tr)?
         .with_f64("mean", mean)?
@@ -394,9 +408,5 @@ where
         .with_meta(
             "freefall.units_note",
             "truth, mean, sd, sd_err, fisher_sigma and fit_sigma are in the row's unit",
-        )
-        .with_meta("freefall.likelihood", likelihood);
-    write_parquet(out.join("validation.parquet"), &table)?;
-    crate::io::write_text_atomic(out.join("validation.md"), &md)?;
-    Ok(md)
+        ))
 }
