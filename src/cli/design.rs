@@ -1,8 +1,7 @@
 //! `freefall design optimize|evaluate|validate`: optimal injection designs (thesis ch. 5).
 
 use super::prelude::*;
-use crate::design::report::write_validation;
-use crate::design::validate::{validate as run_validation, ValidationConfig};
+use crate::design::validate::ValidationConfig;
 use crate::design::DesignModel;
 use crate::io::{ensure_dir, ensure_parent, read_toml, write_parquet};
 use crate::setup::SetupOf;
@@ -47,7 +46,7 @@ pub struct OptimizeArgs {
     /// Matrix the criterion acts on.
     #[arg(long, value_enum, default_value_t = Matrix::Information)]
     pub on: Matrix,
-    /// separate (Exp. 1 on oi1, Exp. 2 on oi12) or simultaneous (Exp. 3 on both); lpf_x only.
+    /// separate (Exp. 1 on oi1, Exp. 2 on oi12) or simultaneous (Exp. 3 on both); lpf_xy: separate.
     #[arg(long, value_enum, default_value_t = Layout::Separate)]
     pub layout: Layout,
     /// Output directory: designs.parquet, designs/*.toml, limits, derivatives, methods,
@@ -88,7 +87,7 @@ pub fn run(c: DesignCmd) -> Result<()> {
     match c {
         DesignCmd::Optimize(a) => with_setup!(a.study.model.any_setup()?, s => optimize(&*s, &a)),
         DesignCmd::Evaluate(a) => with_setup!(a.study.model.any_setup()?, s => evaluate(&*s, &a)),
-        DesignCmd::Validate(a) => validate(a),
+        DesignCmd::Validate(a) => with_setup!(a.model.any_setup()?, s => validate(&*s, &a)),
     }
 }
 
@@ -131,21 +130,17 @@ fn evaluate<M: DesignModel<N>, const N: usize>(
     Ok(())
 }
 
-fn validate(a: ValidateArgs) -> Result<()> {
-    let setup = a.model.any_setup()?.x(
-        "design validate (the thesis's four-step validation of the x experiments; for lpf_xy, \
-         `design optimize --model lpf_xy` and a campaign of its designs)",
-    )?;
+/// `design validate` on the model of `setup`.
+fn validate<M: DesignModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
+    a: &ValidateArgs,
+) -> Result<()> {
     let cfg = ValidationConfig::from_file(&a.campaign, a.realizations)?;
     let out = cfg.out_dir(a.out.as_deref(), force())?;
-    let (designs, realizations) = (cfg.designs(), cfg.realizations);
+    let (designs, realizations) = (M::validation_designs(&cfg), cfg.realizations);
     info!("validating {designs} designs x {realizations} realizations ...");
-    let v = working("validating", |_| run_validation(&setup, &cfg))?;
-    let md = write_validation(&setup, &v, &cfg, &out)?;
+    let (md, files) = working("validating", |_| M::validate(setup, &cfg, &out))?;
     out!("{md}");
-    info!(
-        "wrote {}/validation.md, validation.parquet, designs.parquet, summary.parquet, correlation.parquet, realizations.parquet",
-        out.display()
-    );
+    info!("wrote {}/{files}", out.display());
     Ok(())
 }

@@ -39,6 +39,7 @@ pub mod report;
 pub mod search;
 pub mod space;
 pub mod validate;
+pub mod validate_added;
 
 use std::path::Path;
 
@@ -138,6 +139,18 @@ pub trait DesignModel<const N: usize>: SpecModel<N> {
         design: &Design,
         origin: &Path,
     ) -> Result<report::DesignEvaluation, DesignError>;
+
+    /// Designs a validation of `cfg` compares (the references and one per criterion).
+    fn validation_designs(cfg: &validate::ValidationConfig) -> usize;
+
+    /// The validation of `cfg` (`design validate --model ...`: preliminary fit, optimisation
+    /// around it, Monte Carlo fits against the Fisher sigmas) with its files written to `out`
+    /// (which must exist): the printable report and the files written.
+    fn validate(
+        setup: &SetupOf<Self, N>,
+        cfg: &validate::ValidationConfig,
+        out: &Path,
+    ) -> Result<(String, &'static str), DesignError>;
 }
 
 impl DesignModel<2> for LpfX {
@@ -173,6 +186,22 @@ impl DesignModel<2> for LpfX {
     ) -> Result<report::DesignEvaluation, DesignError> {
         report::evaluate_design(setup, study, design, origin)
     }
+
+    fn validation_designs(cfg: &validate::ValidationConfig) -> usize {
+        cfg.designs()
+    }
+
+    fn validate(
+        setup: &Setup,
+        cfg: &validate::ValidationConfig,
+        out: &Path,
+    ) -> Result<(String, &'static str), DesignError> {
+        let v = validate::validate(setup, cfg)?;
+        Ok((
+            report::write_validation(setup, &v, cfg, out)?,
+            "validation.md, validation.parquet, designs.parquet, summary.parquet, correlation.parquet, realizations.parquet",
+        ))
+    }
 }
 
 impl DesignModel<7> for LpfXy {
@@ -196,7 +225,8 @@ impl DesignModel<7> for LpfXy {
     ) -> Result<(String, &'static str), DesignError> {
         if layout != Layout::Separate {
             return Err(DesignError::Config(format!(
-                "--layout {} is for the lpf_x model; the lpf_xy design has one experiment per y/phi input",
+                "--layout {}: the lpf_xy design adds one experiment per y/phi input, as the thesis \
+                 identifies cross-talk by independent injections (ch. 5); there is no simultaneous layout",
                 layout.name()
             )));
         }
@@ -213,5 +243,21 @@ impl DesignModel<7> for LpfXy {
         origin: &Path,
     ) -> Result<report::DesignEvaluation, DesignError> {
         added::evaluate_design(setup, study, design, origin)
+    }
+
+    /// The fixed design plus the reference, and one per criterion.
+    fn validation_designs(cfg: &validate::ValidationConfig) -> usize {
+        1 + cfg.criteria.len()
+    }
+
+    fn validate(
+        setup: &SetupXy,
+        cfg: &validate::ValidationConfig,
+        out: &Path,
+    ) -> Result<(String, &'static str), DesignError> {
+        Ok((
+            validate_added::validate_added::<LpfXy, 7, { added::XY_CONSTRAINTS }>(setup, cfg, out)?,
+            validate_added::ADDED_VALIDATION_FILES,
+        ))
     }
 }

@@ -15,12 +15,12 @@ use super::criteria::{
 use super::search::{optimize, OptimizeConfig, Optimized};
 use super::space::{CandidateSet, DesignSpace, ExactDesign, Layout};
 use super::DesignError;
-use crate::campaign::runner::Runner;
-use crate::campaign::spec::{Campaign, FitOptions, Outputs, WhitenAt};
+use crate::campaign::runner::{CampaignModel, Runner};
+use crate::campaign::spec::{Campaign, FitOptions, LikelihoodKind, Outputs, WhitenAt};
 use crate::campaign::stats::{Aggregates, Layout as RowLayout, Row};
 use crate::fit::Estimator;
 use crate::model::spec::Scenario;
-use crate::setup::{Setup, DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
+use crate::setup::{Setup, SetupOf, DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 use crate::signal::Design;
 
 /// Default scenario of the x model's design studies.
@@ -159,6 +159,10 @@ pub struct ValidationConfig {
     pub simultaneous_criteria: Vec<Criterion>,
     pub scaling: Scaling,
     pub parameters: Option<Vec<String>>,
+    /// The Monte Carlo fits' likelihood (`likelihood = "time-domain" | "whittle"`); `None`:
+    /// the model's default (the x model: time-domain, as the thesis; the xy model: Whittle,
+    /// [`super::validate_added::ADDED_LIKELIHOOD`]).
+    pub likelihood: Option<LikelihoodKind>,
     /// Output folder (the file's `out`, resolved as given).
     pub out: PathBuf,
 }
@@ -182,6 +186,8 @@ struct ValidationSpec {
     #[serde(default)]
     scaling: Option<String>,
     parameters: Option<Vec<String>>,
+    #[serde(default)]
+    likelihood: Option<String>,
     out: PathBuf,
 }
 
@@ -235,6 +241,17 @@ impl ValidationConfig {
             None => Scaling::Standard,
             Some(s) => Scaling::parse(s).map_err(|e| bad("scaling", e.to_string()))?,
         };
+        let likelihood = match spec.likelihood.as_deref() {
+            None => None,
+            Some("time-domain") => Some(LikelihoodKind::TimeDomain),
+            Some("whittle") => Some(LikelihoodKind::Whittle),
+            Some(other) => {
+                return Err(bad(
+                    "likelihood",
+                    format!("'{other}' (expected \"time-domain\" or \"whittle\")"),
+                ))
+            }
+        };
         Ok(ValidationConfig {
             file: file.to_path_buf(),
             scenario: spec.scenario,
@@ -247,6 +264,7 @@ impl ValidationConfig {
             )?,
             scaling,
             parameters: spec.parameters,
+            likelihood,
             out: spec.out,
         })
     }
@@ -279,26 +297,49 @@ pub struct Validation {
     pub aggregates: Aggregates,
 }
 
+/// How [`monte_carlo`] fits beyond the campaign's defaults: the parameters held at their
+/// values in the start (`[fit] fixed`), the relative change of chi^2 that ends a fit
+/// (`[fit] ftol`; `None`: the fit's default) and the likelihood (`[fit] likelihood`).
+#[derive(Debug, Clone)]
+pub struct MonteCarloFit {
+    pub fixed: Vec<String>,
+    pub ftol: Option<f64>,
+    pub likelihood: LikelihoodKind,
+}
+
+impl MonteCarloFit {
+    /// The campaign's defaults with `likelihood`.
+    pub fn with(likelihood: LikelihoodKind) -> Self {
+        MonteCarloFit {
+            fixed: Vec::new(),
+            ftol: None,
+            likelihood,
+        }
+    }
+}
+
 /// Monte Carlo fits of `designs` at `truth`, each from `start` (which is also where the
 /// whitening filter's noise PSD is taken, as in the thesis's validation), over realizations
 /// `realizations` of `seed`. They run through the campaign runner, so they are the very fits
 /// `freefall campaign run` makes of these designs (same streams, same determinism contract:
 /// realization `r` of every design draws the noise of stream `r`, common random numbers across
-/// designs). Rows in order (realization, design).
-pub fn monte_carlo(
-    setup: &Setup,
+/// designs), with the settings of `fit`. Any model with a campaign ([`CampaignModel`]). Rows in
+/// order (realization, design).
+pub fn monte_carlo<M: CampaignModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
     designs: &[Design],
     truth: &[f64],
     start: &[f64],
     seed: u64,
     realizations: std::ops::Range<u64>,
+    fit: &MonteCarloFit,
 ) -> Result<(RowLayout, Vec<Row>), DesignError> {
     let campaign = Campaign {
         file: PathBuf::from("design validation"),
         name: "design-validation".into(),
         description: String::new(),
         model: None,
-        embedded_model: crate::model::spec::ModelKind::LpfX,
+        embedded_model: M::KIND,
         seed,
         realizations: realizations.end,
         estimators: vec![Estimator::Squared],
@@ -313,11 +354,11 @@ pub fn monte_carlo(
             whiten_at: WhitenAt::Guess,
             noise_chi2: false,
             cached_jacobian: true,
-            fixed: Vec::new(),
+            fixed: fit.fixed.clone(),
             priors: Default::default(),
             engine: crate::campaign::spec::Engine::FrequencyDomain,
-            likelihood: crate::campaign::spec::LikelihoodKind::TimeDomain,
-            ftol: None,
+            likelihood: fit.likelihood,
+            ftol: fit.ftol,
             ptol: None,
         },
         accel_bands: Vec::new(),
@@ -376,6 +417,7 @@ fn candidate_designs(
 pub fn validate(setup: &Setup, cfg: &ValidationConfig) -> Result<Validation, DesignError> {
     let sc = setup.spec.scenario(&cfg.scenario)?;
     let truth = sc.truth.clone();
+    let mc = MonteCarloFit::with(cfg.likelihood.unwrap_or(LikelihoodKind::TimeDomain));
     // Step 1: standard experiments, realization 0, fitted from the scenario's guess.
     let standard = setup.design("standard")?;
     let (_, prelim) = monte_carlo(
@@ -385,6 +427,7 @@ pub fn validate(setup: &Setup, cfg: &ValidationConfig) -> Result<Validation, Des
         &sc.guess,
         cfg.seed,
         0..1,
+        &mc,
     )?;
     let prelim = &prelim[0];
     if !prelim.converged {
@@ -411,6 +454,7 @@ pub fn validate(setup: &Setup, cfg: &ValidationConfig) -> Result<Validation, Des
         &preliminary,
         cfg.seed,
         1..cfg.realizations as u64 + 1,
+        &mc,
     )?;
     layout.designs = designs.iter().map(|d| d.0.clone()).collect();
     let mut aggregates = Aggregates::new(layout);

@@ -323,6 +323,9 @@ fn information_equals_inverse_monte_carlo_covariance() {
         &p,
         11,
         1..n as u64 + 1,
+        &freefall::design::validate::MonteCarloFit::with(
+            freefall::campaign::spec::LikelihoodKind::TimeDomain,
+        ),
     )
     .unwrap();
     assert!(fits.iter().all(|f| f.converged));

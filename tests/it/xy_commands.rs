@@ -423,40 +423,6 @@ fn xy_accel_is_the_x_models_along_x_and_follows_its_projection_on_every_channel(
 }
 
 #[test]
-fn the_x_only_commands_say_why_in_one_line() {
-    // Oracle: the house error format and the documented x-only feature: `design validate` is
-    // the thesis's validation of the x experiments. Each refusal of the xy model is one line
-    // naming the command and the reason.
-    let dir = tempfile::tempdir().unwrap();
-    let out = dir.path().join("o");
-    let cases: [(&[&str], &[&str]); 1] = [(
-        &[
-            "design",
-            "validate",
-            "campaigns/optimal_design.toml",
-            "--model",
-            "lpf_xy",
-        ],
-        &[
-            "design validate",
-            "lpf_xy",
-            "design optimize --model lpf_xy",
-        ],
-    )];
-    for (args, needles) in cases {
-        let mut a = args.to_vec();
-        a.extend(["--out", out.to_str().unwrap()]);
-        let o = freefall(&a);
-        let err = String::from_utf8_lossy(&o.stderr);
-        assert!(!o.status.success(), "{args:?} accepted");
-        assert_eq!(err.trim().lines().count(), 1, "{err}");
-        for n in needles {
-            assert!(err.contains(n), "{args:?}: '{err}' lacks '{n}'");
-        }
-    }
-}
-
-#[test]
 #[ignore = "slow tier: an xy simulation and a 2-experiment diagnosis with auxiliary commands (~100 s)"]
 fn near_twin_commands_of_the_x_only_design_are_reported_as_not_distinguishable() {
     // Oracle: the x-only standard design drives no phi loop, so the recorded commands uphi1 and
