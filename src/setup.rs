@@ -149,9 +149,9 @@ impl<M: SpecModel<N>, const N: usize> SetupOf<M, N> {
         1.0 / self.spec.sampling.simulate_hz
     }
 
-    /// The readouts' one-sided cross-PSD at `p`.
+    /// The readouts' one-sided cross-PSD at `p` (the model's sweep at `p` made once).
     pub fn psd<'a>(&'a self, p: &'a [f64]) -> impl Fn(f64) -> CMat<N> + 'a {
-        move |f| self.noise.readout_csd(&self.model, f, p)
+        self.noise.readout_csd_fn(&self.model, p)
     }
 
     /// A named injection design of the model file (e.g. "standard").

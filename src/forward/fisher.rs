@@ -10,7 +10,7 @@
 use nalgebra::DMatrix;
 use num_complex::Complex64;
 
-use crate::model::closed_loop::{transfer_with_derivatives, CMat, ClosedLoopModel};
+use crate::model::closed_loop::{transfer_with_derivatives_of, CMat, ClosedLoopModel};
 
 /// Spectra `X_e,c(f_k) = dt FFT(x)` of every experiment's inputs, each on the positive bins
 /// `f_k = k / (n_e dt)` of its own length `n_e`.
@@ -100,6 +100,7 @@ fn add_group_information<M: ClosedLoopModel<N>, const N: usize>(
     let duration = n as f64 * dt;
     let scale = 4.0 / duration;
     let mut col = vec![[Complex64::new(0.0, 0.0); N]; np];
+    let sw = model.sweep(p);
     for k in 1..n / 2 + 1 {
         let f = k as f64 / duration;
         let active = spectra
@@ -109,7 +110,7 @@ fn add_group_information<M: ClosedLoopModel<N>, const N: usize>(
             continue;
         }
         let pt = model.prepare(f);
-        transfer_with_derivatives(model, &pt, p, &mut d);
+        transfer_with_derivatives_of(sw.operators(&pt), |q| sw.derivative(&pt, q), &mut d);
         let s_inv = match psd(f).try_inverse() {
             Some(s) => s,
             None => continue,

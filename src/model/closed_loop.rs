@@ -162,6 +162,39 @@ pub trait ClosedLoopModel<const N: usize>: Send + Sync {
     {
         transfer_grid_adjoint_forward(self, points, p, grad, seed)
     }
+
+    /// The operators at parameters `p` as functions of the point, for a sweep over many
+    /// frequencies: what they share across frequencies (a sampled-data model's held plant) made
+    /// once, the same numbers as [`Self::operators`] and [`Self::derivative`]. Default: those
+    /// two per point.
+    fn sweep<'a>(&'a self, p: &'a [f64]) -> Box<dyn OperatorSweep<N, Self::Point> + 'a>
+    where
+        Self: Sized,
+    {
+        Box::new(PerPoint { model: self, p })
+    }
+}
+
+/// A model's operators at one parameter vector as functions of the point
+/// ([`ClosedLoopModel::sweep`]).
+pub trait OperatorSweep<const N: usize, P>: Send + Sync {
+    fn operators(&self, pt: &P) -> Operators<N>;
+    fn derivative(&self, pt: &P, k: usize) -> OperatorDerivative<N>;
+}
+
+/// The default sweep: the model's operators point by point.
+struct PerPoint<'a, M> {
+    model: &'a M,
+    p: &'a [f64],
+}
+
+impl<M: ClosedLoopModel<N>, const N: usize> OperatorSweep<N, M::Point> for PerPoint<'_, M> {
+    fn operators(&self, pt: &M::Point) -> Operators<N> {
+        self.model.operators(pt, self.p)
+    }
+    fn derivative(&self, pt: &M::Point, k: usize) -> OperatorDerivative<N> {
+        self.model.derivative(pt, self.p, k)
+    }
 }
 
 /// Points per chunk of [`transfer_grid_adjoint_forward`].
@@ -201,9 +234,9 @@ pub fn transfer_grid_adjoint_forward<M: ClosedLoopModel<N>, const N: usize>(
 /// Frequencies per task of [`transfer_grid_generic`]'s parallel loop.
 const GRID_CHUNK: usize = 256;
 
-/// The generic implementation of [`ClosedLoopModel::transfer_grid`]: the frequencies in chunks
-/// over the cores, each point computed as on one thread (the same numbers at any thread
-/// count).
+/// The generic implementation of [`ClosedLoopModel::transfer_grid`]: the model's
+/// [`ClosedLoopModel::sweep`] at `p`, the frequencies in chunks over the cores, each point
+/// computed as on one thread (the same numbers at any thread count).
 pub fn transfer_grid_generic<M: ClosedLoopModel<N>, const N: usize>(
     model: &M,
     points: &[M::Point],
@@ -211,9 +244,31 @@ pub fn transfer_grid_generic<M: ClosedLoopModel<N>, const N: usize>(
     t_out: &mut [CMat<N>],
     d_out: Option<&mut [CMat<N>]>,
 ) {
-    let np = model.n_params();
+    let sw = model.sweep(p);
+    transfer_grid_of(
+        points,
+        model.n_params(),
+        t_out,
+        d_out,
+        |pt| sw.operators(pt),
+        |pt, k| sw.derivative(pt, k),
+    )
+}
+
+/// [`transfer_grid_generic`] from a point's operators `ops(pt)` and their derivative
+/// `der(pt, k)` for `k < np` (for a model that makes what its operators share across the grid
+/// once, then evaluates each point from it).
+pub fn transfer_grid_of<P: Sync, const N: usize>(
+    points: &[P],
+    np: usize,
+    t_out: &mut [CMat<N>],
+    d_out: Option<&mut [CMat<N>]>,
+    ops: impl Fn(&P) -> Operators<N> + Sync,
+    der: impl Fn(&P, usize) -> OperatorDerivative<N> + Sync,
+) {
     let n = points.len().min(t_out.len());
     let (points, t_out) = (&points[..n], &mut t_out[..n]);
+    let one = |pt: &P, dk: &mut [CMat<N>]| oi_o_with_derivatives(ops(pt), |k| der(pt, k), dk);
     match d_out {
         None => {
             points
@@ -221,13 +276,13 @@ pub fn transfer_grid_generic<M: ClosedLoopModel<N>, const N: usize>(
                 .zip(t_out.par_chunks_mut(GRID_CHUNK))
                 .for_each(|(pts, ts)| {
                     for (pt, t) in pts.iter().zip(ts.iter_mut()) {
-                        *t = transfer(model, pt, p).oi_o;
+                        *t = core(&ops(pt)).oi_o;
                     }
                 });
         }
         Some(d) if np == 0 => {
             for (pt, t) in points.iter().zip(t_out.iter_mut()) {
-                *t = transfer_with_derivatives(model, pt, p, &mut d[..0]).oi_o;
+                *t = one(pt, &mut d[..0]);
             }
         }
         Some(d) => {
@@ -237,7 +292,7 @@ pub fn transfer_grid_generic<M: ClosedLoopModel<N>, const N: usize>(
                 .zip(d.par_chunks_mut(GRID_CHUNK * np))
                 .for_each(|((pts, ts), ds)| {
                     for ((pt, t), dk) in pts.iter().zip(ts.iter_mut()).zip(ds.chunks_mut(np)) {
-                        *t = transfer_with_derivatives(model, pt, p, dk).oi_o;
+                        *t = one(pt, dk);
                     }
                 });
         }
@@ -269,19 +324,37 @@ pub fn transfer<M: ClosedLoopModel<N>, const N: usize>(
     transfer_of(model.operators(pt, p))
 }
 
-/// `Delta`, `T_{oi->o}` and `T_{oi->fc}` from operators already evaluated at one frequency.
-pub fn transfer_of<const N: usize>(ops: Operators<N>) -> Transfer<N> {
-    let s_inv =
-        inverse(&ops.s).unwrap_or_else(|| CMat::<N>::from_element(Complex64::new(f64::NAN, 0.0)));
+/// `S^-1`, `Delta`, `Delta^-1` and `T_{oi->o}` at one frequency (what [`transfer_of`] and the
+/// derivatives share; NaN where `S` or `Delta` is singular).
+struct Core<const N: usize> {
+    s_inv: CMat<N>,
+    delta: CMat<N>,
+    delta_inv: CMat<N>,
+    oi_o: CMat<N>,
+}
+
+fn core<const N: usize>(ops: &Operators<N>) -> Core<N> {
+    let nan = || CMat::<N>::from_element(Complex64::new(f64::NAN, 0.0));
+    let s_inv = inverse(&ops.s).unwrap_or_else(nan);
     let delta = ops.d * s_inv + ops.ac;
-    let delta_inv =
-        inverse(&delta).unwrap_or_else(|| CMat::<N>::from_element(Complex64::new(f64::NAN, 0.0)));
+    let delta_inv = inverse(&delta).unwrap_or_else(nan);
     let oi_o = delta_inv * ops.ac * ops.t;
-    let oi_fc = -(ops.c * (oi_o - CMat::<N>::identity()));
-    Transfer {
+    Core {
+        s_inv,
         delta,
         delta_inv,
         oi_o,
+    }
+}
+
+/// `Delta`, `T_{oi->o}` and `T_{oi->fc}` from operators already evaluated at one frequency.
+pub fn transfer_of<const N: usize>(ops: Operators<N>) -> Transfer<N> {
+    let c = core(&ops);
+    let oi_fc = -(ops.c * (c.oi_o - CMat::<N>::identity()));
+    Transfer {
+        delta: c.delta,
+        delta_inv: c.delta_inv,
+        oi_o: c.oi_o,
         oi_fc,
         ops,
     }
@@ -309,10 +382,27 @@ pub fn transfer_with_derivatives_of<const N: usize>(
     der: impl Fn(usize) -> OperatorDerivative<N>,
     d_out: &mut [CMat<N>],
 ) -> Transfer<N> {
-    let tr = transfer_of(ops);
-    let ops = &tr.ops;
-    let s_inv =
-        inverse(&ops.s).unwrap_or_else(|| CMat::<N>::from_element(Complex64::new(f64::NAN, 0.0)));
+    let c = core(&ops);
+    derivatives_into(&ops, &c, der, d_out);
+    let oi_fc = -(ops.c * (c.oi_o - CMat::<N>::identity()));
+    Transfer {
+        delta: c.delta,
+        delta_inv: c.delta_inv,
+        oi_o: c.oi_o,
+        oi_fc,
+        ops,
+    }
+}
+
+/// `dT_{oi->o}/dp_k` into `d_out[k]` from the operators, their [`Core`] and `der(k)`:
+/// `dDelta = dD S^-1 - D S^-1 dS S^-1 + dAC`, `dT = Delta^-1 (dAC T_d + AC dT_d - dDelta T)`.
+fn derivatives_into<const N: usize>(
+    ops: &Operators<N>,
+    c: &Core<N>,
+    der: impl Fn(usize) -> OperatorDerivative<N>,
+    d_out: &mut [CMat<N>],
+) {
+    let s_inv = c.s_inv;
     let d_s_inv = ops.d * s_inv;
     for (k, out) in d_out.iter_mut().enumerate() {
         let der = der(k);
@@ -334,7 +424,7 @@ pub fn transfer_with_derivatives_of<const N: usize>(
         }
         let mut acc = CMat::<N>::zeros();
         if let Some(dd) = d_delta {
-            acc -= tr.delta_inv * dd * tr.oi_o;
+            acc -= c.delta_inv * dd * c.oi_o;
         }
         let mut forward: Option<CMat<N>> = None;
         if let Some(dac) = der.ac {
@@ -345,11 +435,22 @@ pub fn transfer_with_derivatives_of<const N: usize>(
             forward = Some(forward.map_or(m, |f| f + m));
         }
         if let Some(f) = forward {
-            acc += tr.delta_inv * f;
+            acc += c.delta_inv * f;
         }
         *out = acc;
     }
-    tr
+}
+
+/// `T_{oi->o}` alone at one point, and its derivatives into `d_out` (the same numbers as
+/// [`transfer_with_derivatives_of`], without `T_{oi->fc}`).
+fn oi_o_with_derivatives<const N: usize>(
+    ops: Operators<N>,
+    der: impl Fn(usize) -> OperatorDerivative<N>,
+    d_out: &mut [CMat<N>],
+) -> CMat<N> {
+    let c = core(&ops);
+    derivatives_into(&ops, &c, der, d_out);
+    c.oi_o
 }
 
 /// How a closed loop is unstable: the number of closed-loop poles in the closed right half

@@ -12,7 +12,7 @@ use num_complex::Complex64;
 
 use super::closed_loop::{
     transfer_grid_adjoint_forward, transfer_of, transfer_with_derivatives_of, CMat,
-    ClosedLoopModel, NoiseEntry, OperatorDerivative, Operators,
+    ClosedLoopModel, NoiseEntry, OperatorDerivative, OperatorSweep, Operators,
 };
 use super::discrete::DiscreteTf;
 use super::poly::{Poly, RootsError};
@@ -402,6 +402,15 @@ impl LpfX {
         self.operators_with(pt, p, plant.d(pt.z, pt.zm1), plant.delay_factor(pt.z))
     }
 
+    /// The operators at one point, with the held plant at `p` for a digital model (`None`:
+    /// continuous), made once by the caller for a whole grid.
+    fn operators_held(&self, pt: &LpfPoint, p: &[f64], plant: Option<&HeldPlant>) -> Operators<2> {
+        match plant {
+            Some(plant) => self.digital_operators(pt, p, plant),
+            None => self.operators_with(pt, p, self.d(pt, p), None),
+        }
+    }
+
     /// `d(operators)/dp_k`, with the held plant for a digital model.
     fn derivative_with(
         &self,
@@ -525,14 +534,20 @@ impl ClosedLoopModel<2> for LpfX {
     }
 
     fn operators(&self, pt: &LpfPoint, p: &[f64]) -> Operators<2> {
-        match self.held_plant(p) {
-            Some(plant) => self.digital_operators(pt, p, &plant),
-            None => self.operators_with(pt, p, self.d(pt, p), None),
-        }
+        self.operators_held(pt, p, self.held_plant(p).as_ref())
     }
 
     fn derivative(&self, pt: &LpfPoint, p: &[f64], k: usize) -> OperatorDerivative<2> {
         self.derivative_with(pt, p, k, self.held_plant(p).as_ref())
+    }
+
+    /// A digital loop's held plant made once for every point.
+    fn sweep<'a>(&'a self, p: &'a [f64]) -> Box<dyn OperatorSweep<2, LpfPoint> + 'a> {
+        Box::new(HeldSweep {
+            model: self,
+            p,
+            plant: self.held_plant(p),
+        })
     }
 
     /// Half the control interval for a digital model: `D_d = (Q (z-1)^2 + 2 z K) / (z + 1)`
@@ -615,6 +630,23 @@ impl ClosedLoopModel<2> for LpfX {
             "o_12" => NoiseEntry::Readout([0.0, 1.0]),
             _ => return None,
         })
+    }
+}
+
+/// [`LpfX`]'s operators at one parameter vector, with the held plant of a digital loop.
+struct HeldSweep<'a> {
+    model: &'a LpfX,
+    p: &'a [f64],
+    plant: Option<HeldPlant>,
+}
+
+impl OperatorSweep<2, LpfPoint> for HeldSweep<'_> {
+    fn operators(&self, pt: &LpfPoint) -> Operators<2> {
+        self.model.operators_held(pt, self.p, self.plant.as_ref())
+    }
+    fn derivative(&self, pt: &LpfPoint, k: usize) -> OperatorDerivative<2> {
+        self.model
+            .derivative_with(pt, self.p, k, self.plant.as_ref())
     }
 }
 

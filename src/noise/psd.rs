@@ -5,7 +5,7 @@
 use num_complex::Complex64;
 
 use super::{shapes, NoiseError};
-use crate::model::closed_loop::{transfer, CMat, ClosedLoopModel, NoiseEntry};
+use crate::model::closed_loop::{transfer_of, CMat, ClosedLoopModel, NoiseEntry, Operators};
 use crate::model::spec::NoiseSourceSpec;
 
 /// The `[noise]` sources resolved against a model's entry points.
@@ -37,8 +37,23 @@ impl<const N: usize> NoiseModel<N> {
 
     /// Readout cross-PSD at `f_hz` (> 0) for parameters `p` (Hermitian, one-sided).
     pub fn readout_csd<M: ClosedLoopModel<N>>(&self, model: &M, f_hz: f64, p: &[f64]) -> CMat<N> {
-        let pt = model.prepare(f_hz);
-        let tr = transfer(model, &pt, p);
+        self.readout_csd_of(model.operators(&model.prepare(f_hz), p), f_hz)
+    }
+
+    /// [`Self::readout_csd`] as a function of the frequency, for many frequencies: the model's
+    /// [`ClosedLoopModel::sweep`] at `p` made once (the same numbers).
+    pub fn readout_csd_fn<'a, M: ClosedLoopModel<N>>(
+        &'a self,
+        model: &'a M,
+        p: &'a [f64],
+    ) -> impl Fn(f64) -> CMat<N> + Send + Sync + 'a {
+        let sw = model.sweep(p);
+        move |f| self.readout_csd_of(sw.operators(&model.prepare(f)), f)
+    }
+
+    /// The same from the operators at `f_hz` (e.g. of a [`ClosedLoopModel::sweep`]).
+    pub fn readout_csd_of(&self, ops: Operators<N>, f_hz: f64) -> CMat<N> {
+        let tr = transfer_of(ops);
         self.readout_csd_with(&tr.ops.d, &tr.ops.s, &tr.delta_inv, f_hz)
     }
 

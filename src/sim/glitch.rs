@@ -21,7 +21,7 @@
 
 use num_complex::Complex64;
 
-use crate::model::closed_loop::{transfer, CMat, ClosedLoopModel, NoiseEntry};
+use crate::model::closed_loop::{transfer_of, CMat, ClosedLoopModel, NoiseEntry};
 use crate::numerics::tol::DC_BIN_FRACTION;
 
 /// Where a glitch enters the loop.
@@ -122,10 +122,11 @@ pub fn entry_response<M: ClosedLoopModel<N>, const N: usize>(
     let Some(e) = model.noise_entry(entry.noise_entry()) else {
         return vec![[Complex64::new(0.0, 0.0); N]; grid.m / 2 + 1];
     };
+    let sw = model.sweep(p);
     grid.freqs()
         .into_iter()
         .map(|f| {
-            let tr = transfer(model, &model.prepare(f), p);
+            let tr = transfer_of(sw.operators(&model.prepare(f)));
             let v = match e {
                 NoiseEntry::Force(g) => {
                     let g = nalgebra::SVector::<Complex64, N>::from_fn(|r, _| {

@@ -31,7 +31,7 @@ pub(crate) fn find<M: DiagnoseModel<N>, const N: usize>(
     decimated: bool,
     alpha: f64,
 ) -> Vec<Unexplained> {
-    let psd = |f: f64| setup.noise.readout_csd(model, f, p);
+    let psd = setup.noise.readout_csd_fn(model, p);
     let levels = match setup.spec.decimator().ok().filter(|_| decimated) {
         Some(dec) => band_levels_on_grid(noise, dt, |step, range| {
             crate::fit::telemetry_psd::folded_on_grid(psd, &dec, step, range)

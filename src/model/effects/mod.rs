@@ -43,7 +43,7 @@ pub use sensing_crosstalk::SensingCrosstalk;
 pub use sensing_gain::SensingGain;
 
 use super::closed_loop::{
-    CMat, ClosedLoopModel, Instability, NoiseEntry, OperatorDerivative, Operators,
+    CMat, ClosedLoopModel, Instability, NoiseEntry, OperatorDerivative, OperatorSweep, Operators,
 };
 use super::lpf_x::LpfX;
 use super::poly::Poly;
@@ -240,6 +240,60 @@ impl<M: EffectHost<N>, const N: usize> Extended<M, N> {
         self.offsets[i]..self.offsets[i + 1]
     }
 
+    /// The operators at one point, the base's from its sweep at `p`.
+    fn operators_in(
+        &self,
+        base: &dyn OperatorSweep<N, M::Point>,
+        pt: &M::Point,
+        p: &[f64],
+    ) -> Operators<N> {
+        let pb = &p[..self.n_base];
+        let mut ops = base.operators(pt);
+        let roles = self.base.roles(pt, pb);
+        for (i, e) in self.effects.iter().enumerate() {
+            let th = &p[self.range(i)];
+            if th.iter().any(|v| *v != 0.0) {
+                e.perturb(&roles, th, &mut ops);
+            }
+        }
+        ops
+    }
+
+    /// `d(operators)/dp_k` at one point, the base's from its sweep at `p`.
+    fn derivative_in(
+        &self,
+        base: &dyn OperatorSweep<N, M::Point>,
+        pt: &M::Point,
+        p: &[f64],
+        k: usize,
+    ) -> OperatorDerivative<N> {
+        if k >= self.n_base {
+            return self.effect_derivative(pt, p, k);
+        }
+        let pb = &p[..self.n_base];
+        let roles = self.base.roles(pt, pb);
+        let mut der = base.derivative(pt, k);
+        for (i, e) in self.effects.iter().enumerate() {
+            let th = &p[self.range(i)];
+            if th.iter().any(|v| *v != 0.0) {
+                der = merge(der, e.base_derivative(&roles, th, k));
+            }
+        }
+        der
+    }
+
+    /// `d(operators)/dp_k` for an effect's parameter `k >= n_base`.
+    fn effect_derivative(&self, pt: &M::Point, p: &[f64], k: usize) -> OperatorDerivative<N> {
+        let roles = self.base.roles(pt, &p[..self.n_base]);
+        let i = self
+            .offsets
+            .iter()
+            .rposition(|&o| o <= k)
+            .expect("offsets start at n_base");
+        let r = self.range(i);
+        self.effects[i].derivative(&roles, &p[r.clone()], k - r.start)
+    }
+
     /// The full parameter vector: base parameters, then zeros for every effect.
     pub fn nested(&self, base: &[f64]) -> Vec<f64> {
         let mut p = base.to_vec();
@@ -277,38 +331,23 @@ impl<M: EffectHost<N>, const N: usize> ClosedLoopModel<N> for Extended<M, N> {
     }
 
     fn operators(&self, pt: &M::Point, p: &[f64]) -> Operators<N> {
-        let pb = &p[..self.n_base];
-        let mut ops = self.base.operators(pt, pb);
-        let roles = self.base.roles(pt, pb);
-        for (i, e) in self.effects.iter().enumerate() {
-            let th = &p[self.range(i)];
-            if th.iter().any(|v| *v != 0.0) {
-                e.perturb(&roles, th, &mut ops);
-            }
-        }
-        ops
+        self.operators_in(self.base.sweep(&p[..self.n_base]).as_ref(), pt, p)
     }
 
     fn derivative(&self, pt: &M::Point, p: &[f64], k: usize) -> OperatorDerivative<N> {
-        let pb = &p[..self.n_base];
-        let roles = self.base.roles(pt, pb);
-        if k < self.n_base {
-            let mut der = self.base.derivative(pt, pb, k);
-            for (i, e) in self.effects.iter().enumerate() {
-                let th = &p[self.range(i)];
-                if th.iter().any(|v| *v != 0.0) {
-                    der = merge(der, e.base_derivative(&roles, th, k));
-                }
-            }
-            return der;
+        if k >= self.n_base {
+            return self.effect_derivative(pt, p, k);
         }
-        let i = self
-            .offsets
-            .iter()
-            .rposition(|&o| o <= k)
-            .expect("offsets start at n_base");
-        let r = self.range(i);
-        self.effects[i].derivative(&roles, &p[r.clone()], k - r.start)
+        self.derivative_in(self.base.sweep(&p[..self.n_base]).as_ref(), pt, p, k)
+    }
+
+    /// The base's sweep with the effects on top.
+    fn sweep<'a>(&'a self, p: &'a [f64]) -> Box<dyn OperatorSweep<N, M::Point> + 'a> {
+        Box::new(ExtendedSweep {
+            model: self,
+            base: self.base.sweep(&p[..self.n_base]),
+            p,
+        })
     }
 
     /// The base model's polynomial: the effects are not polynomial in `s`, see
@@ -328,6 +367,22 @@ impl<M: EffectHost<N>, const N: usize> ClosedLoopModel<N> for Extended<M, N> {
 
     fn noise_entry(&self, name: &str) -> Option<NoiseEntry<N>> {
         self.base.noise_entry(name)
+    }
+}
+
+/// [`Extended`]'s operators at one parameter vector: the base's sweep, the effects on top.
+struct ExtendedSweep<'a, M: EffectHost<N>, const N: usize> {
+    model: &'a Extended<M, N>,
+    base: Box<dyn OperatorSweep<N, M::Point> + 'a>,
+    p: &'a [f64],
+}
+
+impl<M: EffectHost<N>, const N: usize> OperatorSweep<N, M::Point> for ExtendedSweep<'_, M, N> {
+    fn operators(&self, pt: &M::Point) -> Operators<N> {
+        self.model.operators_in(self.base.as_ref(), pt, self.p)
+    }
+    fn derivative(&self, pt: &M::Point, k: usize) -> OperatorDerivative<N> {
+        self.model.derivative_in(self.base.as_ref(), pt, self.p, k)
     }
 }
 
