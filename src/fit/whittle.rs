@@ -719,6 +719,30 @@ impl<M: ClosedLoopModel<N>, const N: usize> Residuals for WhittleProblem<'_, '_,
         r
     }
 
+    /// The same numbers as [`Self::residuals`] (`d - w` at every kept bin, the dropped bins'
+    /// norm copied), written over `out` without allocating when it has the data's shape.
+    fn residuals_into(&self, p: &[f64], out: &mut Series) {
+        let same_shape = out.len() == self.data_w.len()
+            && out.iter().zip(&self.data_w).all(|(o, d)| {
+                o.len() == d.len() && o.iter().zip(d).all(|(a, b)| a.len() == b.len())
+            });
+        if !same_shape {
+            *out = self.residuals(p);
+            return;
+        }
+        // The visit covers every kept bin, so only the dropped bins' norm is copied.
+        for (o, d) in out.iter_mut().zip(&self.data_w) {
+            o[N].copy_from_slice(&d[N]);
+        }
+        self.lik.visit(p, false, |e, i, w, _| {
+            let (o, d) = (&mut out[e], &self.data_w[e]);
+            for (c, z) in w.iter().enumerate() {
+                o[c][2 * i] = d[c][2 * i] - z.re;
+                o[c][2 * i + 1] = d[c][2 * i + 1] - z.im;
+            }
+        });
+    }
+
     fn residuals_and_jacobian(&self, p: &[f64]) -> (Series, Vec<Series>) {
         let (t, j) = self.lik.templates_and_jacobian(p);
         (self.residuals_from(&t), j)
