@@ -959,4 +959,3 @@ pub fn fit<M: ClosedLoopModel<N>, P: Residuals + ?Sized, const N: usize>(
         residuals_w: r,
     })
 }
-
