@@ -36,7 +36,7 @@ pub use whittle::{WhittleLikelihood, WhittleProblem};
 
 use crate::data::Series;
 use crate::model::closed_loop::{check_stability, ClosedLoopModel};
-use crate::numerics::linalg::{dot, series_dot, series_gram, spd_inverse};
+use crate::numerics::linalg::{dot, series_gram, spd_inverse};
 
 #[derive(Debug, thiserror::Error)]
 pub enum FitError {
@@ -456,6 +456,12 @@ impl JacobianCache {
 pub trait Residuals {
     /// Whitened residuals `r[e][i]` at `p`.
     fn residuals(&self, p: &[f64]) -> Series;
+    /// [`Self::residuals`] at `p` written into `out` (the same numbers); a problem may reuse
+    /// `out`'s buffers when it has the residuals' shape (the optimiser keeps one spare series
+    /// per fit). The default allocates anew.
+    fn residuals_into(&self, p: &[f64], out: &mut Series) {
+        *out = self.residuals(p);
+    }
     /// Whitened residuals and the whitened template derivatives `j[k][e][i]` (`dr/dp = -j`).
     fn residuals_and_jacobian(&self, p: &[f64]) -> (Series, Vec<Series>);
     /// Whitened residuals `d - t` against whitened templates `t` (a cached Jacobian's).
@@ -525,10 +531,83 @@ fn normal_equations_with(
     known: Option<&DMatrix<f64>>,
 ) -> (DMatrix<f64>, DVector<f64>) {
     if let (Estimator::Squared, Some(a)) = (est, known) {
-        let g = DVector::from_fn(j.len(), |k, _| series_dot(&j[k], r));
-        return (a.clone(), g);
+        return (a.clone(), gradient(j, r));
     }
     normal_equations(est, r, j)
+}
+
+/// Columns of the Jacobian [`gradient`] takes per pass over the residuals (7 to 10 parameters
+/// in one or two passes; `4 * GRADIENT_BLOCK` accumulators stay in registers).
+const GRADIENT_BLOCK: usize = 8;
+
+/// `g_k = sum_e sum_c j_k[e][c] . r[e][c]` for every column `k` (the squared estimator's
+/// `J^T r`): the same numbers as [`crate::numerics::linalg::series_dot`]`(&j[k], r)` (the same
+/// four-lane partial sums per channel and the same order of the channels' sum), in one pass
+/// over `r` per [`GRADIENT_BLOCK`] columns instead of one per column (with a cached Jacobian
+/// the gradient is memory-bound: `J` and `r` are read once).
+pub fn gradient(j: &[Series], r: &Series) -> DVector<f64> {
+    let np = j.len();
+    // dots[k][(e, c)]: the channel dot products, summed below in series_dot's order.
+    let mut dots: Vec<Vec<f64>> = vec![Vec::new(); np];
+    let mut cols: Vec<&[f64]> = Vec::with_capacity(GRADIENT_BLOCK);
+    for (e, re) in r.iter().enumerate() {
+        for (c, rc) in re.iter().enumerate() {
+            for k0 in (0..np).step_by(GRADIENT_BLOCK) {
+                let k1 = (k0 + GRADIENT_BLOCK).min(np);
+                cols.clear();
+                let mut fused = true;
+                for jk in &j[k0..k1] {
+                    match jk.get(e).and_then(|x| x.get(c)) {
+                        Some(x) if x.len() == rc.len() => cols.push(x),
+                        Some(_) => fused = false,
+                        None => {}
+                    }
+                }
+                if !fused || cols.len() != k1 - k0 {
+                    // Ragged or missing channels: exactly series_dot's zip, column by column.
+                    for (k, jk) in (k0..k1).zip(&j[k0..k1]) {
+                        if let Some(x) = jk.get(e).and_then(|x| x.get(c)) {
+                            dots[k].push(dot(x, rc));
+                        }
+                    }
+                    continue;
+                }
+                let mut out = [0.0; GRADIENT_BLOCK];
+                dot_block(&cols, rc, &mut out);
+                for (k, v) in (k0..k1).zip(out) {
+                    dots[k].push(v);
+                }
+            }
+        }
+    }
+    DVector::from_fn(np, |k, _| dots[k].iter().copied().sum::<f64>())
+}
+
+/// `out[k] = dot(cols[k], r)` for up to [`GRADIENT_BLOCK`] columns of `r`'s length, with
+/// [`dot`]'s four lanes `acc[i] += x[4m + i] y[4m + i]`, its sequential tail and its final
+/// `(acc0 + acc1) + (acc2 + acc3) + tail`, so each result is bit-identical to `dot`'s.
+#[inline]
+fn dot_block(cols: &[&[f64]], r: &[f64], out: &mut [f64; GRADIENT_BLOCK]) {
+    let nb = cols.len().min(GRADIENT_BLOCK);
+    let n4 = r.len() / 4 * 4;
+    let mut acc = [[0.0f64; 4]; GRADIENT_BLOCK];
+    for m in (0..n4).step_by(4) {
+        let y: &[f64; 4] = r[m..m + 4].try_into().expect("four values");
+        for (a, col) in acc.iter_mut().zip(&cols[..nb]) {
+            let x: &[f64; 4] = col[m..m + 4].try_into().expect("four values");
+            for i in 0..4 {
+                a[i] += x[i] * y[i];
+            }
+        }
+    }
+    for (k, col) in cols[..nb].iter().enumerate() {
+        let mut tail = 0.0;
+        for (x, y) in col[n4..].iter().zip(&r[n4..]) {
+            tail += x * y;
+        }
+        let a = acc[k];
+        out[k] = (a[0] + a[1]) + (a[2] + a[3]) + tail;
+    }
 }
 
 /// Weighted normal equations `A = J^T W J`, `g = J^T W r` (with `J = d template / dp`).
@@ -670,7 +749,8 @@ const MIN_DAMPING: f64 = 1e-12;
 /// One Levenberg-Marquardt iteration's search: solve the damped normal equations `(a, g)` from
 /// `p`, clamp to the bounds, reject unstable or non-finite trials, and accept the first trial
 /// that lowers the objective `f` (data plus priors), raising `lambda` tenfold after each
-/// failure and lowering it tenfold on success. `None` when no trial lowered the objective.
+/// failure and lowering it tenfold on success. `None` when no trial lowered the objective;
+/// the accepted trial's residuals are left in `rt` (a spare series whose buffers are reused).
 #[allow(clippy::too_many_arguments)]
 fn damped_step<M: ClosedLoopModel<N>, P: Residuals + ?Sized, const N: usize>(
     model: &M,
@@ -680,8 +760,8 @@ fn damped_step<M: ClosedLoopModel<N>, P: Residuals + ?Sized, const N: usize>(
     p: &[f64],
     f: f64,
     lambda: &mut f64,
-    nfev: &mut usize,
-) -> Option<(Vec<f64>, f64, Series)> {
+    (nfev, rt): (&mut usize, &mut Series),
+) -> Option<(Vec<f64>, f64)> {
     for _ in 0..DAMPING_TRIES {
         let Some(step) = damped_solve(a, g, *lambda) else {
             *lambda *= 10.0;
@@ -697,12 +777,12 @@ fn damped_step<M: ClosedLoopModel<N>, P: Residuals + ?Sized, const N: usize>(
             *lambda *= 10.0;
             continue;
         }
-        let rt = problem.residuals(&trial);
+        problem.residuals_into(&trial, rt);
         *nfev += 1;
-        let ft = objective(cfg.estimator, &rt) + cfg.prior_chi2(&trial);
+        let ft = objective(cfg.estimator, rt) + cfg.prior_chi2(&trial);
         if ft.is_finite() && ft < f {
             *lambda = (*lambda / 10.0).max(MIN_DAMPING);
-            return Some((trial, ft, rt));
+            return Some((trial, ft));
         }
         *lambda *= 10.0;
     }
@@ -789,6 +869,9 @@ pub fn fit<M: ClosedLoopModel<N>, P: Residuals + ?Sized, const N: usize>(
     let mut lambda = 1e-3;
     let mut termination = Termination::MaxIterations;
     let mut iterations = 0;
+    // The trials' residuals: after an accepted step it swaps with `r`, so a fit allocates two
+    // residual series however many trials it takes.
+    let mut spare: Series = Vec::new();
     if !f.is_finite() {
         termination = Termination::NonFinite;
     } else {
@@ -800,9 +883,17 @@ pub fn fit<M: ClosedLoopModel<N>, P: Residuals + ?Sized, const N: usize>(
                 Some(c) => (0..np).map(|k| c[(k, k)].sqrt()).collect(),
                 None => vec![0.0; np],
             };
-            let accepted =
-                damped_step(model, problem, cfg, (&a, &g), &p, f, &mut lambda, &mut nfev);
-            let Some((trial, ft, rt)) = accepted else {
+            let accepted = damped_step(
+                model,
+                problem,
+                cfg,
+                (&a, &g),
+                &p,
+                f,
+                &mut lambda,
+                (&mut nfev, &mut spare),
+            );
+            let Some((trial, ft)) = accepted else {
                 termination = if it > 1 || at_minimum(&a, &g, f, cfg.ftol) {
                     Termination::NoImprovement
                 } else {
@@ -819,7 +910,10 @@ pub fn fit<M: ClosedLoopModel<N>, P: Residuals + ?Sized, const N: usize>(
                 .fold(0.0, f64::max);
             p = trial;
             f = ft;
-            (r, j, known) = jac_at(&p, Some(rt));
+            let rt = std::mem::take(&mut spare);
+            let (r_new, j_new, known_new) = jac_at(&p, Some(rt));
+            spare = std::mem::replace(&mut r, r_new);
+            (j, known) = (j_new, known_new);
             if rel_f < cfg.ftol {
                 termination = Termination::ChiSquareTolerance;
                 break;

@@ -719,6 +719,60 @@ impl<M: ClosedLoopModel<N>, const N: usize> Residuals for WhittleProblem<'_, '_,
         r
     }
 
+    /// The same numbers as [`Self::residuals`] (`d - w` at every kept bin, the dropped bins'
+    /// norm copied), written over `out` without allocating when it has the data's shape. The
+    /// operations are [`WhittleLikelihood::visit`]'s in its order, with the wrap-around
+    /// `V(p) = V(p0) + sum_q dV_q (p - p0)_q` of all of an experiment's bins summed first in a
+    /// loop of its own, where the bins' chains of additions overlap (in `visit` each bin's
+    /// chain waits on the transfer matrix).
+    fn residuals_into(&self, p: &[f64], out: &mut Series) {
+        let lik = self.lik;
+        let np = lik.model.n_params();
+        let same_shape = out.len() == self.data_w.len()
+            && out.iter().zip(&self.data_w).all(|(o, d)| {
+                o.len() == d.len() && o.iter().zip(d).all(|(a, b)| a.len() == b.len())
+            });
+        if !same_shape || np == 0 {
+            *out = self.residuals(p);
+            return;
+        }
+        let dp: Vec<f64> = p.iter().zip(&lik.p0).map(|(a, b)| a - b).collect();
+        let mut v: Vec<[Complex64; N]> = Vec::new();
+        for (g, grid) in lik.grids.iter().enumerate() {
+            let nb = grid.kept.len();
+            let mut t = vec![CMat::<N>::zeros(); nb];
+            lik.model.transfer_grid(&grid.points, p, &mut t, None);
+            for e in (0..lik.n_experiments()).filter(|&e| lik.grid_of[e] == g) {
+                v.clear();
+                v.extend(
+                    lik.wrap[e]
+                        .iter()
+                        .zip(lik.dwrap[e].chunks_exact(np))
+                        .map(|(v0, dv)| {
+                            let mut v = *v0;
+                            for (dq, a) in dv.iter().zip(&dp) {
+                                for c in 0..N {
+                                    v[c] += dq[c] * a;
+                                }
+                            }
+                            v
+                        }),
+                );
+                let (x, present) = (&lik.inputs[e], &lik.present[e][..]);
+                let (o, d) = (&mut out[e], &self.data_w[e]);
+                o[N].copy_from_slice(&d[N]);
+                for (i, vi) in v.iter().enumerate() {
+                    let mut w = whitened_dense(&t[i], &grid.winv[i], &x[i], present);
+                    for c in 0..N {
+                        w[c] -= vi[c];
+                        o[c][2 * i] = d[c][2 * i] - w[c].re;
+                        o[c][2 * i + 1] = d[c][2 * i + 1] - w[c].im;
+                    }
+                }
+            }
+        }
+    }
+
     fn residuals_and_jacobian(&self, p: &[f64]) -> (Series, Vec<Series>) {
         let (t, j) = self.lik.templates_and_jacobian(p);
         (self.residuals_from(&t), j)

@@ -165,6 +165,46 @@ fn chi2_gradient_matches_finite_differences() {
     }
 }
 
+/// The optimiser's allocation-free paths give the very numbers of the plain ones (campaign
+/// outputs are compared bit for bit). Oracles: `Residuals::residuals` for `residuals_into`
+/// (into a series of the right shape, of another shape, and reused), and
+/// `numerics::linalg::series_dot` per column for the fused `fit::gradient` on the real Whittle
+/// Jacobian and on ragged columns.
+#[test]
+fn fit_fast_paths_are_bit_identical_to_the_plain_ones() {
+    use freefall::numerics::linalg::series_dot;
+    let c = case();
+    let lik = whittle(&c, DEFAULT_DROP_TOLERANCE);
+    let wsim = whittle_sim(&c, &lik);
+    let problem = lik.problem(wsim.draw(&mut stream(3, 0))).unwrap();
+    let bits = |s: &freefall::data::Series| -> Vec<u64> {
+        s.iter().flatten().flatten().map(|v| v.to_bits()).collect()
+    };
+    let mut out: freefall::data::Series = vec![vec![vec![1.0; 3]]];
+    for p in [&c.truth, &c.guess, &c.truth] {
+        problem.residuals_into(p, &mut out);
+        assert_eq!(bits(&out), bits(&problem.residuals(p)));
+    }
+    let (_, mut j) = lik.templates_and_jacobian(&c.guess);
+    let r = problem.residuals(&c.guess);
+    let check = |j: &[freefall::data::Series], what: &str| {
+        let g = freefall::fit::gradient(j, &r);
+        for (k, jk) in j.iter().enumerate() {
+            assert_eq!(
+                g[k].to_bits(),
+                series_dot(jk, &r).to_bits(),
+                "{what}: column {k}"
+            );
+        }
+    };
+    check(&j, "Whittle Jacobian");
+    // Ten columns (two blocks), one of them ragged: a short channel, a missing experiment.
+    j.extend(j[..3].to_vec());
+    j[8][0][1].truncate(101);
+    j[9].pop();
+    check(&j, "ragged columns");
+}
+
 /// Per draw of whitened data: chi^2 at the truth over the kept bins, and the dropped bins'
 /// squared norm summed over the experiments.
 fn kept_and_dropped(
