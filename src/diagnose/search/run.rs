@@ -14,6 +14,7 @@ use crate::diagnose::{
     next_round, Candidate, DiagnoseConfig, DiagnoseError, DiagnoseModel, Diagnosis, DiagnosisState,
     ExcessKind, Notes, Observer, RobustCheck, Round, SpectrumCurve, Stage, Unexplained,
 };
+use crate::fit::additive::less_terms;
 use crate::fit::{fit, FitConfig, FitResult};
 use crate::model::effects::Effect;
 use crate::model::ClosedLoopModel;
@@ -290,7 +291,7 @@ fn robust_check<M: DiagnoseModel<N>, const N: usize>(
     let (model, gauss) = (&state.model, &state.fit.fit);
     let run = || -> Result<FitResult, DiagnoseError> {
         let lik = problem.likelihood(model)?;
-        let eff = problem.effective_data(&lik, &state.fit.linear, &gauss.estimate);
+        let eff = less_terms(&lik, problem.data, &state.fit.linear, &gauss.estimate);
         let prob = lik.problem(&eff)?;
         let mut fc = problem.cfg.constraints.apply(FitConfig::new(model));
         fc.estimator = crate::fit::Estimator::Log;

@@ -34,6 +34,7 @@ use crate::diagnose::search::score::{
 };
 use crate::diagnose::types::EDGE_TRANSIENT_S;
 use crate::diagnose::{AddedEffect, Alternative, Candidate, DiagnoseConfig, DiagnoseError, Stage};
+use crate::fit::additive::term_columns;
 use crate::fit::evidence::{information_given_rest, information_of_covariance};
 use crate::fit::score::Score;
 
@@ -353,7 +354,7 @@ fn score<M: DiagnoseModel<N>, const N: usize>(
     let (eff, extra) = if lin.is_empty() {
         (problem.data.clone(), Vec::new())
     } else {
-        let (cols, amps) = problem.linear_columns(&lik, lin, est);
+        let (cols, amps) = term_columns(&lik, problem.data, lin, est);
         let eff = problem.data.minus(&cols, &amps);
         let extra: Vec<Series> = cols
             .into_iter()
