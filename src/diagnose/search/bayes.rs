@@ -26,6 +26,7 @@ use nalgebra::DMatrix;
 use crate::design::redesign::{self, redesign_verdict};
 use crate::diagnose::families::additive::Additive;
 use crate::diagnose::search::problem::DiagnosisProblem;
+use crate::diagnose::search::score::first_whitened;
 use crate::diagnose::search::selection::{Described, DiagnosisState, Proposal};
 use crate::diagnose::DiagnoseModel;
 use crate::diagnose::{Candidate, Evidence, Swap, Twin};
@@ -183,24 +184,16 @@ fn first_column<M: DiagnoseModel<N>, const N: usize>(
     state: &DiagnosisState<M, N>,
     d: &Described,
 ) -> Option<Series> {
-    let est = &state.fit.fit.estimate;
     match &d.proposal {
-        Proposal::Operator(k) => {
-            let mut effects = state.model.effects.clone();
-            effects.push(state.pool[*k].clone());
-            let full = Extended::new(state.model.base.clone(), effects);
+        Proposal::Operator(_) => {
+            let (full, p, _) = state.with(d);
             let lik = problem.likelihood(&full).ok()?;
-            let prob = lik.problem(problem.data).ok()?;
-            let (_, j) = prob.residuals_and_jacobian(&full.nested(est));
+            let (_, j) = lik.problem(problem.data).ok()?.residuals_and_jacobian(&p);
             j.into_iter().nth(full.range(full.effects.len() - 1).start)
         }
         Proposal::Additive { effect, .. } => {
             let lik = problem.likelihood(&state.model).ok()?;
-            let col = effect
-                .columns(lik.engine.model(), &lik, problem.data, est)
-                .into_iter()
-                .next()?;
-            Some(lik.whiten_series(problem.data, col))
+            first_whitened(&lik, problem.data, effect, &state.fit.fit.estimate)
         }
     }
 }

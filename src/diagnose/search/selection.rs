@@ -28,7 +28,7 @@ use crate::diagnose::families::additive::Additive;
 use crate::diagnose::families::glitch;
 use crate::diagnose::search::bayes;
 use crate::diagnose::search::observer::{Observer, Round, Step, StopReason};
-use crate::diagnose::search::problem::{DiagnosisProblem, LinearFit};
+use crate::diagnose::search::problem::{DiagnosisProblem, Linear, LinearFit};
 use crate::diagnose::search::score::{
     additive_candidates, calibrate_aux, glitch_candidates, score_additive, score_operators,
 };
@@ -184,6 +184,23 @@ impl<M: DiagnoseModel<N>, const N: usize> DiagnosisState<M, N> {
             n_tests,
             candidates: Vec::new(),
             added: Vec::new(),
+        }
+    }
+
+    /// The current model, its estimate and its additive effects with candidate `d` added (at
+    /// zero): where the refit of `d` starts.
+    pub(super) fn with(&self, d: &Described) -> (Extended<M, N>, Vec<f64>, Linear) {
+        let (est, mut lin) = (&self.fit.fit.estimate, self.fit.linear.clone());
+        match &d.proposal {
+            Proposal::Operator(k) => {
+                let model = self.model.with_effects([self.pool[*k].clone()]);
+                let guess = model.nested(est);
+                (model, guess, lin)
+            }
+            Proposal::Additive { effect, .. } => {
+                lin.push((effect.clone(), vec![0.0; d.dim]));
+                (self.model.clone(), est.clone(), lin)
+            }
         }
     }
 
@@ -445,26 +462,9 @@ fn refit_one<M: DiagnoseModel<N>, const N: usize>(
     state: &DiagnosisState<M, N>,
     d: &Described,
 ) -> Result<Refit<M, N>, DiagnoseError> {
-    let (cur, lin) = (&state.fit.fit, &state.fit.linear);
-    match &d.proposal {
-        Proposal::Operator(k) => {
-            let mut effects = state.model.effects.clone();
-            effects.push(state.pool[*k].clone());
-            let model = Extended::new(state.model.base.clone(), effects);
-            let guess = model.nested(&cur.estimate);
-            let fit = problem.fit_linear(&model, &guess, lin)?;
-            Ok(Refit { model, fit })
-        }
-        Proposal::Additive { effect, .. } => {
-            let mut l = lin.clone();
-            l.push((effect.clone(), vec![0.0; d.dim]));
-            let fit = problem.fit_linear(&state.model, &cur.estimate, &l)?;
-            Ok(Refit {
-                model: state.model.clone(),
-                fit,
-            })
-        }
-    }
+    let (model, guess, lin) = state.with(d);
+    let fit = problem.fit_linear(&model, &guess, &lin)?;
+    Ok(Refit { model, fit })
 }
 
 /// Refit the `confirm_top` best score-significant candidates of each open family (in
