@@ -5,8 +5,6 @@
 //! The fits of the selection (nominal, with operator effects, with additive columns) are methods
 //! of the problem, so that each round only says what it fits.
 
-use rayon::prelude::*;
-
 use crate::analysis::residuals;
 use crate::data::check_finite;
 use crate::diagnose::families::additive::Additive;
@@ -382,37 +380,14 @@ impl<'a, M: DiagnoseModel<N>, const N: usize> DiagnosisProblem<'a, M, N> {
     pub(crate) fn stage(&self, model: &Extended<M, N>, f: &LinearFit) -> Stage {
         let (res, raw, data) = (&f.fit, &f.raw, self.data);
         let noise_ref = self.whitening.noise_ref.as_ref();
-        let inputs = model.input_names();
-        // Inputs over each experiment's own samples (without a lead-in), aligned with its
-        // residuals.
-        let aligned: Vec<Vec<Vec<f64>>> = (0..data.names.len())
-            .map(|e| data.inputs_of(e).into_iter().map(<[f64]>::to_vec).collect())
-            .collect();
-        let readouts = model.readout_names();
-        let pairs: Vec<(usize, usize)> = (0..data.names.len())
-            .flat_map(|e| (0..readouts.len()).map(move |c| (e, c)))
-            .collect();
-        // Every (experiment, channel) on its own, over the cores, in that order.
-        let channels = pairs
-            .par_iter()
-            .map(|&(e, c)| {
-                let (en, channel) = (&data.names[e], readouts[c]);
-                let inp = residuals::ChannelInput {
-                    experiment: en,
-                    channel,
-                    channel_index: c,
-                    whitened: &res.residuals_w[e][c],
-                    offset: self.order,
-                    raw: &raw[e][c],
-                    inputs: &aligned[e],
-                    input_names: &inputs,
-                    dt: data.dt,
-                    alpha: self.cfg.alpha,
-                    whitening_dof: self.whitening.whitening_dof,
-                };
-                residuals::analyse_channel(&inp, noise_ref)
-            })
-            .collect();
+        let tests = residuals::FitTests {
+            offset: self.order,
+            alpha: self.cfg.alpha,
+            whitening_dof: self.whitening.whitening_dof,
+            noise: noise_ref,
+        };
+        let names = (&model.readout_names()[..], &model.input_names()[..]);
+        let channels = residuals::analyse_fit(data, names, &res.residuals_w, raw, &tests);
         Stage {
             chi2: res.chi2,
             chi2_reduced: res.chi2_reduced,

@@ -248,18 +248,13 @@ fn spectra<M: DiagnoseModel<N>, const N: usize>(
 ) -> Vec<SpectrumCurve> {
     let data = problem.data;
     let readouts = problem.nominal.readout_names();
-    let mut out = Vec::new();
-    for (st, res) in [
-        ("before", &before.residuals_w),
-        ("after", &after.residuals_w),
-    ] {
-        for (e, en) in data.names.iter().enumerate() {
-            for (c, ch) in readouts.iter().enumerate() {
-                let r = &res[e][c];
-                out.push(residuals::spectrum_curve(st, en, ch, r, data.dt));
-            }
-        }
-    }
+    let mut out = residuals::spectrum_curves("before", data, &readouts, &before.residuals_w);
+    out.extend(residuals::spectrum_curves(
+        "after",
+        data,
+        &readouts,
+        &after.residuals_w,
+    ));
     let reference = problem
         .noise
         .as_deref()
