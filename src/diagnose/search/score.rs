@@ -17,6 +17,7 @@ use crate::fit::{ExperimentData, FitResult, Likelihood};
 use crate::model::effects::{Category, Effect, Extended};
 use crate::model::ClosedLoopModel;
 use crate::numerics::linalg::{series_dot, series_gram_pinv};
+use crate::numerics::stats::{circular_shift_variance, robust_variance};
 use crate::sim::Series;
 use crate::spectral::periodogram::refine_frequency;
 
@@ -141,19 +142,8 @@ pub(super) fn calibrate_aux<M: DiagnoseModel<N>, const N: usize>(
         if norm <= 0.0 {
             continue;
         }
-        let mut sum = 0.0;
-        for j in 1..=CALIBRATION_SHIFTS {
-            let mut u = 0.0;
-            for (ce, re) in c.iter().zip(r) {
-                for (cc, rc) in ce.iter().zip(re) {
-                    let n = rc.len().min(cc.len());
-                    let s = j * n / (CALIBRATION_SHIFTS + 1);
-                    u += (0..n).map(|i| cc[i] * rc[(i + s) % n]).sum::<f64>();
-                }
-            }
-            sum += u * u / norm;
-        }
-        d.noise_var = d.noise_var.max(sum / CALIBRATION_SHIFTS as f64);
+        let var = circular_shift_variance(&c, r, norm, CALIBRATION_SHIFTS);
+        d.noise_var = d.noise_var.max(var);
     }
     Ok(())
 }
@@ -214,9 +204,6 @@ pub(super) fn additive_candidates<M: DiagnoseModel<N>, const N: usize>(
     out
 }
 
-/// Median of chi^2(1): the robust scale of a whitened residual is its median square over it.
-const CHI2_1_MEDIAN: f64 = 0.454_936_423_119_572_8;
-
 /// Glitch candidates at the current fit: the matched-filter scan of its whitened residual
 /// ([`glitch::scan`]): for each entry point, the best experiment, position and width, each
 /// carrying the scan's look-elsewhere factor.
@@ -230,20 +217,8 @@ pub(super) fn glitch_candidates<M: DiagnoseModel<N>, const N: usize>(
     let w = problem.filter();
     // Robust variance of the whitened residual (median of r^2 over that of chi^2(1)), so that
     // the ranking is not set by the glitch itself.
-    let mut sq: Vec<f64> = fit
-        .residuals_w
-        .iter()
-        .flatten()
-        .flatten()
-        .map(|v| v * v)
-        .collect();
-    let scale = if sq.is_empty() {
-        1.0
-    } else {
-        let mid = sq.len() / 2;
-        let (_, m, _) = sq.select_nth_unstable_by(mid, f64::total_cmp);
-        (*m / CHI2_1_MEDIAN).max(1.0)
-    };
+    let scale =
+        robust_variance(fit.residuals_w.iter().flatten().flatten()).map_or(1.0, |v| v.max(1.0));
     let noise = problem
         .noise_w
         .as_deref()
