@@ -11,9 +11,9 @@
 use nalgebra::DMatrix;
 
 use super::{fit, Constraints, ExperimentData, FitConfig, FitError, FitResult, Likelihood};
+use crate::data::Series;
 use crate::model::ClosedLoopModel;
 use crate::numerics::linalg::{series_dot, series_gram_pinv};
-use crate::sim::Series;
 
 /// An additive term of a fit of model `M` (module docs).
 pub trait AdditiveTerm<M: ClosedLoopModel<N>, const N: usize>: Clone {

@@ -21,7 +21,6 @@
 
 use std::sync::Arc;
 
-use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::diagnose::families::additive::Additive;
@@ -41,6 +40,7 @@ use crate::fit::score::Score;
 use crate::diagnose::DiagnoseModel;
 use crate::model::effects::{Category, Effect, Extended};
 use crate::model::ClosedLoopModel;
+use crate::numerics::par::map_reporting;
 use crate::numerics::stats::chi2_isf;
 use crate::numerics::tol::DEGENERATE_FRACTION;
 use crate::sim::Series;
@@ -368,17 +368,12 @@ fn score<M: DiagnoseModel<N>, const N: usize>(
     let lin = &state.fit.linear;
     // Data less the additive effects already added; their amplitudes are fitted nuisance
     // parameters of the score tests too (`extra`: their whitened columns).
-    let (eff, extra) = if lin.is_empty() {
-        (problem.data.clone(), Vec::new())
-    } else {
-        let (cols, amps) = term_columns(&lik, problem.data, lin, est);
-        let eff = problem.data.minus(&cols, &amps);
-        let extra: Vec<Series> = cols
-            .into_iter()
-            .map(|c| lik.whiten_series(problem.data, c))
-            .collect();
-        (eff, extra)
-    };
+    let (cols, amps) = term_columns(&lik, problem.data, lin, est);
+    let eff = problem.data.minus(&cols, &amps);
+    let extra: Vec<Series> = cols
+        .into_iter()
+        .map(|c| lik.whiten_series(problem.data, c))
+        .collect();
     let mut ops = Vec::new();
     let mut adds = Vec::new();
     for d in described {
@@ -420,17 +415,12 @@ fn candidate<M: DiagnoseModel<N>, const N: usize>(
 ) -> Candidate {
     let most = s.most_correlated.map(|(k, v)| (names[k].clone(), v));
     let calibrated = d.category == Category::Glitch;
-    let (statistic, p) = if d.bounded_at_zero() {
-        if s.step.first().is_some_and(|v| *v > 0.0) {
-            let p = 0.5 * problem.tail(d.dim, s.statistic / d.noise_var, calibrated);
-            (s.statistic, p)
-        } else {
-            // The data pull out of the physical range: no evidence for the effect.
-            (0.0, 1.0)
-        }
+    let (statistic, p) = if d.bounded_at_zero() && !s.step.first().is_some_and(|v| *v > 0.0) {
+        // The data pull out of the physical range: no evidence for the effect.
+        (0.0, 1.0)
     } else {
         let p = problem.tail(d.dim, s.statistic / d.noise_var, calibrated);
-        (s.statistic, p)
+        (s.statistic, if d.bounded_at_zero() { 0.5 * p } else { p })
     };
     let score_p_value = (d.trials * p).min(1.0);
     Candidate {
@@ -491,33 +481,15 @@ fn refit<M: DiagnoseModel<N>, const N: usize>(
         idx.truncate(problem.cfg.confirm_top);
         chosen.extend(idx);
     }
-    // The refits run in parallel on a scoped thread while this one reports each as it ends
-    // (the observer stays on the caller's thread).
+    // The refits run in parallel while this thread reports each as it ends (the observer
+    // stays on the caller's thread).
     let (round, of) = (state.round, chosen.len());
     obs.step(&Step::Refit { round, done: 0, of });
-    let (tx, rx) = std::sync::mpsc::channel::<()>();
-    let results: Vec<(usize, Result<Refit<M, N>, DiagnoseError>)> = std::thread::scope(|s| {
-        let work = s.spawn(move || {
-            chosen
-                .par_iter()
-                .map(|&i| {
-                    let r = refit_one(problem, state, &described[i]);
-                    // The receiver outlives the senders; a failed send only loses a report.
-                    let _ = tx.send(());
-                    (i, r)
-                })
-                .collect()
-        });
-        for (k, ()) in rx.iter().enumerate() {
-            obs.step(&Step::Refit {
-                round,
-                done: k + 1,
-                of,
-            });
-        }
-        work.join()
-            .unwrap_or_else(|panic| std::panic::resume_unwind(panic))
-    });
+    let results = map_reporting(
+        &chosen,
+        |&i| (i, refit_one(problem, state, &described[i])),
+        |done| obs.step(&Step::Refit { round, done, of }),
+    );
     let mut out = Vec::new();
     for (i, res) in results {
         match res {
