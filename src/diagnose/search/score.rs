@@ -223,20 +223,15 @@ pub(super) fn glitch_candidates<M: DiagnoseModel<N>, const N: usize>(
         .noise_w
         .as_deref()
         .map(|r| (r, problem.whitening.fpe));
-    // One scan per experiment length (its own padded grid); the others are left out of it.
+    // One scan per experiment length (the padded grid of the first experiment of that length);
+    // the others are left out of it.
     let lens = data.lengths();
-    let mut distinct: Vec<usize> = Vec::new();
-    for &n in &lens {
-        if !distinct.contains(&n) {
-            distinct.push(n);
-        }
-    }
     let mut s = glitch::Scan {
         peaks: Vec::new(),
         trials: 0.0,
     };
-    for n in distinct {
-        let first = lens.iter().position(|&l| l == n).unwrap_or(0);
+    for first in (0..lens.len()).filter(|&i| !lens[..i].contains(&lens[i])) {
+        let n = lens[first];
         let grid = crate::sim::glitch::Grid {
             n,
             m: lik.engine.padded_len_of(first),

@@ -430,7 +430,8 @@ fn candidate<M: DiagnoseModel<N>, const N: usize>(
         acts_on: d.acts_on.clone(),
         score_statistic: statistic,
         score_p_value,
-        evidence: bayes::from_score(d, s, n, score_p_value < threshold),
+        evidence: bayes::from_score(d, s)
+            .map(|l| bayes::evidence(d, l, n, score_p_value < threshold)),
         identifiable_fraction: s.identifiable_fraction,
         degenerate: s.identifiable_fraction < DEGENERATE_FRACTION
             || most
@@ -561,15 +562,9 @@ fn record_refit<M: DiagnoseModel<N>, const N: usize>(
     let p_value = (d.trials * p).min(1.0);
     c.p_value = Some(p_value);
     let threshold = problem.cfg.alpha / state.n_tests as f64;
-    c.evidence = bayes::from_refit(
-        d,
-        dchi2,
-        scale,
-        &theta_hat,
-        info,
-        bayes::n_samples(state),
-        p_value < threshold && !c.outside_physical_range,
-    );
+    let significant = p_value < threshold && !c.outside_physical_range;
+    c.evidence = bayes::from_refit(dchi2, scale, &theta_hat, info)
+        .map(|l| bayes::evidence(d, l, bayes::n_samples(state), significant));
 }
 
 /// Add the largest significant chi^2 drop among refits that converged, are identifiable and
