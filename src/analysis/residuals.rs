@@ -11,12 +11,14 @@
 //! compared with the same band of the noise run whitened by the same filter, an F test (this
 //! cancels what the whitening filter does not model); without one, with the unit level.
 
+use rayon::prelude::*;
 use serde::Serialize;
 use statrs::distribution::{ChiSquared, ContinuousCDF};
 
 pub use crate::numerics::stats::{chi2_sf, f_sf, ks_two_sample};
 use crate::numerics::stats::{ljung_box, mean};
 
+use crate::data::{ExperimentData, Series};
 use crate::signal::stretch_windows;
 use crate::spectral::periodogram::{band_edges, periodogram, variance_inflation};
 use crate::spectral::{welch_csd, WelchConfig};
@@ -180,6 +182,55 @@ pub struct ChannelInput<'a> {
     /// run (about T / p for T samples and order p): a single ordinate over it is then F(2, nu)
     /// rather than Exp(1), heavier-tailed. `None`: exact (model) whitening.
     pub whitening_dof: Option<f64>,
+}
+
+/// What the residual tests of every channel of one fit share ([`analyse_fit`]).
+pub struct FitTests<'a> {
+    /// The whitened residuals start at this sample of each run (the whitening's start-up).
+    pub offset: usize,
+    pub alpha: f64,
+    /// As [`ChannelInput::whitening_dof`].
+    pub whitening_dof: Option<f64>,
+    pub noise: Option<&'a NoiseReference>,
+}
+
+/// The residual tests ([`analyse_channel`]) of every experiment of `data` and every readout
+/// `readouts` of a fit, from its whitened residuals `whitened[e][c]` and raw ones `raw[e][c]`:
+/// each (experiment, channel) on its own, over the cores, experiment by experiment.
+pub fn analyse_fit(
+    data: &ExperimentData,
+    (readouts, input_names): (&[&str], &[&str]),
+    whitened: &Series,
+    raw: &Series,
+    tests: &FitTests<'_>,
+) -> Vec<ChannelReport> {
+    // Inputs over each experiment's own samples (without a lead-in), aligned with its
+    // residuals.
+    let aligned: Vec<Vec<Vec<f64>>> = (0..data.names.len())
+        .map(|e| data.inputs_of(e).into_iter().map(<[f64]>::to_vec).collect())
+        .collect();
+    let pairs: Vec<(usize, usize)> = (0..data.names.len())
+        .flat_map(|e| (0..readouts.len()).map(move |c| (e, c)))
+        .collect();
+    pairs
+        .par_iter()
+        .map(|&(e, c)| {
+            let inp = ChannelInput {
+                experiment: &data.names[e],
+                channel: readouts[c],
+                channel_index: c,
+                whitened: &whitened[e][c],
+                offset: tests.offset,
+                raw: &raw[e][c],
+                inputs: &aligned[e],
+                input_names,
+                dt: data.dt,
+                alpha: tests.alpha,
+                whitening_dof: tests.whitening_dof,
+            };
+            analyse_channel(&inp, tests.noise)
+        })
+        .collect()
 }
 
 /// Samples beyond 5 sigma expected of `n` Gaussian samples: `P(|z| > 5) = 5.733e-7`.
@@ -461,6 +512,23 @@ fn coherence_tests(inp: &ChannelInput<'_>) -> Vec<CoherenceReport> {
         });
     }
     coherence
+}
+
+/// The whitened residual spectra ([`spectrum_curve`]) of every experiment of `data` and every
+/// readout `readouts` of one fit (`residuals_w[e][c]`), labelled `stage`.
+pub fn spectrum_curves(
+    stage: &str,
+    data: &ExperimentData,
+    readouts: &[&str],
+    residuals_w: &Series,
+) -> Vec<SpectrumCurve> {
+    let mut out = Vec::new();
+    for (e, en) in data.names.iter().enumerate() {
+        for (c, ch) in readouts.iter().enumerate() {
+            out.push(spectrum_curve(stage, en, ch, &residuals_w[e][c], data.dt));
+        }
+    }
+    out
 }
 
 /// Log-binned periodogram of a whitened series (about 12 points per decade), with the 90%

@@ -14,6 +14,7 @@
 //! a relative change below `ftol` (1e-4) in chi^2, or below `ptol` (1e-4) in every parameter
 //! relative to `|p| + sigma`.
 
+pub mod additive;
 pub mod estimator;
 pub mod evidence;
 pub mod problem;

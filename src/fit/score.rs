@@ -9,6 +9,10 @@
 
 use nalgebra::DMatrix;
 
+use crate::data::Series;
+use crate::numerics::linalg::{
+    equilibrated_pinv, most_correlated, series_dot, series_gram, series_gram_pinv,
+};
 use crate::numerics::tol::{DEGENERATE_FRACTION, PINV_RCOND};
 
 /// The score test of one set of extra parameters.
@@ -64,6 +68,62 @@ pub fn score_test(
         step,
         information: schur,
     }
+}
+
+/// Score tests of blocks of the whitened columns `j` of one Jacobian at the fit, with whitened
+/// residual `r`: the columns `nuisance` are fitted (the first `n_fitted` of them the parameters
+/// a candidate's most correlated one is named among), each of `blocks` is one candidate's set
+/// of extra parameters. None when the pseudo-inverse of the fitted block's information fails.
+pub fn block_scores(
+    j: &[Series],
+    r: &Series,
+    nuisance: &[usize],
+    blocks: &[Vec<usize>],
+    n_fitted: usize,
+) -> Option<Vec<Score>> {
+    let info = series_gram(j);
+    let u: Vec<f64> = j.iter().map(|c| series_dot(c, r)).collect();
+    let sub = |rows: &[usize], cols: &[usize]| {
+        DMatrix::<f64>::from_fn(rows.len(), cols.len(), |a, b| info[(rows[a], cols[b])])
+    };
+    let inn_inv = equilibrated_pinv(&sub(nuisance, nuisance))?;
+    let score = |e_idx: &Vec<usize>| {
+        let (iee, ien) = (sub(e_idx, e_idx), sub(e_idx, nuisance));
+        // At the fit the nuisance parameters' score vanishes, so the block's own score is the
+        // efficient one.
+        let ue = DMatrix::<f64>::from_fn(e_idx.len(), 1, |a, _| u[e_idx[a]]);
+        let mut idx = nuisance.to_vec();
+        idx.push(e_idx[0]);
+        let most = most_correlated(&info, &idx, n_fitted);
+        score_test(&iee, &ien, &inn_inv, &ue, most)
+    };
+    Some(blocks.iter().map(score).collect())
+}
+
+/// The score test of the extra whitened columns `je` given the fitted columns `jn` (the first
+/// `n_fitted` of them the parameters a candidate's most correlated one is named among; the
+/// inverse of their information `inn_inv`) at whitened residual `r`. The correlation is that of
+/// the first extra column with each fitted parameter in the joint covariance.
+pub fn columns_score(
+    je: &[Series],
+    jn: &[Series],
+    n_fitted: usize,
+    inn_inv: &DMatrix<f64>,
+    r: &Series,
+) -> Score {
+    let (m, nn) = (je.len(), jn.len());
+    let iee = DMatrix::<f64>::from_fn(m, m, |x, y| series_dot(&je[x], &je[y]));
+    let ien = DMatrix::<f64>::from_fn(m, nn, |x, y| series_dot(&je[x], &jn[y]));
+    let ue = DMatrix::<f64>::from_fn(m, 1, |x, _| series_dot(&je[x], r));
+    let mut cols: Vec<&Series> = jn.iter().collect();
+    cols.push(&je[0]);
+    let corr = series_gram_pinv(&cols).1.and_then(|cv| {
+        (0..n_fitted)
+            .map(|k| (k, cv[(k, nn)] / (cv[(k, k)] * cv[(nn, nn)]).sqrt()))
+            .filter(|(_, v)| v.is_finite())
+            .max_by(|x, y| x.1.abs().total_cmp(&y.1.abs()))
+    });
+    score_test(&iee, &ien, inn_inv, &ue, corr)
 }
 
 #[cfg(test)]

@@ -42,6 +42,11 @@ pub fn series_dot(a: &[Vec<Vec<f64>>], b: &[Vec<Vec<f64>>]) -> f64 {
         .sum()
 }
 
+/// The correlation `<a, b> / sqrt(<a, a> <b, b>)` of two series.
+pub fn series_correlation(a: &[Vec<Vec<f64>>], b: &[Vec<Vec<f64>>]) -> f64 {
+    series_dot(a, b) / (series_dot(a, a) * series_dot(b, b)).sqrt()
+}
+
 /// The equilibrated matrix `D^-1/2 M D^-1/2` and the scales `d_i = sqrt(M_ii)` (floored at
 /// the smallest positive number so a zero row stays zero rather than NaN).
 pub fn equilibrate(m: &DMatrix<f64>) -> (DMatrix<f64>, Vec<f64>) {

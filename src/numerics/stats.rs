@@ -9,6 +9,47 @@ use statrs::function::erf::erfc;
 
 use super::tol::KS_SERIES_TERM;
 
+/// Median of chi^2(1).
+const CHI2_1_MEDIAN: f64 = 0.454_936_423_119_572_8;
+
+/// Robust variance of zero-mean Gaussian samples `x`: the (upper) median of `x^2` over the
+/// median of chi^2(1), which a few outliers do not move. None for no samples.
+pub fn robust_variance<'a>(x: impl IntoIterator<Item = &'a f64>) -> Option<f64> {
+    let mut sq: Vec<f64> = x.into_iter().map(|v| v * v).collect();
+    if sq.is_empty() {
+        return None;
+    }
+    let mid = sq.len() / 2;
+    let (_, m, _) = sq.select_nth_unstable_by(mid, f64::total_cmp);
+    Some(*m / CHI2_1_MEDIAN)
+}
+
+/// The null variance of the normalised correlation `z = <c, r> / |c|` of a column `c` with a
+/// residual `r` (series `[e][c][i]`; `norm = <c, c>`), unrelated to each other: the mean of
+/// `z_j^2` over the circular shifts `j = 1..=shifts` of `r`, shift `j` moving each run of `n`
+/// samples by `j n / (shifts + 1)` (spread over its length, away from zero). It is 1 for a white
+/// unit residual.
+pub fn circular_shift_variance(
+    c: &[Vec<Vec<f64>>],
+    r: &[Vec<Vec<f64>>],
+    norm: f64,
+    shifts: usize,
+) -> f64 {
+    let mut sum = 0.0;
+    for j in 1..=shifts {
+        let mut u = 0.0;
+        for (ce, re) in c.iter().zip(r) {
+            for (cc, rc) in ce.iter().zip(re) {
+                let n = rc.len().min(cc.len());
+                let s = j * n / (shifts + 1);
+                u += (0..n).map(|i| cc[i] * rc[(i + s) % n]).sum::<f64>();
+            }
+        }
+        sum += u * u / norm;
+    }
+    sum / shifts as f64
+}
+
 /// Arithmetic mean (0 for an empty slice).
 pub fn mean(v: &[f64]) -> f64 {
     v.iter().sum::<f64>() / v.len().max(1) as f64

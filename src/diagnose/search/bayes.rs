@@ -26,13 +26,14 @@ use nalgebra::DMatrix;
 use crate::design::redesign::{self, redesign_verdict};
 use crate::diagnose::families::additive::Additive;
 use crate::diagnose::search::problem::DiagnosisProblem;
+use crate::diagnose::search::score::first_whitened;
 use crate::diagnose::search::selection::{Described, DiagnosisState, Proposal};
 use crate::diagnose::DiagnoseModel;
 use crate::diagnose::{Candidate, Evidence, Swap, Twin};
 use crate::fit::evidence::{delta_bic, laplace_ln_bayes_factor, Prior};
 use crate::fit::score::Score;
 use crate::model::effects::{Category, Effect, Extended};
-use crate::numerics::linalg::series_dot;
+use crate::numerics::linalg::series_correlation;
 use crate::sim::Series;
 
 /// Width of an operator effect's Gaussian prior in units of its typical size
@@ -80,22 +81,23 @@ fn bic_parameters(d: &Described) -> usize {
     }
 }
 
-/// The evidence of `d` from the unscaled chi^2 drop `dchi2`, the variance scale `scale`, the
-/// maximum `theta` and the unscaled information `info` of the added parameters given the rest.
-#[allow(clippy::too_many_arguments)]
-fn evidence(
-    d: &Described,
+/// What the evidence of a candidate is computed from: the unscaled chi^2 drop, the variance
+/// scale, the maximum `theta` and the unscaled information `info` of the added parameters given
+/// the rest.
+pub(super) struct Laplace<'a> {
     from: &'static str,
     dchi2: f64,
     scale: f64,
-    theta: &[f64],
-    info: &DMatrix<f64>,
-    n: usize,
-    significant: bool,
-) -> Evidence {
+    theta: &'a [f64],
+    info: DMatrix<f64>,
+}
+
+/// The evidence of `d` from `l`, with `n` whitened samples.
+pub(super) fn evidence(d: &Described, l: Laplace<'_>, n: usize, significant: bool) -> Evidence {
+    let (dchi2, scale) = (l.dchi2, l.scale);
     let prior = prior_of(d, n);
-    let f = info / scale;
-    let mut ln_b = laplace_ln_bayes_factor(0.5 * dchi2 / scale, theta, &f, &prior);
+    let f = l.info / scale;
+    let mut ln_b = laplace_ln_bayes_factor(0.5 * dchi2 / scale, l.theta, &f, &prior);
     let mut text = prior.describe();
     if let Prior::Gaussian { .. } = prior {
         text.push_str(&format!(" ({PRIOR_TYPICALS} x typical)"));
@@ -112,7 +114,7 @@ fn evidence(
         ln_bayes_factor: ln_b,
         delta_bic: delta_bic(dchi2, scale, k, n),
         prior: text,
-        from,
+        from: l.from,
         n_samples: n,
         n_parameters: k,
         variance_scale: scale,
@@ -121,59 +123,44 @@ fn evidence(
     }
 }
 
-/// The evidence of a candidate only scored: the score test's one-step estimate and Schur
-/// complement, `Delta chi^2 = LM` of the quadratic model (`theta^T S theta`, also where the
-/// statistic is reported as 0 for a degenerate candidate).
-pub(super) fn from_score(
-    d: &Described,
-    s: &Score,
-    n: usize,
-    significant: bool,
-) -> Option<Evidence> {
+/// The evidence's inputs of a candidate only scored: the score test's one-step estimate and
+/// Schur complement, `Delta chi^2 = LM` of the quadratic model (`theta^T S theta`, also where
+/// the statistic is reported as 0 for a degenerate candidate).
+pub(super) fn from_score<'a>(d: &Described, s: &'a Score) -> Option<Laplace<'a>> {
     if s.step.iter().any(|v| !v.is_finite()) || s.step.len() != s.information.nrows() {
         return None;
     }
     let t = DMatrix::from_column_slice(s.step.len(), 1, &s.step);
     let lm = (t.transpose() * &s.information * &t)[(0, 0)].max(0.0);
     let scale = if d.noise_var > 0.0 { d.noise_var } else { 1.0 };
-    Some(evidence(
-        d,
-        "score",
-        lm,
+    Some(Laplace {
+        from: "score",
+        dchi2: lm,
         scale,
-        &s.step,
-        &s.information,
-        n,
-        significant,
-    ))
+        theta: &s.step,
+        info: s.information.clone(),
+    })
 }
 
-/// The evidence of a refitted candidate (`info`: the unscaled information of its parameters
-/// given the rest, see [`crate::fit::evidence::information_given_rest`]).
-#[allow(clippy::too_many_arguments)]
+/// The evidence's inputs of a refitted candidate (`info`: the unscaled information of its
+/// parameters given the rest, see [`crate::fit::evidence::information_given_rest`]).
 pub(super) fn from_refit(
-    d: &Described,
     dchi2: f64,
     scale: f64,
     theta: &[f64],
     info: Option<DMatrix<f64>>,
-    n: usize,
-    significant: bool,
-) -> Option<Evidence> {
+) -> Option<Laplace<'_>> {
     let info = info?;
     if theta.len() != info.nrows() || theta.iter().any(|v| !v.is_finite()) {
         return None;
     }
-    Some(evidence(
-        d,
-        "refit",
+    Some(Laplace {
+        from: "refit",
         dchi2,
         scale,
         theta,
-        &info,
-        n,
-        significant,
-    ))
+        info,
+    })
 }
 
 /// The first whitened column of candidate `d` at the current fit: the template derivative of
@@ -183,31 +170,18 @@ fn first_column<M: DiagnoseModel<N>, const N: usize>(
     state: &DiagnosisState<M, N>,
     d: &Described,
 ) -> Option<Series> {
-    let est = &state.fit.fit.estimate;
     match &d.proposal {
-        Proposal::Operator(k) => {
-            let mut effects = state.model.effects.clone();
-            effects.push(state.pool[*k].clone());
-            let full = Extended::new(state.model.base.clone(), effects);
+        Proposal::Operator(_) => {
+            let (full, p, _) = state.with(d);
             let lik = problem.likelihood(&full).ok()?;
-            let prob = lik.problem(problem.data).ok()?;
-            let (_, j) = prob.residuals_and_jacobian(&full.nested(est));
+            let (_, j) = lik.problem(problem.data).ok()?.residuals_and_jacobian(&p);
             j.into_iter().nth(full.range(full.effects.len() - 1).start)
         }
         Proposal::Additive { effect, .. } => {
             let lik = problem.likelihood(&state.model).ok()?;
-            let col = effect
-                .columns(lik.engine.model(), &lik, problem.data, est)
-                .into_iter()
-                .next()?;
-            Some(lik.whiten_series(problem.data, col))
+            first_whitened(&lik, problem.data, effect, &state.fit.fit.estimate)
         }
     }
-}
-
-/// The correlation of two whitened columns.
-fn correlation(a: &Series, b: &Series) -> f64 {
-    series_dot(a, b) / (series_dot(a, a) * series_dot(b, b)).sqrt()
 }
 
 /// The near-twins of the added candidate `winner` among the refitted candidates `others` of
@@ -239,7 +213,7 @@ pub(super) fn near_twins<M: DiagnoseModel<N>, const N: usize>(
         else {
             continue;
         };
-        let corr = correlation(cw, &ck);
+        let corr = series_correlation(cw, &ck);
         if corr.is_nan() || corr.abs() < TWIN_CORRELATION {
             continue;
         }

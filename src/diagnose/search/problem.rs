@@ -5,19 +5,16 @@
 //! The fits of the selection (nominal, with operator effects, with additive columns) are methods
 //! of the problem, so that each round only says what it fits.
 
-use nalgebra::DMatrix;
-use rayon::prelude::*;
-
 use crate::analysis::residuals;
 use crate::data::check_finite;
-use crate::diagnose::families::additive;
+use crate::diagnose::families::additive::Additive;
 use crate::diagnose::search::observer::Observer;
 use crate::diagnose::{DiagnoseConfig, DiagnoseError, DiagnoseModel, Stage, WhiteningSource};
-use crate::fit::{fit, ExperimentData, FitConfig, FitResult, Likelihood, Whitener};
+use crate::fit::additive::{fit_additive, AdditiveFit, AdditiveFitError, AdditiveTerm, Terms};
+use crate::fit::{ExperimentData, Likelihood, Whitener};
 use crate::model::effects::Extended;
 use crate::model::lpf_x::LpfX;
 use crate::model::ClosedLoopModel;
-use crate::numerics::linalg::{series_dot, series_gram_pinv};
 use crate::setup::SetupOf;
 use crate::sim::Series;
 
@@ -32,18 +29,37 @@ const MIN_ORDER: usize = 8;
 const VIF_NOTE: f64 = 1.05;
 
 /// Additive effects in the model with their amplitudes.
-pub(crate) type Linear = Vec<(additive::Additive, Vec<f64>)>;
+pub(crate) type Linear = Terms<Additive>;
+
+/// The planned likelihood of an extended model.
+type Lik<'a, M, const N: usize> = Likelihood<'a, Extended<M, N>, N>;
 
 /// A fit with additive effects.
-#[derive(Clone)]
-pub(crate) struct LinearFit {
-    pub fit: FitResult,
-    /// Raw (unwhitened) residuals.
-    pub raw: Series,
-    /// The additive effects with their fitted amplitudes.
-    pub linear: Linear,
-    /// Covariance of each additive effect's (amplitudes, non-linear parameters).
-    pub covariances: Vec<DMatrix<f64>>,
+pub(crate) type LinearFit = AdditiveFit<Additive>;
+
+/// The additive effects of a diagnosis are the additive terms of [`fit_additive`].
+impl<M: DiagnoseModel<N>, const N: usize> AdditiveTerm<Extended<M, N>, N> for Additive {
+    fn columns(&self, lik: &Lik<'_, M, N>, data: &ExperimentData, p: &[f64]) -> Vec<Series> {
+        Additive::columns(self, lik.engine.model(), lik, data, p)
+    }
+    fn nonlinear(&self) -> Vec<f64> {
+        Additive::nonlinear(self)
+    }
+    fn nonlinear_columns(
+        &self,
+        lik: &Lik<'_, M, N>,
+        data: &ExperimentData,
+        p: &[f64],
+        amps: &[f64],
+    ) -> Vec<Series> {
+        Additive::nonlinear_columns(self, lik.engine.model(), lik, data, p, amps)
+    }
+    fn experiment(&self) -> Option<usize> {
+        Additive::experiment(self)
+    }
+    fn step_nonlinear(&mut self, step: &[f64], n: usize, dt: f64) {
+        Additive::step_nonlinear(self, step, n, dt)
+    }
 }
 
 /// The whitening of a diagnosis and the noise run's reference level under it.
@@ -337,20 +353,18 @@ impl<'a, M: DiagnoseModel<N>, const N: usize> DiagnosisProblem<'a, M, N> {
         }
     }
 
-    /// Fit `model` from `guess` to `data` (the experiments, or the experiments less additive
-    /// contributions); also returns raw residuals.
-    pub(crate) fn fit(
+    /// Fit `model` with the additive effects `lin` ([`fit_additive`]).
+    pub(crate) fn fit_linear(
         &self,
-        lik: &Likelihood<'_, Extended<M, N>, N>,
-        data: &ExperimentData,
+        model: &Extended<M, N>,
         guess: &[f64],
-    ) -> Result<(FitResult, Series), DiagnoseError> {
-        let model = lik.engine.model();
-        let prob = lik.problem(data)?;
-        let cfg = self.cfg.constraints.apply(FitConfig::new(model));
-        let res = fit(model, &prob, guess, &cfg)?;
-        let raw = prob.raw_residuals(data, &res.estimate);
-        Ok((res, raw))
+        lin: &Linear,
+    ) -> Result<LinearFit, DiagnoseError> {
+        let lik = self.likelihood(model)?;
+        fit_additive(&lik, self.data, guess, lin, &self.cfg.constraints).map_err(|e| match e {
+            AdditiveFitError::Fit(e) => e.into(),
+            AdditiveFitError::Singular => DiagnoseError::Numerical(e.to_string()),
+        })
     }
 
     /// Fit `model` without additive effects.
@@ -359,81 +373,21 @@ impl<'a, M: DiagnoseModel<N>, const N: usize> DiagnosisProblem<'a, M, N> {
         model: &Extended<M, N>,
         guess: &[f64],
     ) -> Result<LinearFit, DiagnoseError> {
-        let lik = self.likelihood(model)?;
-        let (fit, raw) = self.fit(&lik, self.data, guess)?;
-        Ok(LinearFit {
-            fit,
-            raw,
-            linear: Vec::new(),
-            covariances: Vec::new(),
-        })
-    }
-
-    /// Raw columns of every additive effect of `lin` at `p`, flattened, with their amplitudes.
-    pub(crate) fn linear_columns(
-        &self,
-        lik: &Likelihood<'_, Extended<M, N>, N>,
-        lin: &Linear,
-        p: &[f64],
-    ) -> (Vec<Series>, Vec<f64>) {
-        let model = lik.engine.model();
-        let (mut cols, mut amps) = (Vec::new(), Vec::new());
-        for (a, v) in lin {
-            cols.extend(a.columns(model, lik, self.data, p));
-            amps.extend(v);
-        }
-        (cols, amps)
-    }
-
-    /// The data minus the additive contributions of `lin` at base parameters `p`.
-    pub(crate) fn effective_data(
-        &self,
-        lik: &Likelihood<'_, Extended<M, N>, N>,
-        lin: &Linear,
-        p: &[f64],
-    ) -> ExperimentData {
-        if lin.is_empty() {
-            return self.data.clone();
-        }
-        let (cols, amps) = self.linear_columns(lik, lin, p);
-        self.data.minus(&cols, &amps)
+        self.fit_linear(model, guess, &Vec::new())
     }
 
     /// One fit's summary with the residual tests of every experiment and channel.
     pub(crate) fn stage(&self, model: &Extended<M, N>, f: &LinearFit) -> Stage {
         let (res, raw, data) = (&f.fit, &f.raw, self.data);
         let noise_ref = self.whitening.noise_ref.as_ref();
-        let inputs = model.input_names();
-        // Inputs over each experiment's own samples (without a lead-in), aligned with its
-        // residuals.
-        let aligned: Vec<Vec<Vec<f64>>> = (0..data.names.len())
-            .map(|e| data.inputs_of(e).into_iter().map(<[f64]>::to_vec).collect())
-            .collect();
-        let readouts = model.readout_names();
-        let pairs: Vec<(usize, usize)> = (0..data.names.len())
-            .flat_map(|e| (0..readouts.len()).map(move |c| (e, c)))
-            .collect();
-        // Every (experiment, channel) on its own, over the cores, in that order.
-        let channels = pairs
-            .par_iter()
-            .map(|&(e, c)| {
-                let (en, channel) = (&data.names[e], readouts[c]);
-                let inp = residuals::ChannelInput {
-                    experiment: en,
-                    channel,
-                    channel_index: c,
-                    whitened: &res.residuals_w[e][c],
-                    offset: self.order,
-                    raw: &raw[e][c],
-                    inputs: &aligned[e],
-                    input_names: &inputs,
-                    dt: data.dt,
-                    alpha: self.cfg.alpha,
-                    whitening_dof: self.whitening.whitening_dof,
-                };
-                residuals::analyse_channel(&inp, noise_ref)
-            })
-            .collect();
+        let tests = residuals::FitTests {
+            offset: self.order,
+            alpha: self.cfg.alpha,
+            whitening_dof: self.whitening.whitening_dof,
+            noise: noise_ref,
+        };
+        let names = (&model.readout_names()[..], &model.input_names()[..]);
+        let channels = residuals::analyse_fit(data, names, &res.residuals_w, raw, &tests);
         Stage {
             chi2: res.chi2,
             chi2_reduced: res.chi2_reduced,
@@ -447,151 +401,5 @@ impl<'a, M: DiagnoseModel<N>, const N: usize> DiagnosisProblem<'a, M, N> {
             }),
             channels,
         }
-    }
-}
-
-/// Gauss-Newton passes of [`DiagnosisProblem::fit_linear`]: enough for the amplitudes alone
-/// (linear: one pass converges, the others absorb the base parameters' move), more when line
-/// frequencies or glitch times and widths move with them.
-const PASSES_LINEAR: usize = 3;
-const PASSES_NONLINEAR: usize = 5;
-
-/// The whitened columns of the additive effects of `lin` at `est`: amplitudes, then non-linear
-/// parameters (only once the amplitudes are non-zero; before that their columns vanish), and
-/// per effect (amplitudes, non-linear parameters with a column).
-fn additive_jacobian<M: DiagnoseModel<N>, const N: usize>(
-    lik: &Likelihood<'_, Extended<M, N>, N>,
-    data: &ExperimentData,
-    lin: &Linear,
-    est: &[f64],
-    first_pass: bool,
-) -> (Vec<Series>, Vec<(usize, usize)>) {
-    let model = lik.engine.model();
-    let mut je: Vec<Series> = Vec::new();
-    let mut layout: Vec<(usize, usize)> = Vec::new();
-    for (a, v) in lin {
-        let cols = a.columns(model, lik, data, est);
-        let n_nl = if !first_pass && v.iter().any(|x| *x != 0.0) {
-            a.nonlinear().len()
-        } else {
-            0
-        };
-        layout.push((v.len(), n_nl));
-        je.extend(cols.into_iter().map(|c| lik.whiten_series(data, c)));
-        if n_nl > 0 {
-            je.extend(
-                a.nonlinear_columns(model, lik, data, est, v)
-                    .into_iter()
-                    .map(|c| lik.whiten_series(data, c)),
-            );
-        }
-    }
-    (je, layout)
-}
-
-/// Covariance of each additive effect's (amplitudes, non-linear parameters) from the joint
-/// inverse information `inv` (its first `nn` rows the base parameters); a non-linear parameter
-/// without a column (zero amplitude) has an unknown (NaN) variance.
-fn additive_covariances(
-    inv: &DMatrix<f64>,
-    nn: usize,
-    lin: &Linear,
-    layout: &[(usize, usize)],
-) -> Vec<DMatrix<f64>> {
-    let mut j = nn;
-    let mut covs = Vec::new();
-    for ((a, v), &(_, used)) in lin.iter().zip(layout) {
-        let (n_a, n_nl) = (v.len(), a.nonlinear().len());
-        let dim = n_a + n_nl;
-        let cov = DMatrix::<f64>::from_fn(dim, dim, |x, y| {
-            if x < n_a + used && y < n_a + used {
-                inv[(j + x, j + y)]
-            } else if x == y {
-                f64::NAN
-            } else {
-                0.0
-            }
-        });
-        covs.push(cov);
-        j += n_a + used;
-    }
-    covs
-}
-
-impl<M: DiagnoseModel<N>, const N: usize> DiagnosisProblem<'_, M, N> {
-    /// Fit `model` with the additive effects `lin` (amplitudes and non-linear parameters as
-    /// starting values): alternate the nonlinear fit of the base parameters on the data minus the
-    /// additive contributions with a joint Gauss-Newton step of the amplitudes and of the
-    /// additive effects' non-linear parameters (line frequency, glitch time and width), then fit
-    /// once more. The sigmas (base, amplitudes, non-linear) are from the joint information; `nu`
-    /// counts the amplitudes and non-linear parameters.
-    pub(crate) fn fit_linear(
-        &self,
-        model: &Extended<M, N>,
-        guess: &[f64],
-        lin: &Linear,
-    ) -> Result<LinearFit, DiagnoseError> {
-        if lin.is_empty() {
-            return self.fit_plain(model, guess);
-        }
-        let data = self.data;
-        let mut lin = lin.clone();
-        let mut est = guess.to_vec();
-        let n_lin: usize = lin.iter().map(|(a, v)| v.len() + a.nonlinear().len()).sum();
-        let nonlinear = lin.iter().any(|(a, _)| !a.nonlinear().is_empty());
-        let passes = if nonlinear {
-            PASSES_NONLINEAR
-        } else {
-            PASSES_LINEAR
-        };
-        let lik = self.likelihood(model)?;
-        for pass in 0..passes {
-            let eff = self.effective_data(&lik, &lin, &est);
-            let (mut f, raw) = self.fit(&lik, &eff, &est)?;
-            est = f.estimate.clone();
-            let prob = lik.problem(&eff)?;
-            let (r, jn) = prob.residuals_and_jacobian(&est);
-            let (je, layout) = additive_jacobian(&lik, data, &lin, &est, pass == 0);
-            let all: Vec<&Series> = jn.iter().chain(je.iter()).collect();
-            let (_, inv) = series_gram_pinv(&all);
-            let inv = inv.ok_or_else(|| {
-                DiagnoseError::Numerical("singular joint information of the additive fit".into())
-            })?;
-            let nn = jn.len();
-            if pass == passes - 1 {
-                for k in 0..nn {
-                    f.sigma[k] = inv[(k, k)].max(0.0).sqrt();
-                }
-                f.nu = f.nu.saturating_sub(n_lin).max(1);
-                f.chi2_reduced = f.chi2 / f.nu as f64;
-                let covariances = additive_covariances(&inv, nn, &lin, &layout);
-                return Ok(LinearFit {
-                    fit: f,
-                    raw,
-                    linear: lin,
-                    covariances,
-                });
-            }
-            let g = DMatrix::<f64>::from_fn(all.len(), 1, |a, _| series_dot(all[a], &r));
-            let step = &inv * g;
-            let mut j = nn;
-            for ((a, v), (_, n_nl)) in lin.iter_mut().zip(&layout) {
-                for x in v.iter_mut() {
-                    *x += step[(j, 0)];
-                    j += 1;
-                }
-                if *n_nl > 0 {
-                    let s: Vec<f64> = (0..*n_nl).map(|q| step[(j + q, 0)]).collect();
-                    // A line or glitch is bounded by its own experiment's duration.
-                    let n = a
-                        .experiment()
-                        .filter(|&e| e < data.outputs.len())
-                        .map_or(data.len(), |e| data.len_of(e));
-                    a.step_nonlinear(&s, n, data.dt);
-                    j += n_nl;
-                }
-            }
-        }
-        unreachable!("the loop returns on its last pass")
     }
 }

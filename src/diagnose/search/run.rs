@@ -14,6 +14,7 @@ use crate::diagnose::{
     next_round, Candidate, DiagnoseConfig, DiagnoseError, DiagnoseModel, Diagnosis, DiagnosisState,
     ExcessKind, Notes, Observer, RobustCheck, Round, SpectrumCurve, Stage, Unexplained,
 };
+use crate::fit::additive::less_terms;
 use crate::fit::{fit, FitConfig, FitResult};
 use crate::model::effects::Effect;
 use crate::model::ClosedLoopModel;
@@ -247,18 +248,13 @@ fn spectra<M: DiagnoseModel<N>, const N: usize>(
 ) -> Vec<SpectrumCurve> {
     let data = problem.data;
     let readouts = problem.nominal.readout_names();
-    let mut out = Vec::new();
-    for (st, res) in [
-        ("before", &before.residuals_w),
-        ("after", &after.residuals_w),
-    ] {
-        for (e, en) in data.names.iter().enumerate() {
-            for (c, ch) in readouts.iter().enumerate() {
-                let r = &res[e][c];
-                out.push(residuals::spectrum_curve(st, en, ch, r, data.dt));
-            }
-        }
-    }
+    let mut out = residuals::spectrum_curves("before", data, &readouts, &before.residuals_w);
+    out.extend(residuals::spectrum_curves(
+        "after",
+        data,
+        &readouts,
+        &after.residuals_w,
+    ));
     let reference = problem
         .noise
         .as_deref()
@@ -290,7 +286,7 @@ fn robust_check<M: DiagnoseModel<N>, const N: usize>(
     let (model, gauss) = (&state.model, &state.fit.fit);
     let run = || -> Result<FitResult, DiagnoseError> {
         let lik = problem.likelihood(model)?;
-        let eff = problem.effective_data(&lik, &state.fit.linear, &gauss.estimate);
+        let eff = less_terms(&lik, problem.data, &state.fit.linear, &gauss.estimate);
         let prob = lik.problem(&eff)?;
         let mut fc = problem.cfg.constraints.apply(FitConfig::new(model));
         fc.estimator = crate::fit::Estimator::Log;

@@ -5,7 +5,6 @@
 
 use std::sync::Arc;
 
-use nalgebra::DMatrix;
 use rayon::prelude::*;
 
 use crate::diagnose::families::additive::{self, Additive};
@@ -13,13 +12,12 @@ use crate::diagnose::families::glitch;
 use crate::diagnose::search::problem::DiagnosisProblem;
 use crate::diagnose::search::selection::{Described, Proposal};
 use crate::diagnose::{DiagnoseError, DiagnoseModel, DiagnosisState, Stage};
-use crate::fit::score::{score_test, Score};
+use crate::fit::score::{block_scores, columns_score, Score};
 use crate::fit::{ExperimentData, FitResult, Likelihood};
 use crate::model::effects::{Category, Effect, Extended};
 use crate::model::ClosedLoopModel;
-use crate::numerics::linalg::{
-    equilibrated_pinv, most_correlated, series_dot, series_gram, series_gram_pinv,
-};
+use crate::numerics::linalg::{series_dot, series_gram_pinv};
+use crate::numerics::stats::{circular_shift_variance, robust_variance};
 use crate::sim::Series;
 use crate::spectral::periodogram::refine_frequency;
 
@@ -37,46 +35,22 @@ pub(super) fn score_operators<M: DiagnoseModel<N>, const N: usize>(
     if pool.is_empty() {
         return Ok(Vec::new());
     }
-    let mut effects = current.effects.clone();
-    effects.extend(pool.iter().cloned());
-    let full = Extended::new(current.base.clone(), effects);
+    let full = current.with_effects(pool.iter().cloned());
     let p = full.nested(estimate);
     let lik = problem.likelihood(&full)?;
     let prob = lik.problem(data)?;
     let (r, mut j) = prob.residuals_and_jacobian(&p);
     let np = full.n_params();
     j.extend(extra.iter().cloned());
-    let nt = j.len();
-    let info = series_gram(&j);
-    let u: Vec<f64> = (0..nt).map(|a| series_dot(&j[a], &r)).collect();
     let n_base = estimate.len();
     // Nuisance block: the fitted parameters, then the extra columns.
-    let n_idx: Vec<usize> = (0..n_base).chain(np..nt).collect();
-    let sub = |rows: &[usize], cols: &[usize]| {
-        DMatrix::<f64>::from_fn(rows.len(), cols.len(), |a, b| info[(rows[a], cols[b])])
-    };
-    let inn_inv = equilibrated_pinv(&sub(&n_idx, &n_idx)).ok_or_else(|| {
+    let n_idx: Vec<usize> = (0..n_base).chain(np..j.len()).collect();
+    let blocks: Vec<Vec<usize>> = (0..pool.len())
+        .map(|i| full.range(current.effects.len() + i).collect())
+        .collect();
+    block_scores(&j, &r, &n_idx, &blocks, n_base).ok_or_else(|| {
         DiagnoseError::Numerical("SVD of the fitted parameters' information failed".into())
-    })?;
-    let mut out = Vec::new();
-    for i in 0..pool.len() {
-        let e_idx: Vec<usize> = full.range(current.effects.len() + i).collect();
-        let iee = sub(&e_idx, &e_idx);
-        let ien = sub(&e_idx, &n_idx);
-        // At the fit the nuisance parameters' score vanishes, so the effect's own score is
-        // the efficient one.
-        let ue = DMatrix::<f64>::from_fn(e_idx.len(), 1, |a, _| u[e_idx[a]]);
-        let mut idx = n_idx.clone();
-        idx.push(e_idx[0]);
-        out.push(score_test(
-            &iee,
-            &ien,
-            &inn_inv,
-            &ue,
-            most_correlated(&info, &idx, n_base),
-        ));
-    }
-    Ok(out)
+    })
 }
 
 /// Score tests of the additive candidates `cands` at the current fit (data `eff` already has
@@ -97,7 +71,6 @@ pub(super) fn score_additive<M: DiagnoseModel<N>, const N: usize>(
     let (r, mut jn) = prob.residuals_and_jacobian(estimate);
     let n_base = jn.len();
     jn.extend(extra.iter().cloned());
-    let nn = jn.len();
     let (_, inn_inv) = series_gram_pinv(&jn.iter().collect::<Vec<_>>());
     let inn_inv = inn_inv.ok_or_else(|| {
         DiagnoseError::Numerical("singular information of the fitted parameters".into())
@@ -111,22 +84,23 @@ pub(super) fn score_additive<M: DiagnoseModel<N>, const N: usize>(
             .into_iter()
             .map(|c| lik.whiten_series(data, c))
             .collect();
-        let m = je.len();
-        let iee = DMatrix::<f64>::from_fn(m, m, |x, y| series_dot(&je[x], &je[y]));
-        let ien = DMatrix::<f64>::from_fn(m, nn, |x, y| series_dot(&je[x], &jn[y]));
-        let ue = DMatrix::<f64>::from_fn(m, 1, |x, _| series_dot(&je[x], &r));
-        // Correlation of the first column with each fitted parameter.
-        let mut cols: Vec<&Series> = jn.iter().collect();
-        cols.push(&je[0]);
-        let corr = series_gram_pinv(&cols).1.and_then(|cv| {
-            (0..n_base)
-                .map(|k| (k, cv[(k, nn)] / (cv[(k, k)] * cv[(nn, nn)]).sqrt()))
-                .filter(|(_, v)| v.is_finite())
-                .max_by(|x, y| x.1.abs().total_cmp(&y.1.abs()))
-        });
-        score_test(&iee, &ien, &inn_inv, &ue, corr)
+        columns_score(&je, &jn, n_base, &inn_inv, &r)
     };
     Ok(cands.par_iter().map(one).collect())
+}
+
+/// The first whitened column of the additive effect `a` at parameters `p`.
+pub(super) fn first_whitened<M: DiagnoseModel<N>, const N: usize>(
+    lik: &Likelihood<'_, Extended<M, N>, N>,
+    data: &ExperimentData,
+    a: &Additive,
+    p: &[f64],
+) -> Option<Series> {
+    let col = a
+        .columns(lik.engine.model(), lik, data, p)
+        .into_iter()
+        .next()?;
+    Some(lik.whiten_series(data, col))
 }
 
 /// Circular shifts of the whitened residual that calibrate an auxiliary cross-talk's score.
@@ -161,31 +135,15 @@ pub(super) fn calibrate_aux<M: DiagnoseModel<N>, const N: usize>(
         if d.category != Category::AuxCrosstalk {
             continue;
         }
-        let Some(col) = effect
-            .columns(lik.engine.model(), &lik, problem.data, est)
-            .into_iter()
-            .next()
-        else {
+        let Some(c) = first_whitened(&lik, problem.data, effect, est) else {
             continue;
         };
-        let c = lik.whiten_series(problem.data, col);
         let norm = series_dot(&c, &c);
         if norm <= 0.0 {
             continue;
         }
-        let mut sum = 0.0;
-        for j in 1..=CALIBRATION_SHIFTS {
-            let mut u = 0.0;
-            for (ce, re) in c.iter().zip(r) {
-                for (cc, rc) in ce.iter().zip(re) {
-                    let n = rc.len().min(cc.len());
-                    let s = j * n / (CALIBRATION_SHIFTS + 1);
-                    u += (0..n).map(|i| cc[i] * rc[(i + s) % n]).sum::<f64>();
-                }
-            }
-            sum += u * u / norm;
-        }
-        d.noise_var = d.noise_var.max(sum / CALIBRATION_SHIFTS as f64);
+        let var = circular_shift_variance(&c, r, norm, CALIBRATION_SHIFTS);
+        d.noise_var = d.noise_var.max(var);
     }
     Ok(())
 }
@@ -246,9 +204,6 @@ pub(super) fn additive_candidates<M: DiagnoseModel<N>, const N: usize>(
     out
 }
 
-/// Median of chi^2(1): the robust scale of a whitened residual is its median square over it.
-const CHI2_1_MEDIAN: f64 = 0.454_936_423_119_572_8;
-
 /// Glitch candidates at the current fit: the matched-filter scan of its whitened residual
 /// ([`glitch::scan`]): for each entry point, the best experiment, position and width, each
 /// carrying the scan's look-elsewhere factor.
@@ -262,38 +217,21 @@ pub(super) fn glitch_candidates<M: DiagnoseModel<N>, const N: usize>(
     let w = problem.filter();
     // Robust variance of the whitened residual (median of r^2 over that of chi^2(1)), so that
     // the ranking is not set by the glitch itself.
-    let mut sq: Vec<f64> = fit
-        .residuals_w
-        .iter()
-        .flatten()
-        .flatten()
-        .map(|v| v * v)
-        .collect();
-    let scale = if sq.is_empty() {
-        1.0
-    } else {
-        let mid = sq.len() / 2;
-        let (_, m, _) = sq.select_nth_unstable_by(mid, f64::total_cmp);
-        (*m / CHI2_1_MEDIAN).max(1.0)
-    };
+    let scale =
+        robust_variance(fit.residuals_w.iter().flatten().flatten()).map_or(1.0, |v| v.max(1.0));
     let noise = problem
         .noise_w
         .as_deref()
         .map(|r| (r, problem.whitening.fpe));
-    // One scan per experiment length (its own padded grid); the others are left out of it.
+    // One scan per experiment length (the padded grid of the first experiment of that length);
+    // the others are left out of it.
     let lens = data.lengths();
-    let mut distinct: Vec<usize> = Vec::new();
-    for &n in &lens {
-        if !distinct.contains(&n) {
-            distinct.push(n);
-        }
-    }
     let mut s = glitch::Scan {
         peaks: Vec::new(),
         trials: 0.0,
     };
-    for n in distinct {
-        let first = lens.iter().position(|&l| l == n).unwrap_or(0);
+    for first in (0..lens.len()).filter(|&i| !lens[..i].contains(&lens[i])) {
+        let n = lens[first];
         let grid = crate::sim::glitch::Grid {
             n,
             m: lik.engine.padded_len_of(first),

@@ -21,25 +21,26 @@
 
 use std::sync::Arc;
 
-use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::diagnose::families::additive::Additive;
 use crate::diagnose::families::glitch;
 use crate::diagnose::search::bayes;
 use crate::diagnose::search::observer::{Observer, Round, Step, StopReason};
-use crate::diagnose::search::problem::{DiagnosisProblem, LinearFit};
+use crate::diagnose::search::problem::{DiagnosisProblem, Linear, LinearFit};
 use crate::diagnose::search::score::{
     additive_candidates, calibrate_aux, glitch_candidates, score_additive, score_operators,
 };
 use crate::diagnose::types::EDGE_TRANSIENT_S;
 use crate::diagnose::{AddedEffect, Alternative, Candidate, DiagnoseConfig, DiagnoseError, Stage};
+use crate::fit::additive::term_columns;
 use crate::fit::evidence::{information_given_rest, information_of_covariance};
 use crate::fit::score::Score;
 
 use crate::diagnose::DiagnoseModel;
 use crate::model::effects::{Category, Effect, Extended};
 use crate::model::ClosedLoopModel;
+use crate::numerics::par::map_reporting;
 use crate::numerics::stats::chi2_isf;
 use crate::numerics::tol::DEGENERATE_FRACTION;
 use crate::sim::Series;
@@ -183,6 +184,23 @@ impl<M: DiagnoseModel<N>, const N: usize> DiagnosisState<M, N> {
             n_tests,
             candidates: Vec::new(),
             added: Vec::new(),
+        }
+    }
+
+    /// The current model, its estimate and its additive effects with candidate `d` added (at
+    /// zero): where the refit of `d` starts.
+    pub(super) fn with(&self, d: &Described) -> (Extended<M, N>, Vec<f64>, Linear) {
+        let (est, mut lin) = (&self.fit.fit.estimate, self.fit.linear.clone());
+        match &d.proposal {
+            Proposal::Operator(k) => {
+                let model = self.model.with_effects([self.pool[*k].clone()]);
+                let guess = model.nested(est);
+                (model, guess, lin)
+            }
+            Proposal::Additive { effect, .. } => {
+                lin.push((effect.clone(), vec![0.0; d.dim]));
+                (self.model.clone(), est.clone(), lin)
+            }
         }
     }
 
@@ -350,17 +368,12 @@ fn score<M: DiagnoseModel<N>, const N: usize>(
     let lin = &state.fit.linear;
     // Data less the additive effects already added; their amplitudes are fitted nuisance
     // parameters of the score tests too (`extra`: their whitened columns).
-    let (eff, extra) = if lin.is_empty() {
-        (problem.data.clone(), Vec::new())
-    } else {
-        let (cols, amps) = problem.linear_columns(&lik, lin, est);
-        let eff = problem.data.minus(&cols, &amps);
-        let extra: Vec<Series> = cols
-            .into_iter()
-            .map(|c| lik.whiten_series(problem.data, c))
-            .collect();
-        (eff, extra)
-    };
+    let (cols, amps) = term_columns(&lik, problem.data, lin, est);
+    let eff = problem.data.minus(&cols, &amps);
+    let extra: Vec<Series> = cols
+        .into_iter()
+        .map(|c| lik.whiten_series(problem.data, c))
+        .collect();
     let mut ops = Vec::new();
     let mut adds = Vec::new();
     for d in described {
@@ -402,17 +415,12 @@ fn candidate<M: DiagnoseModel<N>, const N: usize>(
 ) -> Candidate {
     let most = s.most_correlated.map(|(k, v)| (names[k].clone(), v));
     let calibrated = d.category == Category::Glitch;
-    let (statistic, p) = if d.bounded_at_zero() {
-        if s.step.first().is_some_and(|v| *v > 0.0) {
-            let p = 0.5 * problem.tail(d.dim, s.statistic / d.noise_var, calibrated);
-            (s.statistic, p)
-        } else {
-            // The data pull out of the physical range: no evidence for the effect.
-            (0.0, 1.0)
-        }
+    let (statistic, p) = if d.bounded_at_zero() && !s.step.first().is_some_and(|v| *v > 0.0) {
+        // The data pull out of the physical range: no evidence for the effect.
+        (0.0, 1.0)
     } else {
         let p = problem.tail(d.dim, s.statistic / d.noise_var, calibrated);
-        (s.statistic, p)
+        (s.statistic, if d.bounded_at_zero() { 0.5 * p } else { p })
     };
     let score_p_value = (d.trials * p).min(1.0);
     Candidate {
@@ -422,7 +430,8 @@ fn candidate<M: DiagnoseModel<N>, const N: usize>(
         acts_on: d.acts_on.clone(),
         score_statistic: statistic,
         score_p_value,
-        evidence: bayes::from_score(d, s, n, score_p_value < threshold),
+        evidence: bayes::from_score(d, s)
+            .map(|l| bayes::evidence(d, l, n, score_p_value < threshold)),
         identifiable_fraction: s.identifiable_fraction,
         degenerate: s.identifiable_fraction < DEGENERATE_FRACTION
             || most
@@ -444,26 +453,9 @@ fn refit_one<M: DiagnoseModel<N>, const N: usize>(
     state: &DiagnosisState<M, N>,
     d: &Described,
 ) -> Result<Refit<M, N>, DiagnoseError> {
-    let (cur, lin) = (&state.fit.fit, &state.fit.linear);
-    match &d.proposal {
-        Proposal::Operator(k) => {
-            let mut effects = state.model.effects.clone();
-            effects.push(state.pool[*k].clone());
-            let model = Extended::new(state.model.base.clone(), effects);
-            let guess = model.nested(&cur.estimate);
-            let fit = problem.fit_linear(&model, &guess, lin)?;
-            Ok(Refit { model, fit })
-        }
-        Proposal::Additive { effect, .. } => {
-            let mut l = lin.clone();
-            l.push((effect.clone(), vec![0.0; d.dim]));
-            let fit = problem.fit_linear(&state.model, &cur.estimate, &l)?;
-            Ok(Refit {
-                model: state.model.clone(),
-                fit,
-            })
-        }
-    }
+    let (model, guess, lin) = state.with(d);
+    let fit = problem.fit_linear(&model, &guess, &lin)?;
+    Ok(Refit { model, fit })
 }
 
 /// Refit the `confirm_top` best score-significant candidates of each open family (in
@@ -490,33 +482,15 @@ fn refit<M: DiagnoseModel<N>, const N: usize>(
         idx.truncate(problem.cfg.confirm_top);
         chosen.extend(idx);
     }
-    // The refits run in parallel on a scoped thread while this one reports each as it ends
-    // (the observer stays on the caller's thread).
+    // The refits run in parallel while this thread reports each as it ends (the observer
+    // stays on the caller's thread).
     let (round, of) = (state.round, chosen.len());
     obs.step(&Step::Refit { round, done: 0, of });
-    let (tx, rx) = std::sync::mpsc::channel::<()>();
-    let results: Vec<(usize, Result<Refit<M, N>, DiagnoseError>)> = std::thread::scope(|s| {
-        let work = s.spawn(move || {
-            chosen
-                .par_iter()
-                .map(|&i| {
-                    let r = refit_one(problem, state, &described[i]);
-                    // The receiver outlives the senders; a failed send only loses a report.
-                    let _ = tx.send(());
-                    (i, r)
-                })
-                .collect()
-        });
-        for (k, ()) in rx.iter().enumerate() {
-            obs.step(&Step::Refit {
-                round,
-                done: k + 1,
-                of,
-            });
-        }
-        work.join()
-            .unwrap_or_else(|panic| std::panic::resume_unwind(panic))
-    });
+    let results = map_reporting(
+        &chosen,
+        |&i| (i, refit_one(problem, state, &described[i])),
+        |done| obs.step(&Step::Refit { round, done, of }),
+    );
     let mut out = Vec::new();
     for (i, res) in results {
         match res {
@@ -588,15 +562,9 @@ fn record_refit<M: DiagnoseModel<N>, const N: usize>(
     let p_value = (d.trials * p).min(1.0);
     c.p_value = Some(p_value);
     let threshold = problem.cfg.alpha / state.n_tests as f64;
-    c.evidence = bayes::from_refit(
-        d,
-        dchi2,
-        scale,
-        &theta_hat,
-        info,
-        bayes::n_samples(state),
-        p_value < threshold && !c.outside_physical_range,
-    );
+    let significant = p_value < threshold && !c.outside_physical_range;
+    c.evidence = bayes::from_refit(dchi2, scale, &theta_hat, info)
+        .map(|l| bayes::evidence(d, l, bayes::n_samples(state), significant));
 }
 
 /// Add the largest significant chi^2 drop among refits that converged, are identifiable and

@@ -300,6 +300,13 @@ impl<M: EffectHost<N>, const N: usize> Extended<M, N> {
         p.resize(self.names.len(), 0.0);
         p
     }
+
+    /// This model with the effects `extra` after its own.
+    pub fn with_effects(&self, extra: impl IntoIterator<Item = Arc<dyn Effect<N>>>) -> Self {
+        let mut effects = self.effects.clone();
+        effects.extend(extra);
+        Extended::new(self.base.clone(), effects)
+    }
 }
 
 impl<M: EffectHost<N>, const N: usize> ClosedLoopModel<N> for Extended<M, N> {
