@@ -42,15 +42,7 @@ pub(crate) fn clean_noise<M: DiagnoseModel<N>, const N: usize>(
         return None;
     }
     let nb = setup.model.n_params();
-    match M::clean_noise_run(
-        setup,
-        &guess[..nb],
-        noise,
-        dt,
-        cfg.order,
-        cfg.poly_degree,
-        cfg.alpha,
-    )? {
+    match M::clean_noise_run(setup, &guess[..nb], noise, dt, cfg)? {
         Ok((cleaned, report)) if report.significant => Some((cleaned, report)),
         Ok(_) => None,
         Err(e) => {
@@ -257,23 +249,13 @@ fn localisation<M: DiagnoseModel<N>, const N: usize>(
     let k: usize = cols.iter().map(|c| c.len()).sum();
     let mut dj = 0.0;
     for j in 1..=LOCAL_SHIFTS {
-        let shifted: Vec<_> = cols
-            .iter()
-            .map(|ks| {
-                ks.iter()
-                    .map(|chs| {
-                        chs.iter()
-                            .map(|x| {
-                                let s = j * x.len() / (LOCAL_SHIFTS + 1);
-                                (0..x.len())
-                                    .map(|t| if t >= s { x[t - s] } else { 0.0 })
-                                    .collect::<Vec<f64>>()
-                            })
-                            .collect::<Vec<_>>()
-                    })
-                    .collect::<Vec<_>>()
-            })
-            .collect();
+        // Every column started `s` samples later: x[t - s], zero before.
+        let mut shifted = cols.clone();
+        for x in shifted.iter_mut().flatten().flatten() {
+            let s = j * x.len() / (LOCAL_SHIFTS + 1);
+            x.rotate_right(s);
+            x[..s].fill(0.0);
+        }
         lik.set_transient(&shifted)?;
         let tj = lik.transient().expect("just set");
         dj += rest
