@@ -370,14 +370,11 @@ The closed loop's free response to initial conditions (thesis sec. 3.2, 4.7), fi
                 let worst = c
                     .bands
                     .iter()
-                    .min_by(|a, b| a.p_value.total_cmp(&b.p_value))
-                    .map(|b| {
-                        format!(
-                            "{:.2e}-{:.2e} ({:+.2}, {:.1e})",
-                            b.band_hz[0], b.band_hz[1], b.excess, b.p_value
-                        )
-                    })
-                    .unwrap_or_default();
+                    .min_by(|a, b| a.p_value.total_cmp(&b.p_value));
+                let worst = worst.map_or(String::new(), |b| {
+                    let [f0, f1] = b.band_hz;
+                    format!("{f0:.2e}-{f1:.2e} ({:+.2}, {:.1e})", b.excess, b.p_value)
+                });
                 let _ = writeln!(
                     s,
                     "| {st} | {} | {} | {:.4} | {:+.3} ± {:.3} | {} ({:.2}) | {:.2e} | {} | {worst} |",
@@ -389,7 +386,7 @@ The closed loop's free response to initial conditions (thesis sec. 3.2, 4.7), fi
                     c.outliers,
                     c.outliers_expected,
                     c.ljung_box_p,
-                    c.ks_p.map(|p| format!("{p:.2e}")).unwrap_or_else(|| "-".into())
+                    or_dash(c.ks_p, |p| format!("{p:.2e}"))
                 );
             }
         }

@@ -148,27 +148,28 @@ pub(crate) fn test_experiments<M: DiagnoseModel<N>, const N: usize>(
     let drop = (fit0.fit.chi2 - res.chi2).max(0.0);
     let stat = drop / res.chi2_reduced.max(1.0);
     let p = problem.tail(dim, stat, false);
+    let test = format!("chi^2 drop {drop:.3e} for {dim} initial conditions, p = {p:.2e}");
     if p >= cfg.alpha {
         obs.note(&format!(
-            "no start-up transient in the experiments (chi^2 drop {drop:.3e} for {dim} initial conditions, p = {p:.2e})"
+            "no start-up transient in the experiments ({test})"
         ));
         return Ok(None);
     }
     let (f_local, p_local) = localisation(problem, data, fit0)?;
     if p_local >= cfg.alpha {
         obs.note(&format!(
-            "the experiments' start-up transients (chi^2 drop {drop:.3e} for {dim} initial conditions, p = {p:.2e}) are not at the start: the same columns started later explain as much of the residual (ratio {f_local:.3}, p = {p_local:.2e}); none is fitted"
+            "the experiments' start-up transients ({test}) are not at the start: the same columns started later explain as much of the residual (ratio {f_local:.3}, p = {p_local:.2e}); none is fitted"
         ));
         return Ok(None);
     }
     if let Some((name, d)) = stronger_drift(problem, fit0, drop, dim)? {
         obs.note(&format!(
-            "the experiments' start-up transients (chi^2 drop {drop:.3e} for {dim} initial conditions, p = {p:.2e}) explain less than {name} (drop {d:.3e} for 1 parameter): none is fitted, and the selection goes on without them"
+            "the experiments' start-up transients ({test}) explain less than {name} (drop {d:.3e} for 1 parameter): none is fitted, and the selection goes on without them"
         ));
         return Ok(None);
     }
     obs.note(&format!(
-        "the experiments start with transients (chi^2 drop {drop:.3e} for {dim} initial conditions, p = {p:.2e}): their free responses are fitted in every later fit"
+        "the experiments start with transients ({test}): their free responses are fitted in every later fit"
     ));
     let nb = problem.setup.model.n_params();
     let cols = transient_columns(problem, &res.estimate[..nb], data)?;
