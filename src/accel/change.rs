@@ -25,16 +25,18 @@ pub struct AccelChange {
     /// Which readouts: "noise run" or the first experiment's name (guidance removed).
     pub source: String,
     pub f: Vec<f64>,
+    #[serde(rename = "s_g12_before")]
     pub before: Vec<f64>,
+    #[serde(rename = "s_g12_after")]
     pub after: Vec<f64>,
     /// The largest `after / before` (or its inverse, whichever is further from 1), where it is,
     /// and the contiguous band around it where the change is at least half as large in log.
     pub largest_ratio: f64,
     pub at_hz: f64,
     pub band_hz: [f64; 2],
-    /// Confidence factors of each estimate alone (90 %), for scale.
-    pub band_lo: f64,
-    pub band_hi: f64,
+    /// Confidence factors (low, high) of each estimate alone (90 %), for scale.
+    #[serde(rename = "welch_band_factors_90")]
+    pub band_factors: [f64; 2],
 }
 
 /// The acceleration PSD of `o` (and guidance `oi`) through `Delta(p)` of `model`: `(f, S_g12,
@@ -103,7 +105,6 @@ pub fn compare<A: ClosedLoopModel<2>, B: ClosedLoopModel<2>>(
         f,
         before,
         after,
-        band_lo: lo,
-        band_hi: hi,
+        band_factors: [lo, hi],
     })
 }

@@ -4,9 +4,7 @@
 
 use std::fmt::Write;
 
-use serde_json::{json, Value};
-
-use crate::diagnose::report::num;
+use crate::diagnose::report::join;
 use crate::diagnose::search::bayes::{PRIOR_TYPICALS, TWIN_CORRELATION, TWIN_LN_B};
 use crate::diagnose::{AddedEffect, Diagnosis, Evidence, Twin};
 
@@ -19,41 +17,13 @@ pub fn status(a: &AddedEffect) -> &'static str {
     }
 }
 
-/// The JSON fields of an evidence (merged into a candidate's or an added effect's object).
-pub fn evidence_fields(e: Option<&Evidence>, obj: &mut Value) {
-    obj["ln_bayes_factor"] = e.map_or(Value::Null, |e| num(e.ln_bayes_factor));
-    obj["delta_bic"] = e.map_or(Value::Null, |e| num(e.delta_bic));
-    obj["bayes"] = e.map_or(Value::Null, |e| {
-        json!({
-            "prior": e.prior, "from": e.from, "n_samples": e.n_samples,
-            "n_parameters": e.n_parameters, "variance_scale": num(e.variance_scale),
-            "delta_chi2": num(e.delta_chi2), "significant": e.significant,
-        })
-    });
-}
-
-/// An added effect's `status` and `near_twins`.
-pub fn twin_fields(a: &AddedEffect, obj: &mut Value) {
-    obj["status"] = json!(status(a));
-    // Its derived Serialize (the swap and the Occam part stay internal).
-    obj["near_twins"] = serde_json::to_value(&a.near_twins).unwrap_or(Value::Null);
-}
-
 /// How the header names an added effect: bold, or with its near-twins as an undecided choice.
 pub fn verdict_name(a: &AddedEffect) -> String {
     if a.near_twins.is_empty() {
         format!("**{}** ({})", a.name, a.category)
     } else {
-        let mut names = vec![a.name.clone()];
-        names.extend(a.near_twins.iter().map(|t| t.name.clone()));
-        format!(
-            "one of {} (not distinguishable with this design)",
-            names
-                .iter()
-                .map(|n| format!("**{n}**"))
-                .collect::<Vec<_>>()
-                .join(" or ")
-        )
+        let names = join(a.names(), " or ", |n| format!("**{n}**"));
+        format!("one of {names} (not distinguishable with this design)")
     }
 }
 

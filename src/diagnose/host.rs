@@ -41,9 +41,10 @@ pub type CleanedNoise = (Vec<Vec<f64>>, TransientReport);
 use std::sync::Arc;
 
 use crate::accel::change::AccelChange;
-use crate::analysis::transient::TransientReport;
+use crate::analysis::transient::{self, TransientReport};
 use crate::design::redesign::Redesign;
 use crate::design::space::Timing;
+use crate::diagnose::DiagnoseConfig;
 use crate::fit::{ExperimentData, FitConfig, FitResult, Likelihood};
 use crate::model::effects::{library_for, EffectHost, Extended};
 use crate::model::{LpfX, LpfXy};
@@ -88,16 +89,14 @@ pub trait DiagnoseModel<const N: usize>: SpecModel<N> + EffectHost<N> + Send + S
     }
 
     /// The noise run less its fitted free response at base parameters `p`, with the report
-    /// (`analysis::transient::clean_noise_run`); `None` when the model has no free response.
-    #[allow(clippy::too_many_arguments)]
+    /// (`analysis::transient::clean_noise_run` at the whitening order, polynomial degree and
+    /// `alpha` of `cfg`); `None` when the model has no free response.
     fn clean_noise_run(
         _setup: &SetupOf<Self, N>,
         _p: &[f64],
         _noise: &[Vec<f64>],
         _dt: f64,
-        _order: usize,
-        _poly_degree: usize,
-        _alpha: f64,
+        _cfg: &DiagnoseConfig<N>,
     ) -> Option<Result<CleanedNoise, String>> {
         None
     }
@@ -176,11 +175,7 @@ impl DiagnoseModel<2> for LpfX {
         p: &[f64],
         data: &ExperimentData,
     ) -> Option<Result<TransientColumns, String>> {
-        Some(
-            crate::analysis::transient::experiment_columns(setup, p, data)
-                .map(|(cols, _)| cols)
-                .map_err(|e| e.to_string()),
-        )
+        hook(transient::experiment_columns(setup, p, data).map(|(cols, _)| cols))
     }
 
     fn clean_noise_run(
@@ -188,23 +183,11 @@ impl DiagnoseModel<2> for LpfX {
         p: &[f64],
         noise: &[Vec<f64>],
         dt: f64,
-        order: usize,
-        poly_degree: usize,
-        alpha: f64,
+        cfg: &DiagnoseConfig<2>,
     ) -> Option<Result<CleanedNoise, String>> {
-        Some(
-            crate::analysis::transient::clean_noise_run(
-                setup,
-                p,
-                noise,
-                dt,
-                order,
-                poly_degree,
-                alpha,
-            )
-            .map(|(t, report)| (t.cleaned, report))
-            .map_err(|e| e.to_string()),
-        )
+        let (order, degree, alpha) = (cfg.order, cfg.poly_degree, cfg.alpha);
+        let cleaned = transient::clean_noise_run(setup, p, noise, dt, order, degree, alpha);
+        hook(cleaned.map(|(t, report)| (t.cleaned, report)))
     }
 
     fn fit_with_transients(
@@ -215,10 +198,9 @@ impl DiagnoseModel<2> for LpfX {
         cfg: &FitConfig,
         alpha: f64,
     ) -> Option<Result<(FitResult, Vec<TransientReport>), String>> {
-        Some(
-            crate::analysis::transient::fit_with_transients(setup, lik, data, guess, cfg, alpha)
-                .map_err(|e| e.to_string()),
-        )
+        hook(transient::fit_with_transients(
+            setup, lik, data, guess, cfg, alpha,
+        ))
     }
 
     fn check_units(
@@ -237,11 +219,15 @@ impl DiagnoseModel<2> for LpfX {
         data: &ExperimentData,
         timing: Timing,
     ) -> Option<Result<Redesign, String>> {
-        Some(
-            crate::design::redesign::probe_given(setup, p, given, effect, data, timing)
-                .map_err(|e| e.to_string()),
-        )
+        hook(crate::design::redesign::probe_given(
+            setup, p, given, effect, data, timing,
+        ))
     }
+}
+
+/// A hook's answer: the model has the product, or the error that kept it from it.
+fn hook<T, E: std::fmt::Display>(r: Result<T, E>) -> Option<Result<T, String>> {
+    Some(r.map_err(|e| e.to_string()))
 }
 
 /// The xy model: every library effect (they act on its x block), no acceleration product and

@@ -12,6 +12,7 @@ use crate::diagnose::DiagnoseModel;
 use crate::diagnose::{diagnose_observed, DiagnoseConfig, Diagnosis, Observer, Step};
 use crate::io::plot::run_plot_script;
 use crate::io::{create_output_dir, write_text_atomic, Provenance};
+use crate::numerics::tol::same_time;
 use crate::setup::SetupOf;
 
 /// The plot script, embedded so that an installed binary plots without the source tree.
@@ -104,22 +105,15 @@ impl DiagnoseJob {
         // The noise run's readouts of the model, by column name (a model beyond the x
         // channels reads its other readouts from the run's auxiliary columns).
         let readouts = setup.model.readout_names();
-        let noise: Option<Vec<Vec<f64>>> = match &ds.noise {
-            Some(r) => Some(
-                readouts
-                    .iter()
-                    .map(|n| r.column(n).map(<[f64]>::to_vec))
-                    .collect::<Result<_, _>>()?,
-            ),
-            None => None,
-        };
-        if let Some(nr) = &ds.noise {
-            if !crate::numerics::tol::same_time(nr.dt, data.dt) {
-                return Err(JobError::Invalid(format!(
-                    "the noise run's sampling interval {} s differs from the experiments' {} s",
-                    nr.dt, data.dt
-                )));
-            }
+        let column = |r: &crate::io::Run, n: &&str| r.column(n).map(<[f64]>::to_vec);
+        let noise: Option<Vec<Vec<f64>>> = (ds.noise.as_ref())
+            .map(|r| readouts.iter().map(|n| column(r, n)).collect())
+            .transpose()?;
+        if let Some(nr) = ds.noise.as_ref().filter(|r| !same_time(r.dt, data.dt)) {
+            return Err(JobError::Invalid(format!(
+                "the noise run's sampling interval {} s differs from the experiments' {} s",
+                nr.dt, data.dt
+            )));
         }
         // A model's own readouts and guidance among the auxiliary columns (an xy dataset's oy1,
         // ..., oi_y1, ... under the xy model) are its channels, not another degree of freedom's

@@ -1,31 +1,40 @@
 //! The diagnosis as `report.json` and as readable Markdown. Rendering to
 //! strings and JSON values only; writing is the CLI's job.
 
+use std::collections::BTreeSet;
 use std::fmt::Write;
 
-use serde_json::{json, Map, Value};
+use serde::Serialize;
+use serde_json::{json, Value};
 
 use crate::design::redesign::{probe_md, redesign_verdict};
 use crate::diagnose::bayes_report as bayes;
-use crate::diagnose::{Candidate, Diagnosis, Stage};
+use crate::diagnose::{probed, Diagnosis, Evidence, Stage};
 
-/// A number of report.json: null where it is not finite (as serde_json writes one).
-pub(crate) fn num(v: f64) -> Value {
-    if v.is_finite() {
-        json!(v)
-    } else {
-        Value::Null
-    }
+/// `{name: value}` (a non-finite value is null, as serde_json writes one).
+fn named(names: &[String], v: &[f64]) -> Value {
+    names.iter().cloned().zip(v.iter().copied()).collect()
 }
 
-fn named(names: &[String], v: &[f64]) -> Value {
-    Value::Object(
-        names
-            .iter()
-            .zip(v)
-            .map(|(n, x)| (n.clone(), num(*x)))
-            .collect::<Map<_, _>>(),
-    )
+/// `x` as its derived `Serialize` writes it, less the fields `skip`.
+fn without<T: Serialize>(x: &T, skip: &[&str]) -> Value {
+    let mut v = serde_json::to_value(x).unwrap_or(Value::Null);
+    if let Some(o) = v.as_object_mut() {
+        o.retain(|k, _| !skip.contains(&k.as_str()));
+    }
+    v
+}
+
+/// A candidate or added effect less `skip`, with its evidence's `ln_bayes_factor` and
+/// `delta_bic`, and the rest of it under `bayes` (each null without one).
+fn with_evidence<T: Serialize>(x: &T, e: Option<&Evidence>, skip: &[&str]) -> Value {
+    let mut v = without(x, skip);
+    v["ln_bayes_factor"] = json!(e.map(|e| e.ln_bayes_factor));
+    v["delta_bic"] = json!(e.map(|e| e.delta_bic));
+    v["bayes"] = e.map_or(Value::Null, |e| {
+        without(e, &["ln_bayes_factor", "delta_bic"])
+    });
+    v
 }
 
 /// `v` with the digits its sigma `e` supports (two significant digits beyond it; at least five).
@@ -39,36 +48,25 @@ fn with_sigma(v: f64, e: f64) -> String {
 }
 
 fn stage_json(s: &Stage, truth: Option<&[f64]>) -> Value {
-    // Each channel's residual report as it serialises, less its chi2 (n and chi2_reduced give
-    // it) and its outliers' time span (an `outliers` entry of `unexplained` carries it).
-    let per: Vec<Value> = s
-        .channels
-        .iter()
-        .map(|c| {
-            let mut v = serde_json::to_value(c).unwrap_or(Value::Null);
-            if let Some(o) = v.as_object_mut() {
-                o.remove("chi2");
-                o.remove("outlier_span_s");
-            }
-            v
-        })
+    // Each channel's residual report less its chi2 (n and chi2_reduced give it) and its
+    // outliers' time span (an `outliers` entry of `unexplained` carries it).
+    let per: Vec<Value> = (s.channels.iter())
+        .map(|c| without(c, &["chi2", "outlier_span_s"]))
         .collect();
     let mut v = json!({
-        "chi2_reduced": num(s.chi2_reduced),
-        "chi2": num(s.chi2),
-        "nu": s.nu,
-        "converged": s.converged,
-        "reference_chi2_reduced": num(s.reference_chi2_reduced),
-        "per_experiment_channel": per,
+        "chi2_reduced": s.chi2_reduced, "chi2": s.chi2, "nu": s.nu, "converged": s.converged,
+        "reference_chi2_reduced": s.reference_chi2_reduced, "per_experiment_channel": per,
         "estimates": named(&s.parameter_names, &s.estimate),
         "sigmas": named(&s.parameter_names, &s.sigma),
     });
     if let Some(t) = truth {
-        let k = t.len().min(s.estimate.len());
-        let err: Vec<f64> = (0..k)
-            .map(|i| (s.estimate[i] - t[i]) / s.sigma[i])
-            .collect();
-        v["error_vs_truth_sigma"] = named(&s.parameter_names[..k], &err);
+        let err = s
+            .estimate
+            .iter()
+            .zip(&s.sigma)
+            .zip(t)
+            .map(|((e, s), t)| (e - t) / s);
+        v["error_vs_truth_sigma"] = named(&s.parameter_names, &err.collect::<Vec<_>>());
     }
     v
 }
@@ -76,55 +74,36 @@ fn stage_json(s: &Stage, truth: Option<&[f64]>) -> Value {
 impl Diagnosis {
     /// Parameter shifts of the base parameters from before to after, in units of the before sigma.
     pub fn shifts_sigma(&self) -> Vec<(String, f64)> {
-        let k = self.before.estimate.len();
-        (0..k)
+        let (b, a) = (&self.before, &self.after);
+        (0..b.estimate.len())
             .map(|i| {
-                (
-                    self.before.parameter_names[i].clone(),
-                    (self.after.estimate[i] - self.before.estimate[i]) / self.before.sigma[i],
-                )
+                let shift = (a.estimate[i] - b.estimate[i]) / b.sigma[i];
+                (b.parameter_names[i].clone(), shift)
             })
             .collect()
     }
 
-    /// `report.json`.
+    /// `report.json`: the types' derived `Serialize`, with the parameters named.
     pub fn to_json(&self) -> Value {
         let truth = self.truth.as_deref();
-        let added: Vec<Value> = self
-            .effects_added
-            .iter()
+        let added: Vec<Value> = (self.effects_added.iter())
             .map(|a| {
-                let mut v = json!({
-                    "name": a.name, "category": a.category, "family": a.family, "acts_on": a.acts_on,
-                    "parameters": named(&a.parameter_names, &a.parameters),
-                    "sigmas": named(&a.parameter_names, &a.sigmas),
-                    "score_statistic": num(a.score_statistic), "delta_chi2": num(a.delta_chi2), "p_value": num(a.p_value),
-                    "most_correlated": a.most_correlated.as_ref().map(|(n, c)| json!({"parameter": n, "correlation": num(*c)})),
-                    "degenerate": a.degenerate,
-                    "indistinguishable_from": a.indistinguishable_from,
-                });
-                bayes::evidence_fields(a.evidence.as_ref(), &mut v);
-                bayes::twin_fields(a, &mut v);
+                let skip = ["parameter_names", "evidence"];
+                let mut v = with_evidence(a, a.evidence.as_ref(), &skip);
+                v["parameters"] = named(&a.parameter_names, &a.parameters);
+                v["sigmas"] = named(&a.parameter_names, &a.sigmas);
+                v["status"] = json!(bayes::status(a));
                 v
             })
             .collect();
-        let cands: Vec<Value> = self
-            .candidates
-            .iter()
-            .map(|c| {
-                let mut v = json!({
-                    "round": c.round, "name": c.name, "category": c.category, "acts_on": c.acts_on,
-                    "score_statistic": num(c.score_statistic), "score_p_value": num(c.score_p_value),
-                    "identifiable_fraction": num(c.identifiable_fraction),
-                    "most_correlated": c.most_correlated.as_ref().map(|(n, v)| json!({"parameter": n, "correlation": num(*v)})),
-                    "degenerate": c.degenerate,
-                    "outside_physical_range": c.outside_physical_range,
-                    "estimate": c.estimate.as_ref().map(|v| v.iter().map(|x| num(*x)).collect::<Vec<_>>()),
-                    "delta_chi2": c.delta_chi2.map(num), "p_value": c.p_value.map(num),
-                    // Its derived Serialize (non-finite numbers become null, as `num` does).
-                    "redesign": serde_json::to_value(&c.redesign).unwrap_or(Value::Null),
-                });
-                bayes::evidence_fields(c.evidence.as_ref(), &mut v);
+        let cands: Vec<Value> = (self.candidates.iter())
+            .map(|c| with_evidence(c, c.evidence.as_ref(), &["evidence", "sigma"]))
+            .collect();
+        // A transient's statistic by its name, Wald's (every reported one is significant).
+        let transients: Vec<Value> = (self.transients.iter())
+            .map(|t| {
+                let mut v = without(t, &["statistic", "significant"]);
+                v["wald_statistic"] = json!(t.statistic);
                 v
             })
             .collect();
@@ -135,7 +114,7 @@ impl Diagnosis {
             "candidates": cands,
             "unexplained": self.unexplained,
             "prior_tension": self.prior_tension,
-            "parameter_shifts_sigma": Value::Object(self.shifts_sigma().into_iter().map(|(n, v)| (n, num(v))).collect()),
+            "parameter_shifts_sigma": Value::from_iter(self.shifts_sigma()),
             "whitening": self.whitening,
             "whitening_order": self.order,
             "alpha": self.alpha,
@@ -146,25 +125,10 @@ impl Diagnosis {
                 "sigmas": named(&r.parameter_names, &r.sigma),
                 "shift_sigma": named(&r.parameter_names, &r.shift_sigma),
             })),
-            "acceleration": self.acceleration.as_ref().map(|a| json!({
-                "source": a.source,
-                "largest_ratio": num(a.largest_ratio),
-                "at_hz": num(a.at_hz),
-                "band_hz": [num(a.band_hz[0]), num(a.band_hz[1])],
-                "welch_band_factors_90": [num(a.band_lo), num(a.band_hi)],
-                "f": a.f.iter().map(|v| num(*v)).collect::<Vec<_>>(),
-                "s_g12_before": a.before.iter().map(|v| num(*v)).collect::<Vec<_>>(),
-                "s_g12_after": a.after.iter().map(|v| num(*v)).collect::<Vec<_>>(),
-            })),
-            "transient": self.transients.iter().map(|t| json!({
-                "run": t.run,
-                "initial_conditions": t.initial_conditions.iter().map(|c| json!({"name": c.name, "unit": c.unit, "value": num(c.value), "sigma": num(c.sigma)})).collect::<Vec<_>>(),
-                "loop_start_s": num(t.loop_start_s),
-                "wald_statistic": num(t.statistic),
-                "p_value": num(t.p_value),
-            })).collect::<Vec<_>>(),
+            "acceleration": self.acceleration,
+            "transient": transients,
             "aux_coherence": self.aux_coherence,
-            "seconds": num(self.seconds),
+            "seconds": self.seconds,
         })
     }
 
@@ -191,32 +155,47 @@ impl Diagnosis {
     /// The one-line summary: chi^2/nu before and after, the effects added, how many residual
     /// features stay unexplained, and the time taken.
     pub fn summary_line(&self) -> String {
-        let added = if self.effects_added.is_empty() {
-            "none".to_string()
-        } else {
-            self.effects_added
-                .iter()
-                .map(|e| {
-                    let mut n = vec![e.name.clone()];
-                    n.extend(e.near_twins.iter().map(|t| t.name.clone()));
-                    if n.len() > 1 {
-                        format!("{} (not distinguishable)", n.join(" | "))
-                    } else {
-                        e.name.clone()
-                    }
-                })
-                .collect::<Vec<_>>()
-                .join(", ")
-        };
+        let added = join(&self.effects_added, ", ", |e| {
+            match e.near_twins.is_empty() {
+                true => e.name.clone(),
+                false => format!("{} (not distinguishable)", e.names().join(" | ")),
+            }
+        });
         format!(
-            "chi2/nu {:.4} -> {:.4} (reference {:.4}); added: {added}; unexplained: {}; {:.2} s",
+            "chi2/nu {:.4} -> {:.4} (reference {:.4}); added: {}; unexplained: {}; {:.2} s",
             self.before.chi2_reduced,
             self.after.chi2_reduced,
             self.after.reference_chi2_reduced,
+            if added.is_empty() { "none" } else { &added },
             self.unexplained.len(),
             self.seconds
         )
     }
+}
+
+/// The items of `it` through `f`, joined by `sep`.
+pub(crate) fn join<T>(
+    it: impl IntoIterator<Item = T>,
+    sep: &str,
+    f: impl FnMut(T) -> String,
+) -> String {
+    it.into_iter().map(f).collect::<Vec<_>>().join(sep)
+}
+
+/// `v ± e`: a parameter table's cell.
+fn pm(v: f64, e: f64) -> String {
+    format!("{v:.6e} ± {e:.2e}")
+}
+
+/// `name (correlation)` of a most-correlated parameter with `digits` decimals, else `none`.
+fn corr_cell(m: &Option<(String, f64)>, digits: usize, none: &str) -> String {
+    m.as_ref()
+        .map_or(none.into(), |(n, v)| format!("{n} ({v:+.digits$})"))
+}
+
+/// An optional number by the formatter `f`, `-` when absent.
+fn or_dash(x: Option<f64>, f: impl Fn(f64) -> String) -> String {
+    x.map_or("-".into(), f)
 }
 
 impl Diagnosis {
@@ -231,19 +210,11 @@ The closed loop's free response to initial conditions (thesis sec. 3.2, 4.7), fi
 
 | run | o1 [m] | o12 [m] | v1 [m/s] | v12 [m/s] | Wald | p |\n|---|---|---|---|---|---|---|");
         for t in &self.transients {
-            let ics: Vec<String> = t
-                .initial_conditions
-                .iter()
-                .map(|c| format!("{} +- {:.2e}", with_sigma(c.value, c.sigma), c.sigma))
-                .collect();
-            let _ = writeln!(
-                s,
-                "| {} | {} | {:.3e} | {:.2e} |",
-                t.run,
-                ics.join(" | "),
-                t.statistic,
-                t.p_value
-            );
+            let ics = join(&t.initial_conditions, " | ", |c| {
+                format!("{} +- {:.2e}", with_sigma(c.value, c.sigma), c.sigma)
+            });
+            let (w, p) = (t.statistic, t.p_value);
+            let _ = writeln!(s, "| {} | {ics} | {w:.3e} | {p:.2e} |", t.run);
         }
         let _ = writeln!(s);
     }
@@ -256,24 +227,19 @@ The closed loop's free response to initial conditions (thesis sec. 3.2, 4.7), fi
         let _ = writeln!(
             s,
             "\n## Acceleration noise before and after\n\nThe total equivalent differential acceleration noise S_g12 (thesis sec. 4.6) of the {} through Delta, with the parameters before the diagnosis (nominal model at its fit) and after it (final model). The largest change is a factor {:.3} at {:.3e} Hz (band {:.3e} - {:.3e} Hz, where the change is at least half as large in log). For scale, one Welch estimate alone lies within a factor [{:.2}, {:.2}] of the true PSD (90 %); both estimates come from the same readouts, so their ratio carries no such scatter. The spectra are in report.json (`acceleration`).",
-            a.source, a.largest_ratio, a.at_hz, a.band_hz[0], a.band_hz[1], a.band_lo, a.band_hi
+            a.source, a.largest_ratio, a.at_hz, a.band_hz[0], a.band_hz[1], a.band_factors[0], a.band_factors[1]
         );
     }
 
     /// Title, verdict, degenerate effects, whitening and notes.
     fn md_header(&self, s: &mut String, title: &str) {
         let _ = writeln!(s, "# Diagnosis of {title}\n");
-        let verdict = if self.effects_added.is_empty() {
-            "no effect of the library is supported by the data".to_string()
-        } else {
-            format!(
+        let verdict = match self.effects_added.len() {
+            0 => "no effect of the library is supported by the data".to_string(),
+            _ => format!(
                 "added {}",
-                self.effects_added
-                    .iter()
-                    .map(bayes::verdict_name)
-                    .collect::<Vec<_>>()
-                    .join(", then ")
-            )
+                join(&self.effects_added, ", then ", bayes::verdict_name)
+            ),
         };
         let _ = writeln!(
             s,
@@ -284,19 +250,15 @@ The closed loop's free response to initial conditions (thesis sec. 3.2, 4.7), fi
             self.after.reference_chi2_reduced,
             self.unexplained.len()
         );
-        let mut degenerate: Vec<&str> = self
-            .candidates
-            .iter()
+        let degenerate: BTreeSet<&str> = (self.candidates.iter())
             .filter(|c| c.degenerate)
             .map(|c| c.name.as_str())
             .collect();
-        degenerate.sort_unstable();
-        degenerate.dedup();
         if !degenerate.is_empty() {
             let _ = writeln!(
                 s,
                 "The data cannot tell {} from the fitted parameters (degenerate: the candidates table gives each one's correlation, \"Degenerate effects\" whether a redesign would separate the operator ones): an omitted one shows as a shifted estimate, not as a residual.\n",
-                degenerate.join(", ")
+                join(degenerate, ", ", str::to_string)
             );
         }
         let _ = writeln!(
@@ -314,53 +276,42 @@ The closed loop's free response to initial conditions (thesis sec. 3.2, 4.7), fi
         let _ = writeln!(s, "## Effects added\n");
         if self.effects_added.is_empty() {
             let _ = writeln!(s, "None.\n");
-        } else {
-            let _ = writeln!(s, "| effect | status | category | acts on | parameters | score | delta chi2 | p | ln B | delta BIC | most correlated |\n|---|---|---|---|---|---|---|---|---|---|---|");
-            for a in &self.effects_added {
-                let pars: Vec<String> = a
-                    .parameter_names
-                    .iter()
-                    .zip(&a.parameters)
-                    .zip(&a.sigmas)
-                    .map(|((n, v), e)| format!("{n} = {} ± {e:.2e}", with_sigma(*v, *e)))
-                    .collect();
-                let corr = a
-                    .most_correlated
-                    .as_ref()
-                    .map(|(n, c)| format!("{n} ({c:+.3})"))
-                    .unwrap_or_default();
+            return;
+        }
+        let _ = writeln!(s, "| effect | status | category | acts on | parameters | score | delta chi2 | p | ln B | delta BIC | most correlated |\n|---|---|---|---|---|---|---|---|---|---|---|");
+        for a in &self.effects_added {
+            let values = a.parameter_names.iter().zip(&a.parameters).zip(&a.sigmas);
+            let pars = join(values, ", ", |((n, v), e)| {
+                format!("{n} = {} ± {e:.2e}", with_sigma(*v, *e))
+            });
+            let _ = writeln!(
+                s,
+                "| {} | {} | {} | {} | {pars} | {:.1} | {:.1} | {:.2e} | {} | {} |",
+                a.name,
+                bayes::status(a),
+                a.category,
+                a.acts_on,
+                a.score_statistic,
+                a.delta_chi2,
+                a.p_value,
+                bayes::cells(a.evidence.as_ref()),
+                corr_cell(&a.most_correlated, 3, "")
+            );
+        }
+        let _ = writeln!(s);
+        for a in &self.effects_added {
+            bayes::md_twins(s, a);
+            for x in &a.indistinguishable_from {
                 let _ = writeln!(
                     s,
-                    "| {} | {} | {} | {} | {} | {:.1} | {:.1} | {:.2e} | {} | {} |",
+                    "> {} cannot be told from **{}** ({}; parameters {}; delta chi2 {:.1} against {:.1}).\n",
                     a.name,
-                    bayes::status(a),
-                    a.category,
-                    a.acts_on,
-                    pars.join(", "),
-                    a.score_statistic,
-                    a.delta_chi2,
-                    a.p_value,
-                    bayes::cells(a.evidence.as_ref()),
-                    corr
+                    x.name,
+                    x.acts_on,
+                    join(&x.parameters, ", ", |v| format!("{v:.4e}")),
+                    x.delta_chi2,
+                    a.delta_chi2
                 );
-            }
-            let _ = writeln!(s);
-            for a in &self.effects_added {
-                bayes::md_twins(s, a);
-                for x in &a.indistinguishable_from {
-                    let pars: Vec<String> =
-                        x.parameters.iter().map(|v| format!("{v:.4e}")).collect();
-                    let _ = writeln!(
-                        s,
-                        "> {} cannot be told from **{}** ({}; parameters {}; delta chi2 {:.1} against {:.1}).\n",
-                        a.name,
-                        x.name,
-                        x.acts_on,
-                        pars.join(", "),
-                        x.delta_chi2,
-                        a.delta_chi2
-                    );
-                }
             }
         }
     }
@@ -373,26 +324,15 @@ The closed loop's free response to initial conditions (thesis sec. 3.2, 4.7), fi
         if truth.is_some() {
             let _ = write!(s, " truth | error before [sigma] | error after [sigma] |");
         }
-        let _ = writeln!(
-            s,
-            "\n|---|---|---|---|{}",
-            if truth.is_some() { "---|---|---|" } else { "" }
-        );
+        let columns = if truth.is_some() { 7 } else { 4 };
+        let _ = writeln!(s, "\n|{}", "---|".repeat(columns));
+        let (b, a) = (&self.before, &self.after);
         for (i, (n, sh)) in self.shifts_sigma().iter().enumerate() {
-            let (b, a) = (&self.before, &self.after);
-            let _ = write!(
-                s,
-                "| {n} | {:.6e} ± {:.2e} | {:.6e} ± {:.2e} | {sh:+.2} |",
-                b.estimate[i], b.sigma[i], a.estimate[i], a.sigma[i]
-            );
+            let (pb, pa) = (pm(b.estimate[i], b.sigma[i]), pm(a.estimate[i], a.sigma[i]));
+            let _ = write!(s, "| {n} | {pb} | {pa} | {sh:+.2} |");
             if let Some(t) = truth {
-                let _ = write!(
-                    s,
-                    " {:.6e} | {:+.2} | {:+.2} |",
-                    t[i],
-                    (b.estimate[i] - t[i]) / b.sigma[i],
-                    (a.estimate[i] - t[i]) / a.sigma[i]
-                );
+                let err = |x: &Stage| (x.estimate[i] - t[i]) / x.sigma[i];
+                let _ = write!(s, " {:.6e} | {:+.2} | {:+.2} |", t[i], err(b), err(a));
             }
             let _ = writeln!(s);
         }
@@ -400,29 +340,24 @@ The closed loop's free response to initial conditions (thesis sec. 3.2, 4.7), fi
 
     /// The robust refit, when the residual is heavy-tailed.
     fn md_robust(&self, s: &mut String) {
-        if let Some(r) = &self.robust {
-            let _ = writeln!(
-                s,
-                "\n## Robust check (heavy tails)\n\nThe residual is heavy-tailed (see Unexplained, kind `outliers`): the final model refitted with the \
-                 Lorentzian estimator rho = log(1 + r^2) (thesis sec. 4.5.7, \"mean logarithmic deviation\"), which outliers do not drag{}. \
-                 A large shift means the Gaussian estimates above are pulled by the outliers.\n",
-                if r.converged { "" } else { " (the refit did not converge)" }
-            );
-            let _ = writeln!(
-                s,
-                "| parameter | Gaussian | log estimator | shift [sigma] |\n|---|---|---|---|"
-            );
-            for (i, n) in r.parameter_names.iter().enumerate() {
-                let _ = writeln!(
-                    s,
-                    "| {n} | {:.6e} ± {:.2e} | {:.6e} ± {:.2e} | {:+.2} |",
-                    self.after.estimate[i],
-                    self.after.sigma[i],
-                    r.estimate[i],
-                    r.sigma[i],
-                    r.shift_sigma[i]
-                );
-            }
+        let Some(r) = &self.robust else {
+            return;
+        };
+        let _ = writeln!(
+            s,
+            "\n## Robust check (heavy tails)\n\nThe residual is heavy-tailed (see Unexplained, kind `outliers`): the final model refitted with the \
+             Lorentzian estimator rho = log(1 + r^2) (thesis sec. 4.5.7, \"mean logarithmic deviation\"), which outliers do not drag{}. \
+             A large shift means the Gaussian estimates above are pulled by the outliers.\n",
+            if r.converged { "" } else { " (the refit did not converge)" }
+        );
+        let _ = writeln!(
+            s,
+            "| parameter | Gaussian | log estimator | shift [sigma] |\n|---|---|---|---|"
+        );
+        let a = &self.after;
+        for (i, n) in r.parameter_names.iter().enumerate() {
+            let (g, l) = (pm(a.estimate[i], a.sigma[i]), pm(r.estimate[i], r.sigma[i]));
+            let _ = writeln!(s, "| {n} | {g} | {l} | {:+.2} |", r.shift_sigma[i]);
         }
     }
 
@@ -435,14 +370,11 @@ The closed loop's free response to initial conditions (thesis sec. 3.2, 4.7), fi
                 let worst = c
                     .bands
                     .iter()
-                    .min_by(|a, b| a.p_value.total_cmp(&b.p_value))
-                    .map(|b| {
-                        format!(
-                            "{:.2e}-{:.2e} ({:+.2}, {:.1e})",
-                            b.band_hz[0], b.band_hz[1], b.excess, b.p_value
-                        )
-                    })
-                    .unwrap_or_default();
+                    .min_by(|a, b| a.p_value.total_cmp(&b.p_value));
+                let worst = worst.map_or(String::new(), |b| {
+                    let [f0, f1] = b.band_hz;
+                    format!("{f0:.2e}-{f1:.2e} ({:+.2}, {:.1e})", b.excess, b.p_value)
+                });
                 let _ = writeln!(
                     s,
                     "| {st} | {} | {} | {:.4} | {:+.3} ± {:.3} | {} ({:.2}) | {:.2e} | {} | {worst} |",
@@ -454,7 +386,7 @@ The closed loop's free response to initial conditions (thesis sec. 3.2, 4.7), fi
                     c.outliers,
                     c.outliers_expected,
                     c.ljung_box_p,
-                    c.ks_p.map(|p| format!("{p:.2e}")).unwrap_or_else(|| "-".into())
+                    or_dash(c.ks_p, |p| format!("{p:.2e}"))
                 );
             }
         }
@@ -526,19 +458,16 @@ The closed loop's free response to initial conditions (thesis sec. 3.2, 4.7), fi
              first-order absorption (table \"Degenerate effects\") gives the whole shift, with the size that does.\n"
         );
         for t in &self.prior_tension {
-            let why: Vec<String> = t
-                .explained_by
-                .iter()
-                .map(|x| {
-                    format!(
-                        "{} ({} = {:.2e}) would explain it exactly ({:+.3e} per unit)",
-                        x.effect, x.effect_parameter, x.equivalent, x.shift_per_unit
-                    )
-                })
-                .collect();
-            let _ = writeln!(
+            let why = join(&t.explained_by, "; or ", |x| {
+                format!(
+                    "{} ({} = {:.2e}) would explain it exactly ({:+.3e} per unit)",
+                    x.effect, x.effect_parameter, x.equivalent, x.shift_per_unit
+                )
+            });
+            let _ =
+                writeln!(
                 s,
-                "- {} = {:.3e} ± {:.1e} is {:.2e} {} its prior {:.3e} ± {:.1e} ({:+.1} sigma){}.",
+                "- {} = {:.3e} ± {:.1e} is {:.2e} {} its prior {:.3e} ± {:.1e} ({:+.1} sigma); {}.",
                 t.parameter,
                 t.estimate,
                 t.sigma,
@@ -547,11 +476,7 @@ The closed loop's free response to initial conditions (thesis sec. 3.2, 4.7), fi
                 t.prior,
                 t.prior_sigma,
                 t.tension_sigma,
-                if why.is_empty() {
-                    "; no degenerate candidate explains it".to_string()
-                } else {
-                    format!("; {}", why.join("; or "))
-                }
+                if why.is_empty() { "no degenerate candidate explains it" } else { &why }
             );
         }
     }
@@ -561,36 +486,25 @@ The closed loop's free response to initial conditions (thesis sec. 3.2, 4.7), fi
         let _ = writeln!(s, "## Candidates (score test at zero, per round)\n");
         let _ = writeln!(s, "| round | effect | category | score | p | identifiable | most correlated | delta chi2 | p (refit) | ln B | delta BIC |\n|---|---|---|---|---|---|---|---|---|---|---|");
         for c in &self.candidates {
-            let corr = c
-                .most_correlated
-                .as_ref()
-                .map(|(n, v)| {
-                    format!(
-                        "{n} ({v:+.4}){}",
-                        if c.degenerate { " degenerate" } else { "" }
-                    )
-                })
-                .unwrap_or_default()
-                + if c.outside_physical_range {
-                    " outside physical range"
-                } else {
-                    ""
-                };
+            let degenerate = if c.degenerate { " degenerate" } else { "" };
+            let corr = (c.most_correlated.as_ref())
+                .map_or(String::new(), |(n, v)| format!("{n} ({v:+.4}){degenerate}"));
+            let outside = if c.outside_physical_range {
+                " outside physical range"
+            } else {
+                ""
+            };
             let _ = writeln!(
                 s,
-                "| {} | {} | {} | {:.2} | {:.1e} | {:.2e} | {corr} | {} | {} | {} |",
+                "| {} | {} | {} | {:.2} | {:.1e} | {:.2e} | {corr}{outside} | {} | {} | {} |",
                 c.round,
                 c.name,
                 c.category,
                 c.score_statistic,
                 c.score_p_value,
                 c.identifiable_fraction,
-                c.delta_chi2
-                    .map(|v| format!("{v:.1}"))
-                    .unwrap_or_else(|| "-".into()),
-                c.p_value
-                    .map(|v| format!("{v:.1e}"))
-                    .unwrap_or_else(|| "-".into()),
+                or_dash(c.delta_chi2, |v| format!("{v:.1}")),
+                or_dash(c.p_value, |v| format!("{v:.1e}")),
                 bayes::cells(c.evidence.as_ref())
             );
         }
@@ -598,54 +512,39 @@ The closed loop's free response to initial conditions (thesis sec. 3.2, 4.7), fi
 
     /// Degenerate effects: absorption and redesign verdict.
     fn md_degenerate(&self, s: &mut String) {
-        let degenerate: Vec<&Candidate> = {
-            let mut seen = std::collections::HashSet::new();
-            self.candidates
-                .iter()
-                .filter(|c| c.redesign.is_some() && seen.insert(c.name.as_str()))
-                .collect()
-        };
-        if !degenerate.is_empty() {
+        let degenerate = probed(&self.candidates);
+        if degenerate.is_empty() {
+            return;
+        }
+        let _ = writeln!(
+            s,
+            "\n## Degenerate effects\n\nThese effects are (almost) absorbed by the fitted parameters: the data cannot attribute them. \
+             The redesign probe adds one injection stretch of the standard design's length at the largest amplitude the \
+             constraints allow, on each input and grid frequency, and reports the best identifiable fraction it reaches \
+             (1 = fully separable). \"Absorbed by\" is the first-order bias an omitted effect puts on the fitted \
+             parameters, I_nn^-1 I_ne, per unit of the effect and in sigma at the effect's typical size.\n"
+        );
+        let _ = writeln!(s, "| effect | most correlated | absorbed by (shift per unit; at typical size) | identifiable now | best stretch <= f_max | best stretch above f_max | verdict |\n|---|---|---|---|---|---|---|");
+        for (c, r) in degenerate {
+            // The largest absorber always, the others from half a sigma.
+            let absorbers = (r.absorbed.iter().enumerate())
+                .filter(|(i, a)| *i == 0 || a.shift_sigma_at_typical.abs() >= 0.5);
+            let absorbed = join(absorbers, ", ", |(_, a)| {
+                format!(
+                    "{} ({:+.3e} per unit {}; {:+.1} sigma)",
+                    a.parameter, a.shift_per_unit, a.effect_parameter, a.shift_sigma_at_typical
+                )
+            });
             let _ = writeln!(
                 s,
-                "\n## Degenerate effects\n\nThese effects are (almost) absorbed by the fitted parameters: the data cannot attribute them. \
-                 The redesign probe adds one injection stretch of the standard design's length at the largest amplitude the \
-                 constraints allow, on each input and grid frequency, and reports the best identifiable fraction it reaches \
-                 (1 = fully separable). \"Absorbed by\" is the first-order bias an omitted effect puts on the fitted \
-                 parameters, I_nn^-1 I_ne, per unit of the effect and in sigma at the effect's typical size.\n"
+                "| {} | {} | {absorbed} | {:.2e} | {} | {} | {} |",
+                c.name,
+                corr_cell(&c.most_correlated, 4, "-"),
+                r.identifiable_fraction,
+                probe_md(r.within_constraints.as_ref()),
+                probe_md(r.above_f_max.as_ref()),
+                redesign_verdict(r),
             );
-            let _ = writeln!(s, "| effect | most correlated | absorbed by (shift per unit; at typical size) | identifiable now | best stretch <= f_max | best stretch above f_max | verdict |\n|---|---|---|---|---|---|---|");
-            for c in degenerate {
-                let r = c.redesign.as_ref().expect("filtered");
-                let corr = c
-                    .most_correlated
-                    .as_ref()
-                    .map(|(n, v)| format!("{n} ({v:+.4})"))
-                    .unwrap_or_else(|| "-".into());
-                let _ = writeln!(
-                    s,
-                    "| {} | {corr} | {} | {:.2e} | {} | {} | {} |",
-                    c.name,
-                    // The largest absorber always, the others from half a sigma.
-                    r.absorbed
-                        .iter()
-                        .enumerate()
-                        .filter(|(i, a)| *i == 0 || a.shift_sigma_at_typical.abs() >= 0.5)
-                        .map(|(_, a)| format!(
-                            "{} ({:+.3e} per unit {}; {:+.1} sigma)",
-                            a.parameter,
-                            a.shift_per_unit,
-                            a.effect_parameter,
-                            a.shift_sigma_at_typical
-                        ))
-                        .collect::<Vec<_>>()
-                        .join(", "),
-                    r.identifiable_fraction,
-                    probe_md(r.within_constraints.as_ref()),
-                    probe_md(r.above_f_max.as_ref()),
-                    redesign_verdict(r),
-                );
-            }
         }
     }
 

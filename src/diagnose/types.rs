@@ -7,6 +7,7 @@ use std::sync::Arc;
 use serde::Serialize;
 
 use super::{ChannelReport, ExcessKind, Family, PriorTension, SpectrumCurve};
+use crate::design::redesign::Redesign;
 use crate::fit::FitError;
 use crate::model::effects::{library_for, Effect};
 use crate::setup::{DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
@@ -171,6 +172,7 @@ pub struct Candidate {
     /// (`1 - R^2`; near zero means degenerate).
     pub identifiable_fraction: f64,
     /// The fitted parameter it correlates with most, and the correlation.
+    #[serde(serialize_with = "correlated")]
     pub most_correlated: Option<(String, f64)>,
     pub degenerate: bool,
     /// The refit's estimate is outside the effect's physical range (e.g. a negative lag): the
@@ -182,7 +184,14 @@ pub struct Candidate {
     pub estimate: Option<Vec<f64>>,
     pub sigma: Option<Vec<f64>>,
     /// For a degenerate operator effect: could one more injection stretch separate it?
-    pub redesign: Option<crate::design::redesign::Redesign>,
+    pub redesign: Option<Redesign>,
+}
+
+/// `most_correlated` as `{parameter, correlation}`.
+fn correlated<S: serde::Serializer>(m: &Option<(String, f64)>, s: S) -> Result<S::Ok, S::Error> {
+    let m = m.as_ref();
+    m.map(|(p, c)| serde_json::json!({"parameter": p, "correlation": c}))
+        .serialize(s)
 }
 
 /// An effect added by the diagnosis.
@@ -199,6 +208,7 @@ pub struct AddedEffect {
     pub score_statistic: f64,
     pub delta_chi2: f64,
     pub p_value: f64,
+    #[serde(serialize_with = "correlated")]
     pub most_correlated: Option<(String, f64)>,
     pub degenerate: bool,
     /// Alternatives the data cannot tell from it (refits of the same round whose chi^2 is
@@ -258,7 +268,7 @@ pub struct Twin {
     /// auxiliary series which guidance to inject on).
     pub separation: String,
     /// For two operator effects: the redesign probe of the twin with the added effect fitted.
-    pub redesign: Option<crate::design::redesign::Redesign>,
+    pub redesign: Option<Redesign>,
     /// The twin itself, to swap it in for the added effect at the final fit (internal).
     #[serde(skip)]
     pub swap: Option<Swap>,
@@ -273,6 +283,24 @@ pub enum Swap {
     /// A library effect, by name (still in the selection's pool).
     Operator(String),
     Additive(super::families::additive::Additive),
+}
+
+impl AddedEffect {
+    /// Its name and its near-twins'.
+    pub fn names(&self) -> Vec<&str> {
+        let twins = self.near_twins.iter().map(|t| t.name.as_str());
+        std::iter::once(self.name.as_str()).chain(twins).collect()
+    }
+}
+
+/// The first candidate of each name that has a redesign probe, with the probe (the degenerate
+/// operator effects).
+pub(crate) fn probed(candidates: &[Candidate]) -> Vec<(&Candidate, &Redesign)> {
+    let mut seen = std::collections::HashSet::new();
+    (candidates.iter())
+        .filter_map(|c| Some((c, c.redesign.as_ref()?)))
+        .filter(|(c, _)| seen.insert(c.name.as_str()))
+        .collect()
 }
 
 impl Evidence {

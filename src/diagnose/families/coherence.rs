@@ -4,6 +4,7 @@
 //! ([`crate::analysis::coherence`]: coherence, partial coherence and their tails per octave band).
 
 use crate::analysis::coherence::{aux_filters, run_coherence, AuxCoherence, RunInput};
+use crate::diagnose::families::noise_excess::NOISE_RUN;
 use crate::diagnose::DiagnoseModel;
 
 /// The coherence rows of every experiment and of the noise run of `problem` at `stage`, from
@@ -22,31 +23,24 @@ pub(crate) fn table<M: DiagnoseModel<N>, const N: usize>(
     let fallback = aux.experiments.first().cloned().unwrap_or_default();
     let filters = aux_filters(aux, &fallback, problem.order);
     let mut out = Vec::new();
-    for (e, r) in residuals_w.iter().enumerate() {
-        let Some(a) = aux.experiments.get(e) else {
-            continue;
-        };
+    let mut add = |run: String, residual: &Vec<Vec<f64>>, aux, offset| {
         let input = RunInput {
             stage,
-            run: data.names[e].clone(),
-            residual: r,
-            aux: a,
-            offset: problem.order,
+            run,
+            residual,
+            aux,
+            offset,
         };
         out.extend(run_coherence(&input, &names, &filters, data.dt));
+    };
+    for (e, r) in residuals_w.iter().enumerate() {
+        if let Some(a) = aux.experiments.get(e) {
+            add(data.names[e].clone(), r, a, problem.order);
+        }
     }
     if let (Some(nz), Some(a)) = (problem.usable_noise(), aux.noise.as_ref()) {
-        let wn = problem
-            .filter()
-            .apply_projected(nz, problem.cfg.poly_degree);
-        let input = RunInput {
-            stage,
-            run: crate::diagnose::families::noise_excess::NOISE_RUN.to_string(),
-            residual: &wn,
-            aux: a,
-            offset: problem.filter().order(),
-        };
-        out.extend(run_coherence(&input, &names, &filters, data.dt));
+        let wn = (problem.filter()).apply_projected(nz, problem.cfg.poly_degree);
+        add(NOISE_RUN.to_string(), &wn, a, problem.filter().order());
     }
     out
 }

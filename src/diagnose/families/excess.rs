@@ -5,7 +5,9 @@
 
 use serde::Serialize;
 
-use crate::analysis::residuals::TimeReport;
+use statrs::distribution::{DiscreteCDF, Poisson};
+
+use crate::analysis::residuals::{ChannelReport, TimeReport};
 use crate::diagnose::{Stage, Unexplained};
 
 /// The test family an unexplained excess comes from (`report.json` field `kind`).
@@ -65,21 +67,20 @@ pub(crate) fn find_unexplained(after: &Stage, alpha: f64) -> Vec<Unexplained> {
     // Each family Bonferroni over its own tests: alpha / FAMILIES apiece keeps the whole
     // report's false-alarm probability at alpha.
     let alpha = alpha / FAMILIES;
-    let n_band: usize = after
-        .channels
-        .iter()
-        .map(|c| c.bands.len())
-        .sum::<usize>()
-        .max(1);
-    let n_time: usize = after
-        .channels
-        .iter()
-        .map(|c| c.time.len())
-        .sum::<usize>()
-        .max(1);
+    let tests = |n: fn(&ChannelReport) -> usize| after.channels.iter().map(n).sum::<usize>().max(1);
+    let (n_band, n_time) = (tests(|c| c.bands.len()), tests(|c| c.time.len()));
     let n_ch = after.channels.len().max(1);
     let mut out = Vec::new();
     for ch in &after.channels {
+        let entry = |kind, band_hz, time_s, excess, p_value| Unexplained {
+            experiment: ch.experiment.clone(),
+            channel: ch.channel.clone(),
+            kind,
+            band_hz,
+            time_s,
+            excess,
+            p_value,
+        };
         let span = [
             ch.time.first().map_or(0.0, |t| t.time_s[0]),
             ch.time.last().map_or(0.0, |t| t.time_s[1]),
@@ -100,17 +101,10 @@ pub(crate) fn find_unexplained(after: &Stage, alpha: f64) -> Vec<Unexplained> {
                 bad_time.iter().map(|t| t.time_s[1]).fold(0.0, f64::max),
             ]
         };
+        let df = ch.bands.first().map_or(0.0, |b| b.band_hz[0]);
         for l in ch.lines.iter().filter(|l| l.p_value < alpha / n_ch as f64) {
-            let df = ch.bands.first().map_or(0.0, |b| b.band_hz[0]);
-            out.push(Unexplained {
-                experiment: ch.experiment.clone(),
-                channel: ch.channel.clone(),
-                kind: ExcessKind::Line,
-                band_hz: [l.f_hz - 2.0 * df, l.f_hz + 2.0 * df],
-                time_s: span,
-                excess: l.power,
-                p_value: l.p_value,
-            });
+            let band = [l.f_hz - 2.0 * df, l.f_hz + 2.0 * df];
+            out.push(entry(ExcessKind::Line, band, span, l.power, l.p_value));
         }
         for b in ch
             .bands
@@ -118,61 +112,43 @@ pub(crate) fn find_unexplained(after: &Stage, alpha: f64) -> Vec<Unexplained> {
             .filter(|b| b.p_value < alpha / n_band as f64 && b.excess > 0.0)
         {
             // A band whose excess is one of the lines above is not reported twice.
+            let f_line = |u: &Unexplained| 0.5 * (u.band_hz[0] + u.band_hz[1]);
+            let in_band = |f: f64| f >= b.band_hz[0] && f <= b.band_hz[1];
             if out.iter().any(|u| {
                 u.kind == ExcessKind::Line
                     && u.experiment == ch.experiment
                     && u.channel == ch.channel
-                    && {
-                        let f = 0.5 * (u.band_hz[0] + u.band_hz[1]);
-                        f >= b.band_hz[0] && f <= b.band_hz[1]
-                    }
+                    && in_band(f_line(u))
             }) && b.p_value > BAND_BEYOND_LINE_P
             {
                 continue;
             }
-            out.push(Unexplained {
-                experiment: ch.experiment.clone(),
-                channel: ch.channel.clone(),
-                kind: ExcessKind::Band,
-                band_hz: b.band_hz,
+            out.push(entry(
+                ExcessKind::Band,
+                b.band_hz,
                 time_s,
-                excess: b.excess,
-                p_value: b.p_value,
-            });
+                b.excess,
+                b.p_value,
+            ));
         }
-        let full_band = [
-            ch.bands.first().map_or(0.0, |b| b.band_hz[0]),
-            ch.bands.last().map_or(0.0, |b| b.band_hz[1]),
-        ];
+        let full_band = [df, ch.bands.last().map_or(0.0, |b| b.band_hz[1])];
         // Heavy tails: more samples beyond 5 sigma than Gaussian noise gives (Poisson).
-        if let (Some(span), Ok(pois)) = (
-            ch.outlier_span_s,
-            statrs::distribution::Poisson::new(ch.outliers_expected.max(TINY_MEAN)),
-        ) {
-            use statrs::distribution::DiscreteCDF;
+        let expected = ch.outliers_expected.max(TINY_MEAN);
+        if let (Some(span), Ok(pois)) = (ch.outlier_span_s, Poisson::new(expected)) {
             let p = pois.sf(ch.outliers.saturating_sub(1) as u64);
             if p < alpha / n_ch as f64 {
-                out.push(Unexplained {
-                    experiment: ch.experiment.clone(),
-                    channel: ch.channel.clone(),
-                    kind: ExcessKind::Outliers,
-                    band_hz: full_band,
-                    time_s: span,
-                    excess: ch.outliers as f64 / ch.outliers_expected.max(TINY_MEAN) - 1.0,
-                    p_value: p,
-                });
+                let excess = ch.outliers as f64 / expected - 1.0;
+                out.push(entry(ExcessKind::Outliers, full_band, span, excess, p));
             }
         }
         for t in &bad_time {
-            out.push(Unexplained {
-                experiment: ch.experiment.clone(),
-                channel: ch.channel.clone(),
-                kind: ExcessKind::Time,
-                band_hz: full_band,
-                time_s: t.time_s,
-                excess: t.excess,
-                p_value: t.p_value,
-            });
+            out.push(entry(
+                ExcessKind::Time,
+                full_band,
+                t.time_s,
+                t.excess,
+                t.p_value,
+            ));
         }
     }
     out

@@ -95,23 +95,16 @@ pub fn scan<M: DiagnoseModel<N>, const N: usize>(
             kernel_best(&kernel, grid, w, order, res, scale, noise)
         })
         .collect();
-    let mut n_kernels = 0usize;
-    let mut peaks = Vec::new();
-    for (i, _) in entries.iter().enumerate() {
-        let mut best: Option<Peak> = None;
-        for (&(k, _), b) in kernels.iter().zip(&bests) {
-            let Some(b) = b.as_ref().filter(|_| k == i) else {
-                continue;
-            };
-            n_kernels += 1;
-            if let Some(pk) = b {
-                if best.as_ref().is_none_or(|q| pk.z2 > q.z2) {
-                    best = Some(pk.clone());
-                }
-            }
-        }
-        peaks.extend(best);
-    }
+    // `bests` runs over the widths of each entry in turn; a `None` was not a kernel.
+    let n_kernels = bests.iter().flatten().count();
+    let peaks = (bests.chunks(SCAN_WIDTHS.len()))
+        .filter_map(|of_entry| {
+            let peaks = of_entry.iter().flatten().flatten();
+            peaks
+                .reduce(|a, b| if b.z2 > a.z2 { b } else { a })
+                .cloned()
+        })
+        .collect();
     Scan {
         peaks,
         trials: (res.len() * nr * n_kernels).max(1) as f64,

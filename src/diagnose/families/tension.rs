@@ -10,7 +10,7 @@
 use serde::Serialize;
 
 use crate::diagnose::DiagnoseModel;
-use crate::diagnose::{Candidate, Stage};
+use crate::diagnose::{probed, Candidate, Stage};
 use crate::model::effects::by_name;
 use crate::numerics::stats::chi2_isf;
 use crate::setup::SetupOf;
@@ -48,14 +48,9 @@ pub struct PriorTension {
 /// The degenerate candidates (with a redesign probe) whose absorption moves `parameter`, with
 /// the size that explains `shift`; sizes outside the effect's physical range are left out.
 fn explanations(parameter: &str, shift: f64, candidates: &[Candidate]) -> Vec<Explanation> {
-    let mut seen = std::collections::HashSet::new();
     let mut out = Vec::new();
-    for c in candidates
-        .iter()
-        .filter(|c| c.redesign.is_some() && seen.insert(c.name.as_str()))
-    {
+    for (c, r) in probed(candidates) {
         let effect = by_name(&c.name);
-        let r = c.redesign.as_ref().expect("filtered");
         for a in r.absorbed.iter().filter(|a| a.parameter == parameter) {
             let equivalent = shift / a.shift_per_unit;
             // The effect parameter's physical lower bound and typical size, if known.

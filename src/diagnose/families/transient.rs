@@ -42,15 +42,7 @@ pub(crate) fn clean_noise<M: DiagnoseModel<N>, const N: usize>(
         return None;
     }
     let nb = setup.model.n_params();
-    match M::clean_noise_run(
-        setup,
-        &guess[..nb],
-        noise,
-        dt,
-        cfg.order,
-        cfg.poly_degree,
-        cfg.alpha,
-    )? {
+    match M::clean_noise_run(setup, &guess[..nb], noise, dt, cfg)? {
         Ok((cleaned, report)) if report.significant => Some((cleaned, report)),
         Ok(_) => None,
         Err(e) => {
@@ -156,27 +148,28 @@ pub(crate) fn test_experiments<M: DiagnoseModel<N>, const N: usize>(
     let drop = (fit0.fit.chi2 - res.chi2).max(0.0);
     let stat = drop / res.chi2_reduced.max(1.0);
     let p = problem.tail(dim, stat, false);
+    let test = format!("chi^2 drop {drop:.3e} for {dim} initial conditions, p = {p:.2e}");
     if p >= cfg.alpha {
         obs.note(&format!(
-            "no start-up transient in the experiments (chi^2 drop {drop:.3e} for {dim} initial conditions, p = {p:.2e})"
+            "no start-up transient in the experiments ({test})"
         ));
         return Ok(None);
     }
     let (f_local, p_local) = localisation(problem, data, fit0)?;
     if p_local >= cfg.alpha {
         obs.note(&format!(
-            "the experiments' start-up transients (chi^2 drop {drop:.3e} for {dim} initial conditions, p = {p:.2e}) are not at the start: the same columns started later explain as much of the residual (ratio {f_local:.3}, p = {p_local:.2e}); none is fitted"
+            "the experiments' start-up transients ({test}) are not at the start: the same columns started later explain as much of the residual (ratio {f_local:.3}, p = {p_local:.2e}); none is fitted"
         ));
         return Ok(None);
     }
     if let Some((name, d)) = stronger_drift(problem, fit0, drop, dim)? {
         obs.note(&format!(
-            "the experiments' start-up transients (chi^2 drop {drop:.3e} for {dim} initial conditions, p = {p:.2e}) explain less than {name} (drop {d:.3e} for 1 parameter): none is fitted, and the selection goes on without them"
+            "the experiments' start-up transients ({test}) explain less than {name} (drop {d:.3e} for 1 parameter): none is fitted, and the selection goes on without them"
         ));
         return Ok(None);
     }
     obs.note(&format!(
-        "the experiments start with transients (chi^2 drop {drop:.3e} for {dim} initial conditions, p = {p:.2e}): their free responses are fitted in every later fit"
+        "the experiments start with transients ({test}): their free responses are fitted in every later fit"
     ));
     let nb = problem.setup.model.n_params();
     let cols = transient_columns(problem, &res.estimate[..nb], data)?;
@@ -257,23 +250,13 @@ fn localisation<M: DiagnoseModel<N>, const N: usize>(
     let k: usize = cols.iter().map(|c| c.len()).sum();
     let mut dj = 0.0;
     for j in 1..=LOCAL_SHIFTS {
-        let shifted: Vec<_> = cols
-            .iter()
-            .map(|ks| {
-                ks.iter()
-                    .map(|chs| {
-                        chs.iter()
-                            .map(|x| {
-                                let s = j * x.len() / (LOCAL_SHIFTS + 1);
-                                (0..x.len())
-                                    .map(|t| if t >= s { x[t - s] } else { 0.0 })
-                                    .collect::<Vec<f64>>()
-                            })
-                            .collect::<Vec<_>>()
-                    })
-                    .collect::<Vec<_>>()
-            })
-            .collect();
+        // Every column started `s` samples later: x[t - s], zero before.
+        let mut shifted = cols.clone();
+        for x in shifted.iter_mut().flatten().flatten() {
+            let s = j * x.len() / (LOCAL_SHIFTS + 1);
+            x.rotate_right(s);
+            x[..s].fill(0.0);
+        }
         lik.set_transient(&shifted)?;
         let tj = lik.transient().expect("just set");
         dj += rest

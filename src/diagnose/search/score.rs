@@ -192,13 +192,13 @@ pub(super) fn additive_candidates<M: DiagnoseModel<N>, const N: usize>(
             .iter()
             .any(|&(e2, c2, f2)| e2 != e && c2 == c && (f2 - f).abs() < 2.0 * bin);
         if cfg.lines || coherent {
-            out.push(Additive::Line {
+            out.push(Additive::Line(additive::Line {
                 experiment: e,
                 experiment_name: data.names[e].clone(),
                 channel: c,
                 channel_name: readouts[c],
                 f_hz: refine_frequency(r, data.dt, f),
-            });
+            }));
         }
     }
     out
@@ -267,14 +267,16 @@ pub(super) fn glitch_candidates<M: DiagnoseModel<N>, const N: usize>(
     s.trials = s.trials.max(1.0);
     Ok(s.peaks
         .into_iter()
-        .map(|pk| Additive::Glitch {
-            experiment: pk.experiment,
-            experiment_name: data.names[pk.experiment].clone(),
-            entry: pk.entry,
-            t0: pk.t0,
-            tau: pk.tau,
-            trials: s.trials,
-            noise_var: pk.noise_var,
+        .map(|pk| {
+            Additive::Glitch(additive::Glitch {
+                experiment: pk.experiment,
+                experiment_name: data.names[pk.experiment].clone(),
+                entry: pk.entry,
+                t0: pk.t0,
+                tau: pk.tau,
+                trials: s.trials,
+                noise_var: pk.noise_var,
+            })
         })
         .collect())
 }

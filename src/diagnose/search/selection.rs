@@ -23,7 +23,7 @@ use std::sync::Arc;
 
 use serde::Serialize;
 
-use crate::diagnose::families::additive::Additive;
+use crate::diagnose::families::additive::{Additive, Glitch};
 use crate::diagnose::families::glitch;
 use crate::diagnose::search::bayes;
 use crate::diagnose::search::observer::{Observer, Round, Step, StopReason};
@@ -311,13 +311,13 @@ fn propose<M: DiagnoseModel<N>, const N: usize>(
     if problem.cfg.glitches && open.contains(&Family::Glitch) {
         let mut g = glitch_candidates(problem, &state.model, &state.fit.fit)?;
         g.retain(|a| {
-            let Additive::Glitch {
+            let Additive::Glitch(Glitch {
                 experiment,
                 experiment_name,
                 t0,
                 tau,
                 ..
-            } = a
+            }) = a
             else {
                 return true;
             };
