@@ -616,7 +616,7 @@ impl SimulateJob {
             return Err(TimeDomainError::Glitches.into());
         }
         let designs = (&design, &noise_design);
-        let Some((all, noise)) = M::time_domain_runs(self, setup, &sc.truth, designs)? else {
+        let Some(runs) = M::time_domain_runs(self, setup, &sc.truth, designs)? else {
             return Err(SimulateError::Effect(format!(
                 "--engine time-domain: the {} model ({}) has no digital loop \
                  (sim::time_domain::DigitalPlant)",
@@ -624,15 +624,7 @@ impl SimulateJob {
                 setup.spec.origin
             )));
         };
-        let (data, aux) = split_runs(&setup.model, readout_floors(setup), all, &noise);
-        let readouts = setup.model.readout_names();
-        Ok(Simulated {
-            data,
-            noise: noise[..run_channels(N)].to_vec(),
-            aux,
-            meta: self.meta(&setup.spec, &sc, Rate::Decimated, &readouts),
-            run_columns: run_columns(&setup.model),
-        })
+        Ok(self.assemble(setup, &sc, Rate::Decimated, runs))
     }
 
     /// Draws the dataset of any model by the frequency-domain engine at the analysis rate
@@ -683,8 +675,8 @@ impl SimulateJob {
                 None => return refuse("--effect"),
             }
         };
-        let (all, noise) = draw_all(|r| sim.draw(r), |r| nsim.noise_series(r), self.seed);
-        let (data, mut aux) = split_runs(&setup.model, readout_floors(setup), all, &noise);
+        let runs = draw_all(|r| sim.draw(r), |r| nsim.noise_series(r), self.seed);
+        let mut out = self.assemble(setup, &sc, Rate::Analysis, runs);
         if self.commands {
             let Some((channels, (exps, noise_cmd))) =
                 M::commands(setup, &sc.truth, &sim, &nsim, self.seed)?
@@ -696,27 +688,41 @@ impl SimulateJob {
                     setup.spec.origin
                 )));
             };
-            aux.channels.extend(channels);
-            for (a, c) in aux.experiments.iter_mut().zip(exps) {
+            out.aux.channels.extend(channels);
+            for (a, c) in out.aux.experiments.iter_mut().zip(exps) {
                 a.extend(c);
             }
-            if let Some(n) = aux.noise.as_mut() {
+            if let Some(n) = out.aux.noise.as_mut() {
                 n.extend(noise_cmd);
             }
         }
-        let noise = noise[..run_channels(N)].to_vec();
-        let readouts = setup.model.readout_names();
-        let mut meta = self.meta(&setup.spec, &sc, Rate::Analysis, &readouts);
         if !set.is_empty() {
-            meta.insert("effects".into(), toml::Value::Table(set.meta));
+            out.meta
+                .insert("effects".into(), toml::Value::Table(set.meta));
         }
-        Ok(Simulated {
+        Ok(out)
+    }
+
+    /// The dataset of the runs `all` (every readout and input of the model) and the noise run
+    /// `noise` drawn at `sc`'s truth: the runs' channels as the runs, the model's other readouts
+    /// and guidance as auxiliary columns ([`split_runs`]), the noise run's first
+    /// [`run_channels`] readouts, and the `[meta]` at `rate`.
+    fn assemble<M: SimulateModel<N>, const N: usize>(
+        &self,
+        setup: &SetupOf<M, N>,
+        sc: &Scenario,
+        rate: Rate,
+        (all, noise): Runs,
+    ) -> Simulated {
+        let (data, aux) = split_runs(&setup.model, readout_floors(setup), all, &noise);
+        let readouts = setup.model.readout_names();
+        Simulated {
             data,
-            noise,
+            noise: noise[..run_channels(N)].to_vec(),
             aux,
-            meta,
+            meta: self.meta(&setup.spec, sc, rate, &readouts),
             run_columns: run_columns(&setup.model),
-        })
+        }
     }
 
     /// [`Self::run_plain`] at the decimated rate: every readout and input of the model simulated
@@ -742,15 +748,7 @@ impl SimulateJob {
         let (sc, design, noise_design) = self.plan(setup)?;
         let sim = setup.decimated_simulator(&design, &sc.truth, None)?;
         let nsim = setup.decimated_simulator(&noise_design, &sc.truth, None)?;
-        let (all, noise) = draw_all(|r| sim.draw(r), |r| nsim.noise_run(r), self.seed);
-        let (data, aux) = split_runs(&setup.model, readout_floors(setup), all, &noise);
-        let readouts = setup.model.readout_names();
-        Ok(Simulated {
-            data,
-            noise: noise[..run_channels(N)].to_vec(),
-            aux,
-            meta: self.meta(&setup.spec, &sc, Rate::Decimated, &readouts),
-            run_columns: run_columns(&setup.model),
-        })
+        let runs = draw_all(|r| sim.draw(r), |r| nsim.noise_run(r), self.seed);
+        Ok(self.assemble(setup, &sc, Rate::Decimated, runs))
     }
 }
