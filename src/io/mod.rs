@@ -50,6 +50,7 @@ pub use run::{
 };
 pub use table::{
     read_parquet, read_parquet_nulls_as_nan, write_parquet, Column, ParquetAppender, Table,
+    ROW_GROUP_BYTES,
 };
 
 /// An I/O or validation failure, naming the file and the row, column or key at fault.

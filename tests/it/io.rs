@@ -10,7 +10,7 @@ use arrow::datatypes::{DataType, Field, Schema};
 use freefall::io::{
     file_sha256, read_csv, read_dataset, read_json, read_parquet, read_run, read_text, read_toml,
     write_dataset, write_json_atomic, write_parquet, write_run, write_text_atomic, Column, Dataset,
-    IoError, ParquetAppender, Run, Table,
+    IoError, ParquetAppender, Run, Table, ROW_GROUP_BYTES,
 };
 use parquet::arrow::ArrowWriter;
 use proptest::prelude::*;
@@ -301,6 +301,47 @@ fn appender_concatenates_batches() {
     let back = read_parquet(&path).unwrap();
     assert_eq!(back.columns, expected.columns);
     assert_eq!(listing(dir.path()), vec!["stream.parquet"]);
+}
+
+// Oracle: the batches themselves. A stream of batches three times the row-group bound is written
+// as several row groups (the writer holds only the open one in memory, so a campaign's memory
+// does not grow with its realizations) and reads back value for value.
+#[test]
+fn appender_closes_row_groups_at_the_byte_bound_and_reads_back_exactly() {
+    let dir = tmp();
+    let path = dir.path().join("long.parquet");
+    let mut app = ParquetAppender::create(&path).unwrap();
+    let rows_per_batch = 50_000usize;
+    let batches = 3 * ROW_GROUP_BYTES / (2 * 8 * rows_per_batch) + 1;
+    let mut expected = Table::new()
+        .with_u64("realization", vec![])
+        .unwrap()
+        .with_f64("estimate", vec![])
+        .unwrap();
+    for b in 0..batches {
+        let first = (b * rows_per_batch) as u64;
+        let batch = Table::new()
+            .with_u64(
+                "realization",
+                (first..first + rows_per_batch as u64).collect(),
+            )
+            .unwrap()
+            .with_f64(
+                "estimate",
+                (0..rows_per_batch)
+                    .map(|i| ((first as usize + i) as f64 * 0.7).sin())
+                    .collect(),
+            )
+            .unwrap();
+        app.append(&batch).unwrap();
+        expected.append(&batch).unwrap();
+    }
+    app.finish().unwrap();
+    let file = fs::File::open(&path).unwrap();
+    let meta = parquet::file::reader::SerializedFileReader::new(file).unwrap();
+    let groups = parquet::file::reader::FileReader::metadata(&meta).num_row_groups();
+    assert!(groups >= 3, "{groups} row groups for 3x the bound");
+    assert_eq!(read_parquet(&path).unwrap().columns, expected.columns);
 }
 
 #[test]
