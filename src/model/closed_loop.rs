@@ -350,6 +350,11 @@ fn core<const N: usize>(ops: &Operators<N>) -> Core<N> {
 /// `Delta`, `T_{oi->o}` and `T_{oi->fc}` from operators already evaluated at one frequency.
 pub fn transfer_of<const N: usize>(ops: Operators<N>) -> Transfer<N> {
     let c = core(&ops);
+    transfer_from(ops, c)
+}
+
+/// The [`Transfer`] of operators and their [`Core`]: `T_{oi->fc} = -C (T_{oi->o} - I)`.
+fn transfer_from<const N: usize>(ops: Operators<N>, c: Core<N>) -> Transfer<N> {
     let oi_fc = -(ops.c * (c.oi_o - CMat::<N>::identity()));
     Transfer {
         delta: c.delta,
@@ -384,14 +389,7 @@ pub fn transfer_with_derivatives_of<const N: usize>(
 ) -> Transfer<N> {
     let c = core(&ops);
     derivatives_into(&ops, &c, der, d_out);
-    let oi_fc = -(ops.c * (c.oi_o - CMat::<N>::identity()));
-    Transfer {
-        delta: c.delta,
-        delta_inv: c.delta_inv,
-        oi_o: c.oi_o,
-        oi_fc,
-        ops,
-    }
+    transfer_from(ops, c)
 }
 
 /// `dT_{oi->o}/dp_k` into `d_out[k]` from the operators, their [`Core`] and `der(k)`:

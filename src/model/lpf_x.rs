@@ -223,6 +223,87 @@ impl Phasor {
     }
 }
 
+/// What [`LpfX::fast_transfer_grid`] and its adjoint share at one parameter vector: the
+/// parameters and the real stiffness sums of `Delta` (`K11`, the real part `D12r` of `D12`
+/// without the suspension, `K22`).
+#[derive(Clone, Copy)]
+struct XLoop {
+    w12: f64,
+    s21: f64,
+    a_df: f64,
+    a_sus: f64,
+    mt: f64,
+    k11: f64,
+    d12r: f64,
+    k22: f64,
+}
+
+impl XLoop {
+    fn new(x: &LpfX, p: &[f64]) -> Self {
+        let (w1, w12, mt, g) = (p[W1], p[W12], x.mt, x.gamma_x);
+        XLoop {
+            w12,
+            s21: p[S21],
+            a_df: p[A_DF],
+            a_sus: p[A_SUS],
+            mt,
+            k11: (1.0 + 2.0 * mt) * w1 + mt * w12,
+            d12r: g + mt * (w1 + w12),
+            k22: w1 + w12 - 2.0 * g,
+        }
+    }
+
+    /// `Delta`'s entries `[d11, d12, d21, d22]` at one point, and `D22 = s^2 + K22`.
+    #[inline(always)]
+    fn delta(&self, pt: &LpfPoint) -> ([Complex64; 4], Complex64) {
+        let big_d22 = pt.s2 + self.k22;
+        let d11 = pt.s2 + self.k11 - self.s21 * self.d12r + pt.c_df * self.a_df;
+        let d12 = pt.c_sus * (self.mt * self.a_sus) + self.d12r;
+        let d21 = c(self.w12) - big_d22 * self.s21;
+        let d22 = big_d22 + pt.c_sus * self.a_sus;
+        ([d11, d12, d21, d22], big_d22)
+    }
+
+    /// `T = Delta^-1 M` with `M = [[m11, mt m22], [0, m22]]`:
+    /// `T = [[D22 a, (mt D22 - D12) b], [-D21 a, (D11 - mt D21) b]]`, `a = m11 / det`,
+    /// `b = m22 / det`; with `1 / det`.
+    #[inline(always)]
+    fn template(
+        &self,
+        [d11, d12, d21, d22]: [Complex64; 4],
+        m11: Complex64,
+        m22: Complex64,
+    ) -> (Complex64, [Complex64; 4]) {
+        let det = d11 * d22 - d12 * d21;
+        let inv_norm = 1.0 / det.norm_sqr();
+        let inv_det = Complex64::new(det.re * inv_norm, -det.im * inv_norm);
+        let a = m11 * inv_det;
+        let b = m22 * inv_det;
+        let mt = self.mt;
+        (
+            inv_det,
+            [
+                d22 * a,
+                (d22 * mt - d12) * b,
+                -d21 * a,
+                (d11 - d21 * mt) * b,
+            ],
+        )
+    }
+}
+
+/// Whether every spacing of `points` from the second on is equal (the first may differ: the
+/// DC bin sits at a fraction of the spacing), so that the delays' phasors may recur; a grid
+/// with gaps is not uniform even when its end spacings agree.
+fn uniform_spacing(points: &[LpfPoint]) -> bool {
+    points.len() > 3 && {
+        let d1 = points[2].s - points[1].s;
+        points[1..]
+            .windows(2)
+            .all(|w| ((w[1].s - w[0].s) - d1).norm() <= crate::numerics::tol::SAME_TIME * d1.norm())
+    }
+}
+
 impl LpfX {
     /// Closed-form `T_{oi->o}` and its derivatives for the 2x2 x-axis loop (same algebra as
     /// the generic code, with the structural zeros of each operator derivative skipped).
@@ -233,53 +314,27 @@ impl LpfX {
         t_out: &mut [CMat<2>],
         d_out: Option<&mut [CMat<2>]>,
     ) {
-        let (w1, w12, s21, a_df, a_sus, mt, g) = (
-            p[W1],
-            p[W12],
-            p[S21],
-            p[A_DF],
-            p[A_SUS],
-            self.mt,
-            self.gamma_x,
-        );
-        let k11 = (1.0 + 2.0 * mt) * w1 + mt * w12;
-        let d12r = g + mt * (w1 + w12);
-        let k22 = w1 + w12 - 2.0 * g;
+        let x = XLoop::new(self, p);
+        let XLoop {
+            s21,
+            a_df,
+            a_sus,
+            mt,
+            d12r,
+            ..
+        } = x;
         let (mut ph1, mut ph2) = (Phasor::new(p[DT1]), Phasor::new(p[DT12]));
-        // The recurrence needs every spacing from the second point on equal (the first may
-        // differ: the DC bin sits at a fraction of the spacing); a grid with gaps is not
-        // uniform even when its end spacings agree.
-        let uniform = points.len() > 3 && {
-            let d1 = points[2].s - points[1].s;
-            points[1..].windows(2).all(|w| {
-                ((w[1].s - w[0].s) - d1).norm() <= crate::numerics::tol::SAME_TIME * d1.norm()
-            })
-        };
+        let uniform = uniform_spacing(points);
         let Some(d) = d_out else {
-            // Templates only: T = Delta^-1 M with M = [[m11, mt m22], [0, m22]], so
-            // T = [[D22 a, (mt D22 - D12) b], [-D21 a, (D11 - mt D21) b]] with
-            // a = m11 / det and b = m22 / det.
-            let (cdf_a, csus_a) = (a_df, a_sus);
+            // Templates only.
             for (k, (pt, t)) in points.iter().zip(t_out.iter_mut()).enumerate() {
                 let ds = (uniform && k >= 2).then(|| pt.s - points[k - 1].s);
                 let e1 = ph1.at(k, pt.s, ds);
                 let e2 = ph2.at(k, pt.s, ds);
-                let big_d22 = pt.s2 + k22;
-                let d11 = pt.s2 + k11 - s21 * d12r + pt.c_df * a_df;
-                let d12 = pt.c_sus * (mt * a_sus) + d12r;
-                let d21 = c(w12) - big_d22 * s21;
-                let d22 = big_d22 + pt.c_sus * a_sus;
-                let det = d11 * d22 - d12 * d21;
-                let inv_norm = 1.0 / det.norm_sqr();
-                let inv_det = Complex64::new(det.re * inv_norm, -det.im * inv_norm);
-                let a = pt.c_df * cdf_a * e1 * inv_det;
-                let b = pt.c_sus * csus_a * e2 * inv_det;
-                *t = m2(
-                    d22 * a,
-                    (d22 * mt - d12) * b,
-                    -d21 * a,
-                    (d11 - d21 * mt) * b,
-                );
+                let m11 = pt.c_df * a_df * e1;
+                let m22 = pt.c_sus * a_sus * e2;
+                let [t11, t12, t21, t22] = x.template(x.delta(pt).0, m11, m22).1;
+                *t = m2(t11, t12, t21, t22);
             }
             return;
         };
@@ -287,12 +342,7 @@ impl LpfX {
             let ds = (uniform && k >= 2).then(|| pt.s - points[k - 1].s);
             let e1 = ph1.at(k, pt.s, ds);
             let e2 = ph2.at(k, pt.s, ds);
-            let big_d11 = pt.s2 + k11;
-            let big_d22 = pt.s2 + k22;
-            let d11 = big_d11 - s21 * d12r + pt.c_df * a_df;
-            let d12 = pt.c_sus * (mt * a_sus) + d12r;
-            let d21 = c(w12) - big_d22 * s21;
-            let d22 = big_d22 + pt.c_sus * a_sus;
+            let ([d11, d12, d21, d22], big_d22) = x.delta(pt);
             let inv_det = 1.0 / (d11 * d22 - d12 * d21);
             let (i11, i12, i21, i22) =
                 (d22 * inv_det, -d12 * inv_det, -d21 * inv_det, d11 * inv_det);

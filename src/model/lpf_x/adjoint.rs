@@ -10,9 +10,9 @@
 //! [`LpfX::fast_transfer_grid`]): one `B` and one `P` per point serve all seven parameters,
 //! where forward mode forms seven 2x2 derivative matrices.
 
-use num_complex::Complex64;
-
-use super::{c, CMat, LpfPoint, LpfX, Phasor, A_DF, A_SUS, DT1, DT12, S21, W1, W12};
+use super::{
+    uniform_spacing, CMat, LpfPoint, LpfX, Phasor, XLoop, A_DF, A_SUS, DT1, DT12, S21, W1, W12,
+};
 
 impl LpfX {
     /// `grad[q] += Re sum_k tr(dT_k/dp_q G_k)` with `G_k = seed(k, &T_k)` on a grid of the
@@ -25,18 +25,15 @@ impl LpfX {
         grad: &mut [f64],
         mut seed: impl FnMut(usize, &CMat<2>) -> CMat<2>,
     ) {
-        let (w1, w12, s21, a_df, a_sus, mt, g) = (
-            p[W1],
-            p[W12],
-            p[S21],
-            p[A_DF],
-            p[A_SUS],
-            self.mt,
-            self.gamma_x,
-        );
-        let k11 = (1.0 + 2.0 * mt) * w1 + mt * w12;
-        let d12r = g + mt * (w1 + w12);
-        let k22 = w1 + w12 - 2.0 * g;
+        let x = XLoop::new(self, p);
+        let XLoop {
+            s21,
+            a_df,
+            a_sus,
+            mt,
+            d12r,
+            ..
+        } = x;
         // dDelta of the stiffnesses (real, constant): rows [[a, b], [c, d]] of
         // `fast_transfer_grid`'s `stiff`.
         let stiff = [
@@ -44,12 +41,7 @@ impl LpfX {
             [mt - s21 * mt, mt, 1.0 - s21, 1.0],
         ];
         let (mut ph1, mut ph2) = (Phasor::new(p[DT1]), Phasor::new(p[DT12]));
-        let uniform = points.len() > 3 && {
-            let d1 = points[2].s - points[1].s;
-            points[1..].windows(2).all(|w| {
-                ((w[1].s - w[0].s) - d1).norm() <= crate::numerics::tol::SAME_TIME * d1.norm()
-            })
-        };
+        let uniform = uniform_spacing(points);
         // Sums over the points of Re P (for the stiffnesses) and of each other parameter's
         // contraction.
         let mut re_p = [0.0f64; 4];
@@ -58,24 +50,10 @@ impl LpfX {
             let ds = (uniform && k >= 2).then(|| pt.s - points[k - 1].s);
             let e1 = ph1.at(k, pt.s, ds);
             let e2 = ph2.at(k, pt.s, ds);
-            let big_d22 = pt.s2 + k22;
-            let d11 = pt.s2 + k11 - s21 * d12r + pt.c_df * a_df;
-            let d12 = pt.c_sus * (mt * a_sus) + d12r;
-            let d21 = c(w12) - big_d22 * s21;
-            let d22 = big_d22 + pt.c_sus * a_sus;
-            let det = d11 * d22 - d12 * d21;
-            let inv_norm = 1.0 / det.norm_sqr();
-            let inv_det = Complex64::new(det.re * inv_norm, -det.im * inv_norm);
+            let ([d11, d12, d21, d22], big_d22) = x.delta(pt);
             let m11 = pt.c_df * a_df * e1;
             let m22 = pt.c_sus * a_sus * e2;
-            let a = m11 * inv_det;
-            let b = m22 * inv_det;
-            let (t11, t12, t21, t22) = (
-                d22 * a,
-                (d22 * mt - d12) * b,
-                -d21 * a,
-                (d11 - d21 * mt) * b,
-            );
+            let (inv_det, [t11, t12, t21, t22]) = x.template([d11, d12, d21, d22], m11, m22);
             let gm = seed(k, &CMat::<2>::new(t11, t12, t21, t22));
             // B = G Delta^-1, Delta^-1 = [[d22, -d12], [-d21, d11]] / det.
             let (g11, g12, g21, g22) = (
