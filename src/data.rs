@@ -214,7 +214,7 @@ pub struct AuxChannel {
     pub role: AuxRole,
     /// The readout's own noise floor, a one-sided ASD in `unit`/sqrt(Hz) (`noise_asd` in
     /// dataset.toml), when known: the diagnosis then regresses on the series with that noise
-    /// filtered out (`diagnose::families::additive`, errors in the regressor).
+    /// filtered out (`analysis::additive`, errors in the regressor).
     pub noise_asd: Option<f64>,
 }
 

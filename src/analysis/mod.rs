@@ -3,9 +3,11 @@
 //! into fit input, resolves the starting point, chooses the whitening filter (thesis sec.
 //! "whitening": from a noise-only run by least squares, or from the model's noise cross-PSD),
 //! lays the results out as tables ([`tables`]), and tests where the whitened residuals of a fit
-//! are in excess ([`residuals`]). Measured and simulated data take the same path; nothing here
-//! prints.
+//! are in excess ([`residuals`]), with the additive effects a fit can carry (lines, drifts,
+//! glitches, auxiliary cross-talk: [`additive`]). Measured and simulated data take the same
+//! path; nothing here prints.
 
+pub mod additive;
 pub mod coherence;
 pub mod guidance;
 pub mod holes;

@@ -17,7 +17,7 @@
 //! - lines are looked for in every readout; glitches enter where the model has the named noise
 //!   entry (`f_1`, `f_2`, `f_sc`, `o_1`, `o_12`; an entry the model lacks is not scanned);
 //!   drifts are proposed for the base parameters of
-//!   [`DRIFT_PARAMETERS`](super::families::additive::DRIFT_PARAMETERS) the model has;
+//!   [`DRIFT_PARAMETERS`](crate::analysis::additive::DRIFT_PARAMETERS) the model has;
 //!   auxiliary cross-talk leaks into the first two readouts and coordinates (o1, o12: the x
 //!   block of the x and xy models);
 //! - the operator candidates are the library effects the model hosts ([`DiagnoseModel::effects`]);

@@ -26,7 +26,7 @@
 //! effect. A candidate whose template derivative is almost a combination of the fitted ones is
 //! reported as degenerate, with its largest correlation.
 //!
-//! The additive categories `line`, `drift` and `glitch` ([`additive`](families::additive)) are linear in their
+//! The additive categories `line`, `drift` and `glitch` ([`additive`](crate::analysis::additive)) are linear in their
 //! amplitudes and enter as extra whitened columns; they are refitted by alternating the nonlinear
 //! fit of the base parameters on the data minus the additive contributions with a joint
 //! Gauss-Newton step of the amplitudes and of their own non-linear parameters (line frequency,

@@ -67,7 +67,7 @@ pub fn effect_list() -> String {
             &e.acts_on(),
         );
     }
-    for p in crate::diagnose::families::additive::DRIFT_PARAMETERS {
+    for p in crate::analysis::additive::DRIFT_PARAMETERS {
         line(
             &format!("drift_{p}"),
             "drift",

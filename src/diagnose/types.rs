@@ -60,7 +60,7 @@ pub struct DiagnoseConfig<const N: usize = 2> {
     pub decimated_telemetry: bool,
     /// Propose every detected narrow line as a `line` candidate (not only coherent ones).
     pub lines: bool,
-    /// Propose `drift` candidates of the parameters in [`DRIFT_PARAMETERS`](super::families::additive::DRIFT_PARAMETERS).
+    /// Propose `drift` candidates of the parameters in [`DRIFT_PARAMETERS`](crate::analysis::additive::DRIFT_PARAMETERS).
     pub drifts: bool,
     /// Scan the residual for glitches ([`glitch`](super::families::glitch)) every round and propose the best of each
     /// entry point as a `glitch` candidate.
@@ -282,7 +282,7 @@ pub struct Twin {
 pub enum Swap {
     /// A library effect, by name (still in the selection's pool).
     Operator(String),
-    Additive(super::families::additive::Additive),
+    Additive(crate::analysis::additive::Additive),
 }
 
 impl AddedEffect {

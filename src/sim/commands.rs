@@ -7,7 +7,7 @@
 //! to the guidance (`-C_j (T_{oi->o} - 1) o_i`), so that a command and the readout it came from
 //! are one realization. The actuation cross-talk of loop j into x enters the x rows as
 //! `Delta_x o_x = ... + a_j[x] u_j`: the x model's force cross-talk of the recorded `u_j`
-//! (`diagnose::families::additive`, `aux_force_...`) with coefficients `a_j[x1]` into o1 and
+//! (`analysis::additive`, `aux_force_...`) with coefficients `a_j[x1]` into o1 and
 //! `a_j[x12]` into o12 ([`command_coefficients`]).
 
 use crate::data::{AuxChannel, AuxKind, AuxRole};

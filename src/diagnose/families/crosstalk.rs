@@ -1,13 +1,13 @@
 //! Sensing cross-talk from recorded auxiliary readouts (thesis sec. 3.4) in a diagnosis: once
 //! the selection has claimed couplings `k a + k' da/dt` of auxiliary readouts `a` into the
 //! sensor of o1 or o12 (through the loop, `sim::auxiliary::in_loop`; a regression on measured
-//! series, [`crate::diagnose::families::additive`]), the same couplings are in the noise
+//! series, [`crate::analysis::additive`]), the same couplings are in the noise
 //! run, whose whitening filter (and reference level) learned them as noise. They are removed
 //! from the noise run with the fitted coefficients, the filter is estimated again, and the
 //! final model is refitted under it; the coefficients move with the filter, so this alternates
 //! until they move by less than [`SETTLED_SIGMA`] of their sigma (at most [`PASSES`] times).
 
-use crate::diagnose::families::additive::Additive;
+use crate::analysis::additive::Additive;
 use crate::diagnose::search::observer::Observer;
 use crate::diagnose::search::problem::DiagnosisProblem;
 use crate::diagnose::search::selection::DiagnosisState;

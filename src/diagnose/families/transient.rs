@@ -13,9 +13,9 @@
 //!    later fit of the diagnosis and the transients are reported, the noise run's with them.
 //!    When not, nothing is claimed and the diagnosis runs on the noise run as recorded.
 
+use crate::analysis::additive::{Additive, DRIFT_PARAMETERS};
 use crate::analysis::transient::TransientReport;
 use crate::data::ExperimentData;
-use crate::diagnose::families::additive::{Additive, DRIFT_PARAMETERS};
 use crate::diagnose::search::observer::Observer;
 use crate::diagnose::search::problem::{DiagnosisProblem, LinearFit};
 use crate::diagnose::DiagnoseModel;

@@ -23,8 +23,8 @@ use std::sync::Arc;
 
 use nalgebra::DMatrix;
 
+use crate::analysis::additive::Additive;
 use crate::design::redesign::{self, redesign_verdict};
-use crate::diagnose::families::additive::Additive;
 use crate::diagnose::search::problem::DiagnosisProblem;
 use crate::diagnose::search::score::first_whitened;
 use crate::diagnose::search::selection::{Described, DiagnosisState, Proposal};

@@ -5,18 +5,17 @@
 //! The fits of the selection (nominal, with operator effects, with additive columns) are methods
 //! of the problem, so that each round only says what it fits.
 
+use crate::analysis::additive::Additive;
 use crate::analysis::residuals;
 use crate::data::check_finite;
-use crate::diagnose::families::additive::Additive;
 use crate::diagnose::search::observer::Observer;
 use crate::diagnose::{DiagnoseConfig, DiagnoseError, DiagnoseModel, Stage, WhiteningSource};
-use crate::fit::additive::{fit_additive, AdditiveFit, AdditiveFitError, AdditiveTerm, Terms};
+use crate::fit::additive::{fit_additive, AdditiveFit, AdditiveFitError, Terms};
 use crate::fit::{ExperimentData, Likelihood, Whitener};
 use crate::model::effects::Extended;
 use crate::model::lpf_x::LpfX;
 use crate::model::ClosedLoopModel;
 use crate::setup::SetupOf;
-use crate::sim::Series;
 
 /// Samples a whitening filter of order p needs beyond `4 p`: the least-squares fit of the
 /// two-channel autoregression on the noise run, and the shortest run the residual tests read.
@@ -31,36 +30,8 @@ const VIF_NOTE: f64 = 1.05;
 /// Additive effects in the model with their amplitudes.
 pub(crate) type Linear = Terms<Additive>;
 
-/// The planned likelihood of an extended model.
-type Lik<'a, M, const N: usize> = Likelihood<'a, Extended<M, N>, N>;
-
 /// A fit with additive effects.
 pub(crate) type LinearFit = AdditiveFit<Additive>;
-
-/// The additive effects of a diagnosis are the additive terms of [`fit_additive`].
-impl<M: DiagnoseModel<N>, const N: usize> AdditiveTerm<Extended<M, N>, N> for Additive {
-    fn columns(&self, lik: &Lik<'_, M, N>, data: &ExperimentData, p: &[f64]) -> Vec<Series> {
-        Additive::columns(self, lik.engine.model(), lik, data, p)
-    }
-    fn nonlinear(&self) -> Vec<f64> {
-        Additive::nonlinear(self)
-    }
-    fn nonlinear_columns(
-        &self,
-        lik: &Lik<'_, M, N>,
-        data: &ExperimentData,
-        p: &[f64],
-        amps: &[f64],
-    ) -> Vec<Series> {
-        Additive::nonlinear_columns(self, lik.engine.model(), lik, data, p, amps)
-    }
-    fn experiment(&self) -> Option<usize> {
-        Additive::experiment(self)
-    }
-    fn step_nonlinear(&mut self, step: &[f64], n: usize, dt: f64) {
-        Additive::step_nonlinear(self, step, n, dt)
-    }
-}
 
 /// The whitening of a diagnosis and the noise run's reference level under it.
 pub(crate) struct Whitening<const N: usize> {

@@ -7,7 +7,7 @@ use std::sync::Arc;
 
 use rayon::prelude::*;
 
-use crate::diagnose::families::additive::{self, Additive};
+use crate::analysis::additive::{self, Additive};
 use crate::diagnose::families::glitch;
 use crate::diagnose::search::problem::DiagnosisProblem;
 use crate::diagnose::search::selection::{Described, Proposal};

@@ -23,7 +23,7 @@ use std::sync::Arc;
 
 use serde::Serialize;
 
-use crate::diagnose::families::additive::{Additive, Glitch};
+use crate::analysis::additive::{Additive, Glitch};
 use crate::diagnose::families::glitch;
 use crate::diagnose::search::bayes;
 use crate::diagnose::search::observer::{Observer, Round, Step, StopReason};

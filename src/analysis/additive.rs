@@ -1,4 +1,5 @@
-//! Additive effects (`line`, `drift`, `glitch`; thesis "Non-standard scenario" sections):
+//! Additive effects (`line`, `drift`, `glitch`; thesis "Non-standard scenario" sections), the
+//! additive terms ([`AdditiveTerm`]) of the fits of a diagnosis:
 //! contributions to the readouts that are linear in their amplitudes at fixed base parameters, so
 //! they enter the whitened likelihood as extra columns, whitened, cut and projected exactly like
 //! the templates (`Likelihood::problem` applied to the raw column). The score test and the refit
@@ -9,8 +10,8 @@
 //!   one experiment; `a`, `b` linear, the frequency `f` a non-linear parameter (started at the
 //!   narrow line found by the residual analysis, refined on a fine grid around its periodogram
 //!   bin, then fitted with the amplitudes).
-//! - `glitch` ([`crate::diagnose::families::glitch`]): a transient entering the loop at a force or readout entry of
-//!   one experiment; the amplitude linear, the time `t0` and width `tau` non-linear.
+//! - `glitch` (found by the diagnosis's scan, `diagnose::families::glitch`): a transient
+//!   entering the loop at a force or readout entry of one experiment; the amplitude linear, the time `t0` and width `tau` non-linear.
 //! - `aux_crosstalk` (thesis sec. 3.4, cross-talk from the other degrees of freedom): a
 //!   sensing cross-talk `k a(t)` of a recorded auxiliary readout `a` (a y or angle readout of
 //!   the dataset's `[[auxiliary]]`) into readout o1 or o12 of every experiment, or its rate term
@@ -41,9 +42,9 @@ use std::sync::{Arc, OnceLock};
 use nalgebra::DMatrix;
 
 use crate::data::{AuxRole, Auxiliary};
-use crate::diagnose::DiagnoseModel;
+use crate::fit::additive::AdditiveTerm;
 use crate::fit::{ExperimentData, Likelihood};
-use crate::model::effects::{Category, Extended};
+use crate::model::effects::{Category, EffectHost, Extended};
 use crate::sim::auxiliary::{rate, through_loop, Leak};
 use crate::sim::glitch::{self, Entry, Grid, Part};
 use crate::sim::inject::AUX_CROSSTALK_PREFIX;
@@ -172,7 +173,7 @@ impl Additive {
     /// For an auxiliary cross-talk: its template over the noise run of `aux` (the series or
     /// its rate, through the loop of `model` at `p`: `sim::auxiliary::through_loop`), both
     /// readouts.
-    pub fn noise_template<M: DiagnoseModel<N>, const N: usize>(
+    pub fn noise_template<M: EffectHost<N>, const N: usize>(
         &self,
         model: &Extended<M, N>,
         p: &[f64],
@@ -189,7 +190,7 @@ impl Additive {
     }
 
     /// A drift of base parameter `name` of `model`, if it has one.
-    pub fn drift<M: DiagnoseModel<N>, const N: usize>(
+    pub fn drift<M: EffectHost<N>, const N: usize>(
         model: &Extended<M, N>,
         name: &str,
     ) -> Option<Additive> {
@@ -400,7 +401,7 @@ impl Additive {
 
     /// Raw (unwhitened) readout columns, one per amplitude, at full parameters `p` of `model`
     /// (`lik` prepared for it), full length n_e of every experiment and channel.
-    pub fn columns<M: DiagnoseModel<N>, const N: usize>(
+    pub fn columns<M: EffectHost<N>, const N: usize>(
         &self,
         model: &Extended<M, N>,
         lik: &Likelihood<'_, Extended<M, N>, N>,
@@ -412,7 +413,7 @@ impl Additive {
 
     /// [`columns`](Self::columns) with the model's raw derivatives at `p` (what a drift's
     /// column is made of) computed at most once over the candidates that share `derivatives`.
-    pub fn columns_sharing<M: DiagnoseModel<N>, const N: usize>(
+    pub fn columns_sharing<M: EffectHost<N>, const N: usize>(
         &self,
         model: &Extended<M, N>,
         lik: &Likelihood<'_, Extended<M, N>, N>,
@@ -466,7 +467,7 @@ impl Additive {
 
     /// Raw derivative columns with respect to the non-linear parameters, `sum_j a_j d col_j /
     /// d theta_q` at amplitudes `amps`.
-    pub fn nonlinear_columns<M: DiagnoseModel<N>, const N: usize>(
+    pub fn nonlinear_columns<M: EffectHost<N>, const N: usize>(
         &self,
         model: &Extended<M, N>,
         lik: &Likelihood<'_, Extended<M, N>, N>,
@@ -498,6 +499,34 @@ impl Additive {
     }
 }
 
+/// The planned likelihood of an extended model.
+type Lik<'a, M, const N: usize> = Likelihood<'a, Extended<M, N>, N>;
+
+/// The additive effects are the additive terms of [`crate::fit::additive::fit_additive`].
+impl<M: EffectHost<N>, const N: usize> AdditiveTerm<Extended<M, N>, N> for Additive {
+    fn columns(&self, lik: &Lik<'_, M, N>, data: &ExperimentData, p: &[f64]) -> Vec<Series> {
+        Additive::columns(self, lik.engine.model(), lik, data, p)
+    }
+    fn nonlinear(&self) -> Vec<f64> {
+        Additive::nonlinear(self)
+    }
+    fn nonlinear_columns(
+        &self,
+        lik: &Lik<'_, M, N>,
+        data: &ExperimentData,
+        p: &[f64],
+        amps: &[f64],
+    ) -> Vec<Series> {
+        Additive::nonlinear_columns(self, lik.engine.model(), lik, data, p, amps)
+    }
+    fn experiment(&self) -> Option<usize> {
+        Additive::experiment(self)
+    }
+    fn step_nonlinear(&mut self, step: &[f64], n: usize, dt: f64) {
+        Additive::step_nonlinear(self, step, n, dt)
+    }
+}
+
 impl Drift {
     /// `""` for the linear term, `"2"` for the quadratic one (of its name and parameter).
     fn order(&self) -> &'static str {
@@ -511,7 +540,7 @@ impl Drift {
 
 impl Glitch {
     /// Its pulse's response (or a derivative's, `part`) in the readouts of its experiment.
-    fn part<M: DiagnoseModel<N>, const N: usize>(
+    fn part<M: EffectHost<N>, const N: usize>(
         &self,
         model: &Extended<M, N>,
         lik: &Likelihood<'_, Extended<M, N>, N>,
