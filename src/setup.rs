@@ -239,6 +239,26 @@ impl<M: SpecModel<N>, const N: usize> SetupOf<M, N> {
             .collect()
     }
 
+    /// The whitening filter of the model noise PSD at `p` for the telemetry as recorded: when
+    /// it went through the model file's anti-alias FIR (`decimated`), the readout PSD folded
+    /// through it ([`Self::whitener_through_decimator`], with the white floor a Nyquist null
+    /// needed, for the report's note), else the readout PSD itself
+    /// ([`Self::whitener_from_model`]).
+    pub fn telemetry_whitener(
+        &self,
+        p: &[f64],
+        n: usize,
+        dt: f64,
+        order: usize,
+        decimated: bool,
+    ) -> Result<(Whitener<N>, Option<NullFloor<N>>), Error> {
+        if !decimated {
+            return Ok((self.whitener_from_model(p, n, dt, order)?, None));
+        }
+        let decimator = self.spec.decimator()?;
+        self.whitener_through_decimator(p, n, dt, order, &decimator)
+    }
+
     /// The whitening filter of data decimated by `decimator` (the time-domain engine's
     /// telemetry): the model's readout PSD at `p` at the simulation rate, filtered by the FIR
     /// and folded onto the analysis band (`fit::telemetry_psd`), with a white floor if the

@@ -10,8 +10,8 @@ use std::path::{Path, PathBuf};
 
 use super::transient::{clean_noise_run, fit_with_transients, TransientError, TransientReport};
 use super::{
-    correlation_table, dataset_whitener, decimated_telemetry, estimates_table, outputs_of,
-    parse_constraints, psd_table, residual_table, residual_table_of, resolve_guess,
+    correlation_table, dataset_whitener, decimated_telemetry, estimates_table, model_whitening,
+    outputs_of, parse_constraints, psd_table, residual_table, residual_table_of, resolve_guess,
     truth_from_meta, whitened_table, whole_clock_data, AnalysisError, FitSummary, Whitening,
 };
 use crate::data::ExperimentData;
@@ -544,32 +544,6 @@ fn write_fit(
     Ok(())
 }
 
-/// The model's whitening filter at `p` for `n` samples at `dt` of the dataset `ds`: its noise
-/// PSD, folded through the anti-alias FIR when the telemetry went through it
-/// ([`decimated_telemetry`], `fit::telemetry_psd`), every readout of the model; with where it
-/// came from (and the white floor added at a null of the FIR).
-fn model_whitener<M: SpecModel<N>, const N: usize>(
-    setup: &SetupOf<M, N>,
-    ds: &Dataset,
-    p: &[f64],
-    n: usize,
-    dt: f64,
-    order: usize,
-) -> Result<(Whitener<N>, String), JobError> {
-    if !decimated_telemetry(ds) {
-        let w = setup.whitener_from_model(p, n, dt, order)?;
-        return Ok((w, "model noise PSD at the guess".into()));
-    }
-    let decimator = setup.spec.decimator().map_err(SetupError::from)?;
-    let (w, floor) = setup.whitener_through_decimator(p, n, dt, order, &decimator)?;
-    let readouts = setup.model.readout_names();
-    let floor = floor.map_or(String::new(), |f| format!("; {}", f.note_named(&readouts)));
-    Ok((
-        w,
-        format!("model noise PSD at the guess folded through the anti-alias FIR{floor}"),
-    ))
-}
-
 /// The residual table ([`residual_table_of`]) of any model's fit: every readout of the model,
 /// each in its unit (o1, o12 in m; the others as the dataset's `[[auxiliary]]` declares them).
 fn model_residuals<M: SpecModel<N>, const N: usize>(
@@ -798,7 +772,11 @@ impl FitJob {
                     path.display()
                 )))
             }
-            _ => model_whitener(setup, ds, guess, data.len(), data.dt, order)?,
+            _ => {
+                let (w, folded, floor) =
+                    model_whitening(setup, ds, guess, data.len(), data.dt, order)?;
+                (w, format!("model noise PSD at the guess{folded}{floor}"))
+            }
         };
         let lik = Likelihood::for_data(&setup.model, data, w, self.dataset.poly_degree)
             .map_err(context(path.display().to_string()))?;

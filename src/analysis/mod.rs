@@ -244,19 +244,8 @@ pub fn dataset_whitener(
     source: Whitening,
 ) -> Result<(Whitener<2>, String)> {
     let from_model = |why: &str| -> Result<(Whitener<2>, String)> {
-        if !decimated_telemetry(ds) {
-            return Ok((
-                setup.whitener_from_model(p, n, dt, order)?,
-                format!("model noise PSD{why}"),
-            ));
-        }
-        let decimator = setup.spec.decimator().map_err(crate::setup::Error::from)?;
-        let (w, floor) = setup.whitener_through_decimator(p, n, dt, order, &decimator)?;
-        let floor = floor.map_or(String::new(), |f| format!("; {}", f.note()));
-        Ok((
-            w,
-            format!("model noise PSD folded through the anti-alias FIR{why}{floor}"),
-        ))
+        let (w, folded, floor) = model_whitening(setup, ds, p, n, dt, order)?;
+        Ok((w, format!("model noise PSD{folded}{why}{floor}")))
     };
     match (source, &ds.noise) {
         (Whitening::Noise, None) => Err(AnalysisError::NoNoiseRun),
@@ -276,6 +265,31 @@ pub fn dataset_whitener(
             Ok((w, format!("noise run {label}")))
         }
     }
+}
+
+/// The model's whitening filter at `p` for `n` samples at `dt` of the dataset `ds`
+/// ([`SetupOf::telemetry_whitener`], folded through the anti-alias FIR when the telemetry went
+/// through it, [`decimated_telemetry`]), with the words that describe it: how it was folded
+/// (`" folded through the anti-alias FIR"` or nothing) and the white floor added at a null of
+/// the FIR (`"; "` and its note naming the model's readouts, or nothing).
+pub fn model_whitening<M: SpecModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
+    ds: &Dataset,
+    p: &[f64],
+    n: usize,
+    dt: f64,
+    order: usize,
+) -> Result<(Whitener<N>, &'static str, String)> {
+    let decimated = decimated_telemetry(ds);
+    let (w, floor) = setup.telemetry_whitener(p, n, dt, order, decimated)?;
+    let folded = if decimated {
+        " folded through the anti-alias FIR"
+    } else {
+        ""
+    };
+    let readouts = setup.model.readout_names();
+    let floor = floor.map_or(String::new(), |f| format!("; {}", f.note_named(&readouts)));
+    Ok((w, folded, floor))
 }
 
 /// Whether a dataset's telemetry went through the model's anti-alias FIR: simulated with

@@ -131,8 +131,9 @@ fn noise_run_filter<const N: usize>(
     Ok(None)
 }
 
-/// The whitening filter of the model noise PSD at `guess`: folded through the anti-alias FIR
-/// for decimated telemetry, with a note when a Nyquist null needed a white floor.
+/// The whitening filter of the model noise PSD at `guess` ([`SetupOf::telemetry_whitener`]),
+/// with a note when it is folded through the anti-alias FIR and when a Nyquist null needed a
+/// white floor.
 fn model_whitener<M: DiagnoseModel<N>, const N: usize>(
     setup: &SetupOf<M, N>,
     data: &ExperimentData,
@@ -140,14 +141,12 @@ fn model_whitener<M: DiagnoseModel<N>, const N: usize>(
     cfg: &DiagnoseConfig<N>,
     order: usize,
     obs: &mut dyn Observer,
-) -> Result<crate::fit::Whitener<N>, DiagnoseError> {
-    if !cfg.decimated_telemetry {
-        return Ok(setup.whitener_from_model(guess, data.len(), data.dt, order)?);
+) -> Result<Whitener<N>, DiagnoseError> {
+    let decimated = cfg.decimated_telemetry;
+    let (w, floor) = setup.telemetry_whitener(guess, data.len(), data.dt, order, decimated)?;
+    if decimated {
+        obs.note("whitening from the model noise PSD folded through the anti-alias FIR (decimated telemetry)");
     }
-    let decimator = setup.spec.decimator().map_err(crate::setup::Error::from)?;
-    let (w, floor) =
-        setup.whitener_through_decimator(guess, data.len(), data.dt, order, &decimator)?;
-    obs.note("whitening from the model noise PSD folded through the anti-alias FIR (decimated telemetry)");
     if let Some(f) = floor {
         obs.note(&f.note_named(&setup.model.readout_names()));
     }
