@@ -77,6 +77,7 @@ pub mod tables;
 pub mod types;
 
 pub use crate::analysis::residuals::{ChannelReport, SpectrumCurve};
+pub use crate::fit::additive::RobustCheck;
 pub use families::excess::ExcessKind;
 pub use families::tension::{Explanation, PriorTension};
 pub use host::DiagnoseModel;

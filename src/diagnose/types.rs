@@ -8,6 +8,7 @@ use serde::Serialize;
 
 use super::{ChannelReport, ExcessKind, Family, PriorTension, SpectrumCurve};
 use crate::design::redesign::Redesign;
+use crate::fit::additive::RobustCheck;
 use crate::fit::FitError;
 use crate::model::effects::{library_for, Effect};
 use crate::setup::{DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
@@ -330,20 +331,6 @@ pub struct Unexplained {
     pub time_s: [f64; 2],
     pub excess: f64,
     pub p_value: f64,
-}
-
-/// With heavy-tailed residuals: the final model refitted with the Lorentzian estimator
-/// `rho = log(1 + r^2)` (thesis sec. 4.5.7, "mean logarithmic deviation"), which outliers
-/// do not drag, against the Gaussian estimates.
-#[derive(Debug, Clone, Serialize)]
-pub struct RobustCheck {
-    pub estimator: &'static str,
-    pub converged: bool,
-    pub parameter_names: Vec<String>,
-    pub estimate: Vec<f64>,
-    pub sigma: Vec<f64>,
-    /// (robust - Gaussian) / Gaussian sigma, per parameter.
-    pub shift_sigma: Vec<f64>,
 }
 
 /// The complete diagnosis.

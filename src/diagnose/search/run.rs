@@ -12,10 +12,10 @@ use crate::design::redesign;
 use crate::diagnose::families::{coherence, crosstalk, excess, noise_excess, tension, transient};
 use crate::diagnose::{
     next_round, Candidate, DiagnoseConfig, DiagnoseError, DiagnoseModel, Diagnosis, DiagnosisState,
-    ExcessKind, Notes, Observer, RobustCheck, Round, SpectrumCurve, Stage, Unexplained,
+    ExcessKind, Notes, Observer, Round, SpectrumCurve, Stage, Unexplained,
 };
-use crate::fit::additive::less_terms;
-use crate::fit::{fit, FitConfig, FitResult};
+use crate::fit::additive::{self, RobustCheck};
+use crate::fit::FitResult;
 use crate::model::effects::Effect;
 use crate::model::ClosedLoopModel;
 use crate::setup::SetupOf;
@@ -276,42 +276,25 @@ fn spectra<M: DiagnoseModel<N>, const N: usize>(
     out
 }
 
-/// Refit the final model (its additive effects held at their amplitudes) with the Lorentzian
-/// estimator and compare with the Gaussian fit.
+/// The robust check of the final fit ([`additive::robust_check`]), or a note why it failed.
 fn robust_check<M: DiagnoseModel<N>, const N: usize>(
     problem: &DiagnosisProblem<'_, M, N>,
     state: &DiagnosisState<M, N>,
     obs: &mut dyn Observer,
 ) -> Option<RobustCheck> {
-    let (model, gauss) = (&state.model, &state.fit.fit);
-    let run = || -> Result<FitResult, DiagnoseError> {
-        let lik = problem.likelihood(model)?;
-        let eff = less_terms(&lik, problem.data, &state.fit.linear, &gauss.estimate);
-        let prob = lik.problem(&eff)?;
-        let mut fc = problem.cfg.constraints.apply(FitConfig::new(model));
-        fc.estimator = crate::fit::Estimator::Log;
-        Ok(fit(model, &prob, &gauss.estimate, &fc)?)
+    let run = || -> Result<RobustCheck, DiagnoseError> {
+        let lik = problem.likelihood(&state.model)?;
+        let constraints = &problem.cfg.constraints;
+        Ok(additive::robust_check(
+            &lik,
+            problem.data,
+            &state.fit,
+            constraints,
+        )?)
     };
-    match run() {
-        Ok(r) => Some(RobustCheck {
-            estimator: "log",
-            converged: r.termination.converged(),
-            parameter_names: model.parameter_names().to_vec(),
-            shift_sigma: r
-                .estimate
-                .iter()
-                .zip(&gauss.estimate)
-                .zip(&gauss.sigma)
-                .map(|((a, b), s)| (a - b) / s)
-                .collect(),
-            estimate: r.estimate,
-            sigma: r.sigma,
-        }),
-        Err(e) => {
-            obs.note(&format!("the robust (log-estimator) refit failed: {e}"));
-            None
-        }
-    }
+    run()
+        .map_err(|e| obs.note(&format!("the robust (log-estimator) refit failed: {e}")))
+        .ok()
 }
 
 /// Stretch slots per experiment of the redesign probe's timing: the standard design's seven.
