@@ -20,14 +20,28 @@ use nalgebra::DMatrix;
 use num_complex::Complex64;
 use serde::Serialize;
 
-use crate::design::space::{StretchTable, Timing, INPUTS};
+use crate::design::space::{DesignSpace, StretchTable, Timing, INPUTS};
 use crate::design::DesignError;
 use crate::fit::ExperimentData;
 use crate::forward::fisher::{fisher_information, InputSpectra};
 use crate::model::closed_loop::{transfer_with_derivatives, CMat, ClosedLoopModel};
 use crate::model::effects::{Effect, Extended};
 use crate::numerics::tol::PINV_RCOND;
-use crate::setup::Setup;
+use crate::setup::{Setup, SetupOf, SpecModel};
+
+/// Stretch slots per experiment of a probe's timing: the standard design's seven.
+pub const PROBE_SLOTS: usize = 7;
+
+/// The timing a probe adds its stretch to: that of the model file's `standard` design, over
+/// [`PROBE_SLOTS`] stretch slots per experiment.
+pub fn standard_timing<M: SpecModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
+) -> Result<Timing, crate::setup::Error> {
+    Ok(DesignSpace::timing_of(
+        &setup.design("standard")?,
+        PROBE_SLOTS,
+    ))
+}
 
 /// One added stretch and what it would make identifiable.
 #[derive(Debug, Clone, Serialize)]

@@ -253,12 +253,9 @@ fn separation<M: DiagnoseModel<N>, const N: usize>(
                 (state.pool[*i].clone(), state.pool[*j].clone());
             let setup = problem.setup;
             let p = &state.fit.fit.estimate[..state.model.n_base()];
-            let probe = setup
-                .design("standard")
+            let probe = redesign::standard_timing(setup)
                 .map_err(|e| e.to_string())
-                .and_then(|d| {
-                    let timing =
-                        crate::design::space::DesignSpace::timing_of(&d, super::run::REDESIGN_GRID);
+                .and_then(|timing| {
                     M::redesign(setup, p, vec![ea], eb, problem.data, timing)
                         .unwrap_or_else(|| Err(format!("the {} model has none", M::KIND.name())))
                 });

@@ -297,11 +297,9 @@ fn robust_check<M: DiagnoseModel<N>, const N: usize>(
         .ok()
 }
 
-/// Stretch slots per experiment of the redesign probe's timing: the standard design's seven.
-pub(super) const REDESIGN_GRID: usize = 7;
-
 /// Attach a redesign verdict ([`redesign::probe`]) to every degenerate operator candidate: is
-/// the effect separable with one more injection stretch of the `standard` design's timing, within
+/// the effect separable with one more injection stretch of the `standard` design's timing
+/// ([`redesign::standard_timing`]), within
 /// the operating constraints or only above `f_max_hz`? Probed at the nominal estimate `p`.
 fn redesign_degenerate<M: DiagnoseModel<N>, const N: usize>(
     problem: &DiagnosisProblem<'_, M, N>,
@@ -324,8 +322,8 @@ fn redesign_degenerate<M: DiagnoseModel<N>, const N: usize>(
     if effects.is_empty() {
         return;
     }
-    let timing = match setup.design("standard") {
-        Ok(d) => crate::design::space::DesignSpace::timing_of(&d, REDESIGN_GRID),
+    let timing = match redesign::standard_timing(setup) {
+        Ok(t) => t,
         Err(e) => {
             obs.note(&format!(
                 "no redesign probe of the degenerate effects: the model has no usable `standard` design ({e})"
