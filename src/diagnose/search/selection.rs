@@ -204,6 +204,11 @@ impl<M: DiagnoseModel<N>, const N: usize> DiagnosisState<M, N> {
         }
     }
 
+    /// The p-value threshold of this round's decisions: Bonferroni over its tests.
+    fn threshold(&self, cfg: &DiagnoseConfig<N>) -> f64 {
+        cfg.alpha / self.n_tests as f64
+    }
+
     /// Is `family` under its limit?
     pub fn open(&self, cfg: &DiagnoseConfig<N>, family: Family) -> bool {
         self.added.iter().filter(|a| a.family == family).count() < family.limit(cfg)
@@ -392,10 +397,7 @@ fn score<M: DiagnoseModel<N>, const N: usize>(
         &extra,
     )?);
     let names = state.model.parameter_names();
-    let (n, threshold) = (
-        bayes::n_samples(state),
-        problem.cfg.alpha / state.n_tests as f64,
-    );
+    let (n, threshold) = (bayes::n_samples(state), state.threshold(problem.cfg));
     Ok(described
         .iter()
         .zip(scores)
@@ -468,7 +470,7 @@ fn refit<M: DiagnoseModel<N>, const N: usize>(
     open: &[Family],
     obs: &mut dyn Observer,
 ) -> Vec<(usize, Refit<M, N>)> {
-    let threshold = problem.cfg.alpha / state.n_tests as f64;
+    let threshold = state.threshold(problem.cfg);
     let mut chosen = Vec::new();
     for family in open {
         let mut idx: Vec<usize> = (0..tested.len())
@@ -561,7 +563,7 @@ fn record_refit<M: DiagnoseModel<N>, const N: usize>(
     };
     let p_value = (d.trials * p).min(1.0);
     c.p_value = Some(p_value);
-    let threshold = problem.cfg.alpha / state.n_tests as f64;
+    let threshold = state.threshold(problem.cfg);
     let significant = p_value < threshold && !c.outside_physical_range;
     c.evidence = bayes::from_refit(dchi2, scale, &theta_hat, info)
         .map(|l| bayes::evidence(d, l, bayes::n_samples(state), significant));
@@ -577,7 +579,7 @@ fn decide<M: DiagnoseModel<N>, const N: usize>(
     refits: Vec<(usize, Refit<M, N>)>,
 ) -> Round {
     let cfg = problem.cfg;
-    let threshold = cfg.alpha / state.n_tests as f64;
+    let threshold = state.threshold(cfg);
     let refitted: Vec<usize> = refits.iter().map(|(i, _)| *i).collect();
     let drop = |i: usize| tested[i].delta_chi2.unwrap_or(f64::NEG_INFINITY);
     let eligible = |i: usize, r: &Refit<M, N>| {
@@ -636,18 +638,9 @@ fn adopt<M: DiagnoseModel<N>, const N: usize>(
     c: &Candidate,
     refit: Refit<M, N>,
 ) -> AddedEffect {
-    let (parameter_names, parameters, sigmas, lin_index) = match &d.proposal {
-        Proposal::Operator(k) => {
-            let e = state.pool.remove(*k);
-            let m = &refit.model;
-            let r = m.range(m.effects.len() - 1);
-            (
-                e.parameter_names(),
-                refit.fit.fit.estimate[r.clone()].to_vec(),
-                refit.fit.fit.sigma[r].to_vec(),
-                None,
-            )
-        }
+    // Its parameters as reported are the refit's, recorded in `c` ([`record_refit`]).
+    let (parameter_names, lin_index) = match &d.proposal {
+        Proposal::Operator(k) => (state.pool.remove(*k).parameter_names(), None),
         Proposal::Additive { pooled, .. } => {
             if let Some(k) = *pooled {
                 let a = state.lin_pool.remove(k);
@@ -659,8 +652,7 @@ fn adopt<M: DiagnoseModel<N>, const N: usize>(
             let l = &refit.fit.linear;
             let (a, v) = l.last().expect("the refit added an additive effect");
             let cov = refit.fit.covariances.last().expect("one covariance each");
-            let (names, values, sig) = a.report(v, cov);
-            (names, values, sig, Some(l.len() - 1))
+            (a.report(v, cov).0, Some(l.len() - 1))
         }
     };
     state.model = refit.model;
@@ -671,8 +663,8 @@ fn adopt<M: DiagnoseModel<N>, const N: usize>(
         family: d.family(),
         acts_on: c.acts_on.clone(),
         parameter_names,
-        parameters,
-        sigmas,
+        parameters: c.estimate.clone().unwrap_or_default(),
+        sigmas: c.sigma.clone().unwrap_or_default(),
         score_statistic: c.score_statistic,
         delta_chi2: c.delta_chi2.unwrap_or(f64::NAN),
         p_value: c.p_value.unwrap_or(f64::NAN),
