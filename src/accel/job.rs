@@ -14,7 +14,7 @@ use crate::analysis::{
     decimated_telemetry, parameters_from_estimates, resolve_guess, truth_from_meta,
 };
 use crate::io::plot::run_plot_script;
-use crate::io::{ensure_dir, read_dataset, read_run_segments, write_parquet, Run};
+use crate::io::{ensure_dir, read_dataset_for, read_run_segments, write_parquet, Run};
 use crate::setup::{SetupOf, SpecModel};
 use crate::spectral::WelchConfig;
 
@@ -250,7 +250,7 @@ impl AccelJob {
                 decimated: false,
             });
         }
-        let ds = read_dataset(input)?;
+        let ds = read_dataset_for(input, &crate::analysis::run_columns(setup))?;
         let truth = truth_from_meta(&ds, &setup.parameter_names());
         let runs = match (&self.run, &ds.noise) {
             (Some(name), _) => vec![ds.experiment(name)?.clone()],

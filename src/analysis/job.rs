@@ -19,7 +19,7 @@ use crate::fit::{
     fit as run_fit, Constraints, Estimator, FitConfig, FitError, FitResult, Likelihood, Whitener,
 };
 use crate::io::{
-    create_output_dir, ensure_parent, read_dataset, read_run, write_json_atomic, write_parquet,
+    create_output_dir, ensure_parent, read_dataset_for, read_run, write_json_atomic, write_parquet,
     Dataset, IoError, Provenance,
 };
 use crate::model::{check_stability, ClosedLoopModel, LpfX, LpfXy, ModelError};
@@ -252,7 +252,7 @@ impl DatasetFit {
         path: &Path,
         notes: Notes<'_>,
     ) -> Result<Prepared, JobError> {
-        let mut ds = read_dataset(path)?;
+        let mut ds = read_dataset_for(path, &super::run_columns(setup))?;
         for n in &ds.notes {
             notes(n);
         }

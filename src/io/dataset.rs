@@ -55,7 +55,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use super::atomic::{ensure_dir, parent_dir, toml_error, write_toml_atomic};
-use super::run::{read_run_segments_declared, write_run, Run, TIME_TOLERANCE};
+use super::run::{read_run_segments_for, write_run_for, Run, RunColumns, TIME_TOLERANCE};
 use super::{in_memory, IoError};
 use crate::data::{AuxChannel, AuxKind, AuxRole, Auxiliary};
 
@@ -85,6 +85,9 @@ pub struct Dataset {
     /// What the reader did leniently (columns ignored, timestamps converted, float32 readouts),
     /// one line each, for the commands to print as notes.
     pub notes: Vec<String>,
+    /// The columns every run holds besides `t`: the guidance and readouts of the model the
+    /// dataset is read for ([`read_dataset_for`]; oi1, oi12 / o1, o12 by default).
+    pub run_columns: RunColumns,
 }
 
 /// The on-disk form.
@@ -140,19 +143,16 @@ struct AuxiliaryEntry {
 impl AuxiliaryEntry {
     /// The checked channel: a known kind, the unit of that kind, a column that is not one of
     /// the format's own. Errors name the key and the value.
-    fn channel(&self, path: &Path, i: usize) -> Result<AuxChannel, IoError> {
+    fn channel(&self, path: &Path, i: usize, run: &RunColumns) -> Result<AuxChannel, IoError> {
         let at = format!("[[auxiliary]] #{} ('{}')", i + 1, self.column);
-        let reserved = super::run::INPUT_COLUMNS
-            .iter()
-            .chain(&super::run::OUTPUT_COLUMNS)
-            .chain(&[super::run::TIME_COLUMN])
-            .any(|c| *c == self.column);
+        let reserved = run.contains(&self.column) || self.column == super::run::TIME_COLUMN;
         if self.column.trim().is_empty() || reserved {
             return Err(IoError::invalid(
                 path,
                 format!(
-                    "{at}: column = \"{}\" is not an auxiliary column (empty, or one of t, oi1, oi12, o1, o12)",
-                    self.column
+                    "{at}: column = \"{}\" is not an auxiliary column (empty, or one of {})",
+                    self.column,
+                    run.describe_with_time()
                 ),
             ));
         }
@@ -238,17 +238,27 @@ impl Dataset {
         aux: &Auxiliary,
         meta: toml::Table,
     ) -> Result<Dataset, IoError> {
+        Dataset::simulated_for(data, (noise, aux), meta, &RunColumns::lpf())
+    }
+
+    /// [`Dataset::simulated_with_auxiliary`] of a model whose runs hold the columns `columns`
+    /// (`data`'s inputs and readouts, in that order, as many of each).
+    pub fn simulated_for(
+        data: &crate::data::ExperimentData,
+        (noise, aux): (&[Vec<f64>], &Auxiliary),
+        meta: toml::Table,
+        columns: &RunColumns,
+    ) -> Result<Dataset, IoError> {
         let run = |inputs: &[Vec<f64>], outputs: &[Vec<f64>], extra: Option<&Vec<Vec<f64>>>| {
-            let names = ["oi1", "oi12", "o1", "o12"];
-            let mut cols: Vec<(String, Vec<f64>)> = names
-                .iter()
+            let mut cols: Vec<(String, Vec<f64>)> = columns
+                .required()
                 .map(|n| n.to_string())
                 .zip(inputs.iter().chain(outputs).cloned())
                 .collect();
             for (ch, x) in aux.channels.iter().zip(extra.into_iter().flatten()) {
                 cols.push((ch.column.clone(), x.clone()));
             }
-            Run::new(0.0, data.dt, cols)
+            Run::new_for(0.0, data.dt, cols, columns)
         };
         let exps = data
             .names
@@ -259,8 +269,8 @@ impl Dataset {
                 Ok((name.clone(), r))
             })
             .collect::<Result<Vec<_>, IoError>>()?;
-        let zeros = vec![vec![0.0; noise.first().map_or(0, Vec::len)]; 2];
-        Dataset::new(exps)?
+        let zeros = vec![vec![0.0; noise.first().map_or(0, Vec::len)]; columns.inputs.len()];
+        Dataset::new_for(exps, columns)?
             .with_noise(run(&zeros, noise, aux.noise.as_ref())?)?
             .with_auxiliary(aux.channels.clone())
             .map(|d| d.with_meta(meta))
@@ -303,6 +313,14 @@ impl Dataset {
 
     /// A validated in-memory dataset (no noise run, no metadata).
     pub fn new(experiments: Vec<(String, Run)>) -> Result<Dataset, IoError> {
+        Dataset::new_for(experiments, &RunColumns::lpf())
+    }
+
+    /// [`Dataset::new`] of runs holding the columns `columns` (a model's).
+    pub fn new_for(
+        experiments: Vec<(String, Run)>,
+        columns: &RunColumns,
+    ) -> Result<Dataset, IoError> {
         let d = Dataset {
             path: None,
             noise: None,
@@ -311,6 +329,7 @@ impl Dataset {
             meta: toml::Table::new(),
             injections: None,
             notes: Vec::new(),
+            run_columns: columns.clone(),
         };
         d.validate()?;
         Ok(d)
@@ -383,7 +402,8 @@ impl Dataset {
     /// second value) naming the gap; zero-filling it instead would put a step into the modelled
     /// guidance that the loop never saw.
     pub fn inputs_with_lead_in(&self) -> (Vec<Vec<Vec<f64>>>, Vec<String>) {
-        self.inputs_with_lead_in_of(&crate::io::run::INPUT_COLUMNS)
+        let names: Vec<&str> = self.run_columns.inputs.iter().map(String::as_str).collect();
+        self.inputs_with_lead_in_of(&names)
     }
 
     /// [`Self::inputs_with_lead_in`] of the guidance columns `names` (a model's, in its
@@ -516,10 +536,10 @@ impl Dataset {
     /// experiment names, a common dt.
     pub fn validate(&self) -> Result<(), IoError> {
         if let Some(noise) = &self.noise {
-            noise.validate()?;
+            noise.validate_for(&self.run_columns)?;
         }
         for (_, run) in &self.experiments {
-            run.validate()?;
+            run.validate_for(&self.run_columns)?;
         }
         for run in self
             .noise
@@ -761,6 +781,12 @@ fn not_a_dataset(path: &Path, what: &str) -> IoError {
 
 /// Reads a dataset TOML file and loads and validates all its runs (see the module docs).
 pub fn read_dataset(path: impl AsRef<Path>) -> Result<Dataset, IoError> {
+    read_dataset_for(path, &RunColumns::lpf())
+}
+
+/// [`read_dataset`] of a dataset whose runs hold the columns `columns` (the model's it is read
+/// for): a run without one is refused naming the file and the column.
+pub fn read_dataset_for(path: impl AsRef<Path>, columns: &RunColumns) -> Result<Dataset, IoError> {
     let path = path.as_ref();
     let text = read_dataset_text(path)?;
     let raw: toml::Table = toml::from_str(&text).map_err(|e| match not_toml(path) {
@@ -774,7 +800,7 @@ pub fn read_dataset(path: impl AsRef<Path>) -> Result<Dataset, IoError> {
         .auxiliary
         .iter()
         .enumerate()
-        .map(|(i, a)| a.channel(path, i))
+        .map(|(i, a)| a.channel(path, i, columns))
         .collect::<Result<Vec<_>, IoError>>()?;
     if let Some(dup) = auxiliary
         .iter()
@@ -801,7 +827,7 @@ pub fn read_dataset(path: impl AsRef<Path>) -> Result<Dataset, IoError> {
     };
     let mut notes = Vec::new();
     let read = |file: PathBuf, notes: &mut Vec<String>| -> Result<Vec<Run>, IoError> {
-        let (runs, n) = read_run_segments_declared(file, &declared)?;
+        let (runs, n) = read_run_segments_for(file, &declared, columns)?;
         notes.extend(n);
         Ok(runs)
     };
@@ -867,6 +893,7 @@ pub fn read_dataset(path: impl AsRef<Path>) -> Result<Dataset, IoError> {
         meta: spec.meta,
         injections: spec.injections,
         notes,
+        run_columns: columns.clone(),
     })
 }
 
@@ -930,7 +957,7 @@ pub fn write_dataset(dir: impl AsRef<Path>, dataset: &Dataset) -> Result<PathBuf
     let mut entries = Vec::with_capacity(dataset.experiments.len());
     for (name, run) in &dataset.experiments {
         let file = format!("{name}.parquet");
-        write_run(dir.join(&file), run)?;
+        write_run_for(dir.join(&file), run, &dataset.run_columns)?;
         entries.push(ExperimentEntry {
             name: name.clone(),
             file,
@@ -942,7 +969,7 @@ pub fn write_dataset(dir: impl AsRef<Path>, dataset: &Dataset) -> Result<PathBuf
             while entries.iter().any(|e| e.file == file) {
                 file.insert(0, '_');
             }
-            write_run(dir.join(&file), run)?;
+            write_run_for(dir.join(&file), run, &dataset.run_columns)?;
             Some(file)
         }
         None => None,

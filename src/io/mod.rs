@@ -41,12 +41,14 @@ pub use atomic::{
     write_json_atomic, write_text_atomic, write_toml_atomic, AtomicFile, AvailableMemory,
     MemoryBudget, MemoryLimit,
 };
-pub use dataset::{read_dataset, write_dataset, Dataset, DeclaredInjections, DATASET_FILE_NAME};
+pub use dataset::{
+    read_dataset, read_dataset_for, write_dataset, Dataset, DeclaredInjections, DATASET_FILE_NAME,
+};
 pub use provenance::Provenance;
 pub use run::{
     read_csv, read_csv_noted, read_run, read_run_noted, read_run_segments,
-    read_run_segments_declared, write_run, Gap, Run, Segment, INPUT_COLUMNS, MIN_ROWS,
-    OUTPUT_COLUMNS, TIME_COLUMN, TIME_TOLERANCE,
+    read_run_segments_declared, read_run_segments_for, write_run, write_run_for, Gap, Run,
+    RunColumns, Segment, INPUT_COLUMNS, MIN_ROWS, OUTPUT_COLUMNS, TIME_COLUMN, TIME_TOLERANCE,
 };
 pub use table::{
     read_parquet, read_parquet_nulls_as_nan, write_parquet, Column, ParquetAppender, Table,

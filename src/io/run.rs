@@ -2,7 +2,9 @@
 //!
 //! A run file is Parquet (`.parquet`, `.pq`) or CSV with a header line (`.csv`) holding uniformly
 //! sampled columns `t` [s], `oi1`, `oi12` [m] (commanded guidance injections; zeros in a noise
-//! run) and `o1`, `o12` [m] (interferometer readouts). Extra numeric columns (`y1`, `phi1`, ...)
+//! run) and `o1`, `o12` [m] (interferometer readouts): the LPF models' [`RunColumns`]; a run of
+//! another model holds that model's own guidance and readout columns instead, and every reader,
+//! writer and validator has a `_for` form taking them. Extra numeric columns (`y1`, `phi1`, ...)
 //! are kept; a dataset declares the ones that are auxiliary readouts of other degrees of
 //! freedom (`[[auxiliary]]`, [`read_run_segments_declared`]). [`read_run`] validates the file into a [`Run`]:
 //! - the required columns are present (the error lists the columns found);
@@ -44,7 +46,62 @@ pub const TIME_TOLERANCE: f64 = 1e-6;
 /// Fewest rows a run may have.
 pub const MIN_ROWS: usize = 2;
 
-const REQUIRED: [&str; 4] = ["oi1", "oi12", "o1", "o12"];
+/// The columns a run must hold besides `t`: a model's guidance inputs and readouts (its
+/// first ones, [`crate::sim::simulate_job::run_channels`]), in that order. The LPF models'
+/// ([`RunColumns::lpf`], the default) are oi1, oi12 / o1, o12; another model's runs hold its
+/// own (the one-DOF oscillator's: oi / o). Every run reader, writer and validator takes them,
+/// and every message naming a required column names these.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct RunColumns {
+    /// Guidance injection columns [m].
+    pub inputs: Vec<String>,
+    /// Readout columns [m].
+    pub readouts: Vec<String>,
+}
+
+impl Default for RunColumns {
+    fn default() -> Self {
+        RunColumns::lpf()
+    }
+}
+
+impl RunColumns {
+    /// The LPF models' run columns: [`INPUT_COLUMNS`] and [`OUTPUT_COLUMNS`].
+    pub fn lpf() -> Self {
+        RunColumns::new(&INPUT_COLUMNS, &OUTPUT_COLUMNS)
+    }
+
+    /// The run columns `inputs` then `readouts`.
+    pub fn new<S: AsRef<str>>(inputs: &[S], readouts: &[S]) -> Self {
+        RunColumns {
+            inputs: inputs.iter().map(|s| s.as_ref().to_string()).collect(),
+            readouts: readouts.iter().map(|s| s.as_ref().to_string()).collect(),
+        }
+    }
+
+    /// The required columns: the inputs, then the readouts.
+    pub fn required(&self) -> impl Iterator<Item = &str> {
+        self.inputs.iter().chain(&self.readouts).map(String::as_str)
+    }
+
+    /// True if `name` is a required column.
+    pub fn contains(&self, name: &str) -> bool {
+        self.required().any(|c| c == name)
+    }
+
+    /// True if `name` is a guidance input column.
+    pub fn is_input(&self, name: &str) -> bool {
+        self.inputs.iter().any(|c| c == name)
+    }
+
+    /// `t` and the required columns, comma separated (`t, oi1, oi12, o1, o12`).
+    pub fn describe_with_time(&self) -> String {
+        std::iter::once(TIME_COLUMN)
+            .chain(self.required())
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+}
 
 /// A uniformly sampled run: sample i is at time `t0 + i * dt`.
 ///
@@ -110,14 +167,24 @@ impl Run {
     /// A validated in-memory run. `columns` must contain `oi1`, `oi12`, `o1` and `o12` (in any
     /// order, they are reordered first) and may contain extras; not `t`.
     pub fn new(t0: f64, dt: f64, columns: Vec<(String, Vec<f64>)>) -> Result<Run, IoError> {
+        Run::new_for(t0, dt, columns, &RunColumns::lpf())
+    }
+
+    /// [`Run::new`] of a run holding the columns `required` (a model's, [`RunColumns`]).
+    pub fn new_for(
+        t0: f64,
+        dt: f64,
+        columns: Vec<(String, Vec<f64>)>,
+        required: &RunColumns,
+    ) -> Result<Run, IoError> {
         let run = Run {
             path: None,
             t0,
             dt,
-            columns: order_columns(columns),
+            columns: order_columns(columns, required),
             segment: None,
         };
-        run.validate()?;
+        run.validate_for(required)?;
         Ok(run)
     }
 
@@ -199,13 +266,18 @@ impl Run {
     pub fn extras(&self) -> impl Iterator<Item = (&str, &[f64])> {
         self.columns
             .iter()
-            .filter(|(n, _)| !REQUIRED.contains(&n.as_str()))
+            .filter(|(n, _)| !RunColumns::lpf().contains(n))
             .map(|(n, c)| (n.as_str(), c.as_slice()))
     }
 
     /// Checks the invariants: required columns present, no `t` column and no duplicates, equal
     /// lengths, at least [`MIN_ROWS`] rows, finite values, finite positive `dt` and finite `t0`.
     pub fn validate(&self) -> Result<(), IoError> {
+        self.validate_for(&RunColumns::lpf())
+    }
+
+    /// [`Run::validate`] with the required columns `required` (a model's).
+    pub fn validate_for(&self, required: &RunColumns) -> Result<(), IoError> {
         let path = self.label();
         if !(self.dt.is_finite() && self.dt > 0.0 && self.t0.is_finite()) {
             return Err(IoError::invalid(
@@ -222,7 +294,7 @@ impl Run {
                 "the time column 't' is implied by t0 and dt and must not be among the columns",
             ));
         }
-        check_columns(&path, &self.columns)?;
+        check_columns(&path, &self.columns, required)?;
         Ok(())
     }
 
@@ -256,10 +328,13 @@ impl fmt::Debug for Run {
     }
 }
 
-/// Required columns first (in [`REQUIRED`] order), then the others in their original order.
-fn order_columns(mut columns: Vec<(String, Vec<f64>)>) -> Vec<(String, Vec<f64>)> {
+/// Required columns first (inputs then readouts), then the others in their original order.
+fn order_columns(
+    mut columns: Vec<(String, Vec<f64>)>,
+    required: &RunColumns,
+) -> Vec<(String, Vec<f64>)> {
     let mut ordered = Vec::with_capacity(columns.len());
-    for name in REQUIRED {
+    for name in required.required() {
         if let Some(i) = columns.iter().position(|(n, _)| n == name) {
             ordered.push(columns.remove(i));
         }
@@ -269,8 +344,12 @@ fn order_columns(mut columns: Vec<(String, Vec<f64>)>) -> Vec<(String, Vec<f64>)
 }
 
 /// Unique names, required columns present, equal lengths >= MIN_ROWS, finite values.
-fn check_columns(path: &Path, columns: &[(String, Vec<f64>)]) -> Result<(), IoError> {
-    check_shape(path, columns)?;
+fn check_columns(
+    path: &Path,
+    columns: &[(String, Vec<f64>)],
+    required: &RunColumns,
+) -> Result<(), IoError> {
+    check_shape(path, columns, required)?;
     for (name, values) in columns {
         check_finite(path, name, values)?;
     }
@@ -278,7 +357,11 @@ fn check_columns(path: &Path, columns: &[(String, Vec<f64>)]) -> Result<(), IoEr
 }
 
 /// Unique names, required columns present, equal lengths >= MIN_ROWS.
-fn check_shape(path: &Path, columns: &[(String, Vec<f64>)]) -> Result<(), IoError> {
+fn check_shape(
+    path: &Path,
+    columns: &[(String, Vec<f64>)],
+    required: &RunColumns,
+) -> Result<(), IoError> {
     for (i, (name, _)) in columns.iter().enumerate() {
         if columns[..i].iter().any(|(n, _)| n == name) {
             return Err(IoError::DuplicateColumn {
@@ -287,7 +370,7 @@ fn check_shape(path: &Path, columns: &[(String, Vec<f64>)]) -> Result<(), IoErro
             });
         }
     }
-    for name in REQUIRED {
+    for name in required.required() {
         if !columns.iter().any(|(n, _)| n == name) {
             return Err(IoError::MissingColumn {
                 path: path.to_path_buf(),
@@ -408,7 +491,7 @@ fn find_gaps(t: &[f64]) -> Vec<usize> {
 
 /// Builds a validated run from the columns of a file (including `t`).
 fn run_from_columns(path: &Path, columns: Vec<(String, Vec<f64>)>) -> Result<Run, IoError> {
-    run_from_rows(path, columns, &|i| i)
+    run_from_rows(path, columns, &|i| i, &RunColumns::lpf())
 }
 
 /// [`run_from_columns`] for columns whose sample `i` is row `row(i)` of the file.
@@ -416,6 +499,7 @@ fn run_from_rows(
     path: &Path,
     mut columns: Vec<(String, Vec<f64>)>,
     row: &dyn Fn(usize) -> usize,
+    required: &RunColumns,
 ) -> Result<Run, IoError> {
     let Some(ti) = columns.iter().position(|(n, _)| n == TIME_COLUMN) else {
         return Err(IoError::MissingColumn {
@@ -425,14 +509,14 @@ fn run_from_rows(
         });
     };
     // Check everything (lengths, finiteness) with `t` in its file position, then take it out.
-    check_columns(path, &columns)?;
+    check_columns(path, &columns, required)?;
     let (_, t) = columns.remove(ti);
     let (t0, dt) = check_time(path, &t, row)?;
     Ok(Run {
         path: Some(path.to_path_buf()),
         t0,
         dt,
-        columns: order_columns(columns),
+        columns: order_columns(columns, required),
         segment: None,
     })
 }
@@ -444,19 +528,20 @@ fn segments_from_columns(
     path: &Path,
     mut columns: Vec<(String, Vec<f64>)>,
     rows: Option<&[usize]>,
+    required: &RunColumns,
 ) -> Result<Vec<Run>, IoError> {
     let row = |i: usize| rows.map_or(i, |r| r[i]);
     let Some(ti) = columns.iter().position(|(n, _)| n == TIME_COLUMN) else {
-        return run_from_rows(path, columns, &row).map(|r| vec![r]);
+        return run_from_rows(path, columns, &row, required).map(|r| vec![r]);
     };
-    check_columns(path, &columns)?;
+    check_columns(path, &columns, required)?;
     check_increasing(path, &columns[ti].1, &row)?;
     let gaps = find_gaps(&columns[ti].1);
     if gaps.is_empty() {
-        return run_from_rows(path, columns, &row).map(|r| vec![r]);
+        return run_from_rows(path, columns, &row, required).map(|r| vec![r]);
     }
     let (_, t) = columns.remove(ti);
-    let columns = order_columns(columns);
+    let columns = order_columns(columns, required);
     let gap_at = |i: usize| Gap {
         row: row(i),
         t_before: t[i - 1],
@@ -525,7 +610,7 @@ const NOTE_MAX_RANGES: usize = 8;
 fn missing_rows(
     path: &Path,
     mut columns: Columns,
-    declared: Option<&[String]>,
+    (declared, required): (Option<&[String]>, &RunColumns),
     notes: &mut Vec<String>,
 ) -> Result<(Columns, Vec<usize>), IoError> {
     let n = columns.first().map_or(0, |(_, c)| c.len());
@@ -533,7 +618,7 @@ fn missing_rows(
         // No time column: the run builder reports it.
         return Ok((columns, (0..n).collect()));
     };
-    check_shape(path, &columns)?;
+    check_shape(path, &columns, required)?;
     check_finite(path, TIME_COLUMN, &columns[ti].1)?;
     for (name, values) in &columns {
         if let Some(row) = values.iter().position(|v| v.is_infinite()) {
@@ -545,9 +630,9 @@ fn missing_rows(
             });
         }
     }
-    drop_incomplete_extras(path, &mut columns, declared, notes);
+    drop_incomplete_extras(path, &mut columns, (declared, required), notes);
     let kept = without_repeats(path, &columns, notes)?;
-    let hole = hole_rows(path, &columns, &kept, notes)?;
+    let hole = hole_rows(path, &columns, &kept, required, notes)?;
     let rows: Vec<usize> = kept
         .iter()
         .zip(&hole)
@@ -569,11 +654,11 @@ fn missing_rows(
 fn drop_incomplete_extras(
     path: &Path,
     columns: &mut Columns,
-    declared: Option<&[String]>,
+    (declared, required): (Option<&[String]>, &RunColumns),
     notes: &mut Vec<String>,
 ) {
     let sample = |name: &str| {
-        REQUIRED.contains(&name) || declared.is_some_and(|d| d.iter().any(|x| x == name))
+        required.contains(name) || declared.is_some_and(|d| d.iter().any(|x| x == name))
     };
     columns.retain(|(name, values)| {
         if name == TIME_COLUMN || sample(name) {
@@ -671,6 +756,7 @@ fn hole_rows(
     path: &Path,
     columns: &Columns,
     kept: &[usize],
+    required: &RunColumns,
     notes: &mut Vec<String>,
 ) -> Result<Vec<bool>, IoError> {
     let mut hole: Vec<bool> = kept
@@ -717,7 +803,8 @@ fn hole_rows(
             } else {
                 "treated as a gap"
             };
-            notes.push(hole_note(path, columns, &kept[k..end], position, step));
+            let rows = &kept[k..end];
+            notes.push(hole_note(path, columns, rows, (position, step), required));
         }
         k = end;
     }
@@ -735,7 +822,13 @@ fn hole_rows(
 
 /// The note of one stretch of hole rows `rows` (file rows): where, which columns, what is done
 /// with them (`action`), and the rows between them too few for a segment.
-fn hole_note(path: &Path, columns: &Columns, rows: &[usize], action: &str, step: f64) -> String {
+fn hole_note(
+    path: &Path,
+    columns: &Columns,
+    rows: &[usize],
+    (action, step): (&str, f64),
+    required: &RunColumns,
+) -> String {
     let t = time_of(columns);
     let mut names: Vec<&str> = Vec::new();
     let mut islands = Vec::new();
@@ -752,7 +845,7 @@ fn hole_note(path: &Path, columns: &Columns, rows: &[usize], action: &str, step:
     }
     let order = |name: &&str| columns.iter().position(|(n, _)| n == name);
     names.sort_by_key(order);
-    let guidance = names.iter().filter(|c| INPUT_COLUMNS.contains(c)).count();
+    let guidance = names.iter().filter(|c| required.is_input(c)).count();
     let what = match (guidance, names.len() - guidance) {
         (_, 0) => "guidance",
         (0, _) => "readouts",
@@ -862,7 +955,7 @@ pub const INTEGER_TIME_STEP_LIMIT: i64 = 1000;
 /// the first sample, float32 readouts, numeric columns the model does not use.
 pub fn read_run_noted(path: impl AsRef<Path>) -> Result<(Run, Vec<String>), IoError> {
     let path = path.as_ref();
-    let (columns, notes) = read_columns_noted(path, None, false)?;
+    let (columns, notes) = read_columns_noted(path, (None, &RunColumns::lpf()), false)?;
     Ok((run_from_columns(path, columns)?, notes))
 }
 
@@ -870,9 +963,13 @@ pub fn read_run_noted(path: impl AsRef<Path>) -> Result<(Run, Vec<String>), IoEr
 /// segment (see the module docs), in time order.
 pub fn read_run_segments(path: impl AsRef<Path>) -> Result<(Vec<Run>, Vec<String>), IoError> {
     let path = path.as_ref();
-    let (columns, mut notes) = read_columns_noted(path, None, true)?;
-    let (columns, rows) = missing_rows(path, columns, None, &mut notes)?;
-    Ok((segments_from_columns(path, columns, Some(&rows))?, notes))
+    let lpf = RunColumns::lpf();
+    let (columns, mut notes) = read_columns_noted(path, (None, &lpf), true)?;
+    let (columns, rows) = missing_rows(path, columns, (None, &lpf), &mut notes)?;
+    Ok((
+        segments_from_columns(path, columns, Some(&rows), &lpf)?,
+        notes,
+    ))
 }
 
 /// [`read_run_segments`] for a run of a dataset that declares the auxiliary readouts
@@ -883,8 +980,18 @@ pub fn read_run_segments_declared(
     path: impl AsRef<Path>,
     declared: &[String],
 ) -> Result<(Vec<Run>, Vec<String>), IoError> {
+    read_run_segments_for(path, declared, &RunColumns::lpf())
+}
+
+/// [`read_run_segments_declared`] of a run holding the columns `required` (the model's, which
+/// the errors and notes name).
+pub fn read_run_segments_for(
+    path: impl AsRef<Path>,
+    declared: &[String],
+    required: &RunColumns,
+) -> Result<(Vec<Run>, Vec<String>), IoError> {
     let path = path.as_ref();
-    let (columns, mut notes) = read_columns_noted(path, Some(declared), true)?;
+    let (columns, mut notes) = read_columns_noted(path, (Some(declared), required), true)?;
     if let Some(missing) = declared
         .iter()
         .find(|d| !columns.iter().any(|(n, _)| n == *d))
@@ -898,8 +1005,12 @@ pub fn read_run_segments_declared(
             ),
         ));
     }
-    let (columns, rows) = missing_rows(path, columns, Some(declared), &mut notes)?;
-    Ok((segments_from_columns(path, columns, Some(&rows))?, notes))
+    let declared = (Some(declared), required);
+    let (columns, rows) = missing_rows(path, columns, declared, &mut notes)?;
+    Ok((
+        segments_from_columns(path, columns, Some(&rows), required)?,
+        notes,
+    ))
 }
 
 /// Named columns of a run file.
@@ -910,14 +1021,14 @@ type Columns = Vec<(String, Vec<f64>)>;
 /// or an empty field (CSV) reads as NaN, a missing sample ([`missing_rows`] makes it a hole).
 fn read_columns_noted(
     path: &Path,
-    declared: Option<&[String]>,
+    (declared, run_columns): (Option<&[String]>, &RunColumns),
     missing: bool,
 ) -> Result<(Columns, Vec<String>), IoError> {
     let mut required = vec![TIME_COLUMN];
-    required.extend(REQUIRED);
+    required.extend(run_columns.required());
     let (mut table, report, mut notes) = match format_of(path)? {
         Format::Parquet if missing => {
-            let mut samples: Vec<&str> = REQUIRED.to_vec();
+            let mut samples: Vec<&str> = run_columns.required().collect();
             samples.extend(declared.unwrap_or_default().iter().map(String::as_str));
             let (table, report) = read_parquet_tolerant_missing(path, &required, &samples)?;
             (table, report, Vec::new())
@@ -943,11 +1054,7 @@ fn read_columns_noted(
             .iter()
             .map(|(c, why)| format!("{label}: column '{c}' ignored ({why})")),
     );
-    for c in report
-        .float32
-        .iter()
-        .filter(|c| REQUIRED.contains(&c.as_str()))
-    {
+    for c in report.float32.iter().filter(|c| run_columns.contains(c)) {
         notes.push(format!(
             "{label}: '{c}' is float32 (about 7 significant digits): its rounding is noise the \
              model does not have and can raise chi2/nu"
@@ -971,8 +1078,7 @@ fn read_columns_noted(
     }
     // Readable but not numeric (a status string, a boolean flag): not data for the model.
     table.columns.retain(|(name, column)| {
-        let keep =
-            column.to_f64().is_some() || REQUIRED.contains(&name.as_str()) || name == TIME_COLUMN;
+        let keep = column.to_f64().is_some() || run_columns.contains(name) || name == TIME_COLUMN;
         if !keep {
             notes.push(format!(
                 "{label}: column '{name}' ignored (type {})",
@@ -984,7 +1090,7 @@ fn read_columns_noted(
     let unused: Vec<&str> = table
         .names()
         .into_iter()
-        .filter(|n| *n != TIME_COLUMN && !REQUIRED.contains(n))
+        .filter(|n| *n != TIME_COLUMN && !run_columns.contains(n))
         .filter(|n| declared.is_none_or(|d| !d.iter().any(|x| x == n)))
         .collect();
     if !unused.is_empty() {
@@ -994,9 +1100,10 @@ fn read_columns_noted(
                 unused.join(", ")
             ),
             Some(_) => format!(
-                "{label}: columns not declared in the dataset and not used: {} (a recorded readout of another degree of freedom is declared as [[auxiliary]] column = \"{}\", kind = \"displacement\" or \"angle\", unit = \"m\" or \"rad\"; diagnose then tests its cross-talk into o1 and o12)",
+                "{label}: columns not declared in the dataset and not used: {} (a recorded readout of another degree of freedom is declared as [[auxiliary]] column = \"{}\", kind = \"displacement\" or \"angle\", unit = \"m\" or \"rad\"; diagnose then tests its cross-talk into {})",
                 unused.join(", "),
-                unused[0]
+                unused[0],
+                run_columns.readouts.join(" and ")
             ),
         });
     }
@@ -1048,9 +1155,19 @@ fn check_integer_time(path: &Path, table: &Table) -> Result<(), IoError> {
 /// Writes `run` atomically with columns `t`, `oi1`, `oi12`, `o1`, `o12`, then the extras:
 /// as CSV if `path` ends in `.csv`, else as Parquet. The run is validated first.
 pub fn write_run(path: impl AsRef<Path>, run: &Run) -> Result<(), IoError> {
+    write_run_for(path, run, &RunColumns::lpf())
+}
+
+/// [`write_run`] of a run holding the columns `required` (a model's): `t`, its inputs, its
+/// readouts, then the extras.
+pub fn write_run_for(
+    path: impl AsRef<Path>,
+    run: &Run,
+    required: &RunColumns,
+) -> Result<(), IoError> {
     let path = path.as_ref();
-    run.validate()?;
-    let ordered = order_columns(run.columns.clone());
+    run.validate_for(required)?;
+    let ordered = order_columns(run.columns.clone(), required);
     let is_csv = path
         .extension()
         .is_some_and(|e| e.eq_ignore_ascii_case("csv"));

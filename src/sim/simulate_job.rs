@@ -102,27 +102,16 @@ pub struct Simulated {
 
 impl Simulated {
     /// The measured-data form: the experiments, the noise run, the auxiliary readouts declared
-    /// in `[[auxiliary]]`, and the `[meta]`. Its runs hold oi1, oi12, o1, o12
-    /// (`io::run`): a model whose first inputs and readouts are not those is refused in one
-    /// line naming them.
+    /// in `[[auxiliary]]`, and the `[meta]`. Its runs hold the model's own channels
+    /// ([`Simulated::run_columns`]: oi1, oi12, o1, o12 for the LPF models, `io::RunColumns`).
     pub fn dataset(&self) -> Result<crate::io::Dataset, crate::io::IoError> {
-        let format = ["oi1", "oi12", "o1", "o12"];
-        if self.run_columns != format {
-            return Err(crate::io::IoError::Invalid {
-                path: std::path::PathBuf::from("<simulated dataset>"),
-                message: format!(
-                    "the model's runs hold {}; the measured-data format's runs hold {} \
-                     (src/io/run.rs), so this model's data cannot be written as a dataset",
-                    self.run_columns.join(", "),
-                    format.join(", ")
-                ),
-            });
-        }
-        crate::io::Dataset::simulated_with_auxiliary(
+        let (inputs, readouts) = self.run_columns.split_at(self.run_columns.len() / 2);
+        let columns = crate::io::RunColumns::new(inputs, readouts);
+        crate::io::Dataset::simulated_for(
             &self.data,
-            &self.noise,
-            &self.aux,
+            (&self.noise, &self.aux),
             self.meta.clone(),
+            &columns,
         )
     }
 

@@ -1068,6 +1068,7 @@ fn write_dataset_validates_before_writing() {
         meta: toml::Table::new(),
         injections: None,
         notes: Vec::new(),
+        run_columns: freefall::io::RunColumns::lpf(),
     };
     let err = write_dataset(&out, &ds).unwrap_err();
     assert_contains(
