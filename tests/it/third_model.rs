@@ -362,20 +362,13 @@ fn the_third_models_diagnosis_claims_a_planted_loss_angle_and_nothing_in_control
 /// The simulate job's draw on the oscillator: every default of [`SimulateModel`].
 impl freefall::sim::simulate_job::SimulateModel<1> for Oscillator {}
 
-#[test]
-fn the_simulate_job_draws_the_third_models_one_channel_runs() {
-    // Oracles: (1) the model's own simulator: the job's experiments are the draw of the
-    // frequency-domain simulator of the same design and streams (here through the effect
-    // host `Extended` with no effect, another path to the same operators), sample for sample;
-    // (2) the model's channels: one readout and one input per run, none auxiliary, a noise run
-    // of the requested duration; (3) the measured-data format (runs of oi1, oi12, o1, o12):
-    // writing the oscillator's runs (oi, o) is refused in one line naming both.
-    use freefall::sim::simulate_job::SimulateJob;
-    let s = setup();
-    let job = SimulateJob {
+/// The simulate job of the oscillator's standard design at the truth, from seed `seed`, with a
+/// noise run of an hour.
+fn job(seed: u64) -> freefall::sim::simulate_job::SimulateJob {
+    freefall::sim::simulate_job::SimulateJob {
         scenario: "nominal".into(),
         design: "standard".into(),
-        seed: 5,
+        seed,
         rate: None,
         engine: freefall::sim::Engine::FrequencyDomain,
         initial: None,
@@ -383,8 +376,19 @@ fn the_simulate_job_draws_the_third_models_one_channel_runs() {
         effects: Vec::new(),
         auxiliary: false,
         commands: false,
-    };
-    let sim = job.run_plain(&s).unwrap();
+    }
+}
+
+#[test]
+fn the_simulate_job_draws_the_third_models_one_channel_runs() {
+    // Oracles: (1) the model's own simulator: the job's experiments are the draw of the
+    // frequency-domain simulator of the same design and streams (here through the effect
+    // host `Extended` with no effect, another path to the same operators), sample for sample;
+    // (2) the model's channels: one readout and one input per run, none auxiliary, a noise run
+    // of the requested duration; (3) the measured-data form holds the model's own channels:
+    // its runs are oi, o (not the LPF models' oi1, oi12, o1, o12).
+    let s = setup();
+    let sim = job(5).run_plain(&s).unwrap();
     let (want, _) = simulate(&s, "standard", &[], 5);
     assert_eq!(sim.data.outputs, want.outputs);
     assert_eq!(sim.data.inputs, want.inputs);
@@ -393,9 +397,103 @@ fn the_simulate_job_draws_the_third_models_one_channel_runs() {
     assert_eq!(sim.noise[0].len(), 3600);
     assert!(sim.aux.channels.is_empty());
     assert_eq!(sim.run_columns, ["oi", "o"]);
-    let err = sim.dataset().unwrap_err().to_string();
+    let ds = sim.dataset().unwrap();
+    let runs = ds.experiments.iter().map(|(_, r)| r).chain(&ds.noise);
+    for run in runs {
+        assert_eq!(run.column_names(), ["oi", "o"]);
+    }
+}
+
+#[test]
+fn the_third_models_dataset_is_written_read_back_and_fitted() {
+    // Oracles: (1) the writer's contract: Parquet f64 columns read back bit for bit, so every
+    // sample of the experiments and of the noise run equals the simulation's (and the noise
+    // run's guidance is zero); (2) the simulated truth: the fit of the dataset as read back
+    // (the analysis' experiment data of the oscillator), whitened by the model noise PSD,
+    // recovers w2 and a within 4 sigma; (3) the format's columns are the model's: read with
+    // the LPF models' columns instead, the first run is refused naming its file and oi1.
+    use freefall::io::{read_dataset, read_dataset_for, write_dataset, RunColumns};
+    let s = setup();
+    let sim = job(23).run_plain(&s).unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let path = write_dataset(dir.path(), &sim.dataset().unwrap()).unwrap();
+    let columns = freefall::analysis::run_columns(&s);
+    assert_eq!(columns, RunColumns::new(&["oi"], &["o"]));
+    let back = read_dataset_for(&path, &columns).unwrap();
+    assert_eq!(back.names(), sim.data.names);
+    for (e, (_, run)) in back.experiments.iter().enumerate() {
+        assert_eq!((run.t0, run.dt), (0.0, sim.data.dt));
+        assert_eq!(run.column("oi").unwrap(), sim.data.inputs[e][0]);
+        assert_eq!(run.column("o").unwrap(), sim.data.outputs[e][0]);
+    }
+    let noise = back.noise.as_ref().unwrap();
+    assert_eq!(noise.column("o").unwrap(), sim.noise[0]);
+    assert!(noise.column("oi").unwrap().iter().all(|x| *x == 0.0));
+
+    let (data, notes) = freefall::analysis::experiment_data(&s, &back).unwrap();
+    assert_eq!(data.outputs, sim.data.outputs, "{notes:?}");
+    let truth = s.spec.scenario("nominal").unwrap().truth;
+    let guess = s.spec.scenario("nominal").unwrap().guess;
+    let w = s
+        .whitener_from_model(&truth, data.len(), data.dt, 20)
+        .unwrap();
+    let lik = Likelihood::for_data(&s.model, &data, w, 1).unwrap();
+    let problem = lik.problem(&data).unwrap();
+    let res = fit(&s.model, &problem, &guess, &FitConfig::new(&s.model)).unwrap();
+    assert!(res.termination.converged(), "{:?}", res.termination);
+    for (k, t) in truth.iter().enumerate() {
+        let pull = (res.estimate[k] - t) / res.sigma[k];
+        assert!(pull.abs() < 4.0, "parameter {k}: pull {pull}");
+    }
+
+    let err = read_dataset(&path).unwrap_err().to_string();
     assert_eq!(err.lines().count(), 1, "{err}");
-    for needle in ["oi, o", "oi1, oi12, o1, o12"] {
-        assert!(err.contains(needle), "'{err}' lacks '{needle}'");
+    assert!(err.contains("oi1") && err.contains(".parquet"), "{err}");
+}
+
+#[test]
+fn a_run_without_one_of_the_models_columns_is_refused_naming_file_and_column() {
+    // Oracle: the format's contract (io::run: the required columns are present, the error
+    // names the file and the column): a dataset of the oscillator whose first experiment's
+    // file lacks the readout `o` is refused in one line naming that file and `o`, whether it
+    // is Parquet or CSV.
+    use freefall::io::{read_dataset_for, read_run, write_dataset, write_run_for, Run, RunColumns};
+    let s = setup();
+    let sim = job(7).run_plain(&s).unwrap();
+    let columns = freefall::analysis::run_columns(&s);
+    for ext in ["parquet", "csv"] {
+        let dir = tempfile::tempdir().unwrap();
+        let path = write_dataset(dir.path(), &sim.dataset().unwrap()).unwrap();
+        let first = &sim.data.names[0];
+        let file = dir.path().join(format!("{first}.parquet"));
+        let run = read_dataset_for(&path, &columns).unwrap().experiments[0]
+            .1
+            .clone();
+        // The run without `o`, as a run of a model reading only `oi` (a valid run of it).
+        let only_oi = RunColumns::new(&["oi"], &[] as &[&str]);
+        let cut: Vec<(String, Vec<f64>)> = run
+            .columns
+            .iter()
+            .filter(|(n, _)| n != "o")
+            .cloned()
+            .collect();
+        let cut = Run::new_for(run.t0, run.dt, cut, &only_oi).unwrap();
+        let target = dir.path().join(format!("{first}.{ext}"));
+        write_run_for(&target, &cut, &only_oi).unwrap();
+        if ext == "csv" {
+            std::fs::remove_file(&file).unwrap();
+            let text = std::fs::read_to_string(&path)
+                .unwrap()
+                .replace(&format!("{first}.parquet"), &format!("{first}.csv"));
+            std::fs::write(&path, text).unwrap();
+        }
+        assert!(read_run(&target).is_err());
+        let err = read_dataset_for(&path, &columns).unwrap_err().to_string();
+        assert_eq!(err.lines().count(), 1, "{err}");
+        let name = format!("{first}.{ext}");
+        assert!(
+            err.contains(&name) && err.contains("'o'"),
+            "{ext}: '{err}' lacks the file or the column"
+        );
     }
 }
