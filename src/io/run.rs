@@ -105,8 +105,8 @@ impl RunColumns {
 
 /// A uniformly sampled run: sample i is at time `t0 + i * dt`.
 ///
-/// `columns` holds `oi1`, `oi12`, `o1`, `o12` (in that order) followed by any extra columns, all of
-/// the same length; it does not hold the time column, which is implied by `t0` and `dt`. Runs made
+/// `columns` holds `oi1`, `oi12`, `o1`, `o12` (in that order; a model's own [`RunColumns`] for a
+/// run made with them) followed by any extra columns, all of the same length; it does not hold the time column, which is implied by `t0` and `dt`. Runs made
 /// by [`read_run`] or [`Run::new`] satisfy this; a run built by hand can be checked with
 /// [`Run::validate`].
 #[derive(Clone, PartialEq)]
@@ -266,7 +266,7 @@ impl Run {
     pub fn extras(&self) -> impl Iterator<Item = (&str, &[f64])> {
         self.columns
             .iter()
-            .filter(|(n, _)| !RunColumns::lpf().contains(n))
+            .filter(|(n, _)| !INPUT_COLUMNS.iter().chain(&OUTPUT_COLUMNS).any(|c| c == n))
             .map(|(n, c)| (n.as_str(), c.as_slice()))
     }
 
