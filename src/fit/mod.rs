@@ -586,29 +586,53 @@ pub fn gradient(j: &[Series], r: &Series) -> DVector<f64> {
 
 /// `out[k] = dot(cols[k], r)` for up to [`GRADIENT_BLOCK`] columns of `r`'s length, with
 /// [`dot`]'s four lanes `acc[i] += x[4m + i] y[4m + i]`, its sequential tail and its final
-/// `(acc0 + acc1) + (acc2 + acc3) + tail`, so each result is bit-identical to `dot`'s.
+/// `(acc0 + acc1) + (acc2 + acc3) + tail`, so each result is bit-identical to `dot`'s. The
+/// columns go in groups of four, two and one ([`dot_lanes`]): each accumulator sees the same
+/// additions in the same order, and a group's `4 K` accumulators stay in registers (eight
+/// columns at once spilled them to the stack, and every update waited on a store).
 #[inline]
 fn dot_block(cols: &[&[f64]], r: &[f64], out: &mut [f64; GRADIENT_BLOCK]) {
     let nb = cols.len().min(GRADIENT_BLOCK);
+    let mut k = 0;
+    while nb - k >= 4 {
+        let v = dot_lanes::<4>(std::array::from_fn(|i| cols[k + i]), r);
+        out[k..k + 4].copy_from_slice(&v);
+        k += 4;
+    }
+    if nb - k >= 2 {
+        let v = dot_lanes::<2>(std::array::from_fn(|i| cols[k + i]), r);
+        out[k..k + 2].copy_from_slice(&v);
+        k += 2;
+    }
+    if k < nb {
+        out[k] = dot_lanes::<1>([cols[k]], r)[0];
+    }
+}
+
+/// [`dot`] of `K` columns (each of `r`'s length) with `r` in one pass over `r`: per column the
+/// four lanes `acc[i] += x[4m + i] y[4m + i]`, the sequential tail, then
+/// `(acc0 + acc1) + (acc2 + acc3) + tail`.
+#[inline(always)]
+fn dot_lanes<const K: usize>(cols: [&[f64]; K], r: &[f64]) -> [f64; K] {
     let n4 = r.len() / 4 * 4;
-    let mut acc = [[0.0f64; 4]; GRADIENT_BLOCK];
-    for m in (0..n4).step_by(4) {
-        let y: &[f64; 4] = r[m..m + 4].try_into().expect("four values");
-        for (a, col) in acc.iter_mut().zip(&cols[..nb]) {
-            let x: &[f64; 4] = col[m..m + 4].try_into().expect("four values");
+    let xs: [&[f64]; K] = cols.map(|c| &c[..n4]);
+    let mut acc = [[0.0f64; 4]; K];
+    for (m, y) in r[..n4].chunks_exact(4).enumerate() {
+        for (a, x) in acc.iter_mut().zip(&xs) {
+            let x = &x[4 * m..4 * m + 4];
             for i in 0..4 {
                 a[i] += x[i] * y[i];
             }
         }
     }
-    for (k, col) in cols[..nb].iter().enumerate() {
+    std::array::from_fn(|k| {
         let mut tail = 0.0;
-        for (x, y) in col[n4..].iter().zip(&r[n4..]) {
+        for (x, y) in cols[k][n4..].iter().zip(&r[n4..]) {
             tail += x * y;
         }
         let a = acc[k];
-        out[k] = (a[0] + a[1]) + (a[2] + a[3]) + tail;
-    }
+        (a[0] + a[1]) + (a[2] + a[3]) + tail
+    })
 }
 
 /// Weighted normal equations `A = J^T W J`, `g = J^T W r` (with `J = d template / dp`).
