@@ -77,8 +77,8 @@ pub fn compare<A: ClosedLoopModel<2>, B: ClosedLoopModel<2>>(
     o: [&[f64]; 2],
     oi: Option<[&[f64]; 2]>,
 ) -> Option<AccelChange> {
-    let same = std::ptr::addr_eq(before_model as *const A, after_model as *const B)
-        && p_before == p_after;
+    let same =
+        std::ptr::addr_eq(before_model as *const A, after_model as *const B) && p_before == p_after;
     let (f, before, lo, hi, after) = if same {
         let (f, before, lo, hi) = s_g12(before_model, p_before, dt, o, oi)?;
         let after = before.clone();

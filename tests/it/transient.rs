@@ -313,10 +313,20 @@ fn noise_run_transient_fit_is_identical_on_one_and_two_threads() {
         })
     };
     let ((t1, r1), (t2, r2)) = (on(1), on(2));
-    assert!(r1.significant, "the thesis's start is fitted: {}", r1.p_value);
+    assert!(
+        r1.significant,
+        "the thesis's start is fitted: {}",
+        r1.p_value
+    );
     let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
-    assert_eq!(bits(t1.coefficients.as_slice()), bits(t2.coefficients.as_slice()));
-    assert_eq!(bits(t1.covariance.as_slice()), bits(t2.covariance.as_slice()));
+    assert_eq!(
+        bits(t1.coefficients.as_slice()),
+        bits(t2.coefficients.as_slice())
+    );
+    assert_eq!(
+        bits(t1.covariance.as_slice()),
+        bits(t2.covariance.as_slice())
+    );
     assert_eq!(t1.kappa.to_bits(), t2.kappa.to_bits());
     assert_eq!(t1.cleaned, t2.cleaned);
     assert_eq!(

@@ -117,7 +117,11 @@ pub fn diagnose_observed<M: DiagnoseModel<N>, const N: usize>(
     d.acceleration = M::acceleration(
         &problem.nominal,
         &d.before.estimate,
-        if unchanged { &problem.nominal } else { &final_model },
+        if unchanged {
+            &problem.nominal
+        } else {
+            &final_model
+        },
         &d.after.estimate,
         data,
         noise,
