@@ -15,7 +15,7 @@ pub type Series = Vec<Vec<Vec<f64>>>;
 /// injection went on), which keeps the templates' last samples free of the step a zero-padded
 /// end would put there. `inputs` may be empty (a noise-only set); `tails` may be empty (no
 /// lead-outs).
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Default)]
 pub struct ExperimentData {
     pub names: Vec<String>,
     pub inputs: Vec<Vec<Vec<f64>>>,

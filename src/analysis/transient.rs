@@ -201,8 +201,12 @@ pub fn clean_noise_run<M: SpecModel<N> + DigitalPlant<N>, const N: usize>(
     alpha: f64,
 ) -> Result<(NoiseRunTransient, TransientReport)> {
     let n = noise.first().map_or(0, |c| c.len());
-    let fr = run_response(setup, p, n)?;
-    let model = setup.whitener_from_model(p, n, dt, order)?;
+    // The loop's free response and the model's filter at `p` are independent: made at once.
+    let (fr, model) = rayon::join(
+        || run_response(setup, p, n),
+        || setup.whitener_from_model(p, n, dt, order),
+    );
+    let (fr, model) = (fr?, model?);
     let t = fit_noise_run(&model, noise, &fr.cols, poly_degree)?;
     let report = TransientReport::new(
         &setup.model.readout_names(),

@@ -21,6 +21,7 @@
 //! `Cov(c) = R^-1 Cov(u) R^-T`.
 
 use nalgebra::{DMatrix, DVector};
+use rayon::prelude::*;
 
 use super::whiten::{poly_basis, project_out, Whitener};
 use super::FitError;
@@ -206,7 +207,7 @@ pub fn fit_noise_run<const N: usize>(
     d.iter_mut().for_each(|c| project_out(c, &basis));
     // Full causal responses (the filter's start-up included): zeros before the run.
     let full: Vec<Vec<Vec<f64>>> = cols
-        .iter()
+        .par_iter()
         .map(|k| {
             let padded: Vec<Vec<f64>> = k
                 .iter()
@@ -226,12 +227,19 @@ pub fn fit_noise_run<const N: usize>(
     let dof = (N * (n - p)).saturating_sub(basis.len() * N + cols.len());
     let scale = joint_dot(&rest, &rest) / dof.max(1) as f64;
     let k = cols.len();
+    // The shifted copies are independent: made over the cores, each as on one thread, and
+    // summed in their order.
+    let copies: Vec<DVector<f64>> = (1..=NULL_SHIFTS)
+        .into_par_iter()
+        .map(|j| {
+            let s = p + j * (n - p) / (NULL_SHIFTS + 1);
+            let tj = TransientBasis::from_whitened(vec![shifted(&full, s, p, &basis)])?;
+            Ok(tj.coordinates(0, &rest))
+        })
+        .collect::<Result<_, FitError>>()?;
     let mut cov_u = DMatrix::<f64>::zeros(k, k);
-    for j in 1..=NULL_SHIFTS {
-        let s = p + j * (n - p) / (NULL_SHIFTS + 1);
-        let tj = TransientBasis::from_whitened(vec![shifted(&full, s, p, &basis)])?;
-        let uj = tj.coordinates(0, &rest);
-        cov_u += &uj * uj.transpose() / NULL_SHIFTS as f64;
+    for uj in &copies {
+        cov_u += uj * uj.transpose() / NULL_SHIFTS as f64;
     }
     let null_dof = NULL_SHIFTS;
     let kappa = cov_u.trace() / (k as f64 * scale);

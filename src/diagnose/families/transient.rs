@@ -77,7 +77,13 @@ pub(crate) fn plan_and_fit<'a, M: DiagnoseModel<N>, const N: usize>(
     if !cfg.transients {
         return Ok((problem, fit0, Vec::new()));
     }
-    if M::transient_columns(setup, &fit0.fit.estimate[..setup.model.n_params()], data).is_none() {
+    // Whether the model has free-response columns, asked on no experiment: the columns
+    // themselves (a loop simulation per run length) are made by the fit that uses them.
+    let none = ExperimentData {
+        dt: data.dt,
+        ..ExperimentData::default()
+    };
+    if M::transient_columns(setup, &fit0.fit.estimate[..setup.model.n_params()], &none).is_none() {
         obs.note(&format!(
             "start-up transients are not tested: the {} model has no free-response columns",
             M::KIND.name()

@@ -104,8 +104,10 @@ pub fn diagnose_observed<M: DiagnoseModel<N>, const N: usize>(
     // The problem planned on the noise run less the claimed cross-talk, if any.
     let refined = crosstalk::refine(&problem, &mut state, guess, &mut both)?;
     let last = refined.as_ref().unwrap_or(&problem);
+    // Nothing added and no new plan: the final fit is the nominal one on the same problem.
+    let unchanged = refined.is_none() && state.added.is_empty();
     both.step(&observer::Step::Report);
-    let mut d = finish(last, state, &fit0, before, &mut both);
+    let mut d = finish(last, state, &fit0, (before, unchanged), &mut both);
     d.aux_coherence = coherence::table("before", &problem, &d.residuals_before.0);
     d.aux_coherence
         .extend(coherence::table("after", last, &d.residuals_after.0));
@@ -115,7 +117,11 @@ pub fn diagnose_observed<M: DiagnoseModel<N>, const N: usize>(
     d.acceleration = M::acceleration(
         &problem.nominal,
         &d.before.estimate,
-        &final_model,
+        if unchanged {
+            &problem.nominal
+        } else {
+            &final_model
+        },
         &d.after.estimate,
         data,
         noise,
@@ -128,12 +134,13 @@ pub fn diagnose_observed<M: DiagnoseModel<N>, const N: usize>(
 }
 
 /// After the selection: final additive reports, the final stage, the unexplained excess, the
-/// robust check, redesign probes, prior tension and residual spectra.
+/// robust check, redesign probes, prior tension and residual spectra. `unchanged`: the state
+/// still holds the nominal fit `fit0` on `problem`, whose stage is `before`.
 fn finish<M: DiagnoseModel<N>, const N: usize>(
     problem: &DiagnosisProblem<'_, M, N>,
     mut state: DiagnosisState<M, N>,
     fit0: &problem::LinearFit,
-    before: Stage,
+    (before, unchanged): (Stage, bool),
     obs: &mut dyn Observer,
 ) -> Diagnosis {
     let cfg = problem.cfg;
@@ -151,7 +158,11 @@ fn finish<M: DiagnoseModel<N>, const N: usize>(
         }
     }
     super::bayes::confirm_twins(problem, &mut state, obs);
-    let after = problem.stage(&state.model, &state.fit);
+    let after = if unchanged {
+        before.clone()
+    } else {
+        problem.stage(&state.model, &state.fit)
+    };
     let mut unexplained = excess::find_unexplained(&after, cfg.alpha);
     if let Some(nz) = problem.usable_noise() {
         let found = noise_excess::find(

@@ -387,15 +387,13 @@ fn score<M: DiagnoseModel<N>, const N: usize>(
             Proposal::Additive { effect, .. } => adds.push(effect.clone()),
         }
     }
-    let mut scores = score_operators(problem, &state.model, est, &ops, &eff, &extra)?;
-    scores.extend(score_additive(
-        &lik,
-        problem.data,
-        est,
-        &adds,
-        &eff,
-        &extra,
-    )?);
+    // The two families' tests are independent: run at once.
+    let (op, add) = rayon::join(
+        || score_operators(problem, &state.model, est, &ops, &eff, &extra),
+        || score_additive(&lik, problem.data, est, &adds, &eff, &extra),
+    );
+    let mut scores = op?;
+    scores.extend(add?);
     let names = state.model.parameter_names();
     let (n, threshold) = (bayes::n_samples(state), state.threshold(problem.cfg));
     Ok(described
