@@ -153,7 +153,7 @@ impl LpfX {
     }
 
     /// The held plant of the digital loop at `p`, `None` for a continuous model.
-    pub fn held_plant(&self, p: &[f64]) -> Option<HeldPlant> {
+    pub fn held_plant(&self, p: &[f64]) -> Option<HeldPlant<2, 2>> {
         let dl = self.digital.as_ref()?;
         let m = |a: [[f64; 2]; 2]| nalgebra::Matrix2::new(a[0][0], a[0][1], a[1][0], a[1][1]);
         let dk = self.stiffness_derivatives();
@@ -448,7 +448,7 @@ impl LpfX {
         }
     }
 
-    fn digital_operators(&self, pt: &LpfPoint, p: &[f64], plant: &HeldPlant) -> Operators<2> {
+    fn digital_operators(&self, pt: &LpfPoint, p: &[f64], plant: &HeldPlant<2, 2>) -> Operators<2> {
         self.operators_with(pt, p, plant.d(pt.z, pt.zm1), plant.delay_factor(pt.z))
     }
 
@@ -467,7 +467,7 @@ impl LpfX {
         pt: &LpfPoint,
         p: &[f64],
         k: usize,
-        plant: Option<&HeldPlant>,
+        plant: Option<&HeldPlant<2, 2>>,
     ) -> OperatorDerivative<2> {
         let z = c(0.0);
         let mt = self.mt;
@@ -508,7 +508,7 @@ impl LpfX {
     /// then the generic operator algebra per point.
     fn digital_transfer_grid(
         &self,
-        plant: &HeldPlant,
+        plant: &HeldPlant<2, 2>,
         points: &[LpfPoint],
         p: &[f64],
         t_out: &mut [CMat<2>],
