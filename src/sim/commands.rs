@@ -65,14 +65,16 @@ impl SimulateModel<7> for LpfXy {
         )))
     }
 
-    /// The 7-DOF digital loop (`sim::time_domain`).
+    /// The 7-DOF digital loop (`sim::time_domain`), the library's operator effects in its x
+    /// block.
     fn time_domain_runs(
         job: &super::simulate_job::SimulateJob,
         setup: &SetupXy,
-        truth: &[f64],
+        sc: &crate::model::spec::Scenario,
         designs: (&crate::signal::Design, &crate::signal::Design),
+        set: &crate::sim::inject::EffectSet,
     ) -> Result<Option<super::simulate_job::Runs>, SimulateError> {
-        super::simulate_job::digital_loop_runs(job, setup, truth, designs).map(Some)
+        super::simulate_job::digital_loop_runs(job, setup, sc, designs, set).map(Some)
     }
 }
 

@@ -9,7 +9,7 @@
 use super::inject::{apply, EffectSet, Injected};
 use super::{simulate_effect_set, EffectsError};
 use crate::data::{AuxChannel, AuxKind, AuxRole, Auxiliary, ExperimentData};
-use crate::model::effects::Extended;
+use crate::model::effects::{EffectHost, Extended};
 use crate::model::spec::{ModelSpec, Scenario};
 use crate::model::{check_stability, ModelError};
 use crate::model::{ClosedLoopModel, LpfX};
@@ -261,10 +261,10 @@ impl SimulateJob {
         rate: Rate,
     ) -> Result<Runs, SimulateError> {
         let glitch = sc.glitch.as_ref();
-        let (truth, seed, initial) = (&sc.truth, self.seed, self.initial.as_ref());
+        let (truth, seed) = (&sc.truth, self.seed);
         Ok(match (self.engine, rate) {
-            (Engine::TimeDomain, _) if !effects.is_empty() => {
-                self.time_domain_effects(setup, (design, noise_design), sc, effects)?
+            (Engine::TimeDomain, _) => {
+                digital_loop_runs(self, setup, sc, (design, noise_design), effects)?
             }
             _ if !effects.is_empty() => simulate_effect_set(
                 setup,
@@ -275,11 +275,6 @@ impl SimulateJob {
                 glitch,
                 seed,
             )?,
-            (Engine::TimeDomain, _) => {
-                let sim = setup.time_domain_simulator(design, truth, glitch, initial)?;
-                let nsim = setup.time_domain_simulator(noise_design, truth, glitch, initial)?;
-                draw_all(|r| sim.draw(r), |r| nsim.noise_run(r), seed)
-            }
             (Engine::FrequencyDomain, Rate::Decimated) => {
                 let sim = setup.decimated_simulator(design, truth, glitch)?;
                 let nsim = setup.decimated_simulator(noise_design, truth, glitch)?;
@@ -291,52 +286,6 @@ impl SimulateJob {
                 draw_all(|r| sim.draw(r), |r| nsim.noise_series(r), seed)
             }
         })
-    }
-
-    /// The time-domain engine with effects: the library's operator effects in the plant
-    /// ([`PlantEffects`]), lines added to the experiments' readouts. Drifts and glitches are
-    /// refused naming the spec (the frequency-domain engine has them).
-    fn time_domain_effects(
-        &self,
-        setup: &Setup,
-        (design, noise_design): (&Design, &Design),
-        sc: &Scenario,
-        effects: &EffectSet,
-    ) -> Result<Runs, SimulateError> {
-        let (truth, glitch) = (&sc.truth, sc.glitch.as_ref());
-        let refused = |what: &'static str| {
-            let spec = self
-                .effects
-                .iter()
-                .find(|s| s.starts_with(what))
-                .map_or(what, String::as_str);
-            SimulateError::NotInTimeDomain {
-                spec: spec.to_string(),
-                what,
-            }
-        };
-        if !effects.drifts.is_empty() {
-            return Err(refused("drift_"));
-        }
-        if effects
-            .injected
-            .iter()
-            .any(|i| matches!(i, Injected::Glitch { .. }))
-        {
-            return Err(refused("glitch_"));
-        }
-        let fx = PlantEffects::from_library(&setup.model, &effects.effects)?;
-        let (initial, seed) = (self.initial.as_ref(), self.seed);
-        let sim = setup.time_domain_simulator_with_effects(design, truth, glitch, initial, &fx)?;
-        let nsim =
-            setup.time_domain_simulator_with_effects(noise_design, truth, glitch, initial, &fx)?;
-        let (mut data, noise) = draw_all(|r| sim.draw(r), |r| nsim.noise_run(r), seed);
-        if !effects.injected.is_empty() {
-            // Only lines remain: additive in the readouts, no model needed beyond the base.
-            let model = Extended::new(setup.model.clone(), Vec::new());
-            apply(&model, truth, &mut data, &effects.injected).map_err(SimulateError::Inject)?;
-        }
-        Ok((data, noise))
     }
 
     /// `[meta]` of a simulated dataset: generator, model, scenario (and its glitch population),
@@ -468,29 +417,63 @@ pub trait SimulateModel<const N: usize>: SpecModel<N> {
     }
 
     /// The runs of every readout by the time-domain engine (`sim::time_domain`, the model's
-    /// digital loop, decimated telemetry) from `job`'s seed, with its initial conditions;
-    /// `None`: the model has no digital loop ([`crate::sim::time_domain::DigitalPlant`]).
+    /// digital loop, decimated telemetry) at `sc`'s truth from `job`'s seed, with its initial
+    /// conditions and the library's operator effects of `set` in the plant
+    /// ([`digital_loop_runs`]); `None`: the model has no digital loop
+    /// ([`crate::sim::time_domain::DigitalPlant`]).
     fn time_domain_runs(
         _job: &SimulateJob,
         _setup: &SetupOf<Self, N>,
-        _truth: &[f64],
+        _sc: &Scenario,
         _designs: (&Design, &Design),
+        _set: &EffectSet,
     ) -> Result<Option<Runs>, SimulateError> {
         Ok(None)
     }
 }
 
-/// [`SimulateModel::time_domain_runs`] of a model with a digital loop.
-pub fn digital_loop_runs<M: SpecModel<N> + DigitalPlant<N>, const N: usize>(
+/// [`SimulateModel::time_domain_runs`] of a model with a digital loop, at `sc`'s truth with
+/// `job`'s initial conditions and seed: the library's operator effects of `set` in the plant
+/// ([`PlantEffects::from_library`], placed by the model's effect roles), its lines added to the
+/// experiments' readouts. Drifts and glitches are refused naming the spec (the
+/// frequency-domain engine has them), as is a scenario with glitches.
+pub fn digital_loop_runs<M, const N: usize>(
     job: &SimulateJob,
     setup: &SetupOf<M, N>,
-    truth: &[f64],
+    sc: &Scenario,
     (design, noise_design): (&Design, &Design),
-) -> Result<Runs, SimulateError> {
-    let initial = job.initial.as_ref();
-    let sim = setup.time_domain_simulator(design, truth, None, initial)?;
-    let nsim = setup.time_domain_simulator(noise_design, truth, None, initial)?;
-    Ok(draw_all(|r| sim.draw(r), |r| nsim.noise_run(r), job.seed))
+    set: &EffectSet,
+) -> Result<Runs, SimulateError>
+where
+    M: SpecModel<N> + DigitalPlant<N> + EffectHost<N>,
+{
+    let refused = |what: &'static str| {
+        let spec = (job.effects.iter())
+            .find(|s| s.starts_with(what))
+            .map_or(what, String::as_str);
+        SimulateError::NotInTimeDomain {
+            spec: spec.to_string(),
+            what,
+        }
+    };
+    if !set.drifts.is_empty() {
+        return Err(refused("drift_"));
+    }
+    if (set.injected.iter()).any(|i| matches!(i, Injected::Glitch { .. })) {
+        return Err(refused("glitch_"));
+    }
+    let fx = PlantEffects::from_library(&setup.model, &set.effects)?;
+    let (truth, glitch, initial) = (&sc.truth, sc.glitch.as_ref(), job.initial.as_ref());
+    let sim = setup.time_domain_simulator_with_effects(design, truth, glitch, initial, &fx)?;
+    let nsim =
+        setup.time_domain_simulator_with_effects(noise_design, truth, glitch, initial, &fx)?;
+    let (mut data, noise) = draw_all(|r| sim.draw(r), |r| nsim.noise_run(r), job.seed);
+    if !set.injected.is_empty() {
+        // Only lines remain: additive in the readouts, no model needed beyond the base.
+        let model = Extended::new(setup.model.clone(), Vec::new());
+        apply(&model, truth, &mut data, &set.injected).map_err(SimulateError::Inject)?;
+    }
+    Ok((data, noise))
 }
 
 impl SimulateModel<2> for LpfX {
@@ -576,17 +559,18 @@ impl SimulateJob {
 
     /// Draws the dataset of any model with a digital loop by the time-domain engine
     /// ([`SimulateModel::time_domain_runs`]), decimated telemetry, with the initial conditions
-    /// of `--initial`: the runs' channels as the runs, the model's other readouts and guidance
-    /// as auxiliary columns, as [`Self::run_plain`] writes them. The reference loop only: effects
-    /// and `--commands` are refused in one line.
+    /// of `--initial` and the library's operator effects of `--effect` in the plant (as the x
+    /// model's [`Self::run`]): the runs' channels as the runs, the model's other readouts and
+    /// guidance as auxiliary columns, as [`Self::run_plain`] writes them. Lines, auxiliary
+    /// cross-talk and `--commands` are refused in one line (the frequency-domain engine records
+    /// commands).
     fn run_digital<M: SimulateModel<N>, const N: usize>(
         &self,
         setup: &SetupOf<M, N>,
     ) -> Result<Simulated, SimulateError> {
-        let refuse = |what: &str| {
+        let refuse = |what: &str, instead: &str| {
             Err(SimulateError::Effect(format!(
-                "{what}: the time-domain engine of the {} model ({}) simulates its reference \
-                 loop only; use the frequency-domain engine",
+                "{what}: the time-domain engine of the {} model ({}) does not simulate it; {instead}",
                 M::KIND.name(),
                 setup.spec.origin
             )))
@@ -594,18 +578,26 @@ impl SimulateJob {
         if self.resolved_rate() == Rate::Analysis {
             return Err(SimulateError::AnalysisRateInTimeDomain);
         }
-        if !self.effects.is_empty() {
-            return refuse("--effect");
-        }
         if self.commands {
-            return refuse("--commands");
+            return refuse(
+                "--commands",
+                "record the commands with the frequency-domain engine (--engine frequency-domain --rate analysis)",
+            );
+        }
+        let set = EffectSet::parse(&self.effects, &setup.parameter_names())
+            .map_err(SimulateError::Effect)?;
+        if !(set.injected.is_empty() && set.crosstalk.is_empty()) {
+            return refuse(
+                "--effect other than the library's operator effects",
+                "the library's effects (gravity_gradient, damping_tm1, ...) are simulated in the plant",
+            );
         }
         let (sc, design, noise_design) = self.plan(setup)?;
         if sc.glitch.is_some() {
             return Err(TimeDomainError::Glitches.into());
         }
         let designs = (&design, &noise_design);
-        let Some(runs) = M::time_domain_runs(self, setup, &sc.truth, designs)? else {
+        let Some(runs) = M::time_domain_runs(self, setup, &sc, designs, &set)? else {
             return Err(SimulateError::Effect(format!(
                 "--engine time-domain: the {} model ({}) has no digital loop \
                  (sim::time_domain::DigitalPlant)",
@@ -613,7 +605,12 @@ impl SimulateJob {
                 setup.spec.origin
             )));
         };
-        Ok(self.assemble(setup, &sc, Rate::Decimated, runs))
+        let mut out = self.assemble(setup, &sc, Rate::Decimated, runs);
+        if !set.is_empty() {
+            out.meta
+                .insert("effects".into(), toml::Value::Table(set.meta));
+        }
+        Ok(out)
     }
 
     /// Draws the dataset of any model by the frequency-domain engine at the analysis rate

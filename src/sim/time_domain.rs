@@ -32,8 +32,9 @@
 //! `oi(t_k)` and readouts) is decimated to the analysis rate by the model's anti-alias FIR on
 //! a grid with margins, so every kept sample is fully supported ([`DecimationGrid`]).
 //!
-//! Effects ([`PlantEffects`], the x model's): the library's operator effects are changes of
-//! this plant, so they are simulated exactly like the reference loop:
+//! Effects ([`PlantEffects`], any model with effect roles: the x model's plant, the xy model's
+//! x block): the library's operator effects are changes of this plant, so they are simulated
+//! exactly like the reference loop (the patterns below are the x block's):
 //! - gravity gradient: `K += dgamma [[0, 1], [0, -2]]`; damping of TM k: a velocity term
 //!   `gamma M_k q'` in the equation of motion (thesis sec. 4.1.1);
 //! - sensing gains and sensing cross-talk: `S += dS` in the sampled readouts (thesis sec. 3.5);
@@ -56,7 +57,8 @@ use rand::Rng;
 use crate::data::ExperimentData;
 use crate::model::closed_loop::{CMat, ClosedLoopModel, NoiseEntry};
 use crate::model::discrete::{held_input, Df2t, DiscreteTf, Discretisation};
-use crate::model::effects::{stiffness_map, Category, Effect};
+use crate::model::effects::{Actuator, Category, Effect, EffectHost, Roles, Tm};
+use crate::model::lpf_x::Channel;
 use crate::model::lpf_x::{A_DF, A_SUS, DT1, DT12, S21};
 use crate::model::zpk::Zpk;
 use crate::model::{LpfX, LpfXy, ModelSpec};
@@ -190,14 +192,31 @@ impl<const N: usize> Default for PlantEffects<N> {
     }
 }
 
-impl PlantEffects<2> {
-    /// The plant changes of library effects at their values (one value per effect parameter).
-    /// Every effect of the library either maps here or is refused naming it: a loss angle is a
+impl<const N: usize> PlantEffects<N> {
+    /// The plant changes of library effects at their values (one value per effect parameter),
+    /// placed by the model's effect roles (`model::effects::roles`: the x channels' readouts,
+    /// coordinates and actuator columns, the gravity gradient's and each test mass's stiffness
+    /// patterns), so that an effect changes the plant where it changes the model's operators:
+    /// the x model's 2x2 plant, or the x block of the xy model's 7-DOF one. Every effect of the
+    /// library either maps here or is refused naming it: a loss angle is a
     /// frequency-independent imaginary stiffness, which no causal time-domain plant has.
-    pub fn from_library(
-        model: &LpfX,
+    pub fn from_library<M: EffectHost<N>>(
+        model: &M,
         effects: &[(std::sync::Arc<dyn Effect>, Vec<f64>)],
-    ) -> Result<PlantEffects, TimeDomainError> {
+    ) -> Result<PlantEffects<N>, TimeDomainError> {
+        // The roles' patterns and indices depend on neither the point nor the parameters.
+        let pt = model.point_at(Complex64::new(0.0, 1.0));
+        let base = vec![0.0; model.n_params()];
+        let roles = model.roles(&pt, &base);
+        let (o1, o12) = (Channel::O1, Channel::O12);
+        let (df, sus) = (Actuator::DragFree, Actuator::Suspension);
+        let add = |m: &mut [[f64; N]; N], v: f64, pattern: CMat<N>| {
+            for (i, row) in m.iter_mut().enumerate() {
+                for (j, d) in row.iter_mut().enumerate() {
+                    *d += v * pattern[(i, j)].re;
+                }
+            }
+        };
         let mut fx = PlantEffects::default();
         for (e, theta) in effects {
             let name = e.name();
@@ -207,31 +226,29 @@ impl PlantEffects<2> {
                 reason: reason.into(),
             };
             match name.as_str() {
-                "gravity_gradient" => {
-                    // dD = dgamma [[0, 1], [0, -2]] (effects::gravity_gradient).
-                    fx.dk[0][1] += v;
-                    fx.dk[1][1] -= 2.0 * v;
+                // dD = dgamma [[0, 1], [0, -2]] in the x block (effects::gravity_gradient).
+                "gravity_gradient" => add(&mut fx.dk, v, roles.gravity_gradient_map()),
+                "damping_tm1" => add(&mut fx.damping, v, roles.stiffness_map(Tm::One)),
+                "damping_tm2" => add(&mut fx.damping, v, roles.stiffness_map(Tm::Two)),
+                "sensing_gain_o1" => fx.ds[roles.readout(o1)][roles.coordinate(o1)] += v,
+                "sensing_gain_o12" => fx.ds[roles.readout(o12)][roles.coordinate(o12)] += v,
+                "sensing_crosstalk_o12_o1" => {
+                    fx.ds[roles.readout(o1)][roles.coordinate(o12)] += v
                 }
-                "damping_tm1" | "damping_tm2" => {
-                    let m = stiffness_map(model, name == "damping_tm2");
-                    for (i, row) in fx.damping.iter_mut().enumerate() {
-                        for (j, d) in row.iter_mut().enumerate() {
-                            *d += v * m[(i, j)].re;
-                        }
-                    }
+                "actuation_crosstalk_df_x12" => {
+                    fx.dac[roles.coordinate(o12)][roles.actuator_column(df)] += v
                 }
-                "sensing_gain_o1" => fx.ds[0][0] += v,
-                "sensing_gain_o12" => fx.ds[1][1] += v,
-                "sensing_crosstalk_o12_o1" => fx.ds[0][1] += v,
-                "actuation_crosstalk_df_x12" => fx.dac[1][0] += v,
-                "actuation_crosstalk_sus_x1" => fx.dac[0][1] += v,
+                "actuation_crosstalk_sus_x1" => {
+                    fx.dac[roles.coordinate(o1)][roles.actuator_column(sus)] += v
+                }
                 "actuation_lag_df" | "actuation_lag_sus" => {
                     if v.is_nan() || v < 0.0 {
                         return Err(refuse(&format!(
                             "tau = {v} s: a lag's time constant must be >= 0"
                         )));
                     }
-                    fx.lag[usize::from(name == "actuation_lag_sus")] = v;
+                    let a = if name == "actuation_lag_sus" { sus } else { df };
+                    fx.lag[roles.actuator_column(a)] = v;
                 }
                 _ if e.category() == Category::LossAngle => {
                     return Err(refuse(
