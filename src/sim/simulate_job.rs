@@ -383,10 +383,12 @@ pub type LoopCommands = (Vec<AuxChannel>, crate::sim::commands::Commands);
 
 /// What `simulate` needs of its model beyond [`SpecModel`]: the draw of a [`SimulateJob`]'s
 /// dataset. Every model has the frequency-domain draw at the analysis rate, its channels beyond
-/// the runs' recorded as auxiliary columns ([`SimulateJob::run_plain`], the default); the x
-/// model adds the time-domain engine, the decimated rate, effects and initial conditions
-/// ([`SimulateJob::run`]); a model with loops beyond the runs' channels records their commands
-/// ([`SimulateModel::commands`], `--commands`).
+/// the runs' recorded as auxiliary columns ([`SimulateJob::run_plain`], the default), the
+/// decimated rate, and with a digital loop the time-domain engine with initial conditions and
+/// the library's operator effects ([`SimulateModel::time_domain_runs`]); the x model adds lines,
+/// drifts, glitches and auxiliary cross-talk ([`SimulateJob::run`]); a model with loops beyond
+/// the runs' channels records their commands ([`SimulateModel::commands`], `--commands`, by the
+/// frequency-domain engine).
 pub trait SimulateModel<const N: usize>: SpecModel<N> {
     fn simulate(job: &SimulateJob, setup: &SetupOf<Self, N>) -> Result<Simulated, SimulateError> {
         job.run_plain(setup)
@@ -617,9 +619,9 @@ impl SimulateJob {
     /// (`SetupOf::plain_simulator`): the runs' channels as the runs, the model's other readouts
     /// and guidance as auxiliary columns (`[[auxiliary]]` of dataset.toml), experiments and
     /// noise run alike, and with `commands` the commands of the model's other loops
-    /// ([`SimulateModel::commands`]); with `--rate decimated`, [`Self::run_decimated`]. Refuses
-    /// the engine, effects and initial conditions that only the x model's draw has
-    /// ([`SimulateJob::run`]).
+    /// ([`SimulateModel::commands`]); with `--rate decimated`, [`Self::run_decimated`]; with
+    /// `--engine time-domain`, [`Self::run_digital`]. Refuses the effects that only the x
+    /// model's draw has ([`SimulateJob::run`]).
     pub fn run_plain<M: SimulateModel<N>, const N: usize>(
         &self,
         setup: &SetupOf<M, N>,
