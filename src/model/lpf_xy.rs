@@ -633,12 +633,18 @@ impl LpfXy {
     }
 
     /// The digital loop's characteristic polynomial in `w = z - 1` (ascending powers), whose
-    /// roots `1 + w` are the closed-loop poles in `z`: `det(m Delta_d)` with column `j` of
-    /// `m Delta_d = (m D_d) S^-1 + (m H) A C` multiplied by its law's denominator `den_j`, so
-    /// that it is the polynomial column `(m D_d S^-1)_{:j} den_j + (m H) a_j num_j`
-    /// (`m = z + 1`, or `z (z + 1)` with a computation delay;
-    /// `sampled::HeldPlant::polynomial_matrices`). `None` for a continuous model.
+    /// roots `1 + w` are the closed-loop poles in `z`: the determinant of
+    /// [`Self::digital_polynomial_matrix`]. `None` for a continuous model.
     pub fn digital_characteristic_polynomial(&self, p: &[f64]) -> Option<Poly> {
+        Some(determinant(&self.digital_polynomial_matrix(p)?))
+    }
+
+    /// `m Delta_d` with column `j` multiplied by its law's denominator `den_j`, entries
+    /// polynomials in `w = z - 1`: column `j` of `m Delta_d = (m D_d) S^-1 + (m H) A C` times
+    /// `den_j` is `(m D_d S^-1)_{:j} den_j + (m H) a_j num_j` (`m = z + 1`, or `z (z + 1)` with
+    /// a computation delay; `sampled::HeldPlant::polynomial_matrices`). `None` for a continuous
+    /// model.
+    pub fn digital_polynomial_matrix(&self, p: &[f64]) -> Option<Vec<Vec<Poly>>> {
         let (dm, hm) = self.held_plant(p)?.polynomial_matrices();
         let s_inv = self.sensing(p).try_inverse().unwrap_or_else(R7::identity);
         let mut laws = Vec::with_capacity(7);
@@ -648,7 +654,7 @@ impl LpfXy {
         let combine = |row: &[Poly; 7], v: &dyn Fn(usize) -> f64| {
             (0..7).fold(Poly::constant(0.0), |acc, l| acc.add(&row[l].scale(v(l))))
         };
-        let m: Vec<Vec<Poly>> = (0..7)
+        let m = (0..7)
             .map(|i| {
                 (0..7)
                     .map(|j| {
@@ -661,8 +667,51 @@ impl LpfXy {
                     .collect()
             })
             .collect();
-        Some(determinant(&m))
+        Some(m)
     }
+}
+
+/// Newton steps allowed to [`polish_root`].
+const POLISH_ITERATIONS: usize = 30;
+
+/// A root `w0` of `det M(w)` (a polynomial matrix) refined by Newton's method on the
+/// determinant evaluated from the matrix, `w <- w - 1 / tr(M^-1 M')` (Jacobi's formula
+/// `(det M)' = det M tr(M^-1 M')`): the matrix's entries are low-degree polynomials, exact to
+/// rounding, whereas the coefficients of the expanded determinant of the 7x7 loop carry the
+/// cancellations of the expansion, which move its near-double roots (the twin y and phi loops)
+/// by up to the square root of their rounding. A step that would leave the root's own
+/// neighbourhood (`|w - w0| > |w0|`) is not taken.
+fn polish_root(m: &[Vec<Poly>], w0: Complex64) -> Complex64 {
+    let derivative = |q: &Poly| {
+        Poly(
+            (q.0.iter().enumerate().skip(1))
+                .map(|(i, c)| i as f64 * c)
+                .collect(),
+        )
+    };
+    let n = m.len();
+    let dm: Vec<Vec<Poly>> = m
+        .iter()
+        .map(|row| row.iter().map(derivative).collect())
+        .collect();
+    let mut w = w0;
+    for _ in 0..POLISH_ITERATIONS {
+        let a = nalgebra::DMatrix::from_fn(n, n, |i, j| m[i][j].eval(w));
+        let da = nalgebra::DMatrix::from_fn(n, n, |i, j| dm[i][j].eval(w));
+        let Some(inv) = a.try_inverse() else {
+            break; // singular to rounding: w is the root
+        };
+        let step = c(1.0) / (inv * da).trace();
+        let next = w - step;
+        if !next.re.is_finite() || !next.im.is_finite() || (next - w0).norm() > w0.norm() {
+            break;
+        }
+        w = next;
+        if step.norm() <= 4.0 * f64::EPSILON * w.norm() {
+            break;
+        }
+    }
+    w
 }
 
 impl ClosedLoopModel<7> for LpfXy {
@@ -705,12 +754,13 @@ impl ClosedLoopModel<7> for LpfXy {
     }
 
     /// For a digital model, the poles in `z` of
-    /// [`LpfXy::digital_characteristic_polynomial`] mapped to `s = ln(z) / h`.
+    /// [`LpfXy::digital_characteristic_polynomial`], each polished on the polynomial matrix
+    /// ([`polish_root`]), mapped to `s = ln(z) / h`.
     fn poles(&self, p: &[f64]) -> Result<Vec<Complex64>, RootsError> {
-        match (&self.x.digital, self.digital_characteristic_polynomial(p)) {
-            (Some(dl), Some(poly)) => {
-                Ok(poly.roots()?.into_iter().map(|w| s_of_w(w, dl.h)).collect())
-            }
+        match (&self.x.digital, self.digital_polynomial_matrix(p)) {
+            (Some(dl), Some(m)) => Ok((determinant(&m).roots()?.into_iter())
+                .map(|w| s_of_w(polish_root(&m, w), dl.h))
+                .collect()),
             _ => self.characteristic_polynomial(p).roots(),
         }
     }
