@@ -263,12 +263,13 @@ fn digital_model_with_the_library_lag_is_the_lagged_loop() {
     }
 }
 
-/// Effects the xy sampled-data model carries exactly (constant changes of `K`, `S` and `A`),
-/// at values that change `T_{oi->o}` by far more than the engines' agreement.
-const XY_EXACT_EFFECTS: [(&str, f64); 4] = [
+/// Effects the xy sampled-data model carries (constant changes of `K`, `S` and `A`), at values
+/// that change `T_{oi->o}` by far more than the engines' agreement. (sensing_crosstalk_o12_o1
+/// is left out: at the test frequency, inside the drag-free bandwidth, the loop keeps o1 on its
+/// guidance and the readouts' T moves by only 2e-6 of a column for a 1e-3 cross-talk.)
+const XY_EXACT_EFFECTS: [(&str, f64); 3] = [
     ("gravity_gradient", 2e-7),
     ("sensing_gain_o12", 1e-3),
-    ("sensing_crosstalk_o12_o1", 1e-3),
     ("actuation_crosstalk_df_x12", 1e-3),
 ];
 
