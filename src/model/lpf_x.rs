@@ -454,7 +454,12 @@ impl LpfX {
 
     /// The operators at one point, with the held plant at `p` for a digital model (`None`:
     /// continuous), made once by the caller for a whole grid.
-    fn operators_held(&self, pt: &LpfPoint, p: &[f64], plant: Option<&HeldPlant>) -> Operators<2> {
+    fn operators_held(
+        &self,
+        pt: &LpfPoint,
+        p: &[f64],
+        plant: Option<&HeldPlant<2, 2>>,
+    ) -> Operators<2> {
         match plant {
             Some(plant) => self.digital_operators(pt, p, plant),
             None => self.operators_with(pt, p, self.d(pt, p), None),
@@ -687,7 +692,7 @@ impl ClosedLoopModel<2> for LpfX {
 struct HeldSweep<'a> {
     model: &'a LpfX,
     p: &'a [f64],
-    plant: Option<HeldPlant>,
+    plant: Option<HeldPlant<2, 2>>,
 }
 
 impl OperatorSweep<2, LpfPoint> for HeldSweep<'_> {
