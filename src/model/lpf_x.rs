@@ -14,9 +14,10 @@ use super::closed_loop::{
     transfer_grid_adjoint_forward, transfer_of, transfer_with_derivatives_of, CMat,
     ClosedLoopModel, NoiseEntry, OperatorDerivative, OperatorSweep, Operators,
 };
-use super::discrete::DiscreteTf;
+use super::discrete::{Df2t, DiscreteTf};
 use super::poly::{Poly, RootsError};
 use super::sampled::{law_polynomials_in_w, s_of_w, z_and_zm1, HeldPlant};
+use super::sampled_loop::{LoopRealization, PlantMatrices};
 use super::spec::{LoopKind, ModelSpec};
 use super::zpk::Zpk;
 
@@ -537,6 +538,22 @@ impl LpfX {
                 }
             }
         }
+    }
+
+    /// The digital loop's state-space realization at `p` (the plant under the holds, this
+    /// model's discretised laws; [`super::sampled_loop`]), the one the time-domain engine
+    /// steps. `None` for a continuous model. (This model's own poles stay the roots of
+    /// [`Self::digital_characteristic_polynomial`], which the realization's eigenvalues
+    /// match: tested.)
+    pub fn digital_realization(&self, p: &[f64]) -> Option<LoopRealization<2>> {
+        let dl = self.digital.as_ref()?;
+        let laws = vec![Df2t::new(&dl.c_df), Df2t::new(&dl.c_sus)];
+        Some(LoopRealization::new(
+            &PlantMatrices::of(self, p),
+            laws,
+            dl.h,
+            dl.tau,
+        ))
     }
 
     /// The digital loop's characteristic polynomial in `w = z - 1` (ascending powers), whose

@@ -38,10 +38,11 @@ use super::closed_loop::{
     transfer_grid_generic, transfer_of, transfer_with_derivatives_of, CMat, ClosedLoopModel,
     NoiseEntry, OperatorDerivative, Operators,
 };
-use super::discrete::DiscreteTf;
+use super::discrete::{Df2t, DiscreteTf};
 use super::lpf_x::{LpfPoint, LpfX, A_DF, A_SUS, DT1, DT12, S21, W1, W12};
 use super::poly::{Poly, RootsError};
-use super::sampled::{law_polynomials_in_w, s_of_w, HeldPlant};
+use super::sampled::{law_polynomials_in_w, HeldPlant};
+use super::sampled_loop::{LoopRealization, PlantMatrices};
 use super::spec::{LoopKind, ModelSpec};
 use super::zpk::Zpk;
 use super::ModelError;
@@ -632,11 +633,30 @@ impl LpfXy {
         }
     }
 
-    /// The digital loop's characteristic polynomial in `w = z - 1` (ascending powers), whose
-    /// roots `1 + w` are the closed-loop poles in `z`: the determinant of
-    /// [`Self::digital_polynomial_matrix`]. `None` for a continuous model.
-    pub fn digital_characteristic_polynomial(&self, p: &[f64]) -> Option<Poly> {
-        Some(determinant(&self.digital_polynomial_matrix(p)?))
+    /// The digital loop's state-space realization at `p` (the plant under the holds, this
+    /// model's discretised laws; [`super::sampled_loop`]), whose transition matrix's
+    /// eigenvalues are the closed-loop poles in `z`. `None` for a continuous model.
+    pub fn digital_realization(&self, p: &[f64]) -> Option<LoopRealization<7>> {
+        let dl = self.x.digital.as_ref()?;
+        let laws = (0..7)
+            .map(|j| self.digital_law(j).map(Df2t::new))
+            .collect::<Option<Vec<_>>>()?;
+        Some(LoopRealization::new(
+            &PlantMatrices::of(self, p),
+            laws,
+            dl.h,
+            dl.tau,
+        ))
+    }
+
+    /// The digital loop's characteristic function at `w = z - 1`: the determinant of
+    /// [`Self::digital_polynomial_matrix`] evaluated there (its zeros are the closed-loop
+    /// poles in `z`), by LU of the evaluated matrix rather than from an expanded polynomial,
+    /// whose cancellations move the twin loops' near-double slow roots. `None` for a
+    /// continuous model.
+    pub fn digital_characteristic_at(&self, w: Complex64, p: &[f64]) -> Option<Complex64> {
+        let m = self.digital_polynomial_matrix(p)?;
+        Some(CMat::<7>::from_fn(|i, j| m[i][j].eval(w)).determinant())
     }
 
     /// `m Delta_d` with column `j` multiplied by its law's denominator `den_j`, entries
@@ -669,49 +689,6 @@ impl LpfXy {
             .collect();
         Some(m)
     }
-}
-
-/// Newton steps allowed to [`polish_root`].
-const POLISH_ITERATIONS: usize = 30;
-
-/// A root `w0` of `det M(w)` (a polynomial matrix) refined by Newton's method on the
-/// determinant evaluated from the matrix, `w <- w - 1 / tr(M^-1 M')` (Jacobi's formula
-/// `(det M)' = det M tr(M^-1 M')`): the matrix's entries are low-degree polynomials, exact to
-/// rounding, whereas the coefficients of the expanded determinant of the 7x7 loop carry the
-/// cancellations of the expansion, which move its near-double roots (the twin y and phi loops)
-/// by up to the square root of their rounding. A step that would leave the root's own
-/// neighbourhood (`|w - w0| > |w0|`) is not taken.
-fn polish_root(m: &[Vec<Poly>], w0: Complex64) -> Complex64 {
-    let derivative = |q: &Poly| {
-        Poly(
-            (q.0.iter().enumerate().skip(1))
-                .map(|(i, c)| i as f64 * c)
-                .collect(),
-        )
-    };
-    let n = m.len();
-    let dm: Vec<Vec<Poly>> = m
-        .iter()
-        .map(|row| row.iter().map(derivative).collect())
-        .collect();
-    let mut w = w0;
-    for _ in 0..POLISH_ITERATIONS {
-        let a = nalgebra::DMatrix::from_fn(n, n, |i, j| m[i][j].eval(w));
-        let da = nalgebra::DMatrix::from_fn(n, n, |i, j| dm[i][j].eval(w));
-        let Some(inv) = a.try_inverse() else {
-            break; // singular to rounding: w is the root
-        };
-        let step = c(1.0) / (inv * da).trace();
-        let next = w - step;
-        if !next.re.is_finite() || !next.im.is_finite() || (next - w0).norm() > w0.norm() {
-            break;
-        }
-        w = next;
-        if step.norm() <= 4.0 * f64::EPSILON * w.norm() {
-            break;
-        }
-    }
-    w
 }
 
 impl ClosedLoopModel<7> for LpfXy {
@@ -753,15 +730,12 @@ impl ClosedLoopModel<7> for LpfXy {
         self.x.inertia_advance()
     }
 
-    /// For a digital model, the poles in `z` of
-    /// [`LpfXy::digital_characteristic_polynomial`], each polished on the polynomial matrix
-    /// ([`polish_root`]), mapped to `s = ln(z) / h`.
+    /// For a digital model, the eigenvalues `z` of the loop's one-step transition matrix
+    /// ([`LpfXy::digital_realization`]) mapped to `s = ln(z) / h`.
     fn poles(&self, p: &[f64]) -> Result<Vec<Complex64>, RootsError> {
-        match (&self.x.digital, self.digital_polynomial_matrix(p)) {
-            (Some(dl), Some(m)) => Ok((determinant(&m).roots()?.into_iter())
-                .map(|w| s_of_w(polish_root(&m, w), dl.h))
-                .collect()),
-            _ => self.characteristic_polynomial(p).roots(),
+        match self.digital_realization(p) {
+            Some(r) => r.s_poles(),
+            None => self.characteristic_polynomial(p).roots(),
         }
     }
 

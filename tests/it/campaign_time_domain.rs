@@ -256,7 +256,6 @@ fn shipped_xy_digital_model_is_the_embedded_xy_model_made_digital() {
 }
 
 #[test]
-#[ignore = "known failure: the xy digital model's stability check finds a spurious pole at s = +1.75e-6 rad/s (see xy_time_domain::xy_sampled_data_poles_are_the_simulated_loop_eigenvalues) and refuses the scenario"]
 fn xy_time_domain_campaign_fits_within_their_fisher_errors() {
     // Oracle: each fit's Fisher error. Two realizations of the shipped xy time-domain campaign
     // (the 7-DOF digital loop's data fitted by the xy sampled-data model): every fit

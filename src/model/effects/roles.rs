@@ -242,10 +242,8 @@ impl EffectHost<7> for LpfXy {
     fn characteristic_at(&self, s: Complex64, q: &[f64]) -> Complex64 {
         match &self.x.digital {
             Some(dl) => self
-                .digital_characteristic_polynomial(q)
-                .map_or(Complex64::new(f64::NAN, 0.0), |poly| {
-                    poly.eval(z_and_zm1(s, dl.h).1)
-                }),
+                .digital_characteristic_at(z_and_zm1(s, dl.h).1, q)
+                .unwrap_or(Complex64::new(f64::NAN, 0.0)),
             None => self.characteristic_polynomial(q).eval(s),
         }
     }
