@@ -295,7 +295,7 @@ impl<const N: usize> LoopRealization<N> {
                     t[(m + at + r, col)] = b[r] * so[(j, col)];
                 }
             }
-            t.view_mut((m, m + at), (n, n)).copy_from(&a);
+            t.view_mut((m + at, m + at), (n, n)).copy_from(&a);
             at += n;
         }
         let sub = |g: &DMatrix<f64>| DMatrix::from_fn(m, N, |r, c| g[(self.active[r], c)]);
@@ -450,5 +450,78 @@ mod tests {
         let (a, _, _, _) = law_state_space(&Df2t::new(&tf));
         assert_eq!(a.nrows(), 1);
         assert!((a[(0, 0)] - (-0.07f64).exp()).abs() < 1e-15);
+    }
+
+    /// One free step of the loop from state `v` as the time-domain engine takes it (sense,
+    /// command through each law's difference equation, advance the held plant, shift the
+    /// held commands).
+    fn probe_step<const N: usize>(r: &LoopRealization<N>, v: &[f64]) -> Vec<f64> {
+        let m = r.active.len();
+        let mut x = vec![0.0; 3 * N];
+        for (k, &i) in r.active.iter().enumerate() {
+            x[i] = v[k];
+        }
+        let mut laws = r.laws.clone();
+        let mut at = m;
+        for l in &mut laws {
+            let n = l.order();
+            l.state_mut().copy_from_slice(&v[at..at + n]);
+            at += n;
+        }
+        let wp: Vec<f64> = if r.delayed {
+            v[at..].to_vec()
+        } else {
+            vec![0.0; N]
+        };
+        let o: Vec<f64> = (0..N)
+            .map(|i| (0..N).map(|j| r.s[i][j] * x[j]).sum())
+            .collect();
+        let w: Vec<f64> = (0..N).map(|j| -laws[j].step(o[j])).collect();
+        let mut out: Vec<f64> = (r.active.iter())
+            .map(|&i| {
+                let plant: f64 = (0..3 * N).map(|j| r.phi[(i, j)] * x[j]).sum();
+                plant
+                    + (0..N)
+                        .map(|c| r.gam_now[(i, c)] * w[c] + r.gam_prev[(i, c)] * wp[c])
+                        .sum::<f64>()
+            })
+            .collect();
+        for l in &laws {
+            out.extend_from_slice(l.state());
+        }
+        if r.delayed {
+            out.extend(w);
+        }
+        out
+    }
+
+    #[test]
+    fn transition_matrix_is_the_probed_step() {
+        // Oracle: the loop's step itself, probed column by column from unit states (what the
+        // time-domain engine's transition matrix was before it was assembled here), with and
+        // without a computation delay and with a lagged, damped actuator column.
+        for (tau, lag) in [(0.0, 0.0), (0.03, 0.0), (0.03, 0.4)] {
+            let (x, p) = digital_x(Discretisation::Tustin, tau);
+            let dl = x.digital.as_ref().unwrap();
+            let mut plant = PlantMatrices::of(&x, &p);
+            plant.lag[0] = lag;
+            plant.damping[1][1] = 1e-3 * lag;
+            let laws = vec![Df2t::new(&dl.c_df), Df2t::new(&dl.c_sus)];
+            let r = LoopRealization::new(&plant, laws, dl.h, tau);
+            let t = r.transition_matrix();
+            let dim = r.state_dim();
+            assert_eq!(dim, t.nrows());
+            for j in 0..dim {
+                let mut e = vec![0.0; dim];
+                e[j] = 1.0;
+                for (i, want) in probe_step(&r, &e).into_iter().enumerate() {
+                    let got = t[(i, j)];
+                    assert!(
+                        (got - want).abs() <= 1e-14 * want.abs().max(1.0),
+                        "tau {tau}, lag {lag}: ({i}, {j}) {got:e} vs the step's {want:e}"
+                    );
+                }
+            }
+        }
     }
 }
