@@ -387,8 +387,8 @@ pub type LoopCommands = (Vec<AuxChannel>, crate::sim::commands::Commands);
 /// decimated rate, and with a digital loop the time-domain engine with initial conditions and
 /// the library's operator effects ([`SimulateModel::time_domain_runs`]); the x model adds lines,
 /// drifts, glitches and auxiliary cross-talk ([`SimulateJob::run`]); a model with loops beyond
-/// the runs' channels records their commands ([`SimulateModel::commands`], `--commands`, by the
-/// frequency-domain engine).
+/// the runs' channels records their commands (`--commands`: [`SimulateModel::commands`] by the
+/// frequency-domain engine, [`SimulateModel::time_domain_runs`] by the time-domain one).
 pub trait SimulateModel<const N: usize>: SpecModel<N> {
     fn simulate(job: &SimulateJob, setup: &SetupOf<Self, N>) -> Result<Simulated, SimulateError> {
         job.run_plain(setup)
@@ -421,15 +421,17 @@ pub trait SimulateModel<const N: usize>: SpecModel<N> {
     /// The runs of every readout by the time-domain engine (`sim::time_domain`, the model's
     /// digital loop, decimated telemetry) at `sc`'s truth from `job`'s seed, with its initial
     /// conditions and the library's operator effects of `set` in the plant
-    /// ([`digital_loop_runs`]); `None`: the model has no digital loop
-    /// ([`crate::sim::time_domain::DigitalPlant`]).
+    /// ([`digital_loop_runs`]), and with `job.commands` the commands of the loops beyond the
+    /// runs' channels ([`digital_loop_runs_recording`]; `None`: the model has none); `None`:
+    /// the model has no digital loop ([`crate::sim::time_domain::DigitalPlant`]).
+    #[allow(clippy::type_complexity)]
     fn time_domain_runs(
         _job: &SimulateJob,
         _setup: &SetupOf<Self, N>,
         _sc: &Scenario,
         _designs: (&Design, &Design),
         _set: &EffectSet,
-    ) -> Result<Option<Runs>, SimulateError> {
+    ) -> Result<Option<(Runs, Option<LoopCommands>)>, SimulateError> {
         Ok(None)
     }
 }
@@ -443,9 +445,28 @@ pub fn digital_loop_runs<M, const N: usize>(
     job: &SimulateJob,
     setup: &SetupOf<M, N>,
     sc: &Scenario,
-    (design, noise_design): (&Design, &Design),
+    designs: (&Design, &Design),
     set: &EffectSet,
 ) -> Result<Runs, SimulateError>
+where
+    M: SpecModel<N> + DigitalPlant<N> + EffectHost<N>,
+{
+    Ok(digital_loop_runs_recording(job, setup, sc, designs, set, &[])?.0)
+}
+
+/// [`digital_loop_runs`] recording too the commands `u_j = -C_j (o_j - oi_j)` of the loops
+/// `record` (columns of `A C`), as the time-domain loop computes them at every control step,
+/// decimated by the same anti-alias FIR and cut as the readouts, every experiment's (loop by
+/// loop) and the noise run's; the random numbers are those of [`digital_loop_runs`], so the
+/// runs are the same with or without the commands.
+pub fn digital_loop_runs_recording<M, const N: usize>(
+    job: &SimulateJob,
+    setup: &SetupOf<M, N>,
+    sc: &Scenario,
+    (design, noise_design): (&Design, &Design),
+    set: &EffectSet,
+    record: &[usize],
+) -> Result<(Runs, crate::sim::commands::Commands), SimulateError>
 where
     M: SpecModel<N> + DigitalPlant<N> + EffectHost<N>,
 {
@@ -469,19 +490,50 @@ where
     let sim = setup.time_domain_simulator_with_effects(design, truth, glitch, initial, &fx)?;
     let nsim =
         setup.time_domain_simulator_with_effects(noise_design, truth, glitch, initial, &fx)?;
-    let (mut data, noise) = draw_all(|r| sim.draw(r), |r| nsim.noise_run(r), job.seed);
+    let ((mut data, noise), commands) = if record.is_empty() {
+        let runs = draw_all(|r| sim.draw(r), |r| nsim.noise_run(r), job.seed);
+        (runs, (Vec::new(), Vec::new()))
+    } else {
+        let (data, exps) = sim.draw_recording(&mut stream(job.seed, 0), record);
+        let (noise, noise_cmd) = nsim.noise_run_recording(&mut stream(job.seed, 1), record);
+        ((data, noise), (exps, noise_cmd))
+    };
     if !set.injected.is_empty() {
         // Only lines remain: additive in the readouts, no model needed beyond the base.
         let model = Extended::new(setup.model.clone(), Vec::new());
         apply(&model, truth, &mut data, &set.injected).map_err(SimulateError::Inject)?;
     }
-    Ok((data, noise))
+    Ok(((data, noise), commands))
 }
 
 impl SimulateModel<2> for LpfX {
     fn simulate(job: &SimulateJob, setup: &SetupOf<Self, 2>) -> Result<Simulated, SimulateError> {
         job.run(setup)
     }
+}
+
+/// The recorded commands of the loops beyond the runs' channels as auxiliary columns of `out`
+/// (experiments and noise run); Err when the model has no such loops.
+fn attach_commands<M: SimulateModel<N>, const N: usize>(
+    out: &mut Simulated,
+    commands: Option<LoopCommands>,
+    origin: &str,
+) -> Result<(), SimulateError> {
+    let Some((channels, (exps, noise_cmd))) = commands else {
+        return Err(SimulateError::Effect(format!(
+            "--commands: the {} model ({origin}) has no loops of other degrees of freedom to \
+             record commands from",
+            M::KIND.name(),
+        )));
+    };
+    out.aux.channels.extend(channels);
+    for (a, c) in out.aux.experiments.iter_mut().zip(exps) {
+        a.extend(c);
+    }
+    if let Some(n) = out.aux.noise.as_mut() {
+        n.extend(noise_cmd);
+    }
+    Ok(())
 }
 
 /// Each readout's own noise floor (one-sided ASD at the analysis Nyquist frequency) from the
@@ -563,9 +615,10 @@ impl SimulateJob {
     /// ([`SimulateModel::time_domain_runs`]), decimated telemetry, with the initial conditions
     /// of `--initial` and the library's operator effects of `--effect` in the plant (as the x
     /// model's [`Self::run`]): the runs' channels as the runs, the model's other readouts and
-    /// guidance as auxiliary columns, as [`Self::run_plain`] writes them. Lines, auxiliary
-    /// cross-talk and `--commands` are refused in one line (the frequency-domain engine records
-    /// commands).
+    /// guidance as auxiliary columns, as [`Self::run_plain`] writes them, and with `commands`
+    /// the commands of the model's other loops as the loop computes them
+    /// ([`SimulateModel::time_domain_runs`]). Injected effects other than lines and
+    /// auxiliary cross-talk are refused in one line.
     fn run_digital<M: SimulateModel<N>, const N: usize>(
         &self,
         setup: &SetupOf<M, N>,
@@ -580,12 +633,6 @@ impl SimulateJob {
         if self.resolved_rate() == Rate::Analysis {
             return Err(SimulateError::AnalysisRateInTimeDomain);
         }
-        if self.commands {
-            return refuse(
-                "--commands",
-                "record the commands with the frequency-domain engine (--engine frequency-domain --rate analysis)",
-            );
-        }
         let set = EffectSet::parse(&self.effects, &setup.parameter_names())
             .map_err(SimulateError::Effect)?;
         if !(set.injected.is_empty() && set.crosstalk.is_empty()) {
@@ -599,7 +646,7 @@ impl SimulateJob {
             return Err(TimeDomainError::Glitches.into());
         }
         let designs = (&design, &noise_design);
-        let Some(runs) = M::time_domain_runs(self, setup, &sc, designs, &set)? else {
+        let Some((runs, commands)) = M::time_domain_runs(self, setup, &sc, designs, &set)? else {
             return Err(SimulateError::Effect(format!(
                 "--engine time-domain: the {} model ({}) has no digital loop \
                  (sim::time_domain::DigitalPlant)",
@@ -608,6 +655,9 @@ impl SimulateJob {
             )));
         };
         let mut out = self.assemble(setup, &sc, Rate::Decimated, runs);
+        if self.commands {
+            attach_commands::<M, N>(&mut out, commands, &setup.spec.origin)?;
+        }
         if !set.is_empty() {
             out.meta
                 .insert("effects".into(), toml::Value::Table(set.meta));
@@ -666,23 +716,8 @@ impl SimulateJob {
         let runs = draw_all(|r| sim.draw(r), |r| nsim.noise_series(r), self.seed);
         let mut out = self.assemble(setup, &sc, Rate::Analysis, runs);
         if self.commands {
-            let Some((channels, (exps, noise_cmd))) =
-                M::commands(setup, &sc.truth, &sim, &nsim, self.seed)?
-            else {
-                return Err(SimulateError::Effect(format!(
-                    "--commands: the {} model ({}) has no loops of other degrees of freedom to \
-                     record commands from",
-                    M::KIND.name(),
-                    setup.spec.origin
-                )));
-            };
-            out.aux.channels.extend(channels);
-            for (a, c) in out.aux.experiments.iter_mut().zip(exps) {
-                a.extend(c);
-            }
-            if let Some(n) = out.aux.noise.as_mut() {
-                n.extend(noise_cmd);
-            }
+            let commands = M::commands(setup, &sc.truth, &sim, &nsim, self.seed)?;
+            attach_commands::<M, N>(&mut out, commands, &setup.spec.origin)?;
         }
         if !set.is_empty() {
             out.meta

@@ -546,6 +546,18 @@ impl<const N: usize> DigitalLoop<N> {
         force: [&[f64]; N],
         readout: [&[f64]; N],
     ) -> [Vec<f64>; N] {
+        self.run_recording(guidance, force, readout, &[]).0
+    }
+
+    /// [`Self::run`], recording too the commands `u_j = -C_j(o_j - oi_j)` of the columns
+    /// `record` at every step (what law `j` asks for, before the actuation and the hold).
+    pub fn run_recording(
+        &mut self,
+        guidance: [&[f64]; N],
+        force: [&[f64]; N],
+        readout: [&[f64]; N],
+        record: &[usize],
+    ) -> ([Vec<f64>; N], Vec<Vec<f64>>) {
         let n = guidance[0].len();
         for s in guidance.iter().chain(&force).chain(&readout) {
             assert_eq!(
@@ -555,6 +567,7 @@ impl<const N: usize> DigitalLoop<N> {
             );
         }
         let mut out: [Vec<f64>; N] = std::array::from_fn(|_| Vec::with_capacity(n));
+        let mut commands = vec![Vec::with_capacity(n); record.len()];
         for k in 0..n {
             let o = self.step(
                 std::array::from_fn(|c| guidance[c][k]),
@@ -564,8 +577,12 @@ impl<const N: usize> DigitalLoop<N> {
             for (series, v) in out.iter_mut().zip(o) {
                 series.push(v);
             }
+            // The step leaves its commands in `w_prev`.
+            for (series, &j) in commands.iter_mut().zip(record) {
+                series.push(self.w_prev[j]);
+            }
         }
-        out
+        (out, commands)
     }
 
     /// The plant's state in sensed coordinates, positions then rates (readouts and their rates
@@ -845,6 +862,17 @@ impl<const N: usize> TimeDomainSimulator<N> {
         experiment: Option<usize>,
         noise: Option<&[Vec<f64>]>,
     ) -> [Vec<f64>; N] {
+        self.run_control_rate_recording(experiment, noise, &[]).0
+    }
+
+    /// [`Self::run_control_rate`] with the commands of the columns `record`
+    /// ([`DigitalLoop::run_recording`]).
+    pub fn run_control_rate_recording(
+        &self,
+        experiment: Option<usize>,
+        noise: Option<&[Vec<f64>]>,
+        record: &[usize],
+    ) -> ([Vec<f64>; N], Vec<Vec<f64>>) {
         let zeros = vec![0.0; self.grid.n_sim];
         let g: [&[f64]; N] = match experiment {
             Some(e) => std::array::from_fn(|c| &self.guidance[e][c][..]),
@@ -859,7 +887,19 @@ impl<const N: usize> TimeDomainSimulator<N> {
         };
         let mut lp = self.digital.clone();
         lp.reset(self.initial.as_ref());
-        lp.run(g, f, r)
+        lp.run_recording(g, f, r, record)
+    }
+
+    /// Readouts and the commands of the columns `record`, each decimated as telemetry.
+    fn telemetry_recording(
+        &self,
+        experiment: Option<usize>,
+        noise: Option<&[Vec<f64>]>,
+        record: &[usize],
+    ) -> (Vec<Vec<f64>>, Vec<Vec<f64>>) {
+        let (o, u) = self.run_control_rate_recording(experiment, noise, record);
+        let keep = |x: &[Vec<f64>]| x.iter().map(|c| self.grid.keep(c)).collect();
+        (keep(&o), keep(&u))
     }
 
     fn telemetry(&self, experiment: Option<usize>, noise: Option<&[Vec<f64>]>) -> Vec<Vec<f64>> {
@@ -902,6 +942,43 @@ impl<const N: usize> TimeDomainSimulator<N> {
             })
             .collect();
         self.data(outputs)
+    }
+
+    /// [`Self::draw`] with the commands of the columns `record` of every experiment (loop by
+    /// loop), decimated and cut as the readouts: the same random numbers, so the same data.
+    pub fn draw_recording<R: Rng + ?Sized>(
+        &self,
+        rng: &mut R,
+        record: &[usize],
+    ) -> (ExperimentData, Vec<Vec<Vec<f64>>>) {
+        let (outputs, commands): (Vec<_>, Vec<_>) = (0..self.names.len())
+            .map(|e| {
+                let noise = self.noise.generate(rng);
+                self.telemetry_recording(Some(e), Some(&noise), record)
+            })
+            .unzip();
+        let commands = (commands.into_iter().zip(&self.lens))
+            .map(|(e, &n)| {
+                e.into_iter()
+                    .map(|mut c| {
+                        c.truncate(n);
+                        c
+                    })
+                    .collect()
+            })
+            .collect();
+        (self.data(outputs), commands)
+    }
+
+    /// [`Self::noise_run`] with the commands of the columns `record`, from the same random
+    /// numbers.
+    pub fn noise_run_recording<R: Rng + ?Sized>(
+        &self,
+        rng: &mut R,
+        record: &[usize],
+    ) -> (Vec<Vec<f64>>, Vec<Vec<f64>>) {
+        let noise = self.noise.generate(rng);
+        self.telemetry_recording(None, Some(&noise), record)
     }
 
     /// Every experiment without noise (guidance and initial conditions only).

@@ -13,6 +13,7 @@
 
 use freefall::io::read_parquet;
 use freefall::model::closed_loop::{transfer_with_derivatives, CMat};
+use freefall::model::lpf_xy::LpfXy;
 use freefall::model::spec::{LoopKind, ModelKind, EMBEDDED_LPF_XY};
 use freefall::model::{transfer, ClosedLoopModel, ModelSpec};
 use freefall::setup::SetupXy;
@@ -23,7 +24,7 @@ use num_complex::Complex64;
 
 use crate::common;
 use common::freefall;
-use common::loops::{measured_response, STANDARD_CYCLES, STRETCH_S};
+use common::loops::{measured_commands, measured_response, STANDARD_CYCLES, STRETCH_S};
 
 /// The xy model's scenario with cross-talk in every operator (dynamical, sensing, actuation).
 const SCENARIO: &str = "crosstalk";
@@ -432,6 +433,41 @@ fn xy_sampled_data_stability_accepts_the_stable_crosstalk_scenarios() {
             lp.check_stable(setup.model.parameter_names(), &p).unwrap();
             freefall::model::check_stability(&setup.model, &p, None)
                 .unwrap_or_else(|e| panic!("tau {tau}, {scenario}: {e}"));
+        }
+    }
+}
+
+#[test]
+fn xy_loop_commands_match_the_frequency_domain_commands() {
+    // Oracle: the frequency-domain engine's commands (sim::commands::command_response's kernel
+    // -C_j (T_{oi->o} - 1)[j][c], here of the digital xy model, exact at the control samples).
+    // The time-domain loop's recorded commands of the y/phi loops (DigitalLoop::run_recording,
+    // what `simulate --engine time-domain --commands` decimates) under a unit sine on each y/phi
+    // guidance input, in steady state, agree to XY_ENGINE_AGREEMENT of the command (or of the
+    // input's largest command where a command is below 1e-2 of it).
+    let setup = digital_xy(0.03);
+    let p = setup.spec.scenario(SCENARIO).unwrap().truth;
+    let lp = DigitalLoop::<7>::new(&setup.model, &p, &LoopConfig::from_spec(&setup.spec));
+    let record: Vec<usize> = (2..7).collect();
+    let f = STANDARD_CYCLES[3] / STRETCH_S;
+    let pt = setup.model.prepare(f);
+    let t = transfer(&setup.model, &pt, &p).oi_o;
+    for c in 2..7 {
+        let got = measured_commands(&lp, f, c, &record);
+        let want: Vec<Complex64> = (record.iter())
+            .map(|&j| {
+                let e = t[(j, c)] - if j == c { 1.0 } else { 0.0 };
+                -LpfXy::law_at(&pt, j) * e
+            })
+            .collect();
+        let largest = want.iter().map(|w| w.norm()).fold(0.0, f64::max);
+        for ((j, g), w) in record.iter().zip(&got).zip(&want) {
+            let scale = w.norm().max(1e-2 * largest);
+            let err = (g - w).norm() / scale;
+            assert!(
+                err < XY_ENGINE_AGREEMENT,
+                "u{j} under oi{c}: time domain {g:.9e}, frequency domain {w:.9e}, error {err:.1e}"
+            );
         }
     }
 }
