@@ -10,8 +10,7 @@
 //! as the readouts are (`sim::time_domain::DigitalLoop::run_recording`). The actuation
 //! cross-talk of loop j into x enters the x rows as `Delta_x o_x = ... + a_j[x] u_j`: the x
 //! model's force cross-talk of the recorded `u_j` (`analysis::additive`, `aux_force_...`)
-//! with coefficients `a_j[x1]` into o1 and
-//! `a_j[x12]` into o12 ([`command_coefficients`]).
+//! with coefficients `a_j[x1]` into o1 and `a_j[x12]` into o12 ([`command_coefficients`]).
 
 use crate::data::{AuxChannel, AuxKind, AuxRole};
 use crate::model::closed_loop::{transfer, CMat};
