@@ -60,15 +60,13 @@ pub enum AnalysisError {
 
 type Result<T> = std::result::Result<T, AnalysisError>;
 
-/// The columns the runs of `setup`'s model hold besides `t`: its first
-/// [`crate::sim::simulate_job::run_channels`] inputs and as many readouts (oi1, oi12 / o1, o12
-/// for the LPF models). Its datasets are read with them ([`crate::io::read_dataset_for`]).
+/// The columns the runs of `setup`'s model hold besides `t`
+/// ([`crate::sim::simulate_job::run_columns`], as its simulated datasets are written). Its
+/// datasets are read with them ([`crate::io::read_dataset_for`]).
 pub fn run_columns<M: SpecModel<N>, const N: usize>(
     setup: &SetupOf<M, N>,
 ) -> crate::io::RunColumns {
-    let k = crate::sim::simulate_job::run_channels(N);
-    let (inputs, readouts) = (setup.model.input_names(), setup.model.readout_names());
-    crate::io::RunColumns::new(&inputs[..k], &readouts[..k])
+    crate::sim::simulate_job::run_columns(&setup.model)
 }
 
 /// The readouts `[o1, o12]` of a run as owned series.

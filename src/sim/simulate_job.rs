@@ -95,9 +95,9 @@ pub struct Simulated {
     /// The auxiliary readouts written with the runs (empty unless asked for).
     pub aux: crate::data::Auxiliary,
     pub meta: toml::Table,
-    /// The names of the runs' own channels, `data`'s inputs then its readouts (the model's
-    /// first [`run_channels`] of each).
-    pub run_columns: Vec<String>,
+    /// The runs' own channels, `data`'s inputs and its readouts (the model's first
+    /// [`run_channels`] of each, [`run_columns`]).
+    pub run_columns: crate::io::RunColumns,
 }
 
 impl Simulated {
@@ -105,13 +105,11 @@ impl Simulated {
     /// in `[[auxiliary]]`, and the `[meta]`. Its runs hold the model's own channels
     /// ([`Simulated::run_columns`]: oi1, oi12, o1, o12 for the LPF models, `io::RunColumns`).
     pub fn dataset(&self) -> Result<crate::io::Dataset, crate::io::IoError> {
-        let (inputs, readouts) = self.run_columns.split_at(self.run_columns.len() / 2);
-        let columns = crate::io::RunColumns::new(inputs, readouts);
         crate::io::Dataset::simulated_for(
             &self.data,
             (&self.noise, &self.aux),
             self.meta.clone(),
-            &columns,
+            &self.run_columns,
         )
     }
 
@@ -418,14 +416,12 @@ pub const fn run_channels(n: usize) -> usize {
     }
 }
 
-/// The names of the runs' own channels of `model`: its first [`run_channels`] inputs, then as
-/// many readouts ([`Simulated::run_columns`]).
-fn run_columns<M: ClosedLoopModel<N>, const N: usize>(model: &M) -> Vec<String> {
+/// The runs' own channels of `model`: its first [`run_channels`] inputs and as many readouts
+/// (oi1, oi12 / o1, o12 for the LPF models). Its datasets are written
+/// ([`Simulated::run_columns`]) and read (`analysis::run_columns`) with them.
+pub fn run_columns<M: ClosedLoopModel<N>, const N: usize>(model: &M) -> crate::io::RunColumns {
     let k = run_channels(N);
-    (model.input_names()[..k].iter())
-        .chain(&model.readout_names()[..k])
-        .map(|s| s.to_string())
-        .collect()
+    crate::io::RunColumns::new(&model.input_names()[..k], &model.readout_names()[..k])
 }
 
 /// The commands of a model's loops beyond the runs' channels, with their auxiliary channels:

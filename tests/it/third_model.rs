@@ -396,7 +396,10 @@ fn the_simulate_job_draws_the_third_models_one_channel_runs() {
     assert_eq!(sim.noise.len(), 1);
     assert_eq!(sim.noise[0].len(), 3600);
     assert!(sim.aux.channels.is_empty());
-    assert_eq!(sim.run_columns, ["oi", "o"]);
+    assert_eq!(
+        (&sim.run_columns.inputs[..], &sim.run_columns.readouts[..]),
+        (&["oi".to_string()][..], &["o".to_string()][..])
+    );
     let ds = sim.dataset().unwrap();
     let runs = ds.experiments.iter().map(|(_, r)| r).chain(&ds.noise);
     for run in runs {
