@@ -99,6 +99,21 @@ impl<M: SpecModel<N>, const N: usize> SetupOf<M, N> {
             .into());
         }
         let model = M::from_spec(&spec)?;
+        // An auxiliary readout may not take the name of one of the model's own channels: a
+        // dataset's runs carry those (or, for the channels beyond the runs', its simulated
+        // auxiliary columns), so the two would share one column.
+        let own = model.input_names().into_iter().chain(model.readout_names());
+        if let Some(name) = own.into_iter().find(|c| spec.auxiliary.contains_key(*c)) {
+            return Err(ModelError::Invalid {
+                origin: spec.origin.clone(),
+                key: format!("auxiliary.{name}"),
+                reason: format!(
+                    "is a channel of the {} model, not an auxiliary readout",
+                    M::KIND.name()
+                ),
+            }
+            .into());
+        }
         let noise = NoiseModel::new(&model, &spec.noise)?;
         Ok(SetupOf { spec, model, noise })
     }

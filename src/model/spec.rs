@@ -711,7 +711,9 @@ impl ModelSpec {
     fn validate_auxiliary(&self) -> Result<(), ModelError> {
         for (name, a) in &self.auxiliary {
             let key = format!("auxiliary.{name}");
-            if ["t", "oi1", "oi12", "o1", "o12"].contains(&name.as_str()) {
+            // The model's own channels are checked where the model is built
+            // (`setup::SetupOf::new`): only the time column is every model's.
+            if name == "t" {
                 return Err(self.bad(&key, "is a column of the data format, not an auxiliary one"));
             }
             if !(a.level.is_finite() && a.level > 0.0) {

@@ -193,6 +193,45 @@ fn model_file_errors_name_the_key() {
 }
 
 #[test]
+fn an_auxiliary_readout_named_as_a_channel_of_its_own_model_is_refused() {
+    // Oracle: the model's own channel names (ClosedLoopModel::input_names, readout_names). The
+    // x model file's auxiliary `oy1` is an auxiliary readout for lpf_x, but a channel of lpf_xy
+    // (the xy datasets carry it as a column of their own), so the same table is refused there;
+    // an x auxiliary named `o12` is refused by the x model.
+    use freefall::setup::{Setup, SetupXy};
+    let x = freefall::model::spec::EMBEDDED_LPF_X.replace("[auxiliary.ophi1]", "[auxiliary.o12]");
+    let err = Setup::new(ModelSpec::from_toml_str(&x, "my.toml").unwrap())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("my.toml") && err.contains("auxiliary.o12") && err.contains("lpf_x"),
+        "{err}"
+    );
+    let aux = freefall::model::spec::EMBEDDED_LPF_X
+        .split("[auxiliary.oy1]")
+        .nth(1)
+        .and_then(|t| t.split("[auxiliary.ophi1]").next())
+        .unwrap();
+    let xy = format!(
+        "{}\n[auxiliary.oy1]{aux}",
+        freefall::model::spec::EMBEDDED_LPF_XY
+    );
+    let err = SetupXy::new(ModelSpec::from_toml_str(&xy, "xy.toml").unwrap())
+        .unwrap_err()
+        .to_string();
+    assert!(
+        err.contains("xy.toml") && err.contains("auxiliary.oy1") && err.contains("lpf_xy"),
+        "{err}"
+    );
+    assert!(Setup::new(ModelSpec::embedded()).is_ok());
+    let t = freefall::model::spec::EMBEDDED_LPF_X.replace("[auxiliary.ophi1]", "[auxiliary.t]");
+    let err = ModelSpec::from_toml_str(&t, "my.toml")
+        .unwrap_err()
+        .to_string();
+    assert!(err.contains("auxiliary.t"), "{err}");
+}
+
+#[test]
 fn specialised_lpf_grid_matches_generic_algebra() {
     // Oracle: the generic operator algebra of closed_loop.rs, on a uniform grid (phase
     // recurrence), on a non-uniform one (direct exponentials), and on a uniform grid with a
