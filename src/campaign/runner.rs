@@ -23,7 +23,8 @@
 //! second readout's total equivalent acceleration (x12 on both models); so are glitches (in
 //! every readout's white driving sequence). The time-domain engine simulates every model's
 //! digital loop (`sim::time_domain::DigitalPlant`); its data are fitted by a sampled-data model
-//! only ([`check_engine_model`]), which the xy model does not have yet.
+//! only ([`check_engine_model`]): a model file with `[control_loop] kind = "digital"`, of either
+//! model (campaigns/models/lpf_xy_digital.toml for the xy model).
 //!
 //! With `[posterior]` the first realizations of each cell are also sampled after their fit
 //! ([`Runner::coverage_job`]): the data are drawn again from the realization's stream, fitted
@@ -830,28 +831,24 @@ impl<M: CampaignModel<N>, const N: usize> Jobs for Runner<'_, M, N> {
 
 /// The time-domain engine's data come from a digital loop: fitted with a continuous model
 /// they give biased guidance delays and drag-free gain (the hold's half-sample delay; README
-/// "Time-domain simulation of the digital loop"), so the campaign's model must be digital. The
-/// xy model has no sampled-data form (`model::lpf_xy` is continuous only): its time-domain
-/// campaigns are refused naming that. Checked when the campaign is loaded and when it is run.
+/// "Time-domain simulation of the digital loop"), so the campaign's model must be digital
+/// (either model: the embedded lpf_x.toml is, campaigns/models/lpf_xy_digital.toml is the
+/// embedded lpf_xy.toml made digital). Checked when the campaign is loaded and when it is run.
 pub fn check_engine_model(spec: &ModelSpec, campaign: &Campaign) -> Result<(), CampaignError> {
     use crate::model::spec::LoopKind;
     if campaign.fit.engine != Engine::TimeDomain || spec.control_loop.kind == LoopKind::Digital {
         return Ok(());
     }
-    let reason = if spec.model == ModelKind::LpfXy {
-        format!(
-            "\"time-domain\" needs a sampled-data model to fit the digital loop's data, and the \
-             lpf_xy model ('{}') has none (its loop is continuous only; fitted to 10 Hz \
-             time-domain data it biases dt1, dt12 and a_df by tens of sigmas); simulate the xy \
-             loop with `freefall simulate --model lpf_xy --engine time-domain`",
-            spec.origin
-        )
-    } else {
-        format!(
-            "\"time-domain\" needs a sampled-data model: the model '{}' is continuous; give `model =` a model file with [control_loop] kind = \"digital\" (the embedded model is one; campaigns/models/lpf_x_continuous.toml is not)",
-            spec.origin
-        )
+    let example = match spec.model {
+        ModelKind::LpfXy => {
+            "campaigns/models/lpf_xy_digital.toml is one; the embedded lpf_xy.toml is not"
+        }
+        _ => "the embedded model is one; campaigns/models/lpf_x_continuous.toml is not",
     };
+    let reason = format!(
+        "\"time-domain\" needs a sampled-data model: the model '{}' is continuous; give `model =` a model file with [control_loop] kind = \"digital\" ({example})",
+        spec.origin
+    );
     Err(CampaignError::Invalid {
         file: campaign.file.clone(),
         key: "fit.engine".into(),

@@ -196,3 +196,148 @@ fn time_domain_campaign_scatter_matches_fisher() {
         eprintln!("chi2/nu {k}: mean {v:.4}");
     }
 }
+
+/// The shipped xy time-domain campaign with `realizations`, its model named by absolute path,
+/// written into `dir`.
+fn xy_campaign(dir: &Path, realizations: u64) -> PathBuf {
+    let text = std::fs::read_to_string("campaigns/xy_time_domain.toml").unwrap();
+    let model = std::fs::canonicalize("campaigns/models/lpf_xy_digital.toml").unwrap();
+    let edited = text
+        .replace(
+            "realizations = 200",
+            &format!("realizations = {realizations}"),
+        )
+        .replace(
+            "model = \"models/lpf_xy_digital.toml\"",
+            &format!("model = {model:?}"),
+        );
+    assert_eq!(
+        edited.matches(&*model.to_string_lossy()).count(),
+        1,
+        "the shipped campaign's model line moved"
+    );
+    let p = dir.join("xy_td.toml");
+    std::fs::write(&p, edited).unwrap();
+    p
+}
+
+/// The free parameters of the xy time-domain campaign (all but its `fixed`).
+fn xy_free(file: &Path) -> Vec<String> {
+    let loaded = campaign::load(Some(file)).unwrap();
+    let fixed = loaded.campaign.fit.fixed.clone();
+    let setup = freefall::setup::SetupXy::embedded();
+    (setup.parameter_names().into_iter())
+        .filter(|n| !fixed.contains(n))
+        .collect()
+}
+
+#[test]
+fn shipped_xy_digital_model_is_the_embedded_xy_model_made_digital() {
+    // Oracle: the file's own comment (and README "The sampled-data model"): the embedded
+    // lpf_xy.toml with a digital [control_loop] table appended and nothing else, so that the
+    // xy time-domain campaign fits the embedded model's loop.
+    let path = Path::new("campaigns/models/lpf_xy_digital.toml");
+    let shipped = std::fs::read_to_string(path).unwrap();
+    let embedded = freefall::model::spec::EMBEDDED_LPF_XY;
+    let tail = shipped
+        .strip_prefix(embedded)
+        .expect("starts with the embedded lpf_xy.toml");
+    let table: String = tail
+        .lines()
+        .filter(|l| !l.trim().is_empty() && !l.starts_with('#'))
+        .map(|l| format!("{l}\n"))
+        .collect();
+    assert_eq!(
+        table,
+        "[control_loop]\nkind = \"digital\"\ndiscretisation = \"tustin\"\ncomputation_delay_s = 0.0\n"
+    );
+    let setup = freefall::setup::SetupXy::load(Some(path)).unwrap();
+    assert!(setup.model.digital.is_some() && setup.model.x.digital.is_some());
+}
+
+#[test]
+fn xy_time_domain_campaign_fits_within_their_fisher_errors() {
+    // Oracle: each fit's Fisher error. Two realizations of the shipped xy time-domain campaign
+    // (the 7-DOF digital loop's data fitted by the xy sampled-data model): every fit
+    // converges, and every free parameter's estimate lies within 4.5 of its sigma of the truth
+    // (the continuous model's fit of the same data is biased by tens of sigmas in dt1, dt12
+    // and a_df; `xy_time_domain::xy_fit_of_time_domain_data_recovers_the_truth`).
+    let tmp = tempfile::tempdir().unwrap();
+    let file = xy_campaign(tmp.path(), 2);
+    let out = tmp.path().join("out");
+    let m = run_lib(&file, &out, Shard::WHOLE, 2);
+    assert_eq!((m.realizations, m.fits, m.failed), (2, 2, 0));
+    let s = read_parquet(out.join("summary.parquet")).unwrap();
+    let (p, truth) = (
+        s.str_column("parameter").unwrap(),
+        s.f64_column("truth").unwrap(),
+    );
+    let r = read_parquet(out.join("realizations.parquet")).unwrap();
+    let free = xy_free(&file);
+    assert_eq!(free.len(), 26);
+    for name in &free {
+        let t = truth[p.iter().position(|x| x == name).unwrap()];
+        let est = r.f64_column(name).unwrap();
+        let sig = r.f64_column(&format!("{name}_sigma")).unwrap();
+        for (j, (e, sg)) in est.iter().zip(sig.iter()).enumerate() {
+            assert!(
+                ((e - t) / sg).abs() < 4.5,
+                "{name} realization {j}: estimate {e:.4e}, truth {t:.4e}, sigma {sg:.3e}"
+            );
+        }
+    }
+}
+
+/// Standard errors of the sd allowed to each of the xy campaign's 26 free parameters (its
+/// sd_over_sigma and bias): 3.5 keeps the chance that any of the 26 leaves its band by
+/// sampling alone near 1 %.
+const XY_STANDARD_ERRORS: f64 = 3.5;
+
+#[test]
+#[ignore = "slow tier: Monte Carlo of 200 xy time-domain realizations against Fisher"]
+fn xy_time_domain_campaign_scatter_matches_fisher() {
+    // Oracle: Fisher errors. The shipped campaigns/xy_time_domain.toml (200 realizations of the
+    // 7-DOF digital loop at 10 Hz decimated to 1 Hz, fitted with the xy sampled-data model):
+    // every free parameter's MC sd over its mean Fisher sigma within XY_STANDARD_ERRORS of the
+    // sd's own sampling error 1/sqrt(2 (n - 1)) of 1, and its bias within XY_STANDARD_ERRORS
+    // standard errors of the mean.
+    let tmp = tempfile::tempdir().unwrap();
+    let file = xy_campaign(tmp.path(), 200);
+    let out = tmp.path().join("xy_td");
+    let start = Instant::now();
+    let m = run_lib(&file, &out, Shard::WHOLE, 2);
+    eprintln!(
+        "xy time-domain campaign: {:.1} s",
+        start.elapsed().as_secs_f64()
+    );
+    assert_eq!((m.realizations, m.fits, m.failed), (200, 200, 0));
+    let s = read_parquet(out.join("summary.parquet")).unwrap();
+    let (ratio, bias, p) = (
+        s.f64_column("sd_over_sigma").unwrap(),
+        s.f64_column("bias_in_sigma").unwrap(),
+        s.str_column("parameter").unwrap(),
+    );
+    let free = xy_free(&file);
+    let band = XY_STANDARD_ERRORS / (2.0 * 199.0f64).sqrt();
+    let mut seen = 0;
+    for i in 0..s.num_rows() {
+        if !free.contains(&p[i]) {
+            continue;
+        }
+        seen += 1;
+        eprintln!("{}: sd/sigma {:.3}, bias {:.2} SE", p[i], ratio[i], bias[i]);
+        assert!(
+            (ratio[i] - 1.0).abs() < band,
+            "{}: sd/sigma = {} (band {band:.3})",
+            p[i],
+            ratio[i]
+        );
+        assert!(
+            bias[i].abs() < XY_STANDARD_ERRORS,
+            "{}: bias = {} standard errors",
+            p[i],
+            bias[i]
+        );
+    }
+    assert_eq!(seen, free.len());
+}
