@@ -32,6 +32,7 @@
 //! the sampler seeded by the stream's next number, so `coverage.parquet` is a pure function of
 //! the campaign file, whatever the thread count, batch or resume.
 
+use nalgebra::DMatrix;
 use rayon::prelude::*;
 
 use super::spec::{Campaign, LikelihoodKind, PosteriorOptions, ScenarioSource, WhitenAt};
@@ -979,6 +980,71 @@ fn time_path<'s, M: CampaignModel<N>, const N: usize>(
         base.jacobian = cell_jacobians(setup, &source, &lik, sc, campaign.seed, base)?;
     }
     Ok((Path::Time { source, lik }, dt, note))
+}
+
+/// The covariances of a time-domain cell's fits at its truth, over the model's parameters
+/// (zero rows and columns for the fixed ones): what the fits report, what they scatter with,
+/// and the bound an exact whitening would reach.
+#[derive(Debug, Clone)]
+pub struct CellCovariance {
+    /// `A^-1`: the fit's own covariance, from its whitened information `J^T J` (at chi^2/nu = 1).
+    pub fit: DMatrix<f64>,
+    /// `A^-1 B A^-1`: the estimate's covariance under the actual noise, the whitening filter
+    /// being of finite order ([`crate::forward::fisher::sandwich_covariance`]).
+    pub sandwich: DMatrix<f64>,
+    /// The inverse Fisher information of the same data under the exact noise PSD.
+    pub fisher: DMatrix<f64>,
+}
+
+/// [`CellCovariance`] of the time-domain cell (`sc`, `d`) of `campaign` (`[fit] engine =
+/// "time-domain"`): the cell's own decimated telemetry inputs and whitening filter (the model
+/// PSD at `[fit] whiten_at` folded through the anti-alias FIR, order `whitening_order`), the
+/// noise the folded model PSD at the truth (`forward::fisher`, "A fit whitened by an inexact
+/// filter"). Each matrix's inverse is taken over the free parameters only.
+pub fn time_domain_cell_covariance<M: CampaignModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
+    campaign: &Campaign,
+    sc: &Scenario,
+    d: &Design,
+) -> Result<CellCovariance, CampaignError> {
+    use crate::fit::telemetry_psd::folded;
+    use crate::forward::fisher::{
+        fisher_information, free_inverse, sandwich_covariance, whitened_fit_matrices, InputSpectra,
+    };
+    let cell = |cause: crate::setup::Error| CampaignError::Setup {
+        context: format!("campaign cell ({}, {})", sc.name, d.name),
+        cause: Box::new(cause),
+    };
+    let names = setup.model.parameter_names();
+    let mut fixed = vec![false; names.len()];
+    for k in fit_constraints(campaign, &names)?.fixed {
+        fixed[k] = true;
+    }
+    let order = campaign.fit.whitening_order;
+    let parts =
+        M::time_domain_parts(setup, d, sc, whitening_point(campaign, sc), order).map_err(cell)?;
+    let (dt, w) = (parts.dt, &parts.whitener);
+    let spectra = InputSpectra::<N>::from_series(&parts.inputs, dt);
+    let decimator = &parts.simulator.grid.decimator;
+    let psd = folded(setup.psd(&sc.truth), decimator);
+    let (a, b) = whitened_fit_matrices(
+        &setup.model,
+        &spectra,
+        &sc.truth,
+        |f| w.response_at(f, dt),
+        &psd,
+    );
+    let fisher = fisher_information(&setup.model, &spectra, &sc.truth, &psd);
+    let singular = |what: &str| {
+        cell(crate::setup::Error::Fit(crate::fit::FitError::Singular(
+            format!("{what} of the time-domain cell at the truth"),
+        )))
+    };
+    Ok(CellCovariance {
+        fit: free_inverse(&a, &fixed).ok_or_else(|| singular("the information"))?,
+        sandwich: sandwich_covariance(&a, &b, &fixed).ok_or_else(|| singular("the information"))?,
+        fisher: free_inverse(&fisher, &fixed).ok_or_else(|| singular("the Fisher information"))?,
+    })
 }
 
 /// The Whittle path of a cell: the likelihood on the analysis bins kept at the cell's truth
