@@ -1017,7 +1017,7 @@ pub fn time_domain_cell_covariance<M: CampaignModel<N>, const N: usize>(
     };
     let names = setup.model.parameter_names();
     let mut fixed = vec![false; names.len()];
-    for k in fit_constraints(campaign, &names)?.fixed {
+    for k in fit_constraints(campaign, names)?.fixed {
         fixed[k] = true;
     }
     let order = campaign.fit.whitening_order;

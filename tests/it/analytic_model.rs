@@ -116,6 +116,37 @@ fn fisher_information_matches_the_closed_form() {
     }
 }
 
+/// The converged fit from `start` of the noise-free readout `clean` plus white noise of sd SIGMA
+/// drawn from `sim::rng::stream(seed, r)`, through `lik`.
+fn fit_noisy(
+    model: &Oscillator,
+    lik: &Likelihood<'_, Oscillator, 1>,
+    inputs: &[Vec<Vec<f64>>],
+    clean: &[f64],
+    (seed, r): (u64, u64),
+    start: &[f64],
+) -> freefall::fit::FitResult {
+    let mut rng = freefall::sim::rng::stream(seed, r);
+    let outputs = vec![vec![clean
+        .iter()
+        .map(|x| {
+            let z: f64 = StandardNormal.sample(&mut rng);
+            x + SIGMA * z
+        })
+        .collect()]];
+    let data = ExperimentData {
+        tails: Vec::new(),
+        names: vec!["exp".into()],
+        inputs: inputs.to_vec(),
+        outputs,
+        dt: 1.0,
+    };
+    let cfg = FitConfig::new(model);
+    let res = fit(model, &lik.problem(&data).unwrap(), start, &cfg).unwrap();
+    assert!(res.termination.converged(), "{:?}", res.termination);
+    res
+}
+
 #[test]
 fn fits_scatter_as_the_closed_form_fisher_sigmas() {
     // Oracle: the closed-form Fisher matrix. 200 fits of templates plus white noise: the Monte
@@ -133,28 +164,11 @@ fn fits_scatter_as_the_closed_form_fisher_sigmas() {
         .try_inverse()
         .map(|c| [c[(0, 0)].sqrt(), c[(1, 1)].sqrt()])
         .unwrap();
-    let cfg = FitConfig::new(&model);
     let start = [TRUTH[0] + 3.0 * sigma[0], TRUTH[1] - 3.0 * sigma[1]];
     let n = 200;
     let mut est = vec![Vec::new(); 2];
     for r in 0..n {
-        let mut rng = freefall::sim::rng::stream(17, r);
-        let outputs = vec![vec![clean[0][0]
-            .iter()
-            .map(|x| {
-                let z: f64 = StandardNormal.sample(&mut rng);
-                x + SIGMA * z
-            })
-            .collect()]];
-        let data = ExperimentData {
-            tails: Vec::new(),
-            names: vec!["exp".into()],
-            inputs: inputs.clone(),
-            outputs,
-            dt: 1.0,
-        };
-        let res = fit(&model, &lik.problem(&data).unwrap(), &start, &cfg).unwrap();
-        assert!(res.termination.converged(), "{:?}", res.termination);
+        let res = fit_noisy(&model, &lik, &inputs, &clean[0][0], (17, r), &start);
         for (e, x) in est.iter_mut().zip(&res.estimate) {
             e.push(*x);
         }
@@ -262,27 +276,10 @@ fn fits_with_an_inexact_whitener_scatter_as_the_sandwich() {
     let clean = lik.engine.templates(&TRUTH, None);
     let (a, b) = closed_form_sandwich_parts();
     let sandwich = sandwich_covariance(&a, &b, &[false; 2]).unwrap();
-    let cfg = FitConfig::new(&model);
     let n = 200;
     let (mut est, mut own) = (vec![Vec::new(); 2], vec![0.0; 2]);
     for r in 0..n {
-        let mut rng = freefall::sim::rng::stream(23, r);
-        let outputs = vec![vec![clean[0][0]
-            .iter()
-            .map(|x| {
-                let z: f64 = StandardNormal.sample(&mut rng);
-                x + SIGMA * z
-            })
-            .collect()]];
-        let data = ExperimentData {
-            tails: Vec::new(),
-            names: vec!["exp".into()],
-            inputs: inputs.clone(),
-            outputs,
-            dt: 1.0,
-        };
-        let res = fit(&model, &lik.problem(&data).unwrap(), &TRUTH, &cfg).unwrap();
-        assert!(res.termination.converged(), "{:?}", res.termination);
+        let res = fit_noisy(&model, &lik, &inputs, &clean[0][0], (23, r), &TRUTH);
         for k in 0..2 {
             est[k].push(res.estimate[k]);
             own[k] += res.sigma[k] / n as f64;
