@@ -388,7 +388,7 @@ fn xy_time_domain_campaign_scatter_matches_the_sandwich() {
             cov.fisher[(k, k)].sqrt(),
         );
         eprintln!(
-            "{}: sd/sandwich {:.3}, sd/own {:.3}, own/A {:.3}, sandwich/Fisher {:.3}, A/Fisher {:.3}, bias {:.2} SE",
+            "{}: sandwich sigma {sw:.4e}, sd/sandwich {:.3}, sd/own {:.3}, own/A {:.3}, sandwich/Fisher {:.3}, A/Fisher {:.3}, bias {:.2} SE",
             p[i],
             sd[i] / sw,
             sd[i] / own,
