@@ -116,16 +116,9 @@ fn fisher_information_matches_the_closed_form() {
     }
 }
 
-/// The converged fit from `start` of the noise-free readout `clean` plus white noise of sd SIGMA
-/// drawn from `sim::rng::stream(seed, r)`, through `lik`.
-fn fit_noisy(
-    model: &Oscillator,
-    lik: &Likelihood<'_, Oscillator, 1>,
-    inputs: &[Vec<Vec<f64>>],
-    clean: &[f64],
-    (seed, r): (u64, u64),
-    start: &[f64],
-) -> freefall::fit::FitResult {
+/// The noise-free readout `clean` plus white noise of sd SIGMA drawn from
+/// `sim::rng::stream(seed, r)`, as one experiment with `inputs`.
+fn noisy_data(inputs: &[Vec<Vec<f64>>], clean: &[f64], (seed, r): (u64, u64)) -> ExperimentData {
     let mut rng = freefall::sim::rng::stream(seed, r);
     let outputs = vec![vec![clean
         .iter()
@@ -134,13 +127,25 @@ fn fit_noisy(
             x + SIGMA * z
         })
         .collect()]];
-    let data = ExperimentData {
+    ExperimentData {
         tails: Vec::new(),
         names: vec!["exp".into()],
         inputs: inputs.to_vec(),
         outputs,
         dt: 1.0,
-    };
+    }
+}
+
+/// The converged fit from `start` of [`noisy_data`] through `lik`.
+fn fit_noisy(
+    model: &Oscillator,
+    lik: &Likelihood<'_, Oscillator, 1>,
+    inputs: &[Vec<Vec<f64>>],
+    clean: &[f64],
+    stream: (u64, u64),
+    start: &[f64],
+) -> freefall::fit::FitResult {
+    let data = noisy_data(inputs, clean, stream);
     let cfg = FitConfig::new(model);
     let res = fit(model, &lik.problem(&data).unwrap(), start, &cfg).unwrap();
     assert!(res.termination.converged(), "{:?}", res.termination);
@@ -334,21 +339,7 @@ fn laplace_bayes_factor_matches_the_evidence_by_quadrature() {
     let w0 = TRUTH[0];
     let truth = [w0 + 3.0 * s_w2, TRUTH[1]];
     let clean = lik.engine.templates(&truth, None);
-    let mut rng = freefall::sim::rng::stream(29, 0);
-    let outputs = vec![vec![clean[0][0]
-        .iter()
-        .map(|x| {
-            let z: f64 = StandardNormal.sample(&mut rng);
-            x + SIGMA * z
-        })
-        .collect()]];
-    let data = ExperimentData {
-        tails: Vec::new(),
-        names: vec!["exp".into()],
-        inputs: inputs.clone(),
-        outputs,
-        dt: 1.0,
-    };
+    let data = noisy_data(&inputs, &clean[0][0], (29, 0));
     let prob = lik.problem(&data).unwrap();
     let chi2 = |p: &[f64]| -> f64 {
         prob.residuals(p)
@@ -433,21 +424,7 @@ fn posterior_matches_the_closed_form_gaussian_posterior() {
         Whitener::<1>::from_psd(|_| CMat::<1>::new(Complex64::new(psd, 0.0)), 1.0, 2, N).unwrap();
     let lik = Likelihood::new(&model, &inputs, 1.0, whitener, 0).unwrap();
     let clean = lik.engine.templates(&TRUTH, None);
-    let mut rng = freefall::sim::rng::stream(23, 0);
-    let outputs = vec![vec![clean[0][0]
-        .iter()
-        .map(|x| {
-            let z: f64 = StandardNormal.sample(&mut rng);
-            x + SIGMA * z
-        })
-        .collect()]];
-    let data = ExperimentData {
-        tails: Vec::new(),
-        names: vec!["exp".into()],
-        inputs: inputs.clone(),
-        outputs,
-        dt: 1.0,
-    };
+    let data = noisy_data(&inputs, &clean[0][0], (23, 0));
     let problem = lik.problem(&data).unwrap();
     let cfg = FitConfig::new(&model);
     let res = fit(&model, &problem, &TRUTH, &cfg).unwrap();
