@@ -18,8 +18,9 @@
 //! A campaign runs on the x model (`lpf_x`, the default) or on the 7-DOF xy cross-talk model
 //! (`model = "lpf_xy"`, or a model file that says `model = "lpf_xy"`); the runner is generic
 //! in the model ([`runner::CampaignModel`]), `[accel]` (the bias of S_g12, x12 on both models)
-//! and glitches included. The time-domain engine is the x model's only and is refused for the
-//! xy model in one line. The xy model's
+//! and glitches included. The time-domain engine (`[fit] engine = "time-domain"`) needs a
+//! sampled-data model of either kind (campaigns/models/lpf_xy_digital.toml for the xy model),
+//! and refuses a continuous one in one line. The xy model's
 //! `standard_xy` injection table is the x standard design plus one experiment per y/phi input
 //! (campaigns/xy_crosstalk.toml).
 //!

@@ -23,7 +23,8 @@
 //! second readout's total equivalent acceleration (x12 on both models); so are glitches (in
 //! every readout's white driving sequence). The time-domain engine simulates every model's
 //! digital loop (`sim::time_domain::DigitalPlant`); its data are fitted by a sampled-data model
-//! only ([`check_engine_model`]), which the xy model does not have yet.
+//! only ([`check_engine_model`]): a model file with `[control_loop] kind = "digital"`, of either
+//! model (campaigns/models/lpf_xy_digital.toml for the xy model).
 //!
 //! With `[posterior]` the first realizations of each cell are also sampled after their fit
 //! ([`Runner::coverage_job`]): the data are drawn again from the realization's stream, fitted
@@ -31,6 +32,7 @@
 //! the sampler seeded by the stream's next number, so `coverage.parquet` is a pure function of
 //! the campaign file, whatever the thread count, batch or resume.
 
+use nalgebra::DMatrix;
 use rayon::prelude::*;
 
 use super::spec::{Campaign, LikelihoodKind, PosteriorOptions, ScenarioSource, WhitenAt};
@@ -830,28 +832,24 @@ impl<M: CampaignModel<N>, const N: usize> Jobs for Runner<'_, M, N> {
 
 /// The time-domain engine's data come from a digital loop: fitted with a continuous model
 /// they give biased guidance delays and drag-free gain (the hold's half-sample delay; README
-/// "Time-domain simulation of the digital loop"), so the campaign's model must be digital. The
-/// xy model has no sampled-data form (`model::lpf_xy` is continuous only): its time-domain
-/// campaigns are refused naming that. Checked when the campaign is loaded and when it is run.
+/// "Time-domain simulation of the digital loop"), so the campaign's model must be digital
+/// (either model: the embedded lpf_x.toml is, campaigns/models/lpf_xy_digital.toml is the
+/// embedded lpf_xy.toml made digital). Checked when the campaign is loaded and when it is run.
 pub fn check_engine_model(spec: &ModelSpec, campaign: &Campaign) -> Result<(), CampaignError> {
     use crate::model::spec::LoopKind;
     if campaign.fit.engine != Engine::TimeDomain || spec.control_loop.kind == LoopKind::Digital {
         return Ok(());
     }
-    let reason = if spec.model == ModelKind::LpfXy {
-        format!(
-            "\"time-domain\" needs a sampled-data model to fit the digital loop's data, and the \
-             lpf_xy model ('{}') has none (its loop is continuous only; fitted to 10 Hz \
-             time-domain data it biases dt1, dt12 and a_df by tens of sigmas); simulate the xy \
-             loop with `freefall simulate --model lpf_xy --engine time-domain`",
-            spec.origin
-        )
-    } else {
-        format!(
-            "\"time-domain\" needs a sampled-data model: the model '{}' is continuous; give `model =` a model file with [control_loop] kind = \"digital\" (the embedded model is one; campaigns/models/lpf_x_continuous.toml is not)",
-            spec.origin
-        )
+    let example = match spec.model {
+        ModelKind::LpfXy => {
+            "campaigns/models/lpf_xy_digital.toml is one; the embedded lpf_xy.toml is not"
+        }
+        _ => "the embedded model is one; campaigns/models/lpf_x_continuous.toml is not",
     };
+    let reason = format!(
+        "\"time-domain\" needs a sampled-data model: the model '{}' is continuous; give `model =` a model file with [control_loop] kind = \"digital\" ({example})",
+        spec.origin
+    );
     Err(CampaignError::Invalid {
         file: campaign.file.clone(),
         key: "fit.engine".into(),
@@ -982,6 +980,71 @@ fn time_path<'s, M: CampaignModel<N>, const N: usize>(
         base.jacobian = cell_jacobians(setup, &source, &lik, sc, campaign.seed, base)?;
     }
     Ok((Path::Time { source, lik }, dt, note))
+}
+
+/// The covariances of a time-domain cell's fits at its truth, over the model's parameters
+/// (zero rows and columns for the fixed ones): what the fits report, what they scatter with,
+/// and the bound an exact whitening would reach.
+#[derive(Debug, Clone)]
+pub struct CellCovariance {
+    /// `A^-1`: the fit's own covariance, from its whitened information `J^T J` (at chi^2/nu = 1).
+    pub fit: DMatrix<f64>,
+    /// `A^-1 B A^-1`: the estimate's covariance under the actual noise, the whitening filter
+    /// being of finite order ([`crate::forward::fisher::sandwich_covariance`]).
+    pub sandwich: DMatrix<f64>,
+    /// The inverse Fisher information of the same data under the exact noise PSD.
+    pub fisher: DMatrix<f64>,
+}
+
+/// [`CellCovariance`] of the time-domain cell (`sc`, `d`) of `campaign` (`[fit] engine =
+/// "time-domain"`): the cell's own decimated telemetry inputs and whitening filter (the model
+/// PSD at `[fit] whiten_at` folded through the anti-alias FIR, order `whitening_order`), the
+/// noise the folded model PSD at the truth (`forward::fisher`, "A fit whitened by an inexact
+/// filter"). Each matrix's inverse is taken over the free parameters only.
+pub fn time_domain_cell_covariance<M: CampaignModel<N>, const N: usize>(
+    setup: &SetupOf<M, N>,
+    campaign: &Campaign,
+    sc: &Scenario,
+    d: &Design,
+) -> Result<CellCovariance, CampaignError> {
+    use crate::fit::telemetry_psd::folded;
+    use crate::forward::fisher::{
+        fisher_information, free_inverse, sandwich_covariance, whitened_fit_matrices, InputSpectra,
+    };
+    let cell = |cause: crate::setup::Error| CampaignError::Setup {
+        context: format!("campaign cell ({}, {})", sc.name, d.name),
+        cause: Box::new(cause),
+    };
+    let names = setup.model.parameter_names();
+    let mut fixed = vec![false; names.len()];
+    for k in fit_constraints(campaign, names)?.fixed {
+        fixed[k] = true;
+    }
+    let order = campaign.fit.whitening_order;
+    let parts =
+        M::time_domain_parts(setup, d, sc, whitening_point(campaign, sc), order).map_err(cell)?;
+    let (dt, w) = (parts.dt, &parts.whitener);
+    let spectra = InputSpectra::<N>::from_series(&parts.inputs, dt);
+    let decimator = &parts.simulator.grid.decimator;
+    let psd = folded(setup.psd(&sc.truth), decimator);
+    let (a, b) = whitened_fit_matrices(
+        &setup.model,
+        &spectra,
+        &sc.truth,
+        |f| w.response_at(f, dt),
+        &psd,
+    );
+    let fisher = fisher_information(&setup.model, &spectra, &sc.truth, &psd);
+    let singular = |what: &str| {
+        cell(crate::setup::Error::Fit(crate::fit::FitError::Singular(
+            format!("{what} of the time-domain cell at the truth"),
+        )))
+    };
+    Ok(CellCovariance {
+        fit: free_inverse(&a, &fixed).ok_or_else(|| singular("the information"))?,
+        sandwich: sandwich_covariance(&a, &b, &fixed).ok_or_else(|| singular("the information"))?,
+        fisher: free_inverse(&fisher, &fixed).ok_or_else(|| singular("the Fisher information"))?,
+    })
 }
 
 /// The Whittle path of a cell: the likelihood on the analysis bins kept at the cell's truth

@@ -14,9 +14,10 @@ use super::closed_loop::{
     transfer_grid_adjoint_forward, transfer_of, transfer_with_derivatives_of, CMat,
     ClosedLoopModel, NoiseEntry, OperatorDerivative, OperatorSweep, Operators,
 };
-use super::discrete::DiscreteTf;
+use super::discrete::{Df2t, DiscreteTf};
 use super::poly::{Poly, RootsError};
 use super::sampled::{law_polynomials_in_w, s_of_w, z_and_zm1, HeldPlant};
+use super::sampled_loop::{LoopRealization, PlantMatrices};
 use super::spec::{LoopKind, ModelSpec};
 use super::zpk::Zpk;
 
@@ -153,7 +154,7 @@ impl LpfX {
     }
 
     /// The held plant of the digital loop at `p`, `None` for a continuous model.
-    pub fn held_plant(&self, p: &[f64]) -> Option<HeldPlant> {
+    pub fn held_plant(&self, p: &[f64]) -> Option<HeldPlant<2, 2>> {
         let dl = self.digital.as_ref()?;
         let m = |a: [[f64; 2]; 2]| nalgebra::Matrix2::new(a[0][0], a[0][1], a[1][0], a[1][1]);
         let dk = self.stiffness_derivatives();
@@ -461,13 +462,18 @@ impl LpfX {
         }
     }
 
-    fn digital_operators(&self, pt: &LpfPoint, p: &[f64], plant: &HeldPlant) -> Operators<2> {
+    fn digital_operators(&self, pt: &LpfPoint, p: &[f64], plant: &HeldPlant<2, 2>) -> Operators<2> {
         self.operators_with(pt, p, plant.d(pt.z, pt.zm1), plant.delay_factor(pt.z))
     }
 
     /// The operators at one point, with the held plant at `p` for a digital model (`None`:
     /// continuous), made once by the caller for a whole grid.
-    fn operators_held(&self, pt: &LpfPoint, p: &[f64], plant: Option<&HeldPlant>) -> Operators<2> {
+    fn operators_held(
+        &self,
+        pt: &LpfPoint,
+        p: &[f64],
+        plant: Option<&HeldPlant<2, 2>>,
+    ) -> Operators<2> {
         match plant {
             Some(plant) => self.digital_operators(pt, p, plant),
             None => self.operators_with(pt, p, self.d(pt, p), None),
@@ -480,7 +486,7 @@ impl LpfX {
         pt: &LpfPoint,
         p: &[f64],
         k: usize,
-        plant: Option<&HeldPlant>,
+        plant: Option<&HeldPlant<2, 2>>,
     ) -> OperatorDerivative<2> {
         let z = c(0.0);
         let mt = self.mt;
@@ -521,7 +527,7 @@ impl LpfX {
     /// then the generic operator algebra per point.
     fn digital_transfer_grid(
         &self,
-        plant: &HeldPlant,
+        plant: &HeldPlant<2, 2>,
         points: &[LpfPoint],
         p: &[f64],
         t_out: &mut [CMat<2>],
@@ -545,6 +551,22 @@ impl LpfX {
                 }
             }
         }
+    }
+
+    /// The digital loop's state-space realization at `p` (the plant under the holds, this
+    /// model's discretised laws; [`super::sampled_loop`]), the one the time-domain engine
+    /// steps. `None` for a continuous model. (This model's own poles stay the roots of
+    /// [`Self::digital_characteristic_polynomial`], which the realization's eigenvalues
+    /// match: tested.)
+    pub fn digital_realization(&self, p: &[f64]) -> Option<LoopRealization<2>> {
+        let dl = self.digital.as_ref()?;
+        let laws = vec![Df2t::new(&dl.c_df), Df2t::new(&dl.c_sus)];
+        Some(LoopRealization::new(
+            &PlantMatrices::of(self, p),
+            laws,
+            dl.h,
+            dl.tau,
+        ))
     }
 
     /// The digital loop's characteristic polynomial in `w = z - 1` (ascending powers), whose
@@ -700,7 +722,7 @@ impl ClosedLoopModel<2> for LpfX {
 struct HeldSweep<'a> {
     model: &'a LpfX,
     p: &'a [f64],
-    plant: Option<HeldPlant>,
+    plant: Option<HeldPlant<2, 2>>,
 }
 
 impl OperatorSweep<2, LpfPoint> for HeldSweep<'_> {

@@ -22,16 +22,27 @@
 //! - `ophi2 = ophi1 + ophi12` (thesis Table "coordinates_xy_cross-talk"): the readout noise of
 //!   `ophi1` enters both angular readouts, that of the differential IFO `ophi12` only `ophi2`.
 //!
-//! The loop is continuous; the model file's `[control_loop] kind = "digital"` is refused.
+//! The loop is continuous or, with the model file's `[control_loop] kind = "digital"`, the
+//! sampled-data loop of the spacecraft as for the x model ([`super::sampled`], generic in the
+//! coordinates): every law discretised at the control interval `h` and evaluated at
+//! `z = exp(s h)`, the held plant `D_d(z)` in place of `s^2 + K` (its derivatives along the
+//! ten stiffness and dynamical cross-talk parameters analytic) and the computation-delay
+//! factor on the actuated control, `H(z) A C(z)`. The x block is then the digital x model's.
 
 use std::f64::consts::PI;
 
 use nalgebra::SMatrix;
 use num_complex::Complex64;
 
-use super::closed_loop::{CMat, ClosedLoopModel, NoiseEntry, OperatorDerivative, Operators};
-use super::lpf_x::{LpfPoint, LpfX, A_DF, A_SUS, DT1, DT12, S21};
-use super::poly::Poly;
+use super::closed_loop::{
+    transfer_grid_generic, transfer_of, transfer_with_derivatives_of, CMat, ClosedLoopModel,
+    NoiseEntry, OperatorDerivative, Operators,
+};
+use super::discrete::{Df2t, DiscreteTf};
+use super::lpf_x::{LpfPoint, LpfX, A_DF, A_SUS, DT1, DT12, S21, W1, W12};
+use super::poly::{Poly, RootsError};
+use super::sampled::{law_polynomials_in_w, HeldPlant};
+use super::sampled_loop::{LoopRealization, PlantMatrices};
 use super::spec::{LoopKind, ModelSpec};
 use super::zpk::Zpk;
 use super::ModelError;
@@ -128,10 +139,28 @@ pub const COLUMN_LAW: [Law; 7] = [
     Law::Attitude,
 ];
 
+/// The parameters `K` depends on (the directions of the held plant's derivatives): the x
+/// stiffnesses, the y and phi stiffnesses and the dynamical cross-talk.
+pub const STIFFNESS_PARAMETERS: [usize; 10] = [
+    W1, W12, W1Y, W2Y, W1PHI, W2PHI, D1_XY, D1_XPHI, D2_XY, D2_XPHI,
+];
+
+/// The held plant of the digital xy loop.
+pub type XyHeldPlant = HeldPlant<7, { STIFFNESS_PARAMETERS.len() }>;
+
+/// The y, phi and attitude laws of the digital loop, discretised at the x model's control
+/// interval (`LpfX::digital` holds the interval, the computation delay and the x laws).
+#[derive(Debug, Clone)]
+pub struct XyDigitalLaws {
+    pub c_dfy: DiscreteTf,
+    pub c_phi: DiscreteTf,
+    pub c_att: DiscreteTf,
+}
+
 /// The 7-DOF xy model.
 #[derive(Debug, Clone)]
 pub struct LpfXy {
-    /// The continuous x model, whose operators are the x block.
+    /// The x model (continuous or digital as the xy model), whose operators are the x block.
     pub x: LpfX,
     /// TM size `l` [m].
     pub l: f64,
@@ -140,6 +169,8 @@ pub struct LpfXy {
     pub c_dfy: Zpk,
     pub c_phi: Zpk,
     pub c_att: Zpk,
+    /// The y, phi and attitude laws of the sampled-data loop, when the model is digital.
+    pub digital: Option<XyDigitalLaws>,
     names: Vec<String>,
     bounds: Vec<(f64, f64)>,
 }
@@ -160,12 +191,6 @@ impl LpfXy {
             key: key.to_string(),
             reason: reason.to_string(),
         };
-        if spec.control_loop.kind == LoopKind::Digital {
-            return Err(bad(
-                "control_loop.kind",
-                "the xy model is continuous only (\"digital\" is not supported for it)",
-            ));
-        }
         let law = |key: &str, c: &Option<super::spec::ControllerSpec>| {
             c.as_ref()
                 .map(|c| c.zpk())
@@ -178,26 +203,62 @@ impl LpfXy {
                 "required by the xy model: a length > 0 in metres",
             )),
         };
+        let (c_dfy, c_phi, c_att) = (
+            law("drag_free_y", &spec.controllers.drag_free_y)?,
+            law("suspension_phi", &spec.controllers.suspension_phi)?,
+            law("attitude", &spec.controllers.attitude)?,
+        );
+        let cl = &spec.control_loop;
+        let digital = (cl.kind == LoopKind::Digital).then(|| {
+            let h = spec.control_dt();
+            let tf = |c: &Zpk| DiscreteTf::from_zpk(c, h, cl.discretisation);
+            XyDigitalLaws {
+                c_dfy: tf(&c_dfy),
+                c_phi: tf(&c_phi),
+                c_att: tf(&c_att),
+            }
+        });
         Ok(LpfXy {
             x: LpfX::from_spec(spec),
             l: length("tm_size_m", spec.constants.tm_size_m)?,
             big_l: length("tm_separation_m", spec.constants.tm_separation_m)?,
-            c_dfy: law("drag_free_y", &spec.controllers.drag_free_y)?,
-            c_phi: law("suspension_phi", &spec.controllers.suspension_phi)?,
-            c_att: law("attitude", &spec.controllers.attitude)?,
+            c_dfy,
+            c_phi,
+            c_att,
+            digital,
             names: spec.parameter_names(),
             bounds: spec.parameters.iter().map(|p| p.bounds()).collect(),
         })
     }
 
-    /// The point at a complex Laplace variable `s`.
+    /// The point at a complex Laplace variable `s` (a digital model's laws at `z = exp(s h)`).
     pub fn prepare_s(&self, s: Complex64) -> XyPoint {
-        XyPoint {
-            x: self.x.prepare_s(s),
-            c_dfy: self.c_dfy.eval(s),
-            c_phi: self.c_phi.eval(s),
-            c_att: self.c_att.eval(s),
+        let x = self.x.prepare_s(s);
+        match &self.digital {
+            None => XyPoint {
+                x,
+                c_dfy: self.c_dfy.eval(s),
+                c_phi: self.c_phi.eval(s),
+                c_att: self.c_att.eval(s),
+            },
+            Some(dl) => XyPoint {
+                x,
+                c_dfy: dl.c_dfy.eval(x.z),
+                c_phi: dl.c_phi.eval(x.z),
+                c_att: dl.c_att.eval(x.z),
+            },
         }
+    }
+
+    /// The held plant of the digital loop at `p` (derivatives along
+    /// [`STIFFNESS_PARAMETERS`]), `None` for a continuous model.
+    pub fn held_plant(&self, p: &[f64]) -> Option<XyHeldPlant> {
+        let dl = self.x.digital.as_ref()?;
+        let dk = STIFFNESS_PARAMETERS.map(|k| {
+            self.stiffness_derivative(p, k)
+                .expect("every stiffness parameter moves K")
+        });
+        Some(HeldPlant::new(self.stiffness(p), dk, dl.h, dl.tau))
     }
 
     /// The stiffness `K` of `D = s^2 + K` (x block as the x model, y/phi diagonal, the
@@ -398,24 +459,235 @@ impl LpfXy {
     }
 
     /// The loop-at-a-time loop gain of column `j`'s law at frequency `f_hz`: with `A C`
-    /// column `j` = `a_j law_j`, `det Delta = det Delta_0 (1 + L_j)`, where `Delta_0` has that
-    /// column's law set to zero (every other loop closed) and
-    /// `L_j = law_j e_j^T Delta_0^-1 a_j`. Its unity-gain crossings give the phase margins.
+    /// column `j` = `a_j law_j` (`H a_j law_j` in a digital loop with a computation delay),
+    /// `det Delta = det Delta_0 (1 + L_j)`, where `Delta_0` has that column's law set to zero
+    /// (every other loop closed) and `L_j = law_j e_j^T Delta_0^-1 a_j`. Its unity-gain
+    /// crossings give the phase margins.
     pub fn loop_gain(&self, f_hz: f64, p: &[f64], j: usize) -> Complex64 {
         let pt = self.prepare(f_hz);
-        let ops = self.operators(&pt, p);
+        let plant = self.held_plant(p);
+        let ops = self.operators_with(&pt, p, plant.as_ref());
         let s_inv = ops.s.try_inverse().unwrap_or_else(M7::identity);
         let mut delta0 = ops.d * s_inv + ops.ac;
         let a = self.actuation_column(p, j);
+        let mut av = nalgebra::SVector::<Complex64, 7>::from_fn(|i, _| c(a[i]));
+        if let Some(h) = plant.and_then(|pl| pl.delay_factor(pt.x.z)) {
+            av = h * av;
+        }
         let law = Self::law_at(&pt, j);
-        for (i, ai) in a.iter().enumerate() {
+        for (i, ai) in av.iter().enumerate() {
             delta0[(i, j)] -= law * *ai;
         }
         let Some(inv) = delta0.try_inverse() else {
             return c(f64::NAN);
         };
-        let av = nalgebra::SVector::<Complex64, 7>::from_fn(|i, _| c(a[i]));
         law * (inv * av)[j]
+    }
+
+    /// The discretised law of column `j`, `None` for a continuous model.
+    fn digital_law(&self, j: usize) -> Option<&DiscreteTf> {
+        let (x, xy) = (self.x.digital.as_ref()?, self.digital.as_ref()?);
+        Some(match COLUMN_LAW[j] {
+            Law::DragFreeX => &x.c_df,
+            Law::SuspensionX => &x.c_sus,
+            Law::DragFreeY => &xy.c_dfy,
+            Law::SuspensionPhi => &xy.c_phi,
+            Law::Attitude => &xy.c_att,
+        })
+    }
+
+    /// `A C` before any computation-delay factor: column `j` is `a_j law_j`.
+    fn actuated(&self, pt: &XyPoint, p: &[f64]) -> M7 {
+        let mut ac = M7::zeros();
+        for j in 0..7 {
+            let a = self.actuation_column(p, j);
+            let law = Self::law_at(pt, j);
+            for (i, ai) in a.iter().enumerate() {
+                ac[(i, j)] = law * *ai;
+            }
+        }
+        ac
+    }
+
+    /// The operators at one point: `D = s^2 + K` and `A C` for the continuous loop; with the
+    /// held plant `plant` of a digital model, `D_d(z)` and `H(z) A C(z)`.
+    fn operators_with(&self, pt: &XyPoint, p: &[f64], plant: Option<&XyHeldPlant>) -> Operators<7> {
+        let d = match plant {
+            Some(pl) => pl.d(pt.x.z, pt.x.zm1),
+            None => self.stiffness(p).map(c) + M7::identity() * pt.x.s2,
+        };
+        let ac = self.actuated(pt, p);
+        let hold = plant.and_then(|pl| pl.delay_factor(pt.x.z));
+        let mut t = M7::identity();
+        t[(X1, X1)] = (-pt.x.s * p[DT1]).exp();
+        t[(X12, X12)] = (-pt.x.s * p[DT12]).exp();
+        Operators {
+            d,
+            s: self.sensing(p).map(c),
+            ac: hold.map_or(ac, |h| h * ac),
+            c: self.bare_control(pt),
+            t,
+        }
+    }
+
+    /// `d(operators)/dp_k`; with the held plant `plant` of a digital model, `dD_d/dp_k` and
+    /// `d(H A C)/dp_k = dH/dp_k A C + H d(A C)/dp_k`.
+    fn derivative_with(
+        &self,
+        pt: &XyPoint,
+        p: &[f64],
+        k: usize,
+        plant: Option<&XyHeldPlant>,
+    ) -> OperatorDerivative<7> {
+        let direction = STIFFNESS_PARAMETERS.iter().position(|&q| q == k);
+        let d = match (plant, direction) {
+            (Some(pl), Some(j)) => Some(pl.d_derivative(pt.x.z, pt.x.zm1, j)),
+            (Some(_), None) => None,
+            (None, _) => self.stiffness_derivative(p, k).map(|m| m.map(c)),
+        };
+        let mut der = OperatorDerivative {
+            d,
+            ..Default::default()
+        };
+        if k == S21 {
+            let mut m = M7::zeros();
+            m[(X12, X1)] = c(1.0);
+            der.s = Some(m);
+        }
+        if (DS_1..DS_1 + 10).contains(&k) {
+            let (row, j) = if k < DS_2 {
+                (X1, k - DS_1)
+            } else {
+                (X12, k - DS_2)
+            };
+            let mut m = M7::zeros();
+            m[(row, Y1 + j)] = c(self.sensing_arm(j));
+            der.s = Some(m);
+        }
+        let mut dac: Option<M7> = None;
+        for j in 0..7 {
+            if let Some(a) = self.actuation_column_derivative(j, k) {
+                let law = Self::law_at(pt, j);
+                let m = dac.get_or_insert_with(M7::zeros);
+                for (i, ai) in a.iter().enumerate() {
+                    m[(i, j)] += law * *ai;
+                }
+            }
+        }
+        if let Some(h) = plant.and_then(|pl| pl.delay_factor(pt.x.z)) {
+            dac = dac.map(|m| h * m);
+        }
+        let dh = plant
+            .zip(direction)
+            .and_then(|(pl, j)| pl.delay_factor_derivative(pt.x.z, j));
+        if let Some(dh) = dh {
+            let m = dh * self.actuated(pt, p);
+            dac = Some(dac.map_or(m, |x| x + m));
+        }
+        der.ac = dac;
+        if k == DT1 || k == DT12 {
+            let i = if k == DT1 { X1 } else { X12 };
+            let mut m = M7::zeros();
+            m[(i, i)] = -pt.x.s * (-pt.x.s * p[k]).exp();
+            der.t = Some(m);
+        }
+        der
+    }
+
+    /// `T_{oi->o}` (and derivatives) of the digital loop on a grid: the held plant once, then
+    /// the operator algebra per point, the points in chunks over the cores (the same numbers at
+    /// any thread count).
+    fn digital_transfer_grid(
+        &self,
+        plant: &XyHeldPlant,
+        points: &[XyPoint],
+        p: &[f64],
+        t_out: &mut [CMat<7>],
+        d_out: Option<&mut [CMat<7>]>,
+    ) {
+        use rayon::prelude::*;
+        const CHUNK: usize = 256;
+        let np = self.names.len();
+        let n = points.len().min(t_out.len());
+        let (points, t_out) = (&points[..n], &mut t_out[..n]);
+        let ops = |pt: &XyPoint| self.operators_with(pt, p, Some(plant));
+        match d_out {
+            None => points
+                .par_chunks(CHUNK)
+                .zip(t_out.par_chunks_mut(CHUNK))
+                .for_each(|(pts, ts)| {
+                    for (pt, t) in pts.iter().zip(ts.iter_mut()) {
+                        *t = transfer_of(ops(pt)).oi_o;
+                    }
+                }),
+            Some(d) => points
+                .par_chunks(CHUNK)
+                .zip(t_out.par_chunks_mut(CHUNK))
+                .zip(d.par_chunks_mut(CHUNK * np))
+                .for_each(|((pts, ts), ds)| {
+                    for ((pt, t), dk) in pts.iter().zip(ts.iter_mut()).zip(ds.chunks_mut(np)) {
+                        let der = |k| self.derivative_with(pt, p, k, Some(plant));
+                        *t = transfer_with_derivatives_of(ops(pt), der, dk).oi_o;
+                    }
+                }),
+        }
+    }
+
+    /// The digital loop's state-space realization at `p` (the plant under the holds, this
+    /// model's discretised laws; [`super::sampled_loop`]), whose transition matrix's
+    /// eigenvalues are the closed-loop poles in `z`. `None` for a continuous model.
+    pub fn digital_realization(&self, p: &[f64]) -> Option<LoopRealization<7>> {
+        let dl = self.x.digital.as_ref()?;
+        let laws = (0..7)
+            .map(|j| self.digital_law(j).map(Df2t::new))
+            .collect::<Option<Vec<_>>>()?;
+        Some(LoopRealization::new(
+            &PlantMatrices::of(self, p),
+            laws,
+            dl.h,
+            dl.tau,
+        ))
+    }
+
+    /// The digital loop's characteristic function at `w = z - 1`: the determinant of
+    /// [`Self::digital_polynomial_matrix`] evaluated there (its zeros are the closed-loop
+    /// poles in `z`), by LU of the evaluated matrix rather than from an expanded polynomial,
+    /// whose cancellations move the twin loops' near-double slow roots. `None` for a
+    /// continuous model.
+    pub fn digital_characteristic_at(&self, w: Complex64, p: &[f64]) -> Option<Complex64> {
+        let m = self.digital_polynomial_matrix(p)?;
+        Some(CMat::<7>::from_fn(|i, j| m[i][j].eval(w)).determinant())
+    }
+
+    /// `m Delta_d` with column `j` multiplied by its law's denominator `den_j`, entries
+    /// polynomials in `w = z - 1`: column `j` of `m Delta_d = (m D_d) S^-1 + (m H) A C` times
+    /// `den_j` is `(m D_d S^-1)_{:j} den_j + (m H) a_j num_j` (`m = z + 1`, or `z (z + 1)` with
+    /// a computation delay; `sampled::HeldPlant::polynomial_matrices`). `None` for a continuous
+    /// model.
+    pub fn digital_polynomial_matrix(&self, p: &[f64]) -> Option<Vec<Vec<Poly>>> {
+        let (dm, hm) = self.held_plant(p)?.polynomial_matrices();
+        let s_inv = self.sensing(p).try_inverse().unwrap_or_else(R7::identity);
+        let mut laws = Vec::with_capacity(7);
+        for j in 0..7 {
+            laws.push(law_polynomials_in_w(self.digital_law(j)?));
+        }
+        let combine = |row: &[Poly; 7], v: &dyn Fn(usize) -> f64| {
+            (0..7).fold(Poly::constant(0.0), |acc, l| acc.add(&row[l].scale(v(l))))
+        };
+        let m = (0..7)
+            .map(|i| {
+                (0..7)
+                    .map(|j| {
+                        let (num, den) = &laws[j];
+                        let a = self.actuation_column(p, j);
+                        let ds = combine(&dm[i], &|l| s_inv[(l, j)]);
+                        let ha = combine(&hm[i], &|l| a[l]);
+                        ds.mul(den).add(&ha.mul(num))
+                    })
+                    .collect()
+            })
+            .collect();
+        Some(m)
     }
 }
 
@@ -445,66 +717,39 @@ impl ClosedLoopModel<7> for LpfXy {
     }
 
     fn operators(&self, pt: &XyPoint, p: &[f64]) -> Operators<7> {
-        let s2 = pt.x.s2;
-        let d = self.stiffness(p).map(c) + M7::identity() * s2;
-        let mut ac = M7::zeros();
-        for j in 0..7 {
-            let a = self.actuation_column(p, j);
-            let law = Self::law_at(pt, j);
-            for (i, ai) in a.iter().enumerate() {
-                ac[(i, j)] = law * *ai;
-            }
-        }
-        let mut t = M7::identity();
-        t[(X1, X1)] = (-pt.x.s * p[DT1]).exp();
-        t[(X12, X12)] = (-pt.x.s * p[DT12]).exp();
-        Operators {
-            d,
-            s: self.sensing(p).map(c),
-            ac,
-            c: self.bare_control(pt),
-            t,
-        }
+        self.operators_with(pt, p, self.held_plant(p).as_ref())
     }
 
     fn derivative(&self, pt: &XyPoint, p: &[f64], k: usize) -> OperatorDerivative<7> {
-        let mut der = OperatorDerivative {
-            d: self.stiffness_derivative(p, k).map(|m| m.map(c)),
-            ..Default::default()
-        };
-        if k == S21 {
-            let mut m = M7::zeros();
-            m[(X12, X1)] = c(1.0);
-            der.s = Some(m);
+        self.derivative_with(pt, p, k, self.held_plant(p).as_ref())
+    }
+
+    /// Half the control interval for a digital model (the held plant's advance, as the x
+    /// model's); zero for the continuous loop.
+    fn inertia_advance(&self) -> f64 {
+        self.x.inertia_advance()
+    }
+
+    /// For a digital model, the eigenvalues `z` of the loop's one-step transition matrix
+    /// ([`LpfXy::digital_realization`]) mapped to `s = ln(z) / h`.
+    fn poles(&self, p: &[f64]) -> Result<Vec<Complex64>, RootsError> {
+        match self.digital_realization(p) {
+            Some(r) => r.s_poles(),
+            None => self.characteristic_polynomial(p).roots(),
         }
-        if (DS_1..DS_1 + 10).contains(&k) {
-            let (row, j) = if k < DS_2 {
-                (X1, k - DS_1)
-            } else {
-                (X12, k - DS_2)
-            };
-            let mut m = M7::zeros();
-            m[(row, Y1 + j)] = c(self.sensing_arm(j));
-            der.s = Some(m);
+    }
+
+    fn transfer_grid(
+        &self,
+        points: &[XyPoint],
+        p: &[f64],
+        t_out: &mut [CMat<7>],
+        d_out: Option<&mut [CMat<7>]>,
+    ) {
+        match self.held_plant(p) {
+            Some(plant) => self.digital_transfer_grid(&plant, points, p, t_out, d_out),
+            None => transfer_grid_generic(self, points, p, t_out, d_out),
         }
-        let mut dac: Option<M7> = None;
-        for j in 0..7 {
-            if let Some(a) = self.actuation_column_derivative(j, k) {
-                let law = Self::law_at(pt, j);
-                let m = dac.get_or_insert_with(M7::zeros);
-                for (i, ai) in a.iter().enumerate() {
-                    m[(i, j)] += law * *ai;
-                }
-            }
-        }
-        der.ac = dac;
-        if k == DT1 || k == DT12 {
-            let i = if k == DT1 { X1 } else { X12 };
-            let mut m = M7::zeros();
-            m[(i, i)] = -pt.x.s * (-pt.x.s * p[k]).exp();
-            der.t = Some(m);
-        }
-        der
     }
 
     /// `det(Delta)` times the laws' denominators: `S` is constant, so

@@ -8,6 +8,7 @@ pub mod lpf_x;
 pub mod lpf_xy;
 pub mod poly;
 pub mod sampled;
+pub mod sampled_loop;
 pub mod spec;
 pub mod zpk;
 

@@ -13,6 +13,18 @@ pub enum RootsError {
     /// The Schur iteration of the (balanced) companion matrix did not converge.
     #[error("the eigenvalue iteration of the degree-{degree} companion matrix did not converge in {iterations} iterations")]
     NoConvergence { degree: usize, iterations: usize },
+    /// An entry of a digital loop's transition matrix overflowed (or is NaN): the parameters
+    /// that built it are out of any physical range.
+    #[error("entry ({row}, {col}) of the digital loop's {dim}-state transition matrix is not finite ({value})")]
+    NonFiniteTransition {
+        dim: usize,
+        row: usize,
+        col: usize,
+        value: f64,
+    },
+    /// The Schur iteration of a digital loop's transition matrix did not converge.
+    #[error("the eigenvalue iteration of the digital loop's {dim}-state transition matrix did not converge in {iterations} iterations")]
+    TransitionNoConvergence { dim: usize, iterations: usize },
 }
 
 /// Iterations of the Schur decomposition allowed per root: LAPACK's `hqr` allows 30 per

@@ -21,48 +21,50 @@
 //!   with `r = h - tau` and `[p_top; p_bot] = Phi(r) Gamma(tau)`.
 //!
 //! Every function of `K` carries its Frechet derivatives along the stiffness parameters'
-//! directions `dK/dp`, so the parameter derivatives stay analytic.
+//! directions `dK/dp`, so the parameter derivatives stay analytic. All of it is generic in the
+//! number of coordinates `N` (the x model's 2, the xy model's 7) and in the number of
+//! directions (the x model's two stiffnesses; the xy model's ten stiffness and dynamical
+//! cross-talk parameters).
 
-use nalgebra::Matrix2;
+use nalgebra::SMatrix;
 use num_complex::Complex64;
 
 use super::closed_loop::CMat;
 use super::discrete::DiscreteTf;
 use super::poly::Poly;
 
-type M2 = Matrix2<f64>;
+/// A real `N x N` matrix.
+pub type RMat<const N: usize> = SMatrix<f64, N, N>;
 
 /// Terms of the power series in `K h^2` allowed; the terms fall as `(K h^2)^n / (2n)!`, so a
 /// few suffice for any physical stiffness (`|K| h^2 ~ 1e-8` for LPF) and 60 for `|K| h^2` up
 /// to about 100.
 const SERIES_TERMS_MAX: usize = 60;
 
-/// Number of parameter directions carried (the two stiffnesses `w1_sq`, `w12_sq`).
-pub const DIRECTIONS: usize = 2;
-
 /// A matrix function of `K` with its derivatives along the parameter directions.
+/// `D` is the number of directions.
 #[derive(Debug, Clone, Copy)]
-struct Dual {
-    v: M2,
-    d: [M2; DIRECTIONS],
+struct Dual<const N: usize, const D: usize> {
+    v: RMat<N>,
+    d: [RMat<N>; D],
 }
 
-impl Dual {
-    fn mul(&self, o: &Dual) -> Dual {
+impl<const N: usize, const D: usize> Dual<N, D> {
+    fn mul(&self, o: &Self) -> Self {
         Dual {
             v: self.v * o.v,
             d: std::array::from_fn(|j| self.d[j] * o.v + self.v * o.d[j]),
         }
     }
 
-    fn add(&self, o: &Dual) -> Dual {
+    fn add(&self, o: &Self) -> Self {
         Dual {
             v: self.v + o.v,
             d: std::array::from_fn(|j| self.d[j] + o.d[j]),
         }
     }
 
-    fn sub(&self, o: &Dual) -> Dual {
+    fn sub(&self, o: &Self) -> Self {
         Dual {
             v: self.v - o.v,
             d: std::array::from_fn(|j| self.d[j] - o.d[j]),
@@ -72,13 +74,13 @@ impl Dual {
 
 /// `sum_n (-1)^n K^n t^(2n+m) / (2n+m)!` (`m = 0`: `c_t`, `1`: `s_t`, `2`: `g_t`), with
 /// Frechet derivatives `d(K^(n+1)) = d(K^n) K + K^n dK`.
-fn trig_series(k: &Dual, t: f64, m: u32) -> Dual {
+fn trig_series<const N: usize, const D: usize>(k: &Dual<N, D>, t: f64, m: u32) -> Dual<N, D> {
     let mut coef = t.powi(m as i32) / (1..=m).product::<u32>().max(1) as f64;
-    let mut pow = M2::identity();
-    let mut dpow = [M2::zeros(); DIRECTIONS];
+    let mut pow = RMat::<N>::identity();
+    let mut dpow = [RMat::<N>::zeros(); D];
     let mut out = Dual {
-        v: M2::zeros(),
-        d: [M2::zeros(); DIRECTIONS],
+        v: RMat::<N>::zeros(),
+        d: [RMat::<N>::zeros(); D],
     };
     for n in 0..SERIES_TERMS_MAX {
         out.v += pow * coef;
@@ -100,7 +102,7 @@ fn trig_series(k: &Dual, t: f64, m: u32) -> Dual {
     out
 }
 
-fn complex(m: &M2) -> CMat<2> {
+fn complex<const N: usize>(m: &RMat<N>) -> CMat<N> {
     m.map(|x| Complex64::new(x, 0.0))
 }
 
@@ -112,24 +114,25 @@ pub fn z_and_zm1(s: Complex64, h: f64) -> (Complex64, Complex64) {
     (zm1 + 1.0, zm1)
 }
 
-/// The held plant and computation-delay factor at one parameter set (see the module doc).
+/// The held plant and computation-delay factor at one parameter set (see the module doc), of
+/// `N` coordinates with derivatives along `D` parameter directions.
 #[derive(Debug, Clone)]
-pub struct HeldPlant {
-    k: Dual,
-    q: Dual,
+pub struct HeldPlant<const N: usize, const D: usize> {
+    k: Dual<N, D>,
+    q: Dual<N, D>,
     /// `Q U1, Q U0, Q U_-1` when there is a computation delay.
-    delay: Option<[Dual; 3]>,
+    delay: Option<[Dual<N, D>; 3]>,
 }
 
-impl HeldPlant {
-    /// `k`: stiffness `K`; `dk`: `dK/dp` along the two stiffness parameters.
-    pub fn new(k: M2, dk: [M2; DIRECTIONS], h: f64, tau: f64) -> Self {
+impl<const N: usize, const D: usize> HeldPlant<N, D> {
+    /// `k`: stiffness `K`; `dk`: `dK/dp` along each direction (the stiffness parameters).
+    pub fn new(k: RMat<N>, dk: [RMat<N>; D], h: f64, tau: f64) -> Self {
         let k = Dual { v: k, d: dk };
         let g_h = trig_series(&k, h, 2);
         let q_v = g_h
             .v
             .try_inverse()
-            .unwrap_or_else(|| M2::from_element(f64::NAN));
+            .unwrap_or_else(|| RMat::<N>::from_element(f64::NAN));
         let q = Dual {
             v: q_v,
             d: std::array::from_fn(|j| -(q_v * g_h.d[j] * q_v)),
@@ -154,28 +157,28 @@ impl HeldPlant {
     }
 
     /// `D_d(z) = (Q (z-1)^2 + 2 z K) / (z + 1)`.
-    pub fn d(&self, z: Complex64, zm1: Complex64) -> CMat<2> {
+    pub fn d(&self, z: Complex64, zm1: Complex64) -> CMat<N> {
         (complex(&self.q.v) * (zm1 * zm1) + complex(&self.k.v) * (2.0 * z)) / (z + 1.0)
     }
 
     /// `dD_d/dp` along direction `j`.
-    pub fn d_derivative(&self, z: Complex64, zm1: Complex64, j: usize) -> CMat<2> {
+    pub fn d_derivative(&self, z: Complex64, zm1: Complex64, j: usize) -> CMat<N> {
         (complex(&self.q.d[j]) * (zm1 * zm1) + complex(&self.k.d[j]) * (2.0 * z)) / (z + 1.0)
     }
 
-    fn laurent(v: [&M2; 3], z: Complex64) -> CMat<2> {
+    fn laurent(v: [&RMat<N>; 3], z: Complex64) -> CMat<N> {
         (complex(v[0]) * z + complex(v[1]) + complex(v[2]) / z) / (z + 1.0)
     }
 
     /// The computation-delay factor `H(z)`, `None` when there is no delay (`H = I`).
-    pub fn delay_factor(&self, z: Complex64) -> Option<CMat<2>> {
+    pub fn delay_factor(&self, z: Complex64) -> Option<CMat<N>> {
         self.delay
             .as_ref()
             .map(|u| Self::laurent([&u[0].v, &u[1].v, &u[2].v], z))
     }
 
     /// `dH/dp` along direction `j`, `None` when there is no delay.
-    pub fn delay_factor_derivative(&self, z: Complex64, j: usize) -> Option<CMat<2>> {
+    pub fn delay_factor_derivative(&self, z: Complex64, j: usize) -> Option<CMat<N>> {
         self.delay
             .as_ref()
             .map(|u| Self::laurent([&u[0].d[j], &u[1].d[j], &u[2].d[j]], z))
@@ -184,10 +187,10 @@ impl HeldPlant {
     /// Polynomial matrices in `w = z - 1` (ascending powers, entries `[row][col]`) of
     /// `m(z) D_d` and `m(z) H` with `m = (z + 1)` without delay, `z (z + 1)` with one; both
     /// are polynomial. For the characteristic polynomial of the loop.
-    pub fn polynomial_matrices(&self) -> ([[Poly; 2]; 2], [[Poly; 2]; 2]) {
+    pub fn polynomial_matrices(&self) -> ([[Poly; N]; N], [[Poly; N]; N]) {
         let (q, k) = (&self.q.v, &self.k.v);
         // (z+1) D_d = Q w^2 + 2 (w + 1) K.
-        let d1: [[Poly; 2]; 2] = std::array::from_fn(|i| {
+        let d1: [[Poly; N]; N] = std::array::from_fn(|i| {
             std::array::from_fn(|j| Poly(vec![2.0 * k[(i, j)], 2.0 * k[(i, j)], q[(i, j)]]))
         });
         match &self.delay {
@@ -244,6 +247,8 @@ mod tests {
     use crate::model::discrete::held_input;
     use nalgebra::DMatrix;
 
+    type M2 = RMat<2>;
+
     #[test]
     fn series_match_the_matrix_exponential() {
         // Oracle: Phi and Gamma from the augmented matrix exponential (Van Loan).
@@ -251,7 +256,7 @@ mod tests {
         let h = 0.7;
         let kd = Dual {
             v: k,
-            d: [M2::zeros(); DIRECTIONS],
+            d: [M2::zeros(); 2],
         };
         let mut a = DMatrix::<f64>::zeros(4, 4);
         a[(0, 2)] = 1.0;
@@ -293,7 +298,7 @@ mod tests {
                 trig_series(
                     &Dual {
                         v: k + e * x,
-                        d: [M2::zeros(); DIRECTIONS],
+                        d: [M2::zeros(); 2],
                     },
                     h,
                     2,

@@ -5,10 +5,12 @@
 //! distribute it (`LpfXy::actuation_column`). Drawn with the readouts' own random numbers (the
 //! noise generator's coloring followed by `-C_j`, `ColoredNoise::filtered`) plus the response
 //! to the guidance (`-C_j (T_{oi->o} - 1) o_i`), so that a command and the readout it came from
-//! are one realization. The actuation cross-talk of loop j into x enters the x rows as
-//! `Delta_x o_x = ... + a_j[x] u_j`: the x model's force cross-talk of the recorded `u_j`
-//! (`analysis::additive`, `aux_force_...`) with coefficients `a_j[x1]` into o1 and
-//! `a_j[x12]` into o12 ([`command_coefficients`]).
+//! are one realization. The time-domain engine (`--engine time-domain`) records instead the
+//! commands its digital loop computes at every control step, decimated by the anti-alias FIR
+//! as the readouts are (`sim::time_domain::DigitalLoop::run_recording`). The actuation
+//! cross-talk of loop j into x enters the x rows as `Delta_x o_x = ... + a_j[x] u_j`: the x
+//! model's force cross-talk of the recorded `u_j` (`analysis::additive`, `aux_force_...`)
+//! with coefficients `a_j[x1]` into o1 and `a_j[x12]` into o12 ([`command_coefficients`]).
 
 use crate::data::{AuxChannel, AuxKind, AuxRole};
 use crate::model::closed_loop::{transfer, CMat};
@@ -65,14 +67,28 @@ impl SimulateModel<7> for LpfXy {
         )))
     }
 
-    /// The 7-DOF digital loop (`sim::time_domain`).
+    /// The 7-DOF digital loop (`sim::time_domain`), the library's operator effects in its x
+    /// block; with `--commands` the y/phi loops' commands as the loop computes them at every
+    /// control step, decimated as the readouts.
     fn time_domain_runs(
         job: &super::simulate_job::SimulateJob,
         setup: &SetupXy,
-        truth: &[f64],
+        sc: &crate::model::spec::Scenario,
         designs: (&crate::signal::Design, &crate::signal::Design),
-    ) -> Result<Option<super::simulate_job::Runs>, SimulateError> {
-        super::simulate_job::digital_loop_runs(job, setup, truth, designs).map(Some)
+        set: &crate::sim::inject::EffectSet,
+    ) -> Result<Option<(super::simulate_job::Runs, Option<LoopCommands>)>, SimulateError> {
+        let record: Vec<usize> = if job.commands {
+            (X_CHANNELS..7).collect()
+        } else {
+            Vec::new()
+        };
+        let (runs, commands) = super::simulate_job::digital_loop_runs_recording(
+            job, setup, sc, designs, set, &record,
+        )?;
+        let commands = job
+            .commands
+            .then(|| (command_channels(&setup.model), commands));
+        Ok(Some((runs, commands)))
     }
 }
 

@@ -9,7 +9,7 @@
 use super::inject::{apply, EffectSet, Injected};
 use super::{simulate_effect_set, EffectsError};
 use crate::data::{AuxChannel, AuxKind, AuxRole, Auxiliary, ExperimentData};
-use crate::model::effects::Extended;
+use crate::model::effects::{EffectHost, Extended};
 use crate::model::spec::{ModelSpec, Scenario};
 use crate::model::{check_stability, ModelError};
 use crate::model::{ClosedLoopModel, LpfX};
@@ -259,10 +259,10 @@ impl SimulateJob {
         rate: Rate,
     ) -> Result<Runs, SimulateError> {
         let glitch = sc.glitch.as_ref();
-        let (truth, seed, initial) = (&sc.truth, self.seed, self.initial.as_ref());
+        let (truth, seed) = (&sc.truth, self.seed);
         Ok(match (self.engine, rate) {
-            (Engine::TimeDomain, _) if !effects.is_empty() => {
-                self.time_domain_effects(setup, (design, noise_design), sc, effects)?
+            (Engine::TimeDomain, _) => {
+                digital_loop_runs(self, setup, sc, (design, noise_design), effects)?
             }
             _ if !effects.is_empty() => simulate_effect_set(
                 setup,
@@ -273,11 +273,6 @@ impl SimulateJob {
                 glitch,
                 seed,
             )?,
-            (Engine::TimeDomain, _) => {
-                let sim = setup.time_domain_simulator(design, truth, glitch, initial)?;
-                let nsim = setup.time_domain_simulator(noise_design, truth, glitch, initial)?;
-                draw_all(|r| sim.draw(r), |r| nsim.noise_run(r), seed)
-            }
             (Engine::FrequencyDomain, Rate::Decimated) => {
                 let sim = setup.decimated_simulator(design, truth, glitch)?;
                 let nsim = setup.decimated_simulator(noise_design, truth, glitch)?;
@@ -289,52 +284,6 @@ impl SimulateJob {
                 draw_all(|r| sim.draw(r), |r| nsim.noise_series(r), seed)
             }
         })
-    }
-
-    /// The time-domain engine with effects: the library's operator effects in the plant
-    /// ([`PlantEffects`]), lines added to the experiments' readouts. Drifts and glitches are
-    /// refused naming the spec (the frequency-domain engine has them).
-    fn time_domain_effects(
-        &self,
-        setup: &Setup,
-        (design, noise_design): (&Design, &Design),
-        sc: &Scenario,
-        effects: &EffectSet,
-    ) -> Result<Runs, SimulateError> {
-        let (truth, glitch) = (&sc.truth, sc.glitch.as_ref());
-        let refused = |what: &'static str| {
-            let spec = self
-                .effects
-                .iter()
-                .find(|s| s.starts_with(what))
-                .map_or(what, String::as_str);
-            SimulateError::NotInTimeDomain {
-                spec: spec.to_string(),
-                what,
-            }
-        };
-        if !effects.drifts.is_empty() {
-            return Err(refused("drift_"));
-        }
-        if effects
-            .injected
-            .iter()
-            .any(|i| matches!(i, Injected::Glitch { .. }))
-        {
-            return Err(refused("glitch_"));
-        }
-        let fx = PlantEffects::from_library(&setup.model, &effects.effects)?;
-        let (initial, seed) = (self.initial.as_ref(), self.seed);
-        let sim = setup.time_domain_simulator_with_effects(design, truth, glitch, initial, &fx)?;
-        let nsim =
-            setup.time_domain_simulator_with_effects(noise_design, truth, glitch, initial, &fx)?;
-        let (mut data, noise) = draw_all(|r| sim.draw(r), |r| nsim.noise_run(r), seed);
-        if !effects.injected.is_empty() {
-            // Only lines remain: additive in the readouts, no model needed beyond the base.
-            let model = Extended::new(setup.model.clone(), Vec::new());
-            apply(&model, truth, &mut data, &effects.injected).map_err(SimulateError::Inject)?;
-        }
-        Ok((data, noise))
     }
 
     /// `[meta]` of a simulated dataset: generator, model, scenario (and its glitch population),
@@ -430,10 +379,12 @@ pub type LoopCommands = (Vec<AuxChannel>, crate::sim::commands::Commands);
 
 /// What `simulate` needs of its model beyond [`SpecModel`]: the draw of a [`SimulateJob`]'s
 /// dataset. Every model has the frequency-domain draw at the analysis rate, its channels beyond
-/// the runs' recorded as auxiliary columns ([`SimulateJob::run_plain`], the default); the x
-/// model adds the time-domain engine, the decimated rate, effects and initial conditions
-/// ([`SimulateJob::run`]); a model with loops beyond the runs' channels records their commands
-/// ([`SimulateModel::commands`], `--commands`).
+/// the runs' recorded as auxiliary columns ([`SimulateJob::run_plain`], the default), the
+/// decimated rate, and with a digital loop the time-domain engine with initial conditions and
+/// the library's operator effects ([`SimulateModel::time_domain_runs`]); the x model adds lines,
+/// drifts, glitches and auxiliary cross-talk ([`SimulateJob::run`]); a model with loops beyond
+/// the runs' channels records their commands (`--commands`: [`SimulateModel::commands`] by the
+/// frequency-domain engine, [`SimulateModel::time_domain_runs`] by the time-domain one).
 pub trait SimulateModel<const N: usize>: SpecModel<N> {
     fn simulate(job: &SimulateJob, setup: &SetupOf<Self, N>) -> Result<Simulated, SimulateError> {
         job.run_plain(setup)
@@ -464,35 +415,121 @@ pub trait SimulateModel<const N: usize>: SpecModel<N> {
     }
 
     /// The runs of every readout by the time-domain engine (`sim::time_domain`, the model's
-    /// digital loop, decimated telemetry) from `job`'s seed, with its initial conditions;
-    /// `None`: the model has no digital loop ([`crate::sim::time_domain::DigitalPlant`]).
+    /// digital loop, decimated telemetry) at `sc`'s truth from `job`'s seed, with its initial
+    /// conditions and the library's operator effects of `set` in the plant
+    /// ([`digital_loop_runs`]), and with `job.commands` the commands of the loops beyond the
+    /// runs' channels ([`digital_loop_runs_recording`]; `None`: the model has none); `None`:
+    /// the model has no digital loop ([`crate::sim::time_domain::DigitalPlant`]).
+    #[allow(clippy::type_complexity)]
     fn time_domain_runs(
         _job: &SimulateJob,
         _setup: &SetupOf<Self, N>,
-        _truth: &[f64],
+        _sc: &Scenario,
         _designs: (&Design, &Design),
-    ) -> Result<Option<Runs>, SimulateError> {
+        _set: &EffectSet,
+    ) -> Result<Option<(Runs, Option<LoopCommands>)>, SimulateError> {
         Ok(None)
     }
 }
 
-/// [`SimulateModel::time_domain_runs`] of a model with a digital loop.
-pub fn digital_loop_runs<M: SpecModel<N> + DigitalPlant<N>, const N: usize>(
+/// [`SimulateModel::time_domain_runs`] of a model with a digital loop, at `sc`'s truth with
+/// `job`'s initial conditions and seed: the library's operator effects of `set` in the plant
+/// ([`PlantEffects::from_library`], placed by the model's effect roles), its lines added to the
+/// experiments' readouts. Drifts and glitches are refused naming the spec (the
+/// frequency-domain engine has them), as is a scenario with glitches.
+pub fn digital_loop_runs<M, const N: usize>(
     job: &SimulateJob,
     setup: &SetupOf<M, N>,
-    truth: &[f64],
+    sc: &Scenario,
+    designs: (&Design, &Design),
+    set: &EffectSet,
+) -> Result<Runs, SimulateError>
+where
+    M: SpecModel<N> + DigitalPlant<N> + EffectHost<N>,
+{
+    Ok(digital_loop_runs_recording(job, setup, sc, designs, set, &[])?.0)
+}
+
+/// [`digital_loop_runs`] recording too the commands `u_j = -C_j (o_j - oi_j)` of the loops
+/// `record` (columns of `A C`), as the time-domain loop computes them at every control step,
+/// decimated by the same anti-alias FIR and cut as the readouts, every experiment's (loop by
+/// loop) and the noise run's; the random numbers are those of [`digital_loop_runs`], so the
+/// runs are the same with or without the commands.
+pub fn digital_loop_runs_recording<M, const N: usize>(
+    job: &SimulateJob,
+    setup: &SetupOf<M, N>,
+    sc: &Scenario,
     (design, noise_design): (&Design, &Design),
-) -> Result<Runs, SimulateError> {
-    let initial = job.initial.as_ref();
-    let sim = setup.time_domain_simulator(design, truth, None, initial)?;
-    let nsim = setup.time_domain_simulator(noise_design, truth, None, initial)?;
-    Ok(draw_all(|r| sim.draw(r), |r| nsim.noise_run(r), job.seed))
+    set: &EffectSet,
+    record: &[usize],
+) -> Result<(Runs, crate::sim::commands::Commands), SimulateError>
+where
+    M: SpecModel<N> + DigitalPlant<N> + EffectHost<N>,
+{
+    let refused = |what: &'static str| {
+        let spec = (job.effects.iter())
+            .find(|s| s.starts_with(what))
+            .map_or(what, String::as_str);
+        SimulateError::NotInTimeDomain {
+            spec: spec.to_string(),
+            what,
+        }
+    };
+    if !set.drifts.is_empty() {
+        return Err(refused("drift_"));
+    }
+    if (set.injected.iter()).any(|i| matches!(i, Injected::Glitch { .. })) {
+        return Err(refused("glitch_"));
+    }
+    let fx = PlantEffects::from_library(&setup.model, &set.effects)?;
+    let (truth, glitch, initial) = (&sc.truth, sc.glitch.as_ref(), job.initial.as_ref());
+    let sim = setup.time_domain_simulator_with_effects(design, truth, glitch, initial, &fx)?;
+    let nsim =
+        setup.time_domain_simulator_with_effects(noise_design, truth, glitch, initial, &fx)?;
+    let ((mut data, noise), commands) = if record.is_empty() {
+        let runs = draw_all(|r| sim.draw(r), |r| nsim.noise_run(r), job.seed);
+        (runs, (Vec::new(), Vec::new()))
+    } else {
+        let (data, exps) = sim.draw_recording(&mut stream(job.seed, 0), record);
+        let (noise, noise_cmd) = nsim.noise_run_recording(&mut stream(job.seed, 1), record);
+        ((data, noise), (exps, noise_cmd))
+    };
+    if !set.injected.is_empty() {
+        // Only lines remain: additive in the readouts, no model needed beyond the base.
+        let model = Extended::new(setup.model.clone(), Vec::new());
+        apply(&model, truth, &mut data, &set.injected).map_err(SimulateError::Inject)?;
+    }
+    Ok(((data, noise), commands))
 }
 
 impl SimulateModel<2> for LpfX {
     fn simulate(job: &SimulateJob, setup: &SetupOf<Self, 2>) -> Result<Simulated, SimulateError> {
         job.run(setup)
     }
+}
+
+/// The recorded commands of the loops beyond the runs' channels as auxiliary columns of `out`
+/// (experiments and noise run); Err when the model has no such loops.
+fn attach_commands<M: SimulateModel<N>, const N: usize>(
+    out: &mut Simulated,
+    commands: Option<LoopCommands>,
+    origin: &str,
+) -> Result<(), SimulateError> {
+    let Some((channels, (exps, noise_cmd))) = commands else {
+        return Err(SimulateError::Effect(format!(
+            "--commands: the {} model ({origin}) has no loops of other degrees of freedom to \
+             record commands from",
+            M::KIND.name(),
+        )));
+    };
+    out.aux.channels.extend(channels);
+    for (a, c) in out.aux.experiments.iter_mut().zip(exps) {
+        a.extend(c);
+    }
+    if let Some(n) = out.aux.noise.as_mut() {
+        n.extend(noise_cmd);
+    }
+    Ok(())
 }
 
 /// Each readout's own noise floor (one-sided ASD at the analysis Nyquist frequency) from the
@@ -572,17 +609,19 @@ impl SimulateJob {
 
     /// Draws the dataset of any model with a digital loop by the time-domain engine
     /// ([`SimulateModel::time_domain_runs`]), decimated telemetry, with the initial conditions
-    /// of `--initial`: the runs' channels as the runs, the model's other readouts and guidance
-    /// as auxiliary columns, as [`Self::run_plain`] writes them. The reference loop only: effects
-    /// and `--commands` are refused in one line.
+    /// of `--initial` and the library's operator effects of `--effect` in the plant (as the x
+    /// model's [`Self::run`]): the runs' channels as the runs, the model's other readouts and
+    /// guidance as auxiliary columns, as [`Self::run_plain`] writes them, and with `commands`
+    /// the commands of the model's other loops as the loop computes them
+    /// ([`SimulateModel::time_domain_runs`]). Injected effects other than lines and
+    /// auxiliary cross-talk are refused in one line.
     fn run_digital<M: SimulateModel<N>, const N: usize>(
         &self,
         setup: &SetupOf<M, N>,
     ) -> Result<Simulated, SimulateError> {
-        let refuse = |what: &str| {
+        let refuse = |what: &str, instead: &str| {
             Err(SimulateError::Effect(format!(
-                "{what}: the time-domain engine of the {} model ({}) simulates its reference \
-                 loop only; use the frequency-domain engine",
+                "{what}: the time-domain engine of the {} model ({}) does not simulate it; {instead}",
                 M::KIND.name(),
                 setup.spec.origin
             )))
@@ -590,18 +629,20 @@ impl SimulateJob {
         if self.resolved_rate() == Rate::Analysis {
             return Err(SimulateError::AnalysisRateInTimeDomain);
         }
-        if !self.effects.is_empty() {
-            return refuse("--effect");
-        }
-        if self.commands {
-            return refuse("--commands");
+        let set = EffectSet::parse(&self.effects, &setup.parameter_names())
+            .map_err(SimulateError::Effect)?;
+        if !(set.injected.is_empty() && set.crosstalk.is_empty()) {
+            return refuse(
+                "--effect other than the library's operator effects",
+                "the library's effects (gravity_gradient, damping_tm1, ...) are simulated in the plant",
+            );
         }
         let (sc, design, noise_design) = self.plan(setup)?;
         if sc.glitch.is_some() {
             return Err(TimeDomainError::Glitches.into());
         }
         let designs = (&design, &noise_design);
-        let Some(runs) = M::time_domain_runs(self, setup, &sc.truth, designs)? else {
+        let Some((runs, commands)) = M::time_domain_runs(self, setup, &sc, designs, &set)? else {
             return Err(SimulateError::Effect(format!(
                 "--engine time-domain: the {} model ({}) has no digital loop \
                  (sim::time_domain::DigitalPlant)",
@@ -609,16 +650,24 @@ impl SimulateJob {
                 setup.spec.origin
             )));
         };
-        Ok(self.assemble(setup, &sc, Rate::Decimated, runs))
+        let mut out = self.assemble(setup, &sc, Rate::Decimated, runs);
+        if self.commands {
+            attach_commands::<M, N>(&mut out, commands, &setup.spec.origin)?;
+        }
+        if !set.is_empty() {
+            out.meta
+                .insert("effects".into(), toml::Value::Table(set.meta));
+        }
+        Ok(out)
     }
 
     /// Draws the dataset of any model by the frequency-domain engine at the analysis rate
     /// (`SetupOf::plain_simulator`): the runs' channels as the runs, the model's other readouts
     /// and guidance as auxiliary columns (`[[auxiliary]]` of dataset.toml), experiments and
     /// noise run alike, and with `commands` the commands of the model's other loops
-    /// ([`SimulateModel::commands`]); with `--rate decimated`, [`Self::run_decimated`]. Refuses
-    /// the engine, effects and initial conditions that only the x model's draw has
-    /// ([`SimulateJob::run`]).
+    /// ([`SimulateModel::commands`]); with `--rate decimated`, [`Self::run_decimated`]; with
+    /// `--engine time-domain`, [`Self::run_digital`]. Refuses the effects that only the x
+    /// model's draw has ([`SimulateJob::run`]).
     pub fn run_plain<M: SimulateModel<N>, const N: usize>(
         &self,
         setup: &SetupOf<M, N>,
@@ -663,23 +712,8 @@ impl SimulateJob {
         let runs = draw_all(|r| sim.draw(r), |r| nsim.noise_series(r), self.seed);
         let mut out = self.assemble(setup, &sc, Rate::Analysis, runs);
         if self.commands {
-            let Some((channels, (exps, noise_cmd))) =
-                M::commands(setup, &sc.truth, &sim, &nsim, self.seed)?
-            else {
-                return Err(SimulateError::Effect(format!(
-                    "--commands: the {} model ({}) has no loops of other degrees of freedom to \
-                     record commands from",
-                    M::KIND.name(),
-                    setup.spec.origin
-                )));
-            };
-            out.aux.channels.extend(channels);
-            for (a, c) in out.aux.experiments.iter_mut().zip(exps) {
-                a.extend(c);
-            }
-            if let Some(n) = out.aux.noise.as_mut() {
-                n.extend(noise_cmd);
-            }
+            let commands = M::commands(setup, &sc.truth, &sim, &nsim, self.seed)?;
+            attach_commands::<M, N>(&mut out, commands, &setup.spec.origin)?;
         }
         if !set.is_empty() {
             out.meta

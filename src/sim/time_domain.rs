@@ -23,7 +23,9 @@
 //! 5. the plant moves exactly: `x_(k+1) = Phi x_k + Gamma f_k + Gamma_now w_k + Gamma_prev
 //!    w_(k-1)` with `w = -A u`, `Phi = Phi(h)`, `Gamma = Gamma(h)`, `Gamma_now = Gamma(h - tau)`,
 //!    `Gamma_prev = Phi(h - tau) Gamma(tau)` (held-input discretisation by one matrix
-//!    exponential, [`held_input`]).
+//!    exponential, `model::discrete::held_input`). The discretised plant, the laws and the
+//!    loop's transition matrix are the model's realization (`model::sampled_loop`), which the
+//!    digital models' poles come from too.
 //!
 //! Noise: each entry point's coloured series is generated at the control rate by the
 //! frequency-domain generator with the sources' one-sided PSDs (force rows `G S_f G^T`,
@@ -32,8 +34,9 @@
 //! `oi(t_k)` and readouts) is decimated to the analysis rate by the model's anti-alias FIR on
 //! a grid with margins, so every kept sample is fully supported ([`DecimationGrid`]).
 //!
-//! Effects ([`PlantEffects`], the x model's): the library's operator effects are changes of
-//! this plant, so they are simulated exactly like the reference loop:
+//! Effects ([`PlantEffects`], any model with effect roles: the x model's plant, the xy model's
+//! x block): the library's operator effects are changes of this plant, so they are simulated
+//! exactly like the reference loop (the patterns below are the x block's):
 //! - gravity gradient: `K += dgamma [[0, 1], [0, -2]]`; damping of TM k: a velocity term
 //!   `gamma M_k q'` in the equation of motion (thesis sec. 4.1.1);
 //! - sensing gains and sensing cross-talk: `S += dS` in the sampled readouts (thesis sec. 3.5);
@@ -49,17 +52,18 @@
 //! realisation and is refused naming it; so are glitches (the frequency-domain simulators have
 //! them).
 
-use nalgebra::{DMatrix, Schur};
+use nalgebra::DMatrix;
 use num_complex::Complex64;
 use rand::Rng;
 
 use crate::data::ExperimentData;
-use crate::model::closed_loop::{CMat, ClosedLoopModel, NoiseEntry};
-use crate::model::discrete::{held_input, Df2t, DiscreteTf, Discretisation};
-use crate::model::effects::{stiffness_map, Category, Effect};
-use crate::model::lpf_x::{A_DF, A_SUS, DT1, DT12, S21};
-use crate::model::zpk::Zpk;
-use crate::model::{LpfX, LpfXy, ModelSpec};
+use crate::model::closed_loop::{CMat, NoiseEntry};
+use crate::model::discrete::{Df2t, DiscreteTf, Discretisation};
+use crate::model::effects::{Actuator, Category, Effect, EffectHost, Roles, Tm};
+use crate::model::lpf_x::Channel;
+use crate::model::poly::RootsError;
+use crate::model::sampled_loop::{LoopRealization, PlantMatrices};
+use crate::model::ModelSpec;
 use crate::noise::{shapes, ColoredNoise, NoiseError, NoiseModel};
 use crate::signal::Design;
 use crate::sim::decimated::DecimationGrid;
@@ -67,10 +71,6 @@ use crate::sim::decimated::DecimationGrid;
 /// Entry points of the x loop's coloured input noise, drawn jointly: force rows x1, x12, then
 /// readouts o1, o12.
 const X_NOISE_CHANNELS: usize = 4;
-/// Iterations allowed to the Schur decomposition of the loop's transition matrix, per state
-/// (as for the polynomial roots of the continuous model, see `model::poly`).
-const SCHUR_ITERATIONS_PER_STATE: usize = 100;
-
 /// Errors of the time-domain simulator.
 #[derive(Debug, thiserror::Error)]
 pub enum TimeDomainError {
@@ -83,8 +83,8 @@ pub enum TimeDomainError {
         pole: Complex64,
         modulus: f64,
     },
-    #[error("the digital loop's transition matrix ({dim} states) has no computable eigenvalues")]
-    Eigenvalues { dim: usize },
+    #[error("the digital loop's poles: {0}")]
+    Poles(#[from] RootsError),
     #[error("the scenario asks for glitches, which the time-domain engine does not simulate; use the frequency-domain engine")]
     Glitches,
     #[error("effect '{name}' cannot be simulated by the time-domain engine: {reason}; use the frequency-domain engine")]
@@ -93,73 +93,7 @@ pub enum TimeDomainError {
     Initial(String),
 }
 
-/// What the digital loop needs of a model: its continuous plant `q'' + K q = G f - A u` as
-/// real matrices (the same `K`, `S`, `A C` and `T` its frequency-domain operators are made
-/// of), one control law per column of `A C`, acting on that column's readout error.
-pub trait DigitalPlant<const N: usize>: ClosedLoopModel<N> {
-    /// The stiffness `K` of `D = s^2 + K` at `p`, rows and columns in readout order.
-    fn plant_stiffness(&self, p: &[f64]) -> [[f64; N]; N];
-    /// The sensing matrix `S` (`o = S q`) at `p`.
-    fn plant_sensing(&self, p: &[f64]) -> [[f64; N]; N];
-    /// The actuation `A`: column `j` is the force per unit mass of a unit command of law `j`
-    /// (`A C = A diag(law_j)`, gains and actuation cross-talk included).
-    fn plant_actuation(&self, p: &[f64]) -> [[f64; N]; N];
-    /// The continuous control law of column `j` (discretised by the loop).
-    fn column_law(&self, j: usize) -> &Zpk;
-    /// The delay of each guidance input `oi_j` [s] (`T = diag(exp(-s dt_j))`).
-    fn guidance_delays(&self, p: &[f64]) -> [f64; N];
-}
-
-impl DigitalPlant<2> for LpfX {
-    fn plant_stiffness(&self, p: &[f64]) -> [[f64; 2]; 2] {
-        self.stiffness(p)
-    }
-
-    fn plant_sensing(&self, p: &[f64]) -> [[f64; 2]; 2] {
-        [[1.0, 0.0], [p[S21], 1.0]]
-    }
-
-    fn plant_actuation(&self, p: &[f64]) -> [[f64; 2]; 2] {
-        [[p[A_DF], self.mt * p[A_SUS]], [0.0, p[A_SUS]]]
-    }
-
-    fn column_law(&self, j: usize) -> &Zpk {
-        [&self.c_df, &self.c_sus][j]
-    }
-
-    fn guidance_delays(&self, p: &[f64]) -> [f64; 2] {
-        [p[DT1], p[DT12]]
-    }
-}
-
-impl DigitalPlant<7> for LpfXy {
-    fn plant_stiffness(&self, p: &[f64]) -> [[f64; 7]; 7] {
-        let k = self.stiffness(p);
-        std::array::from_fn(|i| std::array::from_fn(|j| k[(i, j)]))
-    }
-
-    fn plant_sensing(&self, p: &[f64]) -> [[f64; 7]; 7] {
-        let s = self.sensing(p);
-        std::array::from_fn(|i| std::array::from_fn(|j| s[(i, j)]))
-    }
-
-    fn plant_actuation(&self, p: &[f64]) -> [[f64; 7]; 7] {
-        let cols: [[f64; 7]; 7] = std::array::from_fn(|j| self.actuation_column(p, j));
-        std::array::from_fn(|i| std::array::from_fn(|j| cols[j][i]))
-    }
-
-    fn column_law(&self, j: usize) -> &Zpk {
-        self.law_zpk(j)
-    }
-
-    /// The x guidance delays; the y and phi guidance is not delayed (`T` of the operators).
-    fn guidance_delays(&self, p: &[f64]) -> [f64; 7] {
-        let mut d = [0.0; 7];
-        d[0] = p[DT1];
-        d[1] = p[DT12];
-        d
-    }
-}
+pub use crate::model::sampled_loop::DigitalPlant;
 
 /// The library's operator effects as changes of the time-domain plant (module doc, "Effects").
 /// All zero: the reference loop.
@@ -190,14 +124,31 @@ impl<const N: usize> Default for PlantEffects<N> {
     }
 }
 
-impl PlantEffects<2> {
-    /// The plant changes of library effects at their values (one value per effect parameter).
-    /// Every effect of the library either maps here or is refused naming it: a loss angle is a
+impl<const N: usize> PlantEffects<N> {
+    /// The plant changes of library effects at their values (one value per effect parameter),
+    /// placed by the model's effect roles (`model::effects::roles`: the x channels' readouts,
+    /// coordinates and actuator columns, the gravity gradient's and each test mass's stiffness
+    /// patterns), so that an effect changes the plant where it changes the model's operators:
+    /// the x model's 2x2 plant, or the x block of the xy model's 7-DOF one. Every effect of the
+    /// library either maps here or is refused naming it: a loss angle is a
     /// frequency-independent imaginary stiffness, which no causal time-domain plant has.
-    pub fn from_library(
-        model: &LpfX,
+    pub fn from_library<M: EffectHost<N>>(
+        model: &M,
         effects: &[(std::sync::Arc<dyn Effect>, Vec<f64>)],
-    ) -> Result<PlantEffects, TimeDomainError> {
+    ) -> Result<PlantEffects<N>, TimeDomainError> {
+        // The roles' patterns and indices depend on neither the point nor the parameters.
+        let pt = model.point_at(Complex64::new(0.0, 1.0));
+        let base = vec![0.0; model.n_params()];
+        let roles = model.roles(&pt, &base);
+        let (o1, o12) = (Channel::O1, Channel::O12);
+        let (df, sus) = (Actuator::DragFree, Actuator::Suspension);
+        let add = |m: &mut [[f64; N]; N], v: f64, pattern: CMat<N>| {
+            for (i, row) in m.iter_mut().enumerate() {
+                for (j, d) in row.iter_mut().enumerate() {
+                    *d += v * pattern[(i, j)].re;
+                }
+            }
+        };
         let mut fx = PlantEffects::default();
         for (e, theta) in effects {
             let name = e.name();
@@ -207,31 +158,29 @@ impl PlantEffects<2> {
                 reason: reason.into(),
             };
             match name.as_str() {
-                "gravity_gradient" => {
-                    // dD = dgamma [[0, 1], [0, -2]] (effects::gravity_gradient).
-                    fx.dk[0][1] += v;
-                    fx.dk[1][1] -= 2.0 * v;
+                // dD = dgamma [[0, 1], [0, -2]] in the x block (effects::gravity_gradient).
+                "gravity_gradient" => add(&mut fx.dk, v, roles.gravity_gradient_map()),
+                "damping_tm1" => add(&mut fx.damping, v, roles.stiffness_map(Tm::One)),
+                "damping_tm2" => add(&mut fx.damping, v, roles.stiffness_map(Tm::Two)),
+                "sensing_gain_o1" => fx.ds[roles.readout(o1)][roles.coordinate(o1)] += v,
+                "sensing_gain_o12" => fx.ds[roles.readout(o12)][roles.coordinate(o12)] += v,
+                "sensing_crosstalk_o12_o1" => {
+                    fx.ds[roles.readout(o1)][roles.coordinate(o12)] += v
                 }
-                "damping_tm1" | "damping_tm2" => {
-                    let m = stiffness_map(model, name == "damping_tm2");
-                    for (i, row) in fx.damping.iter_mut().enumerate() {
-                        for (j, d) in row.iter_mut().enumerate() {
-                            *d += v * m[(i, j)].re;
-                        }
-                    }
+                "actuation_crosstalk_df_x12" => {
+                    fx.dac[roles.coordinate(o12)][roles.actuator_column(df)] += v
                 }
-                "sensing_gain_o1" => fx.ds[0][0] += v,
-                "sensing_gain_o12" => fx.ds[1][1] += v,
-                "sensing_crosstalk_o12_o1" => fx.ds[0][1] += v,
-                "actuation_crosstalk_df_x12" => fx.dac[1][0] += v,
-                "actuation_crosstalk_sus_x1" => fx.dac[0][1] += v,
+                "actuation_crosstalk_sus_x1" => {
+                    fx.dac[roles.coordinate(o1)][roles.actuator_column(sus)] += v
+                }
                 "actuation_lag_df" | "actuation_lag_sus" => {
                     if v.is_nan() || v < 0.0 {
                         return Err(refuse(&format!(
                             "tau = {v} s: a lag's time constant must be >= 0"
                         )));
                     }
-                    fx.lag[usize::from(name == "actuation_lag_sus")] = v;
+                    let a = if name == "actuation_lag_sus" { sus } else { df };
+                    fx.lag[roles.actuator_column(a)] = v;
                 }
                 _ if e.category() == Category::LossAngle => {
                     return Err(refuse(
@@ -242,6 +191,23 @@ impl PlantEffects<2> {
             }
         }
         Ok(fx)
+    }
+}
+
+impl<const N: usize> PlantEffects<N> {
+    /// `plant` changed by these effects (module doc, "Effects").
+    pub fn applied_to(&self, plant: PlantMatrices<N>) -> PlantMatrices<N> {
+        let add = |a: [[f64; N]; N], b: &[[f64; N]; N]| {
+            std::array::from_fn(|i| std::array::from_fn(|j| a[i][j] + b[i][j]))
+        };
+        PlantMatrices {
+            k: add(plant.k, &self.dk),
+            damping: add(plant.damping, &self.damping),
+            s: add(plant.s, &self.ds),
+            actuation: plant.actuation,
+            direct: add(plant.direct, &self.dac),
+            lag: self.lag,
+        }
     }
 }
 
@@ -382,68 +348,6 @@ impl std::str::FromStr for InitialConditions {
     }
 }
 
-/// The loop's continuous plant at one parameter set, effects included: `z' = A z + B_f f + B_u w`
-/// with `w = -u` the bare commands (see the module doc). State layout: positions `q` (N),
-/// velocities (N), one lag state per column of `A` (N, zero rows unless lagged).
-struct Plant<const N: usize> {
-    a: DMatrix<f64>,
-    b_force: DMatrix<f64>,
-    b_cmd: DMatrix<f64>,
-    /// The sensing matrix `S`.
-    s: [[f64; N]; N],
-    /// Plant states that exist: the `2 N` of `q`, `q'` and the active lag states.
-    active: Vec<usize>,
-}
-
-impl<const N: usize> Plant<N> {
-    fn new<M: DigitalPlant<N>>(model: &M, p: &[f64], fx: &PlantEffects<N>) -> Plant<N> {
-        let (nx, nz) = (2 * N, 3 * N);
-        let k = model.plant_stiffness(p);
-        let mut a = DMatrix::<f64>::zeros(nz, nz);
-        for i in 0..N {
-            a[(i, N + i)] = 1.0;
-            for j in 0..N {
-                a[(N + i, j)] = -(k[i][j] + fx.dk[i][j]);
-                a[(N + i, N + j)] = -fx.damping[i][j];
-            }
-        }
-        let mut b_force = DMatrix::<f64>::zeros(nz, N);
-        for i in 0..N {
-            b_force[(N + i, i)] = 1.0;
-        }
-        // Actuation of the bare commands: the gains' columns of `A C`.
-        let gains = model.plant_actuation(p);
-        let mut b_cmd = DMatrix::<f64>::zeros(nz, N);
-        let mut active: Vec<usize> = (0..nx).collect();
-        for j in 0..N {
-            let tau = fx.lag[j];
-            for i in 0..N {
-                b_cmd[(N + i, j)] = fx.dac[i][j];
-                if tau > 0.0 {
-                    // The lag state y_j (`tau y' = w_j - y`) carries the actuator's column.
-                    a[(N + i, nx + j)] = gains[i][j];
-                } else {
-                    b_cmd[(N + i, j)] += gains[i][j];
-                }
-            }
-            if tau > 0.0 {
-                a[(nx + j, nx + j)] = -1.0 / tau;
-                b_cmd[(nx + j, j)] = 1.0 / tau;
-                active.push(nx + j);
-            }
-        }
-        let s0 = model.plant_sensing(p);
-        let s = std::array::from_fn(|i| std::array::from_fn(|j| s0[i][j] + fx.ds[i][j]));
-        Plant {
-            a,
-            b_force,
-            b_cmd,
-            s,
-            active,
-        }
-    }
-}
-
 /// A dense matrix as row-major `f64`s.
 fn row_major(m: &DMatrix<f64>) -> Vec<f64> {
     (0..m.nrows())
@@ -473,6 +377,9 @@ pub struct DigitalLoop<const N: usize = 2> {
     x: Vec<f64>,
     next: Vec<f64>,
     w_prev: [f64; N],
+    /// The model-side realization the matrices above are copied from, at rest: its
+    /// transition matrix is this loop's (`model::sampled_loop`).
+    realization: LoopRealization<N>,
 }
 
 impl<const N: usize> DigitalLoop<N> {
@@ -488,33 +395,26 @@ impl<const N: usize> DigitalLoop<N> {
         cfg: &LoopConfig,
         fx: &PlantEffects<N>,
     ) -> Self {
-        let plant = Plant::new(model, p, fx);
-        let nz = 3 * N;
-        let (a, b) = (&plant.a, &plant.b_cmd);
         let (h, tau) = (cfg.dt, cfg.computation_delay_s);
-        let (phi, gam_force) = held_input(a, &plant.b_force, h);
-        let (gam_now, gam_prev) = if tau > 0.0 {
-            let (phi_rest, gam_rest) = held_input(a, b, h - tau);
-            let (_, gam_tau) = held_input(a, b, tau);
-            (gam_rest, phi_rest * gam_tau)
-        } else {
-            (held_input(a, b, h).1, DMatrix::zeros(nz, N))
-        };
         let law = |c| Df2t::new(&DiscreteTf::from_zpk(c, h, cfg.discretisation));
+        let laws = (0..N).map(|j| law(model.column_law(j))).collect();
+        let real = LoopRealization::new(&fx.applied_to(PlantMatrices::of(model, p)), laws, h, tau);
+        let nz = 3 * N;
         DigitalLoop {
             dt: h,
-            phi: row_major(&phi),
-            gam_force: row_major(&gam_force),
-            gam_now: row_major(&gam_now),
-            gam_prev: row_major(&gam_prev),
-            delayed: tau > 0.0,
-            lagged: plant.active.len() > 2 * N,
-            active: plant.active,
-            laws: (0..N).map(|j| law(model.column_law(j))).collect(),
-            s: plant.s,
+            phi: row_major(&real.phi),
+            gam_force: row_major(&real.gam_force),
+            gam_now: row_major(&real.gam_now),
+            gam_prev: row_major(&real.gam_prev),
+            delayed: real.delayed,
+            lagged: real.active.len() > 2 * N,
+            active: real.active.clone(),
+            laws: real.laws.clone(),
+            s: real.s,
             x: vec![0.0; nz],
             next: vec![0.0; nz],
             w_prev: [0.0; N],
+            realization: real,
         }
     }
 
@@ -646,6 +546,18 @@ impl<const N: usize> DigitalLoop<N> {
         force: [&[f64]; N],
         readout: [&[f64]; N],
     ) -> [Vec<f64>; N] {
+        self.run_recording(guidance, force, readout, &[]).0
+    }
+
+    /// [`Self::run`], recording too the commands `u_j = -C_j(o_j - oi_j)` of the columns
+    /// `record` at every step (what law `j` asks for, before the actuation and the hold).
+    pub fn run_recording(
+        &mut self,
+        guidance: [&[f64]; N],
+        force: [&[f64]; N],
+        readout: [&[f64]; N],
+        record: &[usize],
+    ) -> ([Vec<f64>; N], Vec<Vec<f64>>) {
         let n = guidance[0].len();
         for s in guidance.iter().chain(&force).chain(&readout) {
             assert_eq!(
@@ -655,6 +567,7 @@ impl<const N: usize> DigitalLoop<N> {
             );
         }
         let mut out: [Vec<f64>; N] = std::array::from_fn(|_| Vec::with_capacity(n));
+        let mut commands = vec![Vec::with_capacity(n); record.len()];
         for k in 0..n {
             let o = self.step(
                 std::array::from_fn(|c| guidance[c][k]),
@@ -664,8 +577,12 @@ impl<const N: usize> DigitalLoop<N> {
             for (series, v) in out.iter_mut().zip(o) {
                 series.push(v);
             }
+            // The step leaves its commands in `w_prev`.
+            for (series, &j) in commands.iter_mut().zip(record) {
+                series.push(self.w_prev[j]);
+            }
         }
-        out
+        (out, commands)
     }
 
     /// The plant's state in sensed coordinates, positions then rates (readouts and their rates
@@ -688,9 +605,7 @@ impl<const N: usize> DigitalLoop<N> {
     /// Dimension of the loop's state: plant (with its active lag states), the controllers,
     /// and the held commands when there is a computation delay.
     pub fn state_dim(&self) -> usize {
-        self.active.len()
-            + self.laws.iter().map(Df2t::order).sum::<usize>()
-            + if self.delayed { N } else { 0 }
+        self.realization.state_dim()
     }
 
     /// The loop's state as one vector (order of [`Self::state_dim`]).
@@ -723,31 +638,16 @@ impl<const N: usize> DigitalLoop<N> {
         }
     }
 
-    /// The one-step transition matrix of the free loop, probed column by column with the
-    /// same step the simulation runs (so it is the simulated loop, not a re-derivation).
+    /// The one-step transition matrix of the free loop (`model::sampled_loop`: the same
+    /// discretised plant, sensing and laws this loop steps), state order of
+    /// [`Self::state_dim`].
     pub fn transition_matrix(&self) -> DMatrix<f64> {
-        let dim = self.state_dim();
-        let mut m = DMatrix::<f64>::zeros(dim, dim);
-        let mut probe = self.clone();
-        for j in 0..dim {
-            let mut e = vec![0.0; dim];
-            e[j] = 1.0;
-            probe.set_state(&e);
-            probe.step([0.0; N], [0.0; N], [0.0; N]);
-            for (i, v) in probe.state().into_iter().enumerate() {
-                m[(i, j)] = v;
-            }
-        }
-        m
+        self.realization.transition_matrix()
     }
 
     /// Closed-loop poles in `z` (eigenvalues of the transition matrix).
     pub fn poles(&self) -> Result<Vec<Complex64>, TimeDomainError> {
-        let m = self.transition_matrix();
-        let dim = m.nrows();
-        let schur = Schur::try_new(m, f64::EPSILON, SCHUR_ITERATIONS_PER_STATE * dim)
-            .ok_or(TimeDomainError::Eigenvalues { dim })?;
-        Ok(schur.complex_eigenvalues().iter().copied().collect())
+        Ok(self.realization.z_poles()?)
     }
 
     /// Err if a closed-loop pole lies on or outside the unit circle.
@@ -962,6 +862,17 @@ impl<const N: usize> TimeDomainSimulator<N> {
         experiment: Option<usize>,
         noise: Option<&[Vec<f64>]>,
     ) -> [Vec<f64>; N] {
+        self.run_control_rate_recording(experiment, noise, &[]).0
+    }
+
+    /// [`Self::run_control_rate`] with the commands of the columns `record`
+    /// ([`DigitalLoop::run_recording`]).
+    pub fn run_control_rate_recording(
+        &self,
+        experiment: Option<usize>,
+        noise: Option<&[Vec<f64>]>,
+        record: &[usize],
+    ) -> ([Vec<f64>; N], Vec<Vec<f64>>) {
         let zeros = vec![0.0; self.grid.n_sim];
         let g: [&[f64]; N] = match experiment {
             Some(e) => std::array::from_fn(|c| &self.guidance[e][c][..]),
@@ -976,7 +887,19 @@ impl<const N: usize> TimeDomainSimulator<N> {
         };
         let mut lp = self.digital.clone();
         lp.reset(self.initial.as_ref());
-        lp.run(g, f, r)
+        lp.run_recording(g, f, r, record)
+    }
+
+    /// Readouts and the commands of the columns `record`, each decimated as telemetry.
+    fn telemetry_recording(
+        &self,
+        experiment: Option<usize>,
+        noise: Option<&[Vec<f64>]>,
+        record: &[usize],
+    ) -> (Vec<Vec<f64>>, Vec<Vec<f64>>) {
+        let (o, u) = self.run_control_rate_recording(experiment, noise, record);
+        let keep = |x: &[Vec<f64>]| x.iter().map(|c| self.grid.keep(c)).collect();
+        (keep(&o), keep(&u))
     }
 
     fn telemetry(&self, experiment: Option<usize>, noise: Option<&[Vec<f64>]>) -> Vec<Vec<f64>> {
@@ -1019,6 +942,43 @@ impl<const N: usize> TimeDomainSimulator<N> {
             })
             .collect();
         self.data(outputs)
+    }
+
+    /// [`Self::draw`] with the commands of the columns `record` of every experiment (loop by
+    /// loop), decimated and cut as the readouts: the same random numbers, so the same data.
+    pub fn draw_recording<R: Rng + ?Sized>(
+        &self,
+        rng: &mut R,
+        record: &[usize],
+    ) -> (ExperimentData, Vec<Vec<Vec<f64>>>) {
+        let (outputs, commands): (Vec<_>, Vec<_>) = (0..self.names.len())
+            .map(|e| {
+                let noise = self.noise.generate(rng);
+                self.telemetry_recording(Some(e), Some(&noise), record)
+            })
+            .unzip();
+        let commands = (commands.into_iter().zip(&self.lens))
+            .map(|(e, &n)| {
+                e.into_iter()
+                    .map(|mut c| {
+                        c.truncate(n);
+                        c
+                    })
+                    .collect()
+            })
+            .collect();
+        (self.data(outputs), commands)
+    }
+
+    /// [`Self::noise_run`] with the commands of the columns `record`, from the same random
+    /// numbers.
+    pub fn noise_run_recording<R: Rng + ?Sized>(
+        &self,
+        rng: &mut R,
+        record: &[usize],
+    ) -> (Vec<Vec<f64>>, Vec<Vec<f64>>) {
+        let noise = self.noise.generate(rng);
+        self.telemetry_recording(None, Some(&noise), record)
     }
 
     /// Every experiment without noise (guidance and initial conditions only).

@@ -9,7 +9,9 @@
 //!   readout noise of one-sided PSD `S`: `I_jk = A^2 T_run Re(dT_j conj(dT_k)) / S`.
 
 use freefall::fit::{fit, ExperimentData, FitConfig, Likelihood, Whitener};
-use freefall::forward::fisher::{fisher_information, InputSpectra};
+use freefall::forward::fisher::{
+    fisher_information, sandwich_covariance, whitened_fit_matrices, InputSpectra,
+};
 use freefall::model::closed_loop::{transfer, transfer_grid_generic, CMat};
 use freefall::model::ClosedLoopModel;
 use nalgebra::DMatrix;
@@ -114,6 +116,42 @@ fn fisher_information_matches_the_closed_form() {
     }
 }
 
+/// The noise-free readout `clean` plus white noise of sd SIGMA drawn from
+/// `sim::rng::stream(seed, r)`, as one experiment with `inputs`.
+fn noisy_data(inputs: &[Vec<Vec<f64>>], clean: &[f64], (seed, r): (u64, u64)) -> ExperimentData {
+    let mut rng = freefall::sim::rng::stream(seed, r);
+    let outputs = vec![vec![clean
+        .iter()
+        .map(|x| {
+            let z: f64 = StandardNormal.sample(&mut rng);
+            x + SIGMA * z
+        })
+        .collect()]];
+    ExperimentData {
+        tails: Vec::new(),
+        names: vec!["exp".into()],
+        inputs: inputs.to_vec(),
+        outputs,
+        dt: 1.0,
+    }
+}
+
+/// The converged fit from `start` of [`noisy_data`] through `lik`.
+fn fit_noisy(
+    model: &Oscillator,
+    lik: &Likelihood<'_, Oscillator, 1>,
+    inputs: &[Vec<Vec<f64>>],
+    clean: &[f64],
+    stream: (u64, u64),
+    start: &[f64],
+) -> freefall::fit::FitResult {
+    let data = noisy_data(inputs, clean, stream);
+    let cfg = FitConfig::new(model);
+    let res = fit(model, &lik.problem(&data).unwrap(), start, &cfg).unwrap();
+    assert!(res.termination.converged(), "{:?}", res.termination);
+    res
+}
+
 #[test]
 fn fits_scatter_as_the_closed_form_fisher_sigmas() {
     // Oracle: the closed-form Fisher matrix. 200 fits of templates plus white noise: the Monte
@@ -131,28 +169,11 @@ fn fits_scatter_as_the_closed_form_fisher_sigmas() {
         .try_inverse()
         .map(|c| [c[(0, 0)].sqrt(), c[(1, 1)].sqrt()])
         .unwrap();
-    let cfg = FitConfig::new(&model);
     let start = [TRUTH[0] + 3.0 * sigma[0], TRUTH[1] - 3.0 * sigma[1]];
     let n = 200;
     let mut est = vec![Vec::new(); 2];
     for r in 0..n {
-        let mut rng = freefall::sim::rng::stream(17, r);
-        let outputs = vec![vec![clean[0][0]
-            .iter()
-            .map(|x| {
-                let z: f64 = StandardNormal.sample(&mut rng);
-                x + SIGMA * z
-            })
-            .collect()]];
-        let data = ExperimentData {
-            tails: Vec::new(),
-            names: vec!["exp".into()],
-            inputs: inputs.clone(),
-            outputs,
-            dt: 1.0,
-        };
-        let res = fit(&model, &lik.problem(&data).unwrap(), &start, &cfg).unwrap();
-        assert!(res.termination.converged(), "{:?}", res.termination);
+        let res = fit_noisy(&model, &lik, &inputs, &clean[0][0], (17, r), &start);
         for (e, x) in est.iter_mut().zip(&res.estimate) {
             e.push(*x);
         }
@@ -168,6 +189,125 @@ fn fits_scatter_as_the_closed_form_fisher_sigmas() {
         );
         assert!(((mean - TRUTH[k]) / (sigma[k] / (n as f64).sqrt())).abs() < 4.0);
     }
+}
+
+/// The second sine's bin of the inexact-whitening tests: where the one-lag filter
+/// `W = 1 - 0.9 z^-1` passes `|W|^2 = 2.3`, against 0.0134 at [`BIN`] / 4.
+const HIGH_BIN: usize = 1200;
+
+/// `W(z) = 1 - 0.9 z^-1`: a whitening filter for red noise applied to white noise, so that the
+/// fit's weights `|W|^2` are wrong by a factor of 170 between the two sines' bins.
+fn one_lag_filter() -> Whitener<1> {
+    type M1 = nalgebra::SMatrix<f64, 1, 1>;
+    Whitener {
+        taps: vec![M1::new(1.0), M1::new(-0.9)],
+        innovation: M1::identity(),
+    }
+}
+
+/// Two sines of amplitude AMP, on bins BIN / 4 and HIGH_BIN of N samples at 1 Hz.
+fn two_sines() -> Vec<f64> {
+    sine(N, BIN / 4, AMP)
+        .iter()
+        .zip(sine(N, HIGH_BIN, AMP))
+        .map(|(a, b)| a + b)
+        .collect()
+}
+
+/// The closed-form `(A, B)` of the two sines in white noise of PSD `S = 2 SIGMA^2` whitened by
+/// `W`: per bin `I_b` (the single-sine formula) weighted by `S / S_W = |W_b|^2 SIGMA^2` for `A`
+/// and its square for `B` (`S_W = 2 dt / |W|^2`, dt = 1 s).
+fn closed_form_sandwich_parts() -> (DMatrix<f64>, DMatrix<f64>) {
+    let psd = 2.0 * SIGMA * SIGMA;
+    let (mut a, mut b) = (DMatrix::zeros(2, 2), DMatrix::zeros(2, 2));
+    for bin in [BIN / 4, HIGH_BIN] {
+        let f = bin as f64 / N as f64;
+        let (_, d) = closed_form(f, &TRUTH);
+        let w2 = (Complex64::new(1.0, 0.0)
+            - 0.9 * Complex64::from_polar(1.0, -2.0 * std::f64::consts::PI * f))
+        .norm_sqr();
+        let ratio = w2 * SIGMA * SIGMA;
+        let info = DMatrix::from_fn(2, 2, |j, k| {
+            AMP * AMP * N as f64 * (d[j] * d[k].conj()).re / psd
+        });
+        a += &info * ratio;
+        b += &info * (ratio * ratio);
+    }
+    (a, b)
+}
+
+#[test]
+fn whitened_fit_matrices_match_the_closed_form() {
+    // Oracle: the closed form per bin (closed_form_sandwich_parts). The information a fit
+    // whitened by W reports (A) and the noise matrix (B) of two sines in white noise, at 1e-6;
+    // with the exact whitener (W = 1 / SIGMA) both are the Fisher information.
+    let model = Oscillator::new();
+    let spectra = InputSpectra::<1>::from_series(&[vec![two_sines()]], 1.0);
+    let psd = |_: f64| CMat::<1>::new(Complex64::new(2.0 * SIGMA * SIGMA, 0.0));
+    let w = one_lag_filter();
+    let (a, b) = whitened_fit_matrices(&model, &spectra, &TRUTH, |f| w.response_at(f, 1.0), psd);
+    let (ea, eb) = closed_form_sandwich_parts();
+    for (got, exact, what) in [(&a, &ea, "A"), (&b, &eb, "B")] {
+        for j in 0..2 {
+            for k in 0..2 {
+                let rel = (got[(j, k)] - exact[(j, k)]).abs() / exact[(j, j)].abs();
+                assert!(
+                    rel < 1e-6,
+                    "{what}[{j},{k}] = {} vs {}",
+                    got[(j, k)],
+                    exact[(j, k)]
+                );
+            }
+        }
+    }
+    let exact_w = |_: f64| CMat::<1>::new(Complex64::new(1.0 / SIGMA, 0.0));
+    let (a, b) = whitened_fit_matrices(&model, &spectra, &TRUTH, exact_w, psd);
+    let fisher = fisher_information(&model, &spectra, &TRUTH, psd);
+    for m in [&a, &b] {
+        assert!((m - &fisher).norm() <= 1e-9 * fisher.norm());
+    }
+}
+
+#[test]
+fn fits_with_an_inexact_whitener_scatter_as_the_sandwich() {
+    // Oracle: the closed-form sandwich A^-1 B A^-1 (closed_form_sandwich_parts). 200 fits of
+    // two sines in white noise, whitened by W = 1 - 0.9 z^-1 (a red-noise filter): the Monte
+    // Carlo sd of each estimate equals the sandwich sigma within 4 relative standard errors of
+    // 200 values (4 / sqrt(400)), where the fits' own sigmas (sqrt(chi^2/nu A^-1)) are off by
+    // more than that (checked, so that the oracle tells the two apart).
+    let model = Oscillator::new();
+    let inputs = vec![vec![two_sines()]];
+    let lik = Likelihood::new(&model, &inputs, 1.0, one_lag_filter(), 0).unwrap();
+    let clean = lik.engine.templates(&TRUTH, None);
+    let (a, b) = closed_form_sandwich_parts();
+    let sandwich = sandwich_covariance(&a, &b, &[false; 2]).unwrap();
+    let n = 200;
+    let (mut est, mut own) = (vec![Vec::new(); 2], vec![0.0; 2]);
+    for r in 0..n {
+        let res = fit_noisy(&model, &lik, &inputs, &clean[0][0], (23, r), &TRUTH);
+        for k in 0..2 {
+            est[k].push(res.estimate[k]);
+            own[k] += res.sigma[k] / n as f64;
+        }
+    }
+    let band = 4.0 / (2.0 * n as f64).sqrt();
+    let mut told_apart = false;
+    for k in 0..2 {
+        let mean = est[k].iter().sum::<f64>() / n as f64;
+        let sd = (est[k].iter().map(|x| (x - mean).powi(2)).sum::<f64>() / (n - 1) as f64).sqrt();
+        let s = sandwich[(k, k)].sqrt();
+        eprintln!(
+            "parameter {k}: MC sd / sandwich sigma = {:.3}, / own sigma = {:.3}",
+            sd / s,
+            sd / own[k],
+        );
+        assert!((sd / s - 1.0).abs() < band, "{}", sd / s);
+        told_apart |= (sd / own[k] - 1.0).abs() > 2.0 * band;
+    }
+    assert!(
+        told_apart,
+        "the fits' own sigmas agree with the sandwich here"
+    );
 }
 
 /// ln of a sum of `exp(x_i)` (the quadrature's terms span many decades).
@@ -199,21 +339,7 @@ fn laplace_bayes_factor_matches_the_evidence_by_quadrature() {
     let w0 = TRUTH[0];
     let truth = [w0 + 3.0 * s_w2, TRUTH[1]];
     let clean = lik.engine.templates(&truth, None);
-    let mut rng = freefall::sim::rng::stream(29, 0);
-    let outputs = vec![vec![clean[0][0]
-        .iter()
-        .map(|x| {
-            let z: f64 = StandardNormal.sample(&mut rng);
-            x + SIGMA * z
-        })
-        .collect()]];
-    let data = ExperimentData {
-        tails: Vec::new(),
-        names: vec!["exp".into()],
-        inputs: inputs.clone(),
-        outputs,
-        dt: 1.0,
-    };
+    let data = noisy_data(&inputs, &clean[0][0], (29, 0));
     let prob = lik.problem(&data).unwrap();
     let chi2 = |p: &[f64]| -> f64 {
         prob.residuals(p)
@@ -298,21 +424,7 @@ fn posterior_matches_the_closed_form_gaussian_posterior() {
         Whitener::<1>::from_psd(|_| CMat::<1>::new(Complex64::new(psd, 0.0)), 1.0, 2, N).unwrap();
     let lik = Likelihood::new(&model, &inputs, 1.0, whitener, 0).unwrap();
     let clean = lik.engine.templates(&TRUTH, None);
-    let mut rng = freefall::sim::rng::stream(23, 0);
-    let outputs = vec![vec![clean[0][0]
-        .iter()
-        .map(|x| {
-            let z: f64 = StandardNormal.sample(&mut rng);
-            x + SIGMA * z
-        })
-        .collect()]];
-    let data = ExperimentData {
-        tails: Vec::new(),
-        names: vec!["exp".into()],
-        inputs: inputs.clone(),
-        outputs,
-        dt: 1.0,
-    };
+    let data = noisy_data(&inputs, &clean[0][0], (23, 0));
     let problem = lik.problem(&data).unwrap();
     let cfg = FitConfig::new(&model);
     let res = fit(&model, &problem, &TRUTH, &cfg).unwrap();

@@ -347,8 +347,8 @@ fn all_31_parameters_are_not_identifiable_and_say_so() {
 }
 
 // Oracle: the documented refusal (campaign::runner::check_engine_model): the time-domain
-// engine on the xy model, which has no sampled-data model to fit its data with, is a one-line
-// error naming file, key and what is missing; a design with more inputs than the model is one
+// engine on the embedded (continuous) xy model, which cannot fit the digital loop's data, is a
+// one-line error naming file, key and the digital model file to use; a design with more inputs than the model is one
 // too. A glitch scenario is accepted.
 #[test]
 fn x_only_features_are_refused_for_the_xy_model() {
@@ -356,7 +356,12 @@ fn x_only_features_are_refused_for_the_xy_model() {
     let cases: [(&str, &[&str]); 1] = [
         (
             "model = \"lpf_xy\"\nseed = 1\nrealizations = 2\n[fit]\nengine = \"time-domain\"\n[[scenario]]\nname = \"nominal\"\n",
-            &["'fit.engine'", "sampled-data model", "lpf_xy"],
+            &[
+                "'fit.engine'",
+                "sampled-data model",
+                "lpf_xy",
+                "campaigns/models/lpf_xy_digital.toml",
+            ],
         ),
     ];
     for (text, needles) in &cases {

@@ -148,6 +148,52 @@ fn a_recorded_command_is_its_law_applied_to_its_readout() {
 }
 
 #[test]
+fn time_domain_commands_are_their_laws_beside_the_same_runs() {
+    // Oracle: the control law, as a_recorded_command_is_its_law_applied_to_its_readout for the
+    // frequency-domain engine. The digital xy loop's commands recorded by the time-domain
+    // engine (`--engine time-domain --commands`) in the noise run are u_j = -C_j(z) o_j of the
+    // readouts of the same realization, both decimated by the same anti-alias FIR, so the
+    // Welch transfer estimate S_{o u} / S_{o o} is the digital law -C_j(z) within 2 % over
+    // 1-100 mHz. And the commands change nothing else: the runs, the noise run and the
+    // auxiliary readouts are those drawn without --commands (the same random numbers).
+    let mut spec = freefall::model::ModelSpec::embedded_of(freefall::model::spec::ModelKind::LpfXy);
+    spec.control_loop.kind = freefall::model::spec::LoopKind::Digital;
+    let xy = SetupXy::new(spec).unwrap();
+    let mut j = job("nominal");
+    j.engine = Engine::TimeDomain;
+    let s = j.run_plain(&xy).unwrap();
+    j.commands = false;
+    let plain = j.run_plain(&xy).unwrap();
+    assert_eq!(s.data.outputs, plain.data.outputs);
+    assert_eq!(s.noise, plain.noise);
+    let k = plain.aux.channels.len();
+    assert_eq!(s.aux.channels.len(), k + 5);
+    for (a, b) in s.aux.experiments.iter().zip(&plain.aux.experiments) {
+        assert_eq!(&a[..k], &b[..]);
+        assert!(a[k..].iter().all(|c| c.len() == b[0].len()));
+    }
+    let aux_noise = s.aux.noise.as_ref().unwrap();
+    let cfg = WelchConfig::new(4, 0.5, Detrend::Mean).unwrap();
+    for (i, name) in ["y1", "y2", "phi1", "phi2", "phisc"].iter().enumerate() {
+        let col = |c: String| (s.aux.channels.iter()).position(|x| x.column == c).unwrap();
+        let (o, u) = (col(format!("o{name}")), col(format!("u{name}")));
+        assert_eq!(s.aux.channels[u].role, freefall::data::AuxRole::Command);
+        let w = welch_csd(&[&aux_noise[o], &aux_noise[u]], s.data.dt, &cfg).unwrap();
+        let (so, sou) = (w.psd(0), w.csd(0, 1));
+        let mut worst: f64 = 0.0;
+        for (b, (so, sou)) in so.iter().zip(sou).enumerate() {
+            let f = b as f64 * w.df();
+            if !(1e-3..=0.1).contains(&f) {
+                continue;
+            }
+            let law = -LpfXy::law_at(&xy.model.prepare(f), 2 + i);
+            worst = worst.max(((sou / so) / law - 1.0).norm());
+        }
+        assert!(worst < 2e-2, "u{name}: worst relative error {worst:e}");
+    }
+}
+
+#[test]
 fn force_crosstalk_of_recorded_commands_is_found_by_the_diagnosis() {
     // Oracle: the simulated truth of scenario `actuation_crosstalk` (d_df_ysc = 5e-3,
     // d_sus_phi1 = 4e-3 in the xy model's actuation operator), mapped to the commands'

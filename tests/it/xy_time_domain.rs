@@ -5,19 +5,26 @@
 //! the frequency-domain simulator's noise-free templates; the model's closed-loop readout
 //! PSD against Welch estimates of a time-domain noise run, within the estimate's statistical
 //! error; a fit by the frequency-domain likelihood of time-domain data made at a control rate
-//! where the continuous model describes the digital loop; the CLI's documented flags.
+//! where the continuous model describes the digital loop; the CLI's documented flags. And the
+//! xy sampled-data model (`[control_loop] kind = "digital"`, `model::sampled` generic in the
+//! coordinates) against the loop: its `T_{oi->o}` against steady-state sine responses, its
+//! poles against the x model's in the decoupled limit and its stability against the loop's,
+//! its analytic derivatives against finite differences.
 
 use freefall::io::read_parquet;
-use freefall::model::spec::EMBEDDED_LPF_XY;
-use freefall::model::{transfer, ClosedLoopModel};
+use freefall::model::closed_loop::{transfer_with_derivatives, CMat};
+use freefall::model::lpf_xy::LpfXy;
+use freefall::model::spec::{LoopKind, ModelKind, EMBEDDED_LPF_XY};
+use freefall::model::{transfer, ClosedLoopModel, ModelSpec};
 use freefall::setup::SetupXy;
 use freefall::sim::rng::stream;
 use freefall::sim::time_domain::{DigitalLoop, DigitalPlant, LoopConfig};
 use freefall::spectral::{welch_csd, WelchConfig};
+use num_complex::Complex64;
 
 use crate::common;
 use common::freefall;
-use common::loops::{measured_response, STANDARD_CYCLES, STRETCH_S};
+use common::loops::{measured_commands, measured_response, STANDARD_CYCLES, STRETCH_S};
 
 /// The xy model's scenario with cross-talk in every operator (dynamical, sensing, actuation).
 const SCENARIO: &str = "crosstalk";
@@ -147,8 +154,8 @@ fn xy_fit_of_time_domain_data_recovers_the_truth() {
     // frequency-domain (continuous) xy likelihood: an independent path from the engine's
     // matrix exponentials and difference equations. The continuous model describes the
     // digital loop to O(w h), so the loop runs at 100 Hz (h = 0.01 s; at 10 Hz the hold biases
-    // dt1, dt12 and a_df by tens of sigmas, and the y/phi sensing cross-talk by ~20: the xy
-    // model has no sampled-data form). The x block is held at the truth (its hold bias is
+    // dt1, dt12 and a_df by tens of sigmas, and the y/phi sensing cross-talk by ~20, which is
+    // why a 10 Hz time-domain campaign fits the sampled-data model). The x block is held at the truth (its hold bias is
     // still 3-7 sigma at 100 Hz), as are the actuation coefficients the campaign
     // xy_crosstalk.toml fixes; every other parameter must lie within 3 sigma of the truth.
     let tmp = tempfile::tempdir().unwrap();
@@ -315,4 +322,199 @@ fn cli_simulates_the_xy_loop_in_the_time_domain_with_initial_conditions() {
         text.contains("transient exp1") && text.contains("oy1 = "),
         "{text}"
     );
+}
+
+/// The embedded xy model made digital (Tustin laws) with computation delay `tau`
+/// (campaigns/models/lpf_xy_digital.toml is the `tau = 0` one).
+fn digital_xy(tau: f64) -> SetupXy {
+    let mut spec = ModelSpec::embedded_of(ModelKind::LpfXy);
+    spec.control_loop.kind = LoopKind::Digital;
+    spec.control_loop.computation_delay_s = tau;
+    SetupXy::new(spec).unwrap()
+}
+
+/// Agreement required between the time-domain loop and the xy sampled-data model, relative to
+/// an element (or to its column's largest for elements below 1e-2 of it).
+const XY_ENGINE_AGREEMENT: f64 = 1e-6;
+
+#[test]
+fn xy_sine_responses_match_the_sampled_data_model() {
+    // Oracle: T_{oi->o} of the digital xy model (model::sampled's held plant D_d(z) and delay
+    // factor H(z), the laws at z = exp(i w h)), which the time-domain loop (matrix
+    // exponentials and difference equations, a separate implementation) must reproduce in
+    // steady state, every element of every column, to 1e-6 of the element (or of the column's
+    // largest where the element is below 1e-2 of it): where the continuous model differs by
+    // the hold's O(w h), the sampled-data model is exact.
+    for (tau, cycles) in [
+        (0.0, STANDARD_CYCLES[0]),
+        (0.0, STANDARD_CYCLES[6]),
+        (0.03, STANDARD_CYCLES[3]),
+    ] {
+        let setup = digital_xy(tau);
+        let p = setup.spec.scenario(SCENARIO).unwrap().truth;
+        let lp = DigitalLoop::<7>::new(&setup.model, &p, &LoopConfig::from_spec(&setup.spec));
+        let delays = setup.model.guidance_delays(&p);
+        let f = cycles / STRETCH_S;
+        let t = transfer(&setup.model, &setup.model.prepare(f), &p).oi_o;
+        for (c, delay) in delays.iter().enumerate() {
+            let got = measured_response(&lp, f, c, *delay);
+            let colmax = (0..7).map(|r| t[(r, c)].norm()).fold(0.0, f64::max);
+            for (r, measured) in got.iter().enumerate() {
+                let want = t[(r, c)];
+                let scale = want.norm().max(1e-2 * colmax);
+                let err = (measured - want).norm();
+                assert!(
+                    err < XY_ENGINE_AGREEMENT * scale,
+                    "tau {tau}, f = {f} Hz, T[{r}][{c}]: time domain {measured:.9e}, \
+                     sampled-data model {want:.9e}, error {:.1e} of {scale:.2e}",
+                    err / scale
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn xy_sampled_data_poles_contain_the_x_poles_when_decoupled() {
+    // Oracle: the digital x model's poles, the roots of its 2x2 characteristic polynomial in
+    // w = z - 1 (which the x loop's eigenvalues match, time_domain::
+    // sampled_data_poles_are_the_simulated_loop_eigenvalues). With every cross-talk coefficient
+    // zero (scenario nominal) the xy loop is the x loop beside the y and phi loops, so the xy
+    // model's poles (eigenvalues of the 7-DOF loop's transition matrix, model::sampled_loop)
+    // contain every x pole, to 1e-8 in z; they are as many as the loop's states; and the
+    // loop is stable, as the time-domain loop's own check finds.
+    for tau in [0.0, 0.03] {
+        let setup = digital_xy(tau);
+        let p = setup.spec.scenario("nominal").unwrap().truth;
+        let h = setup.spec.control_dt();
+        let to_z = |s: &Complex64| (s * h).exp();
+        let xy: Vec<Complex64> = setup.model.poles(&p).unwrap().iter().map(to_z).collect();
+        let x: Vec<Complex64> = setup
+            .model
+            .x
+            .poles(&p[..7])
+            .unwrap()
+            .iter()
+            .map(to_z)
+            .collect();
+        let lp = DigitalLoop::<7>::new(&setup.model, &p, &LoopConfig::from_spec(&setup.spec));
+        assert_eq!(xy.len(), lp.state_dim(), "tau {tau}");
+        assert!(x.len() < xy.len(), "tau {tau}: {} x poles", x.len());
+        for z in &x {
+            let nearest = xy
+                .iter()
+                .map(|m| (m - z).norm())
+                .fold(f64::INFINITY, f64::min);
+            assert!(
+                nearest < 1e-8,
+                "tau {tau}: x pole {z} not an xy pole ({nearest:e})"
+            );
+        }
+        freefall::model::check_stability(&setup.model, &p, None).unwrap();
+        lp.check_stable(setup.model.parameter_names(), &p).unwrap();
+    }
+}
+
+#[test]
+fn xy_sampled_data_stability_accepts_the_stable_crosstalk_scenarios() {
+    // Oracle: the time-domain loop's stability (every eigenvalue of its one-step transition
+    // matrix inside the unit circle, which the loop's sine responses settling confirm in
+    // xy_sine_responses_match_the_sampled_data_model) and the continuous xy model's stability
+    // check of the same parameters. The digital model's check must agree on the cross-talk
+    // scenarios: before its poles came from the transition matrix, the roots of the expanded
+    // 7x7 determinant put a spurious pole at s = +1.75e-6 rad/s and refused sensing_crosstalk.
+    let continuous = SetupXy::embedded();
+    for tau in [0.0, 0.03] {
+        let setup = digital_xy(tau);
+        for scenario in ["sensing_crosstalk", "actuation_crosstalk", SCENARIO] {
+            let p = setup.spec.scenario(scenario).unwrap().truth;
+            freefall::model::check_stability(&continuous.model, &p, None).unwrap();
+            let lp = DigitalLoop::<7>::new(&setup.model, &p, &LoopConfig::from_spec(&setup.spec));
+            lp.check_stable(setup.model.parameter_names(), &p).unwrap();
+            freefall::model::check_stability(&setup.model, &p, None)
+                .unwrap_or_else(|e| panic!("tau {tau}, {scenario}: {e}"));
+        }
+    }
+}
+
+#[test]
+fn xy_loop_commands_match_the_frequency_domain_commands() {
+    // Oracle: the frequency-domain engine's commands (sim::commands::command_response's kernel
+    // -C_j (T_{oi->o} - 1)[j][c], here of the digital xy model, exact at the control samples).
+    // The time-domain loop's recorded commands of the y/phi loops (DigitalLoop::run_recording,
+    // what `simulate --engine time-domain --commands` decimates) under a unit sine on each y/phi
+    // guidance input, in steady state, agree to XY_ENGINE_AGREEMENT of the command (or of the
+    // input's largest command where a command is below 1e-2 of it).
+    let setup = digital_xy(0.03);
+    let p = setup.spec.scenario(SCENARIO).unwrap().truth;
+    let lp = DigitalLoop::<7>::new(&setup.model, &p, &LoopConfig::from_spec(&setup.spec));
+    let record: Vec<usize> = (2..7).collect();
+    let f = STANDARD_CYCLES[3] / STRETCH_S;
+    let pt = setup.model.prepare(f);
+    let t = transfer(&setup.model, &pt, &p).oi_o;
+    for c in 2..7 {
+        let got = measured_commands(&lp, f, c, &record);
+        let want: Vec<Complex64> = (record.iter())
+            .map(|&j| {
+                let e = t[(j, c)] - if j == c { 1.0 } else { 0.0 };
+                -LpfXy::law_at(&pt, j) * e
+            })
+            .collect();
+        let largest = want.iter().map(|w| w.norm()).fold(0.0, f64::max);
+        for ((j, g), w) in record.iter().zip(&got).zip(&want) {
+            let scale = w.norm().max(1e-2 * largest);
+            let err = (g - w).norm() / scale;
+            assert!(
+                err < XY_ENGINE_AGREEMENT,
+                "u{j} under oi{c}: time domain {g:.9e}, frequency domain {w:.9e}, error {err:.1e}"
+            );
+        }
+    }
+}
+
+#[test]
+fn xy_sampled_data_derivatives_match_central_differences() {
+    // Oracle: central finite differences of the digital xy model's T_{oi->o}, step 1e-5 of
+    // each parameter's scale (the stiffness and dynamical cross-talk parameters move the held
+    // plant's matrix functions of K; the others enter as in the continuous model, behind the
+    // delay factor); and the grid path (held plant once) against the per-point path.
+    let setup = digital_xy(0.03);
+    let m = &setup.model;
+    let p = setup.spec.scenario(SCENARIO).unwrap().truth;
+    let np = p.len();
+    let scale = |k: usize| match setup.parameter_names()[k].as_str() {
+        n if n.starts_with('w') => 1e-6,
+        n if n.starts_with('a') => 1.0,
+        n if n.starts_with("dt") => 0.1,
+        _ => 1e-3,
+    };
+    let freqs = [3e-5, 1e-3, 2e-2, 0.3];
+    let points: Vec<_> = freqs.iter().map(|&f| m.prepare(f)).collect();
+    let mut t_grid = vec![CMat::<7>::zeros(); freqs.len()];
+    let mut d_grid = vec![CMat::<7>::zeros(); np * freqs.len()];
+    m.transfer_grid(&points, &p, &mut t_grid, Some(&mut d_grid));
+    for (i, pt) in points.iter().enumerate() {
+        let mut d = vec![CMat::<7>::zeros(); np];
+        let t = transfer_with_derivatives(m, pt, &p, &mut d).oi_o;
+        assert!((t - t_grid[i]).norm() <= 1e-12 * t.norm());
+        for k in 0..np {
+            assert!((d[k] - d_grid[np * i + k]).norm() <= 1e-12 * d[k].norm() + 1e-300);
+            let step = 1e-5 * scale(k);
+            let (mut pp, mut pm) = (p.clone(), p.clone());
+            pp[k] += step;
+            pm[k] -= step;
+            let fd = (transfer(m, pt, &pp).oi_o - transfer(m, pt, &pm).oi_o)
+                / Complex64::new(2.0 * step, 0.0);
+            // Truncation O(step^2) plus round-off O(eps |T| / step), relative to |T| / scale.
+            let err = (fd - d[k]).norm();
+            assert!(
+                err <= 1e-6 * t.norm() / scale(k) + 1e-7 * d[k].norm(),
+                "{} at f = {}: analytic {:.3e} vs fd {:.3e}",
+                setup.parameter_names()[k],
+                freqs[i],
+                d[k].norm(),
+                fd.norm()
+            );
+        }
+    }
 }

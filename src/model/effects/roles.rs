@@ -235,11 +235,16 @@ impl EffectHost<7> for LpfXy {
     fn point_at(&self, s: Complex64) -> XyPoint {
         self.prepare_s(s)
     }
-    /// The xy loop is continuous.
-    fn stability_band_top(&self, f_hi: f64, _nyquist_margin: f64) -> f64 {
-        f_hi
+    /// As the x model's: just below Nyquist for a digital loop.
+    fn stability_band_top(&self, f_hi: f64, nyquist_margin: f64) -> f64 {
+        self.x.stability_band_top(f_hi, nyquist_margin)
     }
     fn characteristic_at(&self, s: Complex64, q: &[f64]) -> Complex64 {
-        self.characteristic_polynomial(q).eval(s)
+        match &self.x.digital {
+            Some(dl) => self
+                .digital_characteristic_at(z_and_zm1(s, dl.h).1, q)
+                .unwrap_or(Complex64::new(f64::NAN, 0.0)),
+            None => self.characteristic_polynomial(q).eval(s),
+        }
     }
 }

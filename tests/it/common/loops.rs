@@ -41,6 +41,30 @@ pub fn measured_response<const N: usize>(
     c: usize,
     delay: f64,
 ) -> [Complex64; N] {
+    let (o, _) = measured_run(lp, f, c, delay, &[]);
+    std::array::from_fn(|r| o[r])
+}
+
+/// Steady-state complex amplitudes of the commands of the loops `record` under a unit sine on
+/// guidance input `c` (not delayed), measured as [`measured_response`]'s readouts.
+pub fn measured_commands<const N: usize>(
+    lp: &DigitalLoop<N>,
+    f: f64,
+    c: usize,
+    record: &[usize],
+) -> Vec<Complex64> {
+    measured_run(lp, f, c, 0.0, record).1
+}
+
+/// The projections of [`measured_response`] and [`measured_commands`]: readouts, then the
+/// recorded commands.
+fn measured_run<const N: usize>(
+    lp: &DigitalLoop<N>,
+    f: f64,
+    c: usize,
+    delay: f64,
+    record: &[usize],
+) -> (Vec<Complex64>, Vec<Complex64>) {
     let h = lp.dt;
     let zmax = lp
         .poles()
@@ -57,14 +81,18 @@ pub fn measured_response<const N: usize>(
     let zero = vec![0.0; n];
     let guidance: [&[f64]; N] = std::array::from_fn(|j| if j == c { &g[..] } else { &zero[..] });
     let mut run = lp.clone();
-    let o = run.run(guidance, [&zero[..]; N], [&zero[..]; N]);
-    std::array::from_fn(|r| {
+    let (o, u) = run.run_recording(guidance, [&zero[..]; N], [&zero[..]; N], record);
+    let project = |x: &[f64]| -> Complex64 {
         let acc: Complex64 = (n - nw..n)
-            .map(|k| o[r][k] * Complex64::new(0.0, -w * k as f64 * h).exp())
+            .map(|k| x[k] * Complex64::new(0.0, -w * k as f64 * h).exp())
             .sum();
         // sin(w t) = Im e^{i w t}: the projection gives T / (2 i) per unit amplitude.
         acc * Complex64::new(0.0, 2.0 / nw as f64)
-    })
+    };
+    (
+        o.iter().map(|x| project(x)).collect(),
+        u.iter().map(|x| project(x)).collect(),
+    )
 }
 
 /// One element of `T_{oi->o}` at a standard frequency: the loop's measured steady-state
