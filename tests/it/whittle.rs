@@ -26,14 +26,14 @@ use rayon::prelude::*;
 use crate::common::tables::assert_same_dirs;
 
 /// The thesis's loop (continuous), the monte_carlo scenario and the standard design.
-struct Case {
-    setup: Setup,
-    truth: Vec<f64>,
-    guess: Vec<f64>,
-    sim: Simulator<2>,
+pub(crate) struct Case {
+    pub(crate) setup: Setup,
+    pub(crate) truth: Vec<f64>,
+    pub(crate) guess: Vec<f64>,
+    pub(crate) sim: Simulator<2>,
 }
 
-fn case() -> Case {
+pub(crate) fn case() -> Case {
     let setup = Setup::embedded_continuous();
     let sc = setup.spec.scenario("monte_carlo").unwrap();
     let design = setup.design("standard").unwrap();
@@ -46,7 +46,10 @@ fn case() -> Case {
     }
 }
 
-fn whittle<'m>(c: &'m Case, tolerance: f64) -> WhittleLikelihood<'m, freefall::model::LpfX, 2> {
+pub(crate) fn whittle<'m>(
+    c: &'m Case,
+    tolerance: f64,
+) -> WhittleLikelihood<'m, freefall::model::LpfX, 2> {
     let at = [c.truth.clone(), c.guess.clone()];
     WhittleLikelihood::new(
         &c.setup.model,
@@ -60,7 +63,7 @@ fn whittle<'m>(c: &'m Case, tolerance: f64) -> WhittleLikelihood<'m, freefall::m
     .unwrap()
 }
 
-fn whittle_sim(
+pub(crate) fn whittle_sim(
     c: &Case,
     lik: &WhittleLikelihood<'_, freefall::model::LpfX, 2>,
 ) -> WhittleSimulator<2> {
@@ -75,7 +78,7 @@ fn whittle_sim(
     .unwrap()
 }
 
-fn sigmas(info: &DMatrix<f64>) -> Vec<f64> {
+pub(crate) fn sigmas(info: &DMatrix<f64>) -> Vec<f64> {
     let cov = spd_inverse(info).unwrap();
     (0..info.nrows()).map(|k| cov[(k, k)].sqrt()).collect()
 }
