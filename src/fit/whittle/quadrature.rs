@@ -44,18 +44,22 @@
 //! `2 Re sum u'^H dV_q - 2 Re sum_j <S_j, a_j^(q)>`.
 //!
 //! # Nodes
-//! Per grid, the kept bins fall into clusters of consecutive bins. Each cluster starts with
-//! its two end bins as nodes; the segment between neighbouring nodes whose whitened
-//! interpolation error `sum_k sum_e |W_k (Y_k - Y~_k) X'_k|^2` is largest is split at its middle
-//! bin, until the error over all segments is below `eps^2`. `Y` runs over the templates the
-//! error is measured on: `S(p)` at the points `at` the likelihood was prepared at (its bins
-//! kept there) and the derivatives `5 sigma_q dS/dp_q` at `p0` (`sigma` from the Fisher
-//! information of the kept bins; its conditional sigmas `1 / sqrt(I_qq)` when it is singular),
-//! which bound the first-order error within `+-5 sigma` of
-//! `p0`. A template error `delta` changes `chi^2` by `-2 Re r^H delta + |delta|^2`: about
-//! `2 eps` from the noise in `r`, and at most `2 |Delta h| eps` from a template offset
-//! `Delta h` (`|Delta h| ~ 5` at 5 sigma), so `eps` bounds `|chi^2_compressed - chi^2|` to
-//! about `12 eps` within 5 sigma ([`DEFAULT_QUADRATURE_EPS`]).
+//! Per grid, the nodes start at the first and the last kept bin; the segment between
+//! neighbouring nodes whose whitened interpolation error `sum_k sum_e |W_k (Y_k - Y~_k) X'_k|^2`
+//! (over its bins strictly inside) is largest is split at its middle kept bin, until the
+//! error over all segments is below `eps^2`. A segment may span dropped bins: `T` is smooth
+//! across them, and the standard design's 3,384 kept bins fall in 968 runs of consecutive
+//! bins, whose ends alone would be 1,685 nodes. `Y` runs over the templates the error is
+//! measured on: `S(p)` at the points `at` the likelihood was prepared at (its bins kept there)
+//! and the derivatives `5 sigma_q dS/dp_q` at `p0` (`sigma` from the Fisher information of the
+//! kept bins; its conditional sigmas `1 / sqrt(I_qq)` when it is singular), which bound the
+//! first-order error within `+-5 sigma` of `p0`. A template error `delta` changes `chi^2` by
+//! `-2 Re r^H delta + |delta|^2`: of order `eps` from the noise in `r` and from a template
+//! offset of a few sigma. Measured on the standard design (truth, guess and 20 points within
+//! 5 sigma, one realization): `eps = 1e-2, 1e-3, 3e-4, 1e-4, 3e-5` take 148, 322, 477, 690 and
+//! 987 nodes, and the largest `|chi^2_compressed - chi^2|` is 1.5, 2.7e-2, 3.8e-4, 1.1e-4 and
+//! 1.3e-4 (the guess, 395 sigma out in one parameter, is the worst point at the coarse ones).
+//! [`DEFAULT_QUADRATURE_EPS`] is `1e-4`.
 
 use num_complex::Complex64;
 
@@ -569,14 +573,21 @@ impl<M: ClosedLoopModel<N>, const N: usize> CompressedWhittle<'_, '_, '_, M, N> 
                     *sj -= CMat::<N>::identity();
                 }
             }
-            // a_j(p), and the direct gradient of the linear term.
+            // a_j(p), and the direct gradient of the linear term, in one pass over the
+            // wrap-around's constants (real arithmetic: `dp` is real, and only `Re` is needed).
             let mut a = a_data.clone();
             for (j, (aj, sj)) in a.iter_mut().zip(&s).enumerate() {
+                let (ajs, sjs) = (aj.as_mut_slice(), sj.as_slice());
                 for (q, dpq) in dp.iter().enumerate() {
-                    let awq = &qg.aw[j * np + q];
-                    *aj += awq * Complex64::new(*dpq, 0.0);
+                    let aw = qg.aw[j * np + q].as_slice();
+                    let mut pair = 0.0;
+                    for ((x, w), t) in ajs.iter_mut().zip(aw).zip(sjs) {
+                        x.re += w.re * dpq;
+                        x.im += w.im * dpq;
+                        pair += t.re * w.re - t.im * w.im;
+                    }
                     if let Some(g) = grad.as_deref_mut() {
-                        g[q] -= 2.0 * re_pair(sj, awq);
+                        g[q] -= 2.0 * pair;
                     }
                 }
             }
