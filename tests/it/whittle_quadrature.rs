@@ -5,14 +5,13 @@
 
 use freefall::fit::whittle::quadrature::{WhittleQuadrature, DEFAULT_QUADRATURE_EPS};
 use freefall::fit::whittle::DEFAULT_DROP_TOLERANCE;
-use freefall::fit::{WhittleLikelihood, WhittleProblem};
+use freefall::fit::WhittleProblem;
 use freefall::model::ClosedLoopModel;
 use freefall::numerics::linalg::spd_inverse;
 use freefall::setup::SetupXy;
 use freefall::sim::rng::stream;
-use freefall::sim::WhittleSimulator;
 
-use crate::whittle::{case, sigmas, whittle, whittle_sim};
+use crate::whittle::{assert_gradient_is_central_differences, case, sigmas, whittle, whittle_sim};
 
 /// Points at which the compressed chi^2 is checked: the truth, the guess and `n` points drawn
 /// uniformly within +-5 Fisher sigma of the truth in every parameter (a fixed sequence).
@@ -84,13 +83,16 @@ fn compare<M: ClosedLoopModel<N>, const N: usize>(
     worst
 }
 
-// Oracle: the exact Whittle chi^2 and gradient (`WhittleProblem::chi2_and_gradient`, itself
-// checked against finite differences and the residuals in `whittle.rs`), at the truth, the
-// guess and 20 points within +-5 Fisher sigma. Tolerance 1e-3 on chi^2 (a thousandth of the
-// unit a likelihood ratio is read in), 1e-3 / sigma_q on the gradient; the default eps = 1e-4 gave at
-// most 2.9e-4 over these three realizations (module doc).
+// Oracles: (1) the exact Whittle chi^2 and gradient (`WhittleProblem::chi2_and_gradient`,
+// itself checked against finite differences and the residuals in `whittle.rs`), at the truth,
+// the guess and 20 points within +-5 Fisher sigma. Tolerance 1e-3 on chi^2 (a thousandth of
+// the unit a likelihood ratio is read in), 1e-3 / sigma_q on the gradient; the default
+// eps = 1e-4 gave at most 2.9e-4 over these three realizations (module doc). (2) Central
+// finite differences of the compressed chi^2 itself (step 1e-3 sigma, as the exact
+// likelihood's test) at the guess and 2 sigma out: its gradient is the derivative of the
+// quadrature, not of the exact chi^2.
 #[test]
-fn compressed_chi2_matches_the_exact_one_within_5_sigma() {
+fn compressed_chi2_matches_the_exact_one_and_its_own_finite_differences() {
     let c = case();
     let lik = whittle(&c, DEFAULT_DROP_TOLERANCE);
     let wsim = whittle_sim(&c, &lik);
@@ -113,45 +115,17 @@ fn compressed_chi2_matches_the_exact_one_within_5_sigma() {
         let worst = compare(&quad, &problem, &pts, &sigma, 1e-3);
         println!("realization {r}: largest |chi^2 difference| {worst:e}");
     }
-}
-
-// Oracle: central finite differences of the compressed chi^2 itself (step 1e-3 sigma, as the
-// exact likelihood's test): its gradient is the derivative of the quadrature, not of the exact
-// chi^2.
-#[test]
-fn compressed_gradient_matches_its_finite_differences() {
-    let c = case();
-    let lik = whittle(&c, DEFAULT_DROP_TOLERANCE);
-    let wsim = whittle_sim(&c, &lik);
-    let sigma = sigmas(&lik.information(&c.truth));
-    let at = [c.truth.clone(), c.guess.clone()];
-    let quad = WhittleQuadrature::new(&lik, &at, DEFAULT_QUADRATURE_EPS).unwrap();
     let problem = lik.problem(wsim.draw(&mut stream(1, 0))).unwrap();
     let compressed = quad.problem(&problem);
-    for p0 in [
-        c.guess.clone(),
-        c.truth
-            .iter()
-            .zip(&sigma)
-            .map(|(t, s)| t + 2.0 * s)
-            .collect::<Vec<f64>>(),
-    ] {
-        let (_, grad) = compressed.chi2_and_gradient(&p0);
-        for q in 0..p0.len() {
-            let h = 1e-3 * sigma[q];
-            let at = |d: f64| {
-                let mut p = p0.clone();
-                p[q] += d;
-                compressed.chi2_and_gradient(&p).0
-            };
-            let fd = (at(h) - at(-h)) / (2.0 * h);
-            let scale = 1.0 / sigma[q];
-            assert!(
-                (fd - grad[q]).abs() < 1e-4 * scale.max(grad[q].abs()),
-                "parameter {q}: gradient {:e}, finite difference {fd:e}",
-                grad[q]
-            );
-        }
+    let out: Vec<f64> = c
+        .truth
+        .iter()
+        .zip(&sigma)
+        .map(|(t, s)| t + 2.0 * s)
+        .collect();
+    for p0 in [&c.guess, &out] {
+        let (_, grad) = compressed.chi2_and_gradient(p0);
+        assert_gradient_is_central_differences(p0, &grad, &sigma, |p| compressed.chi2(p));
     }
 }
 
@@ -180,32 +154,20 @@ fn every_kept_bin_a_node_gives_the_exact_chi2() {
     compare(&quad, &problem, &pts, &sigma, 1e-6);
 }
 
-// Oracle: as `compressed_chi2_matches_the_exact_one_within_5_sigma`, on the 7-DOF xy model
-// (N = 7, 7 experiments of its standard_xy design at the nominal scenario), with the same
-// tolerance: nothing in the quadrature is particular to N = 2.
+// Oracle: as `compressed_chi2_matches_the_exact_one_and_its_own_finite_differences` (1), on the
+// 7-DOF xy model (N = 7, 7 experiments of its standard_xy design at the nominal scenario), with
+// the same tolerance, and with every kept bin a node to round-off: nothing in the quadrature is
+// particular to N = 2.
 #[test]
 fn compressed_chi2_matches_the_exact_one_on_the_xy_model() {
-    let setup = SetupXy::embedded();
-    let sc = setup.spec.scenario("nominal").unwrap();
-    let design = setup.design("standard_xy").unwrap();
-    let sim = setup.simulator(&design, &sc.truth, None).unwrap();
-    let at = [sc.truth.clone(), sc.guess.clone()];
-    let psd = || setup.psd(&sc.truth);
-    let lik = WhittleLikelihood::new(
-        &setup.model,
-        &sim.inputs,
-        sim.dt,
-        psd(),
-        &sc.truth,
-        &at,
-        DEFAULT_DROP_TOLERANCE,
-    )
-    .unwrap();
-    let wsim = WhittleSimulator::new(&lik, &sim.signal, sim.dt, psd(), psd(), true).unwrap();
+    let c = case_of(SetupXy::embedded(), "nominal", "standard_xy");
+    let at = [c.truth.clone(), c.guess.clone()];
+    let lik = whittle(&c, DEFAULT_DROP_TOLERANCE);
+    let wsim = whittle_sim(&c, &lik);
     // The xy nominal scenario leaves some cross-talk directions unconstrained: the
     // conditional sigmas 1 / sqrt(I_qq) where the information cannot be inverted, as the
     // quadrature takes them (zero for a parameter without information).
-    let info = lik.information(&sc.truth);
+    let info = lik.information(&c.truth);
     let sigma: Vec<f64> = match spd_inverse(&info) {
         Some(_) => sigmas(&info),
         None => (0..info.nrows())
@@ -227,7 +189,7 @@ fn compressed_chi2_matches_the_exact_one_on_the_xy_model() {
         quad.is_relative()
     );
     let problem = lik.problem(wsim.draw(&mut stream(2, 0))).unwrap();
-    let pts = points(&sc.truth, &sc.guess, &sigma, 6);
+    let pts = points(&c.truth, &c.guess, &sigma, 6);
     let worst = compare(&quad, &problem, &pts, &sigma, 1e-3);
     println!("xy: largest |chi^2 difference| {worst:e}");
     let exact = WhittleQuadrature::new(&lik, &at, 0.0).unwrap();
