@@ -11,7 +11,9 @@ use freefall::numerics::linalg::spd_inverse;
 use freefall::setup::SetupXy;
 use freefall::sim::rng::stream;
 
-use crate::whittle::{assert_gradient_is_central_differences, case, sigmas, whittle, whittle_sim};
+use crate::whittle::{
+    assert_gradient_is_central_differences, case, case_of, sigmas, whittle, whittle_sim,
+};
 
 /// Points at which the compressed chi^2 is checked: the truth, the guess and `n` points drawn
 /// uniformly within +-5 Fisher sigma of the truth in every parameter (a fixed sequence).
@@ -139,7 +141,7 @@ fn every_kept_bin_a_node_gives_the_exact_chi2() {
     let lik = whittle(&c, DEFAULT_DROP_TOLERANCE);
     let wsim = whittle_sim(&c, &lik);
     let sigma = sigmas(&lik.information(&c.truth));
-    let quad = WhittleQuadrature::new(&lik, &[c.truth.clone()], 0.0).unwrap();
+    let quad = WhittleQuadrature::new(&lik, std::slice::from_ref(&c.truth), 0.0).unwrap();
     assert_eq!(quad.n_nodes(), lik.kept_of(0).len());
     let problem = lik.problem(wsim.draw(&mut stream(5, 0))).unwrap();
     let pts = points(&c.truth, &c.guess, &sigma, 4);
