@@ -1,13 +1,14 @@
 //! The frequency-domain (Whittle) likelihood of the standard design at the monte_carlo
 //! scenario, on the thesis's (continuous) loop, as `campaigns/monte_carlo.toml` runs it with
 //! `[fit] likelihood = "whittle"`: one likelihood-and-gradient evaluation (what a sampler needs
-//! per step), one realization's draw of Fourier coefficients, and one campaign realization
-//! (draw, fit with the Jacobians cached at the guess and at realization 0's estimate, and the
-//! noise-only chi^2 draw), on one core.
+//! per step), exact and by reduced-order quadrature, one realization's draw of Fourier
+//! coefficients, and one campaign realization (draw, fit with the Jacobians cached at the guess
+//! and at realization 0's estimate, and the noise-only chi^2 draw), on one core.
 //!
 //!     cargo bench --bench whittle
 
 use criterion::{criterion_group, criterion_main, Criterion};
+use freefall::fit::whittle::quadrature::{WhittleQuadrature, DEFAULT_QUADRATURE_EPS};
 use freefall::fit::whittle::DEFAULT_DROP_TOLERANCE;
 use freefall::fit::{
     fit, FitConfig, JacobianCache, JacobianPolicy, WhittleLikelihood, JACOBIAN_REUSE_SIGMA,
@@ -41,6 +42,17 @@ fn bench(c: &mut Criterion) {
     let problem = lik.problem(wsim.draw(&mut stream(7, 0))).unwrap();
     group.bench_function("likelihood_and_gradient_standard_1hz", |b| {
         b.iter(|| black_box(problem.chi2_and_gradient(black_box(&sc.guess))))
+    });
+    // The same by reduced-order quadrature (`fit::whittle::quadrature`): the model at the
+    // nodes only, once the data are bound (one pass over the kept bins, benched apart).
+    let quad = WhittleQuadrature::new(&lik, &at, DEFAULT_QUADRATURE_EPS).unwrap();
+    eprintln!("{} quadrature nodes", quad.n_nodes());
+    let compressed = quad.problem(&problem);
+    group.bench_function("likelihood_and_gradient_standard_1hz_compressed", |b| {
+        b.iter(|| black_box(compressed.chi2_and_gradient(black_box(&sc.guess))))
+    });
+    group.bench_function("quadrature_bind_data_standard_1hz", |b| {
+        b.iter(|| black_box(quad.problem(black_box(&problem))))
     });
     // The cost split of one evaluation: the model alone at the kept bins (the experiments
     // share one grid), its template, its template with the seven derivative matrices (what

@@ -33,6 +33,7 @@ use serde::{Deserialize, Serialize};
 pub use estimator::Estimator;
 pub use problem::{ExperimentData, Likelihood, Problem};
 pub use whiten::Whitener;
+pub use whittle::quadrature::{CompressedWhittle, WhittleQuadrature};
 pub use whittle::{WhittleLikelihood, WhittleProblem};
 
 use crate::data::Series;

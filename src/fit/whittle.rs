@@ -44,6 +44,8 @@
 //! experiment (its Jacobian zero), so that chi^2 and nu are those of all bins. Evaluations then
 //! cost the model on the kept bins only.
 
+pub mod quadrature;
+
 use nalgebra::DMatrix;
 use num_complex::Complex64;
 

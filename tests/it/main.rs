@@ -42,6 +42,7 @@ mod time_domain_effects;
 mod transient;
 mod units;
 mod whittle;
+mod whittle_quadrature;
 mod xy_campaign;
 mod xy_commands;
 mod xy_design;

@@ -16,7 +16,7 @@ use freefall::forward::fisher::{fisher_information, InputSpectra};
 use freefall::model::closed_loop::transfer_grid_adjoint_forward;
 use freefall::model::{CMat, ClosedLoopModel};
 use freefall::numerics::linalg::spd_inverse;
-use freefall::setup::{Setup, DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
+use freefall::setup::{Setup, SetupOf, SpecModel, DEFAULT_POLY_DEGREE, DEFAULT_WHITENING_ORDER};
 use freefall::sim::rng::stream;
 use freefall::sim::{Simulator, WhittleSimulator};
 use nalgebra::DMatrix;
@@ -25,18 +25,27 @@ use rayon::prelude::*;
 
 use crate::common::tables::assert_same_dirs;
 
-/// The thesis's loop (continuous), the monte_carlo scenario and the standard design.
-struct Case {
-    setup: Setup,
-    truth: Vec<f64>,
-    guess: Vec<f64>,
-    sim: Simulator<2>,
+/// A model's setup, a scenario's truth and guess, and a design's simulator.
+pub(crate) struct Case<M = freefall::model::LpfX, const N: usize = 2> {
+    pub(crate) setup: SetupOf<M, N>,
+    pub(crate) truth: Vec<f64>,
+    pub(crate) guess: Vec<f64>,
+    pub(crate) sim: Simulator<N>,
 }
 
-fn case() -> Case {
-    let setup = Setup::embedded_continuous();
-    let sc = setup.spec.scenario("monte_carlo").unwrap();
-    let design = setup.design("standard").unwrap();
+/// The thesis's loop (continuous), the monte_carlo scenario and the standard design.
+pub(crate) fn case() -> Case {
+    case_of(Setup::embedded_continuous(), "monte_carlo", "standard")
+}
+
+/// `setup` at its `scenario` with its `design`.
+pub(crate) fn case_of<M: SpecModel<N>, const N: usize>(
+    setup: SetupOf<M, N>,
+    scenario: &str,
+    design: &str,
+) -> Case<M, N> {
+    let sc = setup.spec.scenario(scenario).unwrap();
+    let design = setup.design(design).unwrap();
     let sim = setup.simulator(&design, &sc.truth, None).unwrap();
     Case {
         setup,
@@ -46,7 +55,11 @@ fn case() -> Case {
     }
 }
 
-fn whittle<'m>(c: &'m Case, tolerance: f64) -> WhittleLikelihood<'m, freefall::model::LpfX, 2> {
+/// The Whittle likelihood of a case, prepared at its truth and guess, whitened at its truth.
+pub(crate) fn whittle<M: SpecModel<N>, const N: usize>(
+    c: &Case<M, N>,
+    tolerance: f64,
+) -> WhittleLikelihood<'_, M, N> {
     let at = [c.truth.clone(), c.guess.clone()];
     WhittleLikelihood::new(
         &c.setup.model,
@@ -60,10 +73,10 @@ fn whittle<'m>(c: &'m Case, tolerance: f64) -> WhittleLikelihood<'m, freefall::m
     .unwrap()
 }
 
-fn whittle_sim(
-    c: &Case,
-    lik: &WhittleLikelihood<'_, freefall::model::LpfX, 2>,
-) -> WhittleSimulator<2> {
+pub(crate) fn whittle_sim<M: SpecModel<N>, const N: usize>(
+    c: &Case<M, N>,
+    lik: &WhittleLikelihood<'_, M, N>,
+) -> WhittleSimulator<N> {
     WhittleSimulator::new(
         lik,
         &c.sim.signal,
@@ -75,7 +88,7 @@ fn whittle_sim(
     .unwrap()
 }
 
-fn sigmas(info: &DMatrix<f64>) -> Vec<f64> {
+pub(crate) fn sigmas(info: &DMatrix<f64>) -> Vec<f64> {
     let cov = spd_inverse(info).unwrap();
     (0..info.nrows()).map(|k| cov[(k, k)].sqrt()).collect()
 }
@@ -148,12 +161,23 @@ fn chi2_gradient_matches_finite_differences() {
     let (chi2, grad) = problem.chi2_and_gradient(&p0);
     let direct = objective(Estimator::Squared, &problem.residuals(&p0));
     assert!((chi2 - direct).abs() < 1e-10 * chi2, "{chi2} vs {direct}");
+    assert_gradient_is_central_differences(&p0, &grad, &sigma, |p| problem.chi2_and_gradient(p).0);
+}
+
+/// `grad` against central finite differences of `chi2` about `p0` with steps of 1e-3 sigma
+/// (truncation error ~1e-6 of the gradient's scale `1 / sigma_q`): within 1e-4 of that scale.
+pub(crate) fn assert_gradient_is_central_differences(
+    p0: &[f64],
+    grad: &[f64],
+    sigma: &[f64],
+    chi2: impl Fn(&[f64]) -> f64,
+) {
     for q in 0..p0.len() {
         let h = 1e-3 * sigma[q];
         let at = |d: f64| {
-            let mut p = p0.clone();
+            let mut p = p0.to_vec();
             p[q] += d;
-            problem.chi2_and_gradient(&p).0
+            chi2(&p)
         };
         let fd = (at(h) - at(-h)) / (2.0 * h);
         let scale = 1.0 / sigma[q];
