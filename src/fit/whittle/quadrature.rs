@@ -61,9 +61,10 @@
 //! 1.3e-4 (the guess, 395 sigma out in one parameter, is the worst point at the coarse ones).
 //! [`DEFAULT_QUADRATURE_EPS`] is `1e-4`.
 
+use nalgebra::DMatrix;
 use num_complex::Complex64;
 
-use super::{WhittleLikelihood, WhittleProblem};
+use super::{Grid, WhittleLikelihood, WhittleProblem};
 use crate::fit::FitError;
 use crate::model::closed_loop::{CMat, ClosedLoopModel};
 use crate::numerics::linalg::spd_inverse;
@@ -252,6 +253,102 @@ fn choose_nodes(nb: usize, eps2: f64, seg_err: impl Fn(usize, usize) -> f64) -> 
     (nodes, total.max(0.0))
 }
 
+/// Fisher sigmas from the information `info`; where it cannot be inverted (a design that
+/// leaves some direction unconstrained), the conditional sigmas `1 / sqrt(I_qq)` (zero for a
+/// parameter without information: its derivative is zero).
+fn fisher_sigmas(info: &DMatrix<f64>) -> Vec<f64> {
+    let np = info.nrows();
+    match spd_inverse(info) {
+        Some(c) => (0..np).map(|q| c[(q, q)].sqrt()).collect(),
+        None => (0..np)
+            .map(|q| {
+                let i = info[(q, q)];
+                if i > 0.0 && i.is_finite() {
+                    1.0 / i.sqrt()
+                } else {
+                    0.0
+                }
+            })
+            .collect(),
+    }
+}
+
+/// Each kept bin's interpolation weights `(j, c_left, c_right)` between its left node `j` and
+/// the next, linear in the bin index `kept[i]` (a node itself: `(j, 1, 0)`).
+fn bin_weights(nodes: &[usize], kept: &[usize]) -> Vec<(usize, f64, f64)> {
+    let freq = |i: usize| kept[i] as f64;
+    let m = nodes.len();
+    let mut weights = Vec::with_capacity(kept.len());
+    let mut j = 0;
+    for i in 0..kept.len() {
+        while j + 1 < m && nodes[j + 1] <= i {
+            j += 1;
+        }
+        let (lo, hi) = (nodes[j], nodes.get(j + 1).copied());
+        let w = match hi {
+            _ if lo == i => (j, 1.0, 0.0),
+            Some(hi) => {
+                let cr = (freq(i) - freq(lo)) / (freq(hi) - freq(lo));
+                (j, 1.0 - cr, cr)
+            }
+            None => unreachable!("the last kept bin is a node"),
+        };
+        weights.push(w);
+    }
+    weights
+}
+
+/// The design constants of one grid's `m` nodes (module doc): the banded blocks `G_jj` (`gd`)
+/// and `G_j,j+1` (`gu`) and the wrap-around derivatives' parts `aw[j * np + q]` of `a_j`;
+/// `sum |dV|^2`'s matrix is added to `s2`.
+#[allow(clippy::type_complexity)]
+fn design_constants<M: ClosedLoopModel<N>, const N: usize>(
+    lik: &WhittleLikelihood<'_, M, N>,
+    grid: &Grid<M::Point, N>,
+    xref: &[Vec<[Complex64; N]>],
+    weights: &[(usize, f64, f64)],
+    m: usize,
+    s2: &mut [f64],
+) -> (Vec<Vec<Complex64>>, Vec<Vec<Complex64>>, Vec<CMat<N>>) {
+    let np = lik.model.n_params();
+    let n4 = N * N * N * N;
+    let mut gd = vec![vec![ZERO; n4]; m];
+    let mut gu = vec![vec![ZERO; n4]; m];
+    let mut aw = vec![CMat::<N>::zeros(); m * np];
+    for (i, &(j, cl, cr)) in weights.iter().enumerate() {
+        let winv = &grid.winv[i];
+        let pm = winv.adjoint() * winv;
+        let mut rm = CMat::<N>::zeros();
+        for x in xref {
+            for a in 0..N {
+                for b in 0..N {
+                    rm[(a, b)] += x[i][a] * x[i][b].conj();
+                }
+            }
+        }
+        add_kron(&mut gd[j], cl * cl, &rm, &pm);
+        if cr != 0.0 {
+            add_kron(&mut gd[j + 1], cr * cr, &rm, &pm);
+            add_kron(&mut gu[j], cl * cr, &rm, &pm);
+        }
+        for (le, &e) in grid.exps.iter().enumerate() {
+            let dv = &lik.dwrap[e][i * np..(i + 1) * np];
+            let x = &xref[le][i];
+            for (q, dq) in dv.iter().enumerate() {
+                let y = lower_adjoint_times(winv, dq);
+                add_outer(&mut aw[j * np + q], cl, &y, x);
+                if cr != 0.0 {
+                    add_outer(&mut aw[(j + 1) * np + q], cr, &y, x);
+                }
+                for (qq, dqq) in dv.iter().enumerate() {
+                    s2[q * np + qq] += (0..N).map(|c| (dq[c].conj() * dqq[c]).re).sum::<f64>();
+                }
+            }
+        }
+    }
+    (gd, gu, aw)
+}
+
 impl<'a, 'm, M: ClosedLoopModel<N>, const N: usize> WhittleQuadrature<'a, 'm, M, N> {
     /// Nodes for `lik` with interpolation error below `eps` (module doc) on the templates at
     /// `at` (the points the likelihood's bins were kept at) and the derivatives at `p0`.
@@ -270,23 +367,8 @@ impl<'a, 'm, M: ClosedLoopModel<N>, const N: usize> WhittleQuadrature<'a, 'm, M,
                 "the quadrature's error bound eps = {eps} is not a non-negative number"
             )));
         }
-        // Fisher sigmas of the kept bins at p0; where the information cannot be inverted (a
-        // design that leaves some direction unconstrained), the conditional sigmas
-        // `1 / sqrt(I_qq)` (zero for a parameter without information: its derivative is zero).
-        let info = lik.information(p0);
-        let sigma: Vec<f64> = match spd_inverse(&info) {
-            Some(c) => (0..np).map(|q| c[(q, q)].sqrt()).collect(),
-            None => (0..np)
-                .map(|q| {
-                    let i = info[(q, q)];
-                    if i > 0.0 && i.is_finite() {
-                        1.0 / i.sqrt()
-                    } else {
-                        0.0
-                    }
-                })
-                .collect(),
-        };
+        // Fisher sigmas of the kept bins at p0.
+        let sigma = fisher_sigmas(&lik.information(p0));
         // The fiducial transfer matrices and derivatives at p0 at every kept bin.
         let mut t0s = Vec::with_capacity(lik.grids.len());
         let mut d0s = Vec::with_capacity(lik.grids.len());
@@ -374,60 +456,8 @@ impl<'a, 'm, M: ClosedLoopModel<N>, const N: usize> WhittleQuadrature<'a, 'm, M,
             let (nodes, err) = choose_nodes(nb, eps * eps, seg_err);
             error += err;
             let m = nodes.len();
-            // Weights: each bin's left node and the two weights.
-            let mut weights = Vec::with_capacity(nb);
-            let mut j = 0;
-            for i in 0..nb {
-                while j + 1 < m && nodes[j + 1] <= i {
-                    j += 1;
-                }
-                let (lo, hi) = (nodes[j], nodes.get(j + 1).copied());
-                let w = match hi {
-                    _ if lo == i => (j, 1.0, 0.0),
-                    Some(hi) => {
-                        let cr = (freq(i) - freq(lo)) / (freq(hi) - freq(lo));
-                        (j, 1.0 - cr, cr)
-                    }
-                    None => unreachable!("the last kept bin is a node"),
-                };
-                weights.push(w);
-            }
-            let n4 = N * N * N * N;
-            let mut gd = vec![vec![ZERO; n4]; m];
-            let mut gu = vec![vec![ZERO; n4]; m];
-            let mut aw = vec![CMat::<N>::zeros(); m * np];
-            for (i, &(j, cl, cr)) in weights.iter().enumerate() {
-                let winv = &grid.winv[i];
-                let pm = winv.adjoint() * winv;
-                let mut rm = CMat::<N>::zeros();
-                for x in &xref {
-                    for a in 0..N {
-                        for b in 0..N {
-                            rm[(a, b)] += x[i][a] * x[i][b].conj();
-                        }
-                    }
-                }
-                add_kron(&mut gd[j], cl * cl, &rm, &pm);
-                if cr != 0.0 {
-                    add_kron(&mut gd[j + 1], cr * cr, &rm, &pm);
-                    add_kron(&mut gu[j], cl * cr, &rm, &pm);
-                }
-                for (le, &e) in grid.exps.iter().enumerate() {
-                    let dv = &lik.dwrap[e][i * np..(i + 1) * np];
-                    let x = &xref[le][i];
-                    for (q, dq) in dv.iter().enumerate() {
-                        let y = lower_adjoint_times(winv, dq);
-                        add_outer(&mut aw[j * np + q], cl, &y, x);
-                        if cr != 0.0 {
-                            add_outer(&mut aw[(j + 1) * np + q], cr, &y, x);
-                        }
-                        for (qq, dqq) in dv.iter().enumerate() {
-                            s2[q * np + qq] +=
-                                (0..N).map(|c| (dq[c].conj() * dqq[c]).re).sum::<f64>();
-                        }
-                    }
-                }
-            }
+            let weights = bin_weights(&nodes, &grid.kept);
+            let (gd, gu, aw) = design_constants(lik, grid, &xref, &weights, m, &mut s2);
             grids.push(QGrid {
                 points: nodes.iter().map(|&i| grid.points[i].clone()).collect(),
                 tinv0: nodes.iter().map(|&i| tinv0_all[i]).collect(),
