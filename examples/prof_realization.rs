@@ -1,6 +1,8 @@
 //! Profiling driver (not a benchmark): runs N campaign jobs (one realization of the
 //! monte_carlo scenario, standard design: simulate, whiten, fit from the guess with cached
-//! Jacobians, noise-only chi^2) on one thread and prints the mean wall time per job. For
+//! Jacobians, noise-only chi^2) on one thread and prints the mean wall time per job; a second
+//! argument `whittle` runs them on the Whittle path of `campaigns/monte_carlo.toml` (its
+//! continuous loop, `[fit] likelihood = "whittle"`). For
 //! instruction counts that do not depend on machine load:
 //!
 //!     cargo build --release --example prof_realization
@@ -13,11 +15,19 @@ fn main() {
         .nth(1)
         .and_then(|s| s.parse().ok())
         .unwrap_or(20);
-    let text = "seed = 1\nrealizations = 1000000\n[[scenario]]\nname = \"monte_carlo\"\n";
+    let mut text =
+        String::from("seed = 1\nrealizations = 1000000\n[[scenario]]\nname = \"monte_carlo\"\n");
+    if std::env::args().nth(2).as_deref() == Some("whittle") {
+        let model = concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/campaigns/models/lpf_x_continuous.toml"
+        );
+        text = format!("model = \"{model}\"\n{text}[fit]\nlikelihood = \"whittle\"\n");
+    }
     let dir = std::env::temp_dir().join(format!("freefall-prof-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let file = dir.join("prof.toml");
-    std::fs::write(&file, text).unwrap();
+    std::fs::write(&file, &text).unwrap();
     let loaded = campaign::load(Some(&file)).unwrap();
     let setup = loaded.setup.x("prof_realization").unwrap();
     let runner = Runner::new(

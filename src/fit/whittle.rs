@@ -734,9 +734,13 @@ impl<M: ClosedLoopModel<N>, const N: usize> Residuals for WhittleProblem<'_, '_,
             && out.iter().zip(&self.data_w).all(|(o, d)| {
                 o.len() == d.len() && o.iter().zip(d).all(|(a, b)| a.len() == b.len())
             });
-        if !same_shape || np == 0 {
+        if np == 0 {
             *out = self.residuals(p);
             return;
+        }
+        if !same_shape {
+            // Every value is written below.
+            out.clone_from(&self.data_w);
         }
         let dp: Vec<f64> = p.iter().zip(&lik.p0).map(|(a, b)| a - b).collect();
         let mut v: Vec<[Complex64; N]> = Vec::new();

@@ -163,6 +163,27 @@ pub trait ClosedLoopModel<const N: usize>: Send + Sync {
         transfer_grid_adjoint_forward(self, points, p, grad, seed)
     }
 
+    /// [`Self::transfer_grid_adjoint`] for seeds that depend on every point's template (seeds
+    /// that couple neighbouring points, as the compressed Whittle likelihood's do): `T_k` at
+    /// every point into `t_out`, then `seeds(t_out)` returns every `G_k`, and
+    /// `grad[q] += Re sum_k tr(dT_k/dp_q G_k)`. The default runs [`Self::transfer_grid`], then
+    /// [`Self::transfer_grid_adjoint`] (the model twice); a model may keep what its adjoint
+    /// needs from the one pass (LPF-x's continuous loop), with the same numbers.
+    fn transfer_grid_adjoint_deferred(
+        &self,
+        points: &[Self::Point],
+        p: &[f64],
+        t_out: &mut [CMat<N>],
+        grad: &mut [f64],
+        seeds: impl FnOnce(&[CMat<N>]) -> Vec<CMat<N>>,
+    ) where
+        Self: Sized,
+    {
+        self.transfer_grid(points, p, t_out, None);
+        let g = seeds(&t_out[..points.len()]);
+        self.transfer_grid_adjoint(points, p, grad, |k, _| g[k]);
+    }
+
     /// The operators at parameters `p` as functions of the point, for a sweep over many
     /// frequencies: what they share across frequencies (a sampled-data model's held plant) made
     /// once, the same numbers as [`Self::operators`] and [`Self::derivative`]. Default: those

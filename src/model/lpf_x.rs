@@ -186,12 +186,26 @@ impl LpfX {
     }
 }
 
-/// Delay factors `exp(-s_k dt)` along a grid, by recurrence where the grid is uniform (one
-/// complex multiply per bin instead of a sine and a cosine), renormalised against drift.
+/// Delay factors `exp(-s_k dt)` along a grid, by recurrence where the grid allows it (one
+/// complex multiply per bin, or a few, instead of a sine and a cosine), renormalised against
+/// drift.
 struct Phasor {
     value: Complex64,
     step: Complex64,
+    /// `exp(-ds0 dt)` of a lattice's spacing `ds0`, made at its first use.
+    unit: Option<Complex64>,
     dt: f64,
+}
+
+/// How a point is reached from the previous one ([`Spacing::step`]).
+#[derive(Clone, Copy)]
+enum Step {
+    /// Computed exactly.
+    Exact,
+    /// By the uniform spacing `ds`.
+    Uniform(Complex64),
+    /// By `m` spacings `ds0` of a lattice.
+    Lattice(Complex64, u32),
 }
 
 impl Phasor {
@@ -199,21 +213,27 @@ impl Phasor {
         Phasor {
             value: Complex64::new(1.0, 0.0),
             step: Complex64::new(1.0, 0.0),
+            unit: None,
             dt,
         }
     }
 
-    /// Factor at point `k`, given the previous two points' `s`.
+    /// Factor at point `k`, reached by `step` from the previous point.
     #[inline(always)]
-    fn at(&mut self, k: usize, s: Complex64, ds: Option<Complex64>) -> Complex64 {
-        match ds {
-            // Recurrence exp(-s dt) *= exp(-ds dt), recomputed exactly every 256 points so
-            // the accumulated rounding stays below 256 eps.
-            Some(ds) if !k.is_multiple_of(256) => {
+    fn at(&mut self, k: usize, s: Complex64, step: Step) -> Complex64 {
+        // Recurrence exp(-s dt) *= exp(-ds dt), recomputed exactly every 256 points so the
+        // accumulated rounding stays below 256 eps (times the few roundings of a power).
+        let exact = k.is_multiple_of(256);
+        match step {
+            Step::Uniform(ds) if !exact => {
                 if k == 2 || self.step == Complex64::new(1.0, 0.0) {
                     self.step = exp_axis(-ds * self.dt);
                 }
                 self.value *= self.step;
+            }
+            Step::Lattice(ds0, m) if !exact => {
+                let unit = *self.unit.get_or_insert_with(|| exp_axis(-ds0 * self.dt));
+                self.value *= if m == 1 { unit } else { unit.powu(m) };
             }
             _ => {
                 self.value = exp_axis(-s * self.dt);
@@ -306,15 +326,75 @@ impl XLoop {
     }
 }
 
-/// Whether every spacing of `points` from the second on is equal (the first may differ: the
-/// DC bin sits at a fraction of the spacing), so that the delays' phasors may recur; a grid
-/// with gaps is not uniform even when its end spacings agree.
-fn uniform_spacing(points: &[LpfPoint]) -> bool {
-    points.len() > 3 && {
+/// How a grid is spaced, for the delays' phasors ([`Phasor`]).
+#[derive(Clone, Copy)]
+enum Spacing {
+    /// Every spacing from the second on is equal (the first may differ: the DC bin sits at a
+    /// fraction of the spacing).
+    Uniform,
+    /// Points on the imaginary axis whose spacings from the second on are whole multiples of
+    /// the smallest, `ds0`, as a DFT grid's kept bins or a quadrature's nodes are: a point is
+    /// the previous one times `exp(-ds0 dt)^m`.
+    Lattice(Complex64),
+    Irregular,
+}
+
+/// The whole number of lattice spacings `ds0 > 0` nearest to a spacing `d > 0` (saturating;
+/// a cast, not a call to `round`, in the grid's inner loop).
+#[inline(always)]
+fn lattice_multiple(d: f64, ds0: f64) -> u32 {
+    (d / ds0 + 0.5) as u32
+}
+
+/// The largest multiple of a lattice's spacing that one step may take.
+const LATTICE_MAX_STEP: f64 = 65536.0;
+
+impl Spacing {
+    /// The spacing of `points`; a grid with gaps is not uniform even when its end spacings
+    /// agree.
+    fn of(points: &[LpfPoint]) -> Spacing {
+        if points.len() <= 3 {
+            return Spacing::Irregular;
+        }
         let d1 = points[2].s - points[1].s;
-        points[1..]
+        let close = |d: Complex64, to: Complex64| {
+            (d - to).norm() <= crate::numerics::tol::SAME_TIME * to.norm()
+        };
+        if points[1..].windows(2).all(|w| close(w[1].s - w[0].s, d1)) {
+            return Spacing::Uniform;
+        }
+        if points.iter().any(|pt| pt.s.re != 0.0) {
+            return Spacing::Irregular;
+        }
+        let ds0 = points[1..]
             .windows(2)
-            .all(|w| ((w[1].s - w[0].s) - d1).norm() <= crate::numerics::tol::SAME_TIME * d1.norm())
+            .map(|w| w[1].s.im - w[0].s.im)
+            .fold(f64::INFINITY, f64::min);
+        let whole = |w: &[LpfPoint]| {
+            let d = w[1].s.im - w[0].s.im;
+            let m = lattice_multiple(d, ds0) as f64;
+            (1.0..=LATTICE_MAX_STEP).contains(&m)
+                && (d - m * ds0).abs() <= crate::numerics::tol::SAME_TIME * d
+        };
+        if ds0 > 0.0 && ds0.is_finite() && points[1..].windows(2).all(whole) {
+            Spacing::Lattice(Complex64::new(0.0, ds0))
+        } else {
+            Spacing::Irregular
+        }
+    }
+
+    /// How point `k` is reached from point `k - 1` (the first two exactly).
+    #[inline(always)]
+    fn step(self, points: &[LpfPoint], k: usize) -> Step {
+        match self {
+            _ if k < 2 => Step::Exact,
+            Spacing::Uniform => Step::Uniform(points[k].s - points[k - 1].s),
+            Spacing::Lattice(ds0) => Step::Lattice(
+                ds0,
+                lattice_multiple(points[k].s.im - points[k - 1].s.im, ds0.im),
+            ),
+            Spacing::Irregular => Step::Exact,
+        }
     }
 }
 
@@ -338,13 +418,13 @@ impl LpfX {
             ..
         } = x;
         let (mut ph1, mut ph2) = (Phasor::new(p[DT1]), Phasor::new(p[DT12]));
-        let uniform = uniform_spacing(points);
+        let spacing = Spacing::of(points);
         let Some(d) = d_out else {
             // Templates only.
             for (k, (pt, t)) in points.iter().zip(t_out.iter_mut()).enumerate() {
-                let ds = (uniform && k >= 2).then(|| pt.s - points[k - 1].s);
-                let e1 = ph1.at(k, pt.s, ds);
-                let e2 = ph2.at(k, pt.s, ds);
+                let step = spacing.step(points, k);
+                let e1 = ph1.at(k, pt.s, step);
+                let e2 = ph2.at(k, pt.s, step);
                 let m11 = pt.c_df * a_df * e1;
                 let m22 = pt.c_sus * a_sus * e2;
                 let [t11, t12, t21, t22] = x.template(x.delta(pt).0, m11, m22).1;
@@ -353,9 +433,9 @@ impl LpfX {
             return;
         };
         for (k, pt) in points.iter().enumerate() {
-            let ds = (uniform && k >= 2).then(|| pt.s - points[k - 1].s);
-            let e1 = ph1.at(k, pt.s, ds);
-            let e2 = ph2.at(k, pt.s, ds);
+            let step = spacing.step(points, k);
+            let e1 = ph1.at(k, pt.s, step);
+            let e2 = ph2.at(k, pt.s, step);
             let ([d11, d12, d21, d22], big_d22) = x.delta(pt);
             let inv_det = 1.0 / (d11 * d22 - d12 * d21);
             let (i11, i12, i21, i22) =
@@ -702,6 +782,24 @@ impl ClosedLoopModel<2> for LpfX {
         match self.digital {
             Some(_) => transfer_grid_adjoint_forward(self, points, p, grad, seed),
             None => self.fast_transfer_grid_adjoint(points, p, grad, seed),
+        }
+    }
+
+    fn transfer_grid_adjoint_deferred(
+        &self,
+        points: &[LpfPoint],
+        p: &[f64],
+        t_out: &mut [CMat<2>],
+        grad: &mut [f64],
+        seeds: impl FnOnce(&[CMat<2>]) -> Vec<CMat<2>>,
+    ) {
+        match self.digital {
+            Some(_) => {
+                self.transfer_grid(points, p, t_out, None);
+                let g = seeds(&t_out[..points.len()]);
+                transfer_grid_adjoint_forward(self, points, p, grad, |k, _| g[k]);
+            }
+            None => self.fast_transfer_grid_adjoint_deferred(points, p, t_out, grad, seeds),
         }
     }
 

@@ -235,8 +235,9 @@ fn an_auxiliary_readout_named_as_a_channel_of_its_own_model_is_refused() {
 fn specialised_lpf_grid_matches_generic_algebra() {
     // Oracle: the generic operator algebra of closed_loop.rs, on a uniform grid (phase
     // recurrence), on a non-uniform one (direct exponentials), and on a uniform grid with a
-    // gap whose two end spacings agree (kept bins of a design: not uniform, so no recurrence
-    // across the gap; with dt1 = 0.6 s a recurrence would be 0.38 rad off after it).
+    // gap whose two end spacings agree (kept bins of a design: not uniform, but a lattice, so
+    // the recurrence steps over the gap by a power of one spacing's factor; a uniform
+    // recurrence across it would be 0.38 rad off with dt1 = 0.6 s).
     use freefall::model::closed_loop::transfer_grid_generic;
     let (spec, m) = lpf();
     let p = spec.scenario("under_performing").unwrap().truth;
@@ -272,6 +273,41 @@ fn specialised_lpf_grid_matches_generic_algebra() {
                 );
             }
         }
+    }
+}
+
+#[test]
+fn lattice_phasors_match_direct_exponentials() {
+    // Oracle: each point of the grid evaluated alone (a one-point grid computes the delays'
+    // exp(-s dt) directly), against the grid's recurrence. The grid is a lattice with gaps
+    // of 1 to 997 spacings, as the compressed Whittle likelihood's nodes are: the recurrence
+    // multiplies by a power of one spacing's factor, recomputed exactly every 256 points, so
+    // the templates must agree to 1e-12 (rounding), where a recurrence that missed a gap
+    // would be off by order one.
+    let (spec, m) = lpf();
+    let p = spec.scenario("monte_carlo").unwrap().truth;
+    let mut bins = vec![1usize, 2, 3];
+    let mut k = 3;
+    for g in 0..600 {
+        k += 1 + (g * 37 % 11) + if g % 97 == 0 { 997 } else { 0 };
+        bins.push(k);
+    }
+    let pts: Vec<_> = bins
+        .iter()
+        .map(|&k| m.prepare(k as f64 / 21600.0))
+        .collect();
+    let mut grid = vec![CMat::<2>::zeros(); pts.len()];
+    m.transfer_grid(&pts, &p, &mut grid, None);
+    for (k, pt) in pts.iter().enumerate() {
+        let mut alone = [CMat::<2>::zeros()];
+        m.transfer_grid(std::slice::from_ref(pt), &p, &mut alone, None);
+        assert!(
+            (grid[k] - alone[0]).norm() <= 1e-12 * alone[0].norm(),
+            "bin {}: {} vs {}",
+            bins[k],
+            grid[k],
+            alone[0]
+        );
     }
 }
 

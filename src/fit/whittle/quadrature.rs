@@ -88,12 +88,13 @@ struct QGrid<P, const N: usize> {
     points: Vec<P>,
     /// `T(F_j, p0)^-1` (the identity for the plain interpolation): `S_j = T_j tinv0_j - 1`.
     tinv0: Vec<CMat<N>>,
-    /// Diagonal and upper blocks of `G` (`N^2 x N^2`, row-major over column-major `vec`
-    /// indices): `gd[j]` couples node `j` with itself, `gu[j]` with node `j + 1`.
-    gd: Vec<Vec<Complex64>>,
-    gu: Vec<Vec<Complex64>>,
-    /// The wrap-around derivatives' parts of `a_j`: `aw[j * n_params + q]`.
-    aw: Vec<CMat<N>>,
+    /// Node `j`'s row of the banded `G` ([`packed_band`]): the blocks coupling it with
+    /// nodes `j - 1`, `j` and `j + 1`, each [`pack`]ed, at `band[3 j * 2 N^4..]`.
+    band: Vec<f64>,
+    /// The wrap-around derivatives' parts of `a_j`, [`split`] (`2 N^2` reals each), parameter
+    /// by parameter: `aw_jq` at `aw[(q * M + j) * 2 N^2..]` (`M` nodes), so that `sum_q aw_q
+    /// dp_q` and `Re <S, aw_q>` run over whole arrays.
+    aw: Vec<f64>,
     /// Per kept bin `i`: its left node `j`, weight on it, and weight on node `j + 1`.
     weights: Vec<(usize, f64, f64)>,
     /// Per experiment on the grid (in `exps` order), per kept bin: `X' = T0 X`.
@@ -130,36 +131,154 @@ fn add_outer<const N: usize>(a: &mut CMat<N>, c: f64, y: &[Complex64; N], x: &[C
     }
 }
 
-/// `Re sum_ab t_ab a_ab`.
-#[inline(always)]
-fn re_pair<const N: usize>(t: &CMat<N>, a: &CMat<N>) -> f64 {
-    t.iter().zip(a.iter()).map(|(x, y)| (x * y).re).sum()
-}
-
-/// `out += g t` for an `N^2 x N^2` block `g` (row-major) and `t` as its column-major `vec`.
-#[inline(always)]
-fn block_times<const N: usize>(g: &[Complex64], t: &CMat<N>, out: &mut CMat<N>) {
-    let n2 = N * N;
-    let ts = t.as_slice();
-    for (m, o) in out.as_mut_slice().iter_mut().enumerate() {
-        *o += g[m * n2..(m + 1) * n2]
-            .iter()
-            .zip(ts)
-            .map(|(a, b)| a * b)
-            .sum::<Complex64>();
+/// An `N^2 x N^2` complex block `g` (row-major; its adjoint if `adjoint`) as the real and
+/// imaginary parts of its columns: `2 N^4` reals, `out[n N^2 + m] = Re g_mn`,
+/// `out[N^4 + n N^2 + m] = Im g_mn` (what [`packed_times`] runs over in unit stride).
+fn pack<const N: usize>(g: &[Complex64], adjoint: bool, out: &mut [f64]) {
+    let (n2, n4) = (N * N, N * N * N * N);
+    for n in 0..n2 {
+        for m in 0..n2 {
+            let z = if adjoint {
+                g[n * n2 + m].conj()
+            } else {
+                g[m * n2 + n]
+            };
+            out[n * n2 + m] = z.re;
+            out[n4 + n * n2 + m] = z.im;
+        }
     }
 }
 
-/// `out += g^H t` for an `N^2 x N^2` block `g` (row-major).
-#[inline(always)]
-fn block_adjoint_times<const N: usize>(g: &[Complex64], t: &CMat<N>, out: &mut CMat<N>) {
-    let n2 = N * N;
-    let ts = t.as_slice();
-    let os = out.as_mut_slice();
-    for (m, tm) in ts.iter().enumerate() {
-        for (o, gmn) in os.iter_mut().zip(&g[m * n2..(m + 1) * n2]) {
-            *o += gmn.conj() * tm;
+/// Node rows of the banded `G` from its diagonal blocks `gd[j]` and upper blocks `gu[j]`
+/// (`G_j,j+1`; the lower block `G_j+1,j` is its adjoint): per node `[G_j,j-1, G_jj, G_j,j+1]`,
+/// each [`pack`]ed (zero past the ends).
+fn packed_band<const N: usize>(gd: &[Vec<Complex64>], gu: &[Vec<Complex64>]) -> Vec<f64> {
+    let b = 2 * N * N * N * N;
+    let m = gd.len();
+    let mut band = vec![0.0; 3 * b * m];
+    for j in 0..m {
+        let row = &mut band[3 * b * j..3 * b * (j + 1)];
+        if j > 0 {
+            pack::<N>(&gu[j - 1], true, &mut row[..b]);
         }
+        pack::<N>(&gd[j], false, &mut row[b..2 * b]);
+        if j + 1 < m {
+            pack::<N>(&gu[j], false, &mut row[2 * b..]);
+        }
+    }
+    band
+}
+
+/// `y += g s` for a [`pack`]ed block `g` and `s`, `y` [`split`]: column by column in unit
+/// stride, real arithmetic only (so that it vectorises).
+#[inline(always)]
+fn packed_times<const N: usize>(g: &[f64], s: &[f64], y: &mut [f64]) {
+    let (n2, n4) = (N * N, N * N * N * N);
+    let (gr, gi) = g[..2 * n4].split_at(n4);
+    let (sr, si) = s[..2 * n2].split_at(n2);
+    let (yr, yi) = y[..2 * n2].split_at_mut(n2);
+    for n in 0..n2 {
+        let (cr, ci) = (&gr[n * n2..(n + 1) * n2], &gi[n * n2..(n + 1) * n2]);
+        let (a, b) = (sr[n], si[n]);
+        for m in 0..n2 {
+            yr[m] += cr[m] * a - ci[m] * b;
+            yi[m] += cr[m] * b + ci[m] * a;
+        }
+    }
+}
+
+/// The arithmetic of [`WhittleQuadrature::node_terms`] over a grid's `M` nodes, on [`split`]
+/// arrays: `a += sum_q aw_q dp_q` (`a` becomes `a(p)`), `pairs[q] = Re <S, aw_q>` if asked,
+/// `y = G S` node by node over the [`packed_band`] `band`; returns `(Re S^H G S, Re <S, a(p)>)`.
+/// Where the CPU has AVX the same code runs compiled for it: the same operations in the same
+/// order (no reassociation, no fused multiply-add), so the same numbers, with twice as many
+/// lanes per instruction.
+fn node_kernel<const N: usize>(
+    s: &[f64],
+    band: &[f64],
+    aw: &[f64],
+    dp: &[f64],
+    a: &mut [f64],
+    y: &mut [f64],
+    pairs: Option<&mut [f64]>,
+) -> (f64, f64) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx") {
+        // SAFETY: the CPU has AVX (checked just above).
+        return unsafe { node_kernel_avx::<N>(s, band, aw, dp, a, y, pairs) };
+    }
+    node_kernel_body::<N>(s, band, aw, dp, a, y, pairs)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx")]
+fn node_kernel_avx<const N: usize>(
+    s: &[f64],
+    band: &[f64],
+    aw: &[f64],
+    dp: &[f64],
+    a: &mut [f64],
+    y: &mut [f64],
+    pairs: Option<&mut [f64]>,
+) -> (f64, f64) {
+    node_kernel_body::<N>(s, band, aw, dp, a, y, pairs)
+}
+
+#[inline(always)]
+fn node_kernel_body<const N: usize>(
+    s: &[f64],
+    band: &[f64],
+    aw: &[f64],
+    dp: &[f64],
+    a: &mut [f64],
+    y: &mut [f64],
+    mut pairs: Option<&mut [f64]>,
+) -> (f64, f64) {
+    let (n2, w, b) = (N * N, 2 * N * N, 2 * N * N * N * N);
+    let m = s.len() / w;
+    // `sc`: the split conj(S), so that Re <S, aw_q> is a plain dot product.
+    let sc: Option<Vec<f64>> = pairs.is_some().then(|| {
+        let mut sc = s.to_vec();
+        for z in sc.chunks_exact_mut(w) {
+            z[n2..].iter_mut().for_each(|v| *v = -*v);
+        }
+        sc
+    });
+    for ((q, dpq), awq) in dp.iter().enumerate().zip(aw.chunks_exact(m * w)) {
+        a.iter_mut().zip(awq).for_each(|(x, v)| *x += v * dpq);
+        if let (Some(pairs), Some(sc)) = (pairs.as_deref_mut(), sc.as_ref()) {
+            pairs[q] = crate::numerics::linalg::dot(sc, awq);
+        }
+    }
+    let (mut quadratic, mut linear) = (0.0, 0.0);
+    for j in 0..m {
+        let sj = &s[j * w..(j + 1) * w];
+        let aj = &a[j * w..(j + 1) * w];
+        let yj = &mut y[j * w..(j + 1) * w];
+        let row = &band[3 * b * j..3 * b * (j + 1)];
+        if j > 0 {
+            packed_times::<N>(&row[..b], &s[(j - 1) * w..j * w], yj);
+        }
+        packed_times::<N>(&row[b..2 * b], sj, yj);
+        if j + 1 < m {
+            packed_times::<N>(&row[2 * b..], &s[(j + 1) * w..(j + 2) * w], yj);
+        }
+        for k in 0..n2 {
+            quadratic += yj[k] * sj[k] + yj[n2 + k] * sj[n2 + k];
+            linear += sj[k] * aj[k] - sj[n2 + k] * aj[n2 + k];
+        }
+    }
+    (quadratic, linear)
+}
+
+/// An `N x N` complex matrix as `2 N^2` reals: the real parts (column-major), then the
+/// imaginary parts.
+#[inline(always)]
+fn split<const N: usize>(t: &CMat<N>, out: &mut [f64]) {
+    let n2 = N * N;
+    for (k, z) in t.iter().enumerate() {
+        out[k] = z.re;
+        out[n2 + k] = z.im;
     }
 }
 
@@ -298,9 +417,9 @@ fn bin_weights(nodes: &[usize], kept: &[usize]) -> Vec<(usize, f64, f64)> {
     weights
 }
 
-/// The design constants of one grid's `m` nodes (module doc): the banded blocks `G_jj` (`gd`)
-/// and `G_j,j+1` (`gu`) and the wrap-around derivatives' parts `aw[j * np + q]` of `a_j`;
-/// `sum |dV|^2`'s matrix is added to `s2`.
+/// The design constants of one grid's `m` nodes (module doc): the banded `G`'s node rows
+/// ([`packed_band`]) and the wrap-around derivatives' parts of `a_j` ([`split`], at
+/// `(q * m + j) * 2 N^2`); `sum |dV|^2`'s matrix is added to `s2`.
 #[allow(clippy::type_complexity)]
 fn design_constants<M: ClosedLoopModel<N>, const N: usize>(
     lik: &WhittleLikelihood<'_, M, N>,
@@ -309,7 +428,7 @@ fn design_constants<M: ClosedLoopModel<N>, const N: usize>(
     weights: &[(usize, f64, f64)],
     m: usize,
     s2: &mut [f64],
-) -> (Vec<Vec<Complex64>>, Vec<Vec<Complex64>>, Vec<CMat<N>>) {
+) -> (Vec<f64>, Vec<f64>) {
     let np = lik.model.n_params();
     let n4 = N * N * N * N;
     let mut gd = vec![vec![ZERO; n4]; m];
@@ -346,7 +465,15 @@ fn design_constants<M: ClosedLoopModel<N>, const N: usize>(
             }
         }
     }
-    (gd, gu, aw)
+    let w = 2 * N * N;
+    let mut packed = vec![0.0; w * m * np];
+    for j in 0..m {
+        for q in 0..np {
+            let k = q * m + j;
+            split(&aw[j * np + q], &mut packed[w * k..w * (k + 1)]);
+        }
+    }
+    (packed_band::<N>(&gd, &gu), packed)
 }
 
 impl<'a, 'm, M: ClosedLoopModel<N>, const N: usize> WhittleQuadrature<'a, 'm, M, N> {
@@ -457,13 +584,12 @@ impl<'a, 'm, M: ClosedLoopModel<N>, const N: usize> WhittleQuadrature<'a, 'm, M,
             error += err;
             let m = nodes.len();
             let weights = bin_weights(&nodes, &grid.kept);
-            let (gd, gu, aw) = design_constants(lik, grid, &xref, &weights, m, &mut s2);
+            let (band, aw) = design_constants(lik, grid, &xref, &weights, m, &mut s2);
             grids.push(QGrid {
                 points: nodes.iter().map(|&i| grid.points[i].clone()).collect(),
                 tinv0: nodes.iter().map(|&i| tinv0_all[i]).collect(),
                 nodes,
-                gd,
-                gu,
+                band,
                 aw,
                 weights,
                 xref,
@@ -476,6 +602,50 @@ impl<'a, 'm, M: ClosedLoopModel<N>, const N: usize> WhittleQuadrature<'a, 'm, M,
             relative,
             error,
         })
+    }
+
+    /// One grid's part of the compressed `chi^2` from the model `t` at its nodes (module doc):
+    /// `Re S^H G S - 2 Re <S, a(p)>`, `a(p) = a + sum_q aw_q dp_q` (`a` the data's part,
+    /// [`split`]); with `grad`, the direct gradient's `Re <S, aw_q>` into its first vector and
+    /// each node's adjoint seed `T0^-1 Gamma^T`, `Gamma = 2 conj(G S) - 2 a(p)`, into its
+    /// second.
+    fn node_terms(
+        &self,
+        qg: &QGrid<M::Point, N>,
+        a_data: &[f64],
+        dp: &[f64],
+        t: &[CMat<N>],
+        grad: Option<(&mut Vec<f64>, &mut Vec<CMat<N>>)>,
+    ) -> f64 {
+        let (n2, w) = (N * N, 2 * N * N);
+        let m = qg.nodes.len();
+        // S_j = T_j T0_j^-1 - 1, split.
+        let mut s = vec![0.0; m * w];
+        for ((tj, ti), sj) in t.iter().zip(&qg.tinv0).zip(s.chunks_exact_mut(w)) {
+            let mut st = tj * ti;
+            if self.relative {
+                st -= CMat::<N>::identity();
+            }
+            split(&st, sj);
+        }
+        let mut a = a_data.to_vec();
+        let mut y = vec![0.0; m * w];
+        let (pairs, seeds) = match grad {
+            Some((pairs, seeds)) => (Some(&mut pairs[..]), Some(seeds)),
+            None => (None, None),
+        };
+        let (quadratic, linear) = node_kernel::<N>(&s, &qg.band, &qg.aw, dp, &mut a, &mut y, pairs);
+        if let Some(seeds) = seeds {
+            // Seeds T0^-1 Gamma^T, Gamma = 2 conj(G S) - 2 a(p).
+            for ((yj, aj), ti) in y.chunks_exact(w).zip(a.chunks_exact(w)).zip(&qg.tinv0) {
+                let gamma = CMat::<N>::from_fn(|r, c| {
+                    let k = r + N * c;
+                    Complex64::new(2.0 * (yj[k] - aj[k]), -2.0 * (yj[n2 + k] + aj[n2 + k]))
+                });
+                seeds.push(ti * gamma.transpose());
+            }
+        }
+        quadratic - 2.0 * linear
     }
 
     /// Number of nodes `M` over all grids (the model's evaluations per `chi^2`).
@@ -539,7 +709,11 @@ impl<'a, 'm, M: ClosedLoopModel<N>, const N: usize> WhittleQuadrature<'a, 'm, M,
                     }
                 }
             }
-            a.push(ag);
+            let mut packed = vec![0.0; 2 * N * N * ag.len()];
+            for (j, aj) in ag.iter().enumerate() {
+                split(aj, &mut packed[2 * N * N * j..2 * N * N * (j + 1)]);
+            }
+            a.push(packed);
         }
         CompressedWhittle {
             quad: self,
@@ -557,8 +731,9 @@ pub struct CompressedWhittle<'q, 'a, 'm, M: ClosedLoopModel<N>, const N: usize> 
     uu: f64,
     /// `Re sum u0'^H dV_q`.
     s1: Vec<f64>,
-    /// Per grid, per node: the part of `a_j` of `u0' = d + V0 - W T0 X`.
-    a: Vec<Vec<CMat<N>>>,
+    /// Per grid, per node: the part of `a_j` of `u0' = d + V0 - W T0 X`, [`split`] (`2 N^2`
+    /// reals per node).
+    a: Vec<Vec<f64>>,
 }
 
 impl<M: ClosedLoopModel<N>, const N: usize> CompressedWhittle<'_, '_, '_, M, N> {
@@ -595,52 +770,66 @@ impl<M: ClosedLoopModel<N>, const N: usize> CompressedWhittle<'_, '_, '_, M, N> 
         }
         for (qg, a_data) in quad.grids.iter().zip(&self.a) {
             let m = qg.nodes.len();
-            let mut s = vec![CMat::<N>::zeros(); m];
-            model.transfer_grid(&qg.points, p, &mut s, None);
-            for (sj, ti) in s.iter_mut().zip(&qg.tinv0) {
-                *sj *= ti;
-                if quad.relative {
-                    *sj -= CMat::<N>::identity();
+            let mut t = vec![CMat::<N>::zeros(); m];
+            match grad.as_deref_mut() {
+                None => {
+                    model.transfer_grid(&qg.points, p, &mut t, None);
+                    chi2 += quad.node_terms(qg, a_data, &dp, &t, None);
                 }
-            }
-            // a_j(p), and the direct gradient of the linear term, in one pass over the
-            // wrap-around's constants (real arithmetic: `dp` is real, and only `Re` is needed).
-            let mut a = a_data.clone();
-            for (j, (aj, sj)) in a.iter_mut().zip(&s).enumerate() {
-                let (ajs, sjs) = (aj.as_mut_slice(), sj.as_slice());
-                for (q, dpq) in dp.iter().enumerate() {
-                    let aw = qg.aw[j * np + q].as_slice();
-                    let mut pair = 0.0;
-                    for ((x, w), t) in ajs.iter_mut().zip(aw).zip(sjs) {
-                        x.re += w.re * dpq;
-                        x.im += w.im * dpq;
-                        pair += t.re * w.re - t.im * w.im;
-                    }
-                    if let Some(g) = grad.as_deref_mut() {
-                        g[q] -= 2.0 * pair;
+                Some(g) => {
+                    let mut pairs = vec![0.0; np];
+                    let mut part = 0.0;
+                    model.transfer_grid_adjoint_deferred(&qg.points, p, &mut t, g, |t| {
+                        let mut seeds = Vec::with_capacity(t.len());
+                        part = quad.node_terms(qg, a_data, &dp, t, Some((&mut pairs, &mut seeds)));
+                        seeds
+                    });
+                    chi2 += part;
+                    for (gq, pair) in g.iter_mut().zip(&pairs) {
+                        *gq -= 2.0 * pair;
                     }
                 }
-            }
-            // G S, and chi^2's linear and quadratic terms.
-            let mut gs = vec![CMat::<N>::zeros(); m];
-            for j in 0..m {
-                block_times(&qg.gd[j], &s[j], &mut gs[j]);
-                if j + 1 < m {
-                    block_times(&qg.gu[j], &s[j + 1], &mut gs[j]);
-                    block_adjoint_times(&qg.gu[j], &s[j], &mut gs[j + 1]);
-                }
-            }
-            for j in 0..m {
-                chi2 += re_pair(&s[j], &gs[j].conjugate()) - 2.0 * re_pair(&s[j], &a[j]);
-            }
-            if let Some(g) = grad.as_deref_mut() {
-                // Seeds T0^-1 Gamma^T, Gamma = -2 a + 2 conj(G S).
-                model.transfer_grid_adjoint(&qg.points, p, g, |j, _| {
-                    let gamma = (gs[j].conjugate() - a[j]) * Complex64::new(2.0, 0.0);
-                    qg.tinv0[j] * gamma.transpose()
-                });
             }
         }
         chi2
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{node_kernel, node_kernel_body};
+
+    /// Deterministic values of unit scale.
+    fn values(n: usize, seed: f64) -> Vec<f64> {
+        (0..n).map(|k| (k as f64 * 0.618 + seed).sin()).collect()
+    }
+
+    // Oracle: the kernel compiled for the baseline target. What runs (the AVX build where the
+    // CPU has it) must give the same bits: the same operations in the same order.
+    #[test]
+    fn node_kernel_dispatch_is_bit_identical_to_the_baseline_build() {
+        let (m, np, w, b) = (37, 7, 8, 32);
+        let s = values(m * w, 0.1);
+        let band = values(3 * b * m, 0.2);
+        let aw = values(np * m * w, 0.3);
+        let dp = values(np, 0.4);
+        let a0 = values(m * w, 0.5);
+        let run = |dispatch: bool| {
+            let (mut a, mut y, mut pairs) = (a0.clone(), vec![0.0; m * w], vec![0.0; np]);
+            let terms = if dispatch {
+                node_kernel::<2>(&s, &band, &aw, &dp, &mut a, &mut y, Some(&mut pairs))
+            } else {
+                node_kernel_body::<2>(&s, &band, &aw, &dp, &mut a, &mut y, Some(&mut pairs))
+            };
+            let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            (
+                terms.0.to_bits(),
+                terms.1.to_bits(),
+                bits(&a),
+                bits(&y),
+                bits(&pairs),
+            )
+        };
+        assert_eq!(run(true), run(false));
     }
 }
