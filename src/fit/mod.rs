@@ -547,7 +547,26 @@ const GRADIENT_BLOCK: usize = 8;
 /// four-lane partial sums per channel and the same order of the channels' sum), in one pass
 /// over `r` per [`GRADIENT_BLOCK`] columns instead of one per column (with a cached Jacobian
 /// the gradient is memory-bound: `J` and `r` are read once).
+///
+/// Compiled for AVX where the CPU has it: the same operations in the same order, so the same
+/// numbers on every x86-64.
 pub fn gradient(j: &[Series], r: &Series) -> DVector<f64> {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx") {
+        // SAFETY: the CPU has AVX (checked just above).
+        return unsafe { gradient_avx(j, r) };
+    }
+    gradient_body(j, r)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx")]
+fn gradient_avx(j: &[Series], r: &Series) -> DVector<f64> {
+    gradient_body(j, r)
+}
+
+#[inline(always)]
+fn gradient_body(j: &[Series], r: &Series) -> DVector<f64> {
     let np = j.len();
     // dots[k][(e, c)]: the channel dot products, summed below in series_dot's order.
     let mut dots: Vec<Vec<f64>> = vec![Vec::new(); np];
@@ -591,7 +610,7 @@ pub fn gradient(j: &[Series], r: &Series) -> DVector<f64> {
 /// columns go in groups of four, two and one ([`dot_lanes`]): each accumulator sees the same
 /// additions in the same order, and a group's `4 K` accumulators stay in registers (eight
 /// columns at once spilled them to the stack, and every update waited on a store).
-#[inline]
+#[inline(always)]
 fn dot_block(cols: &[&[f64]], r: &[f64], out: &mut [f64; GRADIENT_BLOCK]) {
     let nb = cols.len().min(GRADIENT_BLOCK);
     let mut k = 0;

@@ -146,6 +146,10 @@ pub struct WhittleLikelihood<'m, M: ClosedLoopModel<N>, const N: usize> {
     /// its derivatives `[i * n_params + q]`.
     wrap: Vec<Vec<[Complex64; N]>>,
     dwrap: Vec<Vec<[Complex64; N]>>,
+    /// The same derivatives parameter by parameter, as reals (`Re, Im` of each bin's `N`
+    /// values): plane `q` of experiment `e` at `dwrap_planes[e][q * 2 N kept..]`, what
+    /// [`crate::numerics::linalg::add_combination`] runs over.
+    dwrap_planes: Vec<Vec<f64>>,
     /// Per experiment, at every bin `k - 1`: the whitened linear template at `p0`, which the
     /// dropped bins' residuals hold fixed.
     fixed: Vec<Vec<[Complex64; N]>>,
@@ -280,6 +284,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> WhittleLikelihood<'m, M, N> {
             p0: p0.to_vec(),
             wrap: Vec::new(),
             dwrap: Vec::new(),
+            dwrap_planes: Vec::new(),
             fixed: Vec::new(),
         };
         lik.set_wrap(&engine, &winvs)?;
@@ -354,6 +359,16 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> WhittleLikelihood<'m, M, N> {
             ));
         }
         self.wrap = wrap;
+        self.dwrap_planes = dwrap
+            .iter()
+            .map(|d| {
+                d.iter()
+                    .flatten()
+                    .flatten()
+                    .flat_map(|z| [z.re, z.im])
+                    .collect()
+            })
+            .collect();
         self.dwrap = dwrap
             .into_iter()
             .map(|d| {
@@ -724,9 +739,9 @@ impl<M: ClosedLoopModel<N>, const N: usize> Residuals for WhittleProblem<'_, '_,
     /// The same numbers as [`Self::residuals`] (`d - w` at every kept bin, the dropped bins'
     /// norm copied), written over `out` without allocating when it has the data's shape. The
     /// operations are [`WhittleLikelihood::visit`]'s in its order, with the wrap-around
-    /// `V(p) = V(p0) + sum_q dV_q (p - p0)_q` of all of an experiment's bins summed first in a
-    /// loop of its own, where the bins' chains of additions overlap (in `visit` each bin's
-    /// chain waits on the transfer matrix).
+    /// `V(p) = V(p0) + sum_q dV_q (p - p0)_q` of all of an experiment's bins summed first,
+    /// parameter plane by plane ([`crate::numerics::linalg::add_combination`]: the same
+    /// additions in the same order per value, in vector registers).
     fn residuals_into(&self, p: &[f64], out: &mut Series) {
         let lik = self.lik;
         let np = lik.model.n_params();
@@ -743,34 +758,22 @@ impl<M: ClosedLoopModel<N>, const N: usize> Residuals for WhittleProblem<'_, '_,
             out.clone_from(&self.data_w);
         }
         let dp: Vec<f64> = p.iter().zip(&lik.p0).map(|(a, b)| a - b).collect();
-        let mut v: Vec<[Complex64; N]> = Vec::new();
+        let mut v: Vec<f64> = Vec::new();
         for (g, grid) in lik.grids.iter().enumerate() {
             let nb = grid.kept.len();
             let mut t = vec![CMat::<N>::zeros(); nb];
             lik.model.transfer_grid(&grid.points, p, &mut t, None);
             for e in (0..lik.n_experiments()).filter(|&e| lik.grid_of[e] == g) {
                 v.clear();
-                v.extend(
-                    lik.wrap[e]
-                        .iter()
-                        .zip(lik.dwrap[e].chunks_exact(np))
-                        .map(|(v0, dv)| {
-                            let mut v = *v0;
-                            for (dq, a) in dv.iter().zip(&dp) {
-                                for c in 0..N {
-                                    v[c] += dq[c] * a;
-                                }
-                            }
-                            v
-                        }),
-                );
+                v.extend(lik.wrap[e].iter().flatten().flat_map(|z| [z.re, z.im]));
+                crate::numerics::linalg::add_combination(&mut v, &dp, &lik.dwrap_planes[e]);
                 let (x, present) = (&lik.inputs[e], &lik.present[e][..]);
                 let (o, d) = (&mut out[e], &self.data_w[e]);
                 o[N].copy_from_slice(&d[N]);
-                for (i, vi) in v.iter().enumerate() {
+                for (i, vi) in v.chunks_exact(2 * N).enumerate() {
                     let mut w = whitened_dense(&t[i], &grid.winv[i], &x[i], present);
                     for c in 0..N {
-                        w[c] -= vi[c];
+                        w[c] -= Complex64::new(vi[2 * c], vi[2 * c + 1]);
                         o[c][2 * i] = d[c][2 * i] - w[c].re;
                         o[c][2 * i + 1] = d[c][2 * i + 1] - w[c].im;
                     }

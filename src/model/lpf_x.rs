@@ -332,22 +332,25 @@ enum Spacing {
     /// Every spacing from the second on is equal (the first may differ: the DC bin sits at a
     /// fraction of the spacing).
     Uniform,
-    /// Points on the imaginary axis whose spacings from the second on are whole multiples of
-    /// the smallest, `ds0`, as a DFT grid's kept bins or a quadrature's nodes are: a point is
-    /// the previous one times `exp(-ds0 dt)^m`.
-    Lattice(Complex64),
+    /// Spacings measured against the smallest one from the second point on, `ds0`: a point
+    /// whose spacing from the previous one is a whole multiple `m` of it, on the imaginary
+    /// axis, as a DFT grid's kept bins and a quadrature's nodes all are, is the previous one
+    /// times `exp(-ds0 dt)^m`; any other point is computed exactly. With `ds0` and
+    /// `1 / Im ds0`.
+    Lattice(Complex64, f64),
     Irregular,
 }
 
-/// The whole number of lattice spacings `ds0 > 0` nearest to a spacing `d > 0` (saturating;
-/// a cast, not a call to `round`, in the grid's inner loop).
+/// The whole number of lattice spacings nearest to a spacing `d > 0`, from the reciprocal
+/// `inv` of the lattice's spacing (zero for `d <= 0` or NaN; a product and a cast, not a
+/// division and a call to `round`, in the grid's inner loop).
 #[inline(always)]
-fn lattice_multiple(d: f64, ds0: f64) -> u32 {
-    (d / ds0 + 0.5) as u32
+fn lattice_multiple(d: f64, inv: f64) -> u32 {
+    (d * inv + 0.5) as u32
 }
 
 /// The largest multiple of a lattice's spacing that one step may take.
-const LATTICE_MAX_STEP: f64 = 65536.0;
+const LATTICE_MAX_STEP: u32 = 65536;
 
 impl Spacing {
     /// The spacing of `points`; a grid with gaps is not uniform even when its end spacings
@@ -363,21 +366,12 @@ impl Spacing {
         if points[1..].windows(2).all(|w| close(w[1].s - w[0].s, d1)) {
             return Spacing::Uniform;
         }
-        if points.iter().any(|pt| pt.s.re != 0.0) {
-            return Spacing::Irregular;
-        }
         let ds0 = points[1..]
             .windows(2)
             .map(|w| w[1].s.im - w[0].s.im)
             .fold(f64::INFINITY, f64::min);
-        let whole = |w: &[LpfPoint]| {
-            let d = w[1].s.im - w[0].s.im;
-            let m = lattice_multiple(d, ds0) as f64;
-            (1.0..=LATTICE_MAX_STEP).contains(&m)
-                && (d - m * ds0).abs() <= crate::numerics::tol::SAME_TIME * d
-        };
-        if ds0 > 0.0 && ds0.is_finite() && points[1..].windows(2).all(whole) {
-            Spacing::Lattice(Complex64::new(0.0, ds0))
+        if ds0 > 0.0 && ds0.is_finite() {
+            Spacing::Lattice(Complex64::new(0.0, ds0), 1.0 / ds0)
         } else {
             Spacing::Irregular
         }
@@ -389,10 +383,18 @@ impl Spacing {
         match self {
             _ if k < 2 => Step::Exact,
             Spacing::Uniform => Step::Uniform(points[k].s - points[k - 1].s),
-            Spacing::Lattice(ds0) => Step::Lattice(
-                ds0,
-                lattice_multiple(points[k].s.im - points[k - 1].s.im, ds0.im),
-            ),
+            Spacing::Lattice(ds0, inv) => {
+                let d = points[k].s - points[k - 1].s;
+                let m = lattice_multiple(d.im, inv);
+                let whole = d.re == 0.0
+                    && (1..=LATTICE_MAX_STEP).contains(&m)
+                    && (d.im - m as f64 * ds0.im).abs() <= crate::numerics::tol::SAME_TIME * d.im;
+                if whole {
+                    Step::Lattice(ds0, m)
+                } else {
+                    Step::Exact
+                }
+            }
             Spacing::Irregular => Step::Exact,
         }
     }
