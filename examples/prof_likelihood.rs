@@ -44,8 +44,9 @@ fn main() {
     }
     let el = t.elapsed().as_secs_f64();
     println!(
-        "{n} evaluations, {} nodes: {:.2} us each, checksum {acc:.6e}",
+        "{n} evaluations, {} nodes (error energy {:.2} eps^2): {:.2} us each, checksum {acc:.6e}",
         quad.n_nodes(),
+        quad.error_energy() / DEFAULT_QUADRATURE_EPS.powi(2),
         1e6 * el / n as f64
     );
 }
