@@ -420,7 +420,6 @@ fn bin_weights(nodes: &[usize], kept: &[usize]) -> Vec<(usize, f64, f64)> {
 /// The design constants of one grid's `m` nodes (module doc): the banded `G`'s node rows
 /// ([`packed_band`]) and the wrap-around derivatives' parts of `a_j` ([`split`], at
 /// `(q * m + j) * 2 N^2`); `sum |dV|^2`'s matrix is added to `s2`.
-#[allow(clippy::type_complexity)]
 fn design_constants<M: ClosedLoopModel<N>, const N: usize>(
     lik: &WhittleLikelihood<'_, M, N>,
     grid: &Grid<M::Point, N>,
