@@ -179,9 +179,7 @@ pub trait ClosedLoopModel<const N: usize>: Send + Sync {
     ) where
         Self: Sized,
     {
-        self.transfer_grid(points, p, t_out, None);
-        let g = seeds(&t_out[..points.len()]);
-        self.transfer_grid_adjoint(points, p, grad, |k, _| g[k]);
+        transfer_grid_adjoint_two_pass(self, points, p, t_out, grad, seeds)
     }
 
     /// The operators at parameters `p` as functions of the point, for a sweep over many
@@ -216,6 +214,22 @@ impl<M: ClosedLoopModel<N>, const N: usize> OperatorSweep<N, M::Point> for PerPo
     fn derivative(&self, pt: &M::Point, k: usize) -> OperatorDerivative<N> {
         self.model.derivative(pt, self.p, k)
     }
+}
+
+/// The default [`ClosedLoopModel::transfer_grid_adjoint_deferred`]: the model's
+/// [`ClosedLoopModel::transfer_grid`], the seeds, then its
+/// [`ClosedLoopModel::transfer_grid_adjoint`] (the templates computed twice).
+pub fn transfer_grid_adjoint_two_pass<M: ClosedLoopModel<N>, const N: usize>(
+    model: &M,
+    points: &[M::Point],
+    p: &[f64],
+    t_out: &mut [CMat<N>],
+    grad: &mut [f64],
+    seeds: impl FnOnce(&[CMat<N>]) -> Vec<CMat<N>>,
+) {
+    model.transfer_grid(points, p, t_out, None);
+    let g = seeds(&t_out[..points.len()]);
+    model.transfer_grid_adjoint(points, p, grad, |k, _| g[k]);
 }
 
 /// Points per chunk of [`transfer_grid_adjoint_forward`].

@@ -11,8 +11,9 @@ use std::f64::consts::PI;
 use num_complex::Complex64;
 
 use super::closed_loop::{
-    transfer_grid_adjoint_forward, transfer_of, transfer_with_derivatives_of, CMat,
-    ClosedLoopModel, NoiseEntry, OperatorDerivative, OperatorSweep, Operators,
+    transfer_grid_adjoint_forward, transfer_grid_adjoint_two_pass, transfer_of,
+    transfer_with_derivatives_of, CMat, ClosedLoopModel, NoiseEntry, OperatorDerivative,
+    OperatorSweep, Operators,
 };
 use super::discrete::{Df2t, DiscreteTf};
 use super::poly::{Poly, RootsError};
@@ -796,11 +797,7 @@ impl ClosedLoopModel<2> for LpfX {
         seeds: impl FnOnce(&[CMat<2>]) -> Vec<CMat<2>>,
     ) {
         match self.digital {
-            Some(_) => {
-                self.transfer_grid(points, p, t_out, None);
-                let g = seeds(&t_out[..points.len()]);
-                transfer_grid_adjoint_forward(self, points, p, grad, |k, _| g[k]);
-            }
+            Some(_) => transfer_grid_adjoint_two_pass(self, points, p, t_out, grad, seeds),
             None => self.fast_transfer_grid_adjoint_deferred(points, p, t_out, grad, seeds),
         }
     }

@@ -14,12 +14,14 @@ use num_complex::Complex64;
 
 use super::{CMat, LpfPoint, LpfX, Phasor, Spacing, XLoop, A_DF, A_SUS, DT1, DT12, S21, W1, W12};
 
-/// What the contraction needs of one point: the delays' factors, `Delta`'s entries and
-/// `D22`, `1 / det Delta` and the template `T`.
+/// What the contraction needs of one point: the delays' factors, `M`'s entries `m11` and
+/// `m22`, `Delta`'s entries and `D22`, `1 / det Delta` and the template `T`.
 #[derive(Clone, Copy)]
 struct PointState {
     e1: Complex64,
     e2: Complex64,
+    m11: Complex64,
+    m22: Complex64,
     delta: [Complex64; 4],
     big_d22: Complex64,
     inv_det: Complex64,
@@ -102,6 +104,8 @@ impl LpfX {
             let st = PointState {
                 e1,
                 e2,
+                m11,
+                m22,
                 delta,
                 big_d22,
                 inv_det,
@@ -126,14 +130,14 @@ impl Contraction {
         let PointState {
             e1,
             e2,
+            m11,
+            m22,
             delta: [d11, d12, d21, d22],
             big_d22,
             inv_det,
             t: [t11, t12, t21, t22],
         } = *st;
         let (mt, d12r) = (x.mt, x.d12r);
-        let m11 = pt.c_df * x.a_df * e1;
-        let m22 = pt.c_sus * x.a_sus * e2;
         // B = G Delta^-1, Delta^-1 = [[d22, -d12], [-d21, d11]] / det.
         let (g11, g12, g21, g22) = (
             gm[(0, 0)] * inv_det,
