@@ -555,7 +555,17 @@ fn put<const N: usize>(exp: &mut [Vec<f64>], i: usize, w: &[Complex64; N]) {
 /// `a` times the vector `z`, `a` lower triangular.
 #[inline]
 pub fn lower_times<const N: usize>(a: &CMat<N>, z: &[Complex64; N]) -> [Complex64; N] {
-    std::array::from_fn(|i| (0..=i).map(|j| a[(i, j)] * z[j]).sum())
+    // `sum()` of the products in order from zero, written as loops over half-open ranges
+    // (an inclusive range's iterator does not unroll; the same operations either way).
+    let mut out = [Complex64::new(0.0, 0.0); N];
+    for (i, o) in out.iter_mut().enumerate() {
+        let mut s = Complex64::new(0.0, 0.0);
+        for (j, zj) in z.iter().enumerate().take(i + 1) {
+            s = s + a[(i, j)] * zj;
+        }
+        *o = s;
+    }
+    out
 }
 
 /// The bins to keep on one grid of `n` samples spaced `dt` (see the module doc): per bin, the
