@@ -1095,7 +1095,8 @@ fn whittle_path<'s, M: CampaignModel<N>, const N: usize>(
         let cache =
             JacobianCache::from_templates(&points, JACOBIAN_REUSE_SIGMA, &fixed, names, |p| {
                 lik.templates_and_jacobian(p)
-            })?;
+            })?
+            .single_precision_gradient();
         base.jacobian = JacobianPolicy::Cached(std::sync::Arc::new(cache));
     }
     let path = Path::Whittle {

@@ -38,7 +38,7 @@ pub use whittle::{WhittleLikelihood, WhittleProblem};
 
 use crate::data::Series;
 use crate::model::closed_loop::{check_stability, ClosedLoopModel};
-use crate::numerics::linalg::{dot, series_gram, spd_inverse};
+use crate::numerics::linalg::{dot, series_gram, spd_inverse, Plane};
 
 #[derive(Debug, thiserror::Error)]
 pub enum FitError {
@@ -361,7 +361,14 @@ pub struct CachedJacobian {
     pub j: Vec<Series>,
     pub information: DMatrix<f64>,
     pub sigma: Vec<f64>,
+    /// `j` rounded to single precision, when the cache was made with
+    /// [`JacobianCache::single_precision_gradient`]: what the squared estimator's gradient
+    /// `J^T r` then reads (half the bytes; see there).
+    pub j32: Option<Vec<Series32>>,
 }
+
+/// A [`Series`] stored in single precision.
+pub type Series32 = Vec<Vec<Vec<f32>>>;
 
 /// Default reuse radius of cached Jacobians, in standard errors.
 pub const JACOBIAN_REUSE_SIGMA: f64 = 5.0;
@@ -427,10 +434,36 @@ impl JacobianCache {
                     j,
                     information,
                     sigma,
+                    j32: None,
                 })
             })
             .collect::<Result<Vec<_>, FitError>>()?;
         Ok(JacobianCache { entries, max_sigma })
+    }
+
+    /// This cache with the squared estimator's gradient `J^T r` taken from its Jacobians
+    /// rounded to single precision (relative 6e-8), which halves the bytes a fit streams per
+    /// iteration when `J` outgrows the cache memory. The cached Jacobian only steers the
+    /// iteration (the residuals, and the information behind the reported errors, stay exact);
+    /// the rounding moves its fixed point `J^T r(p) = 0` by ~1e-7 of a standard error, far below
+    /// what the cached point's distance already moves it (~1e-3 per standard error).
+    pub fn single_precision_gradient(mut self) -> Self {
+        for e in &mut self.entries {
+            e.j32 = Some(
+                e.j.iter()
+                    .map(|s| {
+                        s.iter()
+                            .map(|exp| {
+                                exp.iter()
+                                    .map(|c| c.iter().map(|&v| v as f32).collect())
+                                    .collect()
+                            })
+                            .collect()
+                    })
+                    .collect(),
+            );
+        }
+        self
     }
 
     /// The cached entry closest to `p` in standard errors, if within `max_sigma`.
@@ -525,15 +558,20 @@ pub fn objective(est: Estimator, r: &Series) -> f64 {
 }
 
 /// Weighted normal equations `A = J^T W J`, `g = J^T W r` (with `J = d template / dp`); for the
-/// squared estimator a known `J^T J` is reused.
+/// squared estimator a cached entry's `J^T J` is reused (and its single-precision `J`, if it
+/// has one, for `J^T r`).
 fn normal_equations_with(
     est: Estimator,
     r: &Series,
     j: &[Series],
-    known: Option<&DMatrix<f64>>,
+    known: Option<&CachedJacobian>,
 ) -> (DMatrix<f64>, DVector<f64>) {
-    if let (Estimator::Squared, Some(a)) = (est, known) {
-        return (a.clone(), gradient(j, r));
+    if let (Estimator::Squared, Some(c)) = (est, known) {
+        let g = match &c.j32 {
+            Some(j32) => gradient(j32, r),
+            None => gradient(j, r),
+        };
+        return (c.information.clone(), g);
     }
     normal_equations(est, r, j)
 }
@@ -548,9 +586,10 @@ const GRADIENT_BLOCK: usize = 8;
 /// over `r` per [`GRADIENT_BLOCK`] columns instead of one per column (with a cached Jacobian
 /// the gradient is memory-bound: `J` and `r` are read once).
 ///
-/// Compiled for AVX where the CPU has it: the same operations in the same order, so the same
-/// numbers on every x86-64.
-pub fn gradient(j: &[Series], r: &Series) -> DVector<f64> {
+/// The columns may be stored in single precision ([`Series32`]), each value widened exactly
+/// to `f64` before its product. Compiled for AVX where the CPU has it: the same operations in
+/// the same order, so the same numbers on every x86-64.
+pub fn gradient<T: Plane>(j: &[Vec<Vec<Vec<T>>>], r: &Series) -> DVector<f64> {
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx") {
         // SAFETY: the CPU has AVX (checked just above).
@@ -561,16 +600,27 @@ pub fn gradient(j: &[Series], r: &Series) -> DVector<f64> {
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx")]
-fn gradient_avx(j: &[Series], r: &Series) -> DVector<f64> {
-    gradient_body(j, r)
+fn gradient_avx<T: Plane>(j: &[Vec<Vec<Vec<T>>>], r: &Series) -> DVector<f64> {
+    // The closure has this function's AVX.
+    gradient_with(j, r, |cols, r, out| dot_block_avx(cols, r, out))
 }
 
 #[inline(always)]
-fn gradient_body(j: &[Series], r: &Series) -> DVector<f64> {
+fn gradient_body<T: Plane>(j: &[Vec<Vec<Vec<T>>>], r: &Series) -> DVector<f64> {
+    gradient_with(j, r, dot_block)
+}
+
+/// [`gradient`] with the kernel `block` that takes [`dot_block`]'s place.
+#[inline(always)]
+fn gradient_with<T: Plane>(
+    j: &[Vec<Vec<Vec<T>>>],
+    r: &Series,
+    block: impl Fn(&[&[T]], &[f64], &mut [f64; GRADIENT_BLOCK]),
+) -> DVector<f64> {
     let np = j.len();
     // dots[k][(e, c)]: the channel dot products, summed below in series_dot's order.
     let mut dots: Vec<Vec<f64>> = vec![Vec::new(); np];
-    let mut cols: Vec<&[f64]> = Vec::with_capacity(GRADIENT_BLOCK);
+    let mut cols: Vec<&[T]> = Vec::with_capacity(GRADIENT_BLOCK);
     for (e, re) in r.iter().enumerate() {
         for (c, rc) in re.iter().enumerate() {
             for k0 in (0..np).step_by(GRADIENT_BLOCK) {
@@ -588,13 +638,15 @@ fn gradient_body(j: &[Series], r: &Series) -> DVector<f64> {
                     // Ragged or missing channels: exactly series_dot's zip, column by column.
                     for (k, jk) in (k0..k1).zip(&j[k0..k1]) {
                         if let Some(x) = jk.get(e).and_then(|x| x.get(c)) {
-                            dots[k].push(dot(x, rc));
+                            // `dot` over the common length (its lanes, tail and sum).
+                            let n = x.len().min(rc.len());
+                            dots[k].push(dot_lanes::<T, 1>([&x[..n]], &rc[..n])[0]);
                         }
                     }
                     continue;
                 }
                 let mut out = [0.0; GRADIENT_BLOCK];
-                dot_block(&cols, rc, &mut out);
+                block(&cols, rc, &mut out);
                 for (k, v) in (k0..k1).zip(out) {
                     dots[k].push(v);
                 }
@@ -611,44 +663,104 @@ fn gradient_body(j: &[Series], r: &Series) -> DVector<f64> {
 /// additions in the same order, and a group's `4 K` accumulators stay in registers (eight
 /// columns at once spilled them to the stack, and every update waited on a store).
 #[inline(always)]
-fn dot_block(cols: &[&[f64]], r: &[f64], out: &mut [f64; GRADIENT_BLOCK]) {
+fn dot_block<T: Plane>(cols: &[&[T]], r: &[f64], out: &mut [f64; GRADIENT_BLOCK]) {
     let nb = cols.len().min(GRADIENT_BLOCK);
     let mut k = 0;
     while nb - k >= 4 {
-        let v = dot_lanes::<4>(std::array::from_fn(|i| cols[k + i]), r);
+        let v = dot_lanes::<T, 4>(std::array::from_fn(|i| cols[k + i]), r);
         out[k..k + 4].copy_from_slice(&v);
         k += 4;
     }
     if nb - k >= 2 {
-        let v = dot_lanes::<2>(std::array::from_fn(|i| cols[k + i]), r);
+        let v = dot_lanes::<T, 2>(std::array::from_fn(|i| cols[k + i]), r);
         out[k..k + 2].copy_from_slice(&v);
         k += 2;
     }
     if k < nb {
-        out[k] = dot_lanes::<1>([cols[k]], r)[0];
+        out[k] = dot_lanes::<T, 1>([cols[k]], r)[0];
     }
+}
+
+/// [`dot_block`] in AVX registers, written with the intrinsics: per column and four values
+/// of `r`, one product and one sum of four lanes (the compiler, left to itself, vectorised
+/// across the columns and spent its time transposing). The same operations in the same
+/// order as [`dot_lanes`].
+///
+/// # Safety
+/// The CPU must have AVX.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx")]
+fn dot_block_avx<T: Plane>(cols: &[&[T]], r: &[f64], out: &mut [f64; GRADIENT_BLOCK]) {
+    let nb = cols.len().min(GRADIENT_BLOCK);
+    let mut k = 0;
+    while nb - k >= 4 {
+        let v = dot_lanes_avx::<T, 4>(std::array::from_fn(|i| cols[k + i]), r);
+        out[k..k + 4].copy_from_slice(&v);
+        k += 4;
+    }
+    if nb - k >= 2 {
+        let v = dot_lanes_avx::<T, 2>(std::array::from_fn(|i| cols[k + i]), r);
+        out[k..k + 2].copy_from_slice(&v);
+        k += 2;
+    }
+    if k < nb {
+        out[k] = dot_lanes_avx::<T, 1>([cols[k]], r)[0];
+    }
+}
+
+/// [`dot_lanes`] with AVX intrinsics (see [`dot_block_avx`]).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx")]
+fn dot_lanes_avx<T: Plane, const K: usize>(cols: [&[T]; K], r: &[f64]) -> [f64; K] {
+    use std::arch::x86_64::{
+        _mm256_add_pd, _mm256_loadu_pd, _mm256_mul_pd, _mm256_setzero_pd, _mm256_storeu_pd,
+    };
+    let n4 = r.len() / 4 * 4;
+    assert!(cols.iter().all(|c| c.len() >= n4));
+    let mut acc = [_mm256_setzero_pd(); K];
+    let mut m = 0;
+    while m < n4 {
+        // SAFETY: m + 4 <= n4 <= the length of r and of every column (asserted above).
+        let y = unsafe { _mm256_loadu_pd(r.as_ptr().add(m)) };
+        for (a, x) in acc.iter_mut().zip(&cols) {
+            // SAFETY: as above; the CPU has AVX (this function's contract).
+            let x = unsafe { T::load4(x.as_ptr().add(m)) };
+            *a = _mm256_add_pd(*a, _mm256_mul_pd(x, y));
+        }
+        m += 4;
+    }
+    std::array::from_fn(|k| {
+        let mut tail = 0.0;
+        for (&x, y) in cols[k][n4..].iter().zip(&r[n4..]) {
+            tail += x.into() * y;
+        }
+        let mut a = [0.0; 4];
+        // SAFETY: `a` holds four values.
+        unsafe { _mm256_storeu_pd(a.as_mut_ptr(), acc[k]) };
+        (a[0] + a[1]) + (a[2] + a[3]) + tail
+    })
 }
 
 /// [`dot`] of `K` columns (each of `r`'s length) with `r` in one pass over `r`: per column the
 /// four lanes `acc[i] += x[4m + i] y[4m + i]`, the sequential tail, then
 /// `(acc0 + acc1) + (acc2 + acc3) + tail`.
 #[inline(always)]
-fn dot_lanes<const K: usize>(cols: [&[f64]; K], r: &[f64]) -> [f64; K] {
+fn dot_lanes<T: Plane, const K: usize>(cols: [&[T]; K], r: &[f64]) -> [f64; K] {
     let n4 = r.len() / 4 * 4;
-    let xs: [&[f64]; K] = cols.map(|c| &c[..n4]);
+    let xs: [&[T]; K] = cols.map(|c| &c[..n4]);
     let mut acc = [[0.0f64; 4]; K];
     for (m, y) in r[..n4].chunks_exact(4).enumerate() {
         for (a, x) in acc.iter_mut().zip(&xs) {
             let x = &x[4 * m..4 * m + 4];
             for i in 0..4 {
-                a[i] += x[i] * y[i];
+                a[i] += x[i].into() * y[i];
             }
         }
     }
     std::array::from_fn(|k| {
         let mut tail = 0.0;
-        for (x, y) in cols[k][n4..].iter().zip(&r[n4..]) {
-            tail += x * y;
+        for (&x, y) in cols[k][n4..].iter().zip(&r[n4..]) {
+            tail += x.into() * y;
         }
         let a = acc[k];
         (a[0] + a[1]) + (a[2] + a[3]) + tail
@@ -892,7 +1004,7 @@ pub fn fit<M: ClosedLoopModel<N>, P: Residuals + ?Sized, const N: usize>(
     let (mut nfev, mut njev) = (1usize, 0usize);
     // The Jacobian at the current point: a cached one nearby, or a fresh exact one.
     let mut jac_at =
-        |p: &[f64], r: Option<Series>| -> (Series, Cow<'_, [Series]>, Option<&DMatrix<f64>>) {
+        |p: &[f64], r: Option<Series>| -> (Series, Cow<'_, [Series]>, Option<&CachedJacobian>) {
             if let Some(e) = cache.and_then(|c| c.nearest(p)) {
                 let r = r.unwrap_or_else(|| {
                     if e.p == p {
@@ -901,7 +1013,7 @@ pub fn fit<M: ClosedLoopModel<N>, P: Residuals + ?Sized, const N: usize>(
                         problem.residuals(p)
                     }
                 });
-                return (r, Cow::Borrowed(&e.j[..]), Some(&e.information));
+                return (r, Cow::Borrowed(&e.j[..]), Some(e));
             }
             njev += 1;
             let (r, j) = problem.residuals_and_jacobian(p);
@@ -976,7 +1088,7 @@ pub fn fit<M: ClosedLoopModel<N>, P: Residuals + ?Sized, const N: usize>(
     let chi2_reduced = f / nu as f64;
     // Only `J^T J` is needed here: reuse a cached one, or form it without the gradient.
     let info = match known {
-        Some(a) => a.clone(),
+        Some(c) => c.information.clone(),
         None => series_gram(&j),
     };
     let scale = match est {

@@ -23,6 +23,7 @@ use super::spec::{LoopKind, ModelSpec};
 use super::zpk::Zpk;
 
 mod adjoint;
+mod lanes;
 
 const I: Complex64 = Complex64 { re: 0.0, im: 1.0 };
 
@@ -401,6 +402,47 @@ impl Spacing {
     }
 }
 
+/// The templates `T` at `points` from the delays' phasors `e12` there (see
+/// [`LpfX::fast_transfer_grid`]). Compiled for AVX where the CPU has it: the same operations
+/// in the same order (no FMA), so the same numbers on every x86-64.
+fn templates(x: &XLoop, points: &[LpfPoint], e12: &[[Complex64; 2]], t_out: &mut [CMat<2>]) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx") {
+        // SAFETY: the CPU has AVX (checked just above).
+        return unsafe { templates_avx(x, points, e12, t_out) };
+    }
+    templates_body(x, points, e12, t_out)
+}
+
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx")]
+fn templates_avx(x: &XLoop, points: &[LpfPoint], e12: &[[Complex64; 2]], t_out: &mut [CMat<2>]) {
+    templates_body(x, points, e12, t_out)
+}
+
+#[inline(always)]
+fn templates_body(x: &XLoop, points: &[LpfPoint], e12: &[[Complex64; 2]], t_out: &mut [CMat<2>]) {
+    lanes::templates(x, points, e12, t_out)
+}
+
+/// [`templates_body`] point by point with [`Complex64`]'s operators: what the four-lane
+/// kernel must reproduce bit for bit.
+#[cfg(test)]
+fn templates_pointwise(
+    x: &XLoop,
+    points: &[LpfPoint],
+    e12: &[[Complex64; 2]],
+    t_out: &mut [CMat<2>],
+) {
+    let (a_df, a_sus) = (x.a_df, x.a_sus);
+    for ((pt, &[e1, e2]), t) in points.iter().zip(e12).zip(t_out.iter_mut()) {
+        let m11 = pt.c_df * a_df * e1;
+        let m22 = pt.c_sus * a_sus * e2;
+        let [t11, t12, t21, t22] = x.template(x.delta(pt).0, m11, m22).1;
+        *t = m2(t11, t12, t21, t22);
+    }
+}
+
 impl LpfX {
     /// Closed-form `T_{oi->o}` and its derivatives for the 2x2 x-axis loop (same algebra as
     /// the generic code, with the structural zeros of each operator derivative skipped).
@@ -423,16 +465,14 @@ impl LpfX {
         let (mut ph1, mut ph2) = (Phasor::new(p[DT1]), Phasor::new(p[DT12]));
         let spacing = Spacing::of(points);
         let Some(d) = d_out else {
-            // Templates only.
-            for (k, (pt, t)) in points.iter().zip(t_out.iter_mut()).enumerate() {
+            // Templates only: the phasors first (a recurrence), then the closed form point by
+            // point (a map, vectorised by `templates`).
+            let mut e12 = Vec::with_capacity(points.len());
+            for (k, pt) in points.iter().enumerate() {
                 let step = spacing.step(points, k);
-                let e1 = ph1.at(k, pt.s, step);
-                let e2 = ph2.at(k, pt.s, step);
-                let m11 = pt.c_df * a_df * e1;
-                let m22 = pt.c_sus * a_sus * e2;
-                let [t11, t12, t21, t22] = x.template(x.delta(pt).0, m11, m22).1;
-                *t = m2(t11, t12, t21, t22);
+                e12.push([ph1.at(k, pt.s, step), ph2.at(k, pt.s, step)]);
             }
+            templates(&x, points, &e12, t_out);
             return;
         };
         for (k, pt) in points.iter().enumerate() {
@@ -846,6 +886,43 @@ pub const THESIS_SIGMA: [(&str, f64); 7] = [
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Oracle: the templates point by point with `Complex64`'s operators
+    /// (`templates_pointwise`, the code the four-lane kernel replaced), bit for bit, on the
+    /// continuous and the digital loop, at the truth and at a point off it, on grids of every
+    /// length modulo four (the padded last block) with phasors of both delays.
+    #[test]
+    fn four_lane_templates_are_the_pointwise_ones_bit_for_bit() {
+        for spec in [ModelSpec::embedded_continuous(), ModelSpec::embedded()] {
+            let m = LpfX::from_spec(&spec);
+            let truth = spec.scenario("monte_carlo").unwrap().truth;
+            let off: Vec<f64> = truth.iter().map(|v| v * 1.37 + 1e-3).collect();
+            for p in [truth, off] {
+                let x = XLoop::new(&m, &p);
+                for n in [1usize, 2, 3, 4, 5, 6, 7, 8, 257] {
+                    let pts: Vec<LpfPoint> =
+                        (1..=n).map(|k| m.prepare(k as f64 * 0.0123)).collect();
+                    let e12: Vec<[Complex64; 2]> = pts
+                        .iter()
+                        .map(|pt| [(-pt.s * p[DT1]).exp(), (-pt.s * p[DT12]).exp()])
+                        .collect();
+                    let mut got = vec![CMat::<2>::zeros(); n];
+                    let mut want = vec![CMat::<2>::zeros(); n];
+                    templates(&x, &pts, &e12, &mut got);
+                    templates_pointwise(&x, &pts, &e12, &mut want);
+                    for (k, (a, b)) in got.iter().zip(&want).enumerate() {
+                        for (u, v) in a.iter().zip(b.iter()) {
+                            assert_eq!(
+                                (u.re.to_bits(), u.im.to_bits()),
+                                (v.re.to_bits(), v.im.to_bits()),
+                                "point {k} of {n}"
+                            );
+                        }
+                    }
+                }
+            }
+        }
+    }
 
     /// Oracle: `num_complex`'s own `Complex64::exp`, compared bit for bit on the imaginary
     /// axis (both signs of zero, angles from 1e-9 to 1e4 rad, the delay phases of a 1 Hz

@@ -35,9 +35,11 @@ pub fn dot(a: &[f64], b: &[f64]) -> f64 {
 
 /// `y[k] += sum_q c[q] x_q[k]` for the planes `x_q = xs[q * y.len()..]`, each element's
 /// terms added in the order of `q` (`((y + c0 x0) + c1 x1) + ...`), block by block so that a
-/// block of `y` stays in the L1 cache over the planes. Compiled for AVX where the CPU has it:
-/// the same operations in the same order, so the same numbers on every x86-64.
-pub fn add_combination(y: &mut [f64], c: &[f64], xs: &[f64]) {
+/// block of `y` stays in the L1 cache over the planes. The planes may be stored in single
+/// precision (`f32`: half the memory traffic), each value widened exactly to `f64` before its
+/// product. Compiled for AVX where the CPU has it: the same operations in the same order, so
+/// the same numbers on every x86-64.
+pub fn add_combination<T: Plane>(y: &mut [f64], c: &[f64], xs: &[T]) {
     assert!(
         xs.len() >= c.len() * y.len(),
         "add_combination: too few planes"
@@ -52,22 +54,51 @@ pub fn add_combination(y: &mut [f64], c: &[f64], xs: &[f64]) {
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx")]
-fn add_combination_avx(y: &mut [f64], c: &[f64], xs: &[f64]) {
+fn add_combination_avx<T: Plane>(y: &mut [f64], c: &[f64], xs: &[T]) {
     add_combination_body(y, c, xs)
 }
 
 /// Elements of `y` per block of [`add_combination`].
 const COMBINATION_BLOCK: usize = 512;
 
+/// A stored real whose value is an `f64` exactly (`f64` itself, or `f32`).
+pub trait Plane: Copy + Into<f64> {
+    /// Four consecutive values from `p` widened to `f64` in one AVX register.
+    ///
+    /// # Safety
+    /// `p` must point at four readable values, and the CPU must have AVX.
+    #[cfg(target_arch = "x86_64")]
+    unsafe fn load4(p: *const Self) -> std::arch::x86_64::__m256d;
+}
+
+impl Plane for f64 {
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    unsafe fn load4(p: *const f64) -> std::arch::x86_64::__m256d {
+        // SAFETY: the caller's contract.
+        unsafe { std::arch::x86_64::_mm256_loadu_pd(p) }
+    }
+}
+
+impl Plane for f32 {
+    #[cfg(target_arch = "x86_64")]
+    #[inline(always)]
+    unsafe fn load4(p: *const f32) -> std::arch::x86_64::__m256d {
+        use std::arch::x86_64::{_mm256_cvtps_pd, _mm_loadu_ps};
+        // SAFETY: the caller's contract.
+        unsafe { _mm256_cvtps_pd(_mm_loadu_ps(p)) }
+    }
+}
+
 #[inline(always)]
-fn add_combination_body(y: &mut [f64], c: &[f64], xs: &[f64]) {
+fn add_combination_body<T: Plane>(y: &mut [f64], c: &[f64], xs: &[T]) {
     let n = y.len();
     for (b, yb) in y.chunks_mut(COMBINATION_BLOCK).enumerate() {
         let at = b * COMBINATION_BLOCK;
         for (q, cq) in c.iter().enumerate() {
             let x = &xs[q * n + at..q * n + at + yb.len()];
-            for (v, xv) in yb.iter_mut().zip(x) {
-                *v += xv * cq;
+            for (v, &xv) in yb.iter_mut().zip(x) {
+                *v += xv.into() * cq;
             }
         }
     }
@@ -335,6 +366,17 @@ mod tests {
                 want += xs[q * n + k] * cq;
             }
             assert_eq!(got.to_bits(), want.to_bits(), "element {k}");
+        }
+        // Single-precision planes: the same sum of the values widened to f64.
+        let xs32: Vec<f32> = xs.iter().map(|&v| v as f32).collect();
+        let mut y = y0.clone();
+        add_combination(&mut y, &c, &xs32);
+        for (k, (got, start)) in y.iter().zip(&y0).enumerate() {
+            let mut want = *start;
+            for (q, cq) in c.iter().enumerate() {
+                want += f64::from(xs32[q * n + k]) * cq;
+            }
+            assert_eq!(got.to_bits(), want.to_bits(), "element {k} (f32 planes)");
         }
     }
 }

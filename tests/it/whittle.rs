@@ -193,7 +193,7 @@ pub(crate) fn assert_gradient_is_central_differences(
 /// outputs are compared bit for bit). Oracles: `Residuals::residuals` for `residuals_into`
 /// (into a series of the right shape, of another shape, and reused), and
 /// `numerics::linalg::series_dot` per column for the fused `fit::gradient` on the real Whittle
-/// Jacobian and on ragged columns.
+/// Jacobian (in double and in single precision) and on ragged columns.
 #[test]
 fn fit_fast_paths_are_bit_identical_to_the_plain_ones() {
     use freefall::numerics::linalg::series_dot;
@@ -222,6 +222,36 @@ fn fit_fast_paths_are_bit_identical_to_the_plain_ones() {
         }
     };
     check(&j, "Whittle Jacobian");
+    // Single-precision columns (a campaign's cached Whittle Jacobian): the sums of their
+    // values widened to f64, in `series_dot`'s order.
+    let j32: Vec<Vec<Vec<Vec<f32>>>> = j
+        .iter()
+        .map(|s| {
+            s.iter()
+                .map(|e| {
+                    e.iter()
+                        .map(|c| c.iter().map(|&v| v as f32).collect())
+                        .collect()
+                })
+                .collect()
+        })
+        .collect();
+    let g32 = freefall::fit::gradient(&j32, &r);
+    for (k, jk) in j32.iter().enumerate() {
+        let widened: freefall::data::Series = jk
+            .iter()
+            .map(|e| {
+                e.iter()
+                    .map(|c| c.iter().map(|&v| f64::from(v)).collect())
+                    .collect()
+            })
+            .collect();
+        assert_eq!(
+            g32[k].to_bits(),
+            series_dot(&widened, &r).to_bits(),
+            "single precision: column {k}"
+        );
+    }
     // Ten columns (two blocks), one of them ragged: a short channel, a missing experiment.
     j.extend(j[..3].to_vec());
     j[8][0][1].truncate(101);

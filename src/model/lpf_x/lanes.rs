@@ -1,0 +1,147 @@
+//! The LPF-x templates four points at a time: each complex value of four points as two
+//! arrays of four reals, so that every operation is one vector instruction. The operations
+//! and their order are exactly those of [`num_complex::Complex64`]'s operators in
+//! [`super::XLoop::delta`] and [`super::XLoop::template`] (a complex product is
+//! `(a.re b.re - a.im b.im, a.re b.im + a.im b.re)`, no FMA), so the numbers are the point by
+//! point ones bit for bit (tested against them).
+
+use num_complex::Complex64;
+
+use super::{LpfPoint, XLoop};
+use crate::model::closed_loop::CMat;
+
+/// Points per block.
+const L: usize = 4;
+
+/// Four complex numbers.
+#[derive(Clone, Copy)]
+struct C4 {
+    re: [f64; L],
+    im: [f64; L],
+}
+
+impl C4 {
+    #[inline(always)]
+    fn of(f: impl Fn(usize) -> Complex64) -> C4 {
+        let mut z = C4 {
+            re: [0.0; L],
+            im: [0.0; L],
+        };
+        for l in 0..L {
+            let v = f(l);
+            z.re[l] = v.re;
+            z.im[l] = v.im;
+        }
+        z
+    }
+
+    #[inline(always)]
+    fn map(self, o: C4, f: impl Fn(f64, f64, f64, f64) -> (f64, f64)) -> C4 {
+        let mut z = self;
+        for l in 0..L {
+            (z.re[l], z.im[l]) = f(self.re[l], self.im[l], o.re[l], o.im[l]);
+        }
+        z
+    }
+
+    /// `self * o`.
+    #[inline(always)]
+    fn mul(self, o: C4) -> C4 {
+        self.map(o, |ar, ai, br, bi| (ar * br - ai * bi, ar * bi + ai * br))
+    }
+
+    #[inline(always)]
+    fn add(self, o: C4) -> C4 {
+        self.map(o, |ar, ai, br, bi| (ar + br, ai + bi))
+    }
+
+    #[inline(always)]
+    fn sub(self, o: C4) -> C4 {
+        self.map(o, |ar, ai, br, bi| (ar - br, ai - bi))
+    }
+
+    /// `self * f` of a real `f`.
+    #[inline(always)]
+    fn scale(self, f: f64) -> C4 {
+        self.map(self, |ar, ai, _, _| (ar * f, ai * f))
+    }
+
+    /// `self + f` of a real `f`.
+    #[inline(always)]
+    fn add_re(self, f: f64) -> C4 {
+        self.map(self, |ar, ai, _, _| (ar + f, ai))
+    }
+
+    #[inline(always)]
+    fn neg(self) -> C4 {
+        self.map(self, |ar, ai, _, _| (-ar, -ai))
+    }
+
+    #[inline(always)]
+    fn get(&self, l: usize) -> Complex64 {
+        Complex64::new(self.re[l], self.im[l])
+    }
+}
+
+/// [`super::templates_body`] of one block of four points.
+#[inline(always)]
+fn block(x: &XLoop, pts: [&LpfPoint; L], e12: [&[Complex64; 2]; L]) -> [C4; 4] {
+    let s2 = C4::of(|l| pts[l].s2);
+    let c_df = C4::of(|l| pts[l].c_df);
+    let c_sus = C4::of(|l| pts[l].c_sus);
+    let e1 = C4::of(|l| e12[l][0]);
+    let e2 = C4::of(|l| e12[l][1]);
+    // delta: `[d11, d12, d21, d22]`.
+    let big_d22 = s2.add_re(x.k22);
+    let d11 = s2
+        .add_re(x.k11)
+        .add_re(-(x.s21 * x.d12r))
+        .add(c_df.scale(x.a_df));
+    let d12 = c_sus.scale(x.mt * x.a_sus).add_re(x.d12r);
+    let sd = big_d22.scale(x.s21);
+    let d21 = sd.map(sd, |br, bi, _, _| (x.w12 - br, 0.0 - bi));
+    let d22 = big_d22.add(c_sus.scale(x.a_sus));
+    // m11, m22.
+    let m11 = c_df.scale(x.a_df).mul(e1);
+    let m22 = c_sus.scale(x.a_sus).mul(e2);
+    // template.
+    let det = d11.mul(d22).sub(d12.mul(d21));
+    let inv_det = det.map(det, |r, i, _, _| {
+        let inv_norm = 1.0 / (r * r + i * i);
+        (r * inv_norm, -i * inv_norm)
+    });
+    let a = m11.mul(inv_det);
+    let b = m22.mul(inv_det);
+    let mt = x.mt;
+    [
+        d22.mul(a),
+        d22.scale(mt).sub(d12).mul(b),
+        d21.neg().mul(a),
+        d11.sub(d21.scale(mt)).mul(b),
+    ]
+}
+
+/// [`super::templates_body`]: whole blocks of four points, then the last partial block
+/// padded with its first point (whose padding results are dropped).
+#[inline(always)]
+pub(super) fn templates(
+    x: &XLoop,
+    points: &[LpfPoint],
+    e12: &[[Complex64; 2]],
+    t_out: &mut [CMat<2>],
+) {
+    let n = points.len().min(e12.len()).min(t_out.len());
+    let mut k = 0;
+    while k < n {
+        let at = |l: usize| if k + l < n { k + l } else { k };
+        let t = block(
+            x,
+            std::array::from_fn(|l| &points[at(l)]),
+            std::array::from_fn(|l| &e12[at(l)]),
+        );
+        for l in 0..L.min(n - k) {
+            t_out[k + l] = CMat::<2>::new(t[0].get(l), t[1].get(l), t[2].get(l), t[3].get(l));
+        }
+        k += L;
+    }
+}
