@@ -47,6 +47,7 @@
 //! experiment (its Jacobian zero), so that chi^2 and nu are those of all bins. Evaluations then
 //! cost the model on the kept bins only.
 
+mod lanes;
 pub mod quadrature;
 
 use nalgebra::DMatrix;
@@ -149,11 +150,11 @@ pub struct WhittleLikelihood<'m, M: ClosedLoopModel<N>, const N: usize> {
     /// its derivatives `[i * n_params + q]`.
     wrap: Vec<Vec<[Complex64; N]>>,
     dwrap: Vec<Vec<[Complex64; N]>>,
-    /// The same derivatives parameter by parameter, as reals (`Re, Im` of each bin's `N`
-    /// values): plane `q` of experiment `e` at `dwrap_planes[e][q * 2 N kept..]`, what
-    /// [`crate::numerics::linalg::add_combination`] runs over. Single precision: `dwrap`
-    /// holds these values exactly (see [`WhittleLikelihood::set_wrap`]).
-    dwrap_planes: Vec<Vec<f32>>,
+    /// Per experiment, what the residuals read at every evaluation, in blocks of four kept
+    /// bins ([`lanes::Packed`]): the wrap-around and its derivatives (single precision:
+    /// `dwrap` holds these values exactly, see [`WhittleLikelihood::set_wrap`]), the inputs
+    /// and the whitening factors.
+    packed: Vec<lanes::Packed<N>>,
     /// Per experiment, at every bin `k - 1`: the whitened linear template at `p0`, which the
     /// dropped bins' residuals hold fixed.
     fixed: Vec<Vec<[Complex64; N]>>,
@@ -288,7 +289,7 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> WhittleLikelihood<'m, M, N> {
             p0: p0.to_vec(),
             wrap: Vec::new(),
             dwrap: Vec::new(),
-            dwrap_planes: Vec::new(),
+            packed: Vec::new(),
             fixed: Vec::new(),
         };
         lik.set_wrap(&engine, &winvs)?;
@@ -368,16 +369,6 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> WhittleLikelihood<'m, M, N> {
             ));
         }
         self.wrap = wrap;
-        self.dwrap_planes = dwrap
-            .iter()
-            .map(|d| {
-                d.iter()
-                    .flatten()
-                    .flatten()
-                    .flat_map(|z| [z.re as f32, z.im as f32])
-                    .collect()
-            })
-            .collect();
         self.dwrap = dwrap
             .into_iter()
             .map(|d| {
@@ -385,6 +376,17 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> WhittleLikelihood<'m, M, N> {
                 (0..nb)
                     .flat_map(|i| d.iter().map(move |dq| dq[i]))
                     .collect()
+            })
+            .collect();
+        self.packed = (0..ne)
+            .map(|e| {
+                lanes::Packed::new(
+                    &self.wrap[e],
+                    &self.dwrap[e],
+                    &self.inputs[e],
+                    &self.present[e],
+                    &self.grids[self.grid_of[e]].winv,
+                )
             })
             .collect();
         Ok(())
@@ -757,10 +759,8 @@ impl<M: ClosedLoopModel<N>, const N: usize> Residuals for WhittleProblem<'_, '_,
 
     /// The same numbers as [`Self::residuals`] (`d - w` at every kept bin, the dropped bins'
     /// norm copied), written over `out` without allocating when it has the data's shape. The
-    /// operations are [`WhittleLikelihood::visit`]'s in its order, with the wrap-around
-    /// `V(p) = V(p0) + sum_q dV_q (p - p0)_q` of all of an experiment's bins summed first,
-    /// parameter plane by plane ([`crate::numerics::linalg::add_combination`]: the same
-    /// additions in the same order per value, in vector registers).
+    /// operations are [`WhittleLikelihood::visit`]'s in its order, four bins at a time
+    /// ([`lanes::residuals`]).
     fn residuals_into(&self, p: &[f64], out: &mut Series) {
         let lik = self.lik;
         let np = lik.model.n_params();
@@ -777,26 +777,14 @@ impl<M: ClosedLoopModel<N>, const N: usize> Residuals for WhittleProblem<'_, '_,
             out.clone_from(&self.data_w);
         }
         let dp: Vec<f64> = p.iter().zip(&lik.p0).map(|(a, b)| a - b).collect();
-        let mut v: Vec<f64> = Vec::new();
         for (g, grid) in lik.grids.iter().enumerate() {
             let nb = grid.kept.len();
             let mut t = vec![CMat::<N>::zeros(); nb];
             lik.model.transfer_grid(&grid.points, p, &mut t, None);
             for e in (0..lik.n_experiments()).filter(|&e| lik.grid_of[e] == g) {
-                v.clear();
-                v.extend(lik.wrap[e].iter().flatten().flat_map(|z| [z.re, z.im]));
-                crate::numerics::linalg::add_combination(&mut v, &dp, &lik.dwrap_planes[e]);
-                let (x, present) = (&lik.inputs[e], &lik.present[e][..]);
                 let (o, d) = (&mut out[e], &self.data_w[e]);
                 o[N].copy_from_slice(&d[N]);
-                for (i, vi) in v.chunks_exact(2 * N).enumerate() {
-                    let mut w = whitened_dense(&t[i], &grid.winv[i], &x[i], present);
-                    for c in 0..N {
-                        w[c] -= Complex64::new(vi[2 * c], vi[2 * c + 1]);
-                        o[c][2 * i] = d[c][2 * i] - w[c].re;
-                        o[c][2 * i + 1] = d[c][2 * i + 1] - w[c].im;
-                    }
-                }
+                lanes::residuals(&lik.packed[e], &t, &dp, d, o);
             }
         }
     }

@@ -33,34 +33,6 @@ pub fn dot(a: &[f64], b: &[f64]) -> f64 {
     (acc[0] + acc[1]) + (acc[2] + acc[3]) + tail
 }
 
-/// `y[k] += sum_q c[q] x_q[k]` for the planes `x_q = xs[q * y.len()..]`, each element's
-/// terms added in the order of `q` (`((y + c0 x0) + c1 x1) + ...`), block by block so that a
-/// block of `y` stays in the L1 cache over the planes. The planes may be stored in single
-/// precision (`f32`: half the memory traffic), each value widened exactly to `f64` before its
-/// product. Compiled for AVX where the CPU has it: the same operations in the same order, so
-/// the same numbers on every x86-64.
-pub fn add_combination<T: Plane>(y: &mut [f64], c: &[f64], xs: &[T]) {
-    assert!(
-        xs.len() >= c.len() * y.len(),
-        "add_combination: too few planes"
-    );
-    #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx") {
-        // SAFETY: the CPU has AVX (checked just above).
-        return unsafe { add_combination_avx(y, c, xs) };
-    }
-    add_combination_body(y, c, xs)
-}
-
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx")]
-fn add_combination_avx<T: Plane>(y: &mut [f64], c: &[f64], xs: &[T]) {
-    add_combination_body(y, c, xs)
-}
-
-/// Elements of `y` per block of [`add_combination`].
-const COMBINATION_BLOCK: usize = 512;
-
 /// A stored real whose value is an `f64` exactly (`f64` itself, or `f32`).
 pub trait Plane: Copy + Into<f64> {
     /// Four consecutive values from `p` widened to `f64` in one AVX register.
@@ -87,20 +59,6 @@ impl Plane for f32 {
         use std::arch::x86_64::{_mm256_cvtps_pd, _mm_loadu_ps};
         // SAFETY: the caller's contract.
         unsafe { _mm256_cvtps_pd(_mm_loadu_ps(p)) }
-    }
-}
-
-#[inline(always)]
-fn add_combination_body<T: Plane>(y: &mut [f64], c: &[f64], xs: &[T]) {
-    let n = y.len();
-    for (b, yb) in y.chunks_mut(COMBINATION_BLOCK).enumerate() {
-        let at = b * COMBINATION_BLOCK;
-        for (q, cq) in c.iter().enumerate() {
-            let x = &xs[q * n + at..q * n + at + yb.len()];
-            for (v, &xv) in yb.iter_mut().zip(x) {
-                *v += xv.into() * cq;
-            }
-        }
     }
 }
 
@@ -347,36 +305,5 @@ mod tests {
         let (k, c) = most_correlated(&info, &[0, 2, 1], 2).unwrap();
         assert_eq!(k, 0);
         assert!((c + r).abs() < 1e-12, "{c}");
-    }
-
-    // Oracle: the plain sequential sum per element, `y + c0 x0 + c1 x1 + ...` in that order
-    // (what the Whittle residuals summed before), on a length that is not a whole number of
-    // blocks. What runs (the AVX build where the CPU has it) must give the same bits.
-    #[test]
-    fn add_combination_is_the_sequential_sum_bit_for_bit() {
-        let n = 3 * COMBINATION_BLOCK + 37;
-        let c = [0.3, -1.7, 2.5e-3, 4.0, -0.0, 1e6, -3.3];
-        let xs: Vec<f64> = (0..c.len() * n).map(|k| (k as f64 * 0.37).sin()).collect();
-        let y0: Vec<f64> = (0..n).map(|k| (k as f64 * 0.11).cos()).collect();
-        let mut y = y0.clone();
-        add_combination(&mut y, &c, &xs);
-        for (k, (got, start)) in y.iter().zip(&y0).enumerate() {
-            let mut want = *start;
-            for (q, cq) in c.iter().enumerate() {
-                want += xs[q * n + k] * cq;
-            }
-            assert_eq!(got.to_bits(), want.to_bits(), "element {k}");
-        }
-        // Single-precision planes: the same sum of the values widened to f64.
-        let xs32: Vec<f32> = xs.iter().map(|&v| v as f32).collect();
-        let mut y = y0.clone();
-        add_combination(&mut y, &c, &xs32);
-        for (k, (got, start)) in y.iter().zip(&y0).enumerate() {
-            let mut want = *start;
-            for (q, cq) in c.iter().enumerate() {
-                want += f64::from(xs32[q * n + k]) * cq;
-            }
-            assert_eq!(got.to_bits(), want.to_bits(), "element {k} (f32 planes)");
-        }
     }
 }

@@ -1,87 +1,12 @@
-//! The LPF-x templates four points at a time: each complex value of four points as two
-//! arrays of four reals, so that every operation is one vector instruction. The operations
-//! and their order are exactly those of [`num_complex::Complex64`]'s operators in
-//! [`super::XLoop::delta`] and [`super::XLoop::template`] (a complex product is
-//! `(a.re b.re - a.im b.im, a.re b.im + a.im b.re)`, no FMA), so the numbers are the point by
-//! point ones bit for bit (tested against them).
+//! The LPF-x templates four points at a time ([`crate::numerics::lanes`]): the operations of
+//! [`super::XLoop::delta`] and [`super::XLoop::template`] in their order, so the numbers are
+//! the point by point ones bit for bit (tested against them).
 
 use num_complex::Complex64;
 
 use super::{LpfPoint, XLoop};
 use crate::model::closed_loop::CMat;
-
-/// Points per block.
-const L: usize = 4;
-
-/// Four complex numbers.
-#[derive(Clone, Copy)]
-struct C4 {
-    re: [f64; L],
-    im: [f64; L],
-}
-
-impl C4 {
-    #[inline(always)]
-    fn of(f: impl Fn(usize) -> Complex64) -> C4 {
-        let mut z = C4 {
-            re: [0.0; L],
-            im: [0.0; L],
-        };
-        for l in 0..L {
-            let v = f(l);
-            z.re[l] = v.re;
-            z.im[l] = v.im;
-        }
-        z
-    }
-
-    #[inline(always)]
-    fn map(self, o: C4, f: impl Fn(f64, f64, f64, f64) -> (f64, f64)) -> C4 {
-        let mut z = self;
-        for l in 0..L {
-            (z.re[l], z.im[l]) = f(self.re[l], self.im[l], o.re[l], o.im[l]);
-        }
-        z
-    }
-
-    /// `self * o`.
-    #[inline(always)]
-    fn mul(self, o: C4) -> C4 {
-        self.map(o, |ar, ai, br, bi| (ar * br - ai * bi, ar * bi + ai * br))
-    }
-
-    #[inline(always)]
-    fn add(self, o: C4) -> C4 {
-        self.map(o, |ar, ai, br, bi| (ar + br, ai + bi))
-    }
-
-    #[inline(always)]
-    fn sub(self, o: C4) -> C4 {
-        self.map(o, |ar, ai, br, bi| (ar - br, ai - bi))
-    }
-
-    /// `self * f` of a real `f`.
-    #[inline(always)]
-    fn scale(self, f: f64) -> C4 {
-        self.map(self, |ar, ai, _, _| (ar * f, ai * f))
-    }
-
-    /// `self + f` of a real `f`.
-    #[inline(always)]
-    fn add_re(self, f: f64) -> C4 {
-        self.map(self, |ar, ai, _, _| (ar + f, ai))
-    }
-
-    #[inline(always)]
-    fn neg(self) -> C4 {
-        self.map(self, |ar, ai, _, _| (-ar, -ai))
-    }
-
-    #[inline(always)]
-    fn get(&self, l: usize) -> Complex64 {
-        Complex64::new(self.re[l], self.im[l])
-    }
-}
+use crate::numerics::lanes::{C4, L};
 
 /// [`super::templates_body`] of one block of four points.
 #[inline(always)]
