@@ -572,7 +572,7 @@ pub fn lower_times<const N: usize>(a: &CMat<N>, z: &[Complex64; N]) -> [Complex6
     for (i, o) in out.iter_mut().enumerate() {
         let mut s = Complex64::new(0.0, 0.0);
         for (j, zj) in z.iter().enumerate().take(i + 1) {
-            s = s + a[(i, j)] * zj;
+            s += a[(i, j)] * zj;
         }
         *o = s;
     }

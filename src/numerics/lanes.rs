@@ -5,6 +5,8 @@
 //! kernel written with them gives the numbers of the same kernel written point by point, bit
 //! for bit.
 
+use std::ops::{Add, Mul, Neg, Sub};
+
 use num_complex::Complex64;
 
 /// Lanes per block.
@@ -41,22 +43,6 @@ impl C4 {
         z
     }
 
-    /// `self * o`.
-    #[inline(always)]
-    pub fn mul(self, o: C4) -> C4 {
-        self.map(o, |ar, ai, br, bi| (ar * br - ai * bi, ar * bi + ai * br))
-    }
-
-    #[inline(always)]
-    pub fn add(self, o: C4) -> C4 {
-        self.map(o, |ar, ai, br, bi| (ar + br, ai + bi))
-    }
-
-    #[inline(always)]
-    pub fn sub(self, o: C4) -> C4 {
-        self.map(o, |ar, ai, br, bi| (ar - br, ai - bi))
-    }
-
     /// `self * f` of a real `f`.
     #[inline(always)]
     pub fn scale(self, f: f64) -> C4 {
@@ -67,11 +53,6 @@ impl C4 {
     #[inline(always)]
     pub fn add_re(self, f: f64) -> C4 {
         self.map(self, |ar, ai, _, _| (ar + f, ai))
-    }
-
-    #[inline(always)]
-    pub fn neg(self) -> C4 {
-        self.map(self, |ar, ai, _, _| (-ar, -ai))
     }
 
     #[inline(always)]
@@ -95,5 +76,37 @@ impl C4 {
             re: std::array::from_fn(|l| v[l]),
             im: std::array::from_fn(|l| v[L + l]),
         }
+    }
+}
+
+impl Mul for C4 {
+    type Output = C4;
+    #[inline(always)]
+    fn mul(self, o: C4) -> C4 {
+        self.map(o, |ar, ai, br, bi| (ar * br - ai * bi, ar * bi + ai * br))
+    }
+}
+
+impl Add for C4 {
+    type Output = C4;
+    #[inline(always)]
+    fn add(self, o: C4) -> C4 {
+        self.map(o, |ar, ai, br, bi| (ar + br, ai + bi))
+    }
+}
+
+impl Sub for C4 {
+    type Output = C4;
+    #[inline(always)]
+    fn sub(self, o: C4) -> C4 {
+        self.map(o, |ar, ai, br, bi| (ar - br, ai - bi))
+    }
+}
+
+impl Neg for C4 {
+    type Output = C4;
+    #[inline(always)]
+    fn neg(self) -> C4 {
+        self.map(self, |ar, ai, _, _| (-ar, -ai))
     }
 }

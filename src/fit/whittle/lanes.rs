@@ -215,7 +215,7 @@ fn residuals_with<const N: usize>(
         for (v, &c) in pk.present.iter().enumerate() {
             let xc = C4::packed(&pk.x[(b * npres + v) * c4..]);
             for (i, ui) in u.iter_mut().enumerate() {
-                *ui = ui.add(C4::of(|l| t[at(l)][(i, c)]).mul(xc));
+                *ui = *ui + C4::of(|l| t[at(l)][(i, c)]) * xc;
             }
         }
         // w = W u, W lower triangular ([`super::lower_times`]).
@@ -224,7 +224,7 @@ fn residuals_with<const N: usize>(
         for (i, wi) in w.iter_mut().enumerate() {
             let mut s = C4::ZERO;
             for uj in u.iter().take(i + 1) {
-                s = s.add(C4::packed(&pk.winv[(b * ntri + m) * c4..]).mul(*uj));
+                s = s + C4::packed(&pk.winv[(b * ntri + m) * c4..]) * *uj;
                 m += 1;
             }
             *wi = s;

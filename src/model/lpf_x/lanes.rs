@@ -18,31 +18,28 @@ fn block(x: &XLoop, pts: [&LpfPoint; L], e12: [&[Complex64; 2]; L]) -> [C4; 4] {
     let e2 = C4::of(|l| e12[l][1]);
     // delta: `[d11, d12, d21, d22]`.
     let big_d22 = s2.add_re(x.k22);
-    let d11 = s2
-        .add_re(x.k11)
-        .add_re(-(x.s21 * x.d12r))
-        .add(c_df.scale(x.a_df));
+    let d11 = s2.add_re(x.k11).add_re(-(x.s21 * x.d12r)) + c_df.scale(x.a_df);
     let d12 = c_sus.scale(x.mt * x.a_sus).add_re(x.d12r);
     let sd = big_d22.scale(x.s21);
     let d21 = sd.map(sd, |br, bi, _, _| (x.w12 - br, 0.0 - bi));
-    let d22 = big_d22.add(c_sus.scale(x.a_sus));
+    let d22 = big_d22 + c_sus.scale(x.a_sus);
     // m11, m22.
-    let m11 = c_df.scale(x.a_df).mul(e1);
-    let m22 = c_sus.scale(x.a_sus).mul(e2);
+    let m11 = c_df.scale(x.a_df) * e1;
+    let m22 = c_sus.scale(x.a_sus) * e2;
     // template.
-    let det = d11.mul(d22).sub(d12.mul(d21));
+    let det = d11 * d22 - d12 * d21;
     let inv_det = det.map(det, |r, i, _, _| {
         let inv_norm = 1.0 / (r * r + i * i);
         (r * inv_norm, -i * inv_norm)
     });
-    let a = m11.mul(inv_det);
-    let b = m22.mul(inv_det);
+    let a = m11 * inv_det;
+    let b = m22 * inv_det;
     let mt = x.mt;
     [
-        d22.mul(a),
-        d22.scale(mt).sub(d12).mul(b),
-        d21.neg().mul(a),
-        d11.sub(d21.scale(mt)).mul(b),
+        d22 * a,
+        (d22.scale(mt) - d12) * b,
+        -d21 * a,
+        (d11 - d21.scale(mt)) * b,
     ]
 }
 
