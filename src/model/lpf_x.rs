@@ -402,6 +402,47 @@ impl Spacing {
     }
 }
 
+/// Powers of a lattice's unit factor kept by [`lattice_phasors`]: steps of fewer spacings.
+const LATTICE_POWERS: usize = 64;
+
+/// Both delays' phasors `exp(-s dt)` on a lattice grid (`spacing`, of spacing `ds0`): the
+/// numbers of [`Phasor::at`] point by point, bit for bit, in one loop over the grid for both
+/// delays, with the unit factors made first and their powers for steps of a few spacings kept
+/// (every power is the same `powu` of the same unit, so the same bits).
+fn lattice_phasors(
+    points: &[LpfPoint],
+    spacing: Spacing,
+    ds0: Complex64,
+    dts: [f64; 2],
+    out: &mut Vec<[Complex64; 2]>,
+) {
+    let units = dts.map(|dt| exp_axis(-ds0 * dt));
+    let mut powers = [None::<[Complex64; 2]>; LATTICE_POWERS];
+    let mut v = [Complex64::new(1.0, 0.0); 2];
+    for (k, pt) in points.iter().enumerate() {
+        let m = match spacing.step(points, k) {
+            Step::Lattice(_, m) if !k.is_multiple_of(256) => m as usize,
+            _ => 0,
+        };
+        match m {
+            0 => v = dts.map(|dt| exp_axis(-pt.s * dt)),
+            1 => {
+                v[0] *= units[0];
+                v[1] *= units[1];
+            }
+            _ => {
+                let f = match powers.get_mut(m) {
+                    Some(slot) => *slot.get_or_insert_with(|| units.map(|u| u.powu(m as u32))),
+                    None => units.map(|u| u.powu(m as u32)),
+                };
+                v[0] *= f[0];
+                v[1] *= f[1];
+            }
+        }
+        out.push(v);
+    }
+}
+
 /// The templates `T` at `points` from the delays' phasors `e12` there (see
 /// [`LpfX::fast_transfer_grid`]). Compiled for AVX where the CPU has it: the same operations
 /// in the same order (no FMA), so the same numbers on every x86-64.
@@ -468,9 +509,13 @@ impl LpfX {
             // Templates only: the phasors first (a recurrence), then the closed form point by
             // point (a map, vectorised by `templates`).
             let mut e12 = Vec::with_capacity(points.len());
-            for (k, pt) in points.iter().enumerate() {
-                let step = spacing.step(points, k);
-                e12.push([ph1.at(k, pt.s, step), ph2.at(k, pt.s, step)]);
+            if let Spacing::Lattice(ds0, _) = spacing {
+                lattice_phasors(points, spacing, ds0, [p[DT1], p[DT12]], &mut e12);
+            } else {
+                for (k, pt) in points.iter().enumerate() {
+                    let step = spacing.step(points, k);
+                    e12.push([ph1.at(k, pt.s, step), ph2.at(k, pt.s, step)]);
+                }
             }
             templates(&x, points, &e12, t_out);
             return;
