@@ -932,6 +932,43 @@ pub const THESIS_SIGMA: [(&str, f64); 7] = [
 mod tests {
     use super::*;
 
+    /// Oracle: `Phasor::at` point by point (the recurrence the campaign's outputs were made
+    /// with), bit for bit, on a lattice of 700 points with steps of 1 to 200 spacings (kept
+    /// powers and powers computed each time) across several exact restarts.
+    #[test]
+    fn lattice_phasors_are_phasor_at_bit_for_bit() {
+        let m = LpfX::from_spec(&ModelSpec::embedded_continuous());
+        let mut k = 3usize;
+        let mut bins = vec![1usize, 2, 3];
+        for g in 0..700usize {
+            k += 1 + if g % 5 == 0 { g % 200 } else { 0 };
+            bins.push(k);
+        }
+        let pts: Vec<LpfPoint> = bins
+            .iter()
+            .map(|&k| m.prepare(k as f64 / 21600.0))
+            .collect();
+        let spacing = Spacing::of(&pts);
+        let Spacing::Lattice(ds0, _) = spacing else {
+            panic!("not a lattice")
+        };
+        let dts = [0.1031, 0.2987];
+        let mut got = Vec::new();
+        lattice_phasors(&pts, spacing, ds0, dts, &mut got);
+        let (mut a, mut b) = (Phasor::new(dts[0]), Phasor::new(dts[1]));
+        for (k, pt) in pts.iter().enumerate() {
+            let step = spacing.step(&pts, k);
+            let want = [a.at(k, pt.s, step), b.at(k, pt.s, step)];
+            for (g, w) in got[k].iter().zip(want) {
+                assert_eq!(
+                    (g.re.to_bits(), g.im.to_bits()),
+                    (w.re.to_bits(), w.im.to_bits()),
+                    "point {k}"
+                );
+            }
+        }
+    }
+
     /// Oracle: the templates point by point with `Complex64`'s operators
     /// (`templates_pointwise`, the code the four-lane kernel replaced), bit for bit, on the
     /// continuous and the digital loop, at the truth and at a point off it, on grids of every
