@@ -38,7 +38,10 @@ pub use whittle::{WhittleLikelihood, WhittleProblem};
 
 use crate::data::Series;
 use crate::model::closed_loop::{check_stability, ClosedLoopModel};
+#[cfg(target_arch = "x86_64")]
+use crate::numerics::linalg::dot_block_avx;
 use crate::numerics::linalg::{dot, series_gram, spd_inverse, Plane};
+use crate::numerics::linalg::{dot_block, dot_lanes};
 
 #[derive(Debug, thiserror::Error)]
 pub enum FitError {
@@ -610,12 +613,12 @@ fn gradient_body<T: Plane>(j: &[Vec<Vec<Vec<T>>>], r: &Series) -> DVector<f64> {
     gradient_with(j, r, dot_block)
 }
 
-/// [`gradient`] with the kernel `block` that takes [`dot_block`]'s place.
+/// [`gradient`] with the kernel `block` ([`dot_block`] or its AVX form).
 #[inline(always)]
 fn gradient_with<T: Plane>(
     j: &[Vec<Vec<Vec<T>>>],
     r: &Series,
-    block: impl Fn(&[&[T]], &[f64], &mut [f64; GRADIENT_BLOCK]),
+    block: impl Fn(&[&[T]], &[f64], &mut [f64]),
 ) -> DVector<f64> {
     let np = j.len();
     // dots[k][(e, c)]: the channel dot products, summed below in series_dot's order.
@@ -654,117 +657,6 @@ fn gradient_with<T: Plane>(
         }
     }
     DVector::from_fn(np, |k, _| dots[k].iter().copied().sum::<f64>())
-}
-
-/// `out[k] = dot(cols[k], r)` for up to [`GRADIENT_BLOCK`] columns of `r`'s length, with
-/// [`dot`]'s four lanes `acc[i] += x[4m + i] y[4m + i]`, its sequential tail and its final
-/// `(acc0 + acc1) + (acc2 + acc3) + tail`, so each result is bit-identical to `dot`'s. The
-/// columns go in groups of four, two and one ([`dot_lanes`]): each accumulator sees the same
-/// additions in the same order, and a group's `4 K` accumulators stay in registers (eight
-/// columns at once spilled them to the stack, and every update waited on a store).
-#[inline(always)]
-fn dot_block<T: Plane>(cols: &[&[T]], r: &[f64], out: &mut [f64; GRADIENT_BLOCK]) {
-    let nb = cols.len().min(GRADIENT_BLOCK);
-    let mut k = 0;
-    while nb - k >= 4 {
-        let v = dot_lanes::<T, 4>(std::array::from_fn(|i| cols[k + i]), r);
-        out[k..k + 4].copy_from_slice(&v);
-        k += 4;
-    }
-    if nb - k >= 2 {
-        let v = dot_lanes::<T, 2>(std::array::from_fn(|i| cols[k + i]), r);
-        out[k..k + 2].copy_from_slice(&v);
-        k += 2;
-    }
-    if k < nb {
-        out[k] = dot_lanes::<T, 1>([cols[k]], r)[0];
-    }
-}
-
-/// [`dot_block`] in AVX registers, written with the intrinsics: per column and four values
-/// of `r`, one product and one sum of four lanes (the compiler, left to itself, vectorised
-/// across the columns and spent its time transposing). The same operations in the same
-/// order as [`dot_lanes`].
-///
-/// # Safety
-/// The CPU must have AVX.
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx")]
-fn dot_block_avx<T: Plane>(cols: &[&[T]], r: &[f64], out: &mut [f64; GRADIENT_BLOCK]) {
-    let nb = cols.len().min(GRADIENT_BLOCK);
-    let mut k = 0;
-    while nb - k >= 4 {
-        let v = dot_lanes_avx::<T, 4>(std::array::from_fn(|i| cols[k + i]), r);
-        out[k..k + 4].copy_from_slice(&v);
-        k += 4;
-    }
-    if nb - k >= 2 {
-        let v = dot_lanes_avx::<T, 2>(std::array::from_fn(|i| cols[k + i]), r);
-        out[k..k + 2].copy_from_slice(&v);
-        k += 2;
-    }
-    if k < nb {
-        out[k] = dot_lanes_avx::<T, 1>([cols[k]], r)[0];
-    }
-}
-
-/// [`dot_lanes`] with AVX intrinsics (see [`dot_block_avx`]).
-#[cfg(target_arch = "x86_64")]
-#[target_feature(enable = "avx")]
-fn dot_lanes_avx<T: Plane, const K: usize>(cols: [&[T]; K], r: &[f64]) -> [f64; K] {
-    use std::arch::x86_64::{
-        _mm256_add_pd, _mm256_loadu_pd, _mm256_mul_pd, _mm256_setzero_pd, _mm256_storeu_pd,
-    };
-    let n4 = r.len() / 4 * 4;
-    assert!(cols.iter().all(|c| c.len() >= n4));
-    let mut acc = [_mm256_setzero_pd(); K];
-    let mut m = 0;
-    while m < n4 {
-        // SAFETY: m + 4 <= n4 <= the length of r and of every column (asserted above).
-        let y = unsafe { _mm256_loadu_pd(r.as_ptr().add(m)) };
-        for (a, x) in acc.iter_mut().zip(&cols) {
-            // SAFETY: as above; the CPU has AVX (this function's contract).
-            let x = unsafe { T::load4(x.as_ptr().add(m)) };
-            *a = _mm256_add_pd(*a, _mm256_mul_pd(x, y));
-        }
-        m += 4;
-    }
-    std::array::from_fn(|k| {
-        let mut tail = 0.0;
-        for (&x, y) in cols[k][n4..].iter().zip(&r[n4..]) {
-            tail += x.into() * y;
-        }
-        let mut a = [0.0; 4];
-        // SAFETY: `a` holds four values.
-        unsafe { _mm256_storeu_pd(a.as_mut_ptr(), acc[k]) };
-        (a[0] + a[1]) + (a[2] + a[3]) + tail
-    })
-}
-
-/// [`dot`] of `K` columns (each of `r`'s length) with `r` in one pass over `r`: per column the
-/// four lanes `acc[i] += x[4m + i] y[4m + i]`, the sequential tail, then
-/// `(acc0 + acc1) + (acc2 + acc3) + tail`.
-#[inline(always)]
-fn dot_lanes<T: Plane, const K: usize>(cols: [&[T]; K], r: &[f64]) -> [f64; K] {
-    let n4 = r.len() / 4 * 4;
-    let xs: [&[T]; K] = cols.map(|c| &c[..n4]);
-    let mut acc = [[0.0f64; 4]; K];
-    for (m, y) in r[..n4].chunks_exact(4).enumerate() {
-        for (a, x) in acc.iter_mut().zip(&xs) {
-            let x = &x[4 * m..4 * m + 4];
-            for i in 0..4 {
-                a[i] += x[i].into() * y[i];
-            }
-        }
-    }
-    std::array::from_fn(|k| {
-        let mut tail = 0.0;
-        for (&x, y) in cols[k][n4..].iter().zip(&r[n4..]) {
-            tail += x.into() * y;
-        }
-        let a = acc[k];
-        (a[0] + a[1]) + (a[2] + a[3]) + tail
-    })
 }
 
 /// Weighted normal equations `A = J^T W J`, `g = J^T W r` (with `J = d template / dp`).

@@ -62,6 +62,129 @@ impl Plane for f32 {
     }
 }
 
+/// `out[k] = dot(cols[k], r)` for the columns `cols` (each of `r`'s length; `out` at least as long), with
+/// [`dot`]'s four lanes `acc[i] += x[4m + i] y[4m + i]`, its sequential tail and its final
+/// `(acc0 + acc1) + (acc2 + acc3) + tail`, so each result is bit-identical to `dot`'s. The
+/// columns go in groups of four, two and one ([`dot_lanes`]): each accumulator sees the same
+/// additions in the same order, and a group's `4 K` accumulators stay in registers (eight
+/// columns at once spilled them to the stack, and every update waited on a store), while
+/// the groups' independent sums keep the adder busy (one column alone waits on each sum).
+#[inline(always)]
+pub(crate) fn dot_block<T: Plane>(cols: &[&[T]], r: &[f64], out: &mut [f64]) {
+    let nb = cols.len();
+    let mut k = 0;
+    while nb - k >= 4 {
+        let v = dot_lanes::<T, 4>(std::array::from_fn(|i| cols[k + i]), r);
+        out[k..k + 4].copy_from_slice(&v);
+        k += 4;
+    }
+    if nb - k >= 2 {
+        let v = dot_lanes::<T, 2>(std::array::from_fn(|i| cols[k + i]), r);
+        out[k..k + 2].copy_from_slice(&v);
+        k += 2;
+    }
+    if k < nb {
+        out[k] = dot_lanes::<T, 1>([cols[k]], r)[0];
+    }
+}
+
+/// [`dot_block`] in AVX registers, written with the intrinsics: per column and four values
+/// of `r`, one product and one sum of four lanes (the compiler, left to itself, vectorised
+/// across the columns and spent its time transposing). The same operations in the same
+/// order as [`dot_lanes`].
+///
+/// # Safety
+/// The CPU must have AVX.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx")]
+pub(crate) fn dot_block_avx<T: Plane>(cols: &[&[T]], r: &[f64], out: &mut [f64]) {
+    let nb = cols.len();
+    let mut k = 0;
+    while nb - k >= 4 {
+        let v = dot_lanes_avx::<T, 4>(std::array::from_fn(|i| cols[k + i]), r);
+        out[k..k + 4].copy_from_slice(&v);
+        k += 4;
+    }
+    if nb - k >= 2 {
+        let v = dot_lanes_avx::<T, 2>(std::array::from_fn(|i| cols[k + i]), r);
+        out[k..k + 2].copy_from_slice(&v);
+        k += 2;
+    }
+    if k < nb {
+        out[k] = dot_lanes_avx::<T, 1>([cols[k]], r)[0];
+    }
+}
+
+/// [`dot_lanes`] with AVX intrinsics (see [`dot_block_avx`]).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx")]
+fn dot_lanes_avx<T: Plane, const K: usize>(cols: [&[T]; K], r: &[f64]) -> [f64; K] {
+    use std::arch::x86_64::{
+        _mm256_add_pd, _mm256_loadu_pd, _mm256_mul_pd, _mm256_setzero_pd, _mm256_storeu_pd,
+    };
+    let n4 = r.len() / 4 * 4;
+    assert!(cols.iter().all(|c| c.len() >= n4));
+    let mut acc = [_mm256_setzero_pd(); K];
+    let mut m = 0;
+    while m < n4 {
+        // SAFETY: m + 4 <= n4 <= the length of r and of every column (asserted above).
+        let y = unsafe { _mm256_loadu_pd(r.as_ptr().add(m)) };
+        for (a, x) in acc.iter_mut().zip(&cols) {
+            // SAFETY: as above; the CPU has AVX (this function's contract).
+            let x = unsafe { T::load4(x.as_ptr().add(m)) };
+            *a = _mm256_add_pd(*a, _mm256_mul_pd(x, y));
+        }
+        m += 4;
+    }
+    std::array::from_fn(|k| {
+        let mut tail = 0.0;
+        for (&x, y) in cols[k][n4..].iter().zip(&r[n4..]) {
+            tail += x.into() * y;
+        }
+        let mut a = [0.0; 4];
+        // SAFETY: `a` holds four values.
+        unsafe { _mm256_storeu_pd(a.as_mut_ptr(), acc[k]) };
+        (a[0] + a[1]) + (a[2] + a[3]) + tail
+    })
+}
+
+/// [`dot`] of `K` columns (each of `r`'s length) with `r` in one pass over `r`: per column the
+/// four lanes `acc[i] += x[4m + i] y[4m + i]`, the sequential tail, then
+/// `(acc0 + acc1) + (acc2 + acc3) + tail`.
+#[inline(always)]
+pub(crate) fn dot_lanes<T: Plane, const K: usize>(cols: [&[T]; K], r: &[f64]) -> [f64; K] {
+    let n4 = r.len() / 4 * 4;
+    let xs: [&[T]; K] = cols.map(|c| &c[..n4]);
+    let mut acc = [[0.0f64; 4]; K];
+    for (m, y) in r[..n4].chunks_exact(4).enumerate() {
+        for (a, x) in acc.iter_mut().zip(&xs) {
+            let x = &x[4 * m..4 * m + 4];
+            for i in 0..4 {
+                a[i] += x[i].into() * y[i];
+            }
+        }
+    }
+    std::array::from_fn(|k| {
+        let mut tail = 0.0;
+        for (&x, y) in cols[k][n4..].iter().zip(&r[n4..]) {
+            tail += x.into() * y;
+        }
+        let a = acc[k];
+        (a[0] + a[1]) + (a[2] + a[3]) + tail
+    })
+}
+
+/// `out[k] = dot(cols[k], r)` for every column: [`dot_block`], compiled for AVX where the CPU
+/// has it (the same numbers).
+pub fn dots<T: Plane>(cols: &[&[T]], r: &[f64], out: &mut [f64]) {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx") {
+        // SAFETY: the CPU has AVX (checked just above).
+        return unsafe { dot_block_avx(cols, r, out) };
+    }
+    dot_block(cols, r, out)
+}
+
 /// `sum` of [`dot`] over experiments and channels of two series `x[e][c][t]`.
 pub fn series_dot(a: &[Vec<Vec<f64>>], b: &[Vec<Vec<f64>>]) -> f64 {
     a.iter()

@@ -187,6 +187,30 @@ fn packed_times<const N: usize>(g: &[f64], s: &[f64], y: &mut [f64]) {
     }
 }
 
+/// [`packed_times`] of two nodes at once, `y1 += g[0] s[0]` and `y2 += g[1] s[1]`, their
+/// operations interleaved (each node's in [`packed_times`]'s order).
+#[inline(always)]
+fn packed_times2<const N: usize>(g: [&[f64]; 2], s: [&[f64]; 2], y1: &mut [f64], y2: &mut [f64]) {
+    let (n2, n4) = (N * N, N * N * N * N);
+    let (g1r, g1i) = g[0][..2 * n4].split_at(n4);
+    let (g2r, g2i) = g[1][..2 * n4].split_at(n4);
+    let (s1r, s1i) = s[0][..2 * n2].split_at(n2);
+    let (s2r, s2i) = s[1][..2 * n2].split_at(n2);
+    let (y1r, y1i) = y1[..2 * n2].split_at_mut(n2);
+    let (y2r, y2i) = y2[..2 * n2].split_at_mut(n2);
+    for n in 0..n2 {
+        let (c1r, c1i) = (&g1r[n * n2..(n + 1) * n2], &g1i[n * n2..(n + 1) * n2]);
+        let (c2r, c2i) = (&g2r[n * n2..(n + 1) * n2], &g2i[n * n2..(n + 1) * n2]);
+        let (a1, b1, a2, b2) = (s1r[n], s1i[n], s2r[n], s2i[n]);
+        for m in 0..n2 {
+            y1r[m] += c1r[m] * a1 - c1i[m] * b1;
+            y1i[m] += c1r[m] * b1 + c1i[m] * a1;
+            y2r[m] += c2r[m] * a2 - c2i[m] * b2;
+            y2i[m] += c2r[m] * b2 + c2i[m] * a2;
+        }
+    }
+}
+
 /// The arithmetic of [`WhittleQuadrature::node_terms`] over a grid's `M` nodes, on [`split`]
 /// arrays: `a += sum_q aw_q dp_q` (`a` becomes `a(p)`), `pairs[q] = Re <S, aw_q>` if asked,
 /// `y = G S` node by node over the [`packed_band`] `band`; returns `(Re S^H G S, Re <S, a(p)>)`.
@@ -244,25 +268,52 @@ fn node_kernel_body<const N: usize>(
         }
         sc
     });
-    for ((q, dpq), awq) in dp.iter().enumerate().zip(aw.chunks_exact(m * w)) {
+    for (dpq, awq) in dp.iter().zip(aw.chunks_exact(m * w)) {
         a.iter_mut().zip(awq).for_each(|(x, v)| *x += v * dpq);
-        if let (Some(pairs), Some(sc)) = (pairs.as_deref_mut(), sc.as_ref()) {
-            pairs[q] = crate::numerics::linalg::dot(sc, awq);
+    }
+    if let (Some(pairs), Some(sc)) = (pairs.as_deref_mut(), sc.as_ref()) {
+        // Every parameter's `dot(sc, aw_q)` side by side (one sum alone waits on its adder).
+        let cols: Vec<&[f64]> = aw.chunks_exact(m * w).take(dp.len()).collect();
+        crate::numerics::linalg::dots(&cols, sc, &mut pairs[..cols.len()]);
+    }
+    // `y = G S` node by node; interior nodes two at a time, their sums interleaved (each
+    // node's in its own order), so that one node's additions run while the other's wait.
+    let s_at = |j: usize| &s[j * w..(j + 1) * w];
+    let mut j = 0;
+    while j < m {
+        let (lo, rest) = y[j * w..].split_at_mut(w);
+        let row = &band[3 * b * j..3 * b * (j + 1)];
+        if j > 0 && j + 2 < m {
+            let row2 = &band[3 * b * (j + 1)..3 * b * (j + 2)];
+            let hi = &mut rest[..w];
+            packed_times2::<N>([&row[..b], &row2[..b]], [s_at(j - 1), s_at(j)], lo, hi);
+            packed_times2::<N>(
+                [&row[b..2 * b], &row2[b..2 * b]],
+                [s_at(j), s_at(j + 1)],
+                lo,
+                hi,
+            );
+            packed_times2::<N>(
+                [&row[2 * b..], &row2[2 * b..]],
+                [s_at(j + 1), s_at(j + 2)],
+                lo,
+                hi,
+            );
+            j += 2;
+            continue;
         }
+        if j > 0 {
+            packed_times::<N>(&row[..b], s_at(j - 1), lo);
+        }
+        packed_times::<N>(&row[b..2 * b], s_at(j), lo);
+        if j + 1 < m {
+            packed_times::<N>(&row[2 * b..], s_at(j + 1), lo);
+        }
+        j += 1;
     }
     let (mut quadratic, mut linear) = (0.0, 0.0);
     for j in 0..m {
-        let sj = &s[j * w..(j + 1) * w];
-        let aj = &a[j * w..(j + 1) * w];
-        let yj = &mut y[j * w..(j + 1) * w];
-        let row = &band[3 * b * j..3 * b * (j + 1)];
-        if j > 0 {
-            packed_times::<N>(&row[..b], &s[(j - 1) * w..j * w], yj);
-        }
-        packed_times::<N>(&row[b..2 * b], sj, yj);
-        if j + 1 < m {
-            packed_times::<N>(&row[2 * b..], &s[(j + 1) * w..(j + 2) * w], yj);
-        }
+        let (sj, aj, yj) = (s_at(j), &a[j * w..(j + 1) * w], &y[j * w..(j + 1) * w]);
         for k in 0..n2 {
             quadratic += yj[k] * sj[k] + yj[n2 + k] * sj[n2 + k];
             linear += sj[k] * aj[k] - sj[n2 + k] * aj[n2 + k];
@@ -830,5 +881,45 @@ mod tests {
             )
         };
         assert_eq!(run(true), run(false));
+        // Oracle 2: node by node, one parameter's dot product after the other (the kernel
+        // before its sums were interleaved).
+        let reference = || {
+            let (mut a, mut y, mut pairs) = (a0.clone(), vec![0.0; m * w], vec![0.0; np]);
+            let mut sc = s.clone();
+            for z in sc.chunks_exact_mut(w) {
+                z[4..].iter_mut().for_each(|v| *v = -*v);
+            }
+            for ((q, dpq), awq) in dp.iter().enumerate().zip(aw.chunks_exact(m * w)) {
+                a.iter_mut().zip(awq).for_each(|(x, v)| *x += v * dpq);
+                pairs[q] = crate::numerics::linalg::dot(&sc, awq);
+            }
+            let (mut quadratic, mut linear) = (0.0f64, 0.0f64);
+            for j in 0..m {
+                let sj = &s[j * w..(j + 1) * w];
+                let yj = &mut y[j * w..(j + 1) * w];
+                let row = &band[3 * b * j..3 * b * (j + 1)];
+                if j > 0 {
+                    super::packed_times::<2>(&row[..b], &s[(j - 1) * w..j * w], yj);
+                }
+                super::packed_times::<2>(&row[b..2 * b], sj, yj);
+                if j + 1 < m {
+                    super::packed_times::<2>(&row[2 * b..], &s[(j + 1) * w..(j + 2) * w], yj);
+                }
+                let aj = &a[j * w..(j + 1) * w];
+                for k in 0..4 {
+                    quadratic += yj[k] * sj[k] + yj[4 + k] * sj[4 + k];
+                    linear += sj[k] * aj[k] - sj[4 + k] * aj[4 + k];
+                }
+            }
+            let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            (
+                quadratic.to_bits(),
+                linear.to_bits(),
+                bits(&a),
+                bits(&y),
+                bits(&pairs),
+            )
+        };
+        assert_eq!(run(true), reference());
     }
 }
