@@ -256,7 +256,7 @@ fn node_kernel_body<const N: usize>(
     dp: &[f64],
     a: &mut [f64],
     y: &mut [f64],
-    mut pairs: Option<&mut [f64]>,
+    pairs: Option<&mut [f64]>,
 ) -> (f64, f64) {
     let (n2, w, b) = (N * N, 2 * N * N, 2 * N * N * N * N);
     let m = s.len() / w;
@@ -271,7 +271,7 @@ fn node_kernel_body<const N: usize>(
     for (dpq, awq) in dp.iter().zip(aw.chunks_exact(m * w)) {
         a.iter_mut().zip(awq).for_each(|(x, v)| *x += v * dpq);
     }
-    if let (Some(pairs), Some(sc)) = (pairs.as_deref_mut(), sc.as_ref()) {
+    if let (Some(pairs), Some(sc)) = (pairs, sc.as_ref()) {
         // Every parameter's `dot(sc, aw_q)` side by side (one sum alone waits on its adder).
         let cols: Vec<&[f64]> = aw.chunks_exact(m * w).take(dp.len()).collect();
         crate::numerics::linalg::dots(&cols, sc, &mut pairs[..cols.len()]);
