@@ -29,8 +29,8 @@
 //! its derivatives from the zero-padded template engine's linear templates and their analytic
 //! derivatives (`forward::TemplateEngine`), computed once. The derivatives are kept in single
 //! precision (every evaluation reads them from memory: half the bytes); their rounding moves
-//! a residual by at most 6e-8 of the first-order term `dV/dp (p - p0)`, itself a small part of
-//! `V`, in units of the noise's standard deviation.
+//! a residual by at most `2^-24 sum_q |dV/dp_q (p - p0)_q|` (6e-8 of the first-order term's
+//! parts, themselves a small part of `V`).
 //!
 //! # What it assumes
 //! The Whittle likelihood is exact for noise whose Fourier coefficients are independent
@@ -128,6 +128,8 @@ struct Grid<P, const N: usize> {
     points: Vec<P>,
     /// `sqrt(4 / T) L_k^-1` at the kept bins.
     winv: Vec<CMat<N>>,
+    /// The same in the residual kernel's layout ([`lanes::pack_lower`]).
+    winv_lanes: Vec<f64>,
     /// The experiments on this grid.
     exps: Vec<usize>,
 }
@@ -152,8 +154,8 @@ pub struct WhittleLikelihood<'m, M: ClosedLoopModel<N>, const N: usize> {
     dwrap: Vec<Vec<[Complex64; N]>>,
     /// Per experiment, what the residuals read at every evaluation, in blocks of four kept
     /// bins ([`lanes::Packed`]): the wrap-around and its derivatives (single precision:
-    /// `dwrap` holds these values exactly, see [`WhittleLikelihood::set_wrap`]), the inputs
-    /// and the whitening factors.
+    /// `dwrap` holds these values exactly, see [`WhittleLikelihood::set_wrap`]) and the
+    /// inputs.
     packed: Vec<lanes::Packed<N>>,
     /// Per experiment, at every bin `k - 1`: the whitened linear template at `p0`, which the
     /// dropped bins' residuals hold fixed.
@@ -248,13 +250,15 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> WhittleLikelihood<'m, M, N> {
                 .map(|e| &spectra[e])
                 .collect();
             let kept = kept_bins(model, (n, dt), winv_all, &exps, at, tolerance);
+            let winv: Vec<CMat<N>> = kept.iter().map(|&k| winv_all[k - 1]).collect();
             out_grids.push(Grid {
                 n,
                 points: kept
                     .iter()
                     .map(|&k| model.prepare(k as f64 / (n as f64 * dt)))
                     .collect(),
-                winv: kept.iter().map(|&k| winv_all[k - 1]).collect(),
+                winv_lanes: lanes::pack_lower(&winv),
+                winv,
                 kept,
                 exps: (0..lens.len()).filter(|&e| grid_of[e] == g).collect(),
             });
@@ -385,7 +389,6 @@ impl<'m, M: ClosedLoopModel<N>, const N: usize> WhittleLikelihood<'m, M, N> {
                     &self.dwrap[e],
                     &self.inputs[e],
                     &self.present[e],
-                    &self.grids[self.grid_of[e]].winv,
                 )
             })
             .collect();
@@ -784,7 +787,7 @@ impl<M: ClosedLoopModel<N>, const N: usize> Residuals for WhittleProblem<'_, '_,
             for e in (0..lik.n_experiments()).filter(|&e| lik.grid_of[e] == g) {
                 let (o, d) = (&mut out[e], &self.data_w[e]);
                 o[N].copy_from_slice(&d[N]);
-                lanes::residuals(&lik.packed[e], &t, &dp, d, o);
+                lanes::residuals(&lik.packed[e], &t, &grid.winv_lanes, &dp, d, o);
             }
         }
     }

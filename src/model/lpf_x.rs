@@ -405,17 +405,17 @@ impl Spacing {
 /// Powers of a lattice's unit factor kept by [`lattice_phasors`]: steps of fewer spacings.
 const LATTICE_POWERS: usize = 64;
 
-/// Both delays' phasors `exp(-s dt)` on a lattice grid (`spacing`, of spacing `ds0`): the
-/// numbers of [`Phasor::at`] point by point, bit for bit, in one loop over the grid for both
-/// delays, with the unit factors made first and their powers for steps of a few spacings kept
-/// (every power is the same `powu` of the same unit, so the same bits).
+/// Both delays' phasors `exp(-s dt)` on a grid that is the lattice `Spacing::Lattice(ds0,
+/// inv)`: the numbers of [`Phasor::at`] point by point, bit for bit, in one loop over the grid
+/// for both delays, with the unit factors made first and their powers for steps of a few
+/// spacings kept (every power is the same `powu` of the same unit, so the same bits).
 fn lattice_phasors(
     points: &[LpfPoint],
-    spacing: Spacing,
-    ds0: Complex64,
+    (ds0, inv): (Complex64, f64),
     dts: [f64; 2],
     out: &mut Vec<[Complex64; 2]>,
 ) {
+    let spacing = Spacing::Lattice(ds0, inv);
     let units = dts.map(|dt| exp_axis(-ds0 * dt));
     let mut powers = [None::<[Complex64; 2]>; LATTICE_POWERS];
     let mut v = [Complex64::new(1.0, 0.0); 2];
@@ -452,21 +452,16 @@ fn templates(x: &XLoop, points: &[LpfPoint], e12: &[[Complex64; 2]], t_out: &mut
         // SAFETY: the CPU has AVX (checked just above).
         return unsafe { templates_avx(x, points, e12, t_out) };
     }
-    templates_body(x, points, e12, t_out)
+    lanes::templates(x, points, e12, t_out)
 }
 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx")]
 fn templates_avx(x: &XLoop, points: &[LpfPoint], e12: &[[Complex64; 2]], t_out: &mut [CMat<2>]) {
-    templates_body(x, points, e12, t_out)
-}
-
-#[inline(always)]
-fn templates_body(x: &XLoop, points: &[LpfPoint], e12: &[[Complex64; 2]], t_out: &mut [CMat<2>]) {
     lanes::templates(x, points, e12, t_out)
 }
 
-/// [`templates_body`] point by point with [`Complex64`]'s operators: what the four-lane
+/// [`templates`] point by point with [`Complex64`]'s operators: what the four-lane
 /// kernel must reproduce bit for bit.
 #[cfg(test)]
 fn templates_pointwise(
@@ -509,8 +504,8 @@ impl LpfX {
             // Templates only: the phasors first (a recurrence), then the closed form point by
             // point (a map, vectorised by `templates`).
             let mut e12 = Vec::with_capacity(points.len());
-            if let Spacing::Lattice(ds0, _) = spacing {
-                lattice_phasors(points, spacing, ds0, [p[DT1], p[DT12]], &mut e12);
+            if let Spacing::Lattice(ds0, inv) = spacing {
+                lattice_phasors(points, (ds0, inv), [p[DT1], p[DT12]], &mut e12);
             } else {
                 for (k, pt) in points.iter().enumerate() {
                     let step = spacing.step(points, k);
@@ -949,12 +944,12 @@ mod tests {
             .map(|&k| m.prepare(k as f64 / 21600.0))
             .collect();
         let spacing = Spacing::of(&pts);
-        let Spacing::Lattice(ds0, _) = spacing else {
+        let Spacing::Lattice(ds0, inv) = spacing else {
             panic!("not a lattice")
         };
         let dts = [0.1031, 0.2987];
         let mut got = Vec::new();
-        lattice_phasors(&pts, spacing, ds0, dts, &mut got);
+        lattice_phasors(&pts, (ds0, inv), dts, &mut got);
         let (mut a, mut b) = (Phasor::new(dts[0]), Phasor::new(dts[1]));
         for (k, pt) in pts.iter().enumerate() {
             let step = spacing.step(&pts, k);

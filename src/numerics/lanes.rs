@@ -20,12 +20,16 @@ pub struct C4 {
 }
 
 impl C4 {
+    /// Zero in every lane.
+    pub const ZERO: C4 = C4 {
+        re: [0.0; L],
+        im: [0.0; L],
+    };
+
+    /// Lane `l` is `f(l)`.
     #[inline(always)]
     pub fn of(f: impl Fn(usize) -> Complex64) -> C4 {
-        let mut z = C4 {
-            re: [0.0; L],
-            im: [0.0; L],
-        };
+        let mut z = C4::ZERO;
         for l in 0..L {
             let v = f(l);
             z.re[l] = v.re;
@@ -34,8 +38,35 @@ impl C4 {
         z
     }
 
+    /// The lanes of a lane-major block `v`: `v[0..4]` the real parts, `v[4..8]` the imaginary
+    /// ones.
     #[inline(always)]
-    pub fn map(self, o: C4, f: impl Fn(f64, f64, f64, f64) -> (f64, f64)) -> C4 {
+    pub fn packed(v: &[f64]) -> C4 {
+        C4 {
+            re: std::array::from_fn(|l| v[l]),
+            im: std::array::from_fn(|l| v[L + l]),
+        }
+    }
+
+    /// Lane `l`.
+    #[inline(always)]
+    pub fn get(&self, l: usize) -> Complex64 {
+        Complex64::new(self.re[l], self.im[l])
+    }
+
+    /// `f(re, im)` lane by lane, giving `(re, im)`.
+    #[inline(always)]
+    pub fn each(self, f: impl Fn(f64, f64) -> (f64, f64)) -> C4 {
+        let mut z = self;
+        for l in 0..L {
+            (z.re[l], z.im[l]) = f(self.re[l], self.im[l]);
+        }
+        z
+    }
+
+    /// `f(a.re, a.im, b.re, b.im)` lane by lane of `a = self` and `b = o`.
+    #[inline(always)]
+    fn zip_with(self, o: C4, f: impl Fn(f64, f64, f64, f64) -> (f64, f64)) -> C4 {
         let mut z = self;
         for l in 0..L {
             (z.re[l], z.im[l]) = f(self.re[l], self.im[l], o.re[l], o.im[l]);
@@ -46,36 +77,19 @@ impl C4 {
     /// `self * f` of a real `f`.
     #[inline(always)]
     pub fn scale(self, f: f64) -> C4 {
-        self.map(self, |ar, ai, _, _| (ar * f, ai * f))
+        self.each(|re, im| (re * f, im * f))
     }
 
     /// `self + f` of a real `f`.
     #[inline(always)]
     pub fn add_re(self, f: f64) -> C4 {
-        self.map(self, |ar, ai, _, _| (ar + f, ai))
+        self.each(|re, im| (re + f, im))
     }
 
+    /// `self - f` of a real `f`.
     #[inline(always)]
-    pub fn get(&self, l: usize) -> Complex64 {
-        Complex64::new(self.re[l], self.im[l])
-    }
-}
-
-impl C4 {
-    /// Zero in every lane.
-    pub const ZERO: C4 = C4 {
-        re: [0.0; L],
-        im: [0.0; L],
-    };
-
-    /// Lanes from four consecutive `(re, im)` pairs `v[..]` of a lane-major block:
-    /// `v[0..4]` the real parts, `v[4..8]` the imaginary ones.
-    #[inline(always)]
-    pub fn packed(v: &[f64]) -> C4 {
-        C4 {
-            re: std::array::from_fn(|l| v[l]),
-            im: std::array::from_fn(|l| v[L + l]),
-        }
+    pub fn sub_re(self, f: f64) -> C4 {
+        self.each(|re, im| (re - f, im))
     }
 }
 
@@ -83,7 +97,7 @@ impl Mul for C4 {
     type Output = C4;
     #[inline(always)]
     fn mul(self, o: C4) -> C4 {
-        self.map(o, |ar, ai, br, bi| (ar * br - ai * bi, ar * bi + ai * br))
+        self.zip_with(o, |ar, ai, br, bi| (ar * br - ai * bi, ar * bi + ai * br))
     }
 }
 
@@ -91,7 +105,7 @@ impl Add for C4 {
     type Output = C4;
     #[inline(always)]
     fn add(self, o: C4) -> C4 {
-        self.map(o, |ar, ai, br, bi| (ar + br, ai + bi))
+        self.zip_with(o, |ar, ai, br, bi| (ar + br, ai + bi))
     }
 }
 
@@ -99,7 +113,7 @@ impl Sub for C4 {
     type Output = C4;
     #[inline(always)]
     fn sub(self, o: C4) -> C4 {
-        self.map(o, |ar, ai, br, bi| (ar - br, ai - bi))
+        self.zip_with(o, |ar, ai, br, bi| (ar - br, ai - bi))
     }
 }
 
@@ -107,6 +121,6 @@ impl Neg for C4 {
     type Output = C4;
     #[inline(always)]
     fn neg(self) -> C4 {
-        self.map(self, |ar, ai, _, _| (-ar, -ai))
+        self.each(|re, im| (-re, -im))
     }
 }

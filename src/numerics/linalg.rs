@@ -62,15 +62,15 @@ impl Plane for f32 {
     }
 }
 
-/// `out[k] = dot(cols[k], r)` for the columns `cols` (each of `r`'s length; `out` at least as long), with
-/// [`dot`]'s four lanes `acc[i] += x[4m + i] y[4m + i]`, its sequential tail and its final
+/// `out[k] = dot(cols[k], r)` for the columns `cols` (each of `r`'s length; `out` at least as
+/// long), with [`dot`]'s four lanes `acc[i] += x[4m + i] y[4m + i]`, its sequential tail and its final
 /// `(acc0 + acc1) + (acc2 + acc3) + tail`, so each result is bit-identical to `dot`'s. The
 /// columns go in groups of four, two and one ([`dot_lanes`]): each accumulator sees the same
 /// additions in the same order, and a group's `4 K` accumulators stay in registers (eight
 /// columns at once spilled them to the stack, and every update waited on a store), while
 /// the groups' independent sums keep the adder busy (one column alone waits on each sum).
 #[inline(always)]
-pub(crate) fn dot_block<T: Plane>(cols: &[&[T]], r: &[f64], out: &mut [f64]) {
+fn dot_block<T: Plane>(cols: &[&[T]], r: &[f64], out: &mut [f64]) {
     let nb = cols.len();
     let mut k = 0;
     while nb - k >= 4 {
@@ -97,7 +97,7 @@ pub(crate) fn dot_block<T: Plane>(cols: &[&[T]], r: &[f64], out: &mut [f64]) {
 /// The CPU must have AVX.
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx")]
-pub(crate) fn dot_block_avx<T: Plane>(cols: &[&[T]], r: &[f64], out: &mut [f64]) {
+fn dot_block_avx<T: Plane>(cols: &[&[T]], r: &[f64], out: &mut [f64]) {
     let nb = cols.len();
     let mut k = 0;
     while nb - k >= 4 {
@@ -152,7 +152,7 @@ fn dot_lanes_avx<T: Plane, const K: usize>(cols: [&[T]; K], r: &[f64]) -> [f64; 
 /// four lanes `acc[i] += x[4m + i] y[4m + i]`, the sequential tail, then
 /// `(acc0 + acc1) + (acc2 + acc3) + tail`.
 #[inline(always)]
-pub(crate) fn dot_lanes<T: Plane, const K: usize>(cols: [&[T]; K], r: &[f64]) -> [f64; K] {
+fn dot_lanes<T: Plane, const K: usize>(cols: [&[T]; K], r: &[f64]) -> [f64; K] {
     let n4 = r.len() / 4 * 4;
     let xs: [&[T]; K] = cols.map(|c| &c[..n4]);
     let mut acc = [[0.0f64; 4]; K];

@@ -12,7 +12,8 @@ use crate::numerics::lanes::{C4, L};
 
 /// An experiment's constants of [`residuals`] in blocks of four kept bins; in each, a
 /// complex value of the four bins is four real parts then four imaginary parts, and the
-/// lanes past the last bin are zero.
+/// lanes past the last bin are zero. (The whitening factors are the grid's, packed once per
+/// grid by [`pack_lower`].)
 pub(super) struct Packed<const N: usize> {
     bins: usize,
     params: usize,
@@ -25,8 +26,19 @@ pub(super) struct Packed<const N: usize> {
     dwrap: Vec<f32>,
     /// Per block: the present inputs.
     x: Vec<f64>,
-    /// Per block: the whitening factor's lower triangle, row by row.
-    winv: Vec<f64>,
+}
+
+/// The lower triangles of a grid's whitening factors `winv`, row by row, in blocks of four
+/// kept bins (the layout of [`Packed`]), what [`residuals`] takes.
+pub(super) fn pack_lower<const N: usize>(winv: &[CMat<N>]) -> Vec<f64> {
+    let tri: Vec<(usize, usize)> = (0..N).flat_map(|i| (0..=i).map(move |j| (i, j))).collect();
+    let bins = winv.len();
+    pack(
+        bins.div_ceil(L),
+        tri.len(),
+        |i, v| (i < bins).then(|| winv[i][tri[v]]),
+        |v| v,
+    )
 }
 
 /// `values(b)` of every block, each complex value lane-major (see [`Packed`]).
@@ -52,19 +64,17 @@ fn pack<T: Default + Copy>(
 }
 
 impl<const N: usize> Packed<N> {
-    /// From the experiment's per-bin `wrap`, `dwrap` (`[i * params + q]`), inputs `x`, the
-    /// `present` inputs and the grid's whitening factors `winv`.
+    /// From the experiment's per-bin `wrap`, `dwrap` (`[i * params + q]`), inputs `x` and
+    /// the `present` inputs.
     pub(super) fn new(
         wrap: &[[Complex64; N]],
         dwrap: &[[Complex64; N]],
         x: &[[Complex64; N]],
         present: &[usize],
-        winv: &[CMat<N>],
     ) -> Self {
         let bins = wrap.len();
         let params = dwrap.len().checked_div(bins).unwrap_or(0);
         let blocks = bins.div_ceil(L);
-        let tri: Vec<(usize, usize)> = (0..N).flat_map(|i| (0..=i).map(move |j| (i, j))).collect();
         let get = |i: usize| (i < bins).then_some(i);
         Packed {
             bins,
@@ -83,35 +93,33 @@ impl<const N: usize> Packed<N> {
                 |i, v| get(i).map(|i| x[i][present[v]]),
                 |v| v,
             ),
-            winv: pack(
-                blocks,
-                tri.len(),
-                |i, v| get(i).map(|i| winv[i][tri[v]]),
-                |v| v,
-            ),
         }
     }
 }
 
 /// The whitened residuals of one experiment, `o[c][2 i], o[c][2 i + 1] = d - (W T X - V)`
-/// at every kept bin `i`, from the transfer matrices `t` there, `dp = p - p0` and the data
-/// `d` (the experiment's channels; the dropped bins' channel is left alone). Compiled for
-/// AVX where the CPU has it: the same operations in the same order.
+/// at every kept bin `i`, from the transfer matrices `t` there, the grid's whitening factors
+/// `winv` ([`pack_lower`]), `dp = p - p0` and the data `d` (the experiment's channels; the
+/// dropped bins' channel is left alone). Compiled for AVX where the CPU has it: the same
+/// operations in the same order.
 pub(super) fn residuals<const N: usize>(
     pk: &Packed<N>,
     t: &[CMat<N>],
+    winv: &[f64],
     dp: &[f64],
     d: &[Vec<f64>],
     o: &mut [Vec<f64>],
 ) {
+    let ntri = N * (N + 1) / 2;
     assert!(t.len() >= pk.bins && dp.len() == pk.params);
+    assert!(winv.len() >= pk.bins.div_ceil(L) * ntri * 2 * L);
     assert!((0..N).all(|c| d[c].len() >= 2 * pk.bins && o[c].len() >= 2 * pk.bins));
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx") {
         // SAFETY: the CPU has AVX (checked just above).
-        return unsafe { residuals_avx(pk, t, dp, d, o) };
+        return unsafe { residuals_avx(pk, t, winv, dp, d, o) };
     }
-    residuals_body(pk, t, dp, d, o)
+    residuals_body(pk, t, winv, dp, d, o)
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -119,23 +127,25 @@ pub(super) fn residuals<const N: usize>(
 fn residuals_avx<const N: usize>(
     pk: &Packed<N>,
     t: &[CMat<N>],
+    winv: &[f64],
     dp: &[f64],
     d: &[Vec<f64>],
     o: &mut [Vec<f64>],
 ) {
     // The closure has this function's AVX.
-    residuals_with(pk, t, dp, d, o, |w, dw, dp| wrap_block_avx(w, dw, dp))
+    residuals_with(pk, t, winv, dp, d, o, |w, dw, dp| wrap_block_avx(w, dw, dp))
 }
 
 #[inline(always)]
 fn residuals_body<const N: usize>(
     pk: &Packed<N>,
     t: &[CMat<N>],
+    winv: &[f64],
     dp: &[f64],
     d: &[Vec<f64>],
     o: &mut [Vec<f64>],
 ) {
-    residuals_with(pk, t, dp, d, o, wrap_block)
+    residuals_with(pk, t, winv, dp, d, o, wrap_block)
 }
 
 /// `V(p) = V(p0) + sum_q dV_q (p - p0)_q` of one block's `N` channels from its packed
@@ -199,6 +209,7 @@ fn wrap_block_avx<const N: usize>(wrap: &[f64], dwrap: &[f32], dp: &[f64]) -> [C
 fn residuals_with<const N: usize>(
     pk: &Packed<N>,
     t: &[CMat<N>],
+    winv: &[f64],
     dp: &[f64],
     d: &[Vec<f64>],
     o: &mut [Vec<f64>],
@@ -224,7 +235,7 @@ fn residuals_with<const N: usize>(
         for (i, wi) in w.iter_mut().enumerate() {
             let mut s = C4::ZERO;
             for uj in u.iter().take(i + 1) {
-                s = s + C4::packed(&pk.winv[(b * ntri + m) * c4..]) * *uj;
+                s = s + C4::packed(&winv[(b * ntri + m) * c4..]) * *uj;
                 m += 1;
             }
             *wi = s;

@@ -8,7 +8,7 @@ use super::{LpfPoint, XLoop};
 use crate::model::closed_loop::CMat;
 use crate::numerics::lanes::{C4, L};
 
-/// [`super::templates_body`] of one block of four points.
+/// [`templates`] of one block of four points.
 #[inline(always)]
 fn block(x: &XLoop, pts: [&LpfPoint; L], e12: [&[Complex64; 2]; L]) -> [C4; 4] {
     let s2 = C4::of(|l| pts[l].s2);
@@ -18,17 +18,17 @@ fn block(x: &XLoop, pts: [&LpfPoint; L], e12: [&[Complex64; 2]; L]) -> [C4; 4] {
     let e2 = C4::of(|l| e12[l][1]);
     // delta: `[d11, d12, d21, d22]`.
     let big_d22 = s2.add_re(x.k22);
-    let d11 = s2.add_re(x.k11).add_re(-(x.s21 * x.d12r)) + c_df.scale(x.a_df);
+    let d11 = s2.add_re(x.k11).sub_re(x.s21 * x.d12r) + c_df.scale(x.a_df);
     let d12 = c_sus.scale(x.mt * x.a_sus).add_re(x.d12r);
-    let sd = big_d22.scale(x.s21);
-    let d21 = sd.map(sd, |br, bi, _, _| (x.w12 - br, 0.0 - bi));
+    // `c(w12) - big_d22 s21`: a complex difference, `0 - im` included.
+    let d21 = big_d22.scale(x.s21).each(|re, im| (x.w12 - re, 0.0 - im));
     let d22 = big_d22 + c_sus.scale(x.a_sus);
     // m11, m22.
     let m11 = c_df.scale(x.a_df) * e1;
     let m22 = c_sus.scale(x.a_sus) * e2;
     // template.
     let det = d11 * d22 - d12 * d21;
-    let inv_det = det.map(det, |r, i, _, _| {
+    let inv_det = det.each(|r, i| {
         let inv_norm = 1.0 / (r * r + i * i);
         (r * inv_norm, -i * inv_norm)
     });
@@ -43,8 +43,9 @@ fn block(x: &XLoop, pts: [&LpfPoint; L], e12: [&[Complex64; 2]; L]) -> [C4; 4] {
     ]
 }
 
-/// [`super::templates_body`]: whole blocks of four points, then the last partial block
-/// padded with its first point (whose padding results are dropped).
+/// The templates at `points` from the phasors `e12` (see [`super::templates`]): whole blocks
+/// of four points, then the last partial block padded with its first point (whose padding
+/// results are dropped).
 #[inline(always)]
 pub(super) fn templates(
     x: &XLoop,
